@@ -1,0 +1,213 @@
+"""The ``afmid`` command line: a thin shell over plain functions.
+
+Heavy modules (numpy kernels, numba, h5py, matplotlib) are imported inside the
+commands so that ``afmid --help`` stays fast. User errors (:class:`AfmidError`)
+print one line and exit with its code; ``-v`` adds the traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from . import __version__
+
+log = logging.getLogger("afmid")
+_state = {"verbose": 0}
+
+CONFIG_ARG = click.argument("config", type=click.Path(path_type=Path))
+OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the output if it exists.")
+SET = click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="KEY.PATH=VALUE",
+    help="Override a config value, e.g. --set cantilever.quality_factor=200 (repeatable).",
+)
+
+
+def _setup_logging(verbose: int, quiet: bool) -> None:
+    level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s" if verbose else "%(message)s"))
+    root = logging.getLogger("afmid")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
+    logging.captureWarnings(True)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="afmid")
+@click.option("-v", "--verbose", count=True, help="More detail; -v also shows tracebacks of errors.")
+@click.option("-q", "--quiet", is_flag=True, help="Only warnings and errors.")
+def cli(verbose: int, quiet: bool) -> None:
+    """afmid: quantitative tip-sample forces from tapping-mode AFM deflection traces.
+
+    \b
+    Typical loop:
+      afmid init-config -o run.yaml          # write a commented config, edit it
+      afmid simulate configs/dmt.yaml -o trace.h5   # or bring a measured trace
+      afmid fit run.yaml -o run1.h5          # sparse force identification
+      afmid report run1.h5 -o report/        # where the model fails, what is missing
+      afmid fit run.yaml --add viscoelastic -o run2.h5
+      afmid report run1.h5 run2.h5 -o report/
+
+    Units: SI in files; forces are on the tip, positive = repulsive.
+    """
+    _state["verbose"] = verbose
+    _setup_logging(verbose, quiet)
+
+
+@cli.command()
+@CONFIG_ARG
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Trace file to write (.h5).")
+@OVERWRITE
+@SET
+@click.option("--seed", type=int, default=None, help="Random seed (overrides simulate.seed).")
+def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, ...], seed: int | None) -> None:
+    """Simulate a deflection trace from the force model in CONFIG's `simulate:` section.
+
+    Writes an afmid trace file with the ground truth (/truth/force, /truth/separation,
+    /truth/velocity and the exact parameters). See `afmid effects --models`.
+    """
+    from .config import dump_config, load_config
+    from .io import check_output_path, write_trace_file
+
+    extra = list(overrides) + ([f"simulate.seed={seed}"] if seed is not None else [])
+    cfg = load_config(config, extra)
+    check_output_path(output, overwrite)
+    from .simulate import simulate as run_simulation
+
+    trace = run_simulation(cfg, progress=True)
+    write_trace_file(output, trace, dump_config(cfg), overwrite=overwrite)
+    log.info("wrote %s (%d samples, %.1f periods)", output, trace.n_samples, trace.n_periods)
+
+
+@cli.command()
+@CONFIG_ARG
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Run file to write (.h5).")
+@OVERWRITE
+@SET
+@click.option("--add", "add_effects", multiple=True, metavar="EFFECT", help="Add an effect to model.effects (repeatable).")
+@click.option(
+    "--remove", "remove_effects", multiple=True, metavar="EFFECT", help="Remove an effect from model.effects (repeatable)."
+)
+def fit(
+    config: Path,
+    output: Path,
+    overwrite: bool,
+    overrides: tuple[str, ...],
+    add_effects: tuple[str, ...],
+    remove_effects: tuple[str, ...],
+) -> None:
+    """Identify the tip-sample force from the trace in CONFIG and write a run file.
+
+    Loads data.path, segments it into drive periods, differentiates, fits a sparse
+    model over the term library and writes coefficients, physical parameters, the
+    per-sample and per-period forces and diagnostics to OUTPUT (HDF5).
+    """
+    from .config import load_config
+    from .io import check_output_path
+
+    cfg = load_config(config, list(overrides))
+    check_output_path(output, overwrite)
+    from .fit import apply_effect_changes, run_fit, write_run
+
+    apply_effect_changes(cfg, add_effects, remove_effects)
+    result = run_fit(cfg, progress=True)
+    write_run(output, result, cfg, overwrite=overwrite)
+    log.info("wrote %s: %s", output, result.summary_line())
+
+
+@cli.command()
+@click.argument("runs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Report folder to write.")
+@OVERWRITE
+@click.option("--no-suggest", is_flag=True, help="Skip refitting with candidate effects.")
+def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bool) -> None:
+    """Compare run files: where the model fails, which effect is missing, how the error falls.
+
+    Writes OUTPUT/report.html (self-contained), OUTPUT/*.png and OUTPUT/summary.json.
+    """
+    from .report import make_report
+
+    summary = make_report(list(runs), output, overwrite=overwrite, suggest=not no_suggest)
+    click.echo(summary)
+
+
+@cli.command()
+@click.option("--models", is_flag=True, help="List the simulator's models (combinations of effects).")
+@click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
+@click.argument("names", nargs=-1)
+def effects(models: bool, as_json: bool, names: tuple[str, ...]) -> None:
+    """List the effect catalog: formula, parameters, units, fit terms, references."""
+    from .catalog import describe_effects
+
+    click.echo(describe_effects(list(names), models=models, as_json=as_json))
+
+
+@cli.command("init-config")
+@click.option("-o", "--output", type=click.Path(path_type=Path), default=None, help="Write here (default: stdout).")
+@OVERWRITE
+@click.option("--from", "from_file", type=click.Path(path_type=Path), default=None, help="Pre-fill from a trace file.")
+def init_config(output: Path | None, overwrite: bool, from_file: Path | None) -> None:
+    """Write a commented template run config to edit."""
+    from .config import template_text
+    from .io import atomic_path, check_output_path
+
+    text = template_text()
+    if from_file is not None:
+        from .inspect import prefill_config
+
+        text = prefill_config(from_file, text)
+    if output is None:
+        click.echo(text, nl=False)
+        return
+    check_output_path(output, overwrite)
+    with atomic_path(output) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    log.info("wrote %s", output)
+
+
+@cli.command()
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--column", default=None, help="Channel to analyse (default: the reader's choice).")
+@click.option("--sample-rate", type=float, default=None, help="Hz, if the file does not say.")
+def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
+    """Show what afmid sees in a data file: channels, length, rate, drive, noise."""
+    from .inspect import inspect_file
+
+    click.echo(inspect_file(file, column=column, sample_rate=sample_rate))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point; returns the exit code."""
+    from .errors import AfmidError
+
+    try:
+        cli.main(args=argv, prog_name="afmid", standalone_mode=False)
+    except AfmidError as exc:
+        if _state["verbose"]:
+            log.exception("afmid error")
+        click.echo(f"afmid: error: {exc.format()}", err=True)
+        return exc.exit_code
+    except click.exceptions.Exit as exc:
+        return exc.exit_code
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except click.exceptions.Abort:
+        click.echo("afmid: aborted", err=True)
+        return 130
+    except KeyboardInterrupt:
+        click.echo("afmid: interrupted; no partial output was written", err=True)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,366 @@
+"""Run configuration: schema, validation and layering, in one place.
+
+A run config is a YAML file (one per run). It is validated once, here, against a
+pydantic schema that rejects unknown keys. Every error names the file, the key
+path and what was expected, e.g.::
+
+    configs/x.yaml: cantilever.quality_factor: must be > 0, got -3
+
+Layering: the packaged defaults (the schema's defaults) < the YAML file <
+command-line ``--set key.path=value`` overrides. Paths in a config are relative
+to the config file. The merged config (:func:`dump_config`) is stored in every
+output file.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from .errors import ConfigError
+from .registry import closest, unknown_name_message
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class StrictModel(BaseModel):
+    """Base for config sections: unknown keys are errors, values are re-validated on assignment."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+# --------------------------------------------------------------------------- data
+class DataConfig(StrictModel):
+    """Where the deflection trace is and how to read it."""
+
+    path: Path | None = Field(None, description="trace file, relative to the config file")
+    format: str = Field("auto", description="auto (from the suffix), csv, npy, hdf5, mat, ibw, tdms")
+    column: str | int | None = Field(None, description="CSV column / HDF5 dataset path / MAT variable")
+    time_column: str | int | None = Field(None, description="optional time column (s)")
+    sample_rate: PositiveFloat | None = Field(None, description="Hz; required if there is no time column")
+    units: Literal["m", "nm", "pm", "um", "V", "raw"] | None = Field(
+        None, description="units of the samples in the file; V needs invols, raw needs scale"
+    )
+    invols: PositiveFloat | None = Field(None, description="inverse optical lever sensitivity, m/V")
+    scale: FiniteFloat | None = Field(None, description="for units: raw, metres per count")
+    offset: FiniteFloat = Field(0.0, description="subtracted from the samples before scaling (file units)")
+    positive: Literal["toward_sample", "away_from_sample"] = Field(
+        "toward_sample", description="sign convention of the deflection in the file"
+    )
+
+
+class CantileverConfig(StrictModel):
+    spring_constant: PositiveFloat | None = Field(None, description="k, N/m")
+    resonance_frequency: PositiveFloat | None = Field(None, description="f0, Hz")
+    quality_factor: PositiveFloat | None = Field(None, description="Q")
+    tip_radius: PositiveFloat | None = Field(None, description="R, m")
+
+
+class DriveConfig(StrictModel):
+    frequency: PositiveFloat | None = Field(None, description="drive frequency, Hz")
+    free_amplitude: PositiveFloat | None = Field(None, description="A0, free oscillation amplitude, m")
+    force_amplitude: PositiveFloat | None = Field(None, description="F0, drive force amplitude, N")
+
+
+class SampleConfig(StrictModel):
+    separation: PositiveFloat | None = Field(
+        None, description="d, rest tip-sample separation, m; estimated by the fit if absent"
+    )
+    a0: PositiveFloat = Field(0.165e-9, description="intermolecular distance, m")
+
+
+class ModelConfig(StrictModel):
+    effects: list[str] = Field(default_factory=lambda: ["dmt"], description="names from `afmid effects`")
+    library: str | None = Field(None, description="a preset term library instead of effects")
+    terms: list[str] = Field(default_factory=list, description="custom terms in the term language")
+    parameters: dict[str, FiniteFloat] = Field(
+        default_factory=dict, description="fixed values for nonlinear parameters (e.g. decay lengths), SI"
+    )
+
+    @field_validator("effects")
+    @classmethod
+    def _known_effects(cls, names: list[str]) -> list[str]:
+        from .physics import EFFECTS
+
+        for name in names:
+            if name not in EFFECTS:
+                hint = closest(name, EFFECTS.names())
+                msg = f"unknown effect {name!r}"
+                msg += f" (did you mean {hint!r}?)" if hint else ""
+                raise ValueError(msg + f"; allowed: {', '.join(EFFECTS.names())}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"effects listed twice: {names}")
+        return names
+
+
+class NoiseConfig(StrictModel):
+    """Instrument noise added by the simulator."""
+
+    detector_rms: NonNegativeFloat = Field(0.0, description="white detector noise, m rms")
+    detector_density: NonNegativeFloat | None = Field(
+        None, description="white detector noise density, m/sqrt(Hz) (overrides detector_rms)"
+    )
+    thermal: bool = Field(True, description="thermal force noise consistent with k_B T and the damping")
+    temperature: PositiveFloat = Field(300.0, description="K")
+    adc_step: NonNegativeFloat = Field(0.0, description="ADC quantization step, m; 0 = none")
+
+
+class SimulateConfig(StrictModel):
+    model: str = Field("dmt", description="force model, see `afmid effects --models`")
+    effects: list[str] = Field(default_factory=list, description="extra effects switched on over the model")
+    parameters: dict[str, FiniteFloat] = Field(default_factory=dict, description="model parameters, SI")
+    mode: Literal["steady", "transient"] = "steady"
+    periods: Annotated[int, Field(ge=3)] = Field(50, description="drive periods kept in the output")
+    samples_per_period: PositiveFloat | None = Field(
+        200.0, description="output sampling; ignored if data.sample_rate is set"
+    )
+    steps_per_period: Annotated[int, Field(ge=100)] = Field(2000, description="minimum RK4 steps per period")
+    setpoint: Annotated[float, Field(gt=0, lt=1)] | None = Field(
+        None, description="A/A0; the separation is searched to reach it (needs drive.free_amplitude)"
+    )
+    settle_tolerance: PositiveFloat = Field(1e-7, description="relative amplitude change per period at steady state")
+    max_settle_periods: Annotated[int, Field(ge=1)] = 20000
+    transient_start: Literal["rest", "free"] = Field(
+        "free", description="transient: start at rest or in free steady oscillation far from the sample"
+    )
+    noise: NoiseConfig = Field(default_factory=NoiseConfig)
+    seed: int = 0
+
+    @field_validator("effects")
+    @classmethod
+    def _known_effects(cls, names: list[str]) -> list[str]:
+        return ModelConfig._known_effects(names)
+
+
+class FitConfig(StrictModel):
+    """Sparse-identification settings. The defaults suit steady-state tapping traces."""
+
+    form: Literal["auto", "harmonic", "weak"] = Field(
+        "auto",
+        description="harmonic: Fourier weak form per period (steady state); weak: compact test functions "
+        "(transients); auto: harmonic unless the amplitude drifts",
+    )
+    differentiation: str = Field("spectral", description="time-domain differentiator for per-sample forces")
+    differentiation_options: dict[str, float] = Field(default_factory=dict)
+    max_harmonic: Annotated[int, Field(ge=2, le=500)] = Field(60, description="highest drive harmonic used")
+    periods_per_block: Annotated[int, Field(ge=1, le=100)] = 1
+    oversample: Annotated[int, Field(ge=1, le=256)] | None = Field(
+        None, description="fine-grid points per sample for library terms; default: >= 2048 points per period"
+    )
+    cantilever: Literal["fixed", "free"] = Field(
+        "fixed", description="fixed: calibrated k, Q, f0 held; free: k and damping identified too (as the paper)"
+    )
+    baseline: Literal["zero", "free"] = Field(
+        "zero", description="zero: the file's zero deflection is the rest position; free: fit an offset"
+    )
+    detrend: Literal["none", "offset", "linear"] = "none"
+    method: Literal["stlsq", "lasso", "exhaustive"] = "stlsq"
+    selection: Literal["bic", "aicc", "cv"] = "bic"
+    thresholds: list[NonNegativeFloat] | None = Field(None, description="STLSQ thresholds (relative); default path")
+    folds: Annotated[int, Field(ge=2, le=50)] = 5
+    bootstrap: Annotated[int, Field(ge=0, le=10000)] = 100
+    seed: int = 0
+    temperature: PositiveFloat = Field(300.0, description="K, for the thermal force noise weights")
+    thermal_noise: bool = True
+    estimate_nonlinear: bool = Field(True, description="search decay lengths etc. not fixed in model.parameters")
+    separation_window: list[PositiveFloat] = Field(
+        default_factory=lambda: [6e-9, 3e-9],
+        description="m below / above first contact searched when sample.separation is absent",
+    )
+    phase_points: Annotated[int, Field(ge=16, le=8192)] = 256
+
+    @field_validator("differentiation")
+    @classmethod
+    def _known_differentiator(cls, name: str) -> str:
+        from .preprocess import DIFFERENTIATORS
+
+        if name not in DIFFERENTIATORS:
+            raise ValueError(unknown_name_message("differentiator", name, DIFFERENTIATORS.names()))
+        return name
+
+    @field_validator("separation_window")
+    @classmethod
+    def _two_values(cls, v: list[float]) -> list[float]:
+        if len(v) != 2:
+            raise ValueError(f"expected [below, above] in metres, got {v}")
+        return v
+
+
+class RunConfig(StrictModel):
+    data: DataConfig = Field(default_factory=DataConfig)
+    cantilever: CantileverConfig = Field(default_factory=CantileverConfig)
+    drive: DriveConfig = Field(default_factory=DriveConfig)
+    sample: SampleConfig = Field(default_factory=SampleConfig)
+    model: ModelConfig = Field(default_factory=ModelConfig)
+    fit: FitConfig = Field(default_factory=FitConfig)
+    simulate: SimulateConfig = Field(default_factory=SimulateConfig)
+
+    # Not part of the YAML: where the config came from, for messages and relative paths.
+    _source: Path | None = None
+    _base_dir: Path = Path(".")
+
+    @property
+    def source(self) -> Path | None:
+        return self._source
+
+    def resolve_path(self, path: Path) -> Path:
+        """A path from the config, made relative to the config file's folder."""
+        return path if path.is_absolute() else (self._base_dir / path)
+
+
+# --------------------------------------------------------------------------- errors
+def _format_value(value: Any) -> str:
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else str(value)
+    if isinstance(value, (dict, list)):
+        text = repr(value)
+        return text if len(text) < 60 else text[:57] + "..."
+    return repr(value)
+
+
+def _section_fields(model: type[BaseModel], loc: tuple) -> list[str]:
+    """The allowed keys at ``loc`` (the parent of an unknown key)."""
+    current: Any = model
+    for part in loc:
+        field = getattr(current, "model_fields", {}).get(part)
+        if field is None:
+            return []
+        annotation = field.annotation
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            current = annotation
+        else:
+            return []
+    return list(getattr(current, "model_fields", {}))
+
+
+def _describe(error: dict, schema: type[BaseModel]) -> tuple[str, str]:
+    """Key path and a human message for one pydantic error."""
+    loc = tuple(p for p in error["loc"] if not (isinstance(p, str) and p.startswith("function-")))
+    # pydantic appends the union member type to the loc of union errors; keep the field path only
+    loc = tuple(p for p in loc if not (isinstance(p, str) and p in {"str", "int", "float", "bool", "constrained-float"}))
+    key = ".".join(str(p) for p in loc)
+    kind = error["type"]
+    ctx = error.get("ctx") or {}
+    value = error.get("input")
+    if kind == "extra_forbidden":
+        allowed = _section_fields(schema, loc[:-1])
+        hint = closest(str(loc[-1]), allowed)
+        msg = "unknown key"
+        if hint:
+            msg += f" (did you mean {hint!r}?)"
+        return key, msg + (f"; allowed keys: {', '.join(allowed)}" if allowed else "")
+    if kind == "missing":
+        return key, "required key is missing"
+    bounds = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
+    if kind in bounds:
+        limit = next(iter(ctx.values()))
+        return key, f"must be {bounds[kind]} {limit}, got {_format_value(value)}"
+    if kind == "finite_number":
+        return key, f"must be a finite number, got {_format_value(value)}"
+    if kind in {"float_parsing", "float_type", "int_parsing", "int_type", "int_from_float"}:
+        expected = "a whole number" if kind.startswith("int") else "a number"
+        return key, f"expected {expected}, got {_format_value(value)}"
+    if kind == "literal_error":
+        return key, f"must be one of {ctx.get('expected')}, got {_format_value(value)}"
+    if kind in {"model_type", "dict_type"}:
+        return key, f"expected a mapping of keys, got {_format_value(value)}"
+    if kind == "list_type":
+        return key, f"expected a list, got {_format_value(value)}"
+    if kind == "value_error":
+        return key, str(ctx.get("error", error["msg"]))
+    return key, f"{error['msg']}, got {_format_value(value)}"
+
+
+def validation_error(exc: ValidationError, file: str | Path | None, schema: type[BaseModel] = RunConfig) -> ConfigError:
+    """Convert the first pydantic error into a one-line :class:`ConfigError` (others appended)."""
+    described = [_describe(e, schema) for e in exc.errors()]
+    key, msg = described[0]
+    if len(described) > 1:
+        msg += f" (and {len(described) - 1} more: " + "; ".join(f"{k}: {m}" for k, m in described[1:3]) + ")"
+    return ConfigError(msg, file=file, key=key or None)
+
+
+# --------------------------------------------------------------------------- loading
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``'cantilever.quality_factor=150'`` -> (['cantilever', 'quality_factor'], 150)."""
+    if "=" not in text:
+        raise ConfigError(f"--set expects KEY.PATH=VALUE, got {text!r}", key="--set")
+    key, raw = text.split("=", 1)
+    path = [p for p in key.strip().split(".") if p]
+    if not path:
+        raise ConfigError(f"--set expects KEY.PATH=VALUE, got {text!r}", key="--set")
+    return path, yaml.safe_load(raw) if raw.strip() else None
+
+
+def apply_overrides(raw: dict, overrides: list[tuple[list[str], Any]]) -> dict:
+    """Set nested keys in a plain config mapping (command-line layer)."""
+    for path, value in overrides:
+        node = raw
+        for part in path[:-1]:
+            child = node.get(part)
+            if not isinstance(child, dict):
+                child = {}
+                node[part] = child
+            node = child
+        node[path[-1]] = value
+    return raw
+
+
+def read_yaml(path: Path) -> dict:
+    """Read a YAML mapping, with a clear error for a missing file or bad syntax."""
+    if not path.exists():
+        raise ConfigError("config file not found", file=path)
+    if path.is_dir():
+        raise ConfigError("is a directory, expected a YAML config file", file=path)
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = yaml.safe_load(text)
+    except UnicodeDecodeError:
+        raise ConfigError("not a text file (expected YAML)", file=path) from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"invalid YAML: {where}{problem}", file=path) from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"expected a mapping of sections at the top level, got {type(data).__name__}", file=path)
+    return data
+
+
+def build_config(raw: dict, source: Path | None = None, base_dir: Path | None = None) -> RunConfig:
+    """Validate a plain mapping into a :class:`RunConfig` (errors name ``source``)."""
+    try:
+        config = RunConfig.model_validate(raw)
+    except ValidationError as exc:
+        raise validation_error(exc, source) from None
+    config._source = source
+    config._base_dir = base_dir if base_dir is not None else (source.parent if source else Path("."))
+    return config
+
+
+def load_config(path: str | Path, overrides: list[str] | None = None) -> RunConfig:
+    """Load, layer and validate a run config file."""
+    path = Path(path)
+    raw = read_yaml(path)
+    if overrides:
+        raw = apply_overrides(raw, [parse_override(o) for o in overrides])
+    return build_config(raw, source=path)
+
+
+def dump_config(config: RunConfig) -> str:
+    """The merged config as YAML text (stored in every output for provenance)."""
+    data = config.model_dump(mode="json")
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
+
+
+def template_text() -> str:
+    """The commented template written by ``afmid init-config``."""
+    return (Path(__file__).parent / "templates" / "run_config.yaml").read_text(encoding="utf-8")

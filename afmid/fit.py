@@ -1,0 +1,653 @@
+"""The fit stage: from a deflection trace to a sparse, physically named force law.
+
+Pipeline (each step a plain function; the CLI only wires them):
+load (:func:`afmid.io.load_trace`) -> :func:`prepare` (drive frequency, blocks of
+one period, Fourier coefficients, noise level, the model-free force) ->
+:func:`build_system` (library columns projected like the data, whitened, factored)
+-> :func:`afmid.regression.select` (sparsity path + BIC / CV) -> nonlinear
+parameters (separation, decay lengths) by an outer search -> bagging for error
+bars -> physical read-out -> per-sample and per-period forces -> :func:`write_run`.
+
+Equation (SI, x toward the sample, F_ts repulsive positive):
+    m x'' + (m w0 / Q) x' + k x = -F_ts + F_drive,   m = k / w0^2
+so  Y := -(m x'' + (m w0/Q) x' + k x) = F_ts - F_drive = Theta c - (a cos wt + b sin wt).
+In the harmonic form every column is projected on the drive harmonics of each
+block (least squares), derivatives act exactly on the Fourier series, and the
+rows are weighted by the predicted noise of Y (detector noise amplified by the
+cantilever's transfer function plus thermal force noise).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import __version__
+from .config import RunConfig, dump_config
+from .errors import AfmidError, ConfigError
+from .io import Trace, atomic_hdf5, check_output_path, load_trace, write_dataset, RUN_FORMAT
+from .library import Library, build_library
+from .physics import BOLTZMANN, EFFECTS
+from .preprocess import HarmonicBlocks, differentiate, estimate_drive, harmonic_blocks, detrend, steadiness
+from . import regression
+
+log = logging.getLogger(__name__)
+
+#: A harmonic counts as signal in the error metric when its mean exceeds this many noise sigmas per block.
+SIGNAL_SNR = 1.0
+#: Library terms are evaluated on a grid of at least this many points per drive period (see project_fine).
+FINE_POINTS_PER_PERIOD = 2048
+
+
+# --------------------------------------------------------------------------- preparation
+@dataclass
+class Prepared:
+    """Everything about the data that does not depend on the library or its parameters."""
+
+    trace: Trace
+    x: np.ndarray  # m, deflection after detrending (all samples)
+    t: np.ndarray  # s
+    drive: object  # DriveEstimate
+    blocks: HarmonicBlocks
+    X: np.ndarray  # (B, 2K+1) deflection coefficients
+    Y: np.ndarray  # (B, 2K+1) N, -(m x'' + c x' + k x) coefficients
+    nuisance: np.ndarray  # (B, 2K+1, n_nu) projected drive (and offset / cantilever) columns
+    nuisance_names: list[str]
+    row_sigma: np.ndarray  # (2K+1,) N, predicted noise std of Y per row and block
+    xdot_used: np.ndarray  # m/s, velocity on the used samples (band-limited)
+    fine_x: np.ndarray  # (B, L*U) m, band-limited deflection on the fine grid
+    fine_xdot: np.ndarray  # (B, L*U) m/s
+    fine_t: np.ndarray  # (B, L*U) s
+    noise_rms: float  # m, detector noise estimated from the block fits
+    steadiness: float
+    removed: dict  # detrend info
+
+
+def prepare(trace: Trace, fit) -> Prepared:
+    x, removed = detrend(trace.deflection, trace.times, fit.detrend)
+    t = trace.times
+    if trace.time is not None:
+        steps = np.diff(t)
+        if np.max(np.abs(steps - steps.mean())) > 1e-3 * steps.mean():
+            raise AfmidError("the time column is not uniformly sampled (gaps or jitter); resample or crop it first",
+                             file=trace.path, key="data.time_column")
+    drive = estimate_drive(x, t, trace.drive_frequency)
+    spp = trace.sample_rate / drive.frequency
+    oversample = fit.oversample or max(1, int(math.ceil(FINE_POINTS_PER_PERIOD / spp)))
+    blocks = harmonic_blocks(x.size, trace.sample_rate, drive.frequency, t0=float(t[0]),
+                             periods_per_block=fit.periods_per_block, max_harmonic=fit.max_harmonic,
+                             oversample=oversample)
+    cl = trace.cantilever
+    k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
+    X = blocks.project(x)  # (B, 2K+1, 1)
+    V = blocks.derivative(X, 1)
+    Acc = blocks.derivative(X, 2)
+    if fit.cantilever == "fixed":
+        Y = -(k / w0**2 * Acc + k / (Q * w0) * V + k * X)[..., 0]
+    else:
+        Y = -(k / w0**2 * Acc)[..., 0]
+    used = blocks.used
+    tu = t[used]
+    cols = [np.cos(drive.omega * tu), np.sin(drive.omega * tu)]
+    names = ["drive_cos", "drive_sin"]
+    if fit.baseline == "free":
+        cols.append(np.ones_like(tu))
+        names.append("offset")
+    nuisance = blocks.project(np.column_stack(cols))
+    if fit.cantilever == "free":
+        nuisance = np.concatenate([nuisance, X, V], axis=2)
+        names += ["stiffness", "damping"]
+    resid = x[used] - blocks.synthesize(X)[:, 0]
+    dof = max(resid.size - blocks.n_blocks * blocks.n_coef, 1)
+    noise_rms = float(math.sqrt(np.sum(resid**2) / dof))
+    noise_rms = max(noise_rms, 1e-9 * drive.amplitude)  # noise-free input: keep weights finite
+    # Predicted noise of Y per coefficient row: v_n (S_F / dt + k^2 |H_n|^2 sigma_x^2)
+    n = blocks.harmonics * drive.omega
+    H2 = (1 - (n / w0) ** 2) ** 2 + (n / (Q * w0)) ** 2 if fit.cantilever == "fixed" else (n / w0) ** 4
+    damping = k / (Q * w0)
+    thermal = 2 * BOLTZMANN * fit.temperature * damping / blocks.dt if fit.thermal_noise else 0.0
+    row_sigma = np.sqrt(blocks.noise_variance_factor() * (thermal + k**2 * H2 * noise_rms**2))
+    xdot_used = blocks.synthesize(V)[:, 0]
+    fine_x = blocks.synthesize_fine(X)[..., 0]
+    fine_xdot = blocks.synthesize_fine(V)[..., 0]
+    return Prepared(trace, x, t, drive, blocks, X[..., 0], Y, nuisance, names, row_sigma, xdot_used,
+                    fine_x, fine_xdot, blocks.fine_times(), noise_rms, steadiness(X), removed)
+
+
+# --------------------------------------------------------------------------- system
+@dataclass
+class System:
+    params: dict  # d, a0, R, w and nonlinear parameters used
+    theta: np.ndarray  # (B, 2K+1, p) projected library columns
+    columns: np.ndarray  # (N_used, p) library columns per sample
+    T_blocks: np.ndarray  # per-block factors of the whitened [Theta N | Y]
+    protected: np.ndarray  # bool (p + n_nu)
+    names: list[str]
+
+    @property
+    def n_rows(self) -> int:
+        """Whitened equations behind the factors: blocks x Fourier coefficients."""
+        return int(self.theta.shape[0] * self.theta.shape[1])
+
+
+def build_system(prep: Prepared, library: Library, params: dict) -> System:
+    used = prep.blocks.used
+    B, n_fine = prep.fine_x.shape
+    fine = library.evaluate(prep.fine_x.ravel(), prep.fine_xdot.ravel(), prep.fine_t.ravel(), params)
+    if not np.all(np.isfinite(fine)):
+        cols = fine
+    else:
+        cols = library.evaluate(prep.x[used], prep.xdot_used, prep.t[used], params)
+    if not np.all(np.isfinite(cols)):
+        bad = [library.terms[j].name for j in range(cols.shape[1]) if not np.all(np.isfinite(cols[:, j]))]
+        raise AfmidError(
+            f"library terms {bad} are not finite along the trajectory at separation {params['d'] * 1e9:.3f} nm "
+            "(a term singular in contact? gate it, e.g. [z > a0] * ...)",
+            key="model",
+        )
+    theta = prep.blocks.project_fine(fine.reshape(B, n_fine, -1))
+    A = np.concatenate([theta, prep.nuisance], axis=2) / prep.row_sigma[None, :, None]
+    y = prep.Y / prep.row_sigma[None, :]
+    T_blocks = regression.factor_blocks(A, y)
+    protected = np.zeros(A.shape[2], dtype=bool)
+    protected[theta.shape[2]:] = True
+    return System(dict(params), theta, cols, T_blocks, protected, library.names + prep.nuisance_names)
+
+
+def _rss(system: System, mask: np.ndarray | None) -> float:
+    T = regression.combine(system.T_blocks)
+    mask = np.ones(T.shape[1] - 1, dtype=bool) if mask is None else mask
+    return regression.subset_fit(T, mask)[1]
+
+
+# --------------------------------------------------------------------------- nonlinear search
+def _search_1d(objective, lo: float, hi: float, n_grid: int, log_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
+    """Grid then bounded Brent refinement; returns (argmin, grid, values)."""
+    from scipy.optimize import minimize_scalar
+
+    grid = np.geomspace(lo, hi, n_grid) if log_scale else np.linspace(lo, hi, n_grid)
+    values = np.array([objective(g) for g in grid])
+    values[~np.isfinite(values)] = np.inf
+    i = int(np.argmin(values))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, n_grid - 1)]
+    if a == b:
+        return float(grid[i]), grid, values
+    if log_scale:
+        res = minimize_scalar(lambda u: objective(math.exp(u)), bounds=(math.log(a), math.log(b)), method="bounded",
+                              options={"xatol": 1e-6})
+        best = math.exp(res.x)
+    else:
+        res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": (b - a) * 1e-6})
+        best = float(res.x)
+    return (best, grid, values) if res.fun <= values[i] else (float(grid[i]), grid, values)
+
+
+def _profile_sigma(objective, best: float, scale: float, s2: float) -> float:
+    """1-sigma from the curvature of a chi-square-like objective (rss / s2) at its minimum."""
+    h = scale
+    f0, fp, fm = objective(best), objective(best + h), objective(best - h)
+    curvature = (fp - 2 * f0 + fm) / h**2
+    if not np.isfinite(curvature) or curvature <= 0:
+        return math.nan
+    return math.sqrt(2 * s2 / curvature)
+
+
+@dataclass
+class NonlinearEstimate:
+    name: str
+    value: float
+    sigma: float
+    unit: str
+    estimated: bool
+    grid: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    objective: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+# --------------------------------------------------------------------------- result
+@dataclass
+class FitResult:
+    config: RunConfig
+    prep: Prepared
+    library: Library
+    system: System
+    selection: regression.Selection
+    coef: np.ndarray  # all columns (library + nuisance), SI
+    coef_std: np.ndarray
+    ci_low: np.ndarray
+    ci_high: np.ndarray
+    inclusion: np.ndarray
+    bagging: regression.Bagging | None
+    nonlinear: dict[str, NonlinearEstimate]
+    quantities: dict[str, dict]  # name -> {value, error, ci_low, ci_high, unit, effect}
+    cv_error: float
+    cv_error_folds: np.ndarray
+    signal_rows: np.ndarray  # bool (2K+1): rows counted in the error metric
+    force_estimate: np.ndarray  # N per input sample (NaN where not estimated)
+    force_direct: np.ndarray  # N per input sample, model-free (band-limited)
+    periods: dict[str, np.ndarray]
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def selected(self) -> np.ndarray:
+        return self.selection.best.mask
+
+    @property
+    def n_library(self) -> int:
+        return len(self.library)
+
+    def selected_terms(self) -> list[str]:
+        return [n for n, m in zip(self.library.names, self.selected[: self.n_library]) if m]
+
+    def summary_line(self) -> str:
+        terms = ", ".join(self.selected_terms()) or "none"
+        return f"cv_error {self.cv_error:.4f}; terms: {terms}"
+
+
+def _params_for(prep: Prepared, config: RunConfig, library: Library) -> dict:
+    params = {"a0": config.sample.a0, "w": prep.drive.omega}
+    if prep.trace.cantilever.tip_radius is not None:
+        params["R"] = prep.trace.cantilever.tip_radius
+    params.update(library.nonlinear)
+    return params
+
+
+def _first_contact(prep: Prepared, a0: float) -> float:
+    """Separation at which the lowest turning point just touches (z_min = a0), m."""
+    x_max = float(np.max(prep.blocks.synthesize(prep.X[..., None])[:, 0]))
+    return x_max + a0
+
+
+def estimate_nonlinear(prep, library, config, params, progress=None) -> dict[str, NonlinearEstimate]:
+    """Outer search over the rest separation and the library's decay lengths (full-library residual)."""
+    fit = config.fit
+    estimates: dict[str, NonlinearEstimate] = {}
+    to_search: list[tuple[str, float, float, bool, str]] = []
+    if config.sample.separation is None:
+        d_touch = _first_contact(prep, config.sample.a0)
+        below, above = fit.separation_window
+        to_search.append(("d", d_touch - below, d_touch + above, False, "m"))
+    else:
+        params["d"] = config.sample.separation
+    if fit.estimate_nonlinear:
+        for name in library.nonlinear:
+            if name in config.model.parameters:
+                continue
+            p = next(p for e in library.effects for p in EFFECTS.get(e).parameters if p.name == name)
+            lo = max(p.low, 1e-12) if p.low > 0 else 0.02e-9
+            to_search.append((name, lo, min(p.high, 20e-9), True, p.unit))
+    if "d" not in params:
+        params["d"] = to_search[0][1] + 0.5 * (to_search[0][2] - to_search[0][1])
+    for round_ in range(2 if len(to_search) > 1 else 1):
+        for name, lo, hi, log_scale, unit in to_search:
+            def objective(value, name=name):
+                trial = dict(params, **{name: value})
+                try:
+                    return _rss(build_system(prep, library, trial), None)
+                except AfmidError:
+                    return math.inf
+            n_grid = 41 if round_ == 0 else 15
+            if round_ > 0:  # narrow around the current value
+                cur = params[name]
+                span = (hi - lo) / 8 if not log_scale else None
+                lo_r, hi_r = (max(lo, cur - span), min(hi, cur + span)) if span else (max(lo, cur / 2), min(hi, cur * 2))
+            else:
+                lo_r, hi_r = lo, hi
+            best, grid, values = _search_1d(objective, lo_r, hi_r, n_grid, log_scale)
+            params[name] = best
+            estimates[name] = NonlinearEstimate(name, best, math.nan, unit, True, grid, values)
+            if progress:
+                progress.update(1)
+    return estimates
+
+
+def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = None) -> FitResult:
+    """Fit the trace named by ``config`` (or ``trace``) and return everything the run file holds."""
+    from tqdm import tqdm
+
+    fit = config.fit
+    if trace is None:
+        trace = load_trace(config)
+    library = build_library(config.model, config.source)
+    if len(library) == 0:
+        raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source, key="model")
+    prep = prepare(trace, fit)
+    warnings: list[str] = []
+    form = fit.form
+    if form == "auto":
+        form = "harmonic"
+        if prep.steadiness > 0.02:
+            msg = (f"the oscillation amplitude changes by {100 * prep.steadiness:.1f} % over the trace: not in steady "
+                   "state; the harmonic form assumes period-to-period similarity (fit.form: weak fits transients)")
+            log.warning(msg)
+            warnings.append(msg)
+    if form == "weak":
+        raise ConfigError("fit.form: weak (transients) is not implemented yet; use harmonic", file=config.source,
+                          key="fit.form")
+    params = _params_for(prep, config, library)
+    bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
+    nonlinear = estimate_nonlinear(prep, library, config, params)
+    bar.update(1)
+    thresholds = np.asarray(fit.thresholds) if fit.thresholds else regression.default_thresholds()
+    system = build_system(prep, library, params)
+    selection = regression.select(system.T_blocks, system.protected, fit.method, fit.selection, thresholds,
+                                  n_rows=system.n_rows, folds=fit.folds)
+    chosen = selection.best.mask
+    # Refine the nonlinear parameters for the chosen support, then re-select once.
+    if nonlinear:
+        for name, est in nonlinear.items():
+            def objective(value, name=name):
+                try:
+                    return _rss(build_system(prep, library, dict(params, **{name: value})), chosen)
+                except AfmidError:
+                    return math.inf
+            lo, hi = (est.value * 0.9, est.value * 1.1) if name != "d" else (est.value - 0.2e-9, est.value + 0.2e-9)
+            best, _, _ = _search_1d(objective, lo, hi, 9, False)
+            params[name] = best
+        system = build_system(prep, library, params)
+        selection = regression.select(system.T_blocks, system.protected, fit.method, fit.selection, thresholds,
+                                      n_rows=system.n_rows, folds=fit.folds)
+        chosen = selection.best.mask
+        s2 = selection.best.rss / max(system.n_rows - int(chosen.sum()), 1)
+        for name, est in nonlinear.items():
+            def objective(value, name=name):
+                try:
+                    return _rss(build_system(prep, library, dict(params, **{name: value})), chosen)
+                except AfmidError:
+                    return math.inf
+            step = 1e-3 * (abs(params[name]) if name != "d" else 1e-9)
+            est.value = params[name]
+            est.sigma = _profile_sigma(objective, params[name], max(step, 1e-15), s2)
+    bar.update(1)
+    T = regression.combine(system.T_blocks)
+    coef, _ = regression.subset_fit(T, chosen)
+    bagging = None
+    coef_std = np.zeros_like(coef)
+    ci_low, ci_high = coef.copy(), coef.copy()
+    inclusion = chosen.astype(float)
+    if fit.bootstrap > 0:
+        rng = np.random.default_rng(fit.seed)
+        bagging = regression.bag(system.T_blocks, system.protected, chosen, system.names, fit.method, fit.selection,
+                                 thresholds, fit.bootstrap, rng, system.n_rows)
+        coef_std = bagging.coef_samples.std(axis=0, ddof=1)
+        ci_low, ci_high = np.percentile(bagging.coef_samples, [2.5, 97.5], axis=0)
+        inclusion = bagging.inclusion
+    bar.update(1)
+    signal_rows = _signal_rows(prep, system, coef)
+    cv_error, per_fold = force_cv_error(prep, system, chosen, signal_rows, fit.folds)
+    quantities = read_out(library, coef, bagging, params, chosen, trace)
+    force_estimate, force_direct = per_sample_forces(prep, system, coef, signal_rows)
+    periods = period_curves(prep, library, system, coef, params, signal_rows, fit.phase_points)
+    bar.update(1)
+    bar.close()
+    for name, est in nonlinear.items():
+        log.info("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
+    return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
+                     nonlinear, quantities, cv_error, per_fold, signal_rows, force_estimate, force_direct, periods,
+                     warnings)
+
+
+# --------------------------------------------------------------------------- error metric
+def _direct_force_coefficients(prep: Prepared, system: System, coef: np.ndarray) -> np.ndarray:
+    """Model-free force F_ts per block (B, 2K+1): Y plus the fitted drive (and cantilever) columns."""
+    p = system.theta.shape[2]
+    return prep.Y - np.einsum("bkm,m->bk", prep.nuisance, coef[p:])
+
+
+def _signal_rows(prep: Prepared, system: System, coef: np.ndarray) -> np.ndarray:
+    """Rows whose mean model-free force stands above the per-block noise."""
+    F = _direct_force_coefficients(prep, system, coef)
+    mean = np.abs(F.mean(axis=0))
+    rows = mean > SIGNAL_SNR * prep.row_sigma
+    harmonics = prep.blocks.harmonics
+    # Keep cos/sin of a harmonic together.
+    for n in np.unique(harmonics[rows]):
+        rows[harmonics == n] = True
+    return rows
+
+
+def _power(F: np.ndarray, harmonics: np.ndarray) -> np.ndarray:
+    """Mean-square value of series with coefficients F (..., 2K+1) (Parseval)."""
+    w = np.where(harmonics == 0, 1.0, 0.5)
+    return np.sum(w * F**2, axis=-1)
+
+
+def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.ndarray, folds: int):
+    """Normalised cross-validated force error over held-out periods (0 = perfect, 1 = a constant force).
+
+    For each fold of contiguous periods the model is refitted on the other
+    periods; on the held-out ones the model force is compared with the
+    model-free force F_ts = drive - (m x'' + c x' + k x), both on the drive
+    harmonics that stand above the noise. error^2 = sum |F_free - F_model|^2 /
+    sum |F_free - mean(F_free)|^2 (Parseval over harmonics and periods).
+    """
+    harmonics = prep.blocks.harmonics[rows]
+    num, den, per_fold = 0.0, 0.0, []
+    p = system.theta.shape[2]
+    for test in regression.fold_slices(system.T_blocks.shape[0], folds):
+        train = np.setdiff1d(np.arange(system.T_blocks.shape[0]), test)
+        coef, _ = regression.subset_fit(regression.combine(system.T_blocks[train]), mask)
+        free = (prep.Y[test] - np.einsum("bkm,m->bk", prep.nuisance[test], coef[p:]))[:, rows]
+        model = np.einsum("bkm,m->bk", system.theta[test], coef[:p])[:, rows]
+        n_f = _power(free - model, harmonics).sum()
+        ac = free.copy()
+        ac[:, harmonics == 0] = 0.0
+        d_f = _power(ac, harmonics).sum()
+        per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
+        num += n_f
+        den += d_f
+    return (math.sqrt(num / den) if den > 0 else math.nan), np.asarray(per_fold)
+
+
+# --------------------------------------------------------------------------- read-out
+def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) -> dict[str, dict]:
+    """Physical quantities of each effect from its terms' coefficients, with bootstrap intervals."""
+    out: dict[str, dict] = {}
+    ctx = dict(params)
+    if "R" not in ctx:
+        ctx["R"] = math.nan
+    for effect_name in library.effects:
+        effect = EFFECTS.get(effect_name)
+        index = {t.label: j for j, t in enumerate(library.terms) if t.effect == effect_name}
+        if not index:
+            continue
+
+        def quantities(c):
+            values = {label: (c[j] if mask[j] else 0.0) for label, j in index.items()}
+            values.update({t.label: 0.0 for t in effect.terms if t.label not in values})
+            with np.errstate(all="ignore"):
+                try:
+                    return effect.readout(values, ctx)
+                except (ZeroDivisionError, ValueError):
+                    return {q.name: math.nan for q in effect.quantities}
+
+        central = quantities(coef)
+        samples = [quantities(c) for c in bagging.coef_samples] if bagging is not None else []
+        for q in effect.quantities:
+            value = float(central.get(q.name, math.nan))
+            arr = np.array([s.get(q.name, math.nan) for s in samples], dtype=float)
+            arr = arr[np.isfinite(arr)]
+            err = float(arr.std(ddof=1)) if arr.size > 2 else math.nan
+            lo, hi = (np.percentile(arr, [2.5, 97.5]) if arr.size > 2 else (math.nan, math.nan))
+            key = q.name if q.name not in out else f"{effect_name}.{q.name}"
+            out[key] = {"value": value, "error": err, "ci_low": float(lo), "ci_high": float(hi), "unit": q.unit,
+                        "effect": effect_name, "doc": q.doc}
+    return out
+
+
+# --------------------------------------------------------------------------- forces
+def per_sample_forces(prep: Prepared, system: System, coef: np.ndarray, rows: np.ndarray):
+    """Model force on every used sample and the band-limited model-free force (N; NaN elsewhere)."""
+    n = prep.x.size
+    p = system.theta.shape[2]
+    used = prep.blocks.used
+    estimate = np.full(n, np.nan)
+    estimate[used] = system.columns @ coef[:p]
+    F = _direct_force_coefficients(prep, system, coef) * rows[None, :]
+    direct = np.full(n, np.nan)
+    direct[used] = prep.blocks.synthesize(F[..., None])[:, 0]
+    return estimate, direct
+
+
+def period_curves(prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int) -> dict:
+    """Per-period curves on a common phase grid and per-period summaries (SI)."""
+    blocks = prep.blocks
+    B = blocks.n_blocks
+    phase = 2 * np.pi * np.arange(n_phase) / n_phase
+    Xc = prep.X[..., None]
+    x = blocks.evaluate(Xc, phase)[..., 0]
+    v = blocks.evaluate(blocks.derivative(Xc, 1), phase)[..., 0]
+    period = 2 * np.pi / prep.drive.omega
+    times = blocks.block_times()[:, None] + phase[None, :] / prep.drive.omega
+    cols = library.evaluate(x.ravel(), v.ravel(), times.ravel(), params)
+    p = system.theta.shape[2]
+    f_model = (cols @ coef[:p]).reshape(B, n_phase)
+    F = _direct_force_coefficients(prep, system, coef) * rows[None, :]
+    f_direct = blocks.evaluate(F[..., None], phase)[..., 0]
+    d, a0 = params["d"], params["a0"]
+    z = d - x
+    zdot = -v
+    dt = period / n_phase
+
+    def dissipated(f):  # energy taken from the tip per period: -closed integral of F dz
+        return -np.sum(f * zdot, axis=1) * dt
+
+    def virial(f):  # (1/T) integral of (force toward the sample) * x dt
+        return -np.mean(f * x, axis=1)
+
+    contact = z <= a0
+    return {
+        "phase": phase,
+        "block_start_time": blocks.block_times(),
+        "deflection": x,
+        "velocity": v,
+        "separation": z,
+        "force_model": f_model,
+        "force_direct": f_direct,
+        "peak_force": f_model.max(axis=1),
+        "adhesion_force": np.maximum(-f_model.min(axis=1), 0.0),
+        "max_indentation": np.maximum(a0 - z, 0.0).max(axis=1),
+        "contact_time": contact.mean(axis=1) * period,
+        "dissipated_energy": dissipated(f_model),
+        "dissipated_energy_direct": dissipated(f_direct),
+        "virial": virial(f_model),
+        "virial_direct": virial(f_direct),
+        "amplitude": np.hypot(prep.X[:, 1], prep.X[:, 2]),
+        "period_error": np.sqrt(np.mean((f_direct - f_model) ** 2, axis=1)),
+    }
+
+
+# --------------------------------------------------------------------------- effects from the CLI
+def apply_effect_changes(config: RunConfig, add: tuple[str, ...] | list[str], remove: tuple[str, ...] | list[str]) -> None:
+    """``--add`` / ``--remove`` effects on the loaded config (validated like the YAML)."""
+    if not add and not remove:
+        return
+    if config.model.library is not None:
+        raise ConfigError("--add/--remove change model.effects, but this config uses model.library",
+                          file=config.source, key="model.library")
+    effects = list(config.model.effects)
+    for name in remove:
+        if name not in effects:
+            raise ConfigError(f"--remove {name}: not in model.effects {effects}", file=config.source, key="model.effects")
+        effects.remove(name)
+    for name in add:
+        if name not in effects:
+            effects.append(name)
+    try:
+        config.model.effects = effects
+    except Exception as exc:  # pydantic ValidationError from the effects validator
+        from pydantic import ValidationError
+
+        from .config import validation_error
+
+        if isinstance(exc, ValidationError):
+            err = validation_error(exc, config.source)
+            raise ConfigError(err.message.replace("unknown effect", "--add: unknown effect"), file=config.source,
+                              key="model.effects") from None
+        raise
+
+
+# --------------------------------------------------------------------------- run file
+PERIOD_UNITS = {
+    "phase": "rad", "block_start_time": "s", "deflection": "m", "velocity": "m/s", "separation": "m",
+    "force_model": "N", "force_direct": "N", "peak_force": "N", "adhesion_force": "N", "max_indentation": "m",
+    "contact_time": "s", "dissipated_energy": "J", "dissipated_energy_direct": "J", "virial": "J",
+    "virial_direct": "J", "amplitude": "m", "period_error": "N",
+}
+
+
+def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = False):
+    """Write the run file (layout: docs/file-formats.md)."""
+    path = check_output_path(path, overwrite)
+    trace = result.prep.trace
+    inputs = {str(trace.path): trace.sha256} if trace.path else {}
+    p = result.n_library
+    units = [t.coefficient_unit for t in result.library.terms]
+    with atomic_hdf5(path, RUN_FORMAT, dump_config(config), inputs) as h5:
+        h5.attrs["cv_error"] = result.cv_error
+        h5.attrs["overridden"] = list(trace.overridden) or [""]
+        h5.attrs["value_sources"] = "; ".join(f"{k}: {v}" for k, v in trace.sources.items())
+        m = h5.create_group("model")
+        write_dataset(m, "terms", np.array(result.library.names), "1")
+        write_dataset(m, "expressions", np.array([t.expression for t in result.library.terms]), "1")
+        write_dataset(m, "units", np.array(units), "1")
+        write_dataset(m, "coefficients", np.where(result.selected[:p], result.coef[:p], 0.0), "see /model/units")
+        write_dataset(m, "coefficients_errors", result.coef_std[:p], "see /model/units", meaning="bootstrap std")
+        write_dataset(m, "coefficients_ci_low", result.ci_low[:p], "see /model/units", meaning="2.5 % bootstrap")
+        write_dataset(m, "coefficients_ci_high", result.ci_high[:p], "see /model/units", meaning="97.5 % bootstrap")
+        write_dataset(m, "selected", result.selected[:p], "1")
+        write_dataset(m, "inclusion_probability", result.inclusion[:p], "1")
+        write_dataset(m, "effects", np.array(list(result.library.effects) or [""]), "1")
+        m.attrs["library"] = result.library.source
+        dg = m.create_group("drive")
+        nu = result.coef[p:]
+        write_dataset(dg, "force_amplitude", float(np.hypot(nu[0], nu[1])), "N")
+        write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
+        write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
+        if "offset" in result.system.names:
+            write_dataset(dg, "offset_force", float(nu[result.system.names.index("offset") - p]), "N")
+        if config.fit.cantilever == "free":
+            write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
+            write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
+        pg = m.create_group("parameters")
+        for name, q in result.quantities.items():
+            write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
+                          effect=q["effect"], description=q["doc"])
+        ng = m.create_group("nonlinear")
+        for name, est in result.nonlinear.items():
+            write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated)
+        fixed_d = config.sample.separation
+        write_dataset(m, "separation", result.system.params["d"], "m", estimated=fixed_d is None,
+                      error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0)
+        fg = h5.create_group("force")
+        write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive")
+        write_dataset(fg, "direct", result.force_direct, "N", positive="repulsive",
+                      meaning="model-free force from the equation of motion, band-limited to signal harmonics")
+        write_dataset(fg, "time", result.prep.t, "s")
+        write_dataset(fg, "deflection", result.prep.x, "m", positive="toward_sample")
+        pgp = h5.create_group("periods")
+        for name, arr in result.periods.items():
+            write_dataset(pgp, name, arr, PERIOD_UNITS[name])
+        dg = h5.create_group("diagnostics")
+        write_dataset(dg, "cv_error", result.cv_error, "1", definition="normalised cross-validated force error")
+        write_dataset(dg, "cv_error_folds", result.cv_error_folds, "1")
+        write_dataset(dg, "residual", result.force_direct - result.force_estimate, "N")
+        write_dataset(dg, "noise_rms", result.prep.noise_rms, "m")
+        write_dataset(dg, "steadiness", result.prep.steadiness, "1")
+        write_dataset(dg, "harmonics", result.prep.blocks.harmonics, "1")
+        write_dataset(dg, "row_sigma", result.prep.row_sigma, "N")
+        write_dataset(dg, "signal_rows", result.signal_rows, "1")
+        path_g = dg.create_group("path")
+        cands = result.selection.candidates
+        write_dataset(path_g, "masks", np.array([c.mask[:p] for c in cands]), "1")
+        write_dataset(path_g, "n_terms", np.array([c.n_free for c in cands]), "1")
+        write_dataset(path_g, "rss", np.array([c.rss for c in cands]), "1", meaning="whitened residual sum of squares")
+        write_dataset(path_g, "bic", np.array([c.bic for c in cands]), "1")
+        write_dataset(path_g, "cv_rss", np.array([c.cv_rss for c in cands]), "1")
+        path_g.attrs["chosen"] = result.selection.chosen
+        path_g.attrs["criterion"] = result.selection.criterion
+        if result.warnings:
+            dg.attrs["warnings"] = result.warnings
+    return path

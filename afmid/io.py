@@ -1,0 +1,443 @@
+"""Input and output: the trace a run works on, and afmid's HDF5 file formats.
+
+Data flow: a config's ``data`` section -> :func:`load_trace` (reader registry,
+unit conversion to metres, sign to "positive toward the sample", metadata
+merging) -> :class:`Trace`. Outputs are written by :func:`atomic_hdf5`: to a
+temporary file in the destination folder, renamed into place only when
+complete, so an interrupted run never leaves a half-written file.
+
+File layouts are documented in docs/file-formats.md (keep the two in sync).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import hashlib
+import logging
+import os
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .errors import ConfigError, InputError, OutputError
+
+log = logging.getLogger(__name__)
+
+TRACE_FORMAT = "afmid-trace"
+RUN_FORMAT = "afmid-run"
+FORMAT_VERSION = 1
+#: Fewer samples per drive period than this cannot resolve the motion's harmonics well.
+MIN_SAMPLES_PER_PERIOD = 20
+#: A trace must hold at least this many drive periods.
+MIN_PERIODS = 3
+
+_UNIT_SCALE = {"m": 1.0, "nm": 1e-9, "pm": 1e-12, "um": 1e-6}
+
+
+@dataclass
+class Cantilever:
+    spring_constant: float  # N/m
+    resonance_frequency: float  # Hz
+    quality_factor: float
+    tip_radius: float | None = None  # m
+
+    @property
+    def omega0(self) -> float:
+        """Angular resonance frequency, rad/s."""
+        return 2.0 * np.pi * self.resonance_frequency
+
+    @property
+    def mass(self) -> float:
+        """Effective mass m = k / w0^2, kg."""
+        return self.spring_constant / self.omega0**2
+
+
+@dataclass
+class Truth:
+    """Ground truth stored by the simulator."""
+
+    force: np.ndarray  # N, repulsive positive, per sample
+    separation: np.ndarray  # m
+    velocity: np.ndarray  # dx/dt, m/s
+    model: str
+    effects: list[str]
+    parameters: dict[str, float]  # SI
+    units: dict[str, str]
+    extra: dict[str, Any] = field(default_factory=dict)  # drive force amplitude, separation, ...
+
+
+@dataclass
+class Trace:
+    """A deflection trace in SI, positive toward the sample."""
+
+    deflection: np.ndarray  # m
+    sample_rate: float  # Hz
+    cantilever: Cantilever
+    drive_frequency: float  # Hz (nominal; the fit re-estimates it)
+    time: np.ndarray | None = None  # s, when the file had a time axis
+    truth: Truth | None = None
+    path: Path | None = None
+    sha256: str | None = None
+    sources: dict[str, str] = field(default_factory=dict)  # value -> where it came from
+    overridden: list[str] = field(default_factory=list)  # config keys that overrode file metadata
+    drive_force_amplitude: float | None = None  # N, if known
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.deflection.size)
+
+    @property
+    def times(self) -> np.ndarray:
+        """Sample times, s (from the time column, else from the sample rate)."""
+        if self.time is not None:
+            return self.time
+        return np.arange(self.n_samples) / self.sample_rate
+
+    @property
+    def samples_per_period(self) -> float:
+        return self.sample_rate / self.drive_frequency
+
+    @property
+    def n_periods(self) -> float:
+        return self.n_samples / self.samples_per_period
+
+
+# --------------------------------------------------------------------------- helpers
+def sha256_file(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def now_iso() -> str:
+    """Current time, ISO 8601 with the local zone offset."""
+    return _dt.datetime.now().astimezone().isoformat(timespec="seconds")
+
+
+def check_output_path(path: str | Path, overwrite: bool) -> Path:
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise OutputError("output exists; pass --overwrite to replace it", file=path)
+    if path.exists() and path.is_dir():
+        raise OutputError("output path is a directory", file=path)
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.exists():
+        raise OutputError(f"output folder {parent} does not exist", file=path)
+    return path
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it into place on success only."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".afmid-tmp-{path.name}.", dir=path.parent or ".")
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    except BaseException:
+        tmp_path.unlink(missing_ok=True)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_hdf5(path: str | Path, file_format: str, config_text: str, inputs: dict[str, str] | None = None):
+    """Open a new afmid HDF5 file for writing, with provenance root attributes.
+
+    ``inputs`` maps input paths to their SHA-256. The file appears at ``path``
+    only if the block completes.
+    """
+    import h5py
+
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as h5:
+            h5.attrs["afmid_version"] = __version__
+            h5.attrs["format"] = file_format
+            h5.attrs["format_version"] = FORMAT_VERSION
+            h5.attrs["created"] = now_iso()
+            h5.attrs["config"] = config_text
+            for i, (ipath, digest) in enumerate((inputs or {}).items()):
+                suffix = "" if i == 0 else f"_{i}"
+                h5.attrs[f"input_path{suffix}"] = str(ipath)
+                h5.attrs[f"input_sha256{suffix}"] = digest
+            yield h5
+
+
+def write_dataset(group, name: str, data, units: str, **attrs):
+    """Create a dataset with its mandatory ``units`` attribute."""
+    arr = np.asarray(data)
+    if arr.dtype.kind == "U":
+        import h5py
+
+        ds = group.create_dataset(name, data=arr.astype(object), dtype=h5py.string_dtype())
+    else:
+        kwargs = {"compression": "gzip", "compression_opts": 4, "shuffle": True} if arr.size > 4096 else {}
+        ds = group.create_dataset(name, data=arr, **kwargs)
+    ds.attrs["units"] = units
+    for key, value in attrs.items():
+        ds.attrs[key] = value
+    return ds
+
+
+# --------------------------------------------------------------------------- trace files
+def write_trace_file(path: str | Path, trace: Trace, config_text: str, overwrite: bool = False) -> Path:
+    """Write an afmid trace file (layout in docs/file-formats.md)."""
+    path = check_output_path(path, overwrite)
+    inputs = {str(trace.path): trace.sha256} if trace.path and trace.sha256 else None
+    with atomic_hdf5(path, TRACE_FORMAT, config_text, inputs) as h5:
+        h5.attrs["sample_rate"] = float(trace.sample_rate)
+        write_dataset(h5, "deflection", trace.deflection, "m", positive="toward_sample")
+        if trace.time is not None:
+            write_dataset(h5, "time", trace.time, "s")
+        cl = h5.create_group("cantilever")
+        cl.attrs["spring_constant"] = trace.cantilever.spring_constant
+        cl.attrs["resonance_frequency"] = trace.cantilever.resonance_frequency
+        cl.attrs["quality_factor"] = trace.cantilever.quality_factor
+        cl.attrs["tip_radius"] = np.nan if trace.cantilever.tip_radius is None else trace.cantilever.tip_radius
+        cl.attrs["units"] = "spring_constant: N/m; resonance_frequency: Hz; quality_factor: 1; tip_radius: m"
+        dr = h5.create_group("drive")
+        dr.attrs["frequency"] = trace.drive_frequency
+        if trace.drive_force_amplitude is not None:
+            dr.attrs["force_amplitude"] = trace.drive_force_amplitude
+        dr.attrs["units"] = "frequency: Hz; force_amplitude: N"
+        if trace.truth is not None:
+            t = trace.truth
+            tg = h5.create_group("truth")
+            write_dataset(tg, "force", t.force, "N", positive="repulsive")
+            write_dataset(tg, "separation", t.separation, "m")
+            write_dataset(tg, "velocity", t.velocity, "m/s", definition="dx/dt, positive toward the sample")
+            tg.attrs["model"] = t.model
+            tg.attrs["effects"] = list(t.effects)
+            pg = tg.create_group("parameters")
+            for name, value in t.parameters.items():
+                pg.attrs[name] = value
+            pg.attrs["units"] = "; ".join(f"{k}: {v}" for k, v in t.units.items())
+            for name, value in t.extra.items():
+                tg.attrs[name] = value
+    return path
+
+
+def _attr(group, name: str):
+    value = group.attrs.get(name)
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def read_truth(path: str | Path) -> Truth | None:
+    """The ``/truth`` group of an afmid trace file, or None."""
+    import h5py
+
+    with h5py.File(path, "r") as h5:
+        if "truth" not in h5:
+            return None
+        tg = h5["truth"]
+        pg = tg["parameters"]
+        units = dict(
+            item.split(": ", 1) for item in str(_attr(pg, "units") or "").split("; ") if ": " in item
+        )
+        extra = {k: _attr(tg, k) for k in tg.attrs if k not in ("model", "effects")}
+        return Truth(
+            force=tg["force"][...],
+            separation=tg["separation"][...],
+            velocity=tg["velocity"][...],
+            model=str(_attr(tg, "model")),
+            effects=[str(e) for e in tg.attrs.get("effects", [])],
+            parameters={k: float(_attr(pg, k)) for k in pg.attrs if k != "units"},
+            units=units,
+            extra=extra,
+        )
+
+
+# --------------------------------------------------------------------------- loading
+def _convert_units(values: np.ndarray, units: str | None, config, file: Path) -> np.ndarray:
+    data = config.data
+    if units is None:
+        raise ConfigError(
+            "the file does not state the deflection units; set data.units to one of m, nm, pm, um, V, raw",
+            file=config.source,
+            key="data.units",
+        )
+    values = values - data.offset
+    if units in _UNIT_SCALE:
+        return values * _UNIT_SCALE[units]
+    if units == "V":
+        if data.invols is None:
+            raise ConfigError("units V needs data.invols (m/V) to convert to metres", file=config.source, key="data.invols")
+        return values * data.invols
+    if units == "raw":
+        if data.scale is None:
+            raise ConfigError("units raw needs data.scale (m per count)", file=config.source, key="data.scale")
+        return values * data.scale
+    raise InputError(f"cannot convert deflection units {units!r}; set data.units", file=file, key="data.units")
+
+
+def _normalise_units(units: str | None) -> str | None:
+    if units is None:
+        return None
+    u = units.strip().replace("µ", "u").replace("μ", "u")
+    return {"meter": "m", "meters": "m", "metre": "m", "volt": "V", "volts": "V", "v": "V"}.get(u.lower(), u)
+
+
+def load_trace(config) -> Trace:
+    """Load the trace named by ``config.data`` into SI units, positive toward the sample.
+
+    Metadata found in the file (sample rate, units, and for afmid trace files the
+    cantilever and drive) is used; values in the config override it, and the
+    override is recorded in ``Trace.overridden``.
+    """
+    from .readers import read_trace
+
+    data = config.data
+    if data.path is None:
+        raise ConfigError("required key is missing (the trace file to fit)", file=config.source, key="data.path")
+    path = config.resolve_path(data.path)
+    if not path.exists():
+        raise InputError("trace file not found", file=path, key="data.path")
+    raw = read_trace(path, data.format, data.column, data.time_column)
+    sources = dict(raw.source)
+    overridden: list[str] = []
+    meta = raw.metadata or {}
+    is_afmid = meta.get("format") == TRACE_FORMAT
+
+    values = np.asarray(raw.values, dtype=np.float64)
+    bad = ~np.isfinite(values)
+    if bad.any():
+        first = int(np.argmax(bad))
+        raise InputError(
+            f"{int(bad.sum())} NaN/inf samples in the deflection (first at sample {first}); "
+            "clean or crop the trace before fitting",
+            file=path,
+            key="data.column",
+        )
+
+    units = _normalise_units(raw.units)
+    if data.units is not None:
+        if units is not None and units != data.units:
+            overridden.append("data.units")
+        units = data.units
+        sources["units"] = "config:data.units"
+    deflection = _convert_units(values, units, config, path)
+    if data.positive == "away_from_sample":
+        deflection = -deflection
+
+    time = None if raw.time is None else np.asarray(raw.time, dtype=np.float64)
+    sample_rate = raw.sample_rate
+    if data.sample_rate is not None:
+        if sample_rate is not None and not np.isclose(sample_rate, data.sample_rate, rtol=1e-9):
+            overridden.append("data.sample_rate")
+        sample_rate = data.sample_rate
+        sources["sample_rate"] = "config:data.sample_rate"
+    if sample_rate is None:
+        raise ConfigError(
+            "the file has no time axis or sample rate; set data.sample_rate (Hz) or data.time_column",
+            file=config.source,
+            key="data.sample_rate",
+        )
+
+    cantilever = _merge_cantilever(config, meta.get("cantilever", {}) if is_afmid else {}, sources, overridden)
+    drive_meta = meta.get("drive", {}) if is_afmid else {}
+    drive_frequency = _merged_value(
+        config, "drive.frequency", config.drive.frequency, drive_meta.get("frequency"), sources, overridden
+    )
+    force_amplitude = config.drive.force_amplitude or drive_meta.get("force_amplitude")
+
+    trace = Trace(
+        deflection=deflection,
+        sample_rate=float(sample_rate),
+        cantilever=cantilever,
+        drive_frequency=float(drive_frequency),
+        time=time,
+        truth=read_truth(path) if is_afmid and meta.get("truth_datasets") else None,
+        path=path,
+        sha256=sha256_file(path),
+        sources=sources,
+        overridden=overridden,
+        drive_force_amplitude=None if force_amplitude is None else float(force_amplitude),
+    )
+    check_trace(trace, config)
+    return trace
+
+
+def _merged_value(config, key: str, from_config, from_file, sources: dict, overridden: list):
+    """Config value if given (recording an override of the file's), else the file's, else an error."""
+    name = key.split(".")[-1]
+    if from_config is not None:
+        if from_file is not None and not _isclose(from_config, from_file):
+            overridden.append(key)
+        sources[name] = f"config:{key}"
+        return from_config
+    if from_file is not None and not (isinstance(from_file, float) and np.isnan(from_file)):
+        sources[name] = "file"
+        return from_file
+    raise ConfigError("required key is missing (not in the config nor in the trace file)", file=config.source, key=key)
+
+
+def _isclose(a, b) -> bool:
+    try:
+        return bool(np.isclose(float(a), float(b), rtol=1e-12, atol=0))
+    except (TypeError, ValueError):
+        return a == b
+
+
+def _merge_cantilever(config, meta: dict, sources: dict, overridden: list) -> Cantilever:
+    c = config.cantilever
+    values = {}
+    for name in ("spring_constant", "resonance_frequency", "quality_factor"):
+        values[name] = float(_merged_value(config, f"cantilever.{name}", getattr(c, name), meta.get(name), sources, overridden))
+    radius = c.tip_radius
+    file_radius = meta.get("tip_radius")
+    if radius is None and file_radius is not None and np.isfinite(file_radius):
+        radius = float(file_radius)
+        sources["tip_radius"] = "file"
+    elif radius is not None:
+        if file_radius is not None and np.isfinite(file_radius) and not _isclose(radius, file_radius):
+            overridden.append("cantilever.tip_radius")
+        sources["tip_radius"] = "config:cantilever.tip_radius"
+    return Cantilever(tip_radius=radius, **values)
+
+
+def check_trace(trace: Trace, config) -> None:
+    """Reject traces that cannot be fitted; warn about marginal sampling."""
+    path = trace.path
+    n = trace.n_samples
+    if n == 0:
+        raise InputError("the trace is empty", file=path, key="data.column")
+    if trace.time is not None:
+        if trace.time.size != n:
+            raise InputError("time and deflection columns differ in length", file=path, key="data.time_column")
+        if not np.all(np.isfinite(trace.time)):
+            raise InputError("the time column has NaN/inf values", file=path, key="data.time_column")
+        steps = np.diff(trace.time)
+        if steps.size and np.any(steps <= 0):
+            first = int(np.argmax(steps <= 0)) + 1
+            raise InputError(
+                f"time is not strictly increasing (sample {first}); duplicated or reordered samples",
+                file=path,
+                key="data.time_column",
+            )
+    spp = trace.samples_per_period
+    if trace.n_periods < MIN_PERIODS:
+        raise InputError(
+            f"the trace is too short: {n} samples = {trace.n_periods:.2f} drive periods, need at least {MIN_PERIODS}",
+            file=path,
+            key="data.path",
+        )
+    if spp < MIN_SAMPLES_PER_PERIOD:
+        log.warning(
+            "%s: only %.1f samples per drive period (< %d): the sample rate is too low to resolve the motion well",
+            path,
+            spp,
+            MIN_SAMPLES_PER_PERIOD,
+        )

@@ -1,0 +1,1 @@
+"""Numba kernels. Only modules in this package import numba."""

@@ -1,0 +1,268 @@
+"""The library of candidate force terms.
+
+A :class:`Library` is an ordered list of :class:`LibraryTerm` (expressions in the
+term language of :mod:`afmid.expr`), built from the effect catalog
+(``model.effects``), from a preset (the seed's tables I-IV, ``model.library``),
+and from custom terms in the config (``model.terms``). Each term knows its SI
+units and, where it comes from an effect, which effect coefficient it is, so
+fitted coefficients can be read out as physical quantities.
+
+Columns are evaluated by the numba VM over the measured trajectory; history
+gates (meniscus, JKR neck) are scanned along the trajectory first.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import expr
+from .physics import CONTEXT_UNITS, EFFECTS, StateGate, coefficient_unit, term_unit
+from .registry import unknown_name_message
+from .units import parse_unit
+
+NEWTON = parse_unit("N")
+
+
+@dataclass(frozen=True)
+class LibraryTerm:
+    name: str  # display name
+    expression: str
+    unit: str  # SI units of the term
+    coefficient_unit: str  # SI units of its coefficient (N / unit)
+    effect: str | None = None  # effect whose coefficient this is (for the read-out)
+    label: str | None = None  # term label within that effect
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Preset:
+    name: str
+    title: str
+    # (display name, expression, (effect, label) or None)
+    terms: tuple[tuple[str, str, tuple[str, str] | None], ...]
+    effects: tuple[str, ...]  # effects whose read-out applies
+    references: tuple[str, ...]
+    notes: str = ""
+
+
+_CONTACT = "[z <= a0]"
+_OUT = "[z > a0]"
+_TABLE_2_4 = (
+    ("z^-2", f"{_OUT} * z^-2", ("dmt", "vdw")),
+    ("z^-3", f"{_OUT} * z^-3", None),
+    ("delta^0.5*deltadot", "delta^0.5 * deltadot", ("viscoelastic", "kelvin_voigt")),
+    ("delta*deltadot^2", "delta * deltadot^2", None),
+    ("z^0.5*zdot", f"{_OUT} * z^0.5 * zdot", None),
+    ("z*zdot^2", "z * zdot^2", None),
+    ("delta^2", "delta^2", None),
+    ("delta^2.5", "delta^2.5", None),
+    ("delta^1.5", f"{_CONTACT} * delta^1.5", ("dmt", "hertz")),
+    ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion")),
+)
+
+PRESETS: dict[str, Preset] = {
+    p.name: p
+    for p in (
+        Preset(
+            "lj_table1",
+            "seed table I: inverse powers z^-1..z^-8, z^1.5, z^2",
+            tuple((f"z^-{n}", f"z^-{n}", {2: ("lennard_jones", "attraction"), 8: ("lennard_jones", "repulsion")}.get(n))
+                  for n in range(1, 9))
+            + (("z^1.5", "z^1.5", None), ("z^2", "z^2", None)),
+            ("lennard_jones",),
+            ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table I",),
+        ),
+        Preset(
+            "viscoelastic_table2",
+            "seed table II: DMT + viscoelastic candidates",
+            _TABLE_2_4,
+            ("dmt", "viscoelastic"),
+            ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table II",),
+        ),
+        Preset(
+            "exponential_table3",
+            "seed table III: DMT + exponential damping candidates",
+            (
+                ("z^-2", f"{_OUT} * z^-2", ("dmt", "vdw")),
+                ("z^-3", f"{_OUT} * z^-3", None),
+                ("exp(-z/lambda)*zdot", "exp(-z / damping_length) * zdot", ("exponential_damping", "surface_damping")),
+                ("exp(-z/lambda)^2*zdot^2", "exp(-2 * z / damping_length) * zdot^2", None),
+                ("z*zdot", "z * zdot", None),
+                ("z*zdot^2", "z * zdot^2", None),
+                ("delta^2", "delta^2", None),
+                ("delta^2.5", "delta^2.5", None),
+                ("delta^1.5", f"{_CONTACT} * delta^1.5", ("dmt", "hertz")),
+                ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion")),
+            ),
+            ("dmt", "exponential_damping"),
+            ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table III",),
+        ),
+        Preset(
+            "jkr_table4",
+            "seed table IV: JKR candidates (same functions as table II)",
+            tuple((n, e, ("jkr", lab[1]) if lab and lab[0] == "dmt" else lab) for n, e, lab in _TABLE_2_4),
+            ("jkr", "viscoelastic"),
+            ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table IV",),
+        ),
+    )
+}
+# The seed tables' sin(Omega tau) is not listed: afmid always fits the drive as
+# free cos and sin terms (its amplitude and phase are unknown in a measurement).
+# The tables' "z^-2 for z <= a0" bridging function is the constant in-contact
+# adhesion term (C3 / a0^2 of eq. 1); inverse powers act out of contact as in eq. 1.
+
+
+@dataclass
+class Library:
+    """Candidate terms plus what evaluating them needs (states, nonlinear parameters)."""
+
+    terms: list[LibraryTerm]
+    states: tuple[StateGate, ...] = ()
+    effects: tuple[str, ...] = ()  # effects whose read-out applies
+    nonlinear: dict[str, float] = field(default_factory=dict)  # default values, SI
+    source: str = ""
+
+    @property
+    def names(self) -> list[str]:
+        return [t.name for t in self.terms]
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.states)
+
+    def __len__(self) -> int:
+        return len(self.terms)
+
+    def compile(self, params: Mapping[str, float]):
+        """A :class:`afmid.expr.ProgramSet` of the terms and the state-gate conditions."""
+        states = self.state_names
+        programs = [expr.compile_expression(t.expression, dict(params), states) for t in self.terms]
+        gates = []
+        for gate in self.states:
+            gates.append((
+                expr.compile_expression(f"[{gate.on}]", dict(params), states),
+                expr.compile_expression(f"[{gate.off}]", dict(params), states),
+            ))
+        return expr.ProgramSet(programs), gates
+
+    def evaluate(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
+                 backend: str = "numba") -> np.ndarray:
+        """Library columns (N, p) along a trajectory. ``params`` holds d (separation), a0, R and nonlinear ones."""
+        variables = trajectory_variables(x, xdot, t, params["d"], params["a0"], len(self.states))
+        program_set, gates = self.compile(params)
+        if self.states:
+            _fill_states(variables, gates, backend)
+        out = np.empty((x.size, len(self.terms)))
+        if backend == "numba":
+            from .kernels.vm import eval_set
+
+            eval_set(program_set.code, program_set.code_offsets, program_set.consts, program_set.const_offsets,
+                     variables, out)
+        else:
+            for j, term in enumerate(self.terms):
+                out[:, j] = expr.evaluate_numpy(term.expression, variables, dict(params), self.state_names)
+        return out
+
+
+def trajectory_variables(x, xdot, t, d: float, a0: float, n_states: int = 0) -> np.ndarray:
+    """The term-language variables (z, zdot, delta, deltadot, x, xdot, t, states...) along a trajectory."""
+    n = x.size
+    v = np.zeros((len(expr.VARIABLES) + n_states, n))
+    z = d - x
+    zdot = -xdot
+    contact = z <= a0
+    v[0] = z
+    v[1] = zdot
+    v[2] = np.where(contact, a0 - z, 0.0)
+    v[3] = np.where(contact, -zdot, 0.0)
+    v[4] = x
+    v[5] = xdot
+    v[6] = t
+    return v
+
+
+def _fill_states(variables: np.ndarray, gates, backend: str) -> None:
+    from .kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy
+
+    base = len(expr.VARIABLES)
+    for k, (on_prog, off_prog) in enumerate(gates):
+        on = expr.evaluate_numpy(on_prog, variables)
+        off = expr.evaluate_numpy(off_prog, variables)
+        if backend == "numba":
+            out = np.empty_like(on)
+            scan_hysteresis(on, off, float(on[0] != 0), out)
+        else:
+            out = scan_hysteresis_numpy(on, off, float(on[0] != 0))
+        variables[base + k] = out
+
+
+def _units_context(extra_units: Mapping[str, str]) -> dict:
+    units = {k: parse_unit(v) for k, v in CONTEXT_UNITS.items()}
+    units["w"] = parse_unit("1/s")
+    units.update({k: parse_unit(v) for k, v in extra_units.items()})
+    return units
+
+
+def build_library(model_config, source=None) -> Library:
+    """The library a run config asks for (``model.library`` preset or ``model.effects``, plus ``model.terms``)."""
+    from .errors import ConfigError
+
+    terms: list[LibraryTerm] = []
+    states: list[StateGate] = []
+    nonlinear: dict[str, float] = {}
+    param_units: dict[str, str] = {}
+    if model_config.library is not None:
+        if model_config.library not in PRESETS:
+            raise ConfigError(unknown_name_message("library preset", model_config.library, list(PRESETS)),
+                              file=source, key="model.library")
+        preset = PRESETS[model_config.library]
+        effects = preset.effects
+    else:
+        preset = None
+        effects = tuple(model_config.effects)
+    for name in effects:
+        eff = EFFECTS.get(name)
+        states.extend(s for s in eff.states if s not in states)
+        for p in eff.parameters:
+            param_units[p.name] = p.unit
+            if p.nonlinear:
+                nonlinear[p.name] = p.default
+    if preset is not None:
+        units = _units_context(param_units)
+        for display, expression, origin in preset.terms:
+            unit = expr.expression_units(expression, units, tuple(s.name for s in states))
+            effect, label = origin if origin else (None, None)
+            terms.append(LibraryTerm(display, expression, str(unit), str(NEWTON / unit), effect, label))
+    else:
+        for name in effects:
+            eff = EFFECTS.get(name)
+            for term in eff.terms:
+                terms.append(LibraryTerm(
+                    f"{name}.{term.label}", term.expression, str(term_unit(eff, term)),
+                    str(coefficient_unit(eff, term)), name, term.label, term.doc,
+                ))
+    units = _units_context(param_units)
+    for i, text in enumerate(model_config.terms):
+        key = f"model.terms[{i}]"
+        try:
+            unit = expr.expression_units(text, units, tuple(s.name for s in states))
+        except expr.ExpressionError as exc:
+            raise ConfigError(str(exc), file=source, key=key) from None
+        except ValueError as exc:
+            raise ConfigError(f"{exc}", file=source, key=key) from None
+        terms.append(LibraryTerm(text, text, str(unit), str(NEWTON / unit)))
+    # One column per distinct expression: effects may share a term.
+    seen: dict[str, LibraryTerm] = {}
+    for term in terms:
+        seen.setdefault(" ".join(term.expression.split()), term)
+    for name, value in model_config.parameters.items():
+        if name not in nonlinear:
+            allowed = ", ".join(sorted(nonlinear)) or "none for these effects"
+            raise ConfigError(f"{name!r} is not a nonlinear parameter of the library; allowed: {allowed}",
+                              file=source, key=f"model.parameters.{name}")
+        nonlinear[name] = value
+    return Library(list(seen.values()), tuple(states), tuple(effects), nonlinear,
+                   model_config.library or "effects")

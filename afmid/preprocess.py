@@ -1,0 +1,386 @@
+"""Preprocessing: drive estimation, segmentation, filtering and differentiation.
+
+Steady tapping motion is periodic in the drive, so afmid works period by period.
+:func:`estimate_drive` measures the actual drive frequency from the data (the
+nominal value is not trusted), :func:`harmonic_blocks` cuts the trace into
+blocks of about one period and fits each with a truncated Fourier series in the
+drive harmonics (a least-squares projection, exact for a non-integer number of
+samples per period). Derivatives of a Fourier series are exact, so the second
+derivative of noisy data is never formed by finite differences; the regression
+applies the *same* projection to every library column (a weak form with
+Fourier test functions), so truncating harmonics does not bias the fit.
+
+Time-domain differentiators (for transients and for the model-free force per
+sample) are declared in :data:`DIFFERENTIATORS`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import InputError
+from .registry import Registry
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- drive
+@dataclass
+class DriveEstimate:
+    frequency: float  # Hz, measured
+    nominal: float  # Hz, from the config or file
+    amplitude: float  # m, first-harmonic amplitude of the deflection
+    phase: float  # rad, phase of the first harmonic relative to t = 0 (x ~ A cos(w t + phase))
+    offset: float  # m, mean deflection
+
+    @property
+    def omega(self) -> float:
+        return 2.0 * np.pi * self.frequency
+
+
+def _harmonic_power(x: np.ndarray, t: np.ndarray, window: np.ndarray, f: float) -> float:
+    phasor = np.exp(-2j * np.pi * f * t)
+    return float(np.abs(np.dot(window * x, phasor)) ** 2)
+
+
+def estimate_drive(x: np.ndarray, t: np.ndarray, nominal: float, search: float = 0.05) -> DriveEstimate:
+    """Measure the drive (response fundamental) frequency near ``nominal``.
+
+    A Hann-windowed, zero-padded spectrum finds the peak within ``search``
+    (relative) of the nominal frequency; a bounded scalar search of the windowed
+    DFT power then refines it far below the bin width (~1e-7 relative on a
+    50-period trace). Raises InputError if there is no oscillation.
+    """
+    from scipy.optimize import minimize_scalar
+
+    xc = x - x.mean()
+    if not np.any(xc):
+        raise InputError("the deflection is constant: no oscillation to analyse", key="data.column")
+    n = x.size
+    duration = t[-1] - t[0] + (t[1] - t[0])
+    window = np.hanning(n)
+    pad = 8 * int(2 ** np.ceil(np.log2(n)))
+    spectrum = np.abs(np.fft.rfft(window * xc, pad))
+    freqs = np.fft.rfftfreq(pad, d=duration / n)
+    band = (freqs > nominal * (1 - search)) & (freqs < nominal * (1 + search))
+    if not band.any():
+        raise InputError(
+            f"the drive frequency {nominal:g} Hz is outside the sampled band (sample rate {n / duration:g} Hz)",
+            key="drive.frequency",
+        )
+    idx = np.flatnonzero(band)[np.argmax(spectrum[band])]
+    df = freqs[1] - freqs[0]
+    res = minimize_scalar(
+        lambda f: -_harmonic_power(xc, t, window, f),
+        bounds=(freqs[idx] - 1.5 * df, freqs[idx] + 1.5 * df),
+        method="bounded",
+        options={"xatol": nominal * 1e-10},
+    )
+    f = float(res.x)
+    # Unwindowed least-squares amplitude and phase over whole periods.
+    w = 2 * np.pi * f
+    design = np.column_stack([np.ones_like(t), np.cos(w * t), np.sin(w * t)])
+    coef, *_ = np.linalg.lstsq(design, x, rcond=None)
+    amplitude = float(np.hypot(coef[1], coef[2]))
+    phase = float(np.arctan2(-coef[2], coef[1]))
+    if abs(f - nominal) / nominal > 1e-3:
+        log.warning("measured drive frequency %.6g Hz differs from the nominal %.6g Hz by %.2g %%",
+                    f, nominal, 100 * (f - nominal) / nominal)
+    return DriveEstimate(frequency=f, nominal=nominal, amplitude=amplitude, phase=phase, offset=float(coef[0]))
+
+
+def detrend(x: np.ndarray, t: np.ndarray, mode: str) -> tuple[np.ndarray, dict]:
+    """Remove an offset or a linear drift. Returns the corrected trace and what was removed (m, m/s)."""
+    if mode == "none":
+        return x, {}
+    if mode == "offset":
+        offset = float(x.mean())
+        return x - offset, {"offset": offset}
+    if mode == "linear":
+        slope, intercept = np.polyfit(t - t.mean(), x, 1)
+        return x - (intercept + slope * (t - t.mean())), {"offset": float(intercept), "drift": float(slope)}
+    raise ValueError(mode)
+
+
+# --------------------------------------------------------------------------- harmonic blocks
+@dataclass
+class HarmonicBlocks:
+    """Least-squares Fourier fits of consecutive blocks of ``L`` samples (about one period each).
+
+    Coefficient layout per block: ``[c0, a1, b1, ..., aK, bK]`` for
+    ``c0 + sum(a_n cos(n w t) + b_n sin(n w t))`` in *global* time t, so blocks
+    of a steady motion have equal coefficients up to noise.
+    """
+
+    omega: float  # rad/s
+    dt: float  # s
+    L: int  # samples per block
+    K: int  # highest harmonic
+    start: int  # index of the first sample used
+    n_blocks: int
+    t0: float  # time of sample 0, s
+    design: np.ndarray  # (L, 2K+1) local basis
+    projector: np.ndarray  # (2K+1, L) pseudo-inverse of the local basis
+    oversample: int = 1  # fine-grid points per sample for evaluating library terms
+    design_fine: np.ndarray | None = None  # (L * oversample, 2K+1)
+    projector_fine: np.ndarray | None = None  # (2K+1, L * oversample)
+
+    @property
+    def n_coef(self) -> int:
+        return 2 * self.K + 1
+
+    @property
+    def harmonics(self) -> np.ndarray:
+        """Harmonic number of each coefficient row (0, 1, 1, 2, 2, ...)."""
+        return np.concatenate([[0], np.repeat(np.arange(1, self.K + 1), 2)])
+
+    @property
+    def used(self) -> slice:
+        return slice(self.start, self.start + self.n_blocks * self.L)
+
+    def block_times(self) -> np.ndarray:
+        """Start time of each block, s."""
+        return self.t0 + (self.start + self.L * np.arange(self.n_blocks)) * self.dt
+
+    def _rotations(self) -> tuple[np.ndarray, np.ndarray]:
+        theta = np.outer(self.block_times(), np.arange(1, self.K + 1)) * self.omega  # (n_blocks, K)
+        return np.cos(theta), np.sin(theta)
+
+    def to_global(self, local: np.ndarray) -> np.ndarray:
+        """Rotate local-time coefficients (n_blocks, 2K+1, m) to global time."""
+        c, s = self._rotations()
+        out = local.copy()
+        a, b = local[:, 1::2, :], local[:, 2::2, :]
+        out[:, 1::2, :] = c[..., None] * a - s[..., None] * b
+        out[:, 2::2, :] = s[..., None] * a + c[..., None] * b
+        return out
+
+    def to_local(self, coef: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`to_global`."""
+        c, s = self._rotations()
+        out = coef.copy()
+        a, b = coef[:, 1::2, :], coef[:, 2::2, :]
+        out[:, 1::2, :] = c[..., None] * a + s[..., None] * b
+        out[:, 2::2, :] = -s[..., None] * a + c[..., None] * b
+        return out
+
+    def project(self, columns: np.ndarray) -> np.ndarray:
+        """Fourier coefficients (n_blocks, 2K+1, m) of sample columns (N,) or (N, m), global phase."""
+        cols = columns[self.used]
+        if cols.ndim == 1:
+            cols = cols[:, None]
+        blocks = cols.reshape(self.n_blocks, self.L, -1)
+        local = np.einsum("kl,blm->bkm", self.projector, blocks)
+        return self.to_global(local)
+
+    def fine_times(self) -> np.ndarray:
+        """Times (n_blocks, L * oversample) of the fine grid, s."""
+        local = np.arange(self.L * self.oversample) * (self.dt / self.oversample)
+        return self.block_times()[:, None] + local[None, :]
+
+    def synthesize_fine(self, coef: np.ndarray) -> np.ndarray:
+        """The series (n_blocks, L * oversample, m) on the fine grid."""
+        return np.einsum("lk,bkm->blm", self.design_fine, self.to_local(coef))
+
+    def project_fine(self, columns: np.ndarray) -> np.ndarray:
+        """Fourier coefficients (n_blocks, 2K+1, m) of fine-grid columns (n_blocks, L * oversample, m).
+
+        Terms with kinks or steps (contact onset, adhesion) have slowly decaying
+        harmonics; on the sample grid their edges are quantised to a sample,
+        which shifts the phase of harmonic n by up to n w dt / 2. Evaluating the
+        terms on a fine grid of the smooth band-limited trajectory and
+        projecting there approximates the continuous-time coefficients that
+        actually drove the cantilever.
+        """
+        return self.to_global(np.einsum("kl,blm->bkm", self.projector_fine, columns))
+
+    def derivative(self, coef: np.ndarray, order: int = 1) -> np.ndarray:
+        """Coefficients of the ``order``-th time derivative (exact for the series)."""
+        out = coef.copy()
+        n = np.arange(1, self.K + 1)[None, :, None] * self.omega
+        for _ in range(order):
+            a, b = out[:, 1::2, :].copy(), out[:, 2::2, :].copy()
+            out[:, 1::2, :] = n * b
+            out[:, 2::2, :] = -n * a
+            out[:, 0, :] = 0.0
+        return out
+
+    def synthesize(self, coef: np.ndarray) -> np.ndarray:
+        """Samples (n_blocks * L, m) of the series, on the used samples."""
+        local = self.to_local(coef)
+        return np.einsum("lk,bkm->blm", self.design, local).reshape(self.n_blocks * self.L, -1)
+
+    def evaluate(self, coef: np.ndarray, phase: np.ndarray) -> np.ndarray:
+        """Series at drive phases ``phase`` (rad, 0 = t where w t is a multiple of 2 pi): (n_blocks, P, m)."""
+        basis = _fourier_design(phase, 1.0, self.K)
+        return np.einsum("pk,bkm->bpm", basis, coef)
+
+    def noise_variance_factor(self) -> np.ndarray:
+        """diag(P P^T): variance of each coefficient per unit white-noise variance of the samples."""
+        return np.einsum("kl,kl->k", self.projector, self.projector)
+
+
+def harmonic_blocks(
+    n_samples: int, sample_rate: float, frequency: float, t0: float = 0.0,
+    periods_per_block: int = 1, max_harmonic: int = 60, oversample: int = 1,
+) -> HarmonicBlocks:
+    """Blocks of ``round(periods_per_block * samples_per_period)`` samples, and their LS Fourier projector."""
+    spp = sample_rate / frequency
+    L = int(round(periods_per_block * spp))
+    n_blocks = n_samples // L
+    if n_blocks < 3:
+        raise InputError(f"only {n_blocks} whole blocks of {L} samples; need at least 3 drive periods", key="data.path")
+    # Highest harmonic: keep the basis well inside Nyquist so the LS fit is well conditioned.
+    K = int(min(max_harmonic, np.floor(0.45 * spp)))
+    if K < 2:
+        raise InputError(f"{spp:.1f} samples per period cannot resolve any harmonic beyond the drive", key="data.sample_rate")
+    dt = 1.0 / sample_rate
+    omega = 2 * np.pi * frequency
+    design = _fourier_design(np.arange(L) * dt, omega, K)
+    projector = np.linalg.pinv(design)
+    design_fine = _fourier_design(np.arange(L * oversample) * (dt / oversample), omega, K)
+    projector_fine = np.linalg.pinv(design_fine)
+    start = (n_samples - n_blocks * L) // 2  # centre the used part; drops partial periods at both ends
+    return HarmonicBlocks(omega, dt, L, K, start, n_blocks, t0, design, projector, oversample, design_fine,
+                          projector_fine)
+
+
+def _fourier_design(s: np.ndarray, omega: float, K: int) -> np.ndarray:
+    """Columns 1, cos(n w s), sin(n w s) for n = 1..K (interleaved)."""
+    n = np.arange(1, K + 1)
+    arg = omega * np.outer(s, n)
+    return np.concatenate([np.ones((s.size, 1)), np.stack([np.cos(arg), np.sin(arg)], -1).reshape(s.size, -1)], axis=1)
+
+
+def amplitude_per_block(coef_x: np.ndarray) -> np.ndarray:
+    """First-harmonic amplitude of each block (m) from deflection coefficients (n_blocks, 2K+1[, 1])."""
+    c = coef_x[..., 0] if coef_x.ndim == 3 else coef_x
+    return np.hypot(c[:, 1], c[:, 2])
+
+
+def steadiness(coef_x: np.ndarray) -> float:
+    """Relative amplitude change across the trace from a linear fit (0 = steady)."""
+    amp = amplitude_per_block(coef_x)
+    if amp.size < 3:
+        return 0.0
+    slope = np.polyfit(np.arange(amp.size), amp, 1)[0]
+    return float(abs(slope) * amp.size / amp.mean())
+
+
+# --------------------------------------------------------------------------- differentiators
+@dataclass(frozen=True)
+class Differentiator:
+    """A time-domain filter + differentiator: x -> (x smoothed, dx/dt, d2x/dt2), SI."""
+
+    name: str
+    title: str
+    when: str  # when to use it
+    references: tuple[str, ...]
+    apply: Callable[[np.ndarray, float, float, dict], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+def _check_differentiator(d: Differentiator) -> None:
+    if not d.when:
+        raise ValueError("document when to use it")
+
+
+DIFFERENTIATORS: Registry[Differentiator] = Registry("differentiator", _check_differentiator)
+
+
+def _central(x, fs, f, opts):
+    dt = 1.0 / fs
+    v = np.gradient(x, dt, edge_order=2)
+    a = np.gradient(v, dt, edge_order=2)
+    return x, v, a
+
+
+def _savgol(x, fs, f, opts):
+    from scipy.signal import savgol_filter
+
+    spp = fs / f
+    window = int(opts.get("window") or max(5, int(round(spp / 10)) | 1))
+    window += 1 - window % 2
+    order = int(opts.get("order", 4))
+    if window <= order:
+        window = order + 2 - order % 2 + 1
+    dt = 1.0 / fs
+    xs = savgol_filter(x, window, order, deriv=0, mode="interp")
+    v = savgol_filter(x, window, order, deriv=1, delta=dt, mode="interp")
+    a = savgol_filter(x, window, order, deriv=2, delta=dt, mode="interp")
+    return xs, v, a
+
+
+def _spectral(x, fs, f, opts):
+    """Fourier differentiation keeping drive harmonics that stand above the noise floor."""
+    n = x.size
+    X = np.fft.rfft(x)
+    freqs = np.fft.rfftfreq(n, 1.0 / fs)
+    power = np.abs(X) ** 2
+    floor = np.median(power[freqs > 0.6 * fs / 2]) if n > 16 else 0.0
+    harmonic = np.round(freqs / f)
+    near = np.abs(freqs - harmonic * f) <= 1.5 * fs / n
+    snr = float(opts.get("snr", 10.0))
+    keep = (freqs == 0) | (near & (power > snr * floor))
+    X = np.where(keep, X, 0)
+    w = 2j * np.pi * freqs
+    return np.fft.irfft(X, n), np.fft.irfft(w * X, n), np.fft.irfft(w * w * X, n)
+
+
+def _spline(x, fs, f, opts):
+    from scipy.interpolate import make_smoothing_spline
+
+    t = np.arange(x.size) / fs
+    lam = opts.get("lam")
+    spline = make_smoothing_spline(t, x, lam=lam)
+    return spline(t), spline(t, 1), spline(t, 2)
+
+
+def _period_average(x, fs, f, opts):
+    """Average all periods on a phase grid (the paper's approach), differentiate spectrally, tile back."""
+    spp = fs / f
+    m = int(2 ** np.ceil(np.log2(max(64, spp))))
+    t = np.arange(x.size) / fs
+    phase = (f * t) % 1.0
+    idx = np.minimum((phase * m).astype(int), m - 1)
+    sums = np.bincount(idx, weights=x, minlength=m)
+    counts = np.bincount(idx, minlength=m)
+    mean = sums / np.maximum(counts, 1)
+    X = np.fft.rfft(mean)
+    k = np.arange(X.size)
+    kmax = int(min(X.size - 1, spp * 0.45))
+    X[kmax + 1:] = 0
+    w = 2j * np.pi * f * k
+    grid = np.arange(m) / m
+    series = [np.fft.irfft(X * w**p, m) for p in range(3)]
+    return tuple(np.interp(phase, grid, s, period=1.0) for s in series)
+
+
+DIFFERENTIATORS.register(Differentiator(
+    "central", "second-order central finite differences",
+    "only for nearly noise-free data sampled far above the drive (> 500 samples per period)",
+    ("Fornberg, Math. Comp. 51, 699 (1988)",), _central))
+DIFFERENTIATORS.register(Differentiator(
+    "savgol", "Savitzky-Golay local polynomial smoothing and differentiation",
+    "transients and general traces; window ~ 1/10 period (fit.differentiation_options.window)",
+    ("Savitzky, Golay, Anal. Chem. 36, 1627 (1964)", "scipy.signal.savgol_filter"), _savgol))
+DIFFERENTIATORS.register(Differentiator(
+    "spectral", "Fourier differentiation keeping the drive harmonics above the noise floor",
+    "steady-state traces (periodic in the drive); best noise rejection for the per-sample force",
+    ("Trefethen, Spectral Methods in MATLAB (2000)",), _spectral))
+DIFFERENTIATORS.register(Differentiator(
+    "spline", "smoothing spline with generalized cross-validation",
+    "irregular or transient motion when no periodicity can be assumed",
+    ("Wahba, Spline Models for Observational Data (1990)", "scipy.interpolate.make_smoothing_spline"), _spline))
+DIFFERENTIATORS.register(Differentiator(
+    "period_average", "average all periods on a phase grid, then differentiate spectrally",
+    "strictly steady traces when period-to-period variation is of no interest (as in the paper)",
+    ("Chandrashekar et al., Nanoscale Adv. (2022)",), _period_average))
+
+
+def differentiate(x: np.ndarray, fs: float, f_drive: float, method: str, options: dict | None = None):
+    """Apply a registered differentiator; returns (x smoothed, dx/dt, d2x/dt2)."""
+    return DIFFERENTIATORS.get(method).apply(x, fs, f_drive, options or {})

@@ -1,0 +1,272 @@
+"""Sparse regression: sparsity path, model selection, cross-validation and bagging.
+
+The problem arrives as per-block triangular factors ``T_b`` of the weighted
+``[A_b | y_b]`` (see :mod:`afmid.kernels.sparse`): blocks are drive periods, so
+cross-validation holds out periods and bagging resamples periods. Columns are
+scaled to unit norm inside the thresholding (SI columns span ~40 orders of
+magnitude); protected columns (the drive, a free offset) are never dropped.
+
+Selection methods:
+- ``stlsq``: sequentially thresholded least squares over a threshold path
+  (Brunton et al. 2016, as in the paper);
+- ``lasso``: supports along a LASSO path (coordinate descent on scaled columns),
+  each refitted by least squares;
+- ``exhaustive``: every subset (libraries of up to 16 free terms).
+The candidate supports are ranked by an information criterion (BIC by default)
+or by the cross-validated error over held-out periods.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .kernels.sparse import _subset_lstsq, stlsq_factor
+
+
+# --------------------------------------------------------------------------- factors
+def factor_blocks(A: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Per-block R factors (B, q, q) of ``[A_b | y_b]``; A is (B, r, p), y is (B, r)."""
+    M = np.concatenate([A, y[..., None]], axis=-1)
+    B, r, q = M.shape
+    if r < q:
+        M = np.concatenate([M, np.zeros((B, q - r, q))], axis=1)
+    return np.linalg.qr(M, mode="r")[:, :q, :]
+
+
+def combine(T_blocks: np.ndarray, multiplicity: np.ndarray | None = None) -> np.ndarray:
+    """One factor for several blocks (weighted by ``multiplicity``, e.g. bootstrap counts)."""
+    q = T_blocks.shape[-1]
+    stacked = T_blocks if multiplicity is None else T_blocks * np.sqrt(multiplicity)[:, None, None]
+    R = np.linalg.qr(stacked.reshape(-1, q), mode="r")
+    if R.shape[0] < q:
+        R = np.vstack([R, np.zeros((q - R.shape[0], q))])
+    return R
+
+
+def subset_fit(T: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares coefficients on the columns in ``mask`` and the residual sum of squares."""
+    coef, rss = _subset_lstsq(np.ascontiguousarray(T), mask.astype(np.bool_))
+    return coef, float(rss)
+
+
+def block_rss(T_blocks: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """Residual sum of squares of each block for coefficients ``coef``."""
+    p = T_blocks.shape[-1] - 1
+    resid = T_blocks[:, :, :p] @ coef - T_blocks[:, :, p]
+    return np.sum(resid**2, axis=1)
+
+
+# --------------------------------------------------------------------------- candidates
+@dataclass(eq=False)
+class Candidate:
+    mask: np.ndarray  # active columns (including protected)
+    coef: np.ndarray
+    rss: float
+    n_free: int  # active non-protected terms
+    bic: float = math.nan
+    aicc: float = math.nan
+    cv_rss: float = math.nan
+    cv_rss_se: float = math.nan
+
+
+def information_criteria(rss: float, n_rows: int, k: int) -> tuple[float, float]:
+    """BIC and AICc for a Gaussian model with unknown scale (rss from whitened rows)."""
+    rss = max(rss, 1e-300)
+    base = n_rows * math.log(rss / n_rows)
+    bic = base + k * math.log(n_rows)
+    aicc = base + 2 * k + (2 * k * (k + 1) / max(n_rows - k - 1, 1))
+    return bic, aicc
+
+
+def _unique(cands: list[Candidate]) -> list[Candidate]:
+    seen: dict[bytes, Candidate] = {}
+    for c in cands:
+        seen.setdefault(c.mask.tobytes(), c)
+    return sorted(seen.values(), key=lambda c: c.n_free)
+
+
+def stlsq_path(T: np.ndarray, protected: np.ndarray, thresholds: np.ndarray, max_iter: int = 20) -> list[Candidate]:
+    """Distinct supports of STLSQ over relative thresholds (fractions of the non-drive signal norm)."""
+    p = T.shape[1] - 1
+    scale = np.linalg.norm(T[:, :p], axis=0)
+    scale[scale == 0] = 1.0
+    _, base_rss = subset_fit(T, protected)
+    signal = math.sqrt(base_rss)
+    full = np.ones(p, dtype=np.bool_)
+    cands = []
+    for lam in thresholds:
+        mask, coef, rss = stlsq_factor(np.ascontiguousarray(T), scale, lam * signal, protected, full, max_iter)
+        cands.append(Candidate(mask.copy(), coef.copy(), float(rss), int((mask & ~protected).sum())))
+    coef, rss = subset_fit(T, protected)
+    cands.append(Candidate(protected.copy(), coef, rss, 0))
+    return _unique(cands)
+
+
+def lasso_path(T: np.ndarray, protected: np.ndarray, n_alphas: int = 40) -> list[Candidate]:
+    """Supports along a LASSO path (cyclic coordinate descent on unit-norm columns), refitted by LS."""
+    p = T.shape[1] - 1
+    scale = np.linalg.norm(T[:, :p], axis=0)
+    scale[scale == 0] = 1.0
+    X = T[:, :p] / scale
+    y = T[:, p]
+    G = X.T @ X
+    g = X.T @ y
+    free = ~protected
+    alpha_max = np.max(np.abs(g[free])) if free.any() else 0.0
+    cands = []
+    beta = np.zeros(p)
+    for alpha in alpha_max * np.logspace(0, -6, n_alphas):
+        for _ in range(500):
+            beta_old = beta.copy()
+            for j in range(p):
+                if G[j, j] == 0:
+                    continue
+                rho = g[j] - G[j] @ beta + G[j, j] * beta[j]
+                if protected[j]:
+                    beta[j] = rho / G[j, j]
+                else:
+                    beta[j] = np.sign(rho) * max(abs(rho) - alpha, 0.0) / G[j, j]
+            if np.max(np.abs(beta - beta_old)) < 1e-10 * (1 + np.max(np.abs(beta))):
+                break
+        mask = (beta != 0) | protected
+        coef, rss = subset_fit(T, mask)
+        cands.append(Candidate(mask, coef, rss, int((mask & free).sum())))
+    return _unique(cands)
+
+
+def exhaustive_path(T: np.ndarray, protected: np.ndarray, max_free: int = 16) -> list[Candidate]:
+    """Best subset of each size (by residual) over all subsets of the free terms."""
+    p = T.shape[1] - 1
+    free = np.flatnonzero(~protected)
+    if free.size > max_free:
+        raise ValueError(f"exhaustive search over {free.size} terms is too large (max {max_free})")
+    best: dict[int, Candidate] = {}
+    for k in range(free.size + 1):
+        for subset in itertools.combinations(free, k):
+            mask = protected.copy()
+            mask[list(subset)] = True
+            coef, rss = subset_fit(T, mask)
+            if k not in best or rss < best[k].rss:
+                best[k] = Candidate(mask, coef, rss, k)
+    del p
+    return [best[k] for k in sorted(best)]
+
+
+PATHS = {"stlsq": stlsq_path, "lasso": lasso_path, "exhaustive": exhaustive_path}
+
+
+@dataclass
+class Selection:
+    candidates: list[Candidate]
+    chosen: int  # index into candidates
+    criterion: str
+
+    @property
+    def best(self) -> Candidate:
+        return self.candidates[self.chosen]
+
+
+def candidates_for(T: np.ndarray, protected: np.ndarray, method: str, thresholds: np.ndarray) -> list[Candidate]:
+    if method == "stlsq":
+        return stlsq_path(T, protected, thresholds)
+    return PATHS[method](T, protected)
+
+
+def select(
+    T_blocks: np.ndarray,
+    protected: np.ndarray,
+    method: str = "stlsq",
+    criterion: str = "bic",
+    thresholds: np.ndarray | None = None,
+    n_rows: int | None = None,
+    folds: int = 5,
+) -> Selection:
+    """Sparsity path on all blocks, scored by BIC/AICc and cross-validation over held-out blocks."""
+    if thresholds is None:
+        thresholds = default_thresholds()
+    T = combine(T_blocks)
+    cands = candidates_for(T, protected, method, thresholds)
+    if n_rows is None:
+        raise ValueError("n_rows: the number of whitened rows behind the factors is needed for the criteria")
+    for c in cands:
+        c.bic, c.aicc = information_criteria(c.rss, n_rows, int(c.mask.sum()))
+    cross_validate(T_blocks, cands, folds)
+    if criterion == "cv":
+        # one-standard-error rule: the sparsest model within 1 SE of the best CV error
+        best = min(cands, key=lambda c: c.cv_rss)
+        ok = [c for c in cands if c.cv_rss <= best.cv_rss + best.cv_rss_se]
+        chosen = min(ok, key=lambda c: (c.n_free, c.cv_rss))
+    else:
+        key = "bic" if criterion == "bic" else "aicc"
+        chosen = min(cands, key=lambda c: getattr(c, key))
+    return Selection(cands, next(i for i, c in enumerate(cands) if c is chosen), criterion)
+
+
+def default_thresholds(n: int = 40) -> np.ndarray:
+    return np.concatenate([[0.0], np.logspace(-6, 0, n)])
+
+
+def fold_slices(n_blocks: int, folds: int) -> list[np.ndarray]:
+    """Contiguous groups of blocks (held-out periods stay together: slow drift is not leaked)."""
+    folds = max(2, min(folds, n_blocks))
+    return [idx for idx in np.array_split(np.arange(n_blocks), folds) if idx.size]
+
+
+def cross_validate(T_blocks: np.ndarray, cands: list[Candidate], folds: int) -> None:
+    """Held-out residual of each candidate support, refitted on the other folds (in place)."""
+    groups = fold_slices(T_blocks.shape[0], folds)
+    for c in cands:
+        per_fold = []
+        for test in groups:
+            train = np.setdiff1d(np.arange(T_blocks.shape[0]), test)
+            coef, _ = subset_fit(combine(T_blocks[train]), c.mask)
+            per_fold.append(block_rss(T_blocks[test], coef).sum())
+        per_fold = np.asarray(per_fold)
+        c.cv_rss = float(per_fold.sum())
+        c.cv_rss_se = float(per_fold.std(ddof=1) * math.sqrt(len(per_fold))) if len(per_fold) > 1 else 0.0
+
+
+@dataclass
+class Bagging:
+    inclusion: np.ndarray  # fraction of resamples selecting each column
+    coef_samples: np.ndarray  # (n_boot, p) coefficients of the chosen support refitted per resample
+    n_boot: int
+    supports: dict = field(default_factory=dict)  # support (tuple of names) -> count
+
+
+def bag(
+    T_blocks: np.ndarray,
+    protected: np.ndarray,
+    chosen_mask: np.ndarray,
+    names: list[str],
+    method: str,
+    criterion: str,
+    thresholds: np.ndarray,
+    n_boot: int,
+    rng: np.random.Generator,
+    n_rows: int,
+) -> Bagging:
+    """Bootstrap over blocks: inclusion probabilities (re-selecting) and coefficient spread (chosen support)."""
+    B = T_blocks.shape[0]
+    p = T_blocks.shape[-1] - 1
+    n_rows_per_block = n_rows / B
+    counts = np.zeros(p)
+    samples = np.empty((n_boot, p))
+    supports: dict[tuple, int] = {}
+    for i in range(n_boot):
+        mult = rng.multinomial(B, np.full(B, 1.0 / B)).astype(float)
+        T = combine(T_blocks, mult)
+        cands = candidates_for(T, protected, method, thresholds)
+        key = "bic" if criterion in ("bic", "cv") else "aicc"
+        for c in cands:
+            c.bic, c.aicc = information_criteria(c.rss, int(B * n_rows_per_block), int(c.mask.sum()))
+        pick = min(cands, key=lambda c: getattr(c, key))
+        counts += pick.mask
+        support = tuple(n for n, m, prot in zip(names, pick.mask, protected) if m and not prot)
+        supports[support] = supports.get(support, 0) + 1
+        samples[i], _ = subset_fit(T, chosen_mask)
+    return Bagging(counts / n_boot, samples, n_boot, supports)
