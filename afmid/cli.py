@@ -135,7 +135,7 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     """
     from .report import make_report
 
-    summary = make_report(list(runs), output, overwrite=overwrite, suggest=not no_suggest)
+    summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest, progress=True)
     click.echo(summary)
 
 

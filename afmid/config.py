@@ -15,18 +15,29 @@ output file.
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator
 
 from .errors import ConfigError
 from .registry import closest, unknown_name_message
 
-PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+def _not_bool(value: Any) -> Any:
+    """Refuse YAML booleans (``yes``, ``on``, ``true``) where a number is expected; pydantic would take them as 1/0."""
+    if isinstance(value, bool):
+        raise ValueError(f"expected a number, got {value!r}")
+    return value
+
+
+_Number = BeforeValidator(_not_bool)
+PositiveFloat = Annotated[float, _Number, Field(gt=0, allow_inf_nan=False)]
+NonNegativeFloat = Annotated[float, _Number, Field(ge=0, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, _Number, Field(allow_inf_nan=False)]
 
 
 class StrictModel(BaseModel):
@@ -224,6 +235,13 @@ def _format_value(value: Any) -> str:
     return repr(value)
 
 
+def _format_limit(limit: Any) -> str:
+    """A bound as the user wrote it: 0 rather than 0.0, 1e-07 as is."""
+    if isinstance(limit, float) and limit.is_integer() and abs(limit) < 1e15:
+        return str(int(limit))
+    return _format_value(limit)
+
+
 def _section_fields(model: type[BaseModel], loc: tuple) -> list[str]:
     """The allowed keys at ``loc`` (the parent of an unknown key)."""
     current: Any = model
@@ -260,12 +278,18 @@ def _describe(error: dict, schema: type[BaseModel]) -> tuple[str, str]:
     bounds = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
     if kind in bounds:
         limit = next(iter(ctx.values()))
-        return key, f"must be {bounds[kind]} {limit}, got {_format_value(value)}"
+        return key, f"must be {bounds[kind]} {_format_limit(limit)}, got {_format_value(value)}"
     if kind == "finite_number":
         return key, f"must be a finite number, got {_format_value(value)}"
     if kind in {"float_parsing", "float_type", "int_parsing", "int_type", "int_from_float"}:
         expected = "a whole number" if kind.startswith("int") else "a number"
         return key, f"expected {expected}, got {_format_value(value)}"
+    if kind == "string_type":
+        return key, f"expected a string, got {_format_value(value)}"
+    if kind in {"bool_parsing", "bool_type"}:
+        return key, f"expected true or false, got {_format_value(value)}"
+    if kind == "path_type":
+        return key, f"expected a file path, got {_format_value(value)}"
     if kind == "literal_error":
         return key, f"must be one of {ctx.get('expected')}, got {_format_value(value)}"
     if kind in {"model_type", "dict_type"}:
@@ -277,9 +301,25 @@ def _describe(error: dict, schema: type[BaseModel]) -> tuple[str, str]:
     return key, f"{error['msg']}, got {_format_value(value)}"
 
 
+_EXPECTED = re.compile(r"^expected (?P<what>.+), got (?P<got>.+)$")
+
+
+def _merge_alternatives(described: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """One message per key for a value matching no member of a union (``str | int``): 'expected a or b, got v'."""
+    merged: list[tuple[str, str]] = []
+    for key, msg in described:
+        if merged and merged[-1][0] == key:
+            this, last = _EXPECTED.match(msg), _EXPECTED.match(merged[-1][1])
+            if this and last and this["got"] == last["got"]:
+                merged[-1] = (key, f"expected {last['what']} or {this['what']}, got {this['got']}")
+                continue
+        merged.append((key, msg))
+    return merged
+
+
 def validation_error(exc: ValidationError, file: str | Path | None, schema: type[BaseModel] = RunConfig) -> ConfigError:
     """Convert the first pydantic error into a one-line :class:`ConfigError` (others appended)."""
-    described = [_describe(e, schema) for e in exc.errors()]
+    described = _merge_alternatives([_describe(e, schema) for e in exc.errors()])
     key, msg = described[0]
     if len(described) > 1:
         msg += f" (and {len(described) - 1} more: " + "; ".join(f"{k}: {m}" for k, m in described[1:3]) + ")"
@@ -295,7 +335,15 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     path = [p for p in key.strip().split(".") if p]
     if not path:
         raise ConfigError(f"--set expects KEY.PATH=VALUE, got {text!r}", key="--set")
-    return path, yaml.safe_load(raw) if raw.strip() else None
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError as exc:
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(
+            f"--set {key.strip()}: the value {raw!r} is not valid YAML ({problem}); quote it or fix the brackets",
+            key="--set",
+        ) from None
+    return path, value
 
 
 def apply_overrides(raw: dict, overrides: list[tuple[list[str], Any]]) -> dict:
@@ -312,6 +360,27 @@ def apply_overrides(raw: dict, overrides: list[tuple[list[str], Any]]) -> dict:
     return raw
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """SafeLoader that refuses a key given twice in one mapping (PyYAML silently keeps the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                duplicate = key in seen
+                seen.add(key)
+            except TypeError:  # an unhashable key: SafeLoader reports it
+                continue
+            if duplicate:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} is given twice in the same section", key_node.start_mark
+                )
+        return super().construct_mapping(node, deep=deep)
+
+
 def read_yaml(path: Path) -> dict:
     """Read a YAML mapping, with a clear error for a missing file or bad syntax."""
     if not path.exists():
@@ -320,7 +389,7 @@ def read_yaml(path: Path) -> dict:
         raise ConfigError("is a directory, expected a YAML config file", file=path)
     try:
         text = path.read_text(encoding="utf-8")
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
     except UnicodeDecodeError:
         raise ConfigError("not a text file (expected YAML)", file=path) from None
     except yaml.YAMLError as exc:

@@ -224,6 +224,7 @@ class FitResult:
     quantities: dict[str, dict]  # name -> {value, error, ci_low, ci_high, unit, effect}
     cv_error: float
     cv_error_folds: np.ndarray
+    cv_error_noise_floor: float  # the error a perfect model would show at this noise
     signal_rows: np.ndarray  # bool (2K+1): rows counted in the error metric
     force_estimate: np.ndarray  # N per input sample (NaN where not estimated)
     force_direct: np.ndarray  # N per input sample, model-free (band-limited)
@@ -376,7 +377,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
         inclusion = bagging.inclusion
     bar.update(1)
     signal_rows = _signal_rows(prep, system, coef)
-    cv_error, per_fold = force_cv_error(prep, system, chosen, signal_rows, fit.folds)
+    cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, signal_rows, fit.folds)
     quantities = read_out(library, coef, bagging, params, chosen, trace)
     force_estimate, force_direct = per_sample_forces(prep, system, coef, signal_rows)
     periods = period_curves(prep, library, system, coef, params, signal_rows, fit.phase_points)
@@ -385,7 +386,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     for name, est in nonlinear.items():
         log.info("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
-                     nonlinear, quantities, cv_error, per_fold, signal_rows, force_estimate, force_direct, periods,
+                     nonlinear, quantities, cv_error, per_fold, noise_floor, signal_rows, force_estimate, force_direct, periods,
                      warnings)
 
 
@@ -418,27 +419,38 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
     """Normalised cross-validated force error over held-out periods (0 = perfect, 1 = a constant force).
 
     For each fold of contiguous periods the model is refitted on the other
-    periods; on the held-out ones the model force is compared with the
-    model-free force F_ts = drive - (m x'' + c x' + k x), both on the drive
-    harmonics that stand above the noise. error^2 = sum |F_free - F_model|^2 /
-    sum |F_free - mean(F_free)|^2 (Parseval over harmonics and periods).
+    periods. On the held-out periods, averaged like the paper averages periods,
+    the model force is compared with the model-free force
+    F_ts = drive - (m x'' + c x' + k x) on the drive harmonics where that
+    average stands 3 sigma above its noise:
+    error^2 = sum |F_free - F_model|^2 / sum |F_free - mean(F_free)|^2
+    (Parseval over harmonics, summed over folds). Returns the error, the error
+    of each fold, and the noise floor: the error a perfect model would show.
     """
-    harmonics = prep.blocks.harmonics[rows]
-    num, den, per_fold = 0.0, 0.0, []
+    harmonics = prep.blocks.harmonics
+    num = den = noise = 0.0
+    per_fold = []
     p = system.theta.shape[2]
     for test in regression.fold_slices(system.T_blocks.shape[0], folds):
         train = np.setdiff1d(np.arange(system.T_blocks.shape[0]), test)
         coef, _ = regression.subset_fit(regression.combine(system.T_blocks[train]), mask)
-        free = (prep.Y[test] - np.einsum("bkm,m->bk", prep.nuisance[test], coef[p:]))[:, rows]
-        model = np.einsum("bkm,m->bk", system.theta[test], coef[:p])[:, rows]
-        n_f = _power(free - model, harmonics).sum()
-        ac = free.copy()
-        ac[:, harmonics == 0] = 0.0
-        d_f = _power(ac, harmonics).sum()
+        free = (prep.Y[test] - np.einsum("bkm,m->bk", prep.nuisance[test], coef[p:])).mean(axis=0)
+        model = np.einsum("bkm,m->bk", system.theta[test], coef[:p]).mean(axis=0)
+        sigma = prep.row_sigma / math.sqrt(test.size)
+        keep = rows & (np.abs(free) > 3 * sigma)
+        for n in np.unique(harmonics[keep]):  # cos and sin of a harmonic together
+            keep[harmonics == n] = True
+        h = harmonics[keep]
+        n_f = _power((free - model)[keep], h)
+        ac = np.where(h == 0, 0.0, free[keep])
+        d_f = _power(ac, h)
         per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
         num += n_f
         den += d_f
-    return (math.sqrt(num / den) if den > 0 else math.nan), np.asarray(per_fold)
+        noise += _power(sigma[keep], h)
+    if den <= 0:
+        return math.nan, np.asarray(per_fold), math.nan
+    return math.sqrt(num / den), np.asarray(per_fold), math.sqrt(noise / den)
 
 
 # --------------------------------------------------------------------------- read-out
@@ -500,7 +512,9 @@ def period_curves(prep: Prepared, library: Library, system: System, coef, params
     x = blocks.evaluate(Xc, phase)[..., 0]
     v = blocks.evaluate(blocks.derivative(Xc, 1), phase)[..., 0]
     period = 2 * np.pi / prep.drive.omega
-    times = blocks.block_times()[:, None] + phase[None, :] / prep.drive.omega
+    # The series are evaluated at drive phase w t = phase (mod 2 pi): the period that starts in each block.
+    cycles = np.floor(blocks.block_times() * prep.drive.omega / (2 * np.pi))
+    times = (2 * np.pi * cycles[:, None] + phase[None, :]) / prep.drive.omega
     cols = library.evaluate(x.ravel(), v.ravel(), times.ravel(), params)
     p = system.theta.shape[2]
     f_model = (cols @ coef[:p]).reshape(B, n_phase)
@@ -520,9 +534,10 @@ def period_curves(prep: Prepared, library: Library, system: System, coef, params
     contact = z <= a0
     return {
         "phase": phase,
-        "block_start_time": blocks.block_times(),
+        "period_start_time": times[:, 0],
         "deflection": x,
         "velocity": v,
+        "acceleration": blocks.evaluate(blocks.derivative(Xc, 2), phase)[..., 0],
         "separation": z,
         "force_model": f_model,
         "force_direct": f_direct,
@@ -571,7 +586,7 @@ def apply_effect_changes(config: RunConfig, add: tuple[str, ...] | list[str], re
 
 # --------------------------------------------------------------------------- run file
 PERIOD_UNITS = {
-    "phase": "rad", "block_start_time": "s", "deflection": "m", "velocity": "m/s", "separation": "m",
+    "phase": "rad", "period_start_time": "s", "deflection": "m", "velocity": "m/s", "acceleration": "m/s^2", "separation": "m",
     "force_model": "N", "force_direct": "N", "peak_force": "N", "adhesion_force": "N", "max_indentation": "m",
     "contact_time": "s", "dissipated_energy": "J", "dissipated_energy_direct": "J", "virial": "J",
     "virial_direct": "J", "amplitude": "m", "period_error": "N",
@@ -589,6 +604,13 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         h5.attrs["cv_error"] = result.cv_error
         h5.attrs["overridden"] = list(trace.overridden) or [""]
         h5.attrs["value_sources"] = "; ".join(f"{k}: {v}" for k, v in trace.sources.items())
+        cg = h5.create_group("cantilever")
+        cl = trace.cantilever
+        cg.attrs["spring_constant"] = cl.spring_constant
+        cg.attrs["resonance_frequency"] = cl.resonance_frequency
+        cg.attrs["quality_factor"] = cl.quality_factor
+        cg.attrs["tip_radius"] = np.nan if cl.tip_radius is None else cl.tip_radius
+        cg.attrs["units"] = "spring_constant: N/m; resonance_frequency: Hz; quality_factor: 1; tip_radius: m"
         m = h5.create_group("model")
         write_dataset(m, "terms", np.array(result.library.names), "1")
         write_dataset(m, "expressions", np.array([t.expression for t in result.library.terms]), "1")
@@ -604,6 +626,9 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         dg = m.create_group("drive")
         nu = result.coef[p:]
         write_dataset(dg, "force_amplitude", float(np.hypot(nu[0], nu[1])), "N")
+        # F_drive = cos * cos(w t) + sin * sin(w t) in the trace's time base (the fit's columns are -F_drive)
+        write_dataset(dg, "cos", float(-nu[0]), "N")
+        write_dataset(dg, "sin", float(-nu[1]), "N")
         write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
         write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
         if "offset" in result.system.names:
@@ -633,6 +658,14 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         dg = h5.create_group("diagnostics")
         write_dataset(dg, "cv_error", result.cv_error, "1", definition="normalised cross-validated force error")
         write_dataset(dg, "cv_error_folds", result.cv_error_folds, "1")
+        write_dataset(dg, "cv_error_noise_floor", result.cv_error_noise_floor, "1",
+                      definition="expected cv_error of a perfect model at the estimated noise")
+        best = result.selection.best
+        write_dataset(dg, "bic", best.bic, "1", definition="n ln(rss/n) + k ln n over whitened rows")
+        write_dataset(dg, "rss", best.rss, "1", definition="whitened residual sum of squares")
+        write_dataset(dg, "n_rows", result.system.n_rows, "1")
+        write_dataset(dg, "chi2_reduced", best.rss / max(result.system.n_rows - int(best.mask.sum()), 1), "1",
+                      definition="rss / (n - k); about 1 when the model explains the data to the predicted noise")
         write_dataset(dg, "residual", result.force_direct - result.force_estimate, "N")
         write_dataset(dg, "noise_rms", result.prep.noise_rms, "m")
         write_dataset(dg, "steadiness", result.prep.steadiness, "1")

@@ -138,7 +138,10 @@ def check_output_path(path: str | Path, overwrite: bool) -> Path:
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it into place on success only."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".afmid-tmp-{path.name}.", dir=path.parent or ".")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".afmid-tmp-{path.name}.", dir=path.parent or ".")
+    except OSError as exc:  # unwritable or vanished folder: the user's environment, not a bug
+        raise OutputError(f"cannot write in folder {path.parent}: {exc.strerror or exc}", file=path) from exc
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -167,7 +170,7 @@ def atomic_hdf5(path: str | Path, file_format: str, config_text: str, inputs: di
             h5.attrs["config"] = config_text
             for i, (ipath, digest) in enumerate((inputs or {}).items()):
                 suffix = "" if i == 0 else f"_{i}"
-                h5.attrs[f"input_path{suffix}"] = str(ipath)
+                h5.attrs[f"input_path{suffix}"] = str(Path(ipath).resolve())
                 h5.attrs[f"input_sha256{suffix}"] = digest
             yield h5
 
@@ -199,15 +202,15 @@ def write_trace_file(path: str | Path, trace: Trace, config_text: str, overwrite
         if trace.time is not None:
             write_dataset(h5, "time", trace.time, "s")
         cl = h5.create_group("cantilever")
-        cl.attrs["spring_constant"] = trace.cantilever.spring_constant
-        cl.attrs["resonance_frequency"] = trace.cantilever.resonance_frequency
-        cl.attrs["quality_factor"] = trace.cantilever.quality_factor
-        cl.attrs["tip_radius"] = np.nan if trace.cantilever.tip_radius is None else trace.cantilever.tip_radius
+        cl.attrs["spring_constant"] = float(trace.cantilever.spring_constant)
+        cl.attrs["resonance_frequency"] = float(trace.cantilever.resonance_frequency)
+        cl.attrs["quality_factor"] = float(trace.cantilever.quality_factor)
+        cl.attrs["tip_radius"] = np.nan if trace.cantilever.tip_radius is None else float(trace.cantilever.tip_radius)
         cl.attrs["units"] = "spring_constant: N/m; resonance_frequency: Hz; quality_factor: 1; tip_radius: m"
         dr = h5.create_group("drive")
-        dr.attrs["frequency"] = trace.drive_frequency
+        dr.attrs["frequency"] = float(trace.drive_frequency)
         if trace.drive_force_amplitude is not None:
-            dr.attrs["force_amplitude"] = trace.drive_force_amplitude
+            dr.attrs["force_amplitude"] = float(trace.drive_force_amplitude)
         dr.attrs["units"] = "frequency: Hz; force_amplitude: N"
         if trace.truth is not None:
             t = trace.truth
@@ -305,7 +308,13 @@ def load_trace(config) -> Trace:
     path = config.resolve_path(data.path)
     if not path.exists():
         raise InputError("trace file not found", file=path, key="data.path")
-    raw = read_trace(path, data.format, data.column, data.time_column)
+    try:
+        raw = read_trace(path, data.format, data.column, data.time_column)
+    except InputError as exc:
+        if exc.key is not None:
+            raise
+        # A problem with the file as a whole (truncated, no data rows): name the key that chose it.
+        raise InputError(exc.message, file=exc.file, key="data.path") from exc.__cause__
     sources = dict(raw.source)
     overridden: list[str] = []
     meta = raw.metadata or {}
@@ -339,6 +348,17 @@ def load_trace(config) -> Trace:
             overridden.append("data.sample_rate")
         sample_rate = data.sample_rate
         sources["sample_rate"] = "config:data.sample_rate"
+        from .readers.base import rate_from_time
+
+        time_rate = None if time is None else rate_from_time(time)
+        if time_rate is not None and not np.isclose(time_rate, data.sample_rate, rtol=0.01):
+            # The fit uses both the time axis and the rate: they must agree.
+            raise ConfigError(
+                f"{data.sample_rate:g} Hz contradicts the time column {data.time_column!r} "
+                f"({time_rate:g} Hz); remove data.sample_rate or data.time_column",
+                file=config.source,
+                key="data.sample_rate",
+            )
     if sample_rate is None:
         raise ConfigError(
             "the file has no time axis or sample rate; set data.sample_rate (Hz) or data.time_column",
@@ -351,7 +371,15 @@ def load_trace(config) -> Trace:
     drive_frequency = _merged_value(
         config, "drive.frequency", config.drive.frequency, drive_meta.get("frequency"), sources, overridden
     )
-    force_amplitude = config.drive.force_amplitude or drive_meta.get("force_amplitude")
+    force_amplitude = config.drive.force_amplitude
+    file_amplitude = drive_meta.get("force_amplitude")
+    if force_amplitude is not None:
+        if file_amplitude is not None and not _isclose(force_amplitude, file_amplitude):
+            overridden.append("drive.force_amplitude")
+        sources["force_amplitude"] = "config:drive.force_amplitude"
+    elif file_amplitude is not None:
+        force_amplitude = file_amplitude
+        sources["force_amplitude"] = "file"
 
     trace = Trace(
         deflection=deflection,

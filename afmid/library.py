@@ -250,7 +250,8 @@ def build_library(model_config, source=None) -> Library:
         try:
             unit = expr.expression_units(text, units, tuple(s.name for s in states))
         except expr.ExpressionError as exc:
-            raise ConfigError(str(exc), file=source, key=key) from None
+            where = f" at column {exc.pos + 1}" if exc.pos is not None else ""
+            raise ConfigError(f"{exc.reason}{where} in term {text!r}", file=source, key=key) from None
         except ValueError as exc:
             raise ConfigError(f"{exc}", file=source, key=key) from None
         terms.append(LibraryTerm(text, text, str(unit), str(NEWTON / unit)))

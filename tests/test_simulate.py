@@ -14,7 +14,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from afmid.config import build_config
-from afmid.errors import ConfigError
+from afmid.errors import AfmidError, ConfigError
 from afmid.io import write_trace_file
 from afmid.physics import BOLTZMANN, EPSILON_0, build_force_law
 from afmid.simulate import (
@@ -268,7 +268,7 @@ ACCURACY_CASES = [
 @pytest.mark.parametrize("model, mode", ACCURACY_CASES)
 def test_agrees_with_solve_ivp(model, mode):
     """max |x_afmid - x_ref| < 1e-4 A0 over 6 periods in interaction, at the default 2000 steps per period."""
-    kw = dict(mode=mode, periods=6, Q=50.0 if mode == "steady" else 250.0, settle_tolerance=1e-6)
+    kw = {"mode": mode, "periods": 6, "Q": 50.0 if mode == "steady" else 250.0, "settle_tolerance": 1e-6}
     if model == "capillary":
         config = make_config("dmt", effects=["capillary"], **kw)
     else:
@@ -310,7 +310,7 @@ def _energy_terms(trace, Q):
     """Per-period drive work, viscous loss, tip-sample dissipation and stored-energy change (J)."""
     osc = Oscillator(K, F0_HZ, Q, F0_HZ, trace.drive_force_amplitude)
     x, v, f = trace.deflection, trace.truth.velocity, trace.truth.force
-    n = int(round(trace.samples_per_period))
+    n = round(trace.samples_per_period)
     t = np.arange(x.size) / trace.sample_rate
     rows = []
     for p in range(trace.n_samples // n):
@@ -346,7 +346,7 @@ NOISY = {"thermal": True, "temperature": 300.0, "detector_rms": 1e-12, "adc_step
 
 
 def test_same_seed_same_trace_and_different_seed_differs():
-    kw = dict(Q=20.0, periods=3, noise=NOISY, settle_tolerance=1e-5, steps_per_period=400)
+    kw = {"Q": 20.0, "periods": 3, "noise": NOISY, "settle_tolerance": 1e-5, "steps_per_period": 400}
     a = simulate(make_config(seed=7, **kw))
     b = simulate(make_config(seed=7, **kw))
     c = simulate(make_config(seed=8, **kw))
@@ -410,7 +410,7 @@ def test_setpoint_search_hits_the_requested_amplitude():
     extra = trace.truth.extra
     assert extra["setpoint"] == pytest.approx(0.8, abs=1e-3)
     # The recorded trace has that amplitude too.
-    n = int(round(trace.samples_per_period))
+    n = round(trace.samples_per_period)
     phase = 2 * np.pi * np.arange(n) / n
     x = trace.deflection[:n]
     amplitude = 2 / n * abs(np.dot(x, np.exp(1j * phase)))
@@ -477,3 +477,10 @@ def test_config_errors_name_the_key():
     with pytest.raises(ConfigError) as err:
         simulate(config)
     assert err.value.key == "sample.separation"
+
+
+def test_a_run_that_does_not_settle_says_so():
+    config = make_config(max_settle_periods=3)
+    with pytest.raises(AfmidError) as err:
+        simulate(config)
+    assert err.value.key == "simulate.max_settle_periods" and "did not settle" in err.value.message

@@ -167,9 +167,11 @@ def _run(code, c0, c1, consts, k0, variables, i0, nb, stack):
             elif op == AND:
                 for i in range(nb):
                     stack[t, i] = 1.0 if (stack[t, i] != 0.0 and stack[u, i] != 0.0) else 0.0
-            else:  # OR
+            elif op == OR:
                 for i in range(nb):
                     stack[t, i] = 1.0 if (stack[t, i] != 0.0 or stack[u, i] != 0.0) else 0.0
+            else:
+                raise ValueError("invalid opcode")
             pc += 1
         else:
             # Unary (opcodes 30 and up): row t = f(row t).
@@ -199,9 +201,11 @@ def _run(code, c0, c1, consts, k0, variables, i0, nb, stack):
                 for i in range(nb):
                     a = stack[t, i]
                     stack[t, i] = a if (a > 0.0 or a != a) else 0.0
-            else:  # NOT
+            elif op == NOT:
                 for i in range(nb):
                     stack[t, i] = 1.0 if stack[t, i] == 0.0 else 0.0
+            else:
+                raise ValueError("invalid opcode")
             pc += 1
 
 
@@ -241,6 +245,7 @@ def eval_set(code, code_offsets, consts, const_offsets, variables, out):
     for i0 in range(0, n, BLOCK):
         nb = min(BLOCK, n - i0)
         for j in range(code_offsets.shape[0] - 1):
-            _run(code, code_offsets[j], code_offsets[j + 1], consts, const_offsets[j], variables, i0, nb, stack)
+            c0, c1 = code_offsets[j], code_offsets[j + 1]
+            _run(code, c0, c1, consts, const_offsets[j], variables, i0, nb, stack)
             for i in range(nb):
                 out[i0 + i, j] = stack[0, i]
