@@ -16,7 +16,7 @@ import click
 from . import __version__
 
 log = logging.getLogger("afmid")
-_state = {"verbose": 0}
+_state = {"verbose": 0, "quiet": False}
 
 CONFIG_ARG = click.argument("config", type=click.Path(path_type=Path))
 OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the output if it exists.")
@@ -29,10 +29,20 @@ SET = click.option(
 )
 
 
+class _PlainFormatter(logging.Formatter):
+    """Progress messages as they are; warnings and errors marked, so they are not read as progress."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        if record.levelno >= logging.WARNING:
+            return f"afmid: {record.levelname.lower()}: {text}"
+        return text
+
+
 def _setup_logging(verbose: int, quiet: bool) -> None:
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s" if verbose else "%(message)s"))
+    handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s") if verbose else _PlainFormatter("%(message)s"))
     root = logging.getLogger("afmid")
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -59,6 +69,7 @@ def cli(verbose: int, quiet: bool) -> None:
     Units: SI in files; forces are on the tip, positive = repulsive.
     """
     _state["verbose"] = verbose
+    _state["quiet"] = quiet
     _setup_logging(verbose, quiet)
 
 
@@ -82,7 +93,7 @@ def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, 
     check_output_path(output, overwrite)
     from .simulate import simulate as run_simulation
 
-    trace = run_simulation(cfg, progress=True)
+    trace = run_simulation(cfg, progress=not _state["quiet"])
     write_trace_file(output, trace, dump_config(cfg), overwrite=overwrite)
     log.info("wrote %s (%d samples, %.1f periods)", output, trace.n_samples, trace.n_periods)
 
@@ -118,7 +129,7 @@ def fit(
     from .fit import apply_effect_changes, run_fit, write_run
 
     apply_effect_changes(cfg, add_effects, remove_effects)
-    result = run_fit(cfg, progress=True)
+    result = run_fit(cfg, progress=not _state["quiet"])
     write_run(output, result, cfg, overwrite=overwrite)
     log.info("wrote %s: %s", output, result.summary_line())
 
@@ -135,7 +146,7 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     """
     from .report import make_report
 
-    summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest, progress=True)
+    summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest, progress=not _state["quiet"])
     click.echo(summary)
 
 
@@ -200,8 +211,12 @@ def main(argv: list[str] | None = None) -> int:
     except click.ClickException as exc:
         exc.show()
         return exc.exit_code
-    except click.exceptions.Abort:
-        click.echo("afmid: aborted", err=True)
+    except click.exceptions.Abort as exc:
+        # click turns Ctrl-C inside a command into Abort (after printing a newline)
+        if isinstance(exc.__cause__, KeyboardInterrupt):
+            click.echo("afmid: interrupted; no partial output was written", err=True)
+        else:
+            click.echo("afmid: aborted", err=True)
         return 130
     except KeyboardInterrupt:
         click.echo("afmid: interrupted; no partial output was written", err=True)

@@ -161,6 +161,11 @@ class FitConfig(StrictModel):
     differentiation_options: dict[str, float] = Field(default_factory=dict)
     max_harmonic: Annotated[int, Field(ge=2, le=500)] = Field(60, description="highest drive harmonic used")
     periods_per_block: Annotated[int, Field(ge=1, le=100)] = 1
+    smooth_periods: Annotated[int, Field(ge=1, le=1001)] | None = Field(
+        None,
+        description="smooth the trajectory the library sees over this many periods (Savitzky-Golay; 1 = none); "
+        "default: a Kalman smoother with the cantilever's thermal correlation time Q / pi periods",
+    )
     oversample: Annotated[int, Field(ge=1, le=256)] | None = Field(
         None, description="fine-grid points per sample for library terms; default: >= 2048 points per period"
     )
@@ -171,7 +176,13 @@ class FitConfig(StrictModel):
         "zero", description="zero: the file's zero deflection is the rest position; free: fit an offset"
     )
     detrend: Literal["none", "offset", "linear"] = "none"
-    method: Literal["stlsq", "lasso", "exhaustive"] = "stlsq"
+    method: Literal["auto", "stlsq", "lasso", "exhaustive"] = Field(
+        "auto", description="auto: exhaustive search up to 14 free terms, STLSQ path beyond"
+    )
+    distractor_odds: Annotated[float, Field(ge=1)] = Field(
+        10.0,
+        description="prior odds against a library term that belongs to no catalog effect (1 = no prior)",
+    )
     selection: Literal["bic", "aicc", "cv"] = "bic"
     thresholds: list[NonNegativeFloat] | None = Field(None, description="STLSQ thresholds (relative); default path")
     folds: Annotated[int, Field(ge=2, le=50)] = 5

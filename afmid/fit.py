@@ -31,7 +31,7 @@ from .errors import AfmidError, ConfigError
 from .io import Trace, atomic_hdf5, check_output_path, load_trace, write_dataset, RUN_FORMAT
 from .library import Library, build_library
 from .physics import BOLTZMANN, EFFECTS
-from .preprocess import HarmonicBlocks, differentiate, estimate_drive, harmonic_blocks, detrend, steadiness
+from .preprocess import HarmonicBlocks, detrend, estimate_drive, harmonic_blocks, ou_smooth, steadiness
 from . import regression
 
 log = logging.getLogger(__name__)
@@ -40,6 +40,14 @@ log = logging.getLogger(__name__)
 SIGNAL_SNR = 1.0
 #: Library terms are evaluated on a grid of at least this many points per drive period (see project_fine).
 FINE_POINTS_PER_PERIOD = 2048
+#: Libraries up to this many terms are searched exhaustively (2^14 small least-squares problems).
+EXHAUSTIVE_MAX_TERMS = 14
+
+
+def term_penalties(library: Library, n_nuisance: int, odds: float) -> np.ndarray:
+    """BIC penalty per column: 2 ln(odds) for terms that belong to no catalog effect (distractors)."""
+    extra = 2.0 * math.log(odds)
+    return np.array([0.0 if t.effect else extra for t in library.terms] + [0.0] * n_nuisance)
 
 
 # --------------------------------------------------------------------------- preparation
@@ -56,7 +64,8 @@ class Prepared:
     Y: np.ndarray  # (B, 2K+1) N, -(m x'' + c x' + k x) coefficients
     nuisance: np.ndarray  # (B, 2K+1, n_nu) projected drive (and offset / cantilever) columns
     nuisance_names: list[str]
-    row_sigma: np.ndarray  # (2K+1,) N, predicted noise std of Y per row and block
+    row_sigma: np.ndarray  # (2K+1,) N, predicted noise std of the equation per row and block
+    trajectory_noise: float  # m, rms noise of the trajectory the library is evaluated on
     xdot_used: np.ndarray  # m/s, velocity on the used samples (band-limited)
     fine_x: np.ndarray  # (B, L*U) m, band-limited deflection on the fine grid
     fine_xdot: np.ndarray  # (B, L*U) m/s
@@ -64,6 +73,7 @@ class Prepared:
     noise_rms: float  # m, detector noise estimated from the block fits
     steadiness: float
     removed: dict  # detrend info
+    base_variance: np.ndarray  # (2K+1,) N^2, the equation's own noise (thermal force + detector)
 
 
 def prepare(trace: Trace, fit) -> Prepared:
@@ -109,12 +119,66 @@ def prepare(trace: Trace, fit) -> Prepared:
     H2 = (1 - (n / w0) ** 2) ** 2 + (n / (Q * w0)) ** 2 if fit.cantilever == "fixed" else (n / w0) ** 4
     damping = k / (Q * w0)
     thermal = 2 * BOLTZMANN * fit.temperature * damping / blocks.dt if fit.thermal_noise else 0.0
-    row_sigma = np.sqrt(blocks.noise_variance_factor() * (thermal + k**2 * H2 * noise_rms**2))
-    xdot_used = blocks.synthesize(V)[:, 0]
-    fine_x = blocks.synthesize_fine(X)[..., 0]
-    fine_xdot = blocks.synthesize_fine(V)[..., 0]
-    return Prepared(trace, x, t, drive, blocks, X[..., 0], Y, nuisance, names, row_sigma, xdot_used,
-                    fine_x, fine_xdot, blocks.fine_times(), noise_rms, steadiness(X), removed)
+    base_variance = blocks.noise_variance_factor() * (thermal + k**2 * H2 * noise_rms**2)
+    row_sigma = np.sqrt(base_variance)
+    # The library is evaluated on a trajectory smoothed across periods: detector noise is independent from
+    # period to period while the real motion wanders slowly (thermal correlation time Q / pi periods), and
+    # noise in the regressors biases stiff terms low (errors in variables).
+    if fit.smooth_periods is not None:
+        X_traj = smooth_across_blocks(X, fit.smooth_periods)
+        residual_var = smoothing_variance_factor(blocks.n_blocks, fit.smooth_periods)
+    else:
+        rho = math.exp(-math.pi * blocks.L * blocks.dt * drive.frequency / Q)
+        noise_var = blocks.noise_variance_factor() * noise_rms**2
+        X_s, post_var = ou_smooth(X[..., 0], noise_var, rho)
+        X_traj = X_s[..., None]
+        residual_var = float(np.mean(post_var.sum(axis=1) / noise_var.sum()))
+    V_traj = blocks.derivative(X_traj, 1)
+    xdot_used = blocks.synthesize(V_traj)[:, 0]
+    fine_x = blocks.synthesize_fine(X_traj)[..., 0]
+    fine_xdot = blocks.synthesize_fine(V_traj)[..., 0]
+    trajectory_noise = noise_rms * math.sqrt(residual_var)
+    return Prepared(trace, x, t, drive, blocks, X[..., 0], Y, nuisance, names, row_sigma, trajectory_noise, xdot_used,
+                    fine_x, fine_xdot, blocks.fine_times(), noise_rms, steadiness(X), removed, base_variance)
+
+
+def smoothing_variance_factor(n_blocks: int, window: int) -> float:
+    """Noise variance left after :func:`smooth_across_blocks` (1 = no smoothing)."""
+    impulse = np.zeros((n_blocks, 1))
+    impulse[n_blocks // 2] = 1.0
+    return float(np.sum(smooth_across_blocks(impulse, window) ** 2))
+
+
+def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: np.ndarray) -> Prepared:
+    """Row noise including the noise that the library columns inherit from the trajectory.
+
+    The force law is evaluated on a reconstructed trajectory with rms error
+    sigma_traj; the model force then errs by about k_ts(t) * sigma_traj, where
+    k_ts = dF/dx is the local tip-sample stiffness. Near resonance this dwarfs
+    the equation's own noise on the first harmonics (k/Q is small), so without
+    it those rows would get weights they do not deserve and bias the contact
+    terms (errors in variables).
+    """
+    import dataclasses
+
+    eps = max(prep.trajectory_noise, 1e-15)
+    x, v, t = prep.fine_x.ravel(), prep.fine_xdot.ravel(), prep.fine_t.ravel()
+    p = len(library)
+    f_hi = library.evaluate(x + eps, v, t, params) @ coef[:p]
+    f_lo = library.evaluate(x - eps, v, t, params) @ coef[:p]
+    stiffness_sq = float(np.mean(((f_hi - f_lo) / (2 * eps)) ** 2))
+    variance = prep.base_variance + prep.blocks.noise_variance_factor() * stiffness_sq * prep.trajectory_noise**2
+    return dataclasses.replace(prep, row_sigma=np.sqrt(variance))
+
+
+def smooth_across_blocks(coef: np.ndarray, window: int) -> np.ndarray:
+    """Savitzky-Golay (quadratic) smoothing of each Fourier coefficient over ``window`` consecutive blocks."""
+    from scipy.signal import savgol_filter
+
+    window = min(window, coef.shape[0] - (1 - coef.shape[0] % 2))
+    if window < 5:
+        return coef
+    return savgol_filter(coef, window, 2, axis=0, mode="interp")
 
 
 # --------------------------------------------------------------------------- system
@@ -332,9 +396,20 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     nonlinear = estimate_nonlinear(prep, library, config, params)
     bar.update(1)
     thresholds = np.asarray(fit.thresholds) if fit.thresholds else regression.default_thresholds()
+    method = fit.method
+    if method == "auto":
+        method = "exhaustive" if len(library) <= EXHAUSTIVE_MAX_TERMS else "stlsq"
+    penalty = term_penalties(library, len(prep.nuisance_names), fit.distractor_odds)
     system = build_system(prep, library, params)
-    selection = regression.select(system.T_blocks, system.protected, fit.method, fit.selection, thresholds,
-                                  n_rows=system.n_rows, folds=fit.folds)
+    selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
+                                  n_rows=system.n_rows, folds=fit.folds, penalty=penalty)
+    chosen = selection.best.mask
+    # Second pass: weights that include the regressors' own noise, then select again.
+    coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), chosen)
+    prep = with_regressor_noise(prep, library, params, coef0)
+    system = build_system(prep, library, params)
+    selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
+                                  n_rows=system.n_rows, folds=fit.folds, penalty=penalty)
     chosen = selection.best.mask
     # Refine the nonlinear parameters for the chosen support, then re-select once.
     if nonlinear:
@@ -348,8 +423,8 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
             best, _, _ = _search_1d(objective, lo, hi, 9, False)
             params[name] = best
         system = build_system(prep, library, params)
-        selection = regression.select(system.T_blocks, system.protected, fit.method, fit.selection, thresholds,
-                                      n_rows=system.n_rows, folds=fit.folds)
+        selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
+                                      n_rows=system.n_rows, folds=fit.folds, penalty=penalty)
         chosen = selection.best.mask
         s2 = selection.best.rss / max(system.n_rows - int(chosen.sum()), 1)
         for name, est in nonlinear.items():
@@ -370,8 +445,8 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     inclusion = chosen.astype(float)
     if fit.bootstrap > 0:
         rng = np.random.default_rng(fit.seed)
-        bagging = regression.bag(system.T_blocks, system.protected, chosen, system.names, fit.method, fit.selection,
-                                 thresholds, fit.bootstrap, rng, system.n_rows)
+        bagging = regression.bag(system.T_blocks, system.protected, chosen, system.names, method, fit.selection,
+                                 thresholds, fit.bootstrap, rng, system.n_rows, penalty)
         coef_std = bagging.coef_samples.std(axis=0, ddof=1)
         ci_low, ci_high = np.percentile(bagging.coef_samples, [2.5, 97.5], axis=0)
         inclusion = bagging.inclusion

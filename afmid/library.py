@@ -259,6 +259,20 @@ def build_library(model_config, source=None) -> Library:
     seen: dict[str, LibraryTerm] = {}
     for term in terms:
         seen.setdefault(" ".join(term.expression.split()), term)
+    # Only nonlinear parameters that some term or state gate actually uses are searched.
+    used = set()
+    for term in terms:
+        used |= expr.free_names(term.expression)
+    for gate in states:
+        used |= expr.free_names(f"[{gate.on}] * [{gate.off}]")
+    states = [g for g in states if any(f"[{g.name}]" in t.expression.replace(" ", "") or
+                                       f"not{g.name}" in t.expression.replace(" ", "") for t in terms)]
+    used = set()
+    for term in terms:
+        used |= expr.free_names(term.expression)
+    for gate in states:
+        used |= expr.free_names(f"[{gate.on}] * [{gate.off}]")
+    nonlinear = {k: v for k, v in nonlinear.items() if k in used}
     for name, value in model_config.parameters.items():
         if name not in nonlinear:
             allowed = ", ".join(sorted(nonlinear)) or "none for these effects"

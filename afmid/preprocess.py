@@ -256,6 +256,40 @@ def _fourier_design(s: np.ndarray, omega: float, K: int) -> np.ndarray:
     return np.concatenate([np.ones((s.size, 1)), np.stack([np.cos(arg), np.sin(arg)], -1).reshape(s.size, -1)], axis=1)
 
 
+def ou_smooth(coef: np.ndarray, noise_var: np.ndarray, rho: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rauch-Tung-Striebel smoothing of per-block Fourier coefficients across blocks.
+
+    Each coefficient is modelled as an Ornstein-Uhlenbeck process around its
+    mean (correlation ``rho`` from one block to the next: the thermal amplitude
+    and phase fluctuations of the cantilever) observed with white noise of
+    variance ``noise_var`` (detector noise through the projection). The process
+    variance is estimated from the block-to-block scatter. Returns the smoothed
+    coefficients (B, n) and their posterior variance (B, n).
+    """
+    B, n = coef.shape
+    mean = coef.mean(axis=0)
+    signal_var = np.maximum(coef.var(axis=0) - noise_var, 1e-6 * noise_var)
+    q = signal_var * (1 - rho**2)
+    m_f = np.empty((B, n))
+    p_f = np.empty((B, n))
+    m, P = np.zeros(n), signal_var.copy()
+    obs = coef - mean
+    for b in range(B):
+        if b:
+            m, P = rho * m, rho**2 * P + q
+        gain = P / (P + noise_var)
+        m = m + gain * (obs[b] - m)
+        P = (1 - gain) * P
+        m_f[b], p_f[b] = m, P
+    m_s, p_s = m_f.copy(), p_f.copy()
+    for b in range(B - 2, -1, -1):
+        p_pred = rho**2 * p_f[b] + q
+        g = rho * p_f[b] / p_pred
+        m_s[b] = m_f[b] + g * (m_s[b + 1] - rho * m_f[b])
+        p_s[b] = p_f[b] + g**2 * (p_s[b + 1] - p_pred)
+    return m_s + mean, p_s
+
+
 def amplitude_per_block(coef_x: np.ndarray) -> np.ndarray:
     """First-harmonic amplitude of each block (m) from deflection coefficients (n_blocks, 2K+1[, 1])."""
     c = coef_x[..., 0] if coef_x.ndim == 3 else coef_x

@@ -139,21 +139,18 @@ def lasso_path(T: np.ndarray, protected: np.ndarray, n_alphas: int = 40) -> list
 
 
 def exhaustive_path(T: np.ndarray, protected: np.ndarray, max_free: int = 16) -> list[Candidate]:
-    """Best subset of each size (by residual) over all subsets of the free terms."""
-    p = T.shape[1] - 1
+    """Every subset of the free terms (the protected columns always in)."""
     free = np.flatnonzero(~protected)
     if free.size > max_free:
         raise ValueError(f"exhaustive search over {free.size} terms is too large (max {max_free})")
-    best: dict[int, Candidate] = {}
+    cands = []
     for k in range(free.size + 1):
         for subset in itertools.combinations(free, k):
             mask = protected.copy()
             mask[list(subset)] = True
             coef, rss = subset_fit(T, mask)
-            if k not in best or rss < best[k].rss:
-                best[k] = Candidate(mask, coef, rss, k)
-    del p
-    return [best[k] for k in sorted(best)]
+            cands.append(Candidate(mask, coef, rss, k))
+    return cands
 
 
 PATHS = {"stlsq": stlsq_path, "lasso": lasso_path, "exhaustive": exhaustive_path}
@@ -184,16 +181,25 @@ def select(
     thresholds: np.ndarray | None = None,
     n_rows: int | None = None,
     folds: int = 5,
+    penalty: np.ndarray | None = None,
 ) -> Selection:
-    """Sparsity path on all blocks, scored by BIC/AICc and cross-validation over held-out blocks."""
+    """Sparsity path on all blocks, scored by BIC/AICc and cross-validation over held-out blocks.
+
+    ``penalty`` (per column) is added to the information criteria of every
+    candidate that uses the column: ``2 ln(prior odds against the term)``, so a
+    term with weak physical motivation needs that much more evidence.
+    """
     if thresholds is None:
         thresholds = default_thresholds()
     T = combine(T_blocks)
     cands = candidates_for(T, protected, method, thresholds)
     if n_rows is None:
         raise ValueError("n_rows: the number of whitened rows behind the factors is needed for the criteria")
-    for c in cands:
-        c.bic, c.aicc = information_criteria(c.rss, n_rows, int(c.mask.sum()))
+    score_candidates(cands, n_rows, penalty)
+    # Cross-validate the plausible candidates only (all of them would be costly for exhaustive paths).
+    ranked = sorted(cands, key=lambda c: c.bic)[:CV_CANDIDATES]
+    ranked += [c for c in cands if c.n_free == 0 and c not in ranked]
+    cands = sorted(ranked, key=lambda c: (c.n_free, c.bic))
     cross_validate(T_blocks, cands, folds)
     if criterion == "cv":
         # one-standard-error rule: the sparsest model within 1 SE of the best CV error
@@ -204,6 +210,19 @@ def select(
         key = "bic" if criterion == "bic" else "aicc"
         chosen = min(cands, key=lambda c: getattr(c, key))
     return Selection(cands, next(i for i, c in enumerate(cands) if c is chosen), criterion)
+
+
+#: How many of the best candidates (by criterion) are cross-validated and kept in the path diagnostics.
+CV_CANDIDATES = 24
+
+
+def score_candidates(cands: list[Candidate], n_rows: int, penalty: np.ndarray | None) -> None:
+    for c in cands:
+        c.bic, c.aicc = information_criteria(c.rss, n_rows, int(c.mask.sum()))
+        if penalty is not None:
+            extra = float(penalty[c.mask].sum())
+            c.bic += extra
+            c.aicc += extra
 
 
 def default_thresholds(n: int = 40) -> np.ndarray:
@@ -249,6 +268,7 @@ def bag(
     n_boot: int,
     rng: np.random.Generator,
     n_rows: int,
+    penalty: np.ndarray | None = None,
 ) -> Bagging:
     """Bootstrap over blocks: inclusion probabilities (re-selecting) and coefficient spread (chosen support)."""
     B = T_blocks.shape[0]
@@ -262,8 +282,7 @@ def bag(
         T = combine(T_blocks, mult)
         cands = candidates_for(T, protected, method, thresholds)
         key = "bic" if criterion in ("bic", "cv") else "aicc"
-        for c in cands:
-            c.bic, c.aicc = information_criteria(c.rss, int(B * n_rows_per_block), int(c.mask.sum()))
+        score_candidates(cands, int(B * n_rows_per_block), penalty)
         pick = min(cands, key=lambda c: getattr(c, key))
         counts += pick.mask
         support = tuple(n for n, m, prot in zip(names, pick.mask, protected) if m and not prot)
