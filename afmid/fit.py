@@ -31,7 +31,8 @@ from .errors import AfmidError, ConfigError
 from .io import Trace, atomic_hdf5, check_output_path, load_trace, write_dataset, RUN_FORMAT
 from .library import Library, build_library
 from .physics import BOLTZMANN, EFFECTS
-from .preprocess import HarmonicBlocks, detrend, estimate_drive, harmonic_blocks, ou_smooth, steadiness
+from .preprocess import (HarmonicBlocks, WeakWindows, detrend, estimate_drive, harmonic_blocks, ou_smooth,
+                         steadiness, weak_windows)
 from . import regression
 
 log = logging.getLogger(__name__)
@@ -59,24 +60,30 @@ class Prepared:
     x: np.ndarray  # m, deflection after detrending (all samples)
     t: np.ndarray  # s
     drive: object  # DriveEstimate
-    blocks: HarmonicBlocks
-    X: np.ndarray  # (B, 2K+1) deflection coefficients
-    Y: np.ndarray  # (B, 2K+1) N, -(m x'' + c x' + k x) coefficients
-    nuisance: np.ndarray  # (B, 2K+1, n_nu) projected drive (and offset / cantilever) columns
+    blocks: HarmonicBlocks  # per-period Fourier fits (trajectory, outputs)
+    windows: WeakWindows  # weak-form test functions (regression rows)
+    X: np.ndarray  # (B, 2K+1) m, deflection coefficients per period
+    Y: np.ndarray  # (W, 2K+1) N s, weak-form left side per window and test function
+    nuisance: np.ndarray  # (W, 2K+1, n_nu) drive (and offset / cantilever) columns, weak form
     nuisance_names: list[str]
-    row_sigma: np.ndarray  # (2K+1,) N, predicted noise std of the equation per row and block
+    row_sigma: np.ndarray  # (2K+1,) N s, predicted noise of each weak-form row
+    base_variance: np.ndarray  # (2K+1,) the equation's own noise (thermal force + detector)
+    psi_sq: np.ndarray  # (2K+1,) s^2, sum of squared test-function weights (for regressor noise)
+    Y_block: np.ndarray  # (B, 2K+1) N, -(m x'' + c x' + k x) per period (outputs)
+    nuisance_block: np.ndarray  # (B, 2K+1, n_nu) per-period drive columns (outputs)
+    block_sigma: np.ndarray  # (2K+1,) N, noise of Y_block per period
     trajectory_noise: float  # m, rms noise of the trajectory the library is evaluated on
     xdot_used: np.ndarray  # m/s, velocity on the used samples (band-limited)
-    fine_x: np.ndarray  # (B, L*U) m, band-limited deflection on the fine grid
+    fine_x: np.ndarray  # (B, L*U) m, smoothed band-limited deflection on the fine grid
     fine_xdot: np.ndarray  # (B, L*U) m/s
     fine_t: np.ndarray  # (B, L*U) s
     noise_rms: float  # m, detector noise estimated from the block fits
     steadiness: float
     removed: dict  # detrend info
-    base_variance: np.ndarray  # (2K+1,) N^2, the equation's own noise (thermal force + detector)
 
 
 def prepare(trace: Trace, fit) -> Prepared:
+    """Everything about the data that the library does not change: drive, blocks, weak-form rows, noise."""
     x, removed = detrend(trace.deflection, trace.times, fit.detrend)
     t = trace.times
     if trace.time is not None:
@@ -90,37 +97,46 @@ def prepare(trace: Trace, fit) -> Prepared:
     blocks = harmonic_blocks(x.size, trace.sample_rate, drive.frequency, t0=float(t[0]),
                              periods_per_block=fit.periods_per_block, max_harmonic=fit.max_harmonic,
                              oversample=oversample)
+    windows = weak_windows(blocks)
     cl = trace.cantilever
     k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
+    m, c = k / w0**2, k / (Q * w0)
+    fixed = fit.cantilever == "fixed"
+
+    # Per-period Fourier coefficients: the trajectory, the outputs and the noise level.
     X = blocks.project(x)  # (B, 2K+1, 1)
     V = blocks.derivative(X, 1)
-    Acc = blocks.derivative(X, 2)
-    if fit.cantilever == "fixed":
-        Y = -(k / w0**2 * Acc + k / (Q * w0) * V + k * X)[..., 0]
-    else:
-        Y = -(k / w0**2 * Acc)[..., 0]
+    Y_block = -(m * blocks.derivative(X, 2) + c * V + k * X)[..., 0]
     used = blocks.used
-    tu = t[used]
-    cols = [np.cos(drive.omega * tu), np.sin(drive.omega * tu)]
-    names = ["drive_cos", "drive_sin"]
-    if fit.baseline == "free":
-        cols.append(np.ones_like(tu))
-        names.append("offset")
-    nuisance = blocks.project(np.column_stack(cols))
-    if fit.cantilever == "free":
-        nuisance = np.concatenate([nuisance, X, V], axis=2)
-        names += ["stiffness", "damping"]
     resid = x[used] - blocks.synthesize(X)[:, 0]
     dof = max(resid.size - blocks.n_blocks * blocks.n_coef, 1)
     noise_rms = float(math.sqrt(np.sum(resid**2) / dof))
     noise_rms = max(noise_rms, 1e-9 * drive.amplitude)  # noise-free input: keep weights finite
-    # Predicted noise of Y per coefficient row: v_n (S_F / dt + k^2 |H_n|^2 sigma_x^2)
+
+    # Weak-form rows: -integral of (m psi'' - c psi' + k psi) x = integral of psi (F_ts - F_drive).
+    operator = m * windows.ddpsi + ((k * windows.psi - c * windows.dpsi) if fixed else 0.0)
+    Y = -windows.integrate(operator, x)[..., 0]
+    drive_cols = np.column_stack([np.cos(drive.omega * t), np.sin(drive.omega * t)])
+    names = ["drive_cos", "drive_sin"]
+    if fit.baseline == "free":
+        drive_cols = np.column_stack([drive_cols, np.ones_like(t)])
+        names.append("offset")
+    nuisance = windows.integrate(windows.psi, drive_cols)
+    nuisance_block = blocks.project(drive_cols)
+    if not fixed:  # k x + c x' moved to the right-hand side with free coefficients
+        nuisance = np.concatenate([nuisance, windows.integrate(windows.psi, x), windows.integrate(-windows.dpsi, x)],
+                                  axis=2)
+        nuisance_block = np.concatenate([nuisance_block, X, V], axis=2)
+        names += ["stiffness", "damping"]
+
+    # Predicted noise per row: detector noise through the operator, thermal force noise through psi.
+    thermal = 2 * BOLTZMANN * fit.temperature * c / blocks.dt if fit.thermal_noise else 0.0
+    psi_sq = _pair_mean(np.sum(windows.psi**2, axis=1))
+    base_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1)) + thermal * psi_sq
     n = blocks.harmonics * drive.omega
-    H2 = (1 - (n / w0) ** 2) ** 2 + (n / (Q * w0)) ** 2 if fit.cantilever == "fixed" else (n / w0) ** 4
-    damping = k / (Q * w0)
-    thermal = 2 * BOLTZMANN * fit.temperature * damping / blocks.dt if fit.thermal_noise else 0.0
-    base_variance = blocks.noise_variance_factor() * (thermal + k**2 * H2 * noise_rms**2)
-    row_sigma = np.sqrt(base_variance)
+    H2 = (1 - (n / w0) ** 2) ** 2 + (n / (Q * w0)) ** 2
+    block_sigma = np.sqrt(blocks.noise_variance_factor() * (thermal + k**2 * H2 * noise_rms**2))
+
     # The library is evaluated on a trajectory smoothed across periods: detector noise is independent from
     # period to period while the real motion wanders slowly (thermal correlation time Q / pi periods), and
     # noise in the regressors biases stiff terms low (errors in variables).
@@ -134,12 +150,23 @@ def prepare(trace: Trace, fit) -> Prepared:
         X_traj = X_s[..., None]
         residual_var = float(np.mean(post_var.sum(axis=1) / noise_var.sum()))
     V_traj = blocks.derivative(X_traj, 1)
-    xdot_used = blocks.synthesize(V_traj)[:, 0]
-    fine_x = blocks.synthesize_fine(X_traj)[..., 0]
-    fine_xdot = blocks.synthesize_fine(V_traj)[..., 0]
-    trajectory_noise = noise_rms * math.sqrt(residual_var)
-    return Prepared(trace, x, t, drive, blocks, X[..., 0], Y, nuisance, names, row_sigma, trajectory_noise, xdot_used,
-                    fine_x, fine_xdot, blocks.fine_times(), noise_rms, steadiness(X), removed, base_variance)
+    return Prepared(
+        trace=trace, x=x, t=t, drive=drive, blocks=blocks, windows=windows, X=X[..., 0],
+        Y=Y, nuisance=nuisance, nuisance_names=names, row_sigma=np.sqrt(base_variance),
+        base_variance=base_variance, psi_sq=psi_sq,
+        Y_block=Y_block, nuisance_block=nuisance_block, block_sigma=block_sigma,
+        trajectory_noise=noise_rms * math.sqrt(residual_var),
+        xdot_used=blocks.synthesize(V_traj)[:, 0],
+        fine_x=blocks.synthesize_fine(X_traj)[..., 0], fine_xdot=blocks.synthesize_fine(V_traj)[..., 0],
+        fine_t=blocks.fine_times(), noise_rms=noise_rms, steadiness=steadiness(X), removed=removed,
+    )
+
+
+def _pair_mean(v: np.ndarray) -> np.ndarray:
+    """Average the cos and sin rows of each harmonic (the rotation to global phase mixes them)."""
+    out = v.copy()
+    out[1::2] = out[2::2] = 0.5 * (v[1::2] + v[2::2])
+    return out
 
 
 def smoothing_variance_factor(n_blocks: int, window: int) -> float:
@@ -167,7 +194,7 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
     f_hi = library.evaluate(x + eps, v, t, params) @ coef[:p]
     f_lo = library.evaluate(x - eps, v, t, params) @ coef[:p]
     stiffness_sq = float(np.mean(((f_hi - f_lo) / (2 * eps)) ** 2))
-    variance = prep.base_variance + prep.blocks.noise_variance_factor() * stiffness_sq * prep.trajectory_noise**2
+    variance = prep.base_variance + prep.psi_sq * stiffness_sq * prep.trajectory_noise**2
     return dataclasses.replace(prep, row_sigma=np.sqrt(variance))
 
 
@@ -212,7 +239,7 @@ def build_system(prep: Prepared, library: Library, params: dict) -> System:
             "(a term singular in contact? gate it, e.g. [z > a0] * ...)",
             key="model",
         )
-    theta = prep.blocks.project_fine(fine.reshape(B, n_fine, -1))
+    theta = prep.windows.integrate_fine(fine.reshape(B, n_fine, -1))
     A = np.concatenate([theta, prep.nuisance], axis=2) / prep.row_sigma[None, :, None]
     y = prep.Y / prep.row_sigma[None, :]
     T_blocks = regression.factor_blocks(A, y)
@@ -467,16 +494,19 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
 
 # --------------------------------------------------------------------------- error metric
 def _direct_force_coefficients(prep: Prepared, system: System, coef: np.ndarray) -> np.ndarray:
-    """Model-free force F_ts per block (B, 2K+1): Y plus the fitted drive (and cantilever) columns."""
+    """Model-free force F_ts per period (B, 2K+1): -(m x'' + c x' + k x) plus the fitted drive."""
     p = system.theta.shape[2]
-    return prep.Y - np.einsum("bkm,m->bk", prep.nuisance, coef[p:])
+    Y = prep.Y_block
+    if "stiffness" in prep.nuisance_names:  # free cantilever: the identified k, c replace the calibrated ones
+        Y = -(prep.trace.cantilever.mass * prep.blocks.derivative(prep.X[..., None], 2))[..., 0]
+    return Y - np.einsum("bkm,m->bk", prep.nuisance_block, coef[p:])
 
 
 def _signal_rows(prep: Prepared, system: System, coef: np.ndarray) -> np.ndarray:
     """Rows whose mean model-free force stands above the per-block noise."""
     F = _direct_force_coefficients(prep, system, coef)
     mean = np.abs(F.mean(axis=0))
-    rows = mean > SIGNAL_SNR * prep.row_sigma
+    rows = mean > SIGNAL_SNR * prep.block_sigma
     harmonics = prep.blocks.harmonics
     # Keep cos/sin of a harmonic together.
     for n in np.unique(harmonics[rows]):
@@ -507,7 +537,7 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
     per_fold = []
     p = system.theta.shape[2]
     for test in regression.fold_slices(system.T_blocks.shape[0], folds):
-        train = np.setdiff1d(np.arange(system.T_blocks.shape[0]), test)
+        train = regression.training_blocks(system.T_blocks.shape[0], test)
         coef, _ = regression.subset_fit(regression.combine(system.T_blocks[train]), mask)
         free = (prep.Y[test] - np.einsum("bkm,m->bk", prep.nuisance[test], coef[p:])).mean(axis=0)
         model = np.einsum("bkm,m->bk", system.theta[test], coef[:p]).mean(axis=0)
@@ -745,7 +775,7 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(dg, "noise_rms", result.prep.noise_rms, "m")
         write_dataset(dg, "steadiness", result.prep.steadiness, "1")
         write_dataset(dg, "harmonics", result.prep.blocks.harmonics, "1")
-        write_dataset(dg, "row_sigma", result.prep.row_sigma, "N")
+        write_dataset(dg, "row_sigma", result.prep.row_sigma, "N*s", meaning="noise of each weak-form row")
         write_dataset(dg, "signal_rows", result.signal_rows, "1")
         path_g = dg.create_group("path")
         cands = result.selection.candidates

@@ -152,12 +152,7 @@ class HarmonicBlocks:
 
     def to_global(self, local: np.ndarray) -> np.ndarray:
         """Rotate local-time coefficients (n_blocks, 2K+1, m) to global time."""
-        c, s = self._rotations()
-        out = local.copy()
-        a, b = local[:, 1::2, :], local[:, 2::2, :]
-        out[:, 1::2, :] = c[..., None] * a - s[..., None] * b
-        out[:, 2::2, :] = s[..., None] * a + c[..., None] * b
-        return out
+        return rotate_to_global(local, self.block_times(), self.omega)
 
     def to_local(self, coef: np.ndarray) -> np.ndarray:
         """Inverse of :meth:`to_global`."""
@@ -222,6 +217,99 @@ class HarmonicBlocks:
     def noise_variance_factor(self) -> np.ndarray:
         """diag(P P^T): variance of each coefficient per unit white-noise variance of the samples."""
         return np.einsum("kl,kl->k", self.projector, self.projector)
+
+
+def rotate_to_global(local: np.ndarray, start_times: np.ndarray, omega: float) -> np.ndarray:
+    """Turn rows against cos/sin(n w s) of local time s into rows against cos/sin(n w t), t = start + s.
+
+    Layout (n_windows, 2K+1, m) with rows [0, cos 1, sin 1, cos 2, ...].
+    """
+    K = (local.shape[1] - 1) // 2
+    theta = np.outer(start_times, np.arange(1, K + 1)) * omega
+    c, s = np.cos(theta)[..., None], np.sin(theta)[..., None]
+    out = local.copy()
+    a, b = local[:, 1::2, :], local[:, 2::2, :]
+    out[:, 1::2, :] = c * a - s * b
+    out[:, 2::2, :] = s * a + c * b
+    return out
+
+
+@dataclass
+class WeakWindows:
+    """Weak-form test functions: sin^4 windows of two periods (hop one period) times drive harmonics.
+
+    psi_n(t) = w(s) {1, cos(n w t), sin(n w t)} with w(s) = sin^4(pi s / T_w) on
+    s in [0, T_w]. w, w' and w'' vanish at both ends, so integrating the equation of
+    motion against psi moves every derivative onto psi exactly, for any motion:
+    no derivative of noisy data, and no assumption that a period repeats. (sin^4
+    rather than a Hann window: smooth to third order at the ends, so the
+    trapezoid quadrature stays spectrally accurate.)
+    Matrices hold the local test functions (and derivatives) times the
+    quadrature weight dt, on the 2L + 1 samples of a window.
+    """
+
+    omega: float
+    dt: float
+    L: int  # samples per period block (hop)
+    K: int
+    start: int  # sample index of window 0
+    n_windows: int
+    t0: float
+    psi: np.ndarray  # (2K+1, 2L+1) psi * dt
+    dpsi: np.ndarray  # (2K+1, 2L+1) psi' * dt
+    ddpsi: np.ndarray  # (2K+1, 2L+1) psi'' * dt
+    psi_fine: np.ndarray  # (2K+1, 2 L U) psi * dt / U on the fine grid of two blocks
+
+    def start_times(self) -> np.ndarray:
+        return self.t0 + (self.start + self.L * np.arange(self.n_windows)) * self.dt
+
+    def windows(self, samples: np.ndarray) -> np.ndarray:
+        """(n_windows, 2L+1, m) views of sample columns (N,) or (N, m); zero past the end (where w = 0)."""
+        cols = samples[:, None] if samples.ndim == 1 else samples
+        idx = self.start + self.L * np.arange(self.n_windows)[:, None] + np.arange(2 * self.L + 1)[None, :]
+        padded = np.concatenate([cols, np.zeros((1, cols.shape[1]))])
+        return padded[np.minimum(idx, cols.shape[0])]
+
+    def integrate(self, matrix: np.ndarray, samples: np.ndarray) -> np.ndarray:
+        """Global-phase integrals (n_windows, 2K+1, m) of sample columns against ``matrix`` rows."""
+        local = np.einsum("kl,blm->bkm", matrix, self.windows(samples))
+        return rotate_to_global(local, self.start_times(), self.omega)
+
+    def integrate_fine(self, fine: np.ndarray) -> np.ndarray:
+        """Integrals of fine-grid block columns (n_blocks, L U, m) over each two-block window."""
+        pairs = np.concatenate([fine[:-1], fine[1:]], axis=1)[: self.n_windows]
+        local = np.einsum("kl,blm->bkm", self.psi_fine, pairs)
+        return rotate_to_global(local, self.start_times(), self.omega)
+
+
+def weak_windows(blocks: "HarmonicBlocks") -> WeakWindows:
+    """Test functions matching ``blocks`` (same hop, harmonics and fine grid)."""
+    L, K, dt, w = blocks.L, blocks.K, blocks.dt, blocks.omega
+    T_w = 2 * L * dt
+
+    def family(s: np.ndarray, weight: float):
+        a = np.pi / T_w
+        sn_, cs_ = np.sin(a * s), np.cos(a * s)
+        win = sn_**4
+        dwin = 4 * a * sn_**3 * cs_
+        ddwin = 4 * a**2 * (3 * sn_**2 * cs_**2 - sn_**4)
+        n = np.arange(1, K + 1)[:, None] * w
+        c, sn = np.cos(n * s), np.sin(n * s)
+        psi, dpsi, ddpsi = [win], [dwin], [ddwin]
+        for k in range(K):
+            for phi, dphi, ddphi in ((c[k], -n[k] * sn[k], -n[k] ** 2 * c[k]), (sn[k], n[k] * c[k], -n[k] ** 2 * sn[k])):
+                psi.append(win * phi)
+                dpsi.append(dwin * phi + win * dphi)
+                ddpsi.append(ddwin * phi + 2 * dwin * dphi + win * ddphi)
+        return np.array(psi) * weight, np.array(dpsi) * weight, np.array(ddpsi) * weight
+
+    s = np.arange(2 * L + 1) * dt
+    psi, dpsi, ddpsi = family(s, dt)
+    U = blocks.oversample
+    s_fine = np.arange(2 * L * U) * (dt / U)
+    psi_fine, _, _ = family(s_fine, dt / U)
+    n_windows = blocks.n_blocks - 1
+    return WeakWindows(w, dt, L, K, blocks.start, n_windows, blocks.t0, psi, dpsi, ddpsi, psi_fine)
 
 
 def harmonic_blocks(

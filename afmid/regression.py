@@ -235,13 +235,20 @@ def fold_slices(n_blocks: int, folds: int) -> list[np.ndarray]:
     return [idx for idx in np.array_split(np.arange(n_blocks), folds) if idx.size]
 
 
+def training_blocks(n_blocks: int, test: np.ndarray, gap: int = 1) -> np.ndarray:
+    """Blocks to train on when ``test`` is held out, leaving ``gap`` blocks on each side
+    (weak-form windows overlap their neighbours by one period)."""
+    excluded = np.arange(max(test.min() - gap, 0), min(test.max() + gap + 1, n_blocks))
+    return np.setdiff1d(np.arange(n_blocks), excluded)
+
+
 def cross_validate(T_blocks: np.ndarray, cands: list[Candidate], folds: int) -> None:
     """Held-out residual of each candidate support, refitted on the other folds (in place)."""
     groups = fold_slices(T_blocks.shape[0], folds)
     for c in cands:
         per_fold = []
         for test in groups:
-            train = np.setdiff1d(np.arange(T_blocks.shape[0]), test)
+            train = training_blocks(T_blocks.shape[0], test)
             coef, _ = subset_fit(combine(T_blocks[train]), c.mask)
             per_fold.append(block_rss(T_blocks[test], coef).sum())
         per_fold = np.asarray(per_fold)
