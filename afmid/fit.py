@@ -380,7 +380,7 @@ def estimate_nonlinear(prep, library, config, params, progress=None) -> dict[str
                     return _rss(build_system(prep, library, trial), None)
                 except AfmidError:
                     return math.inf
-            n_grid = 41 if round_ == 0 else 15
+            n_grid = 25 if round_ == 0 else 11
             if round_ > 0:  # narrow around the current value
                 cur = params[name]
                 span = (hi - lo) / 8 if not log_scale else None
@@ -460,9 +460,10 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
                     return _rss(build_system(prep, library, dict(params, **{name: value})), chosen)
                 except AfmidError:
                     return math.inf
-            step = 1e-3 * (abs(params[name]) if name != "d" else 1e-9)
+            # A step well above the quadrature granularity of the contact gate, well below the uncertainty.
+            step = 0.02 * abs(params[name]) if name != "d" else 0.02e-9
             est.value = params[name]
-            est.sigma = _profile_sigma(objective, params[name], max(step, 1e-15), s2)
+            est.sigma = _profile_sigma(objective, params[name], step, s2)
     bar.update(1)
     T = regression.combine(system.T_blocks)
     coef, _ = regression.subset_fit(T, chosen)
@@ -481,6 +482,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     signal_rows = _signal_rows(prep, system, coef)
     cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, signal_rows, fit.folds)
     quantities = read_out(library, coef, bagging, params, chosen, trace)
+    propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
     force_estimate, force_direct = per_sample_forces(prep, system, coef, signal_rows)
     periods = period_curves(prep, library, system, coef, params, signal_rows, fit.phase_points)
     bar.update(1)
@@ -592,6 +594,43 @@ def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) 
             out[key] = {"value": value, "error": err, "ci_low": float(lo), "ci_high": float(hi), "unit": q.unit,
                         "effect": effect_name, "doc": q.doc}
     return out
+
+
+def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params, mask, trace) -> None:
+    """Add the uncertainty of estimated nonlinear parameters (separation, decay lengths) to the quantities.
+
+    The bootstrap holds them fixed; refitting at +-1 sigma of each and reading
+    out again gives the sensitivity, added in quadrature to the error and to
+    both halves of the 95 % interval (in place).
+    """
+    extra = {k: 0.0 for k in quantities}
+    for name, est in nonlinear.items():
+        if not math.isfinite(est.sigma) or est.sigma <= 0:
+            continue
+        shifted = []
+        for sign in (1, -1):
+            trial = dict(params, **{name: params[name] + sign * est.sigma})
+            try:
+                system = build_system(prep, library, trial)
+            except AfmidError:
+                break
+            coef, _ = regression.subset_fit(regression.combine(system.T_blocks), mask)
+            shifted.append(read_out(library, coef, None, trial, mask, trace))
+        if len(shifted) == 2:
+            for k in quantities:
+                delta = 0.5 * (shifted[0].get(k, {}).get("value", math.nan) - shifted[1].get(k, {}).get("value", math.nan))
+                if math.isfinite(delta):
+                    extra[k] += delta**2
+    for k, q in quantities.items():
+        if extra[k] > 0:
+            q["error"] = math.sqrt((q["error"] if math.isfinite(q["error"]) else 0.0) ** 2 + extra[k])
+            half = 1.96 * math.sqrt(extra[k])
+            lo, hi = q["ci_low"], q["ci_high"]
+            if math.isfinite(lo) and math.isfinite(hi):
+                q["ci_low"] = q["value"] - math.hypot(q["value"] - lo, half)
+                q["ci_high"] = q["value"] + math.hypot(hi - q["value"], half)
+            else:
+                q["ci_low"], q["ci_high"] = q["value"] - half, q["value"] + half
 
 
 # --------------------------------------------------------------------------- forces

@@ -206,9 +206,19 @@ _E_STAR = Parameter("E_star", "Pa", 1.0e9, 1e5, 1e12, "reduced (effective) Young
 
 
 def _dmt_like_readout(adhesion_per_energy: float):
+    """Read-out shared by DMT and JKR.
+
+    The adhesion comes from its own term when the library has one (JKR, the
+    seed tables' bridging term); in the DMT effect it is the van der Waals
+    force at contact, H R / (6 a0^2), tied to the tail.
+    """
+
     def readout(c: Mapping[str, float], ctx: Mapping[str, float]) -> dict[str, float]:
         R = ctx["R"]
-        adhesion = -c["adhesion"]
+        if "adhesion" in c:
+            adhesion = -c["adhesion"]
+        else:
+            adhesion = -c["vdw"] / ctx["a0"] ** 2
         return {
             "hamaker": -6.0 * c["vdw"] / R,
             "E_star": 3.0 * c["hertz"] / (4.0 * math.sqrt(R)),
@@ -232,11 +242,11 @@ EFFECTS.register(
         formula="F = -H R / (6 z^2) for z > a0;  4/3 E* sqrt(R) delta^1.5 - H R / (6 a0^2) for z <= a0",
         parameters=(_HAMAKER, _E_STAR),
         terms=(
-            Term("vdw", "[z > a0] * z^-2", lambda p: -p["hamaker"] * p["R"] / 6.0, "van der Waals sphere-plane"),
+            # One term for the tail and the DMT adhesion: the force is continuous at contact, which
+            # ties the adhesion to the Hamaker constant and makes the contact point identifiable.
+            Term("vdw", "max(z, a0)^-2", lambda p: -p["hamaker"] * p["R"] / 6.0,
+                 "van der Waals sphere-plane, saturating at contact (DMT adhesion H R / 6 a0^2)"),
             Term("hertz", "[z <= a0] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"]), "Hertz"),
-            Term(
-                "adhesion", "[z <= a0]", lambda p: -p["hamaker"] * p["R"] / (6.0 * p["a0"] ** 2), "DMT adhesion 4 pi R gamma"
-            ),
         ),
         quantities=_CONTACT_QUANTITIES
         + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 4 pi R gamma"),),

@@ -169,8 +169,7 @@ class HarmonicBlocks:
         if cols.ndim == 1:
             cols = cols[:, None]
         blocks = cols.reshape(self.n_blocks, self.L, -1)
-        local = np.einsum("kl,blm->bkm", self.projector, blocks)
-        return self.to_global(local)
+        return self.to_global(apply_rows(self.projector, blocks))
 
     def fine_times(self) -> np.ndarray:
         """Times (n_blocks, L * oversample) of the fine grid, s."""
@@ -179,7 +178,7 @@ class HarmonicBlocks:
 
     def synthesize_fine(self, coef: np.ndarray) -> np.ndarray:
         """The series (n_blocks, L * oversample, m) on the fine grid."""
-        return np.einsum("lk,bkm->blm", self.design_fine, self.to_local(coef))
+        return apply_rows(self.design_fine, self.to_local(coef))
 
     def project_fine(self, columns: np.ndarray) -> np.ndarray:
         """Fourier coefficients (n_blocks, 2K+1, m) of fine-grid columns (n_blocks, L * oversample, m).
@@ -191,7 +190,7 @@ class HarmonicBlocks:
         projecting there approximates the continuous-time coefficients that
         actually drove the cantilever.
         """
-        return self.to_global(np.einsum("kl,blm->bkm", self.projector_fine, columns))
+        return self.to_global(apply_rows(self.projector_fine, columns))
 
     def derivative(self, coef: np.ndarray, order: int = 1) -> np.ndarray:
         """Coefficients of the ``order``-th time derivative (exact for the series)."""
@@ -207,7 +206,7 @@ class HarmonicBlocks:
     def synthesize(self, coef: np.ndarray) -> np.ndarray:
         """Samples (n_blocks * L, m) of the series, on the used samples."""
         local = self.to_local(coef)
-        return np.einsum("lk,bkm->blm", self.design, local).reshape(self.n_blocks * self.L, -1)
+        return apply_rows(self.design, local).reshape(self.n_blocks * self.L, -1)
 
     def evaluate(self, coef: np.ndarray, phase: np.ndarray) -> np.ndarray:
         """Series at drive phases ``phase`` (rad, 0 = t where w t is a multiple of 2 pi): (n_blocks, P, m)."""
@@ -217,6 +216,13 @@ class HarmonicBlocks:
     def noise_variance_factor(self) -> np.ndarray:
         """diag(P P^T): variance of each coefficient per unit white-noise variance of the samples."""
         return np.einsum("kl,kl->k", self.projector, self.projector)
+
+
+def apply_rows(matrix: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """``matrix`` (r, l) applied to every block (b, l, m) -> (b, r, m), as one BLAS matrix product."""
+    b, l, m = blocks.shape
+    flat = np.ascontiguousarray(blocks.transpose(1, 0, 2)).reshape(l, b * m)
+    return (matrix @ flat).reshape(matrix.shape[0], b, m).transpose(1, 0, 2)
 
 
 def rotate_to_global(local: np.ndarray, start_times: np.ndarray, omega: float) -> np.ndarray:
@@ -272,13 +278,13 @@ class WeakWindows:
 
     def integrate(self, matrix: np.ndarray, samples: np.ndarray) -> np.ndarray:
         """Global-phase integrals (n_windows, 2K+1, m) of sample columns against ``matrix`` rows."""
-        local = np.einsum("kl,blm->bkm", matrix, self.windows(samples))
+        local = apply_rows(matrix, self.windows(samples))
         return rotate_to_global(local, self.start_times(), self.omega)
 
     def integrate_fine(self, fine: np.ndarray) -> np.ndarray:
         """Integrals of fine-grid block columns (n_blocks, L U, m) over each two-block window."""
         pairs = np.concatenate([fine[:-1], fine[1:]], axis=1)[: self.n_windows]
-        local = np.einsum("kl,blm->bkm", self.psi_fine, pairs)
+        local = apply_rows(self.psi_fine, pairs)
         return rotate_to_global(local, self.start_times(), self.omega)
 
 
