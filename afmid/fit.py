@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 #: A harmonic counts as signal in the error metric when its mean exceeds this many noise sigmas per block.
 SIGNAL_SNR = 1.0
-#: Library terms are evaluated on a grid of at least this many points per drive period (see project_fine).
+#: Library terms are evaluated on a grid of at least this many points per drive period (see harmonic_blocks).
 FINE_POINTS_PER_PERIOD = 2048
 #: Libraries up to this many terms are searched exhaustively (2^14 small least-squares problems).
 EXHAUSTIVE_MAX_TERMS = 14
@@ -395,8 +395,12 @@ def estimate_nonlinear(prep, library, config, params, progress=None) -> dict[str
     return estimates
 
 
-def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = None) -> FitResult:
-    """Fit the trace named by ``config`` (or ``trace``) and return everything the run file holds."""
+def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = None, uncertainty: bool = True) -> FitResult:
+    """Fit the trace named by ``config`` (or ``trace``) and return everything the run file holds.
+
+    ``uncertainty=False`` skips the error bars (bootstrap, profile widths of the
+    nonlinear parameters and their propagation): for quick comparative refits.
+    """
     from tqdm import tqdm
 
     fit = config.fit
@@ -454,7 +458,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
                                       n_rows=system.n_rows, folds=fit.folds, penalty=penalty)
         chosen = selection.best.mask
         s2 = selection.best.rss / max(system.n_rows - int(chosen.sum()), 1)
-        for name, est in nonlinear.items():
+        for name, est in (nonlinear.items() if uncertainty else ()):
             def objective(value, name=name):
                 try:
                     return _rss(build_system(prep, library, dict(params, **{name: value})), chosen)
@@ -471,7 +475,9 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     coef_std = np.zeros_like(coef)
     ci_low, ci_high = coef.copy(), coef.copy()
     inclusion = chosen.astype(float)
-    if fit.bootstrap > 0:
+    for name, est in nonlinear.items():
+        est.value = params[name]
+    if fit.bootstrap > 0 and uncertainty:
         rng = np.random.default_rng(fit.seed)
         bagging = regression.bag(system.T_blocks, system.protected, chosen, system.names, method, fit.selection,
                                  thresholds, fit.bootstrap, rng, system.n_rows, penalty)
@@ -482,13 +488,14 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     signal_rows = _signal_rows(prep, system, coef)
     cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, signal_rows, fit.folds)
     quantities = read_out(library, coef, bagging, params, chosen, trace)
-    propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
+    if uncertainty:
+        propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
     force_estimate, force_direct = per_sample_forces(prep, system, coef, signal_rows)
     periods = period_curves(prep, library, system, coef, params, signal_rows, fit.phase_points)
     bar.update(1)
     bar.close()
     for name, est in nonlinear.items():
-        log.info("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
+        log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, signal_rows, force_estimate, force_direct, periods,
                      warnings)

@@ -127,7 +127,6 @@ class HarmonicBlocks:
     projector: np.ndarray  # (2K+1, L) pseudo-inverse of the local basis
     oversample: int = 1  # fine-grid points per sample for evaluating library terms
     design_fine: np.ndarray | None = None  # (L * oversample, 2K+1)
-    projector_fine: np.ndarray | None = None  # (2K+1, L * oversample)
 
     @property
     def n_coef(self) -> int:
@@ -178,19 +177,7 @@ class HarmonicBlocks:
 
     def synthesize_fine(self, coef: np.ndarray) -> np.ndarray:
         """The series (n_blocks, L * oversample, m) on the fine grid."""
-        return apply_rows(self.design_fine, self.to_local(coef))
-
-    def project_fine(self, columns: np.ndarray) -> np.ndarray:
-        """Fourier coefficients (n_blocks, 2K+1, m) of fine-grid columns (n_blocks, L * oversample, m).
-
-        Terms with kinks or steps (contact onset, adhesion) have slowly decaying
-        harmonics; on the sample grid their edges are quantised to a sample,
-        which shifts the phase of harmonic n by up to n w dt / 2. Evaluating the
-        terms on a fine grid of the smooth band-limited trajectory and
-        projecting there approximates the continuous-time coefficients that
-        actually drove the cantilever.
-        """
-        return self.to_global(apply_rows(self.projector_fine, columns))
+        return np.matmul(self.design_fine, self.to_local(coef))
 
     def derivative(self, coef: np.ndarray, order: int = 1) -> np.ndarray:
         """Coefficients of the ``order``-th time derivative (exact for the series)."""
@@ -264,7 +251,7 @@ class WeakWindows:
     psi: np.ndarray  # (2K+1, 2L+1) psi * dt
     dpsi: np.ndarray  # (2K+1, 2L+1) psi' * dt
     ddpsi: np.ndarray  # (2K+1, 2L+1) psi'' * dt
-    psi_fine: np.ndarray  # (2K+1, 2 L U) psi * dt / U on the fine grid of two blocks
+    psi_fine: np.ndarray  # (2K+1, 2 L U) psi * dt / U on the fine grid of two blocks (C-contiguous halves)
 
     def start_times(self) -> np.ndarray:
         return self.t0 + (self.start + self.L * np.arange(self.n_windows)) * self.dt
@@ -282,9 +269,16 @@ class WeakWindows:
         return rotate_to_global(local, self.start_times(), self.omega)
 
     def integrate_fine(self, fine: np.ndarray) -> np.ndarray:
-        """Integrals of fine-grid block columns (n_blocks, L U, m) over each two-block window."""
-        pairs = np.concatenate([fine[:-1], fine[1:]], axis=1)[: self.n_windows]
-        local = apply_rows(self.psi_fine, pairs)
+        """Integrals of fine-grid block columns (n_blocks, L U, m) over each two-block window.
+
+        Window b spans blocks b and b + 1: its integral is the first half of the
+        test functions applied to block b plus the second half applied to block
+        b + 1 (no copies of the blocks).
+        """
+        half = self.psi_fine.shape[1] // 2
+        first = np.matmul(self.psi_fine[:, :half], fine)
+        second = np.matmul(self.psi_fine[:, half:], fine)
+        local = first[: self.n_windows] + second[1 : self.n_windows + 1]
         return rotate_to_global(local, self.start_times(), self.omega)
 
 
@@ -336,11 +330,12 @@ def harmonic_blocks(
     omega = 2 * np.pi * frequency
     design = _fourier_design(np.arange(L) * dt, omega, K)
     projector = np.linalg.pinv(design)
+    # Library terms are evaluated on this fine grid of the smooth reconstructed trajectory: terms with
+    # kinks or steps (contact onset, adhesion) have slowly decaying harmonics, and on the sample grid
+    # their edges would be quantised to a sample (a phase error of up to n w dt / 2 at harmonic n).
     design_fine = _fourier_design(np.arange(L * oversample) * (dt / oversample), omega, K)
-    projector_fine = np.linalg.pinv(design_fine)
     start = (n_samples - n_blocks * L) // 2  # centre the used part; drops partial periods at both ends
-    return HarmonicBlocks(omega, dt, L, K, start, n_blocks, t0, design, projector, oversample, design_fine,
-                          projector_fine)
+    return HarmonicBlocks(omega, dt, L, K, start, n_blocks, t0, design, projector, oversample, design_fine)
 
 
 def _fourier_design(s: np.ndarray, omega: float, K: int) -> np.ndarray:

@@ -831,3 +831,38 @@ def reference_integrate(compiled: CompiledForceLaw, oscillator: Oscillator, sepa
         vs.append(v)
         gs.append(gates.copy())
     return np.array(xs), np.array(vs), np.array(gs), events
+
+
+# =========================================================================== re-simulation of a fit
+def resimulate_run(run, steps_per_period: int = 2000) -> dict:
+    """Steady periodic motion of an identified model (a :class:`afmid.diagnose.RunData`), for the report.
+
+    Uses the run's cantilever, fitted drive amplitude, separation, nonlinear
+    parameters and the selected terms with their coefficients. Returns one
+    period: deflection x (m), velocity v (m/s), acceleration a (m/s^2), force
+    (N), and the first-harmonic amplitude (m). The drive phase is irrelevant for
+    phase portraits and is not reproduced.
+    """
+    from .physics import EFFECTS, ForceLaw
+
+    cl = run.cantilever
+    force_amplitude = math.hypot(run.drive["cos"], run.drive["sin"])
+    oscillator = Oscillator(cl["spring_constant"], cl["resonance_frequency"], cl["quality_factor"],
+                            run.drive["frequency"], force_amplitude)
+    params = {"a0": run.config.sample.a0, "R": cl.get("tip_radius", math.nan)}
+    params.update({k: v["value"] for k, v in run.nonlinear.items() if k != "d"})
+    terms = tuple(("fit", name, expression, float(c))
+                  for name, expression, c, s in zip(run.terms, run.expressions, run.coefficients, run.selected) if s)
+    states = tuple(g for e in run.effects if e in EFFECTS for g in EFFECTS.get(e).states
+                   if any(g.name in t[2] for t in terms))
+    law = ForceLaw(tuple(run.effects), params, terms, states)
+    integrator = Integrator(oscillator, compile_force_law(law), run.separation)
+    x0, v0 = oscillator.free_state(0.0)
+    integrator.start(x0, v0, 0.0)
+    steady = settle(integrator, steps_per_period, 1e-7, 20000)
+    h = oscillator.period / steps_per_period
+    seg = integrator.run(0.0, h, steps_per_period, 1)
+    t = np.arange(seg.x.size) * h
+    drive = force_amplitude * np.cos(oscillator.omega * t)
+    acceleration = (drive - oscillator.damping * seg.v - oscillator.spring_constant * seg.x - seg.force) / oscillator.mass
+    return {"x": seg.x, "v": seg.v, "a": acceleration, "force": seg.force, "amplitude": steady.amplitude}

@@ -1,0 +1,772 @@
+"""Defects of measured traces: detection, a one-line explanation, and what to do.
+
+Real deflection traces have problems that simulated ones do not. Each check
+here is a plain function that returns :class:`Finding` objects (name,
+severity, one-line message, the config key it is about, the numbers behind
+it). They are run by :func:`afmid.io.load_trace` / :func:`afmid.io.check_trace`
+(errors stop the run as an :class:`~afmid.errors.InputError` naming the file
+and key; warnings are logged) and listed by ``afmid inspect``.
+
+Severities:
+
+- ``error``: the trace cannot be fitted as it is; the message says what to do.
+- ``warning``: the fit can run but its result is doubtful, or a setting is recommended.
+- ``repaired``: a harmless defect that the run's settings already remove
+  (an offset with ``fit.baseline: free``, a drift with ``fit.detrend: linear``,
+  a drive frequency the fit re-measures).
+
+Offset and drift are never changed silently: the data are passed on as they
+are, and the message recommends the ``fit.detrend`` / ``fit.baseline`` setting
+that removes the defect. Once that setting is in the config the finding is
+reported as ``repaired`` (the fit does the removal).
+
+The signal checks work in samples, not seconds, so they also run on files
+without a sample rate (``afmid inspect``). They share one analysis
+(:func:`analyse`): the oscillation frequency from the spectrum, then a
+least-squares Fourier fit of every drive period (harmonics up to 60, or up to
+0.45 x samples per period), giving per-period amplitude, phase and mean, the
+period-averaged harmonics with their noise, and the model-free tip-sample force
+shape from the harmonics above the noise (the equation of motion per harmonic,
+``F_n / k = (n^2 r^2 - 1 - i n r / Q) X_n`` for n >= 2, ``r = f / f0``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+SEVERITIES = ("repaired", "warning", "error")
+
+#: Same limits as afmid.io (kept here to avoid an import cycle).
+MIN_PERIODS = 3
+MIN_SAMPLES_PER_PERIOD = 20
+#: Fewer samples per period than this and no signal check is meaningful (near Nyquist).
+MIN_ANALYSABLE_SPP = 4.0
+#: Samples per drive period each time-domain differentiator needs (others: MIN_SAMPLES_PER_PERIOD).
+#: central: finite differences amplify noise unless sampled far above the drive (its registry note);
+#: savgol: the default window (spp / 10, odd, >= 5) must exceed the polynomial order 4 by 3 to smooth.
+DIFFERENTIATOR_MIN_SPP = {"central": 500.0, "savgol": 60.0}
+#: Highest harmonic analysed (as fit.max_harmonic's default).
+MAX_HARMONIC = 60
+#: A harmonic "stands above the noise" above this many standard deviations (per cos/sin coefficient).
+DETECT_SIGMA = 5.0
+#: Harmonics above this many sigma are used to reconstruct the force shape.
+INCLUDE_SIGMA = 3.0
+#: The fit searches the drive frequency within this relative distance of the nominal value.
+DRIVE_SEARCH = 0.05
+#: Below this relative difference the measured and nominal drive frequencies agree.
+DRIVE_TOLERANCE = 1e-3
+#: Relative amplitude change over the trace above which it is not in steady state (as afmid.fit).
+STEADINESS_LIMIT = 0.02
+#: An offset is reported when the mean deflection exceeds both this fraction of the amplitude ...
+OFFSET_FRACTION = 0.02
+#: ... and this multiple of the interaction force range / k (the largest mean a tip-sample force explains).
+OFFSET_FORCE_MULTIPLE = 3.0
+#: A drift is reported when it exceeds this fraction of the amplitude over the trace and is significant.
+DRIFT_FRACTION = 2e-3
+DRIFT_SIGMA = 5.0
+#: Time steps may jitter by this fraction of the mean step (as afmid.fit requires).
+TIME_JITTER = 1e-3
+#: A phase step counts as a jump above this many robust standard deviations and half a sample.
+JUMP_SIGMA = 8.0
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One defect: what it is, how bad, a one-line explanation, and the numbers behind it."""
+
+    name: str
+    severity: str  # repaired | warning | error
+    message: str
+    key: str | None = None  # the config key the message is about (for errors)
+    numbers: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.severity not in SEVERITIES:
+            raise ValueError(f"severity must be one of {SEVERITIES}, got {self.severity!r}")
+        if "\n" in self.message:
+            raise ValueError("a finding's message is one line")
+
+    def line(self) -> str:
+        """``severity: name: message``, as ``afmid inspect`` prints it."""
+        return f"{self.severity}: {self.name}: {self.message}"
+
+
+# --------------------------------------------------------------------------- formatting
+def length(value: float, units: str | None = "m") -> str:
+    """A length for a message: metres as pm/nm/um, other units as they are."""
+    if units != "m":
+        suffix = f" {units}" if units else " (file units)"
+        return f"{value:.3g}{suffix}"
+    size = abs(value)
+    for scale, name in ((1e-12, "pm"), (1e-9, "nm"), (1e-6, "um"), (1e-3, "mm")):
+        if size < 1000 * scale:
+            return f"{value / scale:.3g} {name}"
+    return f"{value:.3g} m"
+
+
+def frequency(value: float) -> str:
+    """A frequency for a message: Hz, kHz or MHz."""
+    for scale, name in ((1e6, "MHz"), (1e3, "kHz")):
+        if abs(value) >= scale:
+            return f"{value / scale:.6g} {name}"
+    return f"{value:.6g} Hz"
+
+
+def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start indices and lengths of the runs of True in ``mask``."""
+    padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    edges = np.flatnonzero(np.diff(padded))
+    starts, ends = edges[0::2], edges[1::2]
+    return starts, ends - starts
+
+
+def longest_clean(mask_bad: np.ndarray) -> tuple[int, int]:
+    """(start, length) of the longest stretch without a bad sample."""
+    starts, lengths = _runs(~mask_bad)
+    if lengths.size == 0:
+        return 0, 0
+    i = int(np.argmax(lengths))
+    return int(starts[i]), int(lengths[i])
+
+
+# --------------------------------------------------------------------------- samples and time
+def check_values(values: np.ndarray, spp: float | None = None) -> list[Finding]:
+    """NaN/inf samples (runs of them: dropouts, overflow). An error: the trace must be cropped."""
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return []
+    starts, lengths = _runs(bad)
+    first = int(starts[0])
+    clean_start, clean_len = longest_clean(bad)
+    longest = int(np.argmax(lengths))
+    periods = f", {clean_len / spp:.1f} periods" if spp else ""
+    message = (
+        f"{int(bad.sum())} NaN/inf samples in the deflection (first at sample {first}) in {len(starts)} "
+        f"run{'s' if len(starts) > 1 else ''} (longest {int(lengths[longest])} samples from sample "
+        f"{int(starts[longest])}); crop the trace to a clean part (the longest is samples "
+        f"{clean_start}-{clean_start + clean_len - 1}{periods}) before fitting"
+    )
+    numbers = {"n_bad": int(bad.sum()), "first": first, "runs": len(starts), "longest_run": int(lengths[longest]),
+               "clean_start": clean_start, "clean_length": clean_len}
+    return [Finding("nan", "error", message, "data.column", numbers)]
+
+
+def check_time(time: np.ndarray) -> list[Finding]:
+    """Gaps (dropped samples), short steps (duplicated samples) and jitter in a time column.
+
+    Every problem is an error: the fit needs uniformly spaced samples.
+    """
+    key = "data.time_column"
+    if not np.all(np.isfinite(time)):
+        return [Finding("time_nan", "error", "the time column has NaN/inf values", key)]
+    steps = np.diff(time)
+    if steps.size == 0:
+        return []
+    if np.any(steps <= 0):
+        first = int(np.argmax(steps <= 0)) + 1
+        return [Finding("time_order", "error",
+                        f"time is not strictly increasing (sample {first}); duplicated or reordered samples", key,
+                        {"first": first})]
+    step = float(np.median(steps))
+    long_ = steps > 1.5 * step
+    short = steps < 0.5 * step
+    findings = []
+    irregular = long_ | short
+    clean_start, clean_len = longest_clean(np.concatenate([[False], irregular]))
+    crop = f"crop the trace to a regular part (the longest is samples {clean_start}-{clean_start + clean_len - 1})"
+    if long_.any():
+        first = int(np.argmax(long_))
+        largest = float(steps.max() / step)
+        findings.append(Finding(
+            "time_gaps", "error",
+            f"the time column has {int(long_.sum())} gap{'s' if long_.sum() > 1 else ''} (the largest "
+            f"{largest:.3g} sampling steps, the first after sample {first} at t = {time[first]:.6g} s): samples "
+            f"were dropped; {crop} or resample it onto a uniform grid",
+            key, {"n_gaps": int(long_.sum()), "first": first, "largest_steps": largest, "step": step,
+                  "clean_start": clean_start, "clean_length": clean_len}))
+    if short.any():
+        first = int(np.argmax(short))
+        findings.append(Finding(
+            "time_duplicates", "error",
+            f"the time column has {int(short.sum())} step{'s' if short.sum() > 1 else ''} shorter than half the "
+            f"sampling step (the first after sample {first}): duplicated or inserted samples; remove them or {crop}",
+            key, {"n_short": int(short.sum()), "first": first, "step": step,
+                  "clean_start": clean_start, "clean_length": clean_len}))
+    if findings:
+        return findings
+    mean = float((time[-1] - time[0]) / steps.size)
+    jitter = float(np.max(np.abs(steps - mean)) / mean)
+    if jitter > TIME_JITTER:
+        findings.append(Finding(
+            "time_jitter", "error",
+            f"the time steps vary by up to {100 * jitter:.2g} % of the step (rounded time values or an irregular "
+            f"clock), the fit needs them uniform to {100 * TIME_JITTER:.1g} %: remove data.time_column and give "
+            f"data.sample_rate ({1 / mean:.6g} Hz on average)",
+            key, {"jitter": jitter, "mean_rate": 1 / mean}))
+    return findings
+
+
+# --------------------------------------------------------------------------- the shared analysis
+@dataclass
+class Analysis:
+    """What the signal analysis measured. Times in samples; lengths in the trace's units."""
+
+    n: int
+    cycles_per_sample: float  # oscillation frequency / sample rate
+    spp: float  # samples per period
+    K: int  # highest harmonic fitted
+    L: int  # samples per block (about one period)
+    start: int  # first sample of block 0
+    amplitude: float  # first-harmonic amplitude (mean over periods)
+    mean: float  # mean deflection
+    noise_rms: float  # residual of the per-period harmonic fits
+    block_amplitude: np.ndarray  # (B,)
+    block_phase: np.ndarray  # (B,) rad, unwrapped, x ~ A cos(w t + phase)
+    block_mean: np.ndarray  # (B,)
+    coef: np.ndarray  # (2K+1,) period-averaged [c0, a1, b1, a2, b2, ...] against cos/sin(n w t), t in samples
+    coef_sigma: np.ndarray  # (2K+1,) noise standard deviation of coef
+    above_noise: list[int]  # harmonics >= 2 standing DETECT_SIGMA above the noise
+    force_range: float = 0.0  # range of the model-free force / k (lengths units), 0 without interaction
+    contact: str = "none"  # 'contact', 'attractive' (never touches), 'none' (no interaction detected)
+    flipped: bool = False  # the interaction is at the negative deflection peaks
+
+    @property
+    def n_blocks(self) -> int:
+        return int(self.block_amplitude.size)
+
+    @property
+    def periods(self) -> float:
+        return self.n / self.spp
+
+    def harmonic_amplitudes(self) -> np.ndarray:
+        """|X_n| for n = 0..K (n = 0: |mean|)."""
+        return np.concatenate([[abs(self.coef[0])], np.hypot(self.coef[1::2], self.coef[2::2])])
+
+    def harmonic_sigma(self) -> np.ndarray:
+        """Noise standard deviation of one cos/sin coefficient of harmonic n = 0..K."""
+        s = self.coef_sigma
+        return np.concatenate([[s[0]], np.sqrt(0.5 * (s[1::2] ** 2 + s[2::2] ** 2))])
+
+
+def _detrended(x: np.ndarray) -> np.ndarray:
+    t = np.arange(x.size) - 0.5 * (x.size - 1)
+    xc = x - x.mean()
+    denom = float(np.dot(t, t))
+    return xc - (np.dot(t, xc) / denom) * t if denom else xc
+
+
+def measure_frequency(x: np.ndarray) -> float | None:
+    """The strongest oscillation, cycles per sample, or None if there is none (constant, too short).
+
+    A Hann-windowed, zero-padded spectrum of the detrended samples gives the
+    peak (ignoring anything slower than 2.5 cycles over the trace); a bounded
+    search of the windowed DFT power refines it far below the bin width.
+    """
+    from scipy.optimize import minimize_scalar
+
+    n = x.size
+    if n < 8:
+        return None
+    xc = _detrended(np.asarray(x, dtype=np.float64))
+    if not np.any(xc) or np.max(np.abs(xc)) <= 1e-12 * max(np.max(np.abs(x)), 1e-300):
+        return None
+    window = np.hanning(n)
+    pad = 4 * int(2 ** math.ceil(math.log2(n)))
+    spectrum = np.abs(np.fft.rfft(window * xc, pad))
+    freqs = np.arange(spectrum.size) / pad
+    band = freqs >= 2.5 / n
+    if not band.any():
+        return None
+    i = int(np.flatnonzero(band)[np.argmax(spectrum[band])])
+    if spectrum[i] == 0:
+        return None
+    df = 1.0 / pad
+    weighted = window * xc
+    t = np.arange(n)
+
+    def negative_power(f: float) -> float:
+        return -float(np.abs(np.dot(weighted, np.exp(-2j * np.pi * f * t))) ** 2)
+
+    lo, hi = max(freqs[i] - 1.5 * df, 0.5 / n), min(freqs[i] + 1.5 * df, 0.5)
+    if hi <= lo:
+        return float(freqs[i])
+    res = minimize_scalar(negative_power, bounds=(lo, hi), method="bounded", options={"xatol": freqs[i] * 1e-9})
+    return float(res.x)
+
+
+def _design(L: int, omega: float, K: int) -> np.ndarray:
+    s = np.arange(L)[:, None] * (omega * np.arange(1, K + 1))[None, :]
+    out = np.empty((L, 2 * K + 1))
+    out[:, 0] = 1.0
+    out[:, 1::2] = np.cos(s)
+    out[:, 2::2] = np.sin(s)
+    return out
+
+
+def _projector(design: np.ndarray) -> np.ndarray:
+    """Least-squares projector (D^T D)^-1 D^T by Cholesky (the basis is well conditioned for K <= 0.45 L)."""
+    from scipy.linalg import cho_factor, cho_solve
+
+    return cho_solve(cho_factor(design.T @ design), design.T)
+
+
+def _to_global(local: np.ndarray, starts: np.ndarray, omega: float) -> np.ndarray:
+    """Rows of (B, 2K+1) local-time coefficients rotated to global time (t = start + s)."""
+    K = (local.shape[1] - 1) // 2
+    theta = np.outer(starts, np.arange(1, K + 1)) * omega
+    c, s = np.cos(theta), np.sin(theta)
+    a, b = local[:, 1::2], local[:, 2::2]
+    out = local.copy()
+    out[:, 1::2] = c * a - s * b
+    out[:, 2::2] = s * a + c * b
+    return out
+
+
+def _series(coef: np.ndarray, phase: np.ndarray, harmonics, derivative: bool = False) -> np.ndarray:
+    """sum over n in harmonics of a_n cos(n phase) + b_n sin(n phase) (or its phase derivative)."""
+    out = np.zeros_like(phase)
+    for n in harmonics:
+        a, b = coef[2 * n - 1], coef[2 * n]
+        if derivative:
+            out += n * (b * np.cos(n * phase) - a * np.sin(n * phase))
+        else:
+            out += a * np.cos(n * phase) + b * np.sin(n * phase)
+    return out
+
+
+def analyse(
+    x: np.ndarray, resonance_ratio: float | None = None, quality_factor: float | None = None,
+    cycles_per_sample: float | None = None,
+) -> Analysis | None:
+    """Measure the oscillation, per-period amplitude/phase/mean, harmonics, noise and the force shape.
+
+    ``resonance_ratio`` is f / f0 (1 if unknown: tapping drives near resonance),
+    ``quality_factor`` Q (infinite if unknown; it matters little for n >= 2).
+    Returns None when there is no oscillation to analyse or it has fewer than
+    :data:`MIN_ANALYSABLE_SPP` samples per period or fewer than 3 periods.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    f = cycles_per_sample if cycles_per_sample is not None else measure_frequency(x)
+    if f is None or f <= 0:
+        return None
+    spp = 1.0 / f
+    if spp < MIN_ANALYSABLE_SPP:
+        return None
+    L = int(round(spp))
+    B = x.size // L
+    if B < MIN_PERIODS:
+        return None
+    K = max(1, min(MAX_HARMONIC, int(math.floor(0.45 * spp))))
+    omega = 2.0 * math.pi * f
+    start = (x.size - B * L) // 2
+    design = _design(L, omega, K)
+    projector = _projector(design)
+    blocks = x[start:start + B * L].reshape(B, L)
+    local = blocks @ projector.T
+    starts = start + L * np.arange(B)
+    glob = _to_global(local, starts, omega)
+    resid = blocks - local @ design.T
+    dof = B * (L - (2 * K + 1))
+    noise = float(np.sqrt(np.sum(resid**2) / dof)) if dof > 0 else float("nan")
+    coef = glob.mean(axis=0)
+    sigma = noise * np.sqrt(np.sum(projector**2, axis=1)) / math.sqrt(B) if math.isfinite(noise) else np.zeros(2 * K + 1)
+    amp = np.hypot(glob[:, 1], glob[:, 2])
+    phase = np.unwrap(np.arctan2(-glob[:, 2], glob[:, 1]))
+    out = Analysis(
+        n=x.size, cycles_per_sample=f, spp=spp, K=K, L=L, start=start,
+        amplitude=float(np.hypot(coef[1], coef[2])), mean=float(x.mean()), noise_rms=noise,
+        block_amplitude=amp, block_phase=phase, block_mean=glob[:, 0].copy(), coef=coef, coef_sigma=sigma,
+        above_noise=[],
+    )
+    _interaction(out, 1.0 if resonance_ratio is None else resonance_ratio, quality_factor)
+    return out
+
+
+def _interaction(a: Analysis, r: float, Q: float | None) -> None:
+    """Model-free force shape from the harmonics >= 2: is there contact, and on which side?"""
+    amps, sig = a.harmonic_amplitudes(), a.harmonic_sigma()
+    floor = np.maximum(sig, 1e-12 * max(a.amplitude, 1e-300))
+    a.above_noise = [n for n in range(2, a.K + 1) if amps[n] > DETECT_SIGMA * floor[n]]
+    if not a.above_noise:
+        a.contact = "none"
+        return
+    include = [n for n in range(2, a.K + 1) if amps[n] > INCLUDE_SIGMA * floor[n]]
+    damping = 0.0 if not Q else r / Q
+    phase = np.linspace(0.0, 2 * np.pi, 1024, endpoint=False)
+    # F / k = sum_n (n^2 r^2 - 1) x_n - (r / Q) dx_n/dphase  (equation of motion per harmonic, n >= 2)
+    g = np.zeros_like(phase)
+    for n in include:
+        g += (n * n * r * r - 1) * _series(a.coef, phase, [n]) - damping * _series(a.coef, phase, [n], True)
+    noise = math.sqrt(sum(((n * n * r * r - 1) ** 2 + (n * damping) ** 2) * sig[n] ** 2 for n in include))
+    x = a.coef[0] + _series(a.coef, phase, range(1, a.K + 1))
+    a.force_range = float(g.max() - g.min())
+
+    def contrast(turn: int, sign: float) -> float:
+        """Rise of the (sign-adjusted) force at a turning point above its minimum within a quarter period."""
+        near = np.abs(np.angle(np.exp(1j * (phase - phase[turn])))) <= np.pi / 2
+        h = sign * g
+        return float(h[turn] - h[near].min())
+
+    near_side = contrast(int(np.argmax(x)), 1.0)
+    far_side = contrast(int(np.argmin(x)), -1.0)
+    threshold = max(3.0 * noise, 0.1 * a.force_range)
+    a.flipped = far_side > threshold and far_side > 2.0 * near_side
+    a.contact = "contact" if max(near_side, far_side) > threshold else "attractive"
+
+
+# --------------------------------------------------------------------------- signal checks
+@dataclass
+class Settings:
+    """What the checks need to know about the run (all optional: ``afmid inspect`` has no config)."""
+
+    units: str | None = "m"  # units of the samples ('m' for a loaded trace)
+    sample_rate: float | None = None  # Hz
+    nominal_frequency: float | None = None  # Hz (drive.frequency or the trace file's)
+    resonance_frequency: float | None = None  # Hz
+    quality_factor: float | None = None
+    spring_constant: float | None = None  # N/m
+    detrend: str = "none"  # fit.detrend
+    baseline: str = "zero"  # fit.baseline
+    differentiation: str | None = None  # fit.differentiation (None: not chosen)
+    positive_key: bool = True  # the sign can be set by data.positive
+
+
+def settings_for(trace, config) -> Settings:
+    """Settings for a loaded :class:`afmid.io.Trace` and its run config."""
+    fit = config.fit
+    return Settings(
+        units="m",
+        sample_rate=trace.sample_rate,
+        nominal_frequency=trace.drive_frequency,
+        resonance_frequency=trace.cantilever.resonance_frequency,
+        quality_factor=trace.cantilever.quality_factor,
+        spring_constant=trace.cantilever.spring_constant,
+        detrend=fit.detrend,
+        baseline=fit.baseline,
+        differentiation=fit.differentiation,
+    )
+
+
+def analyse_with(x: np.ndarray, settings: Settings) -> Analysis | None:
+    """:func:`analyse` with the resonance ratio and Q from ``settings`` (when known)."""
+    f = measure_frequency(x)
+    if f is None:
+        return None
+    r = None
+    if settings.sample_rate and settings.resonance_frequency:
+        r = f * settings.sample_rate / settings.resonance_frequency
+    return analyse(x, r, settings.quality_factor, cycles_per_sample=f)
+
+
+def check_signal(x: np.ndarray, settings: Settings, analysis: Analysis | None = None) -> list[Finding]:
+    """Every check on the samples themselves (not NaN, not the time column), in order of importance."""
+    x = np.asarray(x, dtype=np.float64)
+    if analysis is None:
+        analysis = analyse_with(x, settings)
+    findings: list[Finding] = []
+    findings += check_clipping(x, analysis, settings)
+    if analysis is None:
+        findings += _unanalysable(x, settings)
+        findings += check_sampling(None, settings)
+        return findings
+    findings += check_drive_frequency(analysis, settings)
+    findings += check_sampling(analysis, settings)
+    findings += check_jumps(analysis)
+    findings += check_steady(analysis, settings)
+    findings += check_offset_and_drift(analysis, settings)
+    findings += check_contact(analysis, settings)
+    return findings
+
+
+def _unanalysable(x: np.ndarray, settings: Settings) -> list[Finding]:
+    f = measure_frequency(x)
+    if f is None:
+        if np.ptp(x) == 0:
+            return [Finding("no_oscillation", "error",
+                            "the deflection is constant: no oscillation to analyse (wrong channel? check data.column)",
+                            "data.column")]
+        return [Finding("no_oscillation", "warning",
+                        "no oscillation found (fewer than 3 cycles in the trace?); the checks were skipped",
+                        "data.column")]
+    spp = 1.0 / f
+    if spp < MIN_ANALYSABLE_SPP:
+        return [Finding("undersampled", "warning",
+                        f"the strongest oscillation has only {spp:.2f} samples per period: the signal is far "
+                        "undersampled or this is not a deflection channel (check data.column); the checks were skipped",
+                        "data.column", {"samples_per_period": spp})]
+    return [Finding("too_short", "warning",
+                    f"only {x.size / spp:.2f} periods of the oscillation: too short for the checks",
+                    "data.path", {"periods": x.size / spp})]
+
+
+def check_clipping(x: np.ndarray, analysis: Analysis | None, settings: Settings) -> list[Finding]:
+    """Flat tops or bottoms at the extreme values: the detector or the ADC saturated. An error.
+
+    Noise makes consecutive samples of a real peak differ; a run of identical
+    extreme samples longer than quantisation explains (the samples within one
+    ADC step of a sinusoid's peak) means the signal was cut off.
+    """
+    if x.size < 8:
+        return []
+    hi, lo = float(x.max()), float(x.min())
+    span = hi - lo
+    if span <= 0:
+        return []
+    values = np.unique(x[: min(x.size, 200_000)])
+    steps = np.diff(values)
+    q = float(steps[steps > 0].min()) if np.any(steps > 0) else span
+    quantised = q > 1e-6 * span
+    spp = analysis.spp if analysis is not None else None
+    amplitude = analysis.amplitude if analysis is not None and analysis.amplitude > 0 else span / 2
+    natural = 1.0
+    if quantised and spp:
+        natural += spp / math.pi * math.sqrt(2 * min(q / amplitude, 1.0))
+    minimum = max(4, int(math.ceil(2 * natural)) + 2)
+    findings = []
+    tol = 1e-9 * span
+    for side, level, mask in (("maximum", hi, x >= hi - tol), ("minimum", lo, x <= lo + tol)):
+        starts, lengths = _runs(mask)
+        if lengths.size == 0 or lengths.max() < minimum:
+            continue
+        long_runs = int(np.sum(lengths >= minimum))
+        count = int(lengths[lengths >= 2].sum())
+        where = "tops" if side == "maximum" else "bottoms"
+        findings.append(Finding(
+            "clipping", "error",
+            f"the deflection is clipped: flat {where} at the {side} {length(level, settings.units)} "
+            f"({long_runs} run{'s' if long_runs > 1 else ''} of up to {int(lengths.max())} identical samples, "
+            f"{count} samples in all, the first at sample {int(starts[np.argmax(lengths >= minimum)])}): the detector "
+            "or the ADC saturated; record again with a lower gain or amplitude, or crop to unclipped periods",
+            "data.column",
+            {"level": level, "longest_run": int(lengths.max()), "runs": long_runs, "samples": count,
+             "first": int(starts[np.argmax(lengths >= minimum)])}))
+    return findings
+
+
+def check_drive_frequency(a: Analysis, s: Settings) -> list[Finding]:
+    """The measured oscillation against the nominal drive frequency.
+
+    Outside the fit's search band (+-5 %) it is an error; a smaller
+    difference is 'repaired' (the fit uses the measured value).
+    """
+    if not (s.sample_rate and s.nominal_frequency):
+        return []
+    measured = a.cycles_per_sample * s.sample_rate
+    rel = measured / s.nominal_frequency - 1.0
+    numbers = {"measured": measured, "nominal": s.nominal_frequency, "relative": rel}
+    if abs(rel) > DRIVE_SEARCH:
+        return [Finding(
+            "drive_frequency", "error",
+            f"the deflection oscillates at {frequency(measured)}, {100 * rel:+.1f} % from the nominal drive "
+            f"frequency {frequency(s.nominal_frequency)}; the fit searches only within {100 * DRIVE_SEARCH:.0f} % "
+            f"of it: set drive.frequency: {measured:.6g} (or check data.sample_rate)",
+            "drive.frequency", numbers)]
+    if abs(rel) > DRIVE_TOLERANCE:
+        return [Finding(
+            "drive_frequency", "repaired",
+            f"the drive frequency measured from the data, {frequency(measured)}, differs from the nominal "
+            f"{frequency(s.nominal_frequency)} by {100 * rel:+.2f} %; the fit uses the measured value",
+            "drive.frequency", numbers)]
+    return []
+
+
+def check_sampling(a: Analysis | None, s: Settings) -> list[Finding]:
+    """Too few samples per period for the differentiation, or harmonics cut off at Nyquist (aliasing)."""
+    findings = []
+    spp = a.spp if a is not None else (s.sample_rate / s.nominal_frequency
+                                       if s.sample_rate and s.nominal_frequency else None)
+    if spp is None:
+        return []
+    method = s.differentiation
+    need = DIFFERENTIATOR_MIN_SPP.get(method or "", MIN_SAMPLES_PER_PERIOD)
+    rate = f" (at least {frequency(need / spp * s.sample_rate)})" if s.sample_rate else ""
+    if method and need > MIN_SAMPLES_PER_PERIOD and spp < need:
+        findings.append(Finding(
+            "sampling", "error",
+            f"fit.differentiation: {method} needs at least {need:g} samples per drive period, the trace has "
+            f"{spp:.1f}: use fit.differentiation: spectral (or period_average), or record at a higher rate{rate}",
+            "fit.differentiation", {"samples_per_period": spp, "needed": need}))
+    elif spp < MIN_SAMPLES_PER_PERIOD:
+        findings.append(Finding(
+            "sampling", "warning",
+            f"only {spp:.1f} samples per drive period (< {MIN_SAMPLES_PER_PERIOD}): the sample rate is too low to "
+            "resolve the motion well",
+            "data.sample_rate", {"samples_per_period": spp, "needed": MIN_SAMPLES_PER_PERIOD}))
+    if a is not None and a.K < MAX_HARMONIC and a.K >= 3 and a.K in a.above_noise and (a.K - 1) in a.above_noise:
+        wanted = 2.0 * a.K / 0.45
+        rate = f", at least {frequency(wanted / spp * s.sample_rate)}" if s.sample_rate else ""
+        findings.append(Finding(
+            "aliasing", "warning",
+            f"harmonics up to the highest one the sampling resolves (n = {a.K} at {spp:.1f} samples per period) "
+            f"stand above the noise: higher harmonics fold back (aliasing) and bias the force; record at "
+            f"{wanted / spp:.2g} x the sample rate or more{rate}",
+            "data.sample_rate", {"samples_per_period": spp, "highest_harmonic": a.K}))
+    return findings
+
+
+def check_jumps(a: Analysis) -> list[Finding]:
+    """Phase steps between periods: dropped or repeated samples (or a re-locked drive). An error."""
+    B = a.n_blocks
+    if B < 9:
+        return []
+    from scipy.ndimage import median_filter
+
+    d = a.block_phase[2:] - a.block_phase[:-2]  # phase change across two blocks, centred on blocks 1..B-2
+    res = d - median_filter(d, size=7, mode="nearest")
+    mad = float(np.median(np.abs(res - np.median(res))))
+    one = 2 * np.pi / a.spp  # phase of one sample
+    threshold = max(0.5 * one, JUMP_SIGMA * 1.4826 * mad)
+    hits = np.flatnonzero(np.abs(res) > threshold)
+    if hits.size == 0:
+        return []
+    groups = np.split(hits, np.flatnonzero(np.diff(hits) > 2) + 1)
+    peaks = [int(g[np.argmax(np.abs(res[g]))]) for g in groups]
+    sizes = [float(res[p] / one) for p in peaks]
+    first = peaks[0] + 1  # block index
+    sample = a.start + first * a.L
+    kind = "dropped" if sizes[0] > 0 else "repeated"
+    return [Finding(
+        "phase_jump", "error",
+        f"the oscillation phase jumps by {np.degrees(res[peaks[0]]):+.3g} deg ({sizes[0]:+.2g} samples) near "
+        f"period {first} (sample {sample}){f' and at {len(peaks) - 1} more places' if len(peaks) > 1 else ''}: "
+        f"samples were {kind} (or the drive was re-locked); crop the trace to one side of the jump",
+        "data.path", {"jumps": len(peaks), "first_sample": sample, "samples": sizes[0]})]
+
+
+def check_steady(a: Analysis, s: Settings) -> list[Finding]:
+    """Amplitude still changing (a transient): a warning, the fit assumes a steady oscillation."""
+    amp = a.block_amplitude
+    B = amp.size
+    if B < 3 or amp.mean() <= 0:
+        return []
+    slope = np.polyfit(np.arange(B), amp, 1)[0]
+    change = float(abs(slope) * B / amp.mean())
+    if change <= STEADINESS_LIMIT:
+        return []
+    final = float(np.median(amp[-max(3, B // 5):]))
+    outside = np.flatnonzero(np.abs(amp - final) > 0.01 * final)
+    settled = int(outside[-1]) + 1 if outside.size else 0
+    if settled <= B - 3:
+        advice = (f"crop the first {settled} periods (the amplitude stays within 1 % of its final value from "
+                  f"period {settled} on)")
+    else:
+        advice = "record after the amplitude has settled"
+    return [Finding(
+        "not_steady", "warning",
+        f"the oscillation amplitude changes by {100 * change:.1f} % over the trace (from "
+        f"{length(amp[0], s.units)} to {length(amp[-1], s.units)}): not in steady state, but the fit assumes "
+        f"a steady oscillation; {advice}",
+        "data.path", {"change": change, "settled_period": settled, "first": float(amp[0]), "last": float(amp[-1])})]
+
+
+def check_offset_and_drift(a: Analysis, s: Settings) -> list[Finding]:
+    """A mean deflection beyond what tip-sample forces explain, and a slow linear drift of it.
+
+    Never changed here: the message recommends the setting that removes it,
+    and with that setting in the config the finding is 'repaired'.
+    """
+    findings = []
+    B = a.n_blocks
+    t = np.arange(B, dtype=float)
+    means = a.block_mean
+    drift = 0.0
+    steady = not check_steady(a, s)
+    if B >= 5 and steady:
+        slope, intercept = np.polyfit(t, means, 1)
+        resid = means - (slope * t + intercept)
+        se = float(np.sqrt(np.sum(resid**2) / (B - 2) / np.sum((t - t.mean()) ** 2)))
+        drift = float(slope * B)
+        significant = abs(slope) > DRIFT_SIGMA * se if se > 0 else slope != 0
+        if significant and abs(drift) > DRIFT_FRACTION * a.amplitude:
+            numbers = {"drift": drift, "per_period": float(slope), "amplitude": a.amplitude}
+            what = (f"the mean deflection drifts by {length(drift, s.units)} over the trace "
+                    f"({100 * abs(drift) / a.amplitude:.2g} % of the amplitude; detector or thermal drift)")
+            if s.detrend == "linear":
+                findings.append(Finding("drift", "repaired", f"{what}; fit.detrend: linear removes it",
+                                        "fit.detrend", numbers))
+            else:
+                findings.append(Finding(
+                    "drift", "warning",
+                    f"{what}: the fit would read it as a slowly changing force; set fit.detrend: linear "
+                    "(with fit.baseline: free)", "fit.detrend", numbers))
+    offset = a.mean
+    limit = max(OFFSET_FRACTION * a.amplitude, OFFSET_FORCE_MULTIPLE * a.force_range)
+    if abs(offset) > limit and a.amplitude > 0:
+        numbers = {"offset": offset, "amplitude": a.amplitude, "limit": limit}
+        what = (f"the mean deflection is {length(offset, s.units)} ({100 * abs(offset) / a.amplitude:.2g} % of the "
+                "amplitude), more than tip-sample forces explain: the detector zero is off")
+        if s.baseline == "free":
+            findings.append(Finding("offset", "repaired", f"{what}; fit.baseline: free absorbs it", "fit.baseline",
+                                    numbers))
+        elif s.detrend in ("offset", "linear"):
+            findings.append(Finding("offset", "repaired", f"{what}; fit.detrend: {s.detrend} removes it "
+                                    "(fit.baseline: free would keep the mean force)", "fit.detrend", numbers))
+        else:
+            findings.append(Finding(
+                "offset", "warning",
+                f"{what}; set fit.baseline: free (or data.offset to the free-oscillation mean, in file units)",
+                "fit.baseline", numbers))
+    return findings
+
+
+def check_contact(a: Analysis, s: Settings) -> list[Finding]:
+    """No tip-sample force at all, or an attractive one only (the tip never touches): warnings.
+
+    Needs at least :data:`MIN_SAMPLES_PER_PERIOD` samples per period to see the harmonics.
+    """
+    if a.spp < MIN_SAMPLES_PER_PERIOD:
+        return []
+    if a.contact == "none":
+        return [Finding(
+            "no_interaction", "warning",
+            f"no tip-sample force: no harmonic of the oscillation stands above the noise ({length(a.noise_rms, s.units)}"
+            " rms), the tip oscillates freely and never reaches the sample; nothing can be identified (approach the "
+            "sample or check data.path)",
+            "data.path", {"noise_rms": a.noise_rms})]
+    numbers = {"harmonics": len(a.above_noise), "force_range_over_k": a.force_range}
+    if a.contact == "attractive":
+        return [Finding(
+            "no_contact", "warning",
+            "the tip never touches the sample: the force is most attractive at the closest approach (attractive "
+            "regime); only the long-range part can be identified, contact terms (dmt, jkr, viscoelastic) are not "
+            "constrained by these data",
+            "model.effects", numbers)]
+    if a.flipped:
+        fix = ("set data.positive: away_from_sample" if s.positive_key else "flip the sign")
+        return [Finding(
+            "sign", "warning",
+            "the tip-sample interaction happens at the most negative deflection: this file's deflection is "
+            f"probably positive away from the sample; {fix}",
+            "data.positive", numbers)]
+    return []
+
+
+# --------------------------------------------------------------------------- loaded traces
+def check_loaded(trace, config) -> list[Finding]:
+    """The signal checks for a loaded trace (SI, positive toward the sample) with its config."""
+    return check_signal(trace.deflection, settings_for(trace, config))
+
+
+def report(findings: list[Finding], file, logger: logging.Logger | None = None) -> None:
+    """Raise the first error as an InputError naming ``file`` and its key; else log the others.
+
+    Warnings are logged as warnings, 'repaired' findings as information, each
+    prefixed with the file.
+    """
+    from .errors import InputError
+
+    logger = logger or log
+    for finding in findings:
+        if finding.severity == "error":
+            raise InputError(finding.message, file=file, key=finding.key)
+    for finding in findings:
+        if finding.severity == "warning":
+            logger.warning("%s: %s", file, finding.message)
+        else:
+            logger.info("%s: %s", file, finding.message)
