@@ -152,12 +152,13 @@ class SimulateConfig(StrictModel):
 class FitConfig(StrictModel):
     """Sparse-identification settings. The defaults suit steady-state tapping traces."""
 
-    form: Literal["auto", "harmonic", "weak"] = Field(
-        "auto",
-        description="harmonic: Fourier weak form per period (steady state); weak: compact test functions "
-        "(transients); auto: harmonic unless the amplitude drifts",
+    form: Literal["weak", "strong"] = Field(
+        "weak",
+        description="weak: the equation integrated against windowed Fourier test functions (no derivatives "
+        "of data; default, best on the accuracy tests); strong: the equation at every sample with "
+        "derivatives from fit.differentiation",
     )
-    differentiation: str = Field("spectral", description="time-domain differentiator for per-sample forces")
+    differentiation: str = Field("savgol", description="differentiator for fit.form: strong (see docs)")
     differentiation_options: dict[str, float] = Field(default_factory=dict)
     max_harmonic: Annotated[int, Field(ge=2, le=500)] = Field(60, description="highest drive harmonic used")
     periods_per_block: Annotated[int, Field(ge=1, le=100)] = 1

@@ -23,8 +23,8 @@ reported as ``repaired`` (the fit does the removal).
 The signal checks work in samples, not seconds, so they also run on files
 without a sample rate (``afmid inspect``). They share one analysis
 (:func:`analyse`): the oscillation frequency from the spectrum, then a
-least-squares Fourier fit of every drive period (harmonics up to 60, or up to
-0.45 x samples per period), giving per-period amplitude, phase and mean, the
+least-squares Fourier fit of every drive period (harmonics up to 0.45 x
+samples per period, at most 250), giving per-period amplitude, phase and mean, the
 period-averaged harmonics with their noise, and the model-free tip-sample force
 shape from the harmonics above the noise (the equation of motion per harmonic,
 ``F_n / k = (n^2 r^2 - 1 - i n r / Q) X_n`` for n >= 2, ``r = f / f0``).
@@ -51,12 +51,10 @@ MIN_ANALYSABLE_SPP = 4.0
 #: central: finite differences amplify noise unless sampled far above the drive (its registry note);
 #: savgol: the default window (spp / 10, odd, >= 5) must exceed the polynomial order 4 by 3 to smooth.
 DIFFERENTIATOR_MIN_SPP = {"central": 500.0, "savgol": 60.0}
-#: Highest harmonic analysed (as fit.max_harmonic's default).
-MAX_HARMONIC = 60
+#: Highest harmonic analysed: all up to 0.45 x samples per period (as afmid.preprocess), but no more than this.
+MAX_HARMONIC = 250
 #: A harmonic "stands above the noise" above this many standard deviations (per cos/sin coefficient).
 DETECT_SIGMA = 5.0
-#: Harmonics above this many sigma are used to reconstruct the force shape.
-INCLUDE_SIGMA = 3.0
 #: The fit searches the drive frequency within this relative distance of the nominal value.
 DRIVE_SEARCH = 0.05
 #: Below this relative difference the measured and nominal drive frequencies agree.
@@ -396,7 +394,7 @@ def _interaction(a: Analysis, r: float, Q: float | None) -> None:
     if not a.above_noise:
         a.contact = "none"
         return
-    include = [n for n in range(2, a.K + 1) if amps[n] > INCLUDE_SIGMA * floor[n]]
+    include = a.above_noise  # a harmonic at 3 sigma weighted by n^2 would swamp the shape with noise
     damping = 0.0 if not Q else r / Q
     phase = np.linspace(0.0, 2 * np.pi, 1024, endpoint=False)
     # F / k = sum_n (n^2 r^2 - 1) x_n - (r / Q) dx_n/dphase  (equation of motion per harmonic, n >= 2)
@@ -407,17 +405,21 @@ def _interaction(a: Analysis, r: float, Q: float | None) -> None:
     x = a.coef[0] + _series(a.coef, phase, range(1, a.K + 1))
     a.force_range = float(g.max() - g.min())
 
-    def contrast(turn: int, sign: float) -> float:
-        """Rise of the (sign-adjusted) force at a turning point above its minimum within a quarter period."""
-        near = np.abs(np.angle(np.exp(1j * (phase - phase[turn])))) <= np.pi / 2
-        h = sign * g
-        return float(h[turn] - h[near].min())
+    def near(turn: int, width: float) -> np.ndarray:
+        return np.abs(np.angle(np.exp(1j * (phase - phase[turn])))) <= width
 
-    near_side = contrast(int(np.argmax(x)), 1.0)
-    far_side = contrast(int(np.argmin(x)), -1.0)
-    threshold = max(3.0 * noise, 0.1 * a.force_range)
-    a.flipped = far_side > threshold and far_side > 2.0 * near_side
-    a.contact = "contact" if max(near_side, far_side) > threshold else "attractive"
+    # The interaction is localised at one turning point: the one where the force shape is largest.
+    # (Even harmonics look the same from both turning points: only odd ones tell the sides apart.)
+    top, bottom = int(np.argmax(x)), int(np.argmin(x))
+    size_top = float(np.max(np.abs(g[near(top, np.pi / 4)])))
+    size_bottom = float(np.max(np.abs(g[near(bottom, np.pi / 4)])))
+    odd = any(n % 2 for n in include)
+    a.flipped = bool(odd and size_bottom > 1.5 * size_top)
+    turn, sign = (bottom, -1.0) if a.flipped else (top, 1.0)
+    # Contact: the force rises (repulsion) towards the closest approach; attraction only: it is lowest there.
+    force = sign * g
+    rise = float(force[turn] - force[near(turn, np.pi / 2)].min())
+    a.contact = "contact" if rise > max(3.0 * noise, 0.1 * a.force_range) else "attractive"
 
 
 # --------------------------------------------------------------------------- signal checks

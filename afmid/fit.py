@@ -31,7 +31,8 @@ from .errors import AfmidError, ConfigError
 from .io import Trace, atomic_hdf5, check_output_path, load_trace, write_dataset, RUN_FORMAT
 from .library import Library, build_library
 from .physics import BOLTZMANN, EFFECTS
-from .preprocess import (HarmonicBlocks, WeakWindows, detrend, estimate_drive, harmonic_blocks, ou_smooth,
+from .preprocess import (HarmonicBlocks, WeakWindows, detrend, differentiate, estimate_drive, harmonic_blocks,
+                         ou_smooth,
                          steadiness, weak_windows)
 from . import regression
 
@@ -80,6 +81,8 @@ class Prepared:
     noise_rms: float  # m, detector noise estimated from the block fits
     steadiness: float
     removed: dict  # detrend info
+    form: str = "weak"
+    strong: tuple | None = None  # (x, xdot) on the used samples from the differentiator (strong form)
 
 
 def prepare(trace: Trace, fit) -> Prepared:
@@ -113,26 +116,39 @@ def prepare(trace: Trace, fit) -> Prepared:
     noise_rms = float(math.sqrt(np.sum(resid**2) / dof))
     noise_rms = max(noise_rms, 1e-9 * drive.amplitude)  # noise-free input: keep weights finite
 
-    # Weak-form rows: -integral of (m psi'' - c psi' + k psi) x = integral of psi (F_ts - F_drive).
-    operator = m * windows.ddpsi + ((k * windows.psi - c * windows.dpsi) if fixed else 0.0)
-    Y = -windows.integrate(operator, x)[..., 0]
     drive_cols = np.column_stack([np.cos(drive.omega * t), np.sin(drive.omega * t)])
     names = ["drive_cos", "drive_sin"]
     if fit.baseline == "free":
         drive_cols = np.column_stack([drive_cols, np.ones_like(t)])
         names.append("offset")
-    nuisance = windows.integrate(windows.psi, drive_cols)
     nuisance_block = blocks.project(drive_cols)
-    if not fixed:  # k x + c x' moved to the right-hand side with free coefficients
-        nuisance = np.concatenate([nuisance, windows.integrate(windows.psi, x), windows.integrate(-windows.dpsi, x)],
-                                  axis=2)
+    if not fixed:
         nuisance_block = np.concatenate([nuisance_block, X, V], axis=2)
         names += ["stiffness", "damping"]
-
-    # Predicted noise per row: detector noise through the operator, thermal force noise through psi.
     thermal = 2 * BOLTZMANN * fit.temperature * c / blocks.dt if fit.thermal_noise else 0.0
-    psi_sq = _pair_mean(np.sum(windows.psi**2, axis=1))
-    base_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1)) + thermal * psi_sq
+    strong = None
+    if fit.form == "weak":
+        # Rows: -integral of (m psi'' - c psi' + k psi) x = integral of psi (F_ts - F_drive).
+        operator = m * windows.ddpsi + ((k * windows.psi - c * windows.dpsi) if fixed else 0.0)
+        Y = -windows.integrate(operator, x)[..., 0]
+        nuisance = windows.integrate(windows.psi, drive_cols)
+        if not fixed:  # k x + c x' moved to the right-hand side with free coefficients
+            nuisance = np.concatenate(
+                [nuisance, windows.integrate(windows.psi, x), windows.integrate(-windows.dpsi, x)], axis=2)
+        # Predicted noise per row: detector noise through the operator, thermal force noise through psi.
+        psi_sq = _pair_mean(np.sum(windows.psi**2, axis=1))
+        base_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1)) + thermal * psi_sq
+    else:
+        # Rows: the equation at every used sample, derivatives from a registered differentiator.
+        xs, v, a = differentiate(x, trace.sample_rate, drive.frequency, fit.differentiation,
+                                 fit.differentiation_options)
+        shape = (blocks.n_blocks, blocks.L)
+        Y = -(m * a + ((c * v + k * xs) if fixed else 0.0))[used].reshape(shape)
+        cols = [drive_cols] + ([] if fixed else [xs[:, None], v[:, None]])
+        nuisance = np.column_stack(cols)[used].reshape(shape + (-1,))
+        psi_sq = np.zeros(blocks.L)
+        base_variance = np.full(blocks.L, float(np.var(Y - Y.mean(axis=0))))  # uniform weights
+        strong = (xs[used], v[used])
     n = blocks.harmonics * drive.omega
     H2 = (1 - (n / w0) ** 2) ** 2 + (n / (Q * w0)) ** 2
     block_sigma = np.sqrt(blocks.noise_variance_factor() * (thermal + k**2 * H2 * noise_rms**2))
@@ -159,6 +175,7 @@ def prepare(trace: Trace, fit) -> Prepared:
         xdot_used=blocks.synthesize(V_traj)[:, 0],
         fine_x=blocks.synthesize_fine(X_traj)[..., 0], fine_xdot=blocks.synthesize_fine(V_traj)[..., 0],
         fine_t=blocks.fine_times(), noise_rms=noise_rms, steadiness=steadiness(X), removed=removed,
+        form=fit.form, strong=strong,
     )
 
 
@@ -239,7 +256,11 @@ def build_system(prep: Prepared, library: Library, params: dict) -> System:
             "(a term singular in contact? gate it, e.g. [z > a0] * ...)",
             key="model",
         )
-    theta = prep.windows.integrate_fine(fine.reshape(B, n_fine, -1))
+    if prep.form == "strong":
+        xs, v = prep.strong
+        theta = library.evaluate(xs, v, prep.t[used], params).reshape(B, prep.blocks.L, -1)
+    else:
+        theta = prep.windows.integrate_fine(fine.reshape(B, n_fine, -1))
     A = np.concatenate([theta, prep.nuisance], axis=2) / prep.row_sigma[None, :, None]
     y = prep.Y / prep.row_sigma[None, :]
     T_blocks = regression.factor_blocks(A, y)
@@ -411,17 +432,11 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
         raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source, key="model")
     prep = prepare(trace, fit)
     warnings: list[str] = []
-    form = fit.form
-    if form == "auto":
-        form = "harmonic"
-        if prep.steadiness > 0.02:
-            msg = (f"the oscillation amplitude changes by {100 * prep.steadiness:.1f} % over the trace: not in steady "
-                   "state; the harmonic form assumes period-to-period similarity (fit.form: weak fits transients)")
-            log.warning(msg)
-            warnings.append(msg)
-    if form == "weak":
-        raise ConfigError("fit.form: weak (transients) is not implemented yet; use harmonic", file=config.source,
-                          key="fit.form")
+    if prep.steadiness > 0.02:
+        msg = (f"the oscillation amplitude changes by {100 * prep.steadiness:.1f} % over the trace: not in steady "
+               "state; the weak form handles this, but per-period summaries mix different states")
+        log.warning(msg)
+        warnings.append(msg)
     params = _params_for(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     nonlinear = estimate_nonlinear(prep, library, config, params)
@@ -541,6 +556,8 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
     (Parseval over harmonics, summed over folds). Returns the error, the error
     of each fold, and the noise floor: the error a perfect model would show.
     """
+    if prep.form == "strong":
+        return _time_domain_cv_error(prep, system, mask, folds)
     harmonics = prep.blocks.harmonics
     num = den = noise = 0.0
     per_fold = []
@@ -565,6 +582,23 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
     if den <= 0:
         return math.nan, np.asarray(per_fold), math.nan
     return math.sqrt(num / den), np.asarray(per_fold), math.sqrt(noise / den)
+
+
+def _time_domain_cv_error(prep: Prepared, system: System, mask: np.ndarray, folds: int):
+    """The strong form's error: per-sample force on held-out periods (no noise floor is predicted)."""
+    p = system.theta.shape[2]
+    num = den = 0.0
+    per_fold = []
+    for test in regression.fold_slices(system.T_blocks.shape[0], folds):
+        train = regression.training_blocks(system.T_blocks.shape[0], test, gap=0)
+        coef, _ = regression.subset_fit(regression.combine(system.T_blocks[train]), mask)
+        free = prep.Y[test] - np.einsum("bkm,m->bk", prep.nuisance[test], coef[p:])
+        model = np.einsum("bkm,m->bk", system.theta[test], coef[:p])
+        n_f, d_f = float(np.sum((free - model) ** 2)), float(np.sum((free - free.mean()) ** 2))
+        per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
+        num += n_f
+        den += d_f
+    return (math.sqrt(num / den) if den > 0 else math.nan), np.asarray(per_fold), math.nan
 
 
 # --------------------------------------------------------------------------- read-out
