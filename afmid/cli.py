@@ -174,7 +174,7 @@ def init_config(output: Path | None, overwrite: bool, from_file: Path | None) ->
     if from_file is not None:
         from .inspect import prefill_config
 
-        text = prefill_config(from_file, text)
+        text = prefill_config(from_file, text, config_dir=output.parent if output is not None else None)
     if output is None:
         click.echo(text, nl=False)
         return

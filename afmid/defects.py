@@ -24,7 +24,7 @@ The signal checks work in samples, not seconds, so they also run on files
 without a sample rate (``afmid inspect``). They share one analysis
 (:func:`analyse`): the oscillation frequency from the spectrum, then a
 least-squares Fourier fit of every drive period (harmonics up to 0.45 x
-samples per period, at most 250), giving per-period amplitude, phase and mean, the
+samples per period, at most 60), giving per-period amplitude, phase and mean, the
 period-averaged harmonics with their noise, and the model-free tip-sample force
 shape from the harmonics above the noise (the equation of motion per harmonic,
 ``F_n / k = (n^2 r^2 - 1 - i n r / Q) X_n`` for n >= 2, ``r = f / f0``).
@@ -51,8 +51,9 @@ MIN_ANALYSABLE_SPP = 4.0
 #: central: finite differences amplify noise unless sampled far above the drive (its registry note);
 #: savgol: the default window (spp / 10, odd, >= 5) must exceed the polynomial order 4 by 3 to smooth.
 DIFFERENTIATOR_MIN_SPP = {"central": 500.0, "savgol": 60.0}
-#: Highest harmonic analysed: all up to 0.45 x samples per period (as afmid.preprocess), but no more than this.
-MAX_HARMONIC = 250
+#: Highest harmonic analysed: up to 0.45 x samples per period (as afmid.preprocess), and no more than
+#: fit.max_harmonic's default: harmonics the fit does not use need no checking.
+MAX_HARMONIC = 60
 #: A harmonic "stands above the noise" above this many standard deviations (per cos/sin coefficient).
 DETECT_SIGMA = 5.0
 #: The fit searches the drive frequency within this relative distance of the nominal value.
@@ -326,16 +327,17 @@ def _to_global(local: np.ndarray, starts: np.ndarray, omega: float) -> np.ndarra
     return out
 
 
-def _series(coef: np.ndarray, phase: np.ndarray, harmonics, derivative: bool = False) -> np.ndarray:
-    """sum over n in harmonics of a_n cos(n phase) + b_n sin(n phase) (or its phase derivative)."""
-    out = np.zeros_like(phase)
-    for n in harmonics:
-        a, b = coef[2 * n - 1], coef[2 * n]
-        if derivative:
-            out += n * (b * np.cos(n * phase) - a * np.sin(n * phase))
-        else:
-            out += a * np.cos(n * phase) + b * np.sin(n * phase)
-    return out
+def _series(coef: np.ndarray, phase: np.ndarray, harmonics, weights=None, derivative_weights=None) -> np.ndarray:
+    """sum over n of w_n (a_n cos(n phase) + b_n sin(n phase)) + v_n d/dphase(...), for n in ``harmonics``."""
+    n = np.asarray(list(harmonics), dtype=int)
+    if n.size == 0:
+        return np.zeros_like(phase)
+    a, b = coef[2 * n - 1], coef[2 * n]
+    w = np.ones(n.size) if weights is None else np.asarray(weights, dtype=float)
+    v = np.zeros(n.size) if derivative_weights is None else np.asarray(derivative_weights, dtype=float)
+    arg = np.outer(phase, n)
+    cos, sin = np.cos(arg), np.sin(arg)
+    return cos @ (w * a + v * n * b) + sin @ (w * b - v * n * a)
 
 
 def analyse(
@@ -373,7 +375,10 @@ def analyse(
     dof = B * (L - (2 * K + 1))
     noise = float(np.sqrt(np.sum(resid**2) / dof)) if dof > 0 else float("nan")
     coef = glob.mean(axis=0)
-    sigma = noise * np.sqrt(np.sum(projector**2, axis=1)) / math.sqrt(B) if math.isfinite(noise) else np.zeros(2 * K + 1)
+    # Noise of the averages: white noise through the projector, or the scatter between periods if larger
+    # (non-white noise, period-to-period variation of the motion).
+    white = noise * np.sqrt(np.sum(projector**2, axis=1)) if math.isfinite(noise) else np.zeros(2 * K + 1)
+    sigma = np.maximum(white, glob.std(axis=0)) / math.sqrt(B)
     amp = np.hypot(glob[:, 1], glob[:, 2])
     phase = np.unwrap(np.arctan2(-glob[:, 2], glob[:, 1]))
     out = Analysis(
@@ -398,9 +403,8 @@ def _interaction(a: Analysis, r: float, Q: float | None) -> None:
     damping = 0.0 if not Q else r / Q
     phase = np.linspace(0.0, 2 * np.pi, 1024, endpoint=False)
     # F / k = sum_n (n^2 r^2 - 1) x_n - (r / Q) dx_n/dphase  (equation of motion per harmonic, n >= 2)
-    g = np.zeros_like(phase)
-    for n in include:
-        g += (n * n * r * r - 1) * _series(a.coef, phase, [n]) - damping * _series(a.coef, phase, [n], True)
+    n = np.asarray(include, dtype=float)
+    g = _series(a.coef, phase, include, n * n * r * r - 1, np.full(n.size, -damping))
     noise = math.sqrt(sum(((n * n * r * r - 1) ** 2 + (n * damping) ** 2) * sig[n] ** 2 for n in include))
     x = a.coef[0] + _series(a.coef, phase, range(1, a.K + 1))
     a.force_range = float(g.max() - g.min())
@@ -435,8 +439,8 @@ class Settings:
     spring_constant: float | None = None  # N/m
     detrend: str = "none"  # fit.detrend
     baseline: str = "zero"  # fit.baseline
-    differentiation: str | None = None  # fit.differentiation (None: not chosen)
-    positive_key: bool = True  # the sign can be set by data.positive
+    differentiation: str | None = None  # fit.differentiation when the fit differentiates (fit.form: strong)
+    positive: str | None = None  # data.positive of the run (None: not chosen yet)
 
 
 def settings_for(trace, config) -> Settings:
@@ -451,7 +455,8 @@ def settings_for(trace, config) -> Settings:
         spring_constant=trace.cantilever.spring_constant,
         detrend=fit.detrend,
         baseline=fit.baseline,
-        differentiation=fit.differentiation,
+        differentiation=fit.differentiation if getattr(fit, "form", None) == "strong" else None,
+        positive=config.data.positive,
     )
 
 
@@ -581,8 +586,10 @@ def check_drive_frequency(a: Analysis, s: Settings) -> list[Finding]:
 def check_sampling(a: Analysis | None, s: Settings) -> list[Finding]:
     """Too few samples per period for the differentiation, or harmonics cut off at Nyquist (aliasing)."""
     findings = []
-    spp = a.spp if a is not None else (s.sample_rate / s.nominal_frequency
-                                       if s.sample_rate and s.nominal_frequency else None)
+    # The nominal samples per period when known (the rate and drive the user gave), else the measured one.
+    spp = s.sample_rate / s.nominal_frequency if s.sample_rate and s.nominal_frequency else None
+    if a is not None and (spp is None or abs(a.spp / spp - 1) > DRIVE_SEARCH):
+        spp = a.spp
     if spp is None:
         return []
     method = s.differentiation
@@ -591,8 +598,9 @@ def check_sampling(a: Analysis | None, s: Settings) -> list[Finding]:
     if method and need > MIN_SAMPLES_PER_PERIOD and spp < need:
         findings.append(Finding(
             "sampling", "error",
-            f"fit.differentiation: {method} needs at least {need:g} samples per drive period, the trace has "
-            f"{spp:.1f}: use fit.differentiation: spectral (or period_average), or record at a higher rate{rate}",
+            f"{method} differentiation needs at least {need:g} samples per drive period, the trace has "
+            f"{spp:.1f}: use fit.form: weak (no derivatives of the data) or fit.differentiation: spectral, or record at a "
+            f"higher rate{rate}",
             "fit.differentiation", {"samples_per_period": spp, "needed": need}))
     elif spp < MIN_SAMPLES_PER_PERIOD:
         findings.append(Finding(
@@ -740,11 +748,14 @@ def check_contact(a: Analysis, s: Settings) -> list[Finding]:
             "constrained by these data",
             "model.effects", numbers)]
     if a.flipped:
-        fix = ("set data.positive: away_from_sample" if s.positive_key else "flip the sign")
+        if s.positive is None:
+            fix = "probably positive away from the sample; set data.positive: away_from_sample"
+        else:
+            other = "away_from_sample" if s.positive == "toward_sample" else "toward_sample"
+            fix = f"data.positive: {s.positive} gives it the wrong sign; set data.positive: {other}"
         return [Finding(
             "sign", "warning",
-            "the tip-sample interaction happens at the most negative deflection: this file's deflection is "
-            f"probably positive away from the sample; {fix}",
+            f"the tip-sample interaction happens at the most negative deflection: the deflection is {fix}",
             "data.positive", numbers)]
     return []
 

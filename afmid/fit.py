@@ -75,9 +75,8 @@ class Prepared:
     block_sigma: np.ndarray  # (2K+1,) N, noise of Y_block per period
     trajectory_noise: float  # m, rms noise of the trajectory the library is evaluated on
     xdot_used: np.ndarray  # m/s, velocity on the used samples (band-limited)
-    fine_x: np.ndarray  # (B, L*U) m, smoothed band-limited deflection on the fine grid
-    fine_xdot: np.ndarray  # (B, L*U) m/s
-    fine_t: np.ndarray  # (B, L*U) s
+    X_traj: np.ndarray  # (B, 2K+1) m, smoothed trajectory coefficients (the library's input)
+    V_traj: np.ndarray  # (B, 2K+1) m/s, its velocity
     noise_rms: float  # m, detector noise estimated from the block fits
     steadiness: float
     removed: dict  # detrend info
@@ -173,8 +172,7 @@ def prepare(trace: Trace, fit) -> Prepared:
         Y_block=Y_block, nuisance_block=nuisance_block, block_sigma=block_sigma,
         trajectory_noise=noise_rms * math.sqrt(residual_var),
         xdot_used=blocks.synthesize(V_traj)[:, 0],
-        fine_x=blocks.synthesize_fine(X_traj)[..., 0], fine_xdot=blocks.synthesize_fine(V_traj)[..., 0],
-        fine_t=blocks.fine_times(), noise_rms=noise_rms, steadiness=steadiness(X), removed=removed,
+        X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X), removed=removed,
         form=fit.form, strong=strong,
     )
 
@@ -206,13 +204,33 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
     import dataclasses
 
     eps = max(prep.trajectory_noise, 1e-15)
-    x, v, t = prep.fine_x.ravel(), prep.fine_xdot.ravel(), prep.fine_t.ravel()
     p = len(library)
-    f_hi = library.evaluate(x + eps, v, t, params) @ coef[:p]
-    f_lo = library.evaluate(x - eps, v, t, params) @ coef[:p]
-    stiffness_sq = float(np.mean(((f_hi - f_lo) / (2 * eps)) ** 2))
+    total, count = 0.0, 0
+    for _, x, v, t in fine_chunks(prep):
+        f_hi = library.evaluate(x.ravel() + eps, v.ravel(), t.ravel(), params) @ coef[:p]
+        f_lo = library.evaluate(x.ravel() - eps, v.ravel(), t.ravel(), params) @ coef[:p]
+        total += float(np.sum(((f_hi - f_lo) / (2 * eps)) ** 2))
+        count += f_hi.size
+    stiffness_sq = total / count
     variance = prep.base_variance + prep.psi_sq * stiffness_sq * prep.trajectory_noise**2
     return dataclasses.replace(prep, row_sigma=np.sqrt(variance))
+
+
+#: Blocks (periods) per chunk when the fine grid is evaluated: bounds memory for long traces.
+CHUNK_BLOCKS = 256
+
+
+def fine_chunks(prep: Prepared, overlap: int = 0):
+    """Yield (first block, x, xdot, t) on the fine grid, (n, L U) each, chunk by chunk.
+
+    ``overlap`` extra blocks are included at the end of each chunk (windows need the next block).
+    """
+    B = prep.blocks.n_blocks
+    for b0 in range(0, B - overlap if overlap else B, CHUNK_BLOCKS):
+        b1 = min(b0 + CHUNK_BLOCKS + overlap, B)
+        x = prep.blocks.synthesize_fine(prep.X_traj[b0:b1, :, None], b0)[..., 0]
+        v = prep.blocks.synthesize_fine(prep.V_traj[b0:b1, :, None], b0)[..., 0]
+        yield b0, x, v, prep.blocks.fine_times(b0, b1)
 
 
 def smooth_across_blocks(coef: np.ndarray, window: int) -> np.ndarray:
@@ -229,8 +247,7 @@ def smooth_across_blocks(coef: np.ndarray, window: int) -> np.ndarray:
 @dataclass
 class System:
     params: dict  # d, a0, R, w and nonlinear parameters used
-    theta: np.ndarray  # (B, 2K+1, p) projected library columns
-    columns: np.ndarray  # (N_used, p) library columns per sample
+    theta: np.ndarray  # (W, rows, p) library columns in the regression's form (weak-form integrals)
     T_blocks: np.ndarray  # per-block factors of the whitened [Theta N | Y]
     protected: np.ndarray  # bool (p + n_nu)
     names: list[str]
@@ -242,31 +259,41 @@ class System:
 
 
 def build_system(prep: Prepared, library: Library, params: dict) -> System:
+    """Library columns in the regression's form, whitened and factored per window (chunk by chunk)."""
     used = prep.blocks.used
-    B, n_fine = prep.fine_x.shape
-    fine = library.evaluate(prep.fine_x.ravel(), prep.fine_xdot.ravel(), prep.fine_t.ravel(), params)
-    if not np.all(np.isfinite(fine)):
-        cols = fine
+    B = prep.blocks.n_blocks
+    if prep.form == "strong":
+        xs, v = prep.strong
+        theta = library.evaluate(xs, v, prep.t[used], params).reshape(B, prep.blocks.L, -1)
+        _check_finite(theta.reshape(-1, theta.shape[-1]), library, params)
     else:
-        cols = library.evaluate(prep.x[used], prep.xdot_used, prep.t[used], params)
-    if not np.all(np.isfinite(cols)):
-        bad = [library.terms[j].name for j in range(cols.shape[1]) if not np.all(np.isfinite(cols[:, j]))]
+        parts = []
+        for b0, x, v, t in fine_chunks(prep, overlap=1):
+            fine = library.evaluate(x.ravel(), v.ravel(), t.ravel(), params)
+            _check_finite(fine, library, params)
+            parts.append(prep.windows.integrate_fine(fine.reshape(x.shape + (-1,)), b0))
+        theta = np.concatenate(parts, axis=0)
+    T_blocks = np.concatenate([
+        regression.factor_blocks(
+            np.concatenate([theta[i:i + CHUNK_BLOCKS], prep.nuisance[i:i + CHUNK_BLOCKS]], axis=2)
+            / prep.row_sigma[None, :, None],
+            prep.Y[i:i + CHUNK_BLOCKS] / prep.row_sigma[None, :])
+        for i in range(0, theta.shape[0], CHUNK_BLOCKS)
+    ])
+    protected = np.zeros(theta.shape[2] + prep.nuisance.shape[2], dtype=bool)
+    protected[theta.shape[2]:] = True
+    return System(dict(params), theta, T_blocks, protected, library.names + prep.nuisance_names)
+
+
+def _check_finite(columns: np.ndarray, library: Library, params: dict) -> None:
+    finite = np.isfinite(columns).all(axis=0)
+    if not finite.all():
+        bad = [library.terms[j].name for j in np.flatnonzero(~finite)]
         raise AfmidError(
             f"library terms {bad} are not finite along the trajectory at separation {params['d'] * 1e9:.3f} nm "
             "(a term singular in contact? gate it, e.g. [z > a0] * ...)",
             key="model",
         )
-    if prep.form == "strong":
-        xs, v = prep.strong
-        theta = library.evaluate(xs, v, prep.t[used], params).reshape(B, prep.blocks.L, -1)
-    else:
-        theta = prep.windows.integrate_fine(fine.reshape(B, n_fine, -1))
-    A = np.concatenate([theta, prep.nuisance], axis=2) / prep.row_sigma[None, :, None]
-    y = prep.Y / prep.row_sigma[None, :]
-    T_blocks = regression.factor_blocks(A, y)
-    protected = np.zeros(A.shape[2], dtype=bool)
-    protected[theta.shape[2]:] = True
-    return System(dict(params), theta, cols, T_blocks, protected, library.names + prep.nuisance_names)
 
 
 def _rss(system: System, mask: np.ndarray | None) -> float:
@@ -505,7 +532,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     quantities = read_out(library, coef, bagging, params, chosen, trace)
     if uncertainty:
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
-    force_estimate, force_direct = per_sample_forces(prep, system, coef, signal_rows)
+    force_estimate, force_direct = per_sample_forces(prep, library, system, coef, signal_rows)
     periods = period_curves(prep, library, system, coef, params, signal_rows, fit.phase_points)
     bar.update(1)
     bar.close()
@@ -675,13 +702,18 @@ def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params
 
 
 # --------------------------------------------------------------------------- forces
-def per_sample_forces(prep: Prepared, system: System, coef: np.ndarray, rows: np.ndarray):
+def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np.ndarray, rows: np.ndarray):
     """Model force on every used sample and the band-limited model-free force (N; NaN elsewhere)."""
     n = prep.x.size
     p = system.theta.shape[2]
     used = prep.blocks.used
     estimate = np.full(n, np.nan)
-    estimate[used] = system.columns @ coef[:p]
+    x_used, t_used = prep.x[used], prep.t[used]
+    step = CHUNK_BLOCKS * prep.blocks.L
+    for i in range(0, x_used.size, step):
+        sl = slice(i, i + step)
+        cols = library.evaluate(x_used[sl], prep.xdot_used[sl], t_used[sl], system.params)
+        estimate[used.start + i: used.start + i + cols.shape[0]] = cols @ coef[:p]
     F = _direct_force_coefficients(prep, system, coef) * rows[None, :]
     direct = np.full(n, np.nan)
     direct[used] = prep.blocks.synthesize(F[..., None])[:, 0]

@@ -87,6 +87,7 @@ class Trace:
     sources: dict[str, str] = field(default_factory=dict)  # value -> where it came from
     overridden: list[str] = field(default_factory=list)  # config keys that overrode file metadata
     drive_force_amplitude: float | None = None  # N, if known
+    findings: list = field(default_factory=list)  # afmid.defects.Finding: defects found on loading
 
     @property
     def n_samples(self) -> int:
@@ -321,15 +322,9 @@ def load_trace(config) -> Trace:
     is_afmid = meta.get("format") == TRACE_FORMAT
 
     values = np.asarray(raw.values, dtype=np.float64)
-    bad = ~np.isfinite(values)
-    if bad.any():
-        first = int(np.argmax(bad))
-        raise InputError(
-            f"{int(bad.sum())} NaN/inf samples in the deflection (first at sample {first}); "
-            "clean or crop the trace before fitting",
-            file=path,
-            key="data.column",
-        )
+    from . import defects
+
+    defects.report(defects.check_values(values), path)  # NaN/inf runs: where, and the longest clean part
 
     units = _normalise_units(raw.units)
     if data.units is not None:
@@ -360,6 +355,8 @@ def load_trace(config) -> Trace:
                 key="data.sample_rate",
             )
     if sample_rate is None:
+        if time is not None:  # a time column that gives no rate: say what is wrong with it
+            defects.report(defects.check_time(time), path)
         raise ConfigError(
             "the file has no time axis or sample rate; set data.sample_rate (Hz) or data.time_column",
             file=config.source,
@@ -437,7 +434,14 @@ def _merge_cantilever(config, meta: dict, sources: dict, overridden: list) -> Ca
 
 
 def check_trace(trace: Trace, config) -> None:
-    """Reject traces that cannot be fitted; warn about marginal sampling."""
+    """Reject traces that cannot be fitted; warn about doubtful ones.
+
+    The defects (afmid.defects: time gaps, clipping, drive frequency, sampling,
+    phase jumps, steady state, offset and drift, contact) are stored in
+    ``trace.findings``; the first error is raised, otherwise warnings are logged.
+    """
+    from . import defects
+
     path = trace.path
     n = trace.n_samples
     if n == 0:
@@ -445,27 +449,12 @@ def check_trace(trace: Trace, config) -> None:
     if trace.time is not None:
         if trace.time.size != n:
             raise InputError("time and deflection columns differ in length", file=path, key="data.time_column")
-        if not np.all(np.isfinite(trace.time)):
-            raise InputError("the time column has NaN/inf values", file=path, key="data.time_column")
-        steps = np.diff(trace.time)
-        if steps.size and np.any(steps <= 0):
-            first = int(np.argmax(steps <= 0)) + 1
-            raise InputError(
-                f"time is not strictly increasing (sample {first}); duplicated or reordered samples",
-                file=path,
-                key="data.time_column",
-            )
-    spp = trace.samples_per_period
+        defects.report(defects.check_time(trace.time), path)  # NaN, order, gaps, duplicates, jitter
     if trace.n_periods < MIN_PERIODS:
         raise InputError(
             f"the trace is too short: {n} samples = {trace.n_periods:.2f} drive periods, need at least {MIN_PERIODS}",
             file=path,
             key="data.path",
         )
-    if spp < MIN_SAMPLES_PER_PERIOD:
-        log.warning(
-            "%s: only %.1f samples per drive period (< %d): the sample rate is too low to resolve the motion well",
-            path,
-            spp,
-            MIN_SAMPLES_PER_PERIOD,
-        )
+    trace.findings = defects.check_loaded(trace, config)  # includes the samples-per-period warning
+    defects.report(trace.findings, path)

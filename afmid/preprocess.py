@@ -170,14 +170,15 @@ class HarmonicBlocks:
         blocks = cols.reshape(self.n_blocks, self.L, -1)
         return self.to_global(apply_rows(self.projector, blocks))
 
-    def fine_times(self) -> np.ndarray:
-        """Times (n_blocks, L * oversample) of the fine grid, s."""
+    def fine_times(self, first: int = 0, stop: int | None = None) -> np.ndarray:
+        """Times (n, L * oversample) of the fine grid of blocks ``first`` .. ``stop - 1``, s."""
         local = np.arange(self.L * self.oversample) * (self.dt / self.oversample)
-        return self.block_times()[:, None] + local[None, :]
+        return self.block_times()[first:stop, None] + local[None, :]
 
-    def synthesize_fine(self, coef: np.ndarray) -> np.ndarray:
-        """The series (n_blocks, L * oversample, m) on the fine grid."""
-        return np.matmul(self.design_fine, self.to_local(coef))
+    def synthesize_fine(self, coef: np.ndarray, first: int = 0) -> np.ndarray:
+        """The series (n, L * oversample, m) on the fine grid of blocks ``first`` .. ``first + n - 1``."""
+        times = self.block_times()[first : first + coef.shape[0]]
+        return np.matmul(self.design_fine, rotate_to_global(coef, times, -self.omega))
 
     def derivative(self, coef: np.ndarray, order: int = 1) -> np.ndarray:
         """Coefficients of the ``order``-th time derivative (exact for the series)."""
@@ -268,18 +269,19 @@ class WeakWindows:
         local = apply_rows(matrix, self.windows(samples))
         return rotate_to_global(local, self.start_times(), self.omega)
 
-    def integrate_fine(self, fine: np.ndarray) -> np.ndarray:
-        """Integrals of fine-grid block columns (n_blocks, L U, m) over each two-block window.
+    def integrate_fine(self, fine: np.ndarray, first: int = 0) -> np.ndarray:
+        """Integrals over windows ``first``, ``first + 1``, ... of fine-grid block columns (n, L U, m).
 
-        Window b spans blocks b and b + 1: its integral is the first half of the
-        test functions applied to block b plus the second half applied to block
-        b + 1 (no copies of the blocks).
+        ``fine`` holds blocks ``first`` .. ``first + n - 1``; window b spans
+        blocks b and b + 1, so n blocks give n - 1 windows: its integral is the
+        first half of the test functions applied to block b plus the second half
+        applied to block b + 1 (no copies of the blocks).
         """
         half = self.psi_fine.shape[1] // 2
-        first = np.matmul(self.psi_fine[:, :half], fine)
-        second = np.matmul(self.psi_fine[:, half:], fine)
-        local = first[: self.n_windows] + second[1 : self.n_windows + 1]
-        return rotate_to_global(local, self.start_times(), self.omega)
+        n = min(fine.shape[0] - 1, self.n_windows - first)
+        first_half = np.matmul(self.psi_fine[:, :half], fine[:n])
+        second_half = np.matmul(self.psi_fine[:, half:], fine[1 : n + 1])
+        return rotate_to_global(first_half + second_half, self.start_times()[first : first + n], self.omega)
 
 
 def weak_windows(blocks: "HarmonicBlocks") -> WeakWindows:
