@@ -384,7 +384,7 @@ def _set(lines: list[str], section: str, key: str, value, comment: str | None = 
         original = m["rest"]
         hash_at = original.find("#")
         old_comment = original[hash_at:] if hash_at >= 0 else None
-        column = len(m["indent"]) + len(key) + 1 + hash_at if hash_at >= 0 else _COMMENT_COLUMN
+        column = m.start("rest") + hash_at if hash_at >= 0 else _COMMENT_COLUMN
         new = f"{m['indent']}{key}: {text}"
         note = comment if comment is not None else old_comment
         if note:

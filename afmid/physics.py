@@ -523,7 +523,11 @@ def build_force_law(
     unknown = set(parameters) - set(declared)
     if unknown:
         allowed = ", ".join(sorted(declared))
-        raise ValueError(f"unknown parameter(s) {sorted(unknown)} for effects {list(effect_names)}; allowed: {allowed}")
+        from .registry import closest
+
+        hints = [f"{u!r} (did you mean {closest(u, list(declared))!r}?)" if closest(u, list(declared)) else repr(u)
+                 for u in sorted(unknown)]
+        raise ValueError(f"unknown parameter(s) {', '.join(hints)} for effects {list(effect_names)}; allowed: {allowed}")
     values = {name: p.default for name, p in declared.items()}
     values.update(context)
     if derived_defaults is not None:
