@@ -135,6 +135,46 @@ def fit(
 
 
 @cli.command()
+@CONFIG_ARG
+@click.option("-i", "--inputs", multiple=True, metavar="GLOB",
+              help="Trace files to fit, e.g. 'traces/*.csv' (quote it; repeatable; ** recurses).")
+@click.option("--manifest", type=click.Path(path_type=Path), default=None,
+              help="YAML or CSV list of traces with per-file overrides (key.path=value) instead of --inputs.")
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
+              help="Folder for the run files and summary.csv / summary.h5 (created if needed).")
+@click.option("-j", "--jobs", type=click.IntRange(min=1), default=None,
+              help="Worker processes (default: the usable CPU cores).")
+@SET
+@click.option("--force", is_flag=True, help="Refit every trace, even those whose run file is up to date.")
+def batch(config: Path, inputs: tuple[str, ...], manifest: Path | None, output: Path, jobs: int | None,
+          overrides: tuple[str, ...], force: bool) -> None:
+    """Fit many traces with one CONFIG in parallel; resumable.
+
+    Writes OUTPUT/NAME.run.h5 per trace (NAME from the input file's stem) and
+    OUTPUT/summary.csv + summary.h5: one row per trace with its status (ok,
+    failed, skipped), error message, error metric and physical parameters with
+    errors (SI units). Traces whose run file is up to date (same input bytes,
+    config and afmid version) are skipped; a failing trace does not stop the
+    batch. Exit code 1 if any trace failed, 130 if interrupted.
+    """
+    from .batch import BatchInterrupted, run_batch
+    from .errors import AfmidError
+
+    try:
+        result = run_batch(config, output, inputs=inputs, manifest=manifest, jobs=jobs, overrides=overrides,
+                           force=force, progress=not _state["quiet"])
+    except BatchInterrupted as exc:
+        click.echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
+        raise KeyboardInterrupt from None  # main() reports it and exits with 130
+    log.info("batch: %s", result.line())
+    failed = [r.item.name for r in result.rows if r.status == "failed"]
+    if failed:
+        names = ", ".join(failed[:3]) + (", ..." if len(failed) > 3 else "")
+        raise AfmidError(f"{len(failed)} of {result.total} traces failed ({names}); the errors are in the summary",
+                         file=output / "summary.csv")
+
+
+@cli.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Report folder to write.")
 @OVERWRITE

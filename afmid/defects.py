@@ -38,13 +38,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .io import MIN_PERIODS, MIN_SAMPLES_PER_PERIOD  # the limits check_trace also applies
+
 log = logging.getLogger(__name__)
 
 SEVERITIES = ("repaired", "warning", "error")
 
-#: Same limits as afmid.io (kept here to avoid an import cycle).
-MIN_PERIODS = 3
-MIN_SAMPLES_PER_PERIOD = 20
 #: Fewer samples per period than this and no signal check is meaningful (near Nyquist).
 MIN_ANALYSABLE_SPP = 4.0
 #: Samples per drive period each time-domain differentiator needs (others: MIN_SAMPLES_PER_PERIOD).
@@ -117,6 +116,17 @@ def frequency(value: float) -> str:
     return f"{value:.6g} Hz"
 
 
+def yaml_number(value: float) -> str:
+    """A float as a config takes it (PyYAML needs a '.' in the mantissa): 3.0e+07, 0.25, 400.0."""
+    value = float(value)
+    if value != 0 and not 1e-3 <= abs(value) < 1e5:
+        mantissa, _, exponent = f"{value:.9e}".partition("e")
+        mantissa = mantissa.rstrip("0")
+        return f"{mantissa}0e{exponent}" if mantissa.endswith(".") else f"{mantissa}e{exponent}"
+    text = f"{value:.10g}"
+    return text if "." in text else text + ".0"
+
+
 def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Start indices and lengths of the runs of True in ``mask``."""
     padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
@@ -176,8 +186,12 @@ def check_time(time: np.ndarray) -> list[Finding]:
     long_ = steps > 1.5 * step
     short = steps < 0.5 * step
     findings = []
-    irregular = long_ | short
-    clean_start, clean_len = longest_clean(np.concatenate([[False], irregular]))
+    # Regular parts: split between the samples around each irregular step.
+    breaks = np.flatnonzero(long_ | short)
+    starts = np.concatenate([[0], breaks + 1])
+    ends = np.concatenate([breaks + 1, [time.size]])
+    best = int(np.argmax(ends - starts))
+    clean_start, clean_len = int(starts[best]), int(ends[best] - starts[best])
     crop = f"crop the trace to a regular part (the longest is samples {clean_start}-{clean_start + clean_len - 1})"
     if long_.any():
         first = int(np.argmax(long_))
@@ -300,6 +314,7 @@ def measure_frequency(x: np.ndarray) -> float | None:
 
 
 def _design(L: int, omega: float, K: int) -> np.ndarray:
+    """Columns 1, cos(n w s), sin(n w s) for n = 1..K (interleaved)."""
     s = np.arange(L)[:, None] * (omega * np.arange(1, K + 1))[None, :]
     out = np.empty((L, 2 * K + 1))
     out[:, 0] = 1.0
@@ -367,12 +382,18 @@ def analyse(
     start = (x.size - B * L) // 2
     design = _design(L, omega, K)
     projector = _projector(design)
-    blocks = x[start:start + B * L].reshape(B, L)
-    local = blocks @ projector.T
+    used = slice(start, start + B * L)
     starts = start + L * np.arange(B)
-    glob = _to_global(local, starts, omega)
+    # Slow drift would leak into every harmonic (a sawtooth's 1/n spectrum per period) and pass for a
+    # tip-sample force: remove the trend through the per-period means (kept for the offset and drift checks).
+    means = x[used].reshape(B, L) @ projector[0]
+    trend = np.interp(np.arange(x.size), starts + 0.5 * (L - 1), means)
+    blocks = (x - trend)[used].reshape(B, L)
+    local = blocks @ projector.T
     resid = blocks - local @ design.T
-    dof = B * (L - (2 * K + 1))
+    glob = _to_global(local, starts, omega)
+    glob[:, 0] += means
+    dof = B * (L - design.shape[1])
     noise = float(np.sqrt(np.sum(resid**2) / dof)) if dof > 0 else float("nan")
     coef = glob.mean(axis=0)
     # Noise of the averages: white noise through the projector, or the scatter between periods if larger
@@ -572,7 +593,7 @@ def check_drive_frequency(a: Analysis, s: Settings) -> list[Finding]:
             "drive_frequency", "error",
             f"the deflection oscillates at {frequency(measured)}, {100 * rel:+.1f} % from the nominal drive "
             f"frequency {frequency(s.nominal_frequency)}; the fit searches only within {100 * DRIVE_SEARCH:.0f} % "
-            f"of it: set drive.frequency: {measured:.6g} (or check data.sample_rate)",
+            f"of it: set drive.frequency: {yaml_number(float(f'{measured:.6g}'))} (or check data.sample_rate)",
             "drive.frequency", numbers)]
     if abs(rel) > DRIVE_TOLERANCE:
         return [Finding(
@@ -608,8 +629,8 @@ def check_sampling(a: Analysis | None, s: Settings) -> list[Finding]:
             f"only {spp:.1f} samples per drive period (< {MIN_SAMPLES_PER_PERIOD}): the sample rate is too low to "
             "resolve the motion well",
             "data.sample_rate", {"samples_per_period": spp, "needed": MIN_SAMPLES_PER_PERIOD}))
-    if a is not None and a.K < MAX_HARMONIC and a.K >= 3 and a.K in a.above_noise and (a.K - 1) in a.above_noise:
-        wanted = 2.0 * a.K / 0.45
+    if a is not None and a.K < MAX_HARMONIC and a.K >= 3 and a.above_noise and max(a.above_noise) >= a.K - 1:
+        wanted = max(2.0 * spp, MIN_SAMPLES_PER_PERIOD)
         rate = f", at least {frequency(wanted / spp * s.sample_rate)}" if s.sample_rate else ""
         findings.append(Finding(
             "aliasing", "warning",
@@ -638,13 +659,13 @@ def check_jumps(a: Analysis) -> list[Finding]:
     groups = np.split(hits, np.flatnonzero(np.diff(hits) > 2) + 1)
     peaks = [int(g[np.argmax(np.abs(res[g]))]) for g in groups]
     sizes = [float(res[p] / one) for p in peaks]
-    first = peaks[0] + 1  # block index
-    sample = a.start + first * a.L
+    sample = a.start + (peaks[0] + 1) * a.L + a.L // 2  # the middle of the period the jump falls in
     kind = "dropped" if sizes[0] > 0 else "repeated"
     return [Finding(
         "phase_jump", "error",
         f"the oscillation phase jumps by {np.degrees(res[peaks[0]]):+.3g} deg ({sizes[0]:+.2g} samples) near "
-        f"period {first} (sample {sample}){f' and at {len(peaks) - 1} more places' if len(peaks) > 1 else ''}: "
+        f"sample {sample} (period {sample / a.spp:.0f} of {a.periods:.0f})"
+        f"{f' and at {len(peaks) - 1} more places' if len(peaks) > 1 else ''}: "
         f"samples were {kind} (or the drive was re-locked); crop the trace to one side of the jump",
         "data.path", {"jumps": len(peaks), "first_sample": sample, "samples": sizes[0]})]
 
@@ -670,8 +691,8 @@ def check_steady(a: Analysis, s: Settings) -> list[Finding]:
     return [Finding(
         "not_steady", "warning",
         f"the oscillation amplitude changes by {100 * change:.1f} % over the trace (from "
-        f"{length(amp[0], s.units)} to {length(amp[-1], s.units)}): not in steady state, but the fit assumes "
-        f"a steady oscillation; {advice}",
+        f"{length(amp[0], s.units)} to {length(amp[-1], s.units)}): not in steady state; the weak-form fit copes, "
+        f"but per-period results mix different states: {advice}",
         "data.path", {"change": change, "settled_period": settled, "first": float(amp[0]), "last": float(amp[-1])})]
 
 
@@ -735,9 +756,10 @@ def check_contact(a: Analysis, s: Settings) -> list[Finding]:
     if a.contact == "none":
         return [Finding(
             "no_interaction", "warning",
-            f"no tip-sample force: no harmonic of the oscillation stands above the noise ({length(a.noise_rms, s.units)}"
-            " rms), the tip oscillates freely and never reaches the sample; nothing can be identified (approach the "
-            "sample or check data.path)",
+            f"no tip-sample force detected: no harmonic of the oscillation stands above the noise "
+            f"({length(a.noise_rms, s.units)} rms), so the tip oscillates freely and does not reach the sample (or "
+            "its force is below the noise); nothing can be identified: approach the sample, or check data.path and "
+            "data.column",
             "data.path", {"noise_rms": a.noise_rms})]
     numbers = {"harmonics": len(a.above_noise), "force_range_over_k": a.force_range}
     if a.contact == "attractive":
@@ -749,13 +771,12 @@ def check_contact(a: Analysis, s: Settings) -> list[Finding]:
             "model.effects", numbers)]
     if a.flipped:
         if s.positive is None:
-            fix = "probably positive away from the sample; set data.positive: away_from_sample"
+            fix = "the file's deflection is probably positive away from the sample; set data.positive: away_from_sample"
         else:
             other = "away_from_sample" if s.positive == "toward_sample" else "toward_sample"
-            fix = f"data.positive: {s.positive} gives it the wrong sign; set data.positive: {other}"
+            fix = f"with data.positive: {s.positive} the deflection has the wrong sign; set data.positive: {other}"
         return [Finding(
-            "sign", "warning",
-            f"the tip-sample interaction happens at the most negative deflection: the deflection is {fix}",
+            "sign", "warning", f"the tip-sample interaction happens at the most negative deflection: {fix}",
             "data.positive", numbers)]
     return []
 

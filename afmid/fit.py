@@ -458,12 +458,8 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     if len(library) == 0:
         raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source, key="model")
     prep = prepare(trace, fit)
-    warnings: list[str] = []
-    if prep.steadiness > 0.02:
-        msg = (f"the oscillation amplitude changes by {100 * prep.steadiness:.1f} % over the trace: not in steady "
-               "state; the weak form handles this, but per-period summaries mix different states")
-        log.warning(msg)
-        warnings.append(msg)
+    # Defects were detected and reported when the trace was loaded (afmid.defects); keep them with the run.
+    warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
     params = _params_for(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     nonlinear = estimate_nonlinear(prep, library, config, params)

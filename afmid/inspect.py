@@ -211,7 +211,8 @@ def inspect_file(file: str | Path, column: str | None = None, sample_rate: float
     rows.append(("values", f"{s.raw_min:.6g} to {s.raw_max:.6g}, mean {s.raw_mean:.6g} (file units)"))
     if s.analysed:
         start, length = s.analysed
-        rows.append(("analysed", f"samples {start}-{start + length - 1} (the longest stretch without NaN/inf)"))
+        rows.append(("analysed", f"samples {start}-{start + length - 1} (the longest stretch without NaN/inf; "
+                                 f"the signal checks below count samples from {start})"))
     a = s.analysis
     if a is None:
         rows.append(("oscillation", "none found (see below)"))
@@ -277,17 +278,6 @@ def _interaction(a: defects.Analysis, s: FileSummary) -> str:
 
 
 # --------------------------------------------------------------------------- init-config --from
-def _number(value: float) -> str:
-    """A float as YAML 1.1 reads it back as a float (PyYAML needs a '.' in the mantissa): 3.0e+07, 0.25."""
-    value = float(value)
-    if value != 0 and not 1e-3 <= abs(value) < 1e5:
-        mantissa, _, exponent = f"{value:.9e}".partition("e")
-        mantissa = mantissa.rstrip("0")
-        return f"{mantissa}0e{exponent}" if mantissa.endswith(".") else f"{mantissa}e{exponent}"
-    text = f"{value:.10g}"
-    return text if "." in text else text + ".0"
-
-
 def _yaml_value(value) -> str:
     import yaml
 
@@ -296,7 +286,7 @@ def _yaml_value(value) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, float):
-        return _number(value)
+        return defects.yaml_number(value)
     if isinstance(value, int):
         return str(value)
     return yaml.safe_dump([str(value)], default_flow_style=True, width=10_000).strip()[1:-1]
@@ -310,9 +300,7 @@ def _data_values(s: FileSummary, config_dir: Path | None) -> list[tuple[str, obj
         shown = os.path.relpath(s.path.resolve(), Path(config_dir).resolve())
     column: object = s.channel
     column_note = None
-    if s.channel is None:
-        pool = [c for c in s.channels if c not in _time_candidates(s.channels, None)] or s.channels
-        column = pool[0] if pool else None
+    if s.channel_problem:  # no default channel: prefill_config read the first one
         column_note = f"# CHECK: the file has several channels: {_listing(s.channels, 6)}"
     elif s.channels == ["0"]:
         column, column_note = None, "# the file holds one channel"
@@ -402,6 +390,11 @@ def prefill_config(path: str | Path, template_text: str, config_dir: str | Path 
     relative to it (default: the path as given, i.e. relative to the current folder).
     """
     s = describe(path)
+    if s.channel is None:  # several channels and none is the default: describe the first signal
+        pool = [c for c in s.channels if c not in _time_candidates(s.channels, None)] or s.channels
+        problem = s.channel_problem
+        s = describe(path, column=pool[0])
+        s.channel_problem = problem
     lines = template_text.splitlines()
     for key, value, comment in _data_values(s, None if config_dir is None else Path(config_dir)):
         _set(lines, "data", key, value, comment)

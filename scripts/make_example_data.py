@@ -74,6 +74,7 @@ def simulate(output: Path, *extra: str) -> None:
     with h5py.File(output, "a") as h5:
         h5.attrs["simulated"] = True
         h5.attrs["description"] = LABEL
+    output.chmod(0o644)  # afmid writes outputs through mkstemp, which leaves them private (0600)
 
 
 def write_ibw5(path: Path, data: np.ndarray, step: float, data_units: bytes, x_units: bytes, name: bytes) -> None:
@@ -117,7 +118,7 @@ def write_formats(out: Path, x: np.ndarray, rate: float) -> dict[str, tuple[str,
   column: deflection_V         # the photodetector signal, volts
   time_column: time_s          # seconds; the sample rate follows from it
   units: V
-  invols: 60.0e-9              # m/V, inverse optical lever sensitivity (from the thermal tune)
+  invols: 60.0e-9              # m/V, inverse optical lever sensitivity (from a force curve on a hard surface)
   positive: toward_sample""")
 
     path = out / "example.npy"
@@ -193,7 +194,8 @@ def main(argv: list[str] | None = None) -> int:
     write_configs(out, {"trace": (reference.name, "  # an afmid trace file: units, rate, cantilever and drive "
                                                   "come from the file"), **files})
     total = sum(p.stat().st_size for p in out.iterdir() if p.is_file())
-    print(f"wrote {len(files) + 2} data files and {len(files) + 1} configs in {out} ({total / 1e6:.2f} MB)")
+    written = len(files) + (1 if args.skip_ldpe else 2)
+    print(f"wrote {written} data files and {len(files) + 1} configs in {out} ({total / 1e6:.2f} MB in the folder)")
     return 0
 
 
