@@ -1,0 +1,433 @@
+"""Fast unit tests of the fit's pieces (no simulation, no full fit).
+
+Each numba kernel is checked against its plain-NumPy twin, the factor algebra
+of :mod:`afmid.regression` against ``np.linalg.lstsq`` on the stacked rows, the
+preprocessing (drive estimate, Fourier blocks, weak-form test functions)
+against signals whose answer is known in closed form, and the library builder
+against the presets, the effect catalog and custom terms.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from afmid import expr, regression
+from afmid.config import ModelConfig
+from afmid.errors import ConfigError
+from afmid.kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy
+from afmid.kernels.sparse import stlsq_factor, stlsq_factor_numpy
+from afmid.library import PRESETS, build_library, trajectory_variables
+from afmid.physics import EFFECTS
+from afmid.preprocess import estimate_drive, harmonic_blocks, weak_windows
+from afmid.units import parse_unit
+
+F_DRIVE = 300e3  # Hz
+SPP = 200  # samples per period
+FS = F_DRIVE * SPP
+A0_CONTACT = 0.165e-9  # m
+
+
+# --------------------------------------------------------------------------- helpers
+def sparse_problem(rng, rows=240, p=9, support=(0, 3, 5), noise=1e-3, spread=True):
+    """A least-squares problem y = A c + noise with a sparse c.
+
+    Columns get scales spanning many decades (as SI library columns do) when
+    ``spread``; the last two columns play the protected drive columns.
+    """
+    A = rng.standard_normal((rows, p))
+    scales = 10.0 ** rng.uniform(-12, 12, p) if spread else np.ones(p)
+    A *= scales
+    c = np.zeros(p)
+    c[list(support)] = rng.uniform(0.5, 2.0, len(support)) * rng.choice([-1, 1], len(support)) / scales[list(support)]
+    c[-2:] = rng.uniform(0.5, 2.0, 2) / scales[-2:]
+    y = A @ c + noise * rng.standard_normal(rows)
+    protected = np.zeros(p, dtype=bool)
+    protected[-2:] = True
+    return A, y, c, protected
+
+
+def factor(A, y):
+    """Upper-triangular factor (q, q) of [A | y]."""
+    return np.linalg.qr(np.column_stack([A, y]), mode="r")
+
+
+def blocks_of(A, y, n_blocks):
+    r = A.shape[0] // n_blocks
+    return A[: r * n_blocks].reshape(n_blocks, r, -1), y[: r * n_blocks].reshape(n_blocks, r)
+
+
+# --------------------------------------------------------------------------- sparse kernels
+@pytest.mark.parametrize("seed", range(6))
+def test_stlsq_factor_matches_numpy_twin(seed):
+    rng = np.random.default_rng(seed)
+    A, y, _, protected = sparse_problem(rng, noise=10.0 ** rng.uniform(-6, -1))
+    T = np.ascontiguousarray(factor(A, y))
+    p = A.shape[1]
+    scale = np.linalg.norm(T[:, :p], axis=0)
+    initial = np.ones(p, dtype=np.bool_)
+    base = math.sqrt(float(np.sum(T[:, p] ** 2)))
+    for lam in (0.0, 1e-6, 1e-4, 1e-3, 1e-2, 0.1, 0.3, 1.0):
+        mask_nb, coef_nb, rss_nb = stlsq_factor(T, scale, lam * base, protected, initial, 20)
+        mask_np, coef_np, rss_np = stlsq_factor_numpy(T, scale, lam * base, protected, initial.copy(), 20)
+        np.testing.assert_array_equal(mask_nb, mask_np, err_msg=f"threshold {lam}")
+        # compare on unit-norm columns: SI coefficients differ by ~24 decades
+        np.testing.assert_allclose(coef_nb * scale, coef_np * scale, rtol=1e-9,
+                                   atol=1e-12 * np.abs(coef_np * scale).max())
+        assert rss_nb == pytest.approx(rss_np, rel=1e-8, abs=1e-20)
+        assert np.all(mask_nb[protected]), "protected columns are never dropped"
+
+
+def test_stlsq_factor_recovers_clear_support():
+    rng = np.random.default_rng(42)
+    A, y, c, protected = sparse_problem(rng, noise=1e-6)
+    T = np.ascontiguousarray(factor(A, y))
+    p = A.shape[1]
+    scale = np.linalg.norm(T[:, :p], axis=0)
+    mask, coef, _ = stlsq_factor(T, scale, 1e-3 * math.sqrt(float(np.sum(T[:, p] ** 2))), protected,
+                                 np.ones(p, dtype=np.bool_), 20)
+    np.testing.assert_array_equal(mask, c != 0)
+    np.testing.assert_allclose(coef, c, rtol=1e-4)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_subset_fit_equals_lstsq_on_stacked_rows(seed):
+    rng = np.random.default_rng(100 + seed)
+    A, y, _, protected = sparse_problem(rng, rows=300, noise=0.1)
+    Ab, yb = blocks_of(A, y, 12)
+    T = regression.combine(regression.factor_blocks(Ab, yb))
+    A_st, y_st = Ab.reshape(-1, A.shape[1]), yb.reshape(-1)
+    for _ in range(5):
+        mask = rng.random(A.shape[1]) < 0.6
+        mask |= protected
+        coef, rss = regression.subset_fit(T, mask)
+        # reference on unit-norm columns (the columns span 24 decades; lstsq's cut-off is relative)
+        norms = np.linalg.norm(A_st[:, mask], axis=0)
+        ref, *_ = np.linalg.lstsq(A_st[:, mask] / norms, y_st, rcond=None)
+        ref /= norms
+        np.testing.assert_allclose(coef[mask], ref, rtol=1e-8)
+        assert np.all(coef[~mask] == 0.0)
+        assert rss == pytest.approx(float(np.sum((y_st - A_st[:, mask] @ ref) ** 2)), rel=1e-8)
+    # the empty support: the whole signal is residual
+    coef, rss = regression.subset_fit(T, np.zeros(A.shape[1], dtype=bool))
+    assert np.all(coef == 0) and rss == pytest.approx(float(np.sum(y_st**2)), rel=1e-10)
+
+
+def test_combine_gives_the_gram_of_the_stacked_rows():
+    rng = np.random.default_rng(7)
+    A, y, _, _ = sparse_problem(rng, rows=200, spread=False)
+    Ab, yb = blocks_of(A, y, 10)
+    M = np.concatenate([Ab, yb[..., None]], axis=2)  # (B, r, q)
+    T_blocks = regression.factor_blocks(Ab, yb)
+    for b in range(len(M)):  # each block factor carries its block's Gram
+        np.testing.assert_allclose(T_blocks[b].T @ T_blocks[b], M[b].T @ M[b], rtol=1e-10, atol=1e-10)
+    T = regression.combine(T_blocks)
+    stacked = M.reshape(-1, M.shape[2])
+    np.testing.assert_allclose(T.T @ T, stacked.T @ stacked, rtol=1e-10, atol=1e-9)
+    # bootstrap weights: multiplicity m_b counts block b m_b times
+    mult = rng.integers(0, 4, len(M)).astype(float)
+    Tw = regression.combine(T_blocks, mult)
+    gram = sum(m * (Mb.T @ Mb) for m, Mb in zip(mult, M))
+    np.testing.assert_allclose(Tw.T @ Tw, gram, rtol=1e-10, atol=1e-9)
+
+
+def test_factor_blocks_pads_short_blocks():
+    rng = np.random.default_rng(8)
+    A = rng.standard_normal((5, 3, 6))  # fewer rows per block than columns
+    y = rng.standard_normal((5, 3))
+    T_blocks = regression.factor_blocks(A, y)
+    assert T_blocks.shape == (5, 7, 7)
+    M = np.concatenate([A, y[..., None]], axis=2)
+    for b in range(5):
+        np.testing.assert_allclose(T_blocks[b].T @ T_blocks[b], M[b].T @ M[b], atol=1e-12)
+
+
+def test_exhaustive_path_contains_the_true_support_and_bic_picks_it():
+    rng = np.random.default_rng(3)
+    A, y, c, protected = sparse_problem(rng, rows=400, p=9, support=(1, 4, 6), noise=0.05)
+    Ab, yb = blocks_of(A, y, 20)
+    T_blocks = regression.factor_blocks(Ab, yb)
+    T = regression.combine(T_blocks)
+    cands = regression.exhaustive_path(T, protected)
+    assert len(cands) == 2 ** int((~protected).sum())
+    assert all(np.all(cand.mask[protected]) for cand in cands)
+    truth = c != 0
+    matches = [cand for cand in cands if np.array_equal(cand.mask, truth)]
+    assert len(matches) == 1
+    same_size = [cand.rss for cand in cands if cand.n_free == matches[0].n_free]
+    assert matches[0].rss == min(same_size)
+    sel = regression.select(T_blocks, protected, "exhaustive", "bic", n_rows=Ab.shape[0] * Ab.shape[1])
+    np.testing.assert_array_equal(sel.best.mask, truth)
+    with pytest.raises(ValueError, match="too large"):
+        regression.exhaustive_path(T, np.zeros(9, dtype=bool), max_free=4)
+
+
+# --------------------------------------------------------------------------- hysteresis kernel
+def _gate_signals(rng, n=5000, neck=0.4e-9):
+    """on/off conditions of a contact gate along a noisy tapping trajectory (on: z <= a0, off: z > a0 + neck)."""
+    t = np.arange(n) / FS
+    z = A0_CONTACT + 1.0e-9 + 2e-9 * np.cos(2 * np.pi * F_DRIVE * t) + 0.3e-9 * rng.standard_normal(n)
+    on = (z <= A0_CONTACT).astype(float)
+    off = (z > A0_CONTACT + neck).astype(float)
+    return on, off
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("initial", [0.0, 1.0])
+def test_scan_hysteresis_matches_numpy_twin(seed, initial):
+    rng = np.random.default_rng(seed)
+    for neck in (0.0, 0.2e-9, 1.0e-9):
+        on, off = _gate_signals(rng, neck=neck)
+        out = np.empty_like(on)
+        final = scan_hysteresis(on, off, initial, out)
+        ref = scan_hysteresis_numpy(on, off, initial)
+        np.testing.assert_array_equal(out, ref)
+        assert final == ref[-1]
+        assert 0 < out.mean() < 1  # the gate does switch on this trajectory
+        # scanning in two chunks, carrying the state, gives the same result
+        k = on.size // 3
+        first, second = np.empty(k), np.empty(on.size - k)
+        state = scan_hysteresis(on[:k], off[:k], initial, first)
+        scan_hysteresis(on[k:], off[k:], state, second)
+        np.testing.assert_array_equal(np.concatenate([first, second]), out)
+
+
+def test_scan_hysteresis_holds_state_between_conditions():
+    on = np.array([0, 1, 0, 0, 0, 1, 0, 0], dtype=float)
+    off = np.array([0, 0, 0, 1, 0, 0, 0, 1], dtype=float)
+    out = np.empty(8)
+    scan_hysteresis(on, off, 0.0, out)
+    assert out.tolist() == [0, 1, 1, 0, 0, 1, 1, 0]
+    np.testing.assert_array_equal(scan_hysteresis_numpy(on, off, 0.0), out)
+
+
+# --------------------------------------------------------------------------- preprocessing
+@pytest.mark.parametrize("detune", [-4e-4, 1.3e-4, 7e-4])
+def test_estimate_drive_recovers_detuned_frequency(detune):
+    rng = np.random.default_rng(1)
+    f = F_DRIVE * (1 + detune)
+    t = np.arange(50 * SPP) / FS
+    w = 2 * np.pi * f
+    amplitude, phase = 9.3e-9, 0.7
+    x = (amplitude * np.cos(w * t + phase) + 0.4e-9 * np.cos(2 * w * t - 0.3) + 0.1e-9 * np.sin(3 * w * t)
+         + 0.2e-9 + 1e-12 * rng.standard_normal(t.size))
+    est = estimate_drive(x, t, F_DRIVE)
+    assert abs(est.frequency - f) / f < 1e-6
+    assert est.nominal == F_DRIVE
+    assert est.amplitude == pytest.approx(amplitude, rel=1e-3)
+    assert math.remainder(est.phase - phase, 2 * math.pi) == pytest.approx(0.0, abs=1e-3)
+    assert est.offset == pytest.approx(0.2e-9, abs=1e-12)
+
+
+def test_harmonic_blocks_derivative_of_a_fourier_series():
+    rng = np.random.default_rng(5)
+    f = F_DRIVE * (1 + 2e-4)  # the blocks hold a non-integer number of samples per period
+    n = 20 * SPP + 37
+    blocks = harmonic_blocks(n, FS, f, max_harmonic=12)
+    w = 2 * np.pi * f
+    t = np.arange(n) / FS
+    harm = np.arange(1, 9)
+    a, b = rng.standard_normal(8) * 1e-9 / harm**2, rng.standard_normal(8) * 1e-9 / harm**2
+    c0 = 0.3e-9
+    x = c0 + sum(a[k] * np.cos(harm[k] * w * t) + b[k] * np.sin(harm[k] * w * t) for k in range(8))
+    v = sum(harm[k] * w * (-a[k] * np.sin(harm[k] * w * t) + b[k] * np.cos(harm[k] * w * t)) for k in range(8))
+    acc = sum(-((harm[k] * w) ** 2) * (a[k] * np.cos(harm[k] * w * t) + b[k] * np.sin(harm[k] * w * t))
+              for k in range(8))
+    X = blocks.project(x)
+    # global-phase coefficients: every block holds the same series
+    np.testing.assert_allclose(X[:, 0, 0], c0, rtol=1e-9)
+    np.testing.assert_allclose(X[:, 1:17:2, 0], np.broadcast_to(a, (blocks.n_blocks, 8)), atol=1e-9 * 1e-9)
+    np.testing.assert_allclose(X[:, 2:17:2, 0], np.broadcast_to(b, (blocks.n_blocks, 8)), atol=1e-9 * 1e-9)
+    np.testing.assert_allclose(blocks.to_global(blocks.to_local(X)), X, rtol=1e-12, atol=1e-24)
+    used = blocks.used
+    np.testing.assert_allclose(blocks.synthesize(X)[:, 0], x[used], atol=1e-9 * np.abs(x).max())
+    np.testing.assert_allclose(blocks.synthesize(blocks.derivative(X, 1))[:, 0], v[used], atol=1e-9 * np.abs(v).max())
+    np.testing.assert_allclose(blocks.synthesize(blocks.derivative(X, 2))[:, 0], acc[used],
+                               atol=1e-9 * np.abs(acc).max())
+    np.testing.assert_allclose(blocks.derivative(blocks.derivative(X, 1), 1), blocks.derivative(X, 2),
+                               rtol=1e-12, atol=1e-30)
+
+
+@pytest.mark.parametrize("spp, tol", [(200, 1e-6), (100, 5e-6), (50, 3e-5)])
+def test_weak_windows_integrate_by_parts_for_non_periodic_motion(spp, tol):
+    """Integral of psi x'' = integral of psi'' x (and psi x' = -psi' x) for a decaying, detuned sinusoid.
+
+    The identity is exact for the integrals; the sampled sums (trapezoid rule)
+    hold it to 7e-8 at 200 samples per period, 1.4e-6 at 100 and 8e-6 at 50
+    (measured: the quadrature error falls as ~h^4, not spectrally).
+    """
+    fs = F_DRIVE * spp
+    n = 12 * spp
+    blocks = harmonic_blocks(n, fs, F_DRIVE, max_harmonic=60)
+    win = weak_windows(blocks)
+    t = np.arange(n) / fs
+    wd, tau, phi = 2 * np.pi * F_DRIVE * 1.13, 4.0 / F_DRIVE, 0.4  # not a drive harmonic, decays within the trace
+    amp = 5e-9
+    x = amp * np.exp(-t / tau) * np.sin(wd * t + phi)
+    x1 = amp * np.exp(-t / tau) * (wd * np.cos(wd * t + phi) - np.sin(wd * t + phi) / tau)
+    x2 = amp * np.exp(-t / tau) * ((1 / tau**2 - wd**2) * np.sin(wd * t + phi) - 2 * wd / tau * np.cos(wd * t + phi))
+    lhs2 = win.integrate(win.psi, x2)[..., 0]
+    rhs2 = win.integrate(win.ddpsi, x)[..., 0]
+    lhs1 = win.integrate(win.psi, x1)[..., 0]
+    rhs1 = -win.integrate(win.dpsi, x)[..., 0]
+    for lhs, rhs in ((lhs2, rhs2), (lhs1, rhs1)):
+        assert np.linalg.norm(lhs - rhs) < tol * np.linalg.norm(lhs)
+        # row by row on the rows that carry the signal (the low harmonics)
+        rows = np.abs(lhs) > 1e-2 * np.abs(lhs).max()
+        assert rows.sum() > 10
+        np.testing.assert_allclose(lhs[rows], rhs[rows], rtol=10 * tol)
+    # the constant test function of the first window integrates the window itself
+    s = np.arange(2 * blocks.L + 1) * blocks.dt
+    np.testing.assert_allclose(win.psi[0] / blocks.dt, np.sin(np.pi * s / (2 * blocks.L * blocks.dt)) ** 4, atol=1e-14)
+
+
+# --------------------------------------------------------------------------- library
+def test_build_library_presets():
+    for name, preset in PRESETS.items():
+        lib = build_library(ModelConfig(library=name))
+        assert lib.names == [display for display, _, _ in preset.terms], name
+        assert lib.effects == preset.effects
+        assert lib.source == name
+        for term, (_, expression, origin) in zip(lib.terms, preset.terms):
+            assert term.expression == expression
+            assert parse_unit(term.coefficient_unit) * parse_unit(term.unit) == parse_unit("N"), term.name
+            if origin is None:
+                assert term.effect is None and term.label is None  # a distractor (gets the prior penalty)
+            else:
+                assert (term.effect, term.label) == origin
+                assert term.effect in preset.effects
+    # the seed tables' true terms are labelled with the effects the read-out needs
+    labels = {t.name: (t.effect, t.label) for t in build_library(ModelConfig(library="lj_table1")).terms}
+    assert labels["z^-2"] == ("lennard_jones", "attraction") and labels["z^-8"] == ("lennard_jones", "repulsion")
+    assert sum(e is not None for e, _ in labels.values()) == 2
+    table3 = build_library(ModelConfig(library="exponential_table3"))
+    default_length = EFFECTS.get("exponential_damping").parameter("damping_length").default
+    assert table3.nonlinear == {"damping_length": default_length}
+    fixed = build_library(ModelConfig(library="exponential_table3", parameters={"damping_length": 2e-9}))
+    assert fixed.nonlinear == {"damping_length": 2e-9}
+
+
+@pytest.mark.parametrize("effects", [["dmt"], ["jkr"], ["lennard_jones"], ["dmt", "viscoelastic"],
+                                     ["dmt", "exponential_damping"], ["capillary", "hydration", "electrostatic"]])
+def test_build_library_effects(effects):
+    lib = build_library(ModelConfig(effects=effects))
+    expected = [f"{e}.{t.label}" for e in effects for t in EFFECTS.get(e).terms]
+    assert lib.names == expected
+    assert lib.effects == tuple(effects)
+    assert lib.source == "effects"
+    for term in lib.terms:
+        effect = EFFECTS.get(term.effect)
+        assert term.label in [t.label for t in effect.terms]
+        assert parse_unit(term.coefficient_unit) * parse_unit(term.unit) == parse_unit("N")
+    nonlinear = {p.name: p.default for e in effects for p in EFFECTS.get(e).parameters if p.nonlinear}
+    used = set().union(*(expr.free_names(t.expression) for t in lib.terms))
+    used |= {n for g in lib.states for n in expr.free_names(f"[{g.on}] * [{g.off}]")}
+    assert lib.nonlinear == {k: v for k, v in nonlinear.items() if k in used}
+    for gate in lib.states:  # a state gate is kept only if a term reads it
+        assert any(gate.name in t.expression for t in lib.terms)
+
+
+def test_build_library_rejects_unknown_preset_and_parameter():
+    with pytest.raises(ConfigError) as err:
+        build_library(ModelConfig(library="lj_tabel1"))
+    assert err.value.key == "model.library" and "lj_table1" in err.value.message
+    with pytest.raises(ConfigError) as err:
+        build_library(ModelConfig(effects=["dmt"], parameters={"damping_length": 1e-9}))
+    assert err.value.key == "model.parameters.damping_length"
+
+
+def test_custom_terms_parse_and_append():
+    terms = ["z^-4", "[z <= a0] * delta^2", "zdot * exp(-z / damping_length)", "max(z, a0)^-3 * R"]
+    lib = build_library(ModelConfig(effects=["dmt", "exponential_damping"], terms=terms))
+    custom = lib.terms[-len(terms):]
+    assert [t.name for t in custom] == terms
+    assert [t.effect for t in custom] == [None] * len(terms)
+    assert [t.unit for t in custom] == [str(parse_unit(u)) for u in ("m^-4", "m^2", "m/s", "m^-2")]
+    for t in custom:
+        assert parse_unit(t.coefficient_unit) * parse_unit(t.unit) == parse_unit("N")
+    # a custom term equal to an effect's term is one column, not two
+    dup = build_library(ModelConfig(effects=["viscoelastic"], terms=["delta^0.5 * deltadot"]))
+    assert len(dup) == 1
+
+
+@pytest.mark.parametrize("bad", [
+    "z^^2",  # syntax
+    "z * foo",  # unknown name
+    "z +",  # incomplete
+    "exp(-z / 1e-9)",  # non-dimensionless argument
+    "z + zdot",  # adding metres to metres per second
+    "[z <= a0",  # unclosed gate
+])
+def test_bad_custom_term_names_its_index(bad):
+    with pytest.raises(ConfigError) as err:
+        build_library(ModelConfig(effects=["dmt"], terms=["z^-4", bad]), source="run.yaml")
+    assert err.value.key == "model.terms[1]", err.value.format()
+    assert err.value.file == "run.yaml"
+    assert "model.terms[1]" in str(err.value)
+
+
+# --------------------------------------------------------------------------- expression VM vs NumPy
+def _tapping_trajectory(seed=0, periods=4):
+    """A realistic tapping trajectory (deflection, velocity, time) with contact: A = 9.4 nm, d = 8.5 nm."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(periods * SPP) / FS
+    w = 2 * np.pi * F_DRIVE
+    x = 9.4e-9 * np.cos(w * t) + 0.15e-9 * np.cos(2 * w * t + 0.3) + 0.05e-9 * np.cos(3 * w * t)
+    v = -9.4e-9 * w * np.sin(w * t) - 0.3e-9 * w * np.sin(2 * w * t + 0.3) - 0.15e-9 * w * np.sin(3 * w * t)
+    x = x + 1e-12 * rng.standard_normal(t.size)
+    return x, v, t
+
+
+LIBRARIES = [{"library": name} for name in PRESETS] + [
+    {"effects": ["dmt", "viscoelastic", "exponential_damping"]},
+    {"effects": ["jkr"], "parameters": {"neck_length": 0.5e-9}},
+    {"effects": ["capillary", "hydration", "electrostatic", "squeeze_film"]},
+    {"effects": ["dmt", "exponential_damping"],
+     "terms": ["max(z, a0)^-3", "[z > a0] * z^-1 * exp(-z / damping_length)", "sqrt(abs(zdot)) * z", "delta^2.5"]},
+]
+
+
+@pytest.mark.parametrize("spec", LIBRARIES, ids=lambda s: s.get("library") or "+".join(s["effects"]))
+def test_vm_matches_numpy_on_library_terms(spec):
+    from afmid.kernels.vm import eval_set
+
+    lib = build_library(ModelConfig(**spec))
+    x, v, t = _tapping_trajectory()
+    # contact models indent by ~1 nm; the Lennard-Jones table (z^1.5, z^2) needs z > 0: closest approach 0.15 nm
+    d = 8.5e-9 if spec.get("library") != "lj_table1" else float(x.max()) + 0.15e-9
+    params = {"d": d, "a0": A0_CONTACT, "R": 10e-9, "w": 2 * np.pi * F_DRIVE, **lib.nonlinear}
+    vm = lib.evaluate(x, v, t, params, backend="numba")
+    ref = lib.evaluate(x, v, t, params, backend="numpy")
+    assert vm.shape == (x.size, len(lib))
+    assert np.all(np.isfinite(ref))
+    for j, name in enumerate(lib.names):
+        col, col_ref = vm[:, j], ref[:, j]
+        np.testing.assert_allclose(col, col_ref, rtol=1e-12, atol=1e-300, err_msg=name)
+        assert np.array_equal(col == 0, col_ref == 0), f"{name}: gates differ"
+    # the raw kernel on the compiled program set, without the Library wrapper (no state gates here)
+    if not lib.states:
+        program_set, _ = lib.compile(params)
+        variables = np.ascontiguousarray(trajectory_variables(x, v, t, params["d"], params["a0"]))
+        out = np.empty((x.size, len(lib)))
+        eval_set(program_set.code, program_set.code_offsets, program_set.consts, program_set.const_offsets,
+                 variables, out)
+        np.testing.assert_array_equal(out, vm)
+        for j, term in enumerate(lib.terms):
+            np.testing.assert_allclose(expr.evaluate_numpy(term.expression, variables, params), ref[:, j],
+                                       rtol=1e-15, atol=0)
+
+
+def test_trajectory_variables_contact_conventions():
+    x, v, t = _tapping_trajectory()
+    d = 8.5e-9
+    var = trajectory_variables(x, v, t, d, A0_CONTACT)
+    z, zdot, delta, deltadot = var[0], var[1], var[2], var[3]
+    np.testing.assert_allclose(z, d - x)
+    np.testing.assert_allclose(zdot, -v)
+    contact = z <= A0_CONTACT
+    assert 0 < contact.mean() < 0.5
+    np.testing.assert_allclose(delta[contact], A0_CONTACT - z[contact])
+    assert np.all(delta[~contact] == 0) and np.all(deltadot[~contact] == 0)
+    np.testing.assert_allclose(deltadot[contact], v[contact])
