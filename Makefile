@@ -7,6 +7,7 @@ AFMID := $(VENV)/bin/afmid
 STAMP := $(VENV)/.installed
 DEMO_DIR ?= demo_output
 RESULTS ?= results
+BENCH_ARGS ?=
 CONFIGS := $(wildcard configs/*.yaml)
 RUNS := $(patsubst configs/%.yaml,$(RESULTS)/%.run.h5,$(CONFIGS))
 
@@ -17,7 +18,9 @@ help:
 	@echo "make demo   - set up .venv, simulate a soft-polymer trace, fit it, write a report"
 	@echo "make test   - set up .venv with test extras and run the test suite"
 	@echo "make batch  - simulate and fit every config in configs/ into $(RESULTS)/ (use -j N)"
-	@echo "make bench  - side-by-side benchmarks (afmid vs SciPy / PySINDy)"
+	@echo "make bench  - benchmarks in one table (afmid vs SciPy / PySINDy, scaling, start-up, batch);"
+	@echo "              BENCH_ARGS=--quick for a smoke run"
+	@echo "many traces with one config: afmid batch CONFIG --inputs 'traces/*.csv' -j N -o DIR"
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -33,7 +36,9 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-# One simulate + fit per config; make only re-runs what changed.
+# One simulate + fit per config; make only re-runs what changed (parallel with make -j N).
+# Each config carries its own cantilever and model, so this stays a pattern rule rather than
+# `afmid batch`, which fits many traces with one config (see `afmid batch --help`).
 $(RESULTS)/%.trace.h5: configs/%.yaml $(STAMP)
 	@mkdir -p $(RESULTS)
 	$(AFMID) -q simulate $< -o $@ --overwrite
@@ -46,7 +51,7 @@ batch: $(RUNS)
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'
-	$(PY) bench/run_all.py
+	$(PY) bench/run_all.py $(BENCH_ARGS)
 
 clean:
 	rm -rf $(DEMO_DIR) $(RESULTS) .pytest_cache

@@ -1,21 +1,39 @@
 """Diagnosis: where a fitted model fails, and which physical effect is missing.
 
 Works from run files (written by ``afmid fit``) so reports can be made later
-and compared across runs. :func:`localize` splits the residual between the
-model-free force and the model force by region (contact / near / far), by
-approach vs retraction, by phase and by drive harmonic, and into a
-conservative part (same on approach and retraction) and a dissipative part
-(reverses with the direction of motion). :func:`suggest` refits the trace with
-each catalog effect the model lacks and ranks them by cross-validated error,
-accepting an effect only when the evidence is strong (information criterion
-and error both improve, and the effect's own terms are selected).
+and compared across runs.
+
+:func:`localize` looks at the residual between the model-free force and the
+model force (the model force band-limited to the same drive harmonics as the
+model-free one, so that a perfect model leaves only noise). The periods of a
+steady trace repeat, so the residual is averaged over periods at equal drive
+phase: what survives is the systematic misfit, and its spread from period to
+period is the noise it is compared with. The systematic residual is broken down
+by region (contact / near / far), by direction (approach / retraction), into a
+conservative part (the same at equal separation on approach and retraction)
+and a dissipative part (reverses with the direction of motion), by drive
+phase and by drive harmonic; its correlation with the separation rate tells
+damping-like residuals from others.
+
+:func:`suggest` refits the trace with each catalog effect that the model lacks
+and ranks the candidates by an information criterion (BIC, counting the
+effect's nonlinear shape parameter, e.g. a decay length, as a fitted
+parameter), with the cross-validated error as an independent check. An effect
+is suggested only when the evidence is strong (see the constants below), its
+own terms are selected and its fitted parameters are physically possible.
+Whether the model already explains the data is judged by the reduced
+chi-square of the fit (the rows are weighted by their predicted noise, so 1 is
+a perfect model) together with the cross-validated error against its noise
+floor.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,14 +49,34 @@ log = logging.getLogger(__name__)
 
 #: Separations within this distance above a0 count as "near" the surface, m.
 NEAR_RANGE = 2e-9
-#: An added effect must lower BIC by at least this much ("very strong" evidence, Kass & Raftery 1995) ...
+#: An added effect must lower the BIC by at least this much: "very strong" evidence (Kass & Raftery 1995,
+#: a Bayes factor above 150). Its nonlinear shape parameters count as fitted parameters (ln n each).
 BIC_EVIDENCE = 10.0
-#: ... and lower the cross-validated error to at most this fraction of the current one.
+#: Two candidates closer than this in BIC are not told apart by the data (Kass & Raftery: below 6 the
+#: evidence for one over the other is at most "positive"); the evidence text then names both.
+BIC_DISTINCT = 6.0
+#: When the current model's cross-validated error stands above its noise floor, an added effect must cut
+#: the excess error sqrt(error^2 - floor^2) to at most this fraction (remove >= 36 % of the excess variance).
 ERROR_RATIO = 0.8
-#: The model explains the data to the noise level when its error is within this factor of the noise floor.
+#: A cross-validated error within this factor of its noise floor counts as the noise level. (Measured on
+#: clean simulated traces: error / floor = 0.95-1.3, the floor being an estimate itself.)
 FLOOR_FACTOR = 1.3
+#: A reduced chi-square above 1 + CHI2_SIGMAS * sqrt(2 / dof) is a significant misfit (the rows are
+#: whitened by their predicted noise, so a perfect model gives 1 +- sqrt(2 / dof)).
+CHI2_SIGMAS = 5.0
+#: A residual counts as "following the separation rate" when |correlation| exceeds this.
+RATE_CORRELATION = 0.5
 #: Effects that are base contact models: one at a time, never suggested on top of another.
 BASE_MODELS = ("dmt", "jkr", "lennard_jones")
+#: Points of the coarse logarithmic grid for an added effect's nonlinear parameter (then refined by Brent) ...
+SHAPE_GRID = 10
+#: ... to this tolerance in the logarithm (2 %).
+SHAPE_TOLERANCE = 0.02
+#: Quality factors above this mean the lever oscillates in a gas (in liquids Q is ~1-10).
+GAS_QUALITY_FACTOR = 30.0
+#: Largest plausible viscosity of a gas film, Pa s (air 1.8e-5; every gas is below 1e-4).
+GAS_VISCOSITY_MAX = 1e-4
+ELEMENTARY_CHARGE = 1.602176634e-19  # J per eV
 
 
 @dataclass
@@ -70,6 +108,9 @@ class RunData:
     input_sha256: str | None
     truth: Truth | None = None
     warnings: list[str] = field(default_factory=list)
+    n_rows: int = 0  # whitened equations behind bic / chi2_reduced (0 if the file does not say)
+    harmonics: np.ndarray | None = None  # drive harmonic of each Fourier row (0, 1, 1, 2, 2, ...)
+    signal_rows: np.ndarray | None = None  # rows used by the model-free force (above the noise)
 
     @property
     def n_terms(self) -> int:
@@ -78,6 +119,12 @@ class RunData:
     @property
     def selected_terms(self) -> list[str]:
         return [t for t, s in zip(self.terms, self.selected) if s]
+
+    @property
+    def chi2_limit(self) -> float:
+        """Reduced chi-square above which the misfit is significant (CHI2_SIGMAS standard deviations)."""
+        dof = max(self.n_rows - self.n_terms, 1) if self.n_rows else 1000
+        return 1.0 + CHI2_SIGMAS * math.sqrt(2.0 / dof)
 
 
 def _str_list(ds) -> list[str]:
@@ -136,26 +183,67 @@ def load_run(path: str | Path) -> RunData:
             input_path=Path(input_path) if input_path else None,
             input_sha256=h5.attrs.get("input_sha256"),
             warnings=list(d.attrs.get("warnings", [])),
+            n_rows=int(d["n_rows"][()]) if "n_rows" in d else 0,
+            harmonics=d["harmonics"][...].astype(int) if "harmonics" in d else None,
+            signal_rows=d["signal_rows"][...].astype(bool) if "signal_rows" in d else None,
         )
     if data.input_path is not None and data.input_path.exists():
         try:
             data.truth = read_truth(data.input_path)
-        except OSError:
+        except (OSError, KeyError):
             data.truth = None
     return data
 
 
 # --------------------------------------------------------------------------- localisation
 def _rms(a: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(a**2))) if a.size else 0.0
+    return float(np.sqrt(np.mean(np.square(a)))) if np.size(a) else 0.0
+
+
+def band_limit(force: np.ndarray, run: RunData) -> np.ndarray:
+    """Per-period curves (periods, phase points) limited to the drive harmonics of the model-free force.
+
+    The model-free force only keeps the harmonics that stand above the noise
+    (/diagnostics/signal_rows); the model force is evaluated from the force law
+    and has all of them. Comparing the two directly would show the model's own
+    high harmonics (the sharp contact) as a residual even for a perfect model.
+    """
+    if run.harmonics is None or run.signal_rows is None:
+        return force
+    n_phase = force.shape[-1]
+    keep = np.zeros(n_phase // 2 + 1, dtype=bool)
+    for n in np.unique(run.harmonics[run.signal_rows]):
+        if n < keep.size:
+            keep[n] = True
+    spectrum = np.fft.rfft(force, axis=-1)
+    spectrum[..., ~keep] = 0.0
+    return np.fft.irfft(spectrum, n=n_phase, axis=-1)
+
+
+def _corr(a: np.ndarray, b: np.ndarray) -> float:
+    if a.size < 8 or np.std(a) == 0 or np.std(b) == 0:
+        return math.nan
+    return float(np.corrcoef(a, b)[0, 1])
 
 
 def localize(run: RunData) -> dict:
-    """Residual (model-free minus model force, N) broken down by region, direction, phase, harmonic and character."""
+    """Residual (model-free minus model force, N) by region, direction, phase, harmonic and character.
+
+    ``rms`` and the per-region numbers describe the systematic residual (the
+    period average at equal drive phase); ``noise_rms`` is the noise left in
+    that average, so ``snr`` = rms / noise_rms says whether anything
+    systematic is there at all (about 1 for a perfect model).
+    """
     P = run.periods
-    r = P["force_direct"] - P["force_model"]
-    z = P["separation"]
-    zdot = -P["velocity"]
+    f_direct = P["force_direct"]
+    f_model = band_limit(P["force_model"], run)
+    r_all = f_direct - f_model  # (periods, phase)
+    n_periods = r_all.shape[0]
+    r = r_all.mean(axis=0)
+    noise = r_all.std(axis=0, ddof=1) / math.sqrt(n_periods) if n_periods > 1 else np.zeros_like(r)
+    z = P["separation"].mean(axis=0)
+    zdot = -P["velocity"].mean(axis=0)  # dz/dt; the separation falls on approach
+    force = f_direct.mean(axis=0)
     a0 = run.config.sample.a0
     regions = {
         "contact": z <= a0,
@@ -165,66 +253,107 @@ def localize(run: RunData) -> dict:
     total = float(np.sum(r**2)) or 1e-300
     by_region = {}
     for name, sel in regions.items():
-        app = sel & (zdot < 0)
-        ret = sel & (zdot >= 0)
+        app, ret = sel & (zdot < 0), sel & (zdot >= 0)
         by_region[name] = {
             "fraction_of_time": float(sel.mean()),
             "share_of_residual": float(np.sum(r[sel] ** 2) / total),
             "rms": _rms(r[sel]),
-            "rms_force": _rms(P["force_direct"][sel]),
+            "rms_force": _rms(force[sel]),
+            "mean": float(r[sel].mean()) if sel.any() else 0.0,
             "rms_approach": _rms(r[app]),
             "rms_retraction": _rms(r[ret]),
+            "noise_rms": _rms(noise[sel]),
+            "rate_correlation": _corr(r[sel], zdot[sel]),
         }
-    # Conservative / dissipative split: compare approach and retraction at equal separation.
-    interacting = z <= a0 + NEAR_RANGE
-    zi = z[interacting]
-    edges = np.linspace(zi.min(), zi.max(), 41) if zi.size else np.array([0.0, 1.0])
-    cons, diss = [], []
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        band = interacting & (z >= lo) & (z < hi)
-        app, ret = r[band & (zdot < 0)], r[band & (zdot >= 0)]
-        if app.size and ret.size:
-            cons.append(0.5 * (app.mean() + ret.mean()))
-            diss.append(0.5 * (app.mean() - ret.mean()))
-    cons_rms, diss_rms = _rms(np.asarray(cons)), _rms(np.asarray(diss))
-    period = 2 * np.pi / (2 * np.pi * run.drive["frequency"])
-    dt = period / r.shape[1]
-    residual_dissipation = float(np.mean(-np.sum(r * zdot, axis=1) * dt))
-    # Harmonic content of the residual (along the phase axis).
-    spectrum = np.abs(np.fft.rfft(r, axis=1)) / r.shape[1]
-    spectrum[:, 1:] *= 2
-    by_harmonic = np.sqrt(np.mean(spectrum**2, axis=0))
-    phase_bins = 16
-    by_phase = np.sqrt(np.mean(r.reshape(r.shape[0], phase_bins, -1) ** 2, axis=(0, 2)))
-    contact = regions["contact"]
-    rate_corr = math.nan
-    if contact.sum() > 10 and np.std(r[contact]) > 0 and np.std(zdot[contact]) > 0:
-        rate_corr = float(np.corrcoef(r[contact], zdot[contact])[0, 1])
+    # Conservative / dissipative split: approach and retraction compared at equal separation (the retraction
+    # branch interpolated onto the approach points), on the lower half of the swing where the tip interacts.
+    lower = z <= np.percentile(z, 50)
+    app, ret = lower & (zdot < 0), lower & (zdot >= 0)
+    cons = diss = centres = split_noise = np.zeros(0)
+    if app.sum() > 4 and ret.sum() > 4:
+        za, order = z[app], np.argsort(z[ret])
+        zr = z[ret][order]
+        inside = (za >= zr[0]) & (za <= zr[-1])
+        r_ret = np.interp(za[inside], zr, r[ret][order])
+        n_ret = np.interp(za[inside], zr, noise[ret][order])
+        cons = 0.5 * (r[app][inside] + r_ret)
+        diss = 0.5 * (r[app][inside] - r_ret)
+        centres = za[inside]
+        split_noise = 0.5 * np.hypot(noise[app][inside], n_ret)
+    cons_rms, diss_rms, split_rms = _rms(cons), _rms(diss), _rms(split_noise)
+    # significant: above 3x the noise, and (for the smaller part) above 5 % of the larger one (interpolation)
+    sig_cons = cons_rms > 3 * split_rms and cons_rms > 0.05 * diss_rms
+    sig_diss = diss_rms > 3 * split_rms and diss_rms > 0.05 * cons_rms
+    if not (sig_cons or sig_diss):
+        character = "none"
+    elif sig_diss and (not sig_cons or diss_rms > 2.0 * cons_rms):
+        character = "dissipative"
+    elif not sig_diss:
+        character = "conservative"
+    else:
+        character = "mixed"
+    period = 1.0 / run.drive["frequency"]
+    dt = period / r_all.shape[1]
+    residual_dissipation = float(-np.sum(r * zdot) * dt)
+    spectrum = np.abs(np.fft.rfft(r)) / r.size
+    spectrum[1:] *= 2
+    phase_bins = 16 if r.size % 16 == 0 else 1
+    by_phase = np.sqrt(np.mean(r.reshape(phase_bins, -1) ** 2, axis=1))
     main_region = max(by_region, key=lambda k: by_region[k]["share_of_residual"])
+    noise_rms = _rms(noise)
+    interacting = z <= a0 + NEAR_RANGE
     return {
         "rms": _rms(r),
-        "rms_force": _rms(P["force_direct"]),
+        "noise_rms": noise_rms,
+        "snr": _rms(r) / noise_rms if noise_rms > 0 else math.inf,
+        "rms_force": _rms(force),
+        "rms_per_period": _rms(r_all),
         "by_region": by_region,
         "region": main_region,
-        "character": "dissipative" if diss_rms > cons_rms else "conservative",
+        "character": character,
         "conservative_rms": cons_rms,
         "dissipative_rms": diss_rms,
+        "split_noise_rms": split_rms,
+        "conservative_mean": float(np.mean(cons)) if cons.size else 0.0,
+        "split_separation": np.asarray(centres),
+        "split_conservative": np.asarray(cons),
+        "split_dissipative": np.asarray(diss),
         "residual_dissipated_energy": residual_dissipation,
-        "rate_correlation": rate_corr,
-        "by_harmonic": by_harmonic,
+        "rate_correlation": by_region["contact"]["rate_correlation"],
+        "rate_correlation_interacting": _corr(r[interacting], zdot[interacting]),
+        "by_harmonic": spectrum,
         "by_phase": by_phase,
-        "per_period_rms": np.sqrt(np.mean(r**2, axis=1)),
+        "per_period_rms": np.sqrt(np.mean(r_all**2, axis=1)),
+        "mean_residual": r,
+        "mean_noise": noise,
+        "mean_separation": z,
+        "mean_rate": zdot,
     }
 
 
 def energy_check(run: RunData) -> dict:
-    """Dissipated energy per period (J) three ways: model-free force, cantilever energy balance, model."""
+    """Energy the sample takes from the tip per period (J), three ways, plus the truth of a simulation.
+
+    - ``model_free``: -closed integral of F dz of the model-free force;
+    - ``energy_balance``: the work of the (fitted) drive on the lever minus its
+      own viscous loss, from the measured motion: on a steady periodic orbit the
+      spring and inertia terms do no net work, so this equals ``model_free`` up
+      to the harmonics the model-free force leaves out (a check of the
+      processing, not an independent measurement);
+    - ``model``: -closed integral of F dz of the identified force law: the
+      independent one, it agrees with the other two when the model captures
+      the dissipation;
+    - ``truth`` (simulated traces only): from the simulator's true force.
+
+    Caveat: the drive amplitude and phase are fitted together with the force
+    law, so a model that lacks a dissipative effect can pull the fitted drive
+    and with it the first two estimates towards its own (too small) value.
+    """
     P = run.periods
     out = {
         "model_free": float(np.mean(P["dissipated_energy_direct"])),
         "model": float(np.mean(P["dissipated_energy"])),
     }
-    # Energy balance of the cantilever: drive work - viscous loss per period, from the first harmonic.
     x = P["deflection"]
     v = P["velocity"]
     phase = P["phase"]
@@ -236,6 +365,15 @@ def energy_check(run: RunData) -> dict:
     work = np.mean(np.sum(drive * v, axis=1)) * period / x.shape[1]
     viscous = damping * np.mean(np.sum(v**2, axis=1)) * period / x.shape[1]
     out["energy_balance"] = float(work - viscous)
+    out["drive_work"] = float(work)
+    truth = run.truth
+    if truth is not None and truth.force.size == truth.separation.size > 1 and "time" in run.force:
+        t = run.force["time"]
+        dt = float(t[1] - t[0]) if t.size > 1 else math.nan
+        periods = truth.force.size * dt * run.drive["frequency"]
+        if math.isfinite(periods) and periods > 0:
+            f_mid = 0.5 * (truth.force[1:] + truth.force[:-1])
+            out["truth"] = float(-np.sum(f_mid * np.diff(truth.separation)) / periods)
     return out
 
 
@@ -244,12 +382,33 @@ def energy_check(run: RunData) -> dict:
 class Trial:
     effect: str
     error_after: float
+    noise_floor_after: float
     bic_after: float
-    delta_bic: float
+    delta_bic: float  # including ln(n) per estimated nonlinear parameter of the added effect
+    chi2_after: float
+    chi2_limit_after: float
     effect_terms_selected: bool
     quantities: dict
-    significant: bool
+    shape: dict  # the added effect's nonlinear parameters: name -> value (SI)
+    implausible: list[str]
+    seconds: float
+    significant: bool = False
+    explains: bool = False  # with the other accepted effects, leaves no significant residual
+    conditional_delta_bic: float = math.nan  # BIC change when added on top of the better accepted effects
     evidence: str = ""
+    reasons: list[str] = field(default_factory=list)  # why it was not accepted
+
+
+@dataclass
+class _Base:
+    """The current model refitted with the same code and settings as the candidates."""
+
+    error: float
+    floor: float
+    bic: float
+    chi2: float
+    chi2_limit: float
+    n_rows: int
 
 
 def candidate_effects(current: list[str]) -> list[str]:
@@ -258,20 +417,205 @@ def candidate_effects(current: list[str]) -> list[str]:
 
 
 def refit_config(run: RunData, effects: list[str]) -> RunConfig:
-    """The run's own config with another effect list, pointing at the run's input file."""
+    """The run's own config with another effect list, pointing at the run's input file.
+
+    The separation and the run's own nonlinear parameters (decay lengths of
+    effects already in the model) are fixed at the run's values: the candidate
+    refits then differ from the run only by the added effect, and are quick.
+    """
     config = copy.deepcopy(run.config)
     config.model.effects = effects
     if run.input_path is not None:
         config.data.path = run.input_path
     config.fit.bootstrap = 0
+    if config.sample.separation is None and math.isfinite(run.separation):
+        config.sample.separation = run.separation
+    fixed = dict(config.model.parameters)
+    for name, est in run.nonlinear.items():
+        if name != "d" and name not in fixed and math.isfinite(est["value"]):
+            fixed[name] = est["value"]
+    config.model.parameters = fixed
     return config
 
 
+@contextlib.contextmanager
+def _shared_preparation():
+    """Prepare the trace once for all the refits of one diagnosis.
+
+    Every refit of :func:`suggest` fits the same trace with the same fit
+    settings, and :func:`afmid.fit.prepare` (drive, blocks, weak-form rows,
+    noise) does not depend on the library; ``run_fit`` has no way to take a
+    prepared trace, so its module-level ``prepare`` is memoised for the
+    duration (it returns a fresh object that the fit never modifies in place).
+    """
+    from . import fit as fit_module
+
+    original = fit_module.prepare
+    cache: dict = {}
+
+    def prepare(trace, fit):
+        key = (id(trace), fit.model_dump_json() if hasattr(fit, "model_dump_json") else repr(fit))
+        if key not in cache:
+            cache[key] = original(trace, fit)
+        return cache[key]
+
+    fit_module.prepare = prepare
+    try:
+        yield
+    finally:
+        fit_module.prepare = original
+
+
+def _fit_quick(config: RunConfig, trace):
+    from .fit import run_fit
+
+    try:
+        return run_fit(config, trace=trace, uncertainty=False)
+    except TypeError:  # an afmid without the quick mode
+        return run_fit(config, trace=trace)
+
+
+def _chi2(result) -> tuple[float, float, int]:
+    best = result.selection.best
+    n = int(result.system.n_rows)
+    dof = max(n - int(best.mask.sum()), 1)
+    return best.rss / dof, 1.0 + CHI2_SIGMAS * math.sqrt(2.0 / dof), n
+
+
+class _ShapeSearch:
+    """Nonlinear parameters of a candidate effect (decay lengths, rupture distance) by a coarse search.
+
+    The fit's own outer search is thorough (a fine grid, two rounds and a
+    refinement for the chosen terms) and dominates the cost of a refit. For
+    ranking candidates a coarse logarithmic grid over the parameter's range,
+    refined by a bounded Brent search to 2 %, on the same objective (the
+    full-library weighted residual) is enough; the fit then runs with the value
+    fixed. The data preparation is shared by all candidates, and the columns of
+    the terms that do not depend on the searched parameter are computed once:
+    only the candidate's own columns are recomputed at each trial value. That
+    shortcut is checked against the fit's own system at the first trial value
+    and dropped if they disagree.
+    """
+
+    def __init__(self, trace, config: RunConfig):
+        self.trace = trace
+        self.config = config
+        self._prep = None
+        self.evaluations = 0
+
+    def prep(self):
+        if self._prep is None:
+            from .fit import prepare
+
+            self._prep = prepare(self.trace, self.config.fit)
+        return self._prep
+
+    def search(self, config: RunConfig, effect: str, names: list[str]) -> dict[str, float]:
+        from dataclasses import replace
+
+        from scipy.optimize import minimize_scalar
+
+        from . import regression
+        from .errors import AfmidError
+        from .fit import _params_for, _rss, build_system
+        from .library import build_library
+
+        prep = self.prep()
+        library = build_library(config.model, config.source)
+        params = _params_for(prep, config, library)
+        params["d"] = config.sample.separation
+        own = [t for t in library.terms if t.effect == effect]
+        rest = [t for t in library.terms if t.effect != effect]
+        fixed_theta = build_system(prep, replace(library, terms=rest), params).theta if rest else None
+        own_library = replace(library, terms=own)
+
+        def composed(trial: dict) -> float:
+            theta = build_system(prep, own_library, trial).theta
+            if fixed_theta is not None:
+                theta = np.concatenate([fixed_theta, theta], axis=2)
+            sigma = prep.row_sigma
+            T = regression.factor_blocks(np.concatenate([theta, prep.nuisance], axis=2) / sigma[None, :, None],
+                                         prep.Y / sigma[None, :])
+            return regression.subset_fit(regression.combine(T), np.ones(T.shape[2] - 1, dtype=bool))[1]
+
+        def full(trial: dict) -> float:
+            return _rss(build_system(prep, library, trial), None)
+
+        rss = [composed if own and rest else full]
+        checked = [False]
+        found: dict[str, float] = {}
+        for _round in range(2 if len(names) > 1 else 1):
+            for name in names:
+                p = next(p for e in library.effects for p in EFFECTS.get(e).parameters if p.name == name)
+                lo, hi = (max(p.low, 1e-12) if p.low > 0 else 0.02e-9), min(p.high, 20e-9)
+
+                def objective(log_value, name=name):
+                    trial = dict(params, **{name: math.exp(log_value)})
+                    self.evaluations += 1
+                    try:
+                        value = rss[0](trial)
+                        if not checked[0] and rss[0] is composed:
+                            checked[0] = True
+                            reference = full(trial)
+                            if not math.isclose(value, reference, rel_tol=1e-6, abs_tol=1e-9):
+                                log.debug("column shortcut disagrees with the fit (%g vs %g); not used", value, reference)
+                                rss[0] = full
+                                value = reference
+                        return value
+                    except AfmidError:
+                        return math.inf
+
+                grid = np.linspace(math.log(lo), math.log(hi), SHAPE_GRID)
+                values = np.array([objective(g) for g in grid])
+                values[~np.isfinite(values)] = np.inf
+                i = int(np.argmin(values))
+                best = grid[i]
+                a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+                res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": SHAPE_TOLERANCE})
+                if res.success and res.fun <= values[i]:
+                    best = float(res.x)
+                params[name] = found[name] = math.exp(best)
+        return found
+
+
+def _implausible(effect: str, quantities: dict, run: RunData) -> list[str]:
+    """Reasons why the fitted values of an effect cannot be physical (empty if they can)."""
+    eff = EFFECTS.get(effect)
+    reasons = []
+    for key, q in quantities.items():
+        name = key.split(".")[-1]
+        value = q["value"]
+        if not math.isfinite(value):
+            reasons.append(f"{name} cannot be read out (the fitted term has the sign opposite to this effect's)")
+            continue
+        try:
+            p = eff.parameter(name)
+        except KeyError:
+            if value < 0:  # read-out forces of an effect are stated as positive numbers
+                reasons.append(f"{name} = {value:.3g} {q['unit']} has the wrong sign for this effect")
+            continue
+        if not (p.low <= value <= p.high):
+            reasons.append(f"{name} = {value:.3g} {q['unit']} is outside its physical range [{p.low:g}, {p.high:g}]")
+    if effect == "squeeze_film":
+        Q = run.cantilever.get("quality_factor", math.nan)
+        eta = next((q["value"] for k, q in quantities.items() if k.endswith("fluid_viscosity")), math.nan)
+        if Q > GAS_QUALITY_FACTOR and math.isfinite(eta) and eta > GAS_VISCOSITY_MAX:
+            reasons.append(f"fluid_viscosity = {eta:.3g} Pa*s, but Q = {Q:.0f} means the lever is in a gas "
+                           f"(gases: below {GAS_VISCOSITY_MAX:g} Pa*s, air 1.8e-5)")
+    return reasons
+
+
 def suggest(run: RunData, progress: bool = False) -> dict:
-    """Try each missing catalog effect; return the diagnosis and ranked suggestions (pinned summary layout)."""
+    """Try each missing catalog effect; return the diagnosis and the ranked suggestions.
+
+    Returns (pinned keys first): ``missing_effect`` (the data show physics the
+    model lacks: an accepted catalog effect or a significant residual nothing
+    in the catalog explains), ``diagnosis`` {region, character,
+    explained_by_catalog, ...}, ``suggestions`` (accepted effects, best first,
+    each with effect, error_after, evidence) and ``tried`` (every candidate).
+    """
     from tqdm import tqdm
 
-    from .fit import run_fit
     from .io import load_trace
 
     if run.config.model.library is not None:
@@ -281,79 +625,337 @@ def suggest(run: RunData, progress: bool = False) -> dict:
         raise InputError("the run's input trace is not available for refitting", file=run.path, key="input_path")
     if run.input_sha256 and sha256_file(run.input_path) != run.input_sha256:
         log.warning("%s changed since the run was made (SHA-256 differs); refitting the current file", run.input_path)
+    with _shared_preparation(), _one_blas_thread():
+        return _diagnose(run, progress)
+
+
+def _one_blas_thread():
+    """Single-threaded BLAS for the refits (threadpoolctl, when installed).
+
+    The refits are many small problems (per-period blocks of ~121 x 6, thin
+    matrix products); BLAS threads buy little there and, on a busy machine,
+    spin against each other: measured on 2 shared cores, one diagnosis took
+    9-17 s of CPU with OpenBLAS threads and 2.8 s with one thread.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+
+
+def _diagnose(run: RunData, progress: bool) -> dict:
+    from tqdm import tqdm
+
+    from .io import load_trace
+
+    started = time.perf_counter()
     local = localize(run)
     base_config = refit_config(run, run.effects)
     trace = load_trace(base_config)
+    base_result = _fit_quick(base_config, trace)
+    chi2, limit, n_rows = _chi2(base_result)
+    base = _Base(base_result.cv_error, base_result.cv_error_noise_floor, base_result.selection.best.bic,
+                 chi2, limit, n_rows)
+    if abs(base.error - run.cv_error) > 0.02 * max(run.cv_error, 1e-12):
+        log.warning("refitting %s gives error %.4g, the run file says %.4g (made by another afmid version?); "
+                    "comparing with the refit", run.path.name, base.error, run.cv_error)
+    shapes = _ShapeSearch(trace, base_config)
     trials: list[Trial] = []
-    candidates = candidate_effects(run.effects)
-    for effect in tqdm(candidates, desc="trying effects", disable=not progress, leave=False):
+    for effect in tqdm(candidate_effects(run.effects), desc="trying effects", disable=not progress, leave=False):
+        t0 = time.perf_counter()
         config = refit_config(run, run.effects + [effect])
+        shape_names = [p.name for p in EFFECTS.get(effect).parameters
+                       if p.nonlinear and p.name not in config.model.parameters]
         try:
-            result = run_fit(config, trace=trace)
+            shape = {}
+            if shape_names and config.fit.estimate_nonlinear:
+                try:
+                    shape = shapes.search(config, effect, shape_names)
+                    config.model.parameters = {**config.model.parameters, **shape}
+                except Exception as exc:  # fall back to the fit's own search
+                    log.debug("quick search for %s failed (%s); using the fit's own", effect, exc)
+                    shape = {}
+            result = _fit_quick(config, trace)
         except Exception as exc:  # one effect that cannot be fitted must not stop the diagnosis
             log.info("refit with %s failed: %s", effect, exc)
             continue
+        if not shape:
+            shape = {k: est.value for k, est in result.nonlinear.items() if k in shape_names}
         names = result.library.names
-        selected = [n for n, s in zip(names, result.selected) if s and n.startswith(effect + ".")]
-        bic_after = result.selection.best.bic
-        dbic = bic_after - run.bic
-        significant = bool(selected) and dbic < -BIC_EVIDENCE and result.cv_error < ERROR_RATIO * run.cv_error
+        selected = any(s and n.startswith(effect + ".") for n, s in zip(names, result.selected))
+        bic_after = result.selection.best.bic + math.log(max(n_rows, 2)) * len(shape)
+        chi2_after, limit_after, _ = _chi2(result)
         qty = {k: v for k, v in result.quantities.items() if v["effect"] == effect}
-        trials.append(Trial(effect, result.cv_error, bic_after, dbic, bool(selected), qty, significant))
-    trials.sort(key=lambda t: t.error_after)
+        trials.append(Trial(effect, result.cv_error, result.cv_error_noise_floor, bic_after, bic_after - base.bic,
+                            chi2_after, limit_after, selected, qty, shape, _implausible(effect, qty, run),
+                            time.perf_counter() - t0))
+    residual_significant = _significant(base.chi2, base.chi2_limit, base.error, base.floor)
     for t in trials:
-        t.evidence = _evidence(t, local, run)
+        t.reasons = _rejections(t, base)
+        t.significant = not t.reasons
+        t.explains = not _significant(t.chi2_after, t.chi2_limit_after, t.error_after, t.noise_floor_after)
+    trials.sort(key=lambda t: (not t.significant, t.delta_bic))
     good = [t for t in trials if t.significant]
-    residual_significant = not run.cv_error <= FLOOR_FACTOR * run.cv_error_noise_floor
+    final = _forward(run, trace, good)
+    good = [t for t in good if t.significant]
+    # A catalog shape with physically impossible values (e.g. an attractive "hydration" force) that fits much
+    # better than every possible catalog effect: the data want a force the catalog does not have.
+    reference = good[0].delta_bic if good else 0.0
+    outside = [t for t in trials if t.implausible and _rejections(t, base) == t.implausible
+               and t.delta_bic < reference - BIC_EVIDENCE]
+    outside.sort(key=lambda t: t.delta_bic)
+    residual_significant = residual_significant or bool(outside)
+    for t in trials:
+        t.evidence = _evidence(t, local, base, trials)
+    if residual_significant:
+        explained = bool(good) and not _significant(*final) and not outside
+    else:
+        explained = True
+    missing = bool(good) or residual_significant
+    description = describe_residual(local, run)
+    if outside:
+        description += "; " + _outside_words(outside[0], good[0] if good else None)
+        for t in good:
+            t.evidence += f"; but {_outside_words(outside[0], t)}, so `{t.effect}` is at best a partial stand-in"
     return {
-        "missing_effect": bool(good),
+        "missing_effect": missing,
         "diagnosis": {
             "region": local["region"],
             "character": local["character"],
-            "explained_by_catalog": bool(good) or not residual_significant,
+            "explained_by_catalog": explained,
             "residual_significant": residual_significant,
-            "chi2_reduced": run.chi2_reduced,
-            "error": run.cv_error,
-            "noise_floor": run.cv_error_noise_floor,
-            "description": describe_residual(local, run),
+            "chi2_reduced": base.chi2,
+            "chi2_limit": base.chi2_limit,
+            "error": base.error,
+            "noise_floor": base.floor,
+            "snr": local["snr"],
+            "rate_correlation": local["rate_correlation"],
+            "description": description,
+            "outside_catalog": _outside_words(outside[0], good[0] if good else None) if outside else "",
+            "verdict": _verdict(good, residual_significant, explained, base, outside),
         },
         "suggestions": [_trial_record(t) for t in good],
         "tried": [_trial_record(t) for t in trials],
+        "seconds": time.perf_counter() - started,
     }
 
 
+def _forward(run: RunData, trace, good: list[Trial]) -> tuple[float, float, float, float]:
+    """Forward selection among the accepted candidates; returns the final (chi2, limit, error, floor).
+
+    The best candidate is kept. Each further one is refitted on top of the ones
+    kept so far (their nonlinear parameters fixed at the values found alone) and
+    kept only if it still lowers the BIC by BIC_EVIDENCE and the
+    cross-validated error: an effect that merely mimics part of the top one's
+    signature is then dropped, while a second missing effect survives.
+    """
+    if not good:
+        return (math.nan, math.nan, math.nan, math.nan)
+    top = good[0]
+    kept = [top]
+    state = (top.chi2_after, top.chi2_limit_after, top.error_after, top.noise_floor_after)
+    bic, error = top.bic_after, top.error_after
+    n_shape = len(top.shape)
+    for t in good[1:]:
+        config = refit_config(run, run.effects + [k.effect for k in kept] + [t.effect])
+        fixed = {**config.model.parameters}
+        for k in kept + [t]:
+            fixed.update(k.shape)
+        config.model.parameters = fixed
+        try:
+            result = _fit_quick(config, trace)
+        except Exception as exc:
+            log.info("refit with %s on top of %s failed: %s", t.effect, [k.effect for k in kept], exc)
+            t.significant = False
+            t.reasons.append("could not be refitted on top of " + ", ".join(k.effect for k in kept))
+            continue
+        n = int(result.system.n_rows)
+        new_bic = result.selection.best.bic + math.log(max(n, 2)) * (n_shape + len(t.shape))
+        selected = any(s and name.startswith(t.effect + ".") for name, s in zip(result.library.names, result.selected))
+        gain = new_bic - bic
+        if selected and gain <= -BIC_EVIDENCE and result.cv_error < error:
+            kept.append(t)
+            t.conditional_delta_bic = gain
+            bic, error, n_shape = new_bic, result.cv_error, n_shape + len(t.shape)
+            chi2, limit, _ = _chi2(result)
+            state = (chi2, limit, result.cv_error, result.cv_error_noise_floor)
+        else:
+            t.significant = False
+            t.conditional_delta_bic = gain
+            t.reasons.append(f"on top of {', '.join(k.effect for k in kept)} it no longer helps (ΔBIC {gain:.0f}): "
+                             "it mimics part of the same residual")
+    for k in kept:
+        k.explains = not _significant(*state)
+    return state
+
+
+def _excess(error: float, floor: float) -> float:
+    """The part of a cross-validated error not explained by noise (they add in quadrature)."""
+    if not (math.isfinite(error) and math.isfinite(floor)):
+        return error
+    return math.sqrt(max(error**2 - floor**2, 0.0))
+
+
+def _significant(chi2: float, limit: float, error: float, floor: float) -> bool:
+    """A misfit is significant when the in-sample chi-square OR the out-of-sample error sees it.
+
+    The two are complementary: the chi-square runs over every whitened row and
+    dilutes a misfit concentrated on the few harmonics that carry the force; the
+    cross-validated error looks only at those, but against a noise floor that is
+    itself an estimate (hence FLOOR_FACTOR).
+    """
+    above_floor = math.isfinite(error) and math.isfinite(floor) and error > FLOOR_FACTOR * floor
+    return bool(chi2 > limit or above_floor)
+
+
+def _rejections(t: Trial, base: _Base) -> list[str]:
+    reasons = []
+    if not t.effect_terms_selected:
+        reasons.append("its terms were not selected")
+    if t.delta_bic > -BIC_EVIDENCE:
+        reasons.append(f"ΔBIC {t.delta_bic:.0f} is not below -{BIC_EVIDENCE:g}")
+    if not t.error_after < base.error:
+        reasons.append("the cross-validated error does not fall")
+    elif base.error > FLOOR_FACTOR * base.floor:
+        before, after = _excess(base.error, base.floor), _excess(t.error_after, base.floor)
+        if after > ERROR_RATIO * before:
+            reasons.append(f"it removes only {100 * (1 - after / before):.0f} % of the error above the noise")
+    reasons += t.implausible
+    return reasons
+
+
 def _trial_record(t: Trial) -> dict:
-    return {"effect": t.effect, "error_after": t.error_after, "delta_bic": t.delta_bic,
-            "terms_selected": t.effect_terms_selected, "significant": t.significant, "evidence": t.evidence,
-            "parameters": {k: {"value": v["value"], "error": v["error"], "unit": v["unit"]} for k, v in t.quantities.items()}}
+    return {"effect": t.effect, "error_after": t.error_after, "evidence": t.evidence,
+            "delta_bic": t.delta_bic, "noise_floor_after": t.noise_floor_after, "chi2_after": t.chi2_after,
+            "terms_selected": t.effect_terms_selected, "significant": t.significant,
+            "explains_residual": t.explains, "rejected_because": t.reasons,
+            "nonlinear": dict(t.shape), "seconds": t.seconds, "delta_bic_on_top": t.conditional_delta_bic,
+            "parameters": {k: {"value": v["value"], "error": v["error"], "unit": v["unit"]}
+                           for k, v in t.quantities.items()}}
 
 
-def describe_residual(local: dict, run: RunData) -> str:
-    reg = local["by_region"][local["region"]]
-    text = (f"residual {local['rms'] * 1e9:.3g} nN rms ({100 * local['rms'] / max(local['rms_force'], 1e-300):.1f} % of "
-            f"the force), {100 * reg['share_of_residual']:.0f} % of it {_region_words(local['region'])}, "
-            f"mostly {local['character']} (dissipative part {local['dissipative_rms'] * 1e9:.3g} nN, conservative "
-            f"{local['conservative_rms'] * 1e9:.3g} nN)")
-    if local["residual_dissipated_energy"] and abs(local["residual_dissipated_energy"]) > 0:
-        text += f"; the model misses {local['residual_dissipated_energy'] / 1.602176634e-19:.3g} eV per period"
-    if not math.isnan(local["rate_correlation"]) and abs(local["rate_correlation"]) > 0.5:
-        text += "; in contact it follows the indentation rate"
-    return text
+# --------------------------------------------------------------------------- words
+_REGION_WORDS = {"contact": "in contact", "near": f"within {NEAR_RANGE * 1e9:g} nm above contact",
+                 "far": f"more than {NEAR_RANGE * 1e9:g} nm from the surface"}
+_EFFECT_REGION_WORDS = {"contact": "in contact only", "near": "near the surface, decaying within a few nm",
+                        "long_range": "at all separations (long range)", "all": "everywhere"}
+_EFFECT_REGIONS = {"contact": {"contact"}, "near": {"contact", "near"}, "long_range": {"contact", "near", "far"},
+                   "all": {"contact", "near", "far"}}
+_EFFECT_CHARACTERS = {"conservative": {"conservative", "mixed"}, "dissipative": {"dissipative", "mixed"},
+                      "hysteretic": {"dissipative", "mixed"}}
+_CHARACTER_WORDS = {"conservative": "conservative (the same on approach and retraction)",
+                    "dissipative": "dissipative (it reverses with the direction of motion)",
+                    "mixed": "partly conservative and partly direction-dependent",
+                    "none": "not distinguishable from noise"}
 
 
 def _region_words(region: str) -> str:
-    return {"contact": "in contact", "near": f"within {NEAR_RANGE * 1e9:g} nm of contact",
-            "far": "far from the surface"}[region]
+    return _REGION_WORDS[region]
 
 
-def _evidence(t: Trial, local: dict, run: RunData) -> str:
-    effect = EFFECTS.get(t.effect)
-    text = f"{describe_residual(local, run)}: `{t.effect}` ({effect.character}, acts {effect.region})"
-    text += f"; adding it changes the error from {run.cv_error:.3g} to {t.error_after:.3g} (ΔBIC {t.delta_bic:.0f})"
-    if t.quantities:
-        parts = [f"{k} = {v['value']:.3g} {v['unit']}" for k, v in t.quantities.items() if np.isfinite(v["value"])]
-        if parts:
-            text += "; it yields " + ", ".join(parts)
-    if not t.effect_terms_selected:
-        text += "; its terms were not selected"
+def describe_residual(local: dict, run: RunData) -> str:
+    """The systematic residual in plain words (no judgement of significance)."""
+    reg = local["by_region"][local["region"]]
+    parts = [f"systematic residual {local['rms'] * 1e9:.3g} nN rms ({100 * local['rms'] / max(local['rms_force'], 1e-300):.1f} % "
+             f"of the force rms; {local['snr']:.1f} times its noise), {100 * reg['share_of_residual']:.0f} % of it "
+             f"{_region_words(local['region'])}"]
+    cons, diss = local["conservative_rms"] * 1e9, local["dissipative_rms"] * 1e9
+    if local["character"] == "dissipative":
+        parts.append(f"it reverses with the direction of motion: dissipative (part that differs between approach and "
+                     f"retraction {diss:.3g} nN, part common to both {cons:.3g} nN)")
+    elif local["character"] == "conservative":
+        sign = "repulsion" if local["conservative_mean"] > 0 else "attraction"
+        parts.append(f"it is the same on approach and retraction: conservative, a missing {sign} "
+                     f"(common part {cons:.3g} nN, direction-dependent part {diss:.3g} nN)")
+    elif local["character"] == "mixed":
+        sign = "attraction" if local["conservative_mean"] < 0 else "repulsion"
+        parts.append(f"it has a part common to approach and retraction (a missing {sign}, {cons:.3g} nN) and a "
+                     f"part that differs between them, i.e. hysteresis or dissipation ({diss:.3g} nN)")
+    else:
+        parts.append("approach and retraction show no systematic difference from the model beyond the noise")
+    energy = local["residual_dissipated_energy"] / ELEMENTARY_CHARGE
+    if math.isfinite(energy) and abs(local["residual_dissipated_energy"]) > 0:
+        verb = "dissipates" if energy > 0 else "returns"
+        parts.append(f"the sample {verb} {abs(energy):.3g} eV per period more than the model says")
+    for name in ("contact", "near"):
+        c = local["by_region"][name]["rate_correlation"]
+        if math.isfinite(c) and abs(c) > RATE_CORRELATION and local["by_region"][name]["share_of_residual"] > 0.2:
+            kind = "damping-like: it opposes the motion" if c < 0 else "it pushes along the motion"
+            parts.append(f"{_region_words(name)} it follows the separation rate (correlation {c:+.2f}, {kind})")
+    return "; ".join(parts)
+
+
+def _match_words(effect: str, local: dict) -> str:
+    eff = EFFECTS.get(effect)
+    region_ok = local["region"] in _EFFECT_REGIONS.get(eff.region, {"contact", "near", "far"})
+    char_ok = local["character"] in _EFFECT_CHARACTERS.get(eff.character, {"conservative", "dissipative", "mixed"})
+    where = _EFFECT_REGION_WORDS.get(eff.region, eff.region)
+    text = f"`{effect}` is {eff.character} and acts {where}"
+    if region_ok and char_ok:
+        return text + ", as the residual does"
+    misses = []
+    if not region_ok:
+        misses.append(f"the residual sits mostly {_region_words(local['region'])}")
+    if not char_ok:
+        misses.append(f"the residual is {_CHARACTER_WORDS.get(local['character'], local['character'])}")
+    return text + ", but " + " and ".join(misses)
+
+
+def _strength(delta: float) -> str:
+    d = -delta
+    return ("very strong" if d > 10 else "strong" if d > 6 else "positive" if d > 2 else "no") + " evidence"
+
+
+def _evidence(t: Trial, local: dict, base: _Base, trials: list[Trial]) -> str:
+    text = f"{_match_words(t.effect, local)}. Adding it "
+    before, after = _excess(base.error, base.floor), _excess(t.error_after, base.floor)
+    text += f"changes the cross-validated error from {base.error:.3g} to {t.error_after:.3g} (noise floor {base.floor:.3g}"
+    if before > 0 and base.error > FLOOR_FACTOR * base.floor:
+        text += f"; {100 * (1 - (after / before) ** 2):.0f} % of the error variance above the noise removed"
+    text += f") and the BIC by {t.delta_bic:.0f} ({_strength(t.delta_bic)}); reduced chi-square {base.chi2:.3g} -> {t.chi2_after:.3g}"
+    parts = [f"{k} = {v['value']:.3g} {v['unit']}" for k, v in t.quantities.items()]
+    parts += [f"{k} = {v:.3g} m" for k, v in t.shape.items()]
+    if parts:
+        text += "; fitted " + ", ".join(parts)
+    if t.significant:
+        close = [o for o in trials if o is not t and o.effect_terms_selected and o.delta_bic <= -BIC_EVIDENCE
+                 and o.delta_bic - t.delta_bic < BIC_DISTINCT]
+        rivals = [o for o in close if not o.implausible]
+        if rivals:
+            text += ("; the data barely tell it from " + ", ".join(f"`{o.effect}` (ΔBIC {o.delta_bic:.0f})" for o in rivals))
+        for o in close:
+            if o.implausible:
+                text += f"; `{o.effect}` fits as well (ΔBIC {o.delta_bic:.0f}) but is ruled out: {o.implausible[0]}"
+        if not t.explains:
+            text += "; a significant residual remains after adding it: it explains only part of the misfit"
+    elif t.reasons:
+        text += "; not suggested: " + "; ".join(t.reasons)
     return text
+
+
+def _outside_words(t: Trial, top: Trial | None) -> str:
+    eff = EFFECTS.get(t.effect)
+    shape = ", ".join(f"{k} = {v * 1e9:.3g} nm" for k, v in t.shape.items())
+    text = (f"the data prefer the shape of `{t.effect}` ({eff.formula}{'; ' + shape if shape else ''}) with values "
+            f"no physical {t.effect} can have ({t.implausible[0]}; ΔBIC {t.delta_bic:.0f}")
+    text += f", {top.delta_bic - t.delta_bic:.0f} better than `{top.effect}`)" if top else ")"
+    return text + ": a force outside the catalog"
+
+
+def _verdict(good: list[Trial], significant: bool, explained: bool, base: _Base, outside: list[Trial]) -> str:
+    if good and explained:
+        top = good[0]
+        also = f" (also {', '.join(t.effect for t in good[1:])})" if len(good) > 1 else ""
+        return (f"missing effect: {top.effect}{also} (error {base.error:.3g} -> {top.error_after:.3g}, "
+                f"ΔBIC {top.delta_bic:.0f})")
+    if good:
+        why = ("a force outside the catalog fits much better" if outside else
+               "a significant residual remains after adding it")
+        return (f"not explained by the catalog: {good[0].effect} explains part of the residual (error {base.error:.3g} -> "
+                f"{good[0].error_after:.3g}, ΔBIC {good[0].delta_bic:.0f}), but {why}")
+    if significant:
+        return "not explained by the catalog: a significant residual that no catalog effect explains"
+    return (f"no effect is missing: the model explains the data to the noise level (reduced chi-square "
+            f"{base.chi2:.3g}, error {base.error:.3g} vs noise floor {base.floor:.3g}) and no catalog effect "
+            f"improves the BIC by {BIC_EVIDENCE:g}")

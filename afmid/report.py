@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .diagnose import RunData, energy_check, load_run, localize, suggest
+from .diagnose import BIC_EVIDENCE, RunData, band_limit, describe_residual, energy_check, load_run, localize, suggest
 from .errors import OutputError
 from .io import now_iso
 from .physics import EFFECTS
@@ -38,7 +38,8 @@ def _plt():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    plt.rcParams.update({"figure.dpi": 110, "font.size": 9, "axes.grid": True, "grid.alpha": 0.3})
+    plt.rcParams.update({"figure.dpi": 110, "font.size": 9, "axes.grid": True, "grid.alpha": 0.3,
+                         "figure.constrained_layout.use": True})
     return plt
 
 
@@ -66,21 +67,35 @@ def truth_quantities(run: RunData) -> dict[str, float]:
     params = dict(run.truth.parameters)
     out = {}
     for effect_name in run.truth.effects:
+        if effect_name not in EFFECTS:  # simulated with an effect this afmid does not know
+            continue
         effect = EFFECTS.get(effect_name)
-        coefs = {t.label: t.coefficient(params) for t in effect.terms}
-        with np.errstate(all="ignore"):
-            out.update({k: float(v) for k, v in effect.readout(coefs, params).items()})
+        try:
+            coefs = {t.label: t.coefficient(params) for t in effect.terms}
+            with np.errstate(all="ignore"):
+                out.update({k: float(v) for k, v in effect.readout(coefs, params).items()})
+        except (KeyError, ValueError, ZeroDivisionError):
+            continue
+        out.update({p.name: float(params[p.name]) for p in effect.parameters if p.nonlinear and p.name in params})
     return out
 
 
 # --------------------------------------------------------------------------- figures
+APPROACH, RETRACTION, MODEL, TRUTH = "C0", "C3", "C1", "0.25"
+
+
 def _save(fig, folder: Path, name: str) -> str:
     path = folder / f"{name}.png"
-    fig.savefig(path, bbox_inches="tight")
+    fig.savefig(path)
     import matplotlib.pyplot as plt
 
     plt.close(fig)
     return path.name
+
+
+def _contact_line(ax, a0: float) -> None:
+    ax.axvline(a0 * NM, color="k", lw=0.7, ls=":")
+    ax.text(a0 * NM, 1.0, " contact (z = a0)", transform=ax.get_xaxis_transform(), fontsize=7, va="top", ha="left")
 
 
 def fig_phase_portraits(run: RunData, folder: Path, resim: dict | None) -> str:
@@ -91,116 +106,192 @@ def fig_phase_portraits(run: RunData, folder: Path, resim: dict | None) -> str:
     for i in range(0, x.shape[0], max(1, x.shape[0] // 10)):
         axes[0].plot(x[i] * NM, v[i], color="C0", lw=0.6, alpha=0.5)
         axes[1].plot(v[i], a[i], color="C0", lw=0.6, alpha=0.5)
-    axes[0].plot([], [], color="C0", label="measured")
+    axes[0].plot([], [], color="C0", label="measured (every few periods)")
     if resim is not None:
-        axes[0].plot(resim["x"] * NM, resim["v"], color="C1", lw=1.2, ls="--", label="identified (re-simulated)")
-        axes[1].plot(resim["v"], resim["a"], color="C1", lw=1.2, ls="--")
-    axes[0].set(xlabel="deflection x (nm)", ylabel="dx/dt (m/s)", title="(x, x')")
-    axes[1].set(xlabel="dx/dt (m/s)", ylabel="d²x/dt² (m/s²)", title="(x', x'')")
-    axes[0].legend(loc="best", fontsize=8)
+        axes[0].plot(resim["x"] * NM, resim["v"], color=MODEL, lw=1.2, ls="--", label="identified model, re-simulated")
+        axes[1].plot(resim["v"], resim["a"], color=MODEL, lw=1.2, ls="--")
+    else:
+        axes[0].plot([], [], " ", label="(re-simulation not available)")
+    axes[0].set(xlabel="deflection x (nm, + toward the sample)", ylabel="velocity dx/dt (m/s)", title="(x, x')")
+    axes[1].set(xlabel="velocity dx/dt (m/s)", ylabel="acceleration d²x/dt² (m/s²)", title="(x', x'')")
+    axes[0].legend(loc="center", fontsize=7)
     return _save(fig, folder, "phase_portraits")
 
 
 def fig_force_time(run: RunData, folder: Path) -> str:
     plt = _plt()
     F = run.force
-    ok = np.isfinite(F["estimate"])
+    ok = np.isfinite(F["estimate"]) & np.isfinite(F["direct"])
     idx = np.flatnonzero(ok)
     spp = 1.0 / (run.drive["frequency"] * (F["time"][1] - F["time"][0]))
     sel = idx[: int(3 * spp)]
     fig, ax = plt.subplots(figsize=(9, 3.2))
     t = (F["time"][sel] - F["time"][sel[0]]) * 1e6
-    ax.plot(t, F["direct"][sel] * NN, color="C0", lw=1, label="model-free (equation of motion)")
-    ax.plot(t, F["estimate"][sel] * NN, color="C1", lw=1, ls="--", label="model")
+    ax.plot(t, F["direct"][sel] * NN, color="C0", lw=1, label="model-free (equation of motion, signal harmonics)")
+    ax.plot(t, F["estimate"][sel] * NN, color=MODEL, lw=1, ls="--", label="model (full bandwidth)")
     ax.set(xlabel="time (µs)", ylabel="force on tip (nN, repulsive +)", title="Tip-sample force over three periods")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7, loc="lower left")
     return _save(fig, folder, "force_time")
 
 
+def _branch_curves(run: RunData, force: np.ndarray, approach: bool):
+    """Period-averaged force on one branch, sorted by separation: (z nm, mean nN, 2 sigma nN)."""
+    P = run.periods
+    z = P["separation"].mean(axis=0)
+    zdot = -P["velocity"].mean(axis=0)
+    sel = zdot < 0 if approach else zdot >= 0
+    order = np.argsort(z[sel])
+    mean = force.mean(axis=0)[sel][order]
+    spread = 2 * force.std(axis=0, ddof=1)[sel][order] / math.sqrt(force.shape[0]) if force.shape[0] > 1 else 0 * mean
+    return z[sel][order] * NM, mean * NN, spread * NN
+
+
 def fig_force_separation(run: RunData, folder: Path) -> str:
+    """Approach and retraction in separate panels: model-free mean with its noise band, model, truth."""
     plt = _plt()
     P = run.periods
-    z, zdot = P["separation"], -P["velocity"]
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), sharey=True)
-    for ax, sel, title in ((axes[0], zdot < 0, "approach"), (axes[1], zdot >= 0, "retraction")):
-        zz, fd, fm = z[sel] * NM, P["force_direct"][sel] * NN, P["force_model"][sel] * NN
-        order = np.argsort(zz)
-        ax.scatter(zz, fd, s=1, color="C0", alpha=0.3, label="model-free")
-        ax.plot(zz[order], fm[order], ".", ms=1.5, color="C1", label="model")
-        ax.axvline(run.config.sample.a0 * NM, color="k", lw=0.6, ls=":")
+    band = band_limit(P["force_model"], run)
+    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.8), sharey=True)
+    truth = run.truth
+    for ax, approach, title, colour in ((axes[0], True, "approach (tip moving toward the sample)", APPROACH),
+                                         (axes[1], False, "retraction (tip moving away)", RETRACTION)):
+        z, m, s = _branch_curves(run, P["force_direct"], approach)
+        ax.fill_between(z, m - s, m + s, color=colour, alpha=0.25, lw=0)
+        ax.plot(z, m, color=colour, lw=1.4, label="model-free, period mean ± 2σ")
+        zb, mb, _ = _branch_curves(run, band, approach)
+        ax.plot(zb, mb, color=MODEL, lw=1.2, ls="--", label="model, same harmonics")
+        zf, mf, _ = _branch_curves(run, P["force_model"], approach)
+        ax.plot(zf, mf, color=MODEL, lw=0.7, ls=":", label="model, full bandwidth")
+        if truth is not None and truth.force.size == truth.separation.size == truth.velocity.size:
+            moving = truth.velocity > 0 if approach else truth.velocity <= 0  # dz/dt = -dx/dt: approach has dx/dt > 0
+            step = max(1, truth.force.size // 20000)
+            ax.plot(truth.separation[moving][::step] * NM, truth.force[moving][::step] * NN, ",", color=TRUTH,
+                    alpha=0.5)
+            ax.plot([], [], ".", color=TRUTH, ms=2, label="true force (simulation)")
+        _contact_line(ax, run.config.sample.a0)
         ax.set(xlabel="separation z (nm)", title=title)
     axes[0].set_ylabel("force on tip (nN, repulsive +)")
-    axes[0].legend(fontsize=8, markerscale=5)
-    zmax = run.config.sample.a0 + 4e-9
+    axes[0].legend(fontsize=7, loc="upper right")
+    z = P["separation"]
     for ax in axes:
-        ax.set_xlim(z.min() * NM - 0.2, zmax * NM)
+        ax.set_xlim(z.min() * NM - 0.2, (run.config.sample.a0 + 4e-9) * NM)
     return _save(fig, folder, "force_separation")
 
 
 def fig_coefficients(run: RunData, folder: Path, truth: dict[str, float]) -> str:
     plt = _plt()
     n = len(run.terms)
-    fig, ax = plt.subplots(figsize=(max(5, 0.7 * n + 2), 3.4))
+    fig, ax = plt.subplots(figsize=(max(5, 0.8 * n + 2), 3.4))
     scale = np.array([abs(truth.get(t, 0.0)) or abs(c) or 1.0 for t, c in zip(run.terms, run.coefficients)])
     pos = np.arange(n)
-    ax.bar(pos - 0.2, run.coefficients / scale, 0.4, yerr=run.errors / scale, color="C1", label="identified", capsize=2)
+    err = np.where(np.isfinite(run.errors), run.errors, 0.0) / scale
+    ax.bar(pos - 0.2, run.coefficients / scale, 0.4, yerr=err, color=MODEL, label="identified (± bootstrap σ)", capsize=2)
     if truth:
         ax.bar(pos + 0.2, np.array([truth.get(t, 0.0) for t in run.terms]) / scale, 0.4, color="C0", label="truth")
-    ax.set_xticks(pos, run.terms, rotation=35, ha="right")
-    ax.set(ylabel="coefficient / |reference|", title="Coefficients (normalised per term)")
-    ax.legend(fontsize=8)
+    ax.axhline(0, color="k", lw=0.6)
+    ax.set_xticks(pos, run.terms, rotation=30, ha="right")
+    ref = "|truth|" if truth else "|identified|"
+    ax.set(ylabel=f"coefficient / {ref} (1)", title="Coefficients, each divided by its reference value")
+    ax.legend(fontsize=7)
     return _save(fig, folder, "coefficients")
 
 
-def fig_residual(local: dict, folder: Path) -> str:
+def fig_residual(local: dict, folder: Path, a0: float | None = None) -> str:
+    """Systematic residual vs separation by direction, by region and direction, by harmonic."""
     plt = _plt()
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), gridspec_kw={"width_ratios": [1.5, 1, 1]})
+    z, r, noise, zdot = (local["mean_separation"], local["mean_residual"], local["mean_noise"], local["mean_rate"])
+    ax = axes[0]
+    for sel, label, colour in ((zdot < 0, "approach", APPROACH), (zdot >= 0, "retraction", RETRACTION)):
+        order = np.argsort(z[sel])
+        zz, rr, nn = z[sel][order] * NM, r[sel][order] * NN, 2 * noise[sel][order] * NN
+        ax.fill_between(zz, -nn, nn, color=colour, alpha=0.15, lw=0)
+        ax.plot(zz, rr, color=colour, lw=1.2, label=label)
+    ax.axhline(0, color="k", lw=0.6)
+    if a0 is not None:
+        _contact_line(ax, a0)
+        ax.set_xlim(z.min() * NM - 0.2, (a0 + 4e-9) * NM)
+    ax.set(xlabel="separation z (nm)", ylabel="residual (nN, model-free − model)",
+           title="Residual vs separation (period mean; band: ±2σ noise)")
+    ax.legend(fontsize=7)
     regions = list(local["by_region"])
-    app = [local["by_region"][r]["rms_approach"] * NN for r in regions]
-    ret = [local["by_region"][r]["rms_retraction"] * NN for r in regions]
+    app = [local["by_region"][k]["rms_approach"] * NN for k in regions]
+    ret = [local["by_region"][k]["rms_retraction"] * NN for k in regions]
+    noi = [local["by_region"][k]["noise_rms"] * NN for k in regions]
     pos = np.arange(len(regions))
-    axes[0].bar(pos - 0.2, app, 0.4, label="approach")
-    axes[0].bar(pos + 0.2, ret, 0.4, label="retraction")
-    axes[0].set_xticks(pos, regions)
-    axes[0].set(ylabel="residual rms (nN)", title="By region and direction")
-    axes[0].legend(fontsize=8)
-    ph = local["by_phase"]
-    axes[1].bar(np.arange(ph.size) * 360 / ph.size, ph * NN, width=360 / ph.size * 0.9, align="edge")
-    axes[1].set(xlabel="drive phase (deg)", ylabel="residual rms (nN)", title="By phase in the period")
+    axes[1].bar(pos - 0.2, app, 0.4, color=APPROACH, label="approach")
+    axes[1].bar(pos + 0.2, ret, 0.4, color=RETRACTION, label="retraction")
+    axes[1].plot(pos, noi, "k_", ms=22, mew=1.5, label="noise level")
+    axes[1].set_xticks(pos, [f"{k}\n{100 * local['by_region'][k]['share_of_residual']:.0f} % of residual" for k in regions],
+                       fontsize=7)
+    axes[1].set(ylabel="residual rms (nN)", title="By region and direction")
+    axes[1].legend(fontsize=7)
     hh = local["by_harmonic"][: min(31, local["by_harmonic"].size)]
-    axes[2].bar(np.arange(hh.size), hh * NN)
-    axes[2].set(xlabel="harmonic of the drive", ylabel="amplitude (nN)", title="By harmonic")
+    axes[2].bar(np.arange(hh.size), hh * NN, color="C2")
+    axes[2].set(xlabel="harmonic of the drive", ylabel="residual amplitude (nN)", title="By drive harmonic")
     return _save(fig, folder, "residual")
 
 
 def fig_periods(run: RunData, local: dict, folder: Path) -> str:
     plt = _plt()
     P = run.periods
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.0))
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.0))
     k = np.arange(P["peak_force"].size)
     axes[0].plot(k, local["per_period_rms"] * NN, ".-")
-    axes[0].set(xlabel="period", ylabel="residual rms (nN)", title="Error per period")
-    axes[1].plot(k, P["peak_force"] * NN, ".-", label="peak")
-    axes[1].plot(k, -P["adhesion_force"] * NN, ".-", label="-adhesion")
-    axes[1].set(xlabel="period", ylabel="force (nN)", title="Force per period")
-    axes[1].legend(fontsize=8)
+    axes[0].set(xlabel="period", ylabel="residual rms (nN)", title="Residual per period (incl. noise)")
+    axes[1].plot(k, P["peak_force"] * NN, ".-", label="peak repulsion")
+    axes[1].plot(k, -P["adhesion_force"] * NN, ".-", label="largest attraction (−)")
+    axes[1].set(xlabel="period", ylabel="model force (nN)", title="Model force extremes per period")
+    axes[1].legend(fontsize=7)
     eV = 1.602176634e-19
     axes[2].plot(k, P["dissipated_energy_direct"] / eV, ".-", label="model-free")
     axes[2].plot(k, P["dissipated_energy"] / eV, ".-", label="model")
-    axes[2].set(xlabel="period", ylabel="eV", title="Dissipated energy per period")
-    axes[2].legend(fontsize=8)
+    axes[2].set(xlabel="period", ylabel="energy (eV)", title="Energy dissipated in the sample per period")
+    axes[2].legend(fontsize=7)
     return _save(fig, folder, "periods")
 
 
-def fig_error_runs(runs: list[RunData], folder: Path) -> str:
+def fig_error_runs(runs: list[RunData], folder: Path, summary: dict | None = None) -> str:
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(max(4, 1.2 * len(runs) + 2), 3.0))
-    labels = [f"{r.path.name}\n[{', '.join(r.effects)}]" for r in runs]
-    ax.plot(range(len(runs)), [r.cv_error for r in runs], "o-")
-    ax.set_xticks(range(len(runs)), labels, fontsize=7)
+    fig, ax = plt.subplots(figsize=(max(4.5, 1.4 * len(runs) + 2), 3.2))
+    labels = [f"{r.path.name}\n[{', '.join(r.effects) or 'library'}]" for r in runs]
+    pos = np.arange(len(runs))
+    ax.plot(pos, [r.cv_error for r in runs], "o-", label="cross-validated error")
+    ax.plot(pos, [r.cv_error_noise_floor for r in runs], "k_", ms=18, mew=1.5, label="noise floor")
+    ax.set_xticks(pos, labels, fontsize=7)
     ax.set_yscale("log")
-    ax.set(ylabel="cross-validated force error", title="Error by run")
+    ax.set(ylabel="force error (1 = no better than a constant)", title="Error by run, in the order given")
+    ax.legend(fontsize=7)
     return _save(fig, folder, "error_by_run")
+
+
+def fig_suggestions(summary: dict, folder: Path) -> str | None:
+    """Every candidate effect: BIC change and cross-validated error after adding it."""
+    tried = summary.get("tried") or []
+    diag = summary.get("diagnosis") or {}
+    if not tried:
+        return None
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 0.45 * len(tried) + 1.6), sharey=True)
+    names = [t["effect"] for t in tried][::-1]
+    pos = np.arange(len(names))
+    colours = ["C2" if t["significant"] else "0.6" for t in tried][::-1]
+    dbic = np.array([t["delta_bic"] if t["delta_bic"] is not None else 0.0 for t in tried][::-1])
+    axes[0].barh(pos, -dbic, color=colours)
+    axes[0].axvline(10, color="k", lw=0.8, ls="--")
+    axes[0].text(10, 1.0, " evidence threshold", transform=axes[0].get_xaxis_transform(), fontsize=7, va="top")
+    axes[0].set_xscale("symlog", linthresh=10)
+    axes[0].set_yticks(pos, names)
+    axes[0].set(xlabel="BIC decrease when added (larger = better)", title="Evidence for each candidate")
+    err = [t["error_after"] for t in tried][::-1]
+    axes[1].barh(pos, err, color=colours)
+    if diag.get("error") is not None:
+        axes[1].axvline(diag["error"], color="k", lw=1, label="current model")
+    if diag.get("noise_floor") is not None:
+        axes[1].axvline(diag["noise_floor"], color="k", lw=1, ls=":", label="noise floor")
+    axes[1].set(xlabel="cross-validated error after adding it", title="Error with the candidate added")
+    axes[1].legend(fontsize=7, loc="lower right")
+    return _save(fig, folder, "suggestions")
 
 
 # --------------------------------------------------------------------------- html
@@ -221,75 +312,128 @@ def _fmt(v: float, unit: str = "") -> str:
     return f"{v:.4g}{(' ' + unit) if unit else ''}"
 
 
-CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222;line-height:1.45}
+CSS = """body{font-family:system-ui,sans-serif;max-width:1150px;margin:2em auto;color:#222;line-height:1.45}
 h1{font-size:1.5em}h2{font-size:1.2em;border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.6em}
-table{border-collapse:collapse;margin:.6em 0;font-size:.9em}td,th{border:1px solid #ccc;padding:.25em .6em;text-align:left}
+table{border-collapse:collapse;margin:.6em 0;font-size:.9em}td,th{border:1px solid #ccc;padding:.25em .6em;text-align:left;vertical-align:top}
 th{background:#f3f3f3}figure{margin:1em 0}img{max-width:100%}figcaption{font-size:.85em;color:#555}
-.verdict{padding:.8em 1em;border-left:4px solid #2a7;background:#f3fbf6}.warn{border-color:#d80;background:#fff8ec}
+.verdict{padding:.8em 1em;border-left:6px solid #2a7;background:#f3fbf6;margin:1em 0}
+.verdict.found{border-color:#d80;background:#fff8ec}.verdict.unexplained{border-color:#c33;background:#fdf0f0}
+.verdict h2{border:none;margin:0 0 .3em 0;font-size:1.15em}.verdict p{margin:.3em 0}
 code{background:#f3f3f3;padding:0 .2em}"""
+
+
+def _verdict_box(summary: dict) -> str:
+    diag = summary.get("diagnosis") or {}
+    sugg = summary.get("suggestions") or []
+    if "missing_effect" not in summary or not diag:
+        return ("<div class='verdict'><h2>Verdict: not diagnosed</h2><p>"
+                + html.escape(summary.get("note", "suggestions were not requested (--no-suggest)")) + "</p></div>")
+    facts = (f"Current model: error {_fmt(diag.get('error'))} (noise floor {_fmt(diag.get('noise_floor'))}), "
+             f"reduced χ² {_fmt(diag.get('chi2_reduced'))} (significant above {_fmt(diag.get('chi2_limit'))}).")
+    if sugg and diag.get("explained_by_catalog", False):
+        top = sugg[0]
+        head = f"Missing effect: <code>{html.escape(top['effect'])}</code>"
+        body = f"<p>{html.escape(top['evidence'])}</p>"
+        if len(sugg) > 1:
+            body += "<p>Also missing: " + ", ".join(f"<code>{html.escape(s['effect'])}</code>" for s in sugg[1:]) + "</p>"
+        cls = "found"
+    elif sugg:
+        top = sugg[0]
+        head = (f"Partly explained: <code>{html.escape(top['effect'])}</code> helps, but a significant residual "
+                "remains that no catalog effect explains")
+        body = f"<p>{html.escape(top['evidence'])}</p><p>Residual: {html.escape(diag.get('description', ''))}.</p>"
+        cls = "unexplained"
+    elif summary.get("missing_effect"):
+        head = "A significant residual that no catalog effect explains"
+        body = (f"<p>{html.escape(diag.get('description', ''))}.</p><p>No effect in the catalog lowers the BIC by "
+                "the evidence threshold with physical parameter values; see 'Effects tried'.</p>")
+        cls = "unexplained"
+    else:
+        head = "No effect is missing: the model explains the data to the noise level"
+        body = "<p>No catalog effect improves the fit with strong evidence; see 'Effects tried'.</p>"
+        cls = ""
+    return f"<div class='verdict {cls}'><h2>{head}</h2>{body}<p>{html.escape(facts)}</p></div>"
 
 
 def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: dict) -> str:
     last = runs[-1]
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>afmid report</title><style>{CSS}</style></head><body>",
              f"<h1>afmid report</h1><p>{len(runs)} run(s); afmid {__version__}; made {now_iso()}. "
-             "Forces are on the tip, positive = repulsive. The model-free force is "
-             "F = drive − (m x'' + c x' + k x), band-limited to the drive harmonics above the noise.</p>"]
+             "Forces are on the tip, positive = repulsive; z is the tip-sample separation (contact at z = a0). "
+             "The model-free force is F = drive − (m x'' + c x' + k x), limited to the drive harmonics that stand "
+             "above the noise; the model is compared with it on the same harmonics.</p>"]
     diag = summary.get("diagnosis", {})
-    if summary.get("suggestions"):
-        top = summary["suggestions"][0]
-        verdict = f"<b>Missing effect: <code>{html.escape(top['effect'])}</code>.</b> {html.escape(top['evidence'])}"
-        parts.append(f"<div class='verdict warn'>{verdict}</div>")
-    elif summary.get("missing_effect") is False and diag:
-        if diag.get("explained_by_catalog", True):
-            parts.append("<div class='verdict'><b>No effect is missing:</b> the model explains the data to the noise "
-                         f"level (error {diag['error']:.3g}, noise floor {diag['noise_floor']:.3g}); adding catalog "
-                         "effects does not help.</div>")
-        else:
-            parts.append("<div class='verdict warn'><b>A significant residual that no catalog effect explains:</b> "
-                         f"{html.escape(diag['description'])}.</div>")
+    parts.append(_verdict_box(summary))
     parts.append("<h2>Runs</h2>")
     rows = [[r.path.name, ", ".join(r.effects) or "(library)", _fmt(r.cv_error), _fmt(r.cv_error_noise_floor),
              r.n_terms, _fmt(r.chi2_reduced), ", ".join(r.selected_terms)] for r in runs]
     parts.append(_table(["run", "effects", "cv error", "noise floor", "terms", "χ²_red", "selected terms"], rows))
     if "error_by_run" in figures:
-        parts.append(_img(folder, figures["error_by_run"], "Cross-validated error of each run, in the order given"))
+        parts.append(_img(folder, figures["error_by_run"], "Cross-validated error of each run, in the order given, "
+                                                           "with the error a perfect model would show (noise floor)"))
     parts.append("<h2>Physical parameters</h2>")
-    names = sorted({k for r in runs for k in r.quantities})
+    names = sorted({k for r in runs for k in r.quantities}) + sorted(
+        {k for r in runs for k in r.nonlinear if k != "d"} - {k for r in runs for k in r.quantities})
     rows = []
     for n in names:
         row = [n]
         for r in runs:
-            q = r.quantities.get(n)
-            row.append(f"{q['value']:.4g} ± {q['error']:.2g} {q['unit']}" if q else "–")
+            q = r.quantities.get(n) or r.nonlinear.get(n)
+            fixed = r.config.model.parameters.get(n)
+            if q:
+                row.append(f"{q['value']:.4g} ± {q['error']:.2g} {q['unit']}")
+            elif fixed is not None:
+                row.append(f"{fixed:.4g} (fixed)")
+            else:
+                row.append("–")
         if truth_q:
             row.append(_fmt(truth_q.get(n, math.nan)))
         rows.append(row)
     parts.append(_table(["quantity"] + [r.path.name for r in runs] + (["truth"] if truth_q else []), rows))
     parts.append(f"<h2>The last run: {html.escape(last.path.name)}</h2>")
+    parts.append(_img(folder, figures["force_separation"],
+                      "Force vs separation, approach (left) and retraction (right) drawn separately: the model-free "
+                      "force averaged over periods (band: ±2σ of that average), the model on the same harmonics and "
+                      "at full bandwidth" + (", and the true force of the simulation" if last.truth is not None else "")))
+    parts.append(_img(folder, figures["force_time"], "Force vs time over three periods: model-free vs model"))
     parts.append(_img(folder, figures["phase_portraits"], "Phase portraits: measured periods vs the identified model re-simulated"))
-    parts.append(_img(folder, figures["force_time"], "Force vs time: model-free vs model"))
-    parts.append(_img(folder, figures["force_separation"], "Force vs separation, approach and retraction drawn separately"))
     parts.append(_img(folder, figures["coefficients"], "Coefficients with bootstrap standard errors (truth when simulated)"))
     parts.append("<h2>Where the model fails</h2>")
-    parts.append(f"<p>{html.escape(diag.get('description', ''))}</p>")
+    parts.append(f"<p>{html.escape(diag.get('description', '') or describe_residual(local, last))}.</p>")
     rows = [[k, f"{100 * v['fraction_of_time']:.0f} %", f"{100 * v['share_of_residual']:.0f} %", _fmt(v["rms"] * NN, "nN"),
-             _fmt(v["rms_approach"] * NN, "nN"), _fmt(v["rms_retraction"] * NN, "nN")] for k, v in local["by_region"].items()]
-    parts.append(_table(["region", "time", "share of residual", "rms", "approach", "retraction"], rows))
-    parts.append(_img(folder, figures["residual"], "Residual by region and direction, by phase, by harmonic"))
+             _fmt(v["noise_rms"] * NN, "nN"), _fmt(v["rms_approach"] * NN, "nN"), _fmt(v["rms_retraction"] * NN, "nN"),
+             _fmt(v["rate_correlation"])] for k, v in local["by_region"].items()]
+    parts.append(_table(["region", "time", "share of residual", "rms", "noise", "approach", "retraction",
+                         "correlation with dz/dt"], rows))
+    parts.append(_img(folder, figures["residual"], "Systematic residual (model-free − model, averaged over periods): "
+                                                   "vs separation for approach and retraction, by region, by harmonic"))
     eV = 1.602176634e-19
     parts.append("<h2>Energy check (dissipated per period)</h2>")
+    parts.append("<p>Energy the sample takes from the tip per period, estimated from the model-free force, from the "
+                 "cantilever's energy balance and from the model; they agree when the model captures the "
+                 "dissipation.</p>")
     parts.append(_table(["from", "energy"], [
         ["model-free force (−∮F dz)", _fmt(energy["model_free"] / eV, "eV")],
         ["cantilever balance (drive work − viscous loss)", _fmt(energy["energy_balance"] / eV, "eV")],
-        ["model", _fmt(energy["model"] / eV, "eV")],
-    ]))
-    parts.append(_img(folder, figures["periods"], "Per-period error, forces and dissipation"))
+        ["model (−∮F_model dz)", _fmt(energy["model"] / eV, "eV")],
+    ] + ([["truth (simulation)", _fmt(energy["truth"] / eV, "eV")]] if "truth" in energy else [])))
+    parts.append(f"<p>For scale: the drive does {_fmt(energy['drive_work'] / eV, 'eV')} of work per period. The first "
+                 "two estimates share the fitted drive, which is fitted together with the force law: a model "
+                 "that lacks a dissipative effect can pull them towards its own value.</p>")
+    parts.append(_img(folder, figures["periods"], "Per period: residual, model force extremes, dissipated energy"))
     if summary.get("tried"):
         parts.append("<h2>Effects tried</h2>")
-        rows = [[t["effect"], _fmt(t["error_after"]), f"{t['delta_bic']:.0f}", "yes" if t["significant"] else "no",
+        parts.append(f"<p>Each catalog effect the model lacks was added and the trace refitted. Accepted: BIC lower by "
+                     f"more than {BIC_EVIDENCE:g} (counting nonlinear shape parameters), the effect's terms selected, "
+                     "a lower cross-validated error and physically possible parameter values; ranked by BIC.</p>")
+        if "suggestions" in figures:
+            parts.append(_img(folder, figures["suggestions"], "Candidates: BIC decrease (green = accepted) and error after adding each"))
+        rows = [[t["effect"], _fmt(t["error_after"]), _fmt(t["delta_bic"]), "yes" if t["significant"] else "no",
+                 ", ".join(f"{k} = {v['value']:.3g} {v['unit']}" for k, v in t["parameters"].items()
+                           if v["value"] is not None and math.isfinite(v["value"]))
+                 + "".join(f", {k} = {v:.3g} m" for k, v in t.get("nonlinear", {}).items()),
                  t["evidence"]] for t in summary["tried"]]
-        parts.append(_table(["effect", "error after", "ΔBIC", "accepted", "evidence"], rows))
+        parts.append(_table(["effect", "error after", "ΔBIC", "accepted", "fitted", "evidence"], rows))
     parts.append("</body></html>")
     return "\n".join(parts)
 
@@ -334,17 +478,23 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
     summary["afmid_version"] = __version__
     parent = output.parent if str(output.parent) else Path(".")
     tmp = Path(tempfile.mkdtemp(prefix=f".afmid-tmp-{output.name}.", dir=parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes the folder private; give it the permissions the umask allows
     try:
         figures = {
             "phase_portraits": fig_phase_portraits(last, tmp, resimulate(last)),
             "force_time": fig_force_time(last, tmp),
             "force_separation": fig_force_separation(last, tmp),
             "coefficients": fig_coefficients(last, tmp, truth_coefficients(last)),
-            "residual": fig_residual(local, tmp),
+            "residual": fig_residual(local, tmp, last.config.sample.a0),
             "periods": fig_periods(last, local, tmp),
         }
         if len(runs) > 1:
             figures["error_by_run"] = fig_error_runs(runs, tmp)
+        suggestions_fig = fig_suggestions(summary, tmp)
+        if suggestions_fig:
+            figures["suggestions"] = suggestions_fig
         truth_q = truth_quantities(last)
         (tmp / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2), encoding="utf-8")
         (tmp / "report.html").write_text(render_html(runs, summary, figures, local, energy, tmp, truth_q),

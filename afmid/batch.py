@@ -1,0 +1,897 @@
+"""Batch fits: many traces, one run config, parallel worker processes, resumable.
+
+::
+
+    afmid batch CONFIG --inputs 'traces/*.csv' -j 4 -o DIR
+    afmid batch CONFIG --manifest traces.yaml -j 4 -o DIR
+
+Each trace is fitted exactly as ``afmid fit CONFIG --set data.path=TRACE`` would
+fit it (same config layering, same :func:`afmid.fit.run_fit`, same
+:func:`afmid.fit.write_run`), in a pool of ``spawn``-ed worker processes
+(:class:`concurrent.futures.ProcessPoolExecutor`). Each worker imports afmid
+once and loads the numba kernels from numba's on-disk cache; BLAS and OpenMP
+are limited to one thread per worker (set before NumPy is imported), so N
+workers use N cores and the float summation order does not depend on the pool.
+
+Outputs in DIR:
+
+- ``NAME.run.h5``: one run file per trace, NAME from the input's stem (an
+  afmid ``.trace`` suffix dropped); stems that collide get their parent
+  folders prefixed (``a_trace``, ``b_trace``), identical paths listed twice a
+  ``-2``, ``-3`` suffix. A manifest may name an entry explicitly.
+- ``summary.csv`` and ``summary.h5``: one row per trace in input order with
+  the status (``ok``, ``failed``, ``skipped`` = up to date from an earlier
+  run), the error message of a failure, the error metric, the separation,
+  every physical parameter with its error and 95 % interval, and the time
+  spent per stage. SI units in the CSV headers (``E_star [Pa]``) and as
+  ``units`` attributes in the h5.
+
+Resuming: every run file written by a batch carries the attribute
+``batch_key`` = SHA-256 of (afmid version, the input file's SHA-256, the
+merged config with ``data.path`` blanked). A re-run skips a trace whose run
+file holds the key it would get now, and refits it if the input, the config,
+a per-file override or afmid's version changed. Failed traces are always
+retried.
+
+Safety: workers write into ``DIR/.afmid-tmp-batch-PID/`` and rename each run
+file into place when it is complete; the summary is rewritten atomically
+after completed traces (at most every ``summary_interval`` seconds) and at
+the end, so an interrupted batch (Ctrl-C, SIGTERM) leaves only whole run files
+and a valid summary of what finished; running it again resumes. A trace that
+fails (bad file, bad override, a fit error) is logged and listed with its error
+and does not stop the batch; a worker that dies (killed, out of memory) is
+replaced, and the traces it may have been fitting are retried one at a time
+to find the culprit, which is then reported as failed.
+
+This module imports nothing heavy at import time: a worker must be able to
+set its thread limits before NumPy loads.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import hashlib
+import io as _io
+import logging
+import math
+import os
+import re
+import shutil
+import signal
+import time
+import traceback
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from . import __version__
+from .errors import AfmidError, ConfigError, InputError
+
+log = logging.getLogger(__name__)
+
+#: Environment variables that cap the thread pools of BLAS/OpenMP/numba in the workers.
+THREAD_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "BLIS_NUM_THREADS": "1",
+    "VECLIB_MAXIMUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+    "NUMBA_NUM_THREADS": "1",
+}
+SUMMARY_CSV = "summary.csv"
+SUMMARY_H5 = "summary.h5"
+SUMMARY_FORMAT = "afmid-batch-summary"
+RUN_SUFFIX = ".run.h5"
+TMP_PREFIX = ".afmid-tmp-batch-"
+STATUSES = ("ok", "failed", "skipped")
+#: For tests only: a worker fitting the trace of this name kills itself (exercises crash recovery).
+_CRASH_ENV = "_AFMID_BATCH_TEST_CRASH"
+#: For tests only: a worker sleeps this many seconds before each fit (makes interrupting deterministic).
+_DELAY_ENV = "_AFMID_BATCH_TEST_DELAY"
+
+
+# =========================================================================== planning
+@dataclass
+class Entry:
+    """One input as listed: a file, its per-file overrides and an optional explicit name."""
+
+    path: Path
+    overrides: list[tuple[list[str], Any]] = field(default_factory=list)
+    name: str | None = None
+
+    def override_text(self) -> str:
+        return "; ".join(f"{'.'.join(k)}={v!r}" for k, v in self.overrides)
+
+
+@dataclass
+class Item:
+    """One trace to fit: where its run file goes and the config it is fitted with."""
+
+    index: int
+    name: str
+    entry: Entry
+    output: Path
+    raw: dict | None = None  # the merged config mapping (data.path set) or None if invalid
+    config_text: str = ""  # the merged config with data.path blanked (part of the key)
+    error: str | None = None  # a problem found while planning (bad override, missing file)
+    crashes: int = 0  # times a worker died while this item was in flight
+
+
+def expand_inputs(patterns: list[str] | tuple[str, ...], exclude_dir: Path | None = None) -> list[Entry]:
+    """Files matching the glob ``patterns`` (``**`` recursive), sorted per pattern, without duplicates.
+
+    Files inside ``exclude_dir`` that are batch outputs (``*.run.h5``, ``summary.*``) are left out.
+    """
+    seen: set[Path] = set()
+    entries: list[Entry] = []
+    for pattern in patterns:
+        matches = sorted(glob.glob(os.path.expanduser(pattern), recursive=True))
+        files = [Path(m) for m in matches if Path(m).is_file()]
+        if not files:
+            raise InputError(f"no files match {pattern!r}", key="--inputs")
+        for path in files:
+            resolved = path.resolve()
+            if exclude_dir is not None and resolved.parent == exclude_dir.resolve() and _is_output_name(path.name):
+                continue
+            if resolved not in seen:
+                seen.add(resolved)
+                entries.append(Entry(resolved))
+    if not entries:
+        raise InputError("the input patterns match only batch outputs", key="--inputs")
+    return entries
+
+
+def _is_output_name(name: str) -> bool:
+    return name.endswith(RUN_SUFFIX) or name in (SUMMARY_CSV, SUMMARY_H5)
+
+
+def read_manifest(path: str | Path) -> list[Entry]:
+    """Entries of a manifest (paths relative to the manifest's folder).
+
+    YAML: a list (or ``{traces: [...]}``) of paths or mappings
+    ``{path: ..., name: ..., set: {key.path: value} | [key.path=value, ...]}``.
+    CSV: a header with a ``path`` column, optional ``name`` and ``set``
+    (``key.path=value`` separated by ``;``) columns, and any number of columns
+    headed by a config key path (``sample.separation``) whose cells are values
+    (empty: no override).
+    """
+    from .config import parse_override
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("manifest not found", file=path, key="--manifest")
+    base = path.parent
+    entries: list[Entry] = []
+
+    def parse_set(value, where: str) -> list[tuple[list[str], Any]]:
+        if value is None or value == "":
+            return []
+        if isinstance(value, str):
+            value = [v for v in (s.strip() for s in value.split(";")) if v]
+        if isinstance(value, dict):
+            return [([p for p in str(k).split(".") if p], v) for k, v in value.items()]
+        if isinstance(value, list):
+            out = []
+            for text in value:
+                try:
+                    out.append(parse_override(str(text)))
+                except ConfigError as exc:
+                    raise ConfigError(exc.message.replace("--set", "set"), file=path, key=where) from None
+            return out
+        raise ConfigError(f"expected key.path=value items or a mapping, got {value!r}", file=path, key=where)
+
+    if path.suffix.lower() == ".csv":
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.DictReader(fh))
+        if not rows:
+            raise InputError("the manifest lists no traces", file=path, key="--manifest")
+        header = list(rows[0])
+        if "path" not in header:
+            raise InputError(f"a CSV manifest needs a 'path' column; found {header}", file=path, key="--manifest")
+        import yaml
+
+        for i, row in enumerate(rows, start=2):
+            if not (row.get("path") or "").strip():
+                continue
+            overrides = parse_set((row.get("set") or "").strip(), f"line {i}: set")
+            for column in header:
+                if column in ("path", "name", "set") or "." not in column:
+                    continue
+                cell = (row.get(column) or "").strip()
+                if cell:
+                    overrides.append(([p for p in column.split(".") if p], yaml.safe_load(cell)))
+            entries.append(Entry((base / row["path"].strip()).resolve(), overrides, (row.get("name") or "").strip() or None))
+    else:
+        from .config import read_yaml
+
+        try:
+            data = read_yaml(path)
+        except ConfigError as exc:
+            if "top level" not in exc.message:
+                raise
+            import yaml
+
+            data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        if isinstance(data, dict):
+            if "traces" not in data:
+                raise ConfigError("expected a list of traces (or a 'traces:' key)", file=path)
+            data = data["traces"]
+        if not isinstance(data, list) or not data:
+            raise InputError("the manifest lists no traces", file=path, key="--manifest")
+        for i, item in enumerate(data):
+            where = f"[{i}]"
+            if isinstance(item, str):
+                entries.append(Entry((base / item).resolve()))
+                continue
+            if not isinstance(item, dict) or "path" not in item:
+                raise ConfigError("expected a path or a mapping with 'path' (and optional 'name', 'set')",
+                                  file=path, key=where)
+            unknown = set(item) - {"path", "name", "set"}
+            if unknown:
+                raise ConfigError(f"unknown keys {sorted(unknown)}; allowed: path, name, set", file=path, key=where)
+            entries.append(Entry((base / str(item["path"])).resolve(), parse_set(item.get("set"), f"{where}.set"),
+                                 str(item["name"]) if item.get("name") else None))
+    return entries
+
+
+_NAME_RE = re.compile(r"[^A-Za-z0-9._+-]+")
+
+
+def _stem(path: Path) -> str:
+    stem = path.name[: -len(path.suffix)] if path.suffix else path.name
+    if stem.endswith(".trace") and len(stem) > len(".trace"):  # afmid trace files: NAME.trace.h5
+        stem = stem[: -len(".trace")]
+    return _NAME_RE.sub("_", stem) or "trace"
+
+
+def assign_names(entries: list[Entry]) -> list[str]:
+    """Run names: the input stem; colliding stems get parent folders prefixed, then -2, -3 (input order)."""
+    names = [_NAME_RE.sub("_", e.name) if e.name else None for e in entries]
+    auto = [i for i, n in enumerate(names) if n is None]
+    depth = {i: 0 for i in auto}
+
+    def candidate(i: int) -> str:
+        path = entries[i].path
+        parts = [_NAME_RE.sub("_", p) for p in path.parent.parts[len(path.parent.parts) - depth[i]:]] if depth[i] else []
+        return "_".join(parts + [_stem(path)])
+
+    current = {i: candidate(i) for i in auto}
+    for _ in range(64):
+        taken: dict[str, list[int]] = {}
+        for i in auto:
+            taken.setdefault(current[i].lower(), []).append(i)
+        fixed = {n.lower() for n in names if n is not None}
+        clashes = [group for key, group in taken.items() if len(group) > 1 or key in fixed]
+        progressed = False
+        for group in clashes:
+            if len(group) > 1 and len({entries[i].path for i in group}) == 1:
+                continue  # the same file listed twice: numbered below
+            for i in group:
+                if depth[i] < len(entries[i].path.parent.parts):
+                    depth[i] += 1
+                    current[i] = candidate(i)
+                    progressed = True
+        if not clashes or not progressed:
+            break
+    for i in auto:
+        names[i] = current[i]
+    # Whatever still collides (the same file listed twice, explicit duplicates): -2, -3 in input order.
+    used: dict[str, int] = {}
+    out = []
+    for name in names:
+        key = name.lower()
+        used[key] = used.get(key, 0) + 1
+        out.append(name if used[key] == 1 else f"{name}-{used[key]}")
+    return out
+
+
+def plan(config_path: Path, entries: list[Entry], output_dir: Path, overrides: list[str]) -> tuple[list[Item], str]:
+    """Items with their merged configs; returns (items, the batch config text for provenance)."""
+    from .config import apply_overrides, build_config, dump_config, parse_override, read_yaml
+
+    base_raw = read_yaml(config_path)
+    base_raw = apply_overrides(base_raw, [parse_override(o) for o in overrides])
+    base_config = build_config(_deepcopy(base_raw), source=config_path)  # a bad config stops the batch
+    batch_text = dump_config(base_config)
+    names = assign_names(entries)
+    cache: dict[str, tuple[dict | None, str, str | None]] = {}
+    items = []
+    for index, (entry, name) in enumerate(zip(entries, names)):
+        item = Item(index, name, entry, output_dir / f"{name}{RUN_SUFFIX}")
+        signature = entry.override_text()
+        if signature not in cache:
+            raw = apply_overrides(_deepcopy(base_raw), [(list(k), _deepcopy(v)) for k, v in entry.overrides])
+            raw.setdefault("data", {})
+            if not isinstance(raw["data"], dict):
+                raw["data"] = {}
+            raw["data"]["path"] = None
+            try:
+                config = build_config(_deepcopy(raw), source=config_path)
+                cache[signature] = (raw, dump_config(config), None)
+            except ConfigError as exc:
+                cache[signature] = (None, "", f"per-file override: {exc.format()}")
+        raw, text, error = cache[signature]
+        if raw is not None:
+            item.raw = _deepcopy(raw)
+            item.raw["data"]["path"] = str(entry.path)
+            item.config_text = text
+        item.error = error
+        if item.error is None and not entry.path.is_file():
+            item.error = InputError("trace file not found", file=entry.path, key="data.path").format()
+        items.append(item)
+    return items, batch_text
+
+
+def _deepcopy(value):
+    import copy
+
+    return copy.deepcopy(value)
+
+
+def batch_key(input_sha256: str, config_text: str) -> str:
+    """What a run file must match to be up to date: afmid version, input bytes, merged config (path blanked)."""
+    h = hashlib.sha256()
+    for part in (f"afmid {__version__}", input_sha256, config_text):
+        h.update(part.encode("utf-8"))
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+# =========================================================================== run files -> rows
+def read_run_row(path: Path) -> dict:
+    """The summary values of one run file: {'key', 'values', 'quantities'} (SI)."""
+    import h5py
+    import numpy as np
+
+    with h5py.File(path, "r") as h5:
+        key = h5.attrs.get("batch_key")
+        key = key.decode() if isinstance(key, bytes) else key
+        diag = h5["diagnostics"]
+        model = h5["model"]
+        terms = [t.decode() if isinstance(t, bytes) else str(t) for t in model["terms"][...]]
+        selected = model["selected"][...]
+        sep = model["separation"]
+        values = {
+            "input_sha256": _text(h5.attrs.get("input_sha256", "")),
+            "cv_error": float(diag["cv_error"][()]),
+            "cv_error_noise_floor": float(diag["cv_error_noise_floor"][()]),
+            "chi2_reduced": float(diag["chi2_reduced"][()]),
+            "terms": ";".join(t for t, s in zip(terms, selected) if s),
+            "separation": float(sep[()]),
+            "separation_error": float(sep.attrs.get("error", np.nan)),
+        }
+        quantities = {}
+        for name, ds in model["parameters"].items():
+            quantities[name] = {
+                "value": float(ds[()]),
+                "error": float(ds.attrs.get("error", np.nan)),
+                "ci_low": float(ds.attrs.get("ci_low", np.nan)),
+                "ci_high": float(ds.attrs.get("ci_high", np.nan)),
+                "unit": _text(ds.attrs.get("units", "")),
+                "effect": _text(ds.attrs.get("effect", "")),
+            }
+    return {"key": key, "values": values, "quantities": quantities}
+
+
+def _text(value) -> str:
+    if isinstance(value, bytes):
+        return value.decode()
+    return str(value)
+
+
+def run_key(path: Path) -> str | None:
+    """The ``batch_key`` attribute of a run file (None if absent or unreadable)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as h5:
+            return _text(h5.attrs["batch_key"]) if "batch_key" in h5.attrs else None
+    except (OSError, KeyError):
+        return None
+
+
+# =========================================================================== the worker
+_worker_state: dict[str, Any] = {}
+
+
+def _init_worker(env: dict[str, str], log_level: int) -> None:
+    """Worker start-up: thread limits before NumPy loads, signals, logging, warm imports."""
+    os.environ.update(env)
+    # The parent stops workers with SIGTERM (see _stop_workers); Ctrl-C in a terminal reaches the whole
+    # process group, and the parent decides what to do about it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    logger = logging.getLogger("afmid")
+    logger.handlers[:] = []
+    logger.setLevel(log_level)
+    logger.propagate = False
+    logging.captureWarnings(True)
+    _worker_state["log_level"] = log_level
+    # run_fit makes a (disabled) tqdm bar; tqdm's default lock is a multiprocessing semaphore, which a worker
+    # stopped with os._exit would leave registered (the resource tracker then warns). A thread lock suffices.
+    import threading
+
+    from tqdm import tqdm
+
+    tqdm.set_lock(threading.RLock())
+    # Import once per worker; numba's kernels load from its on-disk cache at their first call.
+    from . import fit, io  # noqa: F401
+
+
+class _Terminated(SystemExit):
+    """Raised in a worker by SIGTERM during a fit: unwinds (removing temporary files), then the worker exits."""
+
+
+def _on_sigterm(signum, frame):
+    if not _worker_state.get("busy"):
+        os._exit(143)  # idle: nothing to clean up
+    _worker_state["terminating"] = True
+    raise _Terminated(143)
+
+
+class _Capture(logging.Handler):
+    def __init__(self):
+        super().__init__()
+        self.records: list[tuple[int, str]] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.records.append((record.levelno, record.getMessage()))
+        except Exception:  # pragma: no cover - a malformed log call must not fail the fit
+            pass
+
+
+def fit_task(task: dict) -> dict:
+    """Fit one trace in a worker: load, run_fit, write the run file atomically. Never raises for a bad trace."""
+    capture = _Capture()
+    capture.setLevel(_worker_state.get("log_level", logging.WARNING))
+    loggers = [logging.getLogger("afmid"), logging.getLogger("py.warnings")]
+    for lg in loggers:
+        lg.addHandler(capture)
+    tmp = Path(task["tmp_dir"]) / f"{task['name']}.{os.getpid()}{RUN_SUFFIX}"
+    out: dict[str, Any] = {"index": task["index"], "status": "failed", "error": "", "times": {}}
+    _worker_state["busy"] = True
+    try:
+        if os.environ.get(_CRASH_ENV) and os.environ.get(_CRASH_ENV) == task["name"]:
+            os.kill(os.getpid(), signal.SIGKILL)
+        if os.environ.get(_DELAY_ENV):
+            time.sleep(float(os.environ[_DELAY_ENV]))
+        from .config import build_config
+        from .fit import run_fit, write_run
+        from .io import load_trace
+
+        t0, c0 = time.perf_counter(), time.process_time()
+        config = build_config(task["raw"], source=Path(task["config"]))
+        trace = load_trace(config)
+        t1 = time.perf_counter()
+        result = run_fit(config, trace=trace)
+        t2 = time.perf_counter()
+        key = batch_key(trace.sha256, task["config_text"])
+        write_run(tmp, result, config, overwrite=True)
+        import h5py
+
+        with h5py.File(tmp, "r+") as h5:
+            h5.attrs["batch_key"] = key
+        os.replace(tmp, task["output"])
+        t3 = time.perf_counter()
+        out["row"] = read_run_row(Path(task["output"]))
+        out["status"] = "ok"
+        out["times"] = {"load_time": t1 - t0, "fit_time": t2 - t1, "write_time": t3 - t2,
+                        "cpu_time": time.process_time() - c0}
+    except BaseException as exc:
+        if isinstance(exc, _Terminated) or _worker_state.get("terminating") or not isinstance(exc, Exception):
+            # Stopped by the parent (the signal may surface as another exception, e.g. from inside a numba
+            # kernel): this is no result, remove the temporary file and go.
+            tmp.unlink(missing_ok=True)
+            os._exit(143)
+        if isinstance(exc, AfmidError):
+            out["error"] = exc.format()
+        else:  # a bug or an unexpected failure: report it, keep the batch going
+            out["error"] = f"{type(exc).__name__}: {exc}"
+            capture.records.append((logging.DEBUG, traceback.format_exc()))
+    finally:
+        _worker_state["busy"] = False
+        tmp.unlink(missing_ok=True)
+        for lg in loggers:
+            lg.removeHandler(capture)
+    out["logs"] = capture.records
+    return out
+
+
+# =========================================================================== summary
+FIXED_COLUMNS = [  # (name, unit or None for text)
+    ("name", None), ("status", None), ("error", None), ("input", None), ("run_file", None), ("input_sha256", None),
+    ("cv_error", "1"), ("cv_error_noise_floor", "1"), ("chi2_reduced", "1"), ("terms", None),
+    ("separation", "m"), ("separation_error", "m"),
+]
+#: Wall time of each stage in the worker, and the worker's CPU time for the trace.
+TIME_COLUMNS = [("load_time", "s"), ("fit_time", "s"), ("write_time", "s"), ("cpu_time", "s")]
+QUANTITY_FIELDS = ("value", "error", "ci_low", "ci_high")
+
+
+@dataclass
+class Row:
+    item: Item
+    status: str
+    error: str = ""
+    values: dict = field(default_factory=dict)
+    quantities: dict = field(default_factory=dict)
+    times: dict = field(default_factory=dict)
+
+
+def _quantity_columns(rows: list[Row]) -> list[tuple[str, str]]:
+    seen: dict[str, str] = {}
+    for row in rows:
+        for name, q in row.quantities.items():
+            seen.setdefault(name, q["unit"])
+    return list(seen.items())
+
+
+def _column_title(name: str, unit: str | None) -> str:
+    return name if unit is None else f"{name} [{unit}]"
+
+
+def _fmt(value) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return repr(value)
+    return str(value)
+
+
+def _row_cells(row: Row, output_dir: Path) -> dict[str, Any]:
+    cells: dict[str, Any] = {
+        "name": row.item.name, "status": row.status, "error": row.error, "input": str(row.item.entry.path),
+        "run_file": row.item.output.name if row.status in ("ok", "skipped") else "",
+    }
+    cells.update(row.values)
+    cells.update(row.times)
+    return cells
+
+
+def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
+    """summary.csv and summary.h5 (atomically), rows in input order."""
+    import numpy as np
+
+    from .io import atomic_hdf5, atomic_path, write_dataset
+
+    quantities = _quantity_columns(rows)
+    header = [_column_title(n, u) for n, u in FIXED_COLUMNS]
+    for name, unit in quantities:
+        header += [_column_title(name if f == "value" else f"{name}_{f}", unit) for f in QUANTITY_FIELDS]
+    header += [_column_title(n, u) for n, u in TIME_COLUMNS]
+    buf = _io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(header)
+    table = []
+    for row in rows:
+        cells = _row_cells(row, output_dir)
+        line = [_fmt(cells.get(n)) for n, _ in FIXED_COLUMNS]
+        for name, _ in quantities:
+            q = row.quantities.get(name)
+            line += [_fmt(q[f]) if q else "" for f in QUANTITY_FIELDS]
+        line += [_fmt(cells.get(n)) for n, _ in TIME_COLUMNS]
+        writer.writerow(line)
+        table.append(cells)
+    with atomic_path(output_dir / SUMMARY_CSV) as tmp:
+        tmp.write_text(buf.getvalue(), encoding="utf-8")
+
+    with atomic_hdf5(output_dir / SUMMARY_H5, SUMMARY_FORMAT, config_text) as h5:
+        h5.attrs["n_traces"] = len(rows)
+        for status in STATUSES:
+            h5.attrs[f"n_{status}"] = sum(r.status == status for r in rows)
+        for name, unit in FIXED_COLUMNS + TIME_COLUMNS:
+            if unit is None:
+                write_dataset(h5, name, np.array([str(c.get(name, "")) for c in table], dtype=str), "1")
+            else:
+                data = np.array([_float(c.get(name)) for c in table], dtype=float)
+                write_dataset(h5, name, data, unit)
+        pg = h5.create_group("parameters")
+        pg.attrs["meaning"] = "physical parameters per trace: value, bootstrap error, 95 % interval (NaN if absent)"
+        for name, unit in quantities:
+            g = pg.create_group(name)
+            effects = {r.quantities[name]["effect"] for r in rows if name in r.quantities}
+            g.attrs["effect"] = ";".join(sorted(e for e in effects if e))
+            for f in QUANTITY_FIELDS:
+                data = np.array([_float(r.quantities[name][f]) if name in r.quantities else math.nan for r in rows])
+                write_dataset(g, f, data, unit)
+
+
+def _float(value) -> float:
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+# =========================================================================== the batch
+@dataclass
+class BatchResult:
+    rows: list[Row]  # finished traces (all of them unless interrupted), input order
+    output_dir: Path
+    seconds: float
+    total: int  # traces in the batch
+    interrupted: bool = False
+
+    def count(self, status: str) -> int:
+        return sum(r.status == status for r in self.rows)
+
+    def line(self) -> str:
+        parts = [f"{self.count(s)} {s}" for s in STATUSES if self.count(s)]
+        done = f"{len(self.rows)} of {self.total} traces" if self.interrupted else f"{self.total} traces"
+        done += f" ({', '.join(parts)})" if parts else ""
+        return f"{done} in {self.seconds:.1f} s; summary in {self.output_dir / SUMMARY_CSV}"
+
+
+def default_jobs() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def run_batch(
+    config: str | Path,
+    output_dir: str | Path,
+    inputs: list[str] | tuple[str, ...] = (),
+    manifest: str | Path | None = None,
+    jobs: int | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    force: bool = False,
+    progress: bool = False,
+    summary_interval: float = 2.0,
+) -> BatchResult:
+    """Fit every input with ``config`` in ``jobs`` worker processes; see the module docstring."""
+    start = time.perf_counter()
+    config_path = Path(config)
+    output_dir = Path(output_dir)
+    if bool(inputs) == (manifest is not None):
+        raise ConfigError("give the traces either with --inputs or with --manifest", key="--inputs")
+    if output_dir.exists() and not output_dir.is_dir():
+        raise InputError("the output exists and is not a folder", file=output_dir, key="--output")
+    entries = read_manifest(manifest) if manifest is not None else expand_inputs(list(inputs), output_dir)
+    items, batch_text = plan(config_path, entries, output_dir, list(overrides))
+    try:
+        output_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder: {exc.strerror or exc}", file=output_dir,
+                         key="--output") from None
+    _remove_stale_tmp(output_dir)
+    jobs = max(1, jobs or default_jobs())
+    rows: dict[int, Row] = {}
+    todo: list[Item] = []
+
+    for item in items:
+        if item.error is not None:
+            rows[item.index] = Row(item, "failed", item.error)
+            log.warning("%s: failed: %s", item.name, item.error)
+            continue
+        if not force and item.output.is_file():
+            from .io import sha256_file
+
+            existing = run_key(item.output)
+            if existing is not None and existing == batch_key(sha256_file(item.entry.path), item.config_text):
+                try:
+                    got = read_run_row(item.output)
+                    rows[item.index] = Row(item, "skipped", "", got["values"], got["quantities"])
+                    continue
+                except (OSError, KeyError):
+                    pass  # unreadable: fit again
+        todo.append(item)
+    log.info("batch: %d traces: %d to fit in %d worker processes, %d up to date, %d failed before fitting",
+             len(items), len(todo), min(jobs, len(todo)), sum(r.status == "skipped" for r in rows.values()),
+             sum(r.status == "failed" for r in rows.values()))
+
+    state = {"last": time.monotonic(), "dirty": True}
+
+    def ordered() -> list[Row]:
+        return [rows[i] for i in sorted(rows)]
+
+    def flush(force_write: bool = False) -> None:
+        if force_write or (state["dirty"] and time.monotonic() - state["last"] >= summary_interval):
+            write_summary(output_dir, ordered(), batch_text)
+            state["last"] = time.monotonic()
+            state["dirty"] = False
+
+    from tqdm import tqdm
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    interrupted = False
+    tmp_dir = output_dir / f"{TMP_PREFIX}{os.getpid()}"
+    previous_term = _term_as_interrupt()
+    bar = None
+    try:
+        if todo:
+            tmp_dir.mkdir(exist_ok=True)
+            with logging_redirect_tqdm(loggers=[logging.getLogger("afmid")], tqdm_class=tqdm):
+                bar = tqdm(total=len(items), initial=len(rows), desc="batch", unit="trace", disable=not progress,
+                           leave=False, dynamic_ncols=True)
+                _run_pool(todo, rows, jobs, tmp_dir, config_path, bar, flush, state)
+        flush(force_write=True)
+    except KeyboardInterrupt:
+        interrupted = True
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not spoil the summary
+        try:
+            write_summary(output_dir, ordered(), batch_text)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+    finally:
+        if bar is not None:
+            bar.close()
+        shutil.rmtree(tmp_dir, ignore_errors=True)
+        if previous_term is not None:
+            signal.signal(signal.SIGTERM, previous_term)
+    result = BatchResult(ordered(), output_dir, time.perf_counter() - start, len(items), interrupted)
+    if interrupted:
+        raise BatchInterrupted(result)
+    return result
+
+
+class BatchInterrupted(KeyboardInterrupt):
+    """Ctrl-C during a batch, after the workers were stopped and the summary of what finished was written."""
+
+    def __init__(self, result: BatchResult):
+        super().__init__()
+        self.result = result
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt()
+
+
+def _term_as_interrupt():
+    """SIGTERM to the batch process stops it like Ctrl-C (workers stopped, summary written); returns the old handler."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_interrupt)
+
+
+def _remove_stale_tmp(output_dir: Path) -> None:
+    """Temporary folders of batches that were killed outright (their process is gone)."""
+    for path in output_dir.glob(f"{TMP_PREFIX}*"):
+        try:
+            pid = int(path.name[len(TMP_PREFIX):])
+            os.kill(pid, 0)
+            continue  # that batch still runs
+        except (ValueError, ProcessLookupError):
+            shutil.rmtree(path, ignore_errors=True)
+        except PermissionError:
+            continue
+
+
+def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, config_path: Path, bar, flush, state) -> None:
+    """Keep up to ``jobs`` traces in flight; replace the pool if a worker dies (see the module docstring)."""
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    ctx = multiprocessing.get_context("spawn")
+    level = logging.getLogger("afmid").getEffectiveLevel()
+    pending = deque(todo)
+    suspects: deque[Item] = deque()
+    n_workers = min(jobs, len(todo))
+
+    def new_pool() -> ProcessPoolExecutor:
+        # The thread caps go in the environment the workers are spawned with (so they hold before any import)
+        # and again in the initializer.
+        return ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=_init_worker,
+                                   initargs=(dict(THREAD_ENV), level))
+
+    def task(item: Item) -> dict:
+        return {"index": item.index, "name": item.name, "raw": item.raw, "config": str(config_path),
+                "config_text": item.config_text, "output": str(item.output), "tmp_dir": str(tmp_dir)}
+
+    saved_env = {k: os.environ.get(k) for k in THREAD_ENV}
+    os.environ.update(THREAD_ENV)
+    pool = new_pool()
+    in_flight: dict = {}  # future -> (item, isolated)
+    try:
+        while pending or suspects or in_flight:
+            if suspects:
+                if not in_flight:  # a suspect runs alone: if the worker dies again, it is the culprit
+                    item = suspects.popleft()
+                    in_flight[pool.submit(fit_task, task(item))] = (item, True)
+            else:
+                while pending and len(in_flight) < n_workers:
+                    item = pending.popleft()
+                    in_flight[pool.submit(fit_task, task(item))] = (item, False)
+            done, _ = wait(list(in_flight), timeout=1.0, return_when=FIRST_COMPLETED)
+            broken = False
+            for fut in done:
+                item, isolated = in_flight.pop(fut)
+                try:
+                    out = fut.result()
+                except BrokenProcessPool:
+                    broken = True
+                    item.crashes += 1
+                    if isolated:
+                        msg = ("the worker process died while fitting this trace (killed, crashed or out of "
+                               "memory)")
+                        rows[item.index] = Row(item, "failed", msg)
+                        log.warning("%s: %s", item.name, msg)
+                        bar.update(1)
+                        state["dirty"] = True
+                    else:
+                        suspects.append(item)
+                    continue
+                _record(item, out, rows)
+                bar.update(1)
+                state["dirty"] = True
+            if broken:
+                for fut, (item, isolated) in list(in_flight.items()):  # the pool is gone: requeue the rest
+                    in_flight.pop(fut)
+                    item.crashes += 1
+                    suspects.append(item)
+                pool.shutdown(wait=True, cancel_futures=True)
+                log.warning("a worker process died; restarting the pool and retrying its traces one at a time")
+                pool = new_pool()
+            flush()
+    except BaseException:
+        _stop_workers(pool)
+        _harvest(in_flight, rows)
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+        # Let the pool's queues be finalised now (the traceback of an interrupt keeps this frame alive, and
+        # semaphores still registered at exit make multiprocessing's resource tracker complain).
+        pool = None
+        in_flight.clear()
+        import gc
+
+        gc.collect()
+        for k, v in saved_env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _harvest(in_flight: dict, rows: dict) -> None:
+    """After stopping the workers: record the traces that finished meanwhile (the summary must list every
+    run file that was renamed into place, even if its worker's report did not arrive)."""
+    from .io import sha256_file
+
+    for fut, (item, _) in in_flight.items():
+        if fut.done() and not fut.cancelled() and fut.exception() is None:
+            _record(item, fut.result(), rows)
+        elif item.output.is_file():
+            try:
+                if run_key(item.output) == batch_key(sha256_file(item.entry.path), item.config_text):
+                    got = read_run_row(item.output)
+                    rows[item.index] = Row(item, "ok", "", got["values"], got["quantities"])
+            except (OSError, KeyError):
+                pass
+
+
+def _record(item: Item, out: dict, rows: dict) -> None:
+    for level, message in out.get("logs", []):
+        if level == logging.DEBUG and message.startswith("Traceback"):
+            log.debug("%s: %s", item.name, message)
+        else:
+            log.log(level, "%s: %s", item.name, message)
+    if out["status"] == "ok":
+        row = out["row"]
+        rows[item.index] = Row(item, "ok", "", row["values"], row["quantities"], out.get("times", {}))
+    else:
+        rows[item.index] = Row(item, "failed", out["error"])
+        log.warning("%s: failed: %s", item.name, out["error"])
+
+
+def _stop_workers(pool) -> None:
+    """Stop the workers now (SIGTERM: each removes its temporary file and exits), then reap them."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + 5.0
+    for p in procs:
+        p.join(timeout=max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(timeout=5.0)
+    pool.shutdown(wait=False, cancel_futures=True)

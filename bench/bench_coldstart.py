@@ -1,0 +1,94 @@
+"""Benchmark: start-up costs of the command line.
+
+1. ``afmid --help``: wall time of the command in a fresh process (median of 7).
+2. The first ``afmid fit`` in a new process with numba's on-disk cache warm,
+   against the same fit (``run_fit`` + ``write_run``) run a second time inside one
+   process (everything imported, kernels loaded): the difference is what a new
+   process adds (interpreter, imports, loading the cached kernels).
+3. The first ever run: the same command with ``NUMBA_CACHE_DIR`` pointing at an
+   empty folder, so every kernel is compiled.
+
+Workload: the 50-period DMT trace of configs/dmt.yaml (10,000 samples), fitted
+with configs/dmt.yaml (defaults: 100 bootstrap resamples). One BLAS thread.
+
+Run: python bench/bench_coldstart.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import CONFIGS, SINGLE_THREAD, cached_trace, machine, median, row, run_python, timed, wall  # noqa: E402
+
+CONFIG = CONFIGS / "dmt.yaml"
+AFMID = [sys.executable, "-m", "afmid.cli"]  # what the `afmid` script runs, without depending on PATH
+HELP_TARGET, FIRST_FIT_TARGET = 0.5, 2.0
+
+WARM_CODE = """
+import json, sys, time
+from afmid.config import load_config
+from afmid.fit import run_fit, write_run
+cfg = load_config({config!r}, ["data.path={trace}"])
+def once():
+    result = run_fit(cfg)
+    write_run({out!r}, result, cfg, overwrite=True)
+start = time.perf_counter(); once(); first = time.perf_counter() - start
+best, best_cpu = float("inf"), float("inf")
+for _ in range({repeat}):
+    start, c0 = time.perf_counter(), time.process_time(); once()
+    best, best_cpu = min(best, time.perf_counter() - start), min(best_cpu, time.process_time() - c0)
+print(json.dumps({{"first_in_process": first, "warm": best, "warm_cpu": best_cpu}}))
+"""
+
+
+def run(quick: bool = False) -> list[dict]:
+    trace = cached_trace(CONFIG, [], "dmt")
+    env = dict(SINGLE_THREAD)
+    with tempfile.TemporaryDirectory(prefix="afmid-bench-") as tmp:
+        out = Path(tmp) / "run.h5"
+        fit_cmd = AFMID + ["-q", "fit", str(CONFIG), "--set", f"data.path={trace}", "-o", str(out), "--overwrite"]
+        helps = [wall(AFMID + ["--help"], env) for _ in range(3 if quick else 7)]
+        wall(fit_cmd, env)  # make sure numba's cache is warm
+        firsts_cpu = [timed(fit_cmd, env) for _ in range(2 if quick else 5)]
+        firsts = [w for w, _ in firsts_cpu]
+        warm = run_python(WARM_CODE.format(config=str(CONFIG), trace=trace, out=str(out), repeat=2 if quick else 5),
+                          env)
+        with tempfile.TemporaryDirectory(prefix="afmid-numba-cache-") as cache:
+            cold = wall(fit_cmd, dict(env, NUMBA_CACHE_DIR=cache))
+            cold_again = wall(fit_cmd, dict(env, NUMBA_CACHE_DIR=cache))  # the cache that run filled
+    help_s = median(helps)
+    first_s = median(firsts)
+    extra = first_s - warm["warm"]
+    return [
+        row("cold start: afmid --help (fresh process)", help_s, None, None, f"< {HELP_TARGET} s",
+            help_s < HELP_TARGET, f"median of {len(helps)}: " + ", ".join(f"{h:.2f}" for h in helps) + " s"),
+        row("cold start: first afmid fit in a new process (numba cache warm) vs warm in-process fit",
+            first_s, warm["warm"], extra, f"adds < {FIRST_FIT_TARGET} s", extra < FIRST_FIT_TARGET,
+            f"'ratio' column = seconds added by a new process ({extra:.2f} s); command median of {len(firsts)} "
+            f"({', '.join(f'{f:.2f}' for f in firsts)} s); warm fit + write in one process {warm['warm']:.2f} s "
+            f"(its own first call {warm['first_in_process']:.2f} s); CPU: command {median([c for _, c in firsts_cpu]):.2f} s, "
+            f"warm fit + write {warm['warm_cpu']:.2f} s; 10,000 samples, bootstrap 100"),
+        row("cold start: first-ever afmid fit (empty numba cache: every kernel compiled)", cold, warm["warm"],
+            cold - warm["warm"], "report only", None,
+            f"'ratio' column = seconds added ({cold - warm['warm']:.1f} s); the next run with that cache "
+            f"{cold_again:.2f} s"),
+    ]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer repetitions")
+    args = parser.parse_args()
+    print(f"machine: {machine()}")
+    for r in run(args.quick):
+        print(f"{r['name']}: {r['afmid_s']:.2f} s ({'met' if r['met'] else 'missed' if r['met'] is False else '-'})"
+              f"\n  {r['notes']}")
+
+
+if __name__ == "__main__":
+    main()

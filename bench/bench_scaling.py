@@ -1,0 +1,188 @@
+"""Benchmark: fit time and peak memory against trace length (1e4 ... 1e7 samples).
+
+Trace: the DMT model of configs/dmt.yaml (thermal + 1 pm detector noise),
+simulated once in steady state for 5,000 periods at exactly 200 samples per
+period (1e6 samples); the shorter traces are its first 50 and 500 periods, the
+1e7 trace is it tiled 10 times (whole periods, so the joins are seamless up to
+the thermal wander between the end and the start). Trace files hold the
+deflection only (no ground truth), as a measured trace would.
+
+Each size is fitted in a fresh process (``run_fit`` with ``sample.separation``
+given, ``fit.bootstrap`` = 10, everything else default; one BLAS thread, see
+bench/README.md; one extra row repeats 1e5 with the default thread count), after a warm-up fit of the 1e4 trace in the
+same process (JIT warm). Reported: wall time of the fit (including loading the
+file), and the process's peak resident memory (``ru_maxrss``, what
+``/usr/bin/time -v`` calls maximum resident set size).
+
+``--profile`` prints a cProfile of the 1e7 fit.
+
+Run: python bench/bench_scaling.py [--quick] [--profile]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import CONFIGS, RESULTS, cached_trace, machine, row, run_python  # noqa: E402
+
+CONFIG = CONFIGS / "dmt.yaml"
+PERIODS = 5000
+SAMPLES_PER_PERIOD = 200
+FIT = ["fit.bootstrap=10"]
+SIZES = [10_000, 100_000, 1_000_000, 10_000_000]
+TARGET_S, TARGET_GB = 10.0, 1.5
+
+
+def traces(sizes: list[int]) -> dict[int, Path]:
+    """Trace files of each size (cached in bench/results/)."""
+    import h5py
+    import numpy as np
+
+    from afmid.config import dump_config, load_config
+    from afmid.io import load_trace, write_trace_file
+
+    base = cached_trace(CONFIG, [f"simulate.periods={PERIODS}"], f"dmt_{PERIODS}periods")
+    cfg = load_config(CONFIG, [f"data.path={base}"])
+    out = {}
+    with h5py.File(base, "r") as h5:
+        sha = h5.attrs.get("created")
+    for n in sizes:
+        path = RESULTS / f"scaling_{n:.0e}.trace.h5".replace("+", "")
+        if path.exists():
+            with h5py.File(path, "r") as h5:
+                if h5.attrs.get("source_created") == sha:
+                    out[n] = path
+                    continue
+        trace = load_trace(cfg)
+        x = trace.deflection
+        reps = -(-n // x.size)
+        trace.deflection = np.tile(x, reps)[:n]
+        trace.truth = None
+        trace.time = None
+        write_trace_file(path, trace, dump_config(cfg), overwrite=True)
+        with h5py.File(path, "r+") as h5:
+            h5.attrs["source_created"] = sha
+        out[n] = path
+    return out
+
+
+FIT_CODE = """
+import json, resource, sys, time
+sys.path.insert(0, {root!r})
+from afmid.config import load_config
+from afmid.fit import run_fit
+def cfg(path):
+    return load_config({config!r}, ["data.path=" + path] + {fit!r})
+run_fit(cfg({warm!r}))  # JIT warm, imports
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+c0, t0 = time.process_time(), time.perf_counter()
+result = run_fit(cfg({path!r}))
+seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({{"seconds": seconds, "cpu": cpu, "peak_kb": peak, "warm_peak_kb": before,
+                  "summary": result.summary_line()}}))
+"""
+
+PROFILE_CODE = """
+import cProfile, pstats, sys
+sys.path.insert(0, {root!r})
+from afmid.config import load_config
+from afmid.fit import run_fit
+def cfg(path):
+    return load_config({config!r}, ["data.path=" + path] + {fit!r})
+run_fit(cfg({warm!r}))
+prof = cProfile.Profile()
+prof.enable()
+run_fit(cfg({path!r}))
+prof.disable()
+pstats.Stats(prof).sort_stats("cumulative").print_stats(45)
+pstats.Stats(prof).sort_stats("tottime").print_stats(25)
+print("{{}}")
+"""
+
+
+def measure(path: Path, warm: Path, env: dict | None = None, default_threads: bool = False) -> dict:
+    from common import ROOT, SINGLE_THREAD
+
+    code = FIT_CODE.format(root=str(ROOT), config=str(CONFIG), fit=FIT, warm=str(warm), path=str(path))
+    return run_python(code, env=env, drop=tuple(SINGLE_THREAD) if default_threads else ())
+
+
+def profile(path: Path, warm: Path) -> str:
+    import subprocess
+    import textwrap
+
+    from common import ROOT
+
+    code = PROFILE_CODE.format(root=str(ROOT), config=str(CONFIG), fit=FIT, warm=str(warm), path=str(path))
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, cwd=ROOT)
+    return proc.stdout
+
+
+def run(quick: bool = False) -> list[dict]:
+    sizes = SIZES[:2] if quick else SIZES
+    files = traces(sizes)
+    warm = files[sizes[0]]
+    rows = []
+    previous = None
+    for n in sizes:
+        got = measure(files[n], warm)
+        gb = got["peak_kb"] / 1024**2
+        ratio = got["seconds"] / previous if previous else None
+        is_top = n == SIZES[-1]
+        rows.append(row(
+            f"fit scaling: {n:.0e} samples ({n // SAMPLES_PER_PERIOD} periods), bootstrap 10",
+            got["seconds"], None, ratio,
+            f"< {TARGET_S:g} s and < {TARGET_GB:g} GB; linear (ratio to the previous size 10x)" if is_top else
+            "linear (ratio to the previous size ~10x)",
+            (got["seconds"] < TARGET_S and gb < TARGET_GB) if is_top else None,
+            f"peak RSS {gb:.2f} GB (after warm-up {got['warm_peak_kb'] / 1024**2:.2f} GB); CPU {got['cpu']:.1f} s; "
+            f"{got['summary']}",
+            peak_gb=gb,
+        ))
+        previous = got["seconds"]
+    if not quick:  # the same 1e5 fit with the BLAS threads the environment gives by default (all cores)
+        n = SIZES[1]
+        got = measure(files[n], warm, default_threads=True)
+        single = rows[1]["afmid_s"]
+        rows.append(row(
+            f"fit scaling: {n:.0e} samples with default BLAS threads (vs one thread above)", got["seconds"], single,
+            single / got["seconds"], "report only", None,
+            f"'reference' = the one-thread time; CPU {got['cpu']:.1f} s; OpenBLAS with {os.cpu_count()} threads on "
+            "a shared machine: thousands of small matrix products spin-wait for a busy core",
+        ))
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="1e4 and 1e5 samples only")
+    parser.add_argument("--profile", action="store_true", help="cProfile the fit of the largest trace")
+    parser.add_argument("--threads1", action="store_true", help="also time the largest trace with one BLAS thread")
+    args = parser.parse_args()
+    sizes = SIZES[:2] if args.quick else SIZES
+    if args.profile:
+        files = traces(sizes)
+        print(profile(files[sizes[-1]], files[sizes[0]]))
+        return
+    rows = run(args.quick)
+    print(f"machine: {machine()}")
+    for r in rows:
+        ratio = f"{r['ratio']:.1f}x" if r["ratio"] else "-"
+        print(f"{r['name']:60s} {r['afmid_s']:8.2f} s  {r['peak_gb']:5.2f} GB  {ratio:>6s}  {r['notes']}")
+    if args.threads1:
+        from common import SINGLE_THREAD
+
+        files = traces(sizes)
+        got = measure(files[sizes[-1]], files[sizes[0]], env=SINGLE_THREAD)
+        print(f"one BLAS thread: {json.dumps(got)}")
+
+
+if __name__ == "__main__":
+    main()
