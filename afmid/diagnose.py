@@ -68,15 +68,17 @@ CHI2_SIGMAS = 5.0
 RATE_CORRELATION = 0.5
 #: Effects that are base contact models: one at a time, never suggested on top of another.
 BASE_MODELS = ("dmt", "jkr", "lennard_jones")
-#: Points of the coarse logarithmic grid for an added effect's nonlinear parameter (then refined by Brent) ...
+#: Search an added effect's nonlinear parameters (decay length, rupture distance) with the quick search of
+#: _ShapeSearch and refit with them fixed, instead of the fit's own outer search. Measured on the 16
+#: hidden-effect variants: the same ranking, parameters within their statistical scatter, 4-5x faster
+#: (a diagnosis 2 s instead of 9-10 s).
+QUICK_SHAPE = True
+#: Points of the coarse logarithmic grid of that search (then refined, see _minimise_bumpy).
 SHAPE_GRID = 10
-#: ... to this tolerance in the logarithm (2 %).
-SHAPE_TOLERANCE = 0.02
 #: Quality factors above this mean the lever oscillates in a gas (in liquids Q is ~1-10).
 GAS_QUALITY_FACTOR = 30.0
 #: Largest plausible viscosity of a gas film, Pa s (air 1.8e-5; every gas is below 1e-4).
 GAS_VISCOSITY_MAX = 1e-4
-ELEMENTARY_CHARGE = 1.602176634e-19  # J per eV
 
 
 @dataclass
@@ -302,9 +304,13 @@ def localize(run: RunData) -> dict:
     main_region = max(by_region, key=lambda k: by_region[k]["share_of_residual"])
     noise_rms = _rms(noise)
     interacting = z <= a0 + NEAR_RANGE
+    limit = None
+    if run.harmonics is not None and run.signal_rows is not None and run.signal_rows.any():
+        limit = int(np.max(run.harmonics[run.signal_rows]))
     return {
         "rms": _rms(r),
         "noise_rms": noise_rms,
+        "max_signal_harmonic": limit,
         "snr": _rms(r) / noise_rms if noise_rms > 0 else math.inf,
         "rms_force": _rms(force),
         "rms_per_period": _rms(r_all),
@@ -488,7 +494,7 @@ class _ShapeSearch:
     The fit's own outer search is thorough (a fine grid, two rounds and a
     refinement for the chosen terms) and dominates the cost of a refit. For
     ranking candidates a coarse logarithmic grid over the parameter's range,
-    refined by a bounded Brent search to 2 %, on the same objective (the
+    refined by parabolas through finer grids, on the same objective (the
     full-library weighted residual) is enough; the fit then runs with the value
     fixed. The data preparation is shared by all candidates, and the columns of
     the terms that do not depend on the searched parameter are computed once:
@@ -512,8 +518,6 @@ class _ShapeSearch:
 
     def search(self, config: RunConfig, effect: str, names: list[str]) -> dict[str, float]:
         from dataclasses import replace
-
-        from scipy.optimize import minimize_scalar
 
         from . import regression
         from .errors import AfmidError
@@ -565,17 +569,39 @@ class _ShapeSearch:
                     except AfmidError:
                         return math.inf
 
-                grid = np.linspace(math.log(lo), math.log(hi), SHAPE_GRID)
-                values = np.array([objective(g) for g in grid])
-                values[~np.isfinite(values)] = np.inf
-                i = int(np.argmin(values))
-                best = grid[i]
-                a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-                res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": SHAPE_TOLERANCE})
-                if res.success and res.fun <= values[i]:
-                    best = float(res.x)
+                best = _minimise_bumpy(objective, math.log(lo), math.log(hi))
                 params[name] = found[name] = math.exp(best)
         return found
+
+
+def _minimise_bumpy(objective, lo: float, hi: float) -> float:
+    """Minimum of a 1-D objective that is smooth on large scales but steppy on small ones.
+
+    Gated terms (a meniscus that ruptures at a distance) switch on the fit's
+    quadrature grid, so the residual moves in small steps as the parameter
+    changes and a bracketing search stops on a step. A coarse grid finds the
+    valley; two rounds of a parabola fitted to a finer grid across it give
+    the minimum of the smooth part (clipped to the searched interval).
+    """
+    grid = np.linspace(lo, hi, SHAPE_GRID)
+    values = np.array([objective(g) for g in grid])
+    values[~np.isfinite(values)] = np.inf
+    i = int(np.argmin(values))
+    best = float(grid[i])
+    half = grid[1] - grid[0]
+    for points in (9, 7):
+        a, b = max(lo, best - half), min(hi, best + half)
+        fine = np.linspace(a, b, points)
+        vals = np.array([objective(g) for g in fine])
+        ok = np.isfinite(vals)
+        j = int(np.argmin(np.where(ok, vals, np.inf)))
+        best = float(fine[j])
+        if ok.sum() >= 4:
+            c2, c1, _ = np.polyfit(fine[ok], vals[ok], 2)
+            if c2 > 0:
+                best = float(np.clip(-c1 / (2 * c2), a, b))
+        half = (b - a) / 4
+    return best
 
 
 def _implausible(effect: str, quantities: dict, run: RunData) -> list[str]:
@@ -592,10 +618,11 @@ def _implausible(effect: str, quantities: dict, run: RunData) -> list[str]:
             p = eff.parameter(name)
         except KeyError:
             if value < 0:  # read-out forces of an effect are stated as positive numbers
-                reasons.append(f"{name} = {value:.3g} {q['unit']} has the wrong sign for this effect")
+                reasons.append(f"{name} = {_value_words(value, q['unit'])} has the wrong sign for this effect")
             continue
         if not (p.low <= value <= p.high):
-            reasons.append(f"{name} = {value:.3g} {q['unit']} is outside its physical range [{p.low:g}, {p.high:g}]")
+            reasons.append(f"{name} = {_value_words(value, q['unit'])} is outside its physical range "
+                           f"[{p.low:g}, {p.high:g}] {q['unit']}")
     if effect == "squeeze_film":
         Q = run.cantilever.get("quality_factor", math.nan)
         eta = next((q["value"] for k, q in quantities.items() if k.endswith("fluid_viscosity")), math.nan)
@@ -614,10 +641,6 @@ def suggest(run: RunData, progress: bool = False) -> dict:
     explained_by_catalog, ...}, ``suggestions`` (accepted effects, best first,
     each with effect, error_after, evidence) and ``tried`` (every candidate).
     """
-    from tqdm import tqdm
-
-    from .io import load_trace
-
     if run.config.model.library is not None:
         return {"missing_effect": False, "suggestions": [], "tried": [],
                 "note": "suggestions need a model built from effects (model.effects), not a preset library"}
@@ -669,7 +692,7 @@ def _diagnose(run: RunData, progress: bool) -> dict:
                        if p.nonlinear and p.name not in config.model.parameters]
         try:
             shape = {}
-            if shape_names and config.fit.estimate_nonlinear:
+            if shape_names and config.fit.estimate_nonlinear and QUICK_SHAPE:
                 try:
                     shape = shapes.search(config, effect, shape_names)
                     config.model.parameters = {**config.model.parameters, **shape}
@@ -697,8 +720,9 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         t.explains = not _significant(t.chi2_after, t.chi2_limit_after, t.error_after, t.noise_floor_after)
     trials.sort(key=lambda t: (not t.significant, t.delta_bic))
     good = [t for t in trials if t.significant]
-    final = _forward(run, trace, good)
+    final, final_bic = _forward(run, trace, good)
     good = [t for t in good if t.significant]
+    trials.sort(key=lambda t: (not t.significant, t.delta_bic))
     # A catalog shape with physically impossible values (e.g. an attractive "hydration" force) that fits much
     # better than every possible catalog effect: the data want a force the catalog does not have.
     reference = good[0].delta_bic if good else 0.0
@@ -733,7 +757,9 @@ def _diagnose(run: RunData, progress: bool) -> dict:
             "rate_correlation": local["rate_correlation"],
             "description": description,
             "outside_catalog": _outside_words(outside[0], good[0] if good else None) if outside else "",
-            "verdict": _verdict(good, residual_significant, explained, base, outside),
+            "verdict": _verdict(good, residual_significant, explained, base, outside, final[2], final_bic - base.bic),
+            "error_after": final[2] if good else None,
+            "delta_bic_after": final_bic - base.bic if good else None,
         },
         "suggestions": [_trial_record(t) for t in good],
         "tried": [_trial_record(t) for t in trials],
@@ -741,53 +767,107 @@ def _diagnose(run: RunData, progress: bool) -> dict:
     }
 
 
-def _forward(run: RunData, trace, good: list[Trial]) -> tuple[float, float, float, float]:
-    """Forward selection among the accepted candidates; returns the final (chi2, limit, error, floor).
+@dataclass
+class _SetFit:
+    """A refit with several added effects (their nonlinear parameters fixed at the values found alone)."""
 
-    The best candidate is kept. Each further one is refitted on top of the ones
-    kept so far (their nonlinear parameters fixed at the values found alone) and
-    kept only if it still lowers the BIC by BIC_EVIDENCE and the
-    cross-validated error: an effect that merely mimics part of the top one's
-    signature is then dropped, while a second missing effect survives.
+    effects: tuple[str, ...]
+    bic: float
+    error: float
+    state: tuple[float, float, float, float]  # chi2, chi2 limit, error, noise floor
+    selected: dict[str, bool]
+
+
+def _fit_set(run: RunData, trace, members: list[Trial]) -> _SetFit | None:
+    config = refit_config(run, run.effects + [m.effect for m in members])
+    fixed = {**config.model.parameters}
+    for m in members:
+        fixed.update(m.shape)
+    config.model.parameters = fixed
+    try:
+        result = _fit_quick(config, trace)
+    except Exception as exc:
+        log.info("refit with %s failed: %s", [m.effect for m in members], exc)
+        return None
+    n = int(result.system.n_rows)
+    bic = result.selection.best.bic + math.log(max(n, 2)) * sum(len(m.shape) for m in members)
+    chi2, limit, _ = _chi2(result)
+    names = list(zip(result.library.names, result.selected))
+    selected = {m.effect: any(s and name.startswith(m.effect + ".") for name, s in names) for m in members}
+    return _SetFit(tuple(m.effect for m in members), bic, result.cv_error,
+                   (chi2, limit, result.cv_error, result.cv_error_noise_floor), selected)
+
+
+#: At most this many accepted candidates enter the search for a pair of missing effects.
+PAIR_CANDIDATES = 5
+
+
+def _forward(run: RunData, trace, good: list[Trial]) -> tuple[tuple[float, float, float, float], float]:
+    """Which of the accepted candidates are needed; returns ((chi2, limit, error, floor), BIC) of the final set.
+
+    Forward selection: the best candidate is kept; each further one is refitted
+    on top of the ones kept so far and kept only if it still lowers the BIC by
+    BIC_EVIDENCE and the cross-validated error (an effect that merely mimics
+    part of the top one's signature is dropped; a second missing effect
+    survives). When a significant residual remains, every pair of accepted
+    candidates is fitted as well (greedy selection can start from an effect
+    that imitates two others): a pair that beats the forward choice by
+    BIC_EVIDENCE replaces it. Rejected candidates get the reason.
     """
     if not good:
-        return (math.nan, math.nan, math.nan, math.nan)
+        return (math.nan, math.nan, math.nan, math.nan), math.nan
     top = good[0]
     kept = [top]
     state = (top.chi2_after, top.chi2_limit_after, top.error_after, top.noise_floor_after)
     bic, error = top.bic_after, top.error_after
-    n_shape = len(top.shape)
+    verdicts: dict[str, str] = {}
     for t in good[1:]:
-        config = refit_config(run, run.effects + [k.effect for k in kept] + [t.effect])
-        fixed = {**config.model.parameters}
-        for k in kept + [t]:
-            fixed.update(k.shape)
-        config.model.parameters = fixed
-        try:
-            result = _fit_quick(config, trace)
-        except Exception as exc:
-            log.info("refit with %s on top of %s failed: %s", t.effect, [k.effect for k in kept], exc)
-            t.significant = False
-            t.reasons.append("could not be refitted on top of " + ", ".join(k.effect for k in kept))
+        fitted = _fit_set(run, trace, kept + [t])
+        if fitted is None:
+            verdicts[t.effect] = "could not be refitted together with " + ", ".join(k.effect for k in kept)
             continue
-        n = int(result.system.n_rows)
-        new_bic = result.selection.best.bic + math.log(max(n, 2)) * (n_shape + len(t.shape))
-        selected = any(s and name.startswith(t.effect + ".") for name, s in zip(result.library.names, result.selected))
-        gain = new_bic - bic
-        if selected and gain <= -BIC_EVIDENCE and result.cv_error < error:
+        gain = fitted.bic - bic
+        t.conditional_delta_bic = gain
+        if fitted.selected[t.effect] and gain <= -BIC_EVIDENCE and fitted.error < error:
             kept.append(t)
-            t.conditional_delta_bic = gain
-            bic, error, n_shape = new_bic, result.cv_error, n_shape + len(t.shape)
-            chi2, limit, _ = _chi2(result)
-            state = (chi2, limit, result.cv_error, result.cv_error_noise_floor)
-        else:
+            bic, error, state = fitted.bic, fitted.error, fitted.state
+            continue
+        why = ("its terms are not selected" if not fitted.selected[t.effect] else
+               f"the BIC changes by only {gain:.0f}" if gain > -BIC_EVIDENCE else "the cross-validated error does not fall")
+        verdicts[t.effect] = (f"added to {', '.join(k.effect for k in kept)} it no longer helps ({why}): it imitates "
+                              "part of the same residual")
+    if _significant(*state) and len(good) > 2:
+        pool = good[:PAIR_CANDIDATES]
+        best = None
+        for i in range(len(pool)):
+            for j in range(i + 1, len(pool)):
+                pair = [pool[i], pool[j]]
+                if {p.effect for p in pair} <= {k.effect for k in kept}:
+                    continue
+                fitted = _fit_set(run, trace, pair)
+                if fitted is None or not all(fitted.selected.values()):
+                    continue
+                if best is None or fitted.bic < best[1].bic:
+                    best = (pair, fitted)
+        if best is not None and best[1].bic < bic - BIC_EVIDENCE and best[1].error < error:
+            pair, fitted = best
+            for k in kept:
+                if k not in pair:
+                    verdicts[k.effect] = (f"the pair {pair[0].effect} + {pair[1].effect} explains the data better "
+                                          f"(BIC {fitted.bic - bic:.0f} lower than with {', '.join(x.effect for x in kept)})")
+            for p, other in ((pair[0], pair[1]), (pair[1], pair[0])):
+                verdicts.pop(p.effect, None)
+                p.conditional_delta_bic = fitted.bic - other.bic_after
+            kept, bic, error, state = list(pair), fitted.bic, fitted.error, fitted.state
+    for t in good:
+        if t not in kept:
             t.significant = False
-            t.conditional_delta_bic = gain
-            t.reasons.append(f"on top of {', '.join(k.effect for k in kept)} it no longer helps (ΔBIC {gain:.0f}): "
-                             "it mimics part of the same residual")
+            t.reasons.append(verdicts.get(t.effect, "not needed once " + ", ".join(k.effect for k in kept)
+                                          + " is added"))
     for k in kept:
         k.explains = not _significant(*state)
-    return state
+    good.sort(key=lambda t: (t not in kept, t.delta_bic))
+    return state, bic
 
 
 def _excess(error: float, floor: float) -> float:
@@ -874,10 +954,8 @@ def describe_residual(local: dict, run: RunData) -> str:
                      f"part that differs between them, i.e. hysteresis or dissipation ({diss:.3g} nN)")
     else:
         parts.append("approach and retraction show no systematic difference from the model beyond the noise")
-    energy = local["residual_dissipated_energy"] / ELEMENTARY_CHARGE
-    if math.isfinite(energy) and abs(local["residual_dissipated_energy"]) > 0:
-        verb = "dissipates" if energy > 0 else "returns"
-        parts.append(f"the sample {verb} {abs(energy):.3g} eV per period more than the model says")
+    # (The residual's dissipated energy is not quoted: the fitted drive absorbs most of a missing dissipation,
+    # see energy_check, so it understates it by an unknown factor.)
     for name in ("contact", "near"):
         c = local["by_region"][name]["rate_correlation"]
         if math.isfinite(c) and abs(c) > RATE_CORRELATION and local["by_region"][name]["share_of_residual"] > 0.2:
@@ -914,8 +992,8 @@ def _evidence(t: Trial, local: dict, base: _Base, trials: list[Trial]) -> str:
     if before > 0 and base.error > FLOOR_FACTOR * base.floor:
         text += f"; {100 * (1 - (after / before) ** 2):.0f} % of the error variance above the noise removed"
     text += f") and the BIC by {t.delta_bic:.0f} ({_strength(t.delta_bic)}); reduced chi-square {base.chi2:.3g} -> {t.chi2_after:.3g}"
-    parts = [f"{k} = {v['value']:.3g} {v['unit']}" for k, v in t.quantities.items()]
-    parts += [f"{k} = {v:.3g} m" for k, v in t.shape.items()]
+    parts = [f"{k} = {_value_words(v['value'], v['unit'])}" for k, v in t.quantities.items()]
+    parts += [f"{k} = {_value_words(v, 'm')}" for k, v in t.shape.items()]
     if parts:
         text += "; fitted " + ", ".join(parts)
     if t.significant:
@@ -924,14 +1002,33 @@ def _evidence(t: Trial, local: dict, base: _Base, trials: list[Trial]) -> str:
         rivals = [o for o in close if not o.implausible]
         if rivals:
             text += ("; the data barely tell it from " + ", ".join(f"`{o.effect}` (ΔBIC {o.delta_bic:.0f})" for o in rivals))
+        else:
+            runner = min((o for o in trials if o is not t and not o.implausible and o.effect_terms_selected
+                          and o.delta_bic <= -BIC_EVIDENCE and o.delta_bic >= t.delta_bic),
+                         key=lambda o: o.delta_bic, default=None)
+            if runner is not None:
+                gap = runner.delta_bic - t.delta_bic
+                text += (f"; next best `{runner.effect}` (ΔBIC {runner.delta_bic:.0f}): {_strength(-gap)} for "
+                         f"`{t.effect}` over it")
         for o in close:
-            if o.implausible:
-                text += f"; `{o.effect}` fits as well (ΔBIC {o.delta_bic:.0f}) but is ruled out: {o.implausible[0]}"
+            if o.implausible and o.delta_bic - t.delta_bic > -BIC_EVIDENCE:
+                text += f"; `{o.effect}` fits about as well (ΔBIC {o.delta_bic:.0f}) but is ruled out: {o.implausible[0]}"
         if not t.explains:
             text += "; a significant residual remains after adding it: it explains only part of the misfit"
     elif t.reasons:
         text += "; not suggested: " + "; ".join(t.reasons)
     return text
+
+
+def _value_words(value: float, unit: str) -> str:
+    """A value with its unit, lengths in nm and forces in nN (the scales of the problem)."""
+    if not math.isfinite(value):
+        return "undefined"
+    if unit == "m" and abs(value) < 1e-6:
+        return f"{value * 1e9:.3g} nm"
+    if unit == "N" and abs(value) < 1e-6:
+        return f"{value * 1e9:.3g} nN"
+    return f"{value:.3g} {unit}"
 
 
 def _outside_words(t: Trial, top: Trial | None) -> str:
@@ -943,17 +1040,17 @@ def _outside_words(t: Trial, top: Trial | None) -> str:
     return text + ": a force outside the catalog"
 
 
-def _verdict(good: list[Trial], significant: bool, explained: bool, base: _Base, outside: list[Trial]) -> str:
+def _verdict(good: list[Trial], significant: bool, explained: bool, base: _Base, outside: list[Trial],
+             error_after: float = math.nan, delta_bic: float = math.nan) -> str:
+    names = " + ".join(t.effect for t in good)
+    change = f"error {base.error:.3g} -> {error_after:.3g}, ΔBIC {delta_bic:.0f}"
     if good and explained:
-        top = good[0]
-        also = f" (also {', '.join(t.effect for t in good[1:])})" if len(good) > 1 else ""
-        return (f"missing effect: {top.effect}{also} (error {base.error:.3g} -> {top.error_after:.3g}, "
-                f"ΔBIC {top.delta_bic:.0f})")
+        what = "missing effect" if len(good) == 1 else "missing effects"
+        return f"{what}: {names} ({change})"
     if good:
         why = ("a force outside the catalog fits much better" if outside else
                "a significant residual remains after adding it")
-        return (f"not explained by the catalog: {good[0].effect} explains part of the residual (error {base.error:.3g} -> "
-                f"{good[0].error_after:.3g}, ΔBIC {good[0].delta_bic:.0f}), but {why}")
+        return f"not explained by the catalog: {names} explains part of the residual ({change}), but {why}"
     if significant:
         return "not explained by the catalog: a significant residual that no catalog effect explains"
     return (f"no effect is missing: the model explains the data to the noise level (reduced chi-square "

@@ -15,6 +15,7 @@ import json
 import logging
 import math
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -171,7 +172,7 @@ def fig_force_separation(run: RunData, folder: Path) -> str:
         _contact_line(ax, run.config.sample.a0)
         ax.set(xlabel="separation z (nm)", title=title)
     axes[0].set_ylabel("force on tip (nN, repulsive +)")
-    axes[0].legend(fontsize=7, loc="upper right")
+    axes[0].legend(fontsize=7, loc="lower right")
     z = P["separation"]
     for ax in axes:
         ax.set_xlim(z.min() * NM - 0.2, (run.config.sample.a0 + 4e-9) * NM)
@@ -211,8 +212,9 @@ def fig_residual(local: dict, folder: Path, a0: float | None = None) -> str:
     if a0 is not None:
         _contact_line(ax, a0)
         ax.set_xlim(z.min() * NM - 0.2, (a0 + 4e-9) * NM)
+    band = f", harmonics ≤ {local['max_signal_harmonic']}" if local.get("max_signal_harmonic") else ""
     ax.set(xlabel="separation z (nm)", ylabel="residual (nN, model-free − model)",
-           title="Residual vs separation (period mean; band: ±2σ noise)")
+           title=f"Residual vs separation (period mean{band}; ±2σ noise)")
     ax.legend(fontsize=7)
     regions = list(local["by_region"])
     app = [local["by_region"][k]["rms_approach"] * NN for k in regions]
@@ -232,7 +234,7 @@ def fig_residual(local: dict, folder: Path, a0: float | None = None) -> str:
     return _save(fig, folder, "residual")
 
 
-def fig_periods(run: RunData, local: dict, folder: Path) -> str:
+def fig_periods(run: RunData, local: dict, folder: Path, energy: dict | None = None) -> str:
     plt = _plt()
     P = run.periods
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.0))
@@ -246,6 +248,8 @@ def fig_periods(run: RunData, local: dict, folder: Path) -> str:
     eV = 1.602176634e-19
     axes[2].plot(k, P["dissipated_energy_direct"] / eV, ".-", label="model-free")
     axes[2].plot(k, P["dissipated_energy"] / eV, ".-", label="model")
+    if energy and "truth" in energy:
+        axes[2].axhline(energy["truth"] / eV, color=TRUTH, lw=1, ls="--", label="truth (simulation, mean)")
     axes[2].set(xlabel="period", ylabel="energy (eV)", title="Energy dissipated in the sample per period")
     axes[2].legend(fontsize=7)
     return _save(fig, folder, "periods")
@@ -258,8 +262,16 @@ def fig_error_runs(runs: list[RunData], folder: Path, summary: dict | None = Non
     pos = np.arange(len(runs))
     ax.plot(pos, [r.cv_error for r in runs], "o-", label="cross-validated error")
     ax.plot(pos, [r.cv_error_noise_floor for r in runs], "k_", ms=18, mew=1.5, label="noise floor")
+    for x, r in zip(pos, runs):
+        ax.annotate(f"{r.cv_error:.3g}", (x, r.cv_error), textcoords="offset points", xytext=(6, 4), fontsize=7)
     ax.set_xticks(pos, labels, fontsize=7)
     ax.set_yscale("log")
+    from matplotlib.ticker import FormatStrFormatter
+
+    ax.yaxis.set_major_formatter(FormatStrFormatter("%.2g"))
+    ax.yaxis.set_minor_formatter(FormatStrFormatter("%.2g"))
+    ax.tick_params(axis="y", which="minor", labelsize=7)
+    ax.margins(x=0.15)
     ax.set(ylabel="force error (1 = no better than a constant)", title="Error by run, in the order given")
     ax.legend(fontsize=7)
     return _save(fig, folder, "error_by_run")
@@ -278,11 +290,13 @@ def fig_suggestions(summary: dict, folder: Path) -> str | None:
     colours = ["C2" if t["significant"] else "0.6" for t in tried][::-1]
     dbic = np.array([t["delta_bic"] if t["delta_bic"] is not None else 0.0 for t in tried][::-1])
     axes[0].barh(pos, -dbic, color=colours)
+    for y, value in zip(pos, dbic):
+        axes[0].text(max(-value, 0.0), y, f" {value:.0f}", va="center", fontsize=7)
     axes[0].axvline(10, color="k", lw=0.8, ls="--")
     axes[0].text(10, 1.0, " evidence threshold", transform=axes[0].get_xaxis_transform(), fontsize=7, va="top")
     axes[0].set_xscale("symlog", linthresh=10)
     axes[0].set_yticks(pos, names)
-    axes[0].set(xlabel="BIC decrease when added (larger = better)", title="Evidence for each candidate")
+    axes[0].set(xlabel="BIC decrease when added (larger = better; labels: ΔBIC)", title="Evidence for each candidate")
     err = [t["error_after"] for t in tried][::-1]
     axes[1].barh(pos, err, color=colours)
     if diag.get("error") is not None:
@@ -290,7 +304,8 @@ def fig_suggestions(summary: dict, folder: Path) -> str | None:
     if diag.get("noise_floor") is not None:
         axes[1].axvline(diag["noise_floor"], color="k", lw=1, ls=":", label="noise floor")
     axes[1].set(xlabel="cross-validated error after adding it", title="Error with the candidate added")
-    axes[1].legend(fontsize=7, loc="lower right")
+    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    axes[0].set_xlim(right=max(20.0, float(np.max(-dbic)) * 3))
     return _save(fig, folder, "suggestions")
 
 
@@ -300,9 +315,14 @@ def _img(folder: Path, name: str, caption: str) -> str:
     return f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(caption)}"><figcaption>{html.escape(caption)}</figcaption></figure>'
 
 
+def _rich(text: str) -> str:
+    """Escape for HTML, turning `name` into <code>name</code>."""
+    return re.sub(r"`([^`<>]+)`", r"<code>\1</code>", html.escape(str(text)))
+
+
 def _table(header: list[str], rows: list[list]) -> str:
     head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    body = "".join("<tr>" + "".join(f"<td>{_rich(c)}</td>" for c in r) + "</tr>" for r in rows)
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
@@ -333,19 +353,19 @@ def _verdict_box(summary: dict) -> str:
     if sugg and diag.get("explained_by_catalog", False):
         top = sugg[0]
         head = f"Missing effect: <code>{html.escape(top['effect'])}</code>"
-        body = f"<p>{html.escape(top['evidence'])}</p>"
+        body = f"<p>{_rich(top['evidence'])}</p>"
         if len(sugg) > 1:
             body += "<p>Also missing: " + ", ".join(f"<code>{html.escape(s['effect'])}</code>" for s in sugg[1:]) + "</p>"
         cls = "found"
     elif sugg:
         top = sugg[0]
-        head = (f"Partly explained: <code>{html.escape(top['effect'])}</code> helps, but a significant residual "
-                "remains that no catalog effect explains")
-        body = f"<p>{html.escape(top['evidence'])}</p><p>Residual: {html.escape(diag.get('description', ''))}.</p>"
+        head = (f"Not explained by the catalog: <code>{html.escape(top['effect'])}</code> accounts for only part "
+                "of the residual")
+        body = f"<p>{_rich(top['evidence'])}</p><p>Residual: {_rich(diag.get('description', ''))}.</p>"
         cls = "unexplained"
     elif summary.get("missing_effect"):
         head = "A significant residual that no catalog effect explains"
-        body = (f"<p>{html.escape(diag.get('description', ''))}.</p><p>No effect in the catalog lowers the BIC by "
+        body = (f"<p>{_rich(diag.get('description', ''))}.</p><p>No effect in the catalog lowers the BIC by "
                 "the evidence threshold with physical parameter values; see 'Effects tried'.</p>")
         cls = "unexplained"
     else:
@@ -381,7 +401,8 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
             q = r.quantities.get(n) or r.nonlinear.get(n)
             fixed = r.config.model.parameters.get(n)
             if q:
-                row.append(f"{q['value']:.4g} ± {q['error']:.2g} {q['unit']}")
+                err = f" ± {q['error']:.2g}" if math.isfinite(q["error"]) else ""
+                row.append(f"{q['value']:.4g}{err} {q['unit']}")
             elif fixed is not None:
                 row.append(f"{fixed:.4g} (fixed)")
             else:
@@ -399,14 +420,18 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     parts.append(_img(folder, figures["phase_portraits"], "Phase portraits: measured periods vs the identified model re-simulated"))
     parts.append(_img(folder, figures["coefficients"], "Coefficients with bootstrap standard errors (truth when simulated)"))
     parts.append("<h2>Where the model fails</h2>")
-    parts.append(f"<p>{html.escape(diag.get('description', '') or describe_residual(local, last))}.</p>")
+    parts.append(f"<p>{_rich(diag.get('description', '') or describe_residual(local, last))}.</p>")
     rows = [[k, f"{100 * v['fraction_of_time']:.0f} %", f"{100 * v['share_of_residual']:.0f} %", _fmt(v["rms"] * NN, "nN"),
              _fmt(v["noise_rms"] * NN, "nN"), _fmt(v["rms_approach"] * NN, "nN"), _fmt(v["rms_retraction"] * NN, "nN"),
              _fmt(v["rate_correlation"])] for k, v in local["by_region"].items()]
     parts.append(_table(["region", "time", "share of residual", "rms", "noise", "approach", "retraction",
                          "correlation with dz/dt"], rows))
+    limit = local.get("max_signal_harmonic")
     parts.append(_img(folder, figures["residual"], "Systematic residual (model-free − model, averaged over periods): "
-                                                   "vs separation for approach and retraction, by region, by harmonic"))
+                                                   "vs separation for approach and retraction, by region, by harmonic. "
+                      + (f"Both forces keep only the drive harmonics up to {limit} (those above the noise), so a "
+                         "feature narrower in time than 1/" + str(2 * limit) + " of a period (e.g. a jump at contact) "
+                         "is smeared over the neighbouring separations and rings." if limit else "")))
     eV = 1.602176634e-19
     parts.append("<h2>Energy check (dissipated per period)</h2>")
     parts.append("<p>Energy the sample takes from the tip per period, estimated from the model-free force, from the "
@@ -488,7 +513,7 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
             "force_separation": fig_force_separation(last, tmp),
             "coefficients": fig_coefficients(last, tmp, truth_coefficients(last)),
             "residual": fig_residual(local, tmp, last.config.sample.a0),
-            "periods": fig_periods(last, local, tmp),
+            "periods": fig_periods(last, local, tmp, energy),
         }
         if len(runs) > 1:
             figures["error_by_run"] = fig_error_runs(runs, tmp)
@@ -528,15 +553,14 @@ def terminal_summary(summary: dict, output: Path) -> str:
     lines = [f"{'run':<28} {'effects':<34} {'error':>8} {'terms':>5}"]
     for r in summary["runs"]:
         lines.append(f"{Path(r['run']).name:<28} {', '.join(r['effects']):<34} {r['error']:>8.4f} {r['n_terms']:>5}")
-    if summary.get("suggestions"):
-        top = summary["suggestions"][0]
-        lines.append(f"missing effect: {top['effect']} (error after adding it: {top['error_after']:.4f})")
-        lines.append(f"  {top['evidence']}")
-    elif "missing_effect" in summary:
-        d = summary["diagnosis"]
-        if d["explained_by_catalog"]:
-            lines.append("no effect is missing: the model explains the data to the noise level")
-        else:
-            lines.append("significant residual, not explained by any catalog effect: " + d["description"])
+    diag = summary.get("diagnosis") or {}
+    if "missing_effect" in summary and diag:
+        lines.append(diag.get("verdict") or ("missing effect" if summary["missing_effect"] else "no effect is missing"))
+        if summary.get("suggestions"):
+            lines.append(f"  {summary['suggestions'][0]['evidence']}")
+        elif summary["missing_effect"]:
+            lines.append(f"  residual: {diag.get('description', '')}")
+    elif summary.get("note"):
+        lines.append(summary["note"])
     lines.append(f"report: {output / 'report.html'}")
     return "\n".join(lines)

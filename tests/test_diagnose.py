@@ -107,15 +107,17 @@ OUTSIDE = {
     "b": (1.0e-9, 1.5e-9, 2.0e9, 5.0e-20, 8.5e-9, 81),
     "c": (0.7e-9, 2.5e-9, 1.5e9, 6.0e-20, 8.5e-9, 83),
 }
-#: Relative tolerance on the added effect's parameters (measured spread over the variants: viscosity 0-4 %,
-#: damping 1-5 % and its length 0-8 %, voltage 0-6 %, capillary force 0-10 % and rupture 0-9 %). Hydration:
-#: F_h comes out 28-31 % low and lambda_h 22-27 % long on every variant (the two trade off against each other
-#: and against the van der Waals tail over the few nm the tip samples); the tolerance records that bias.
+#: Relative tolerance on the added effect's parameters, from the spread measured over the variants (50 periods):
+#: viscosity 0-4 %, damping coefficient 1-5 % and length 0-8 %, voltage 0-6 %. Capillary: force and rupture
+#: distance trade off; with a 0.5 nm rupture (variant b) the residual is flat within 2 (whitened) units from
+#: 0.36 to 0.50 nm and the estimate lands at 0.42 nm (force +20 %), about 1.5 sigma: 25 %. Hydration: F_h and
+#: lambda_h trade off against each other and the van der Waals tail over the few nm the tip samples:
+#: errors of 13-31 % (F_h low and lambda_h long on three variants, the reverse on one): 40 %.
 TOLERANCE = {
     "viscoelastic": {"viscosity": 0.10},
     "exponential_damping": {"damping_coefficient": 0.15, "damping_length": 0.15},
     "electrostatic": {"voltage": 0.10},
-    "capillary": {"capillary_force": 0.15, "rupture_distance": 0.20},
+    "capillary": {"capillary_force": 0.25, "rupture_distance": 0.25},
     "hydration": {"hydration_force": 0.40, "hydration_length": 0.40},
 }
 
@@ -335,7 +337,7 @@ def _record(entry: dict) -> None:
 @pytest.fixture(scope="session")
 def experiment(tmp_path_factory):
     """``experiment(key, sim_config, fit_raw=None, register=())`` -> (run, suggest summary, seconds), cached."""
-    from afmid.fit import run_fit, write_run
+    from afmid.fit import write_run
     from afmid.io import write_trace_file
     from afmid.physics import EFFECTS
     from afmid.simulate import simulate
@@ -434,6 +436,24 @@ def test_clean_trace_raises_no_suggestion(experiment, variant):
     assert diag["explained_by_catalog"] is True and diag["residual_significant"] is False
     assert diag["verdict"].startswith("no effect is missing")
     assert all(t["delta_bic"] > -BIC_EVIDENCE or not t["terms_selected"] for t in summary["tried"])
+
+
+@pytest.mark.slow
+def test_two_hidden_effects_are_both_named(experiment):
+    """Surface damping (1e-7 kg/s, 1 nm) and hydration (2 nN, 0.8 nm) together. Alone, a short-rupture meniscus
+    imitates most of their joint signature (ΔBIC -1942 vs -1849 and -260): forward selection from it would stop
+    there with a residual left, so the pairs of accepted candidates are tried as well."""
+    raw = read_yaml(CONFIGS / "hidden_clean.yaml")
+    raw["simulate"]["effects"] = ["exponential_damping", "hydration"]
+    raw["simulate"]["parameters"].update(damping_coefficient=1e-7, damping_length=1e-9, hydration_force=2e-9,
+                                         hydration_length=0.8e-9)
+    raw["simulate"]["seed"] = 92
+    run, summary, seconds = experiment("two-effects", raw)
+    _record(_summary_entry("two-effects", run, summary, seconds, "exponential_damping+hydration"))
+    assert {s["effect"] for s in summary["suggestions"]} == {"exponential_damping", "hydration"}
+    assert summary["diagnosis"]["explained_by_catalog"] is True
+    assert summary["diagnosis"]["error_after"] < 0.5 * run.cv_error
+    assert summary["diagnosis"]["verdict"].startswith("missing effects: ")
 
 
 def _outside_effect():
