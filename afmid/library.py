@@ -149,12 +149,20 @@ class Library:
         return expr.ProgramSet(programs), gates
 
     def evaluate(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
-                 backend: str = "numba") -> np.ndarray:
-        """Library columns (N, p) along a trajectory. ``params`` holds d (separation), a0, R and nonlinear ones."""
+                 backend: str = "numba", state_values: np.ndarray | None = None) -> np.ndarray:
+        """Library columns (N, p) along a trajectory. ``params`` holds d (separation), a0, R and nonlinear ones.
+
+        The state gates (hysteresis) are scanned along the trajectory, unless
+        ``state_values`` (n_states, N) gives them (for points that are not one
+        time series, e.g. sub-samples of many short intervals).
+        """
         variables = trajectory_variables(x, xdot, t, params["d"], params["a0"], len(self.states))
         program_set, gates = self.compile(params)
         if self.states:
-            _fill_states(variables, gates, backend)
+            if state_values is not None:
+                variables[len(expr.VARIABLES):] = state_values
+            else:
+                _fill_states(variables, gates, backend)
         out = np.empty((x.size, len(self.terms)))
         if backend == "numba":
             from .kernels.vm import eval_set
@@ -165,6 +173,32 @@ class Library:
             for j, term in enumerate(self.terms):
                 out[:, j] = expr.evaluate_numpy(term.expression, variables, dict(params), self.state_names)
         return out
+
+
+    def states_along(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
+                     backend: str = "numba") -> np.ndarray:
+        """The state gates (n_states, N), 0 or 1, scanned along a trajectory."""
+        variables = trajectory_variables(x, xdot, t, params["d"], params["a0"], len(self.states))
+        if self.states:
+            _fill_states(variables, self.compile(params)[1], backend)
+        return variables[len(expr.VARIABLES):]
+
+
+    def states_from(self, initial: np.ndarray, x: np.ndarray, xdot: np.ndarray, t: np.ndarray,
+                    params: Mapping[str, float]) -> np.ndarray:
+        """State gates (n_states, m * S) along m short trajectories (m, S) in time order, each from its ``initial`` state
+        (n_states, m). Vectorised over the trajectories: for sub-samples of many short intervals."""
+        m, S = x.shape
+        variables = trajectory_variables(x.ravel(), xdot.ravel(), t.ravel(), params["d"], params["a0"], len(self.states))
+        out = np.empty((len(self.states), m, S))
+        for k, (on_prog, off_prog) in enumerate(self.compile(params)[1]):
+            on = expr.evaluate_numpy(on_prog, variables).reshape(m, S) != 0
+            off = expr.evaluate_numpy(off_prog, variables).reshape(m, S) != 0
+            state = initial[k].astype(float)
+            for j in range(S):  # the rule of kernels.hysteresis.scan_hysteresis
+                state = np.where(state == 0.0, np.where(on[:, j], 1.0, 0.0), np.where(off[:, j], 0.0, 1.0))
+                out[k, :, j] = state
+        return out.reshape(len(self.states), -1)
 
 
 def trajectory_variables(x, xdot, t, d: float, a0: float, n_states: int = 0) -> np.ndarray:

@@ -10,11 +10,16 @@ puts it back so tests do not depend on their order.
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
-import numpy as np
-import pytest
-import yaml
+# As the CLI does (afmid/cli.py): one BLAS thread, set before NumPy loads.
+for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import yaml  # noqa: E402
 
 #: Drive frequency and sample rate of the synthetic traces (200 samples per period, as the template).
 DRIVE_FREQUENCY = 3.0e5  # Hz
