@@ -35,14 +35,15 @@ class LibraryTerm:
     effect: str | None = None  # effect whose coefficient this is (for the read-out)
     label: str | None = None  # term label within that effect
     doc: str = ""
+    role: str = ""  # afmid.physics.TERM_ROLES: constraint on the sparse selection
 
 
 @dataclass(frozen=True)
 class Preset:
     name: str
     title: str
-    # (display name, expression, (effect, label) or None)
-    terms: tuple[tuple[str, str, tuple[str, str] | None], ...]
+    # (display name, expression, (effect, label) or None[, role]): see afmid.physics.TERM_ROLES
+    terms: tuple[tuple, ...]
     effects: tuple[str, ...]  # effects whose read-out applies
     references: tuple[str, ...]
     notes: str = ""
@@ -50,17 +51,18 @@ class Preset:
 
 _CONTACT = "[z <= a0]"
 _OUT = "[z > a0]"
+_ELASTIC, _NEEDS = "elastic_contact", "needs_elastic_contact"
 _TABLE_2_4 = (
     ("z^-2", f"{_OUT} * z^-2", ("dmt", "vdw")),
     ("z^-3", f"{_OUT} * z^-3", None),
-    ("delta^0.5*deltadot", "delta^0.5 * deltadot", ("viscoelastic", "kelvin_voigt")),
-    ("delta*deltadot^2", "delta * deltadot^2", None),
+    ("delta^0.5*deltadot", "delta^0.5 * deltadot", ("viscoelastic", "kelvin_voigt"), _NEEDS),
+    ("delta*deltadot^2", "delta * deltadot^2", None, _NEEDS),
     ("z^0.5*zdot", f"{_OUT} * z^0.5 * zdot", None),
     ("z*zdot^2", "z * zdot^2", None),
-    ("delta^2", "delta^2", None),
-    ("delta^2.5", "delta^2.5", None),
-    ("delta^1.5", f"{_CONTACT} * delta^1.5", ("dmt", "hertz")),
-    ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion")),
+    ("delta^2", "delta^2", None, _ELASTIC),
+    ("delta^2.5", "delta^2.5", None, _ELASTIC),
+    ("delta^1.5", f"{_CONTACT} * delta^1.5", ("dmt", "hertz"), _ELASTIC),
+    ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion"), _NEEDS),
 )
 
 PRESETS: dict[str, Preset] = {
@@ -92,10 +94,10 @@ PRESETS: dict[str, Preset] = {
                 ("exp(-z/lambda)^2*zdot^2", "exp(-2 * z / damping_length) * zdot^2", None),
                 ("z*zdot", "z * zdot", None),
                 ("z*zdot^2", "z * zdot^2", None),
-                ("delta^2", "delta^2", None),
-                ("delta^2.5", "delta^2.5", None),
-                ("delta^1.5", f"{_CONTACT} * delta^1.5", ("dmt", "hertz")),
-                ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion")),
+                ("delta^2", "delta^2", None, _ELASTIC),
+                ("delta^2.5", "delta^2.5", None, _ELASTIC),
+                ("delta^1.5", f"{_CONTACT} * delta^1.5", ("dmt", "hertz"), _ELASTIC),
+                ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion"), _NEEDS),
             ),
             ("dmt", "exponential_damping"),
             ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table III",),
@@ -103,7 +105,7 @@ PRESETS: dict[str, Preset] = {
         Preset(
             "jkr_table4",
             "seed table IV: JKR candidates (same functions as table II)",
-            tuple((n, e, ("jkr", lab[1]) if lab and lab[0] == "dmt" else lab) for n, e, lab in _TABLE_2_4),
+            tuple((t[0], t[1], ("jkr", t[2][1]) if t[2] and t[2][0] == "dmt" else t[2]) + t[3:] for t in _TABLE_2_4),
             ("jkr", "viscoelastic"),
             ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table IV",),
         ),
@@ -135,6 +137,14 @@ class Library:
 
     def __len__(self) -> int:
         return len(self.terms)
+
+    def requirement(self, n_extra: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+        """(needs, provides) column masks of the selection constraint (afmid.physics.TERM_ROLES), padded with
+        ``n_extra`` unconstrained columns: a support that uses a ``needs`` column must use a ``provides`` one.
+        None when the library has no such pair (nothing to constrain)."""
+        needs = np.array([t.role == "needs_elastic_contact" for t in self.terms] + [False] * n_extra)
+        provides = np.array([t.role == "elastic_contact" for t in self.terms] + [False] * n_extra)
+        return (needs, provides) if needs.any() and provides.any() else None
 
     def compile(self, params: Mapping[str, float]):
         """A :class:`afmid.expr.ProgramSet` of the terms and the state-gate conditions."""
@@ -266,17 +276,18 @@ def build_library(model_config, source=None) -> Library:
                 nonlinear[p.name] = p.default
     if preset is not None:
         units = _units_context(param_units)
-        for display, expression, origin in preset.terms:
+        for display, expression, origin, *role in preset.terms:
             unit = expr.expression_units(expression, units, tuple(s.name for s in states))
             effect, label = origin if origin else (None, None)
-            terms.append(LibraryTerm(display, expression, str(unit), str(NEWTON / unit), effect, label))
+            terms.append(LibraryTerm(display, expression, str(unit), str(NEWTON / unit), effect, label,
+                                     role=role[0] if role else ""))
     else:
         for name in effects:
             eff = EFFECTS.get(name)
             for term in eff.terms:
                 terms.append(LibraryTerm(
                     f"{name}.{term.label}", term.expression, str(term_unit(eff, term)),
-                    str(coefficient_unit(eff, term)), name, term.label, term.doc,
+                    str(coefficient_unit(eff, term)), name, term.label, term.doc, term.role,
                 ))
     units = _units_context(param_units)
     for i, text in enumerate(model_config.terms):

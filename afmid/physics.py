@@ -62,6 +62,16 @@ class Term:
     expression: str
     coefficient: Callable[[Mapping[str, float]], float]
     doc: str = ""
+    role: str = ""  # one of TERM_ROLES: how the term constrains the sparse selection
+
+
+#: Roles of terms in model selection. A surface cannot pull on or damp a tip in contact without pushing
+#: back: a contact-only adhesion or dissipation term is only selected together with an elastic contact law.
+TERM_ROLES = {
+    "": "no constraint",
+    "elastic_contact": "an elastic contact law (force a function of the indentation only, e.g. Hertz)",
+    "needs_elastic_contact": "acts only in contact and is selected only with an elastic contact law",
+}
 
 
 @dataclass(frozen=True)
@@ -153,6 +163,8 @@ def _validate_effect(effect: Effect) -> None:
     units = _param_units(effect)
     values = {**CHECK_CONTEXT, **effect.defaults()}
     for term in effect.terms:
+        if term.role not in TERM_ROLES:
+            raise DefinitionError(f"term {term.label}: role {term.role!r} is not one of {sorted(TERM_ROLES)}")
         term_unit = expr.expression_units(term.expression, units, states=state_names)
         coefficient = term.coefficient(values)
         if not math.isfinite(coefficient):
@@ -246,7 +258,8 @@ EFFECTS.register(
             # ties the adhesion to the Hamaker constant and makes the contact point identifiable.
             Term("vdw", "max(z, a0)^-2", lambda p: -p["hamaker"] * p["R"] / 6.0,
                  "van der Waals sphere-plane, saturating at contact (DMT adhesion H R / 6 a0^2)"),
-            Term("hertz", "[z <= a0] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"]), "Hertz"),
+            Term("hertz", "[z <= a0] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"]), "Hertz",
+                 role="elastic_contact"),
         ),
         quantities=_CONTACT_QUANTITIES
         + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 4 pi R gamma"),),
@@ -310,8 +323,10 @@ EFFECTS.register(
         ),
         terms=(
             Term("vdw", "[not jkr_contact] * z^-2", lambda p: -p["hamaker"] * p["R"] / 6.0),
-            Term("hertz", "[jkr_contact] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"])),
-            Term("adhesion", "[jkr_contact]", lambda p: -3.0 * math.pi * p["R"] * p["surface_energy"]),
+            Term("hertz", "[jkr_contact] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"]),
+                 role="elastic_contact"),
+            Term("adhesion", "[jkr_contact]", lambda p: -3.0 * math.pi * p["R"] * p["surface_energy"],
+                 role="needs_elastic_contact"),
         ),
         quantities=_CONTACT_QUANTITIES
         + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 3 pi R gamma"),),
@@ -332,7 +347,8 @@ EFFECTS.register(
         title="Kelvin-Voigt viscoelastic damping in contact",
         formula="F = eta sqrt(R delta) d(delta)/dt  for z <= a0",
         parameters=(Parameter("viscosity", "Pa*s", 100.0, 0.0, 1e5, "sample viscosity eta"),),
-        terms=(Term("kelvin_voigt", "delta^0.5 * deltadot", lambda p: p["viscosity"] * math.sqrt(p["R"])),),
+        terms=(Term("kelvin_voigt", "delta^0.5 * deltadot", lambda p: p["viscosity"] * math.sqrt(p["R"]),
+                    role="needs_elastic_contact"),),
         quantities=(Quantity("viscosity", "Pa*s", "sample viscosity eta"),),
         readout=lambda c, ctx: {"viscosity": c["kelvin_voigt"] / math.sqrt(ctx["R"])},
         references=(

@@ -11,7 +11,11 @@ Selection methods:
   (Brunton et al. 2016, as in the paper);
 - ``lasso``: supports along a LASSO path (coordinate descent on scaled columns),
   each refitted by least squares;
-- ``exhaustive``: every subset (libraries of up to 16 free terms).
+- ``exhaustive``: every subset (libraries of up to 16 free terms). The residuals of all
+  subsets come from one numba call (:func:`afmid.kernels.sparse.subset_rss`); only the
+  subsets that can matter (the best few by the criterion, and any within rounding of
+  them) are then refitted one by one (:func:`subset_fit`) into :class:`Candidate` objects,
+  so the selection and the bootstrap equal those of fitting every subset on its own.
 The candidate supports are ranked by an information criterion (BIC by default)
 or by the cross-validated error over held-out periods.
 """
@@ -24,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .kernels.sparse import _subset_lstsq, stlsq_factor
+from .kernels.sparse import SUBSET_RSS_MAX_ERROR, SUBSET_RSS_MIN_PIVOT, _subset_lstsq, stlsq_factor, subset_rss
 
 
 # --------------------------------------------------------------------------- factors
@@ -71,6 +75,21 @@ class Candidate:
     aicc: float = math.nan
     cv_rss: float = math.nan
     cv_rss_se: float = math.nan
+
+
+class _LazyCandidate(Candidate):
+    """A :class:`Candidate` of the exhaustive path whose coefficients are fitted on first access."""
+
+    def __init__(self, T: np.ndarray, mask: np.ndarray, rss: float, n_free: int):
+        self.mask, self.rss, self.n_free = mask, rss, n_free
+        self.bic = self.aicc = self.cv_rss = self.cv_rss_se = math.nan
+        self._T = T
+
+    def __getattr__(self, name: str):
+        if name != "coef" or "_T" not in self.__dict__:
+            raise AttributeError(name)
+        self.coef = subset_fit(self._T, self.mask)[0]
+        return self.coef
 
 
 def information_criteria(rss: float, n_rows: int, k: int) -> tuple[float, float]:
@@ -139,18 +158,99 @@ def lasso_path(T: np.ndarray, protected: np.ndarray, n_alphas: int = 40) -> list
 
 
 def exhaustive_path(T: np.ndarray, protected: np.ndarray, max_free: int = 16) -> list[Candidate]:
-    """Every subset of the free terms (the protected columns always in)."""
+    """Every subset of the free terms (the protected columns always in), by size, then in
+    ``itertools.combinations`` order. The residuals of all subsets come from one kernel call
+    (:func:`afmid.kernels.sparse.subset_rss`); each candidate's coefficients are fitted when first read."""
     free = np.flatnonzero(~protected)
-    if free.size > max_free:
-        raise ValueError(f"exhaustive search over {free.size} terms is too large (max {max_free})")
+    T = np.array(T, dtype=float, order="C")  # private copy: the lazy coefficients read it later
+    rss = _all_subsets_rss(T, protected, max_free)
     cands = []
     for k in range(free.size + 1):
-        for subset in itertools.combinations(free, k):
+        for subset in itertools.combinations(range(free.size), k):
             mask = protected.copy()
-            mask[list(subset)] = True
-            coef, rss = subset_fit(T, mask)
-            cands.append(Candidate(mask, coef, rss, k))
+            mask[free[list(subset)]] = True
+            cands.append(_LazyCandidate(T, mask, float(rss[sum(1 << i for i in subset)]), k))
     return cands
+
+
+def _all_subsets_rss(T: np.ndarray, protected: np.ndarray, max_free: int = 16) -> np.ndarray:
+    """Residual sum of squares of every subset of the free terms, indexed by bitmask over the free columns."""
+    n_free = int((~protected).sum())
+    if n_free > max_free:
+        raise ValueError(f"exhaustive search over {n_free} terms is too large (max {max_free})")
+    rss, _ = subset_rss(np.ascontiguousarray(T, dtype=float), np.ascontiguousarray(protected, dtype=np.bool_),
+                        SUBSET_RSS_MAX_ERROR, SUBSET_RSS_MIN_PIVOT)
+    return rss
+
+
+#: Screening tolerance of the exhaustive search, as a relative error of the residual sum of squares: a
+#: subset whose screened criterion is within ``2 n_rows x this`` of the cut is refitted exactly
+#: (:func:`subset_fit`) before it is ranked, so the ranking is that of the per-subset fits. The
+#: kernel's residuals agree with :func:`subset_fit` to ~1e-10 or better (it refits the others itself).
+_SCREEN_RSS_REL = 1e-8
+
+
+class _SubsetCriteria:
+    """BIC / AICc of every subset of the free terms of one problem, vectorised over bitmasks.
+
+    Mirrors :func:`information_criteria` + :func:`score_candidates` (to rounding); used to screen the
+    exhaustive path without building a :class:`Candidate` per subset."""
+
+    def __init__(self, protected: np.ndarray, n_rows: int, penalty: np.ndarray | None,
+                 requirement: tuple[np.ndarray, np.ndarray] | None = None):
+        self.protected = np.asarray(protected, dtype=bool)
+        self.free = np.flatnonzero(~self.protected)
+        nf = self.free.size
+        bits = (np.arange(1 << nf)[:, None] >> np.arange(nf)) & 1  # (2^nf, nf)
+        self.n_free = bits.sum(axis=1)
+        k = self.n_free + int(self.protected.sum())
+        extra = np.zeros(1 << nf)
+        if penalty is not None:
+            extra = bits @ np.asarray(penalty, dtype=float)[self.free] + float(penalty[self.protected].sum())
+        self.n_rows = n_rows
+        self.allowed = np.ones(1 << nf, dtype=bool)
+        if requirement is not None:
+            needs, provides = (np.asarray(m, dtype=float)[self.free] for m in requirement)
+            self.allowed = ~((bits @ needs) > 0) | ((bits @ provides) > 0)
+            extra = np.where(self.allowed, extra, np.inf)
+        self.offset = {"bic": k * math.log(n_rows) + extra,
+                       "aicc": 2 * k + (2 * k * (k + 1) / np.maximum(n_rows - k - 1, 1)) + extra}
+        self.tol = 2.0 * n_rows * _SCREEN_RSS_REL
+
+    def values(self, rss: np.ndarray, key: str) -> np.ndarray:
+        return self.n_rows * np.log(np.maximum(rss, 1e-300) / self.n_rows) + self.offset[key]
+
+    def mask(self, sub: int) -> np.ndarray:
+        mask = self.protected.copy()
+        mask[self.free[(sub >> np.arange(self.free.size)) & 1 == 1]] = True
+        return mask
+
+    def exact(self, T: np.ndarray, subs, penalty: np.ndarray | None) -> list[Candidate]:
+        """Candidates of the subsets ``subs`` fitted by :func:`subset_fit` and scored, in the order of
+        :func:`exhaustive_path` (size, then ``itertools.combinations`` order)."""
+        order = sorted((int(self.n_free[s]), [i for i in range(self.free.size) if (s >> i) & 1], int(s)) for s in subs)
+        cands = []
+        for n_free, _, sub in order:
+            mask = self.mask(sub)
+            coef, rss = subset_fit(T, mask)
+            cands.append(Candidate(mask, coef, rss, n_free))
+        score_candidates(cands, self.n_rows, penalty)
+        return cands
+
+
+def _exhaustive_ranked(T: np.ndarray, rss: np.ndarray, protected: np.ndarray, n_rows: int,
+                       penalty: np.ndarray | None, n_best: int,
+                       requirement: tuple[np.ndarray, np.ndarray] | None = None) -> list[Candidate]:
+    """The candidates of the exhaustive path (residuals ``rss`` of all subsets, by bitmask) that
+    :func:`select` can keep: the ``n_best`` lowest BIC and the protected-only support, plus any within
+    rounding of the cut; fitted by :func:`subset_fit` and scored, in path order. Ranked on these, the
+    candidates come out as ranked on all of :func:`exhaustive_path` with exact fits."""
+    crit = _SubsetCriteria(protected, n_rows, penalty, requirement)
+    bic = crit.values(rss, "bic")
+    n_best = min(n_best, int(crit.allowed.sum()))
+    cut = np.partition(bic, n_best - 1)[n_best - 1]
+    keep = set(np.flatnonzero((bic <= cut + crit.tol + 1e-12 * abs(cut)) & crit.allowed).tolist()) | {0}
+    return crit.exact(T, keep, penalty)
 
 
 PATHS = {"stlsq": stlsq_path, "lasso": lasso_path, "exhaustive": exhaustive_path}
@@ -182,20 +282,32 @@ def select(
     n_rows: int | None = None,
     folds: int = 5,
     penalty: np.ndarray | None = None,
+    requirement: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Selection:
     """Sparsity path on all blocks, scored by BIC/AICc and cross-validation over held-out blocks.
 
     ``penalty`` (per column) is added to the information criteria of every
     candidate that uses the column: ``2 ln(prior odds against the term)``, so a
     term with weak physical motivation needs that much more evidence.
+    ``requirement`` = (needs, provides) column masks: a support that uses a
+    ``needs`` column without a ``provides`` one is not a candidate (e.g. a
+    contact adhesion or damping without an elastic contact law,
+    :meth:`afmid.library.Library.requirement`).
     """
     if thresholds is None:
         thresholds = default_thresholds()
     T = combine(T_blocks)
-    cands = candidates_for(T, protected, method, thresholds)
-    if n_rows is None:
-        raise ValueError("n_rows: the number of whitened rows behind the factors is needed for the criteria")
-    score_candidates(cands, n_rows, penalty)
+    if method == "exhaustive":
+        # One kernel call for the residuals of all subsets; only those that can be kept below become candidates.
+        rss = _all_subsets_rss(T, protected)
+        if n_rows is None:
+            raise ValueError("n_rows: the number of whitened rows behind the factors is needed for the criteria")
+        cands = _exhaustive_ranked(T, rss, protected, n_rows, penalty, CV_CANDIDATES, requirement)
+    else:
+        cands = [c for c in candidates_for(T, protected, method, thresholds) if satisfies(c.mask, requirement)]
+        if n_rows is None:
+            raise ValueError("n_rows: the number of whitened rows behind the factors is needed for the criteria")
+        score_candidates(cands, n_rows, penalty)
     # Cross-validate the plausible candidates only (all of them would be costly for exhaustive paths).
     ranked = sorted(cands, key=lambda c: c.bic)[:CV_CANDIDATES]
     ranked += [c for c in cands if c.n_free == 0 and c not in ranked]
@@ -214,6 +326,14 @@ def select(
 
 #: How many of the best candidates (by criterion) are cross-validated and kept in the path diagnostics.
 CV_CANDIDATES = 24
+
+
+def satisfies(mask: np.ndarray, requirement: tuple[np.ndarray, np.ndarray] | None) -> bool:
+    """Whether a support meets ``requirement`` = (needs, provides): no needs column, or a provides one too."""
+    if requirement is None:
+        return True
+    needs, provides = requirement
+    return not bool((mask & needs).any()) or bool((mask & provides).any())
 
 
 def score_candidates(cands: list[Candidate], n_rows: int, penalty: np.ndarray | None) -> None:
@@ -245,11 +365,12 @@ def training_blocks(n_blocks: int, test: np.ndarray, gap: int = 1) -> np.ndarray
 def cross_validate(T_blocks: np.ndarray, cands: list[Candidate], folds: int) -> None:
     """Held-out residual of each candidate support, refitted on the other folds (in place)."""
     groups = fold_slices(T_blocks.shape[0], folds)
+    # the training factor of each fold, shared by all candidates
+    trained = [combine(T_blocks[training_blocks(T_blocks.shape[0], test)]) for test in groups]
     for c in cands:
         per_fold = []
-        for test in groups:
-            train = training_blocks(T_blocks.shape[0], test)
-            coef, _ = subset_fit(combine(T_blocks[train]), c.mask)
+        for test, T_train in zip(groups, trained):
+            coef, _ = subset_fit(T_train, c.mask)
             per_fold.append(block_rss(T_blocks[test], coef).sum())
         per_fold = np.asarray(per_fold)
         c.cv_rss = float(per_fold.sum())
@@ -276,6 +397,7 @@ def bag(
     rng: np.random.Generator,
     n_rows: int,
     penalty: np.ndarray | None = None,
+    requirement: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Bagging:
     """Bootstrap over blocks: inclusion probabilities (re-selecting) and coefficient spread (chosen support)."""
     B = T_blocks.shape[0]
@@ -284,15 +406,34 @@ def bag(
     counts = np.zeros(p)
     samples = np.empty((n_boot, p))
     supports: dict[tuple, int] = {}
+    key = "bic" if criterion in ("bic", "cv") else "aicc"
+    n_rows_boot = int(B * n_rows_per_block)
+    if method == "exhaustive":
+        crit = _SubsetCriteria(protected, n_rows_boot, penalty, requirement)
     for i in range(n_boot):
         mult = rng.multinomial(B, np.full(B, 1.0 / B)).astype(float)
         T = combine(T_blocks, mult)
-        cands = candidates_for(T, protected, method, thresholds)
-        key = "bic" if criterion in ("bic", "cv") else "aicc"
-        score_candidates(cands, int(B * n_rows_per_block), penalty)
-        pick = min(cands, key=lambda c: getattr(c, key))
-        counts += pick.mask
-        support = tuple(n for n, m, prot in zip(names, pick.mask, protected) if m and not prot)
+        if method == "exhaustive":
+            pick_mask = _exhaustive_pick(T, protected, crit, key, penalty)
+        else:
+            cands = [c for c in candidates_for(T, protected, method, thresholds) if satisfies(c.mask, requirement)]
+            score_candidates(cands, n_rows_boot, penalty)
+            pick_mask = min(cands, key=lambda c: getattr(c, key)).mask
+        counts += pick_mask
+        support = tuple(n for n, m, prot in zip(names, pick_mask, protected) if m and not prot)
         supports[support] = supports.get(support, 0) + 1
         samples[i], _ = subset_fit(T, chosen_mask)
     return Bagging(counts / n_boot, samples, n_boot, supports)
+
+
+def _exhaustive_pick(T: np.ndarray, protected: np.ndarray, crit: _SubsetCriteria, key: str,
+                     penalty: np.ndarray | None) -> np.ndarray:
+    """Mask of the subset with the lowest criterion ``key`` (the first in path order on ties), as
+    ``min(exhaustive_path(...))`` after :func:`score_candidates`, from one kernel call: the subsets within
+    rounding of the screened minimum are refitted exactly and compared."""
+    values = crit.values(_all_subsets_rss(T, protected), key)
+    best = values.min()
+    near = np.flatnonzero(values <= best + crit.tol + 1e-12 * abs(best))
+    if near.size == 1:
+        return crit.mask(int(near[0]))
+    return min(crit.exact(T, near.tolist(), penalty), key=lambda c: getattr(c, key)).mask

@@ -9,6 +9,8 @@ against the presets, the effect catalog and custom terms.
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
 
 import numpy as np
@@ -18,7 +20,7 @@ from afmid import expr, regression
 from afmid.config import ModelConfig
 from afmid.errors import ConfigError
 from afmid.kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy
-from afmid.kernels.sparse import stlsq_factor, stlsq_factor_numpy
+from afmid.kernels.sparse import _subset_lstsq, stlsq_factor, stlsq_factor_numpy, subset_rss, subset_rss_numpy
 from afmid.library import PRESETS, build_library, trajectory_variables
 from afmid.physics import EFFECTS
 from afmid.preprocess import estimate_drive, harmonic_blocks, weak_windows
@@ -164,6 +166,236 @@ def test_exhaustive_path_contains_the_true_support_and_bic_picks_it():
         regression.exhaustive_path(T, np.zeros(9, dtype=bool), max_free=4)
 
 
+# --------------------------------------------------------------------------- all subsets in one kernel call
+def _kernel_rss(T, protected):
+    from afmid.kernels.sparse import SUBSET_RSS_MAX_ERROR, SUBSET_RSS_MIN_PIVOT
+
+    return subset_rss(np.ascontiguousarray(T), protected.astype(np.bool_), SUBSET_RSS_MAX_ERROR, SUBSET_RSS_MIN_PIVOT)
+
+
+def _subset_masks(protected):
+    """Mask of each bitmask over the free columns (bit i = the i-th free column), as the kernel indexes them."""
+    free = np.flatnonzero(~protected)
+    for sub in range(1 << free.size):
+        mask = protected.copy()
+        mask[free[(sub >> np.arange(free.size)) & 1 == 1]] = True
+        yield sub, mask
+
+
+def _per_subset_path(T, protected):
+    """The exhaustive path fitted subset by subset with ``subset_fit`` (the reference implementation)."""
+    free = np.flatnonzero(~protected)
+    cands = []
+    for k in range(free.size + 1):
+        for subset in itertools.combinations(free, k):
+            mask = protected.copy()
+            mask[list(subset)] = True
+            coef, rss = regression.subset_fit(T, mask)
+            cands.append(regression.Candidate(mask, coef, rss, k))
+    return cands
+
+
+def _realistic_problem(library, seed, periods=12, rel_noise=1e-3):
+    """Blocks of a per-sample regression on a seed library evaluated in SI units along a tapping
+    trajectory (columns span 50-80 decades: z^-8 ~ 1e70, delta^2.5 ~ 1e-22), plus the drive cos/sin
+    (protected); the force is a DMT (``viscoelastic_table2``) or Lennard-Jones (``lj_table1``) law."""
+    rng = np.random.default_rng(seed)
+    lib = build_library(ModelConfig(library=library))
+    x, v, t = _tapping_trajectory(seed, periods)
+    d = 8.5e-9 if library != "lj_table1" else float(x.max()) + 0.3e-9
+    params = {"d": d, "a0": A0_CONTACT, "R": 10e-9, "w": 2 * np.pi * F_DRIVE, **lib.nonlinear}
+    theta = lib.evaluate(x, v, t, params, backend="numpy")
+    w = 2 * np.pi * F_DRIVE
+    A = np.column_stack([theta, np.cos(w * t), np.sin(w * t)])
+    if library == "lj_table1":
+        H, R, sigma = 5e-20, 10e-9, 0.3e-9
+        c = {"z^-2": -H * R / 6, "z^-8": H * R * sigma**6 / 180}
+    else:
+        c = {"z^-2": -1e-19 * 10e-9 / 6, "delta^1.5": 4 / 3 * 1e9 * math.sqrt(10e-9),
+             "[z<=a0] (bridging)": -1e-19 * 10e-9 / (6 * A0_CONTACT**2)}
+    coef = np.array([c.get(name, 0.0) for name in lib.names] + [2e-9, -1e-9])
+    y = A @ coef
+    y = y + rel_noise * np.abs(y).max() * rng.standard_normal(y.size)
+    protected = np.r_[np.zeros(len(lib), bool), True, True]
+    Ab, yb = blocks_of(A, y, periods)
+    return regression.factor_blocks(Ab, yb), protected, y.size, lib
+
+
+def _degenerate_problems(rng):
+    """Badly scaled problems with the degeneracies the kernel hands to ``_subset_lstsq``."""
+    A, y, c, protected = sparse_problem(rng, rows=300, p=10, support=(1, 4, 6), noise=1e-3)
+    out = {"spread 1e+-12": (A, y, protected)}
+    B = A.copy()
+    B[:, 3] = 1e7 * B[:, 2]  # an exact (scaled) duplicate: rank-deficient subsets
+    out["duplicate column"] = (B, y, protected)
+    B = A.copy()
+    B[:, 3] = 1e7 * B[:, 2] * (1 + 1e-9 * rng.standard_normal(A.shape[0]))  # condition ~1e9
+    out["near duplicate"] = (B, y, protected)
+    B = A.copy()
+    B[:, 5] = 0.0
+    out["zero column"] = (B, y, protected)
+    out["noise-free"] = (A, A @ c, protected)
+    out["fewer rows than columns"] = (A[:7], y[:7], protected)
+    out["no protected column"] = (A[:, :8], y, np.zeros(8, dtype=bool))
+    return out
+
+
+def _padded_factor(A, y):
+    T = factor(A, y)
+    return np.vstack([T, np.zeros((T.shape[1] - T.shape[0], T.shape[1]))]) if T.shape[0] < T.shape[1] else T
+
+
+@pytest.mark.parametrize("library", ["viscoelastic_table2", "lj_table1"])
+@pytest.mark.parametrize("seed", range(2))
+def test_subset_rss_matches_per_subset_fits_on_library_matrices(library, seed):
+    T_blocks, protected, _, lib = _realistic_problem(library, seed)
+    T = regression.combine(T_blocks)
+    norms = np.linalg.norm(T[:, :-1], axis=0)
+    assert norms.max() / norms.min() > 1e40, "SI library columns span many decades"
+    rss, exact = _kernel_rss(T, protected)
+    assert rss.shape == (1 << len(lib),)
+    ref = np.array([_subset_lstsq(T, mask)[1] for _, mask in _subset_masks(protected)])
+    np.testing.assert_allclose(rss, ref, rtol=1e-9, atol=0)
+    assert np.array_equal(rss[exact], ref[exact]), "subsets refitted by _subset_lstsq are bit for bit its result"
+    twin, exact_twin = subset_rss_numpy(T, protected)
+    np.testing.assert_array_equal(exact, exact_twin)
+    np.testing.assert_allclose(rss, twin, rtol=1e-9, atol=0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_subset_rss_matches_numpy_twin(seed):
+    rng = np.random.default_rng(200 + seed)
+    A, y, _, protected = sparse_problem(rng, rows=200, p=11, support=(0, 2, 7), noise=10.0 ** rng.uniform(-6, -1))
+    T = np.ascontiguousarray(factor(A, y))
+    rss, exact = _kernel_rss(T, protected)
+    twin, exact_twin = subset_rss_numpy(T, protected)
+    np.testing.assert_array_equal(exact, exact_twin)
+    np.testing.assert_allclose(rss, twin, rtol=1e-9, atol=0)
+    # the empty support (protected columns only) and the full one
+    assert rss[0] == pytest.approx(regression.subset_fit(T, protected)[1], rel=1e-9)
+    assert rss[-1] == pytest.approx(regression.subset_fit(T, np.ones(A.shape[1], dtype=bool))[1], rel=1e-9)
+
+
+def test_subset_rss_degenerate_subsets_are_those_of_subset_fit():
+    rng = np.random.default_rng(11)
+    for name, (A, y, protected) in _degenerate_problems(rng).items():
+        T = _padded_factor(A, y)
+        rss, exact = _kernel_rss(T, protected)
+        masks = dict(_subset_masks(protected))
+        ref = np.array([_subset_lstsq(T, masks[sub])[1] for sub in range(rss.size)])
+        assert np.array_equal(rss[exact], ref[exact]), name
+        np.testing.assert_allclose(rss[~exact], ref[~exact], rtol=1e-9, atol=0, err_msg=name)
+        twin, exact_twin = subset_rss_numpy(T, protected)
+        np.testing.assert_array_equal(exact, exact_twin, err_msg=name)
+        np.testing.assert_allclose(rss[~exact], twin[~exact], rtol=1e-9, atol=0, err_msg=name)
+        scale = float(np.sum(y**2))
+        if name in ("near duplicate", "zero column", "noise-free", "fewer rows than columns"):
+            # the SVD cut-off is not borderline here: NumPy's lstsq (the twin's fallback) agrees
+            np.testing.assert_allclose(rss[exact], twin[exact], rtol=1e-6, atol=1e-12 * scale, err_msg=name)
+        if name in ("duplicate column", "zero column", "noise-free", "fewer rows than columns"):
+            assert exact.any(), f"{name}: rank-deficient subsets go to _subset_lstsq"
+        if name == "spread 1e+-12":
+            assert not exact.any()
+        if name == "duplicate column":  # both copies in: rank-deficient, refitted
+            both = [sub for sub, mask in masks.items() if mask[2] and mask[3]]
+            assert exact[both].all()
+
+
+def _reference_select(T_blocks, protected, criterion, n_rows, folds, penalty):
+    """``regression.select(..., "exhaustive")`` as it was: every subset a Candidate fitted by subset_fit."""
+    cands = _per_subset_path(regression.combine(T_blocks), protected)
+    regression.score_candidates(cands, n_rows, penalty)
+    ranked = sorted(cands, key=lambda c: c.bic)[: regression.CV_CANDIDATES]
+    ranked += [c for c in cands if c.n_free == 0 and c not in ranked]
+    cands = sorted(ranked, key=lambda c: (c.n_free, c.bic))
+    regression.cross_validate(T_blocks, cands, folds)
+    if criterion == "cv":
+        best = min(cands, key=lambda c: c.cv_rss)
+        ok = [c for c in cands if c.cv_rss <= best.cv_rss + best.cv_rss_se]
+        chosen = min(ok, key=lambda c: (c.n_free, c.cv_rss))
+    else:
+        chosen = min(cands, key=lambda c: getattr(c, criterion))
+    return cands, next(i for i, c in enumerate(cands) if c is chosen)
+
+
+def _reference_bag(T_blocks, protected, chosen_mask, names, criterion, n_boot, rng, n_rows, penalty):
+    B = T_blocks.shape[0]
+    key = "bic" if criterion in ("bic", "cv") else "aicc"
+    counts, samples, supports = np.zeros(T_blocks.shape[-1] - 1), [], {}
+    for _ in range(n_boot):
+        mult = rng.multinomial(B, np.full(B, 1.0 / B)).astype(float)
+        T = regression.combine(T_blocks, mult)
+        cands = _per_subset_path(T, protected)
+        regression.score_candidates(cands, int(B * (n_rows / B)), penalty)
+        pick = min(cands, key=lambda c: getattr(c, key))
+        counts += pick.mask
+        support = tuple(n for n, m, prot in zip(names, pick.mask, protected) if m and not prot)
+        supports[support] = supports.get(support, 0) + 1
+        samples.append(regression.subset_fit(T, chosen_mask)[0])
+    return counts / n_boot, np.array(samples), supports
+
+
+@functools.cache
+def _selection_problems():
+    out = {}
+    for library in ("viscoelastic_table2", "lj_table1"):
+        T_blocks, protected, n_rows, lib = _realistic_problem(library, 5, rel_noise=3e-2)
+        penalty = np.where([t.effect is None for t in lib.terms] + [False, False], 2 * math.log(10), 0.0)
+        out[library] = (T_blocks, protected, n_rows, penalty, lib.names + ["cos", "sin"])
+    rng = np.random.default_rng(12)
+    for name, (A, y, protected) in _degenerate_problems(rng).items():
+        if name == "fewer rows than columns":
+            continue
+        Ab, yb = blocks_of(A, y, 10)
+        names = [f"c{j}" for j in range(A.shape[1])]
+        out[name] = (regression.factor_blocks(Ab, yb), protected, Ab.shape[0] * Ab.shape[1], None, names)
+    return out
+
+
+SELECTION_PROBLEMS = ["viscoelastic_table2", "lj_table1", "spread 1e+-12", "duplicate column", "near duplicate",
+                      "zero column", "noise-free", "no protected column"]
+
+
+@pytest.mark.parametrize("problem", SELECTION_PROBLEMS)
+def test_exhaustive_select_and_bag_equal_the_per_subset_path(problem):
+    """select / bag with the one-call kernel give exactly what fitting every subset gave (same choice,
+    same Candidate values bit for bit, same bootstrap)."""
+    T_blocks, protected, n_rows, penalty, names = _selection_problems()[problem]
+    for criterion in ("bic", "aicc", "cv"):
+        sel = regression.select(T_blocks, protected, "exhaustive", criterion, n_rows=n_rows, folds=5, penalty=penalty)
+        ref, chosen = _reference_select(T_blocks, protected, criterion, n_rows, 5, penalty)
+        assert sel.chosen == chosen
+        assert len(sel.candidates) == len(ref)
+        for c, r in zip(sel.candidates, ref):
+            assert np.array_equal(c.mask, r.mask) and c.n_free == r.n_free
+            assert (c.rss, c.bic, c.aicc, c.cv_rss, c.cv_rss_se) == (r.rss, r.bic, r.aicc, r.cv_rss, r.cv_rss_se)
+            assert np.array_equal(c.coef, r.coef)
+    chosen_mask = sel.best.mask
+    for criterion in ("bic", "aicc"):
+        bag = regression.bag(T_blocks, protected, chosen_mask, names, "exhaustive", criterion,
+                             regression.default_thresholds(), 6, np.random.default_rng(3), n_rows, penalty)
+        inclusion, samples, supports = _reference_bag(T_blocks, protected, chosen_mask, names, criterion, 6,
+                                                      np.random.default_rng(3), n_rows, penalty)
+        assert np.array_equal(bag.inclusion, inclusion)
+        assert np.array_equal(bag.coef_samples, samples)
+        assert bag.supports == supports
+
+
+def test_exhaustive_path_equals_the_per_subset_path():
+    T_blocks, protected, _, _, _ = _selection_problems()["lj_table1"]
+    T = regression.combine(T_blocks)
+    cands = regression.exhaustive_path(T, protected)
+    ref = _per_subset_path(T, protected)
+    assert len(cands) == len(ref) == 1 << 10
+    for c, r in zip(cands, ref):  # same order (by size, then itertools.combinations), masks, sizes
+        assert np.array_equal(c.mask, r.mask) and c.n_free == r.n_free
+        assert c.rss == pytest.approx(r.rss, rel=1e-9)
+    for c, r in zip(cands[::37], ref[::37]):  # coefficients (fitted on first access) are subset_fit's
+        assert np.array_equal(c.coef, r.coef)
+    T[:] = 0.0  # the path keeps its own copy of the factor for the lazy coefficients
+    assert np.array_equal(cands[-1].coef, ref[-1].coef)
+
+
 # --------------------------------------------------------------------------- hysteresis kernel
 def _gate_signals(rng, n=5000, neck=0.4e-9):
     """on/off conditions of a contact gate along a noisy tapping trajectory (on: z <= a0, off: z > a0 + neck)."""
@@ -287,11 +519,12 @@ def test_weak_windows_integrate_by_parts_for_non_periodic_motion(spp, tol):
 def test_build_library_presets():
     for name, preset in PRESETS.items():
         lib = build_library(ModelConfig(library=name))
-        assert lib.names == [display for display, _, _ in preset.terms], name
+        assert lib.names == [entry[0] for entry in preset.terms], name
         assert lib.effects == preset.effects
         assert lib.source == name
-        for term, (_, expression, origin) in zip(lib.terms, preset.terms):
+        for term, (_, expression, origin, *role) in zip(lib.terms, preset.terms):
             assert term.expression == expression
+            assert term.role == (role[0] if role else "")
             assert parse_unit(term.coefficient_unit) * parse_unit(term.unit) == parse_unit("N"), term.name
             if origin is None:
                 assert term.effect is None and term.label is None  # a distractor (gets the prior penalty)
@@ -431,3 +664,49 @@ def test_trajectory_variables_contact_conventions():
     np.testing.assert_allclose(delta[contact], A0_CONTACT - z[contact])
     assert np.all(delta[~contact] == 0) and np.all(deltadot[~contact] == 0)
     np.testing.assert_allclose(deltadot[contact], v[contact])
+
+
+# --------------------------------------------------------------------------- selection constraint
+def test_term_roles_of_the_catalog_and_the_seed_tables():
+    """Contact-only adhesion and damping need an elastic contact law; the roles are declared and checked."""
+    from afmid.physics import TERM_ROLES
+
+    roles = {f"{e.name}.{t.label}": t.role for e in EFFECTS for t in e.terms}
+    assert set(roles.values()) <= set(TERM_ROLES)
+    assert roles["dmt.hertz"] == roles["jkr.hertz"] == "elastic_contact"
+    assert roles["viscoelastic.kelvin_voigt"] == roles["jkr.adhesion"] == "needs_elastic_contact"
+    assert roles["dmt.vdw"] == "" and roles["exponential_damping.surface_damping"] == ""  # act out of contact too
+    table2 = build_library(ModelConfig(library="viscoelastic_table2"))
+    needs, provides = table2.requirement(2)
+    assert [n for n, m in zip(table2.names, needs) if m] == ["delta^0.5*deltadot", "delta*deltadot^2",
+                                                               "[z<=a0] (bridging)"]
+    assert [n for n, m in zip(table2.names, provides) if m] == ["delta^2", "delta^2.5", "delta^1.5"]
+    assert needs.size == len(table2) + 2 and not needs[-2:].any() and not provides[-2:].any()
+    assert build_library(ModelConfig(library="lj_table1")).requirement() is None
+    assert build_library(ModelConfig(effects=["dmt"])).requirement() is None  # nothing needs anything
+
+
+@pytest.mark.parametrize("method", ["exhaustive", "stlsq"])
+def test_selection_requirement_excludes_contact_terms_without_elastic_law(method):
+    """Data that a viscous column alone explains best: with the requirement the chosen support must carry
+    an elastic column too; every candidate kept satisfies it, in the selection and in the bootstrap."""
+    rng = np.random.default_rng(3)
+    B, r = 30, 40
+    elastic = rng.normal(size=(B, r))
+    viscous = rng.normal(size=(B, r))
+    other = rng.normal(size=(B, r))
+    drive = rng.normal(size=(B, r))
+    y = 2.0 * viscous + 0.5 * drive + 0.05 * rng.normal(size=(B, r))
+    A = np.stack([elastic, viscous, other, drive], axis=2)
+    T_blocks = regression.factor_blocks(A, y)
+    protected = np.array([False, False, False, True])
+    requirement = (np.array([False, True, False, False]), np.array([True, False, False, False]))
+    free = regression.select(T_blocks, protected, method, "bic", n_rows=B * r)
+    assert list(free.best.mask) == [False, True, False, True]  # unconstrained: the viscous column alone
+    held = regression.select(T_blocks, protected, method, "bic", n_rows=B * r, requirement=requirement)
+    assert held.best.mask[1] and held.best.mask[0]
+    assert all(regression.satisfies(c.mask, requirement) for c in held.candidates)
+    bagging = regression.bag(T_blocks, protected, held.best.mask, ["e", "v", "o", "d"], method, "bic",
+                             regression.default_thresholds(), 20, np.random.default_rng(0), B * r,
+                             requirement=requirement)
+    assert all(("v" not in s) or ("e" in s) for s in bagging.supports)

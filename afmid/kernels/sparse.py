@@ -5,6 +5,12 @@ The regression problem ``y ~ A c`` is carried as the upper-triangular factor
 regression is then a small least-squares problem on columns of ``T`` with the
 exact residual, without ever forming the ill-conditioned normal equations
 (inverse powers z^-1..z^-8 make A'A singular to double precision).
+
+:func:`subset_rss` gives the residual of every subset of the free columns in one
+call (exhaustive search): a depth-first walk over the subsets that adds one column
+at a time to a Householder QR of the unit-norm columns (again no normal
+equations: unit-norm Gram matrices of the seed tables reach condition ~1e11-1e14),
+handing the ill-conditioned and rank-deficient subsets to :func:`_subset_lstsq`.
 """
 
 from __future__ import annotations
@@ -94,3 +100,210 @@ def stlsq_factor_numpy(T, scale, threshold, protected, initial, max_iter):
         active &= ~drop
         coef, rss = solve(active)
     return active, coef, rss
+
+
+# --------------------------------------------------------------------------- every subset at once
+#: :func:`subset_rss` solves a subset by :func:`_subset_lstsq` (SVD, as one subset fit does) when the
+#: estimated relative rounding error of its QR residual exceeds ``SUBSET_RSS_MAX_ERROR``, or when a pivot of
+#: its unit-norm triangular factor is below ``SUBSET_RSS_MIN_PIVOT`` (condition number >= 1e8: near
+#: rank-deficient, where the SVD cut-off of the single fit decides what the residual is).
+SUBSET_RSS_MAX_ERROR = 1e-10
+SUBSET_RSS_MIN_PIVOT = 1e-8
+
+
+@njit(cache=True)
+def _householder(W, r, c, c_end):
+    """Reflect rows r.. of ``W`` so that column ``c`` is zero below row ``r``; apply to columns c+1..c_end-1.
+
+    Returns the new diagonal entry (0 when the column is already zero below row r, no reflection)."""
+    m = W.shape[0]
+    alpha = 0.0
+    for i in range(r, m):
+        alpha += W[i, c] * W[i, c]
+    alpha = np.sqrt(alpha)
+    if alpha == 0.0:
+        return 0.0
+    x0 = W[r, c]
+    beta = -alpha if x0 >= 0.0 else alpha
+    v0 = x0 - beta  # v = (v0, W[r+1:, c]), |v|^2 = 2 alpha (alpha + |x0|)
+    vnorm2 = 2.0 * alpha * (alpha + abs(x0))
+    for k in range(c + 1, c_end):
+        s = v0 * W[r, k]
+        for i in range(r + 1, m):
+            s += W[i, c] * W[i, k]
+        f = 2.0 * s / vnorm2
+        W[r, k] -= f * v0
+        for i in range(r + 1, m):
+            W[i, k] -= f * W[i, c]
+    W[r, c] = beta
+    for i in range(r + 1, m):
+        W[i, c] = 0.0
+    return beta
+
+
+@njit(cache=True)
+def subset_rss(T, protected, max_error, min_pivot):
+    """Residual sum of squares of every subset of the free (non-protected) columns of factor ``T``.
+
+    ``T`` (m x q, usually the q x q factor of ``[A | y]``); the protected columns are in every subset.
+    Returns ``(rss, exact)``, arrays of length ``2**n_free`` indexed by bitmask: bit ``i`` set = the
+    ``i``-th free column (in column order) is active. ``exact[b]`` is True where subset ``b`` was solved
+    by :func:`_subset_lstsq` itself (the empty subset, near rank-deficient or ill-conditioned subsets,
+    see ``SUBSET_RSS_MAX_ERROR``); elsewhere the residual comes from a Householder QR of the unit-norm
+    columns (as :func:`_subset_lstsq` scales them) grown column by column along a depth-first walk
+    over the subsets, one reflection per subset, and agrees with :func:`_subset_lstsq` to rounding.
+    """
+    m, q = T.shape
+    p = q - 1
+    nf = 0
+    for j in range(p):
+        if not protected[j]:
+            nf += 1
+    npr = p - nf
+    free = np.empty(nf, np.int64)
+    prot = np.empty(npr, np.int64)
+    a = 0
+    b = 0
+    for j in range(p):
+        if protected[j]:
+            prot[b] = j
+            b += 1
+        else:
+            free[a] = j
+            a += 1
+    n_sub = 1 << nf
+    rss = np.empty(n_sub)
+    exact = np.zeros(n_sub, np.bool_)
+    eps = 2.220446049250313e-16
+    # unit-norm columns, protected first, then the free ones, then y
+    M = np.empty((m, p + 1))
+    for e in range(p):
+        j = prot[e] if e < npr else free[e - npr]
+        nrm = 0.0
+        for i in range(m):
+            nrm += T[i, j] * T[i, j]
+        nrm = np.sqrt(nrm)
+        if nrm == 0.0:
+            nrm = 1.0
+        for i in range(m):
+            M[i, e] = T[i, j] / nrm
+    ynorm = 0.0
+    for i in range(m):
+        M[i, p] = T[i, p]
+        ynorm += T[i, p] * T[i, p]
+    ynorm = np.sqrt(ynorm)
+    # R: column e holds the triangular factor's column of the e-th active column of the current subset
+    R = np.zeros((max(m, p), p))
+    pivmin = np.empty(nf + 1)
+    pivmin[0] = np.inf
+    for e in range(npr):
+        beta = _householder(M, e, e, p + 1) if e < m else 0.0
+        pivmin[0] = min(pivmin[0], abs(beta))
+        for i in range(min(e + 1, m)):
+            R[i, e] = M[i, e]
+    # W[d]: the free columns and y (last) after the reflections of the protected columns and of the
+    # d free columns added on the current path
+    W = np.zeros((nf + 1, m, nf + 1))
+    for i in range(m):
+        for k in range(nf + 1):
+            W[0, i, k] = M[i, npr + k]
+    bits = np.zeros(nf + 1, np.int64)
+    nxt = np.zeros(nf + 1, np.int64)
+    coef = np.empty(p)
+    mask = np.empty(p, np.bool_)
+    d = 0
+    while d >= 0:
+        # ---- evaluate the subset at depth d (its reflections are done)
+        r = npr + d
+        sub = bits[d]
+        ok = r > 0 and r < m and pivmin[d] > 0.0 and pivmin[d] >= min_pivot
+        tail = 0.0
+        if ok:
+            for i in range(r, m):
+                tail += W[d, i, nf] * W[d, i, nf]
+            ok = tail > 0.0
+        if ok:
+            # coefficients on unit-norm columns: R c = (Q'y)[:r]
+            cn2 = 0.0
+            for e in range(r - 1, -1, -1):
+                s = W[d, e, nf]
+                for k in range(e + 1, r):
+                    s -= R[e, k] * coef[k]
+                coef[e] = s / R[e, e]
+                cn2 += coef[e] * coef[e]
+            err = 4.0 * eps * (ynorm + np.sqrt(r * cn2)) / np.sqrt(tail)
+            if err <= max_error:
+                rss[sub] = tail
+            else:
+                ok = False
+        if not ok:
+            for j in range(p):
+                mask[j] = protected[j]
+            for e in range(nf):
+                if (sub >> e) & 1:
+                    mask[free[e]] = True
+            rss[sub] = _subset_lstsq(T, mask)[1]
+            exact[sub] = True
+        # ---- next subset: add the next free column after the last one, else backtrack
+        while d >= 0 and nxt[d] >= nf:
+            d -= 1
+        if d < 0:
+            break
+        j = nxt[d]
+        nxt[d] = j + 1
+        rr = npr + d
+        for i in range(m):
+            for k in range(j, nf + 1):
+                W[d + 1, i, k] = W[d, i, k]
+        beta = _householder(W[d + 1], rr, j, nf + 1) if rr < m else 0.0
+        for i in range(min(rr + 1, m)):
+            R[i, rr] = W[d + 1, i, j]
+        pivmin[d + 1] = min(pivmin[d], abs(beta))
+        bits[d + 1] = bits[d] | (1 << j)
+        nxt[d + 1] = j + 1
+        d += 1
+    return rss, exact
+
+
+def subset_rss_numpy(T, protected, max_error=SUBSET_RSS_MAX_ERROR, min_pivot=SUBSET_RSS_MIN_PIVOT):
+    """Plain-NumPy twin of :func:`subset_rss`: one QR (LAPACK) per subset, the same fallback rule."""
+    T = np.asarray(T, dtype=float)
+    m, q = T.shape
+    p = q - 1
+    free = np.flatnonzero(~protected)
+    prot = np.flatnonzero(protected)
+    norms = np.linalg.norm(T[:, :p], axis=0)
+    norms[norms == 0] = 1.0
+    X = T[:, :p] / norms
+    y = T[:, p]
+    ynorm = np.linalg.norm(y)
+    eps = np.finfo(float).eps
+    n_sub = 1 << free.size
+    rss = np.empty(n_sub)
+    exact = np.zeros(n_sub, dtype=bool)
+    for sub in range(n_sub):
+        cols = np.concatenate([prot, free[(sub >> np.arange(free.size)) & 1 == 1]])
+        r = cols.size
+        ok = 0 < r < m
+        if ok:
+            Rf = np.linalg.qr(np.column_stack([X[:, cols], y]), mode="r")
+            diag = np.abs(np.diag(Rf)[:r])
+            tail = float(np.sum(Rf[r:, r] ** 2))
+            ok = bool(diag.min() > 0.0 and diag.min() >= min_pivot and tail > 0.0)
+            if ok:
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    c = np.linalg.solve(Rf[:r, :r], Rf[:r, r])
+                    err = 4.0 * eps * (ynorm + np.sqrt(r * np.sum(c**2))) / np.sqrt(tail)
+                ok = bool(err <= max_error)
+        if ok:
+            rss[sub] = tail
+        else:  # the single subset fit (twin of _subset_lstsq: SVD, machine-precision cut-off)
+            mask = protected.copy()
+            mask[cols] = True
+            if not mask.any():
+                rss[sub] = float(np.sum(y**2))
+            else:
+                sol, *_ = np.linalg.lstsq(X[:, mask], y, rcond=-1)
+                rss[sub] = float(np.sum((y - X[:, mask] @ sol) ** 2))
+            exact[sub] = True
+    return rss, exact
