@@ -8,8 +8,7 @@ STAMP := $(VENV)/.installed
 DEMO_DIR ?= demo_output
 RESULTS ?= results
 BENCH_ARGS ?=
-CONFIGS := $(wildcard configs/*.yaml)
-RUNS := $(patsubst configs/%.yaml,$(RESULTS)/%.run.h5,$(CONFIGS))
+BATCH_JOBS ?= 2
 
 .PHONY: help venv demo test batch bench clean
 .DEFAULT_GOAL := help
@@ -17,10 +16,11 @@ RUNS := $(patsubst configs/%.yaml,$(RESULTS)/%.run.h5,$(CONFIGS))
 help:
 	@echo "make demo   - set up .venv, simulate a soft-polymer trace, fit it, write a report"
 	@echo "make test   - set up .venv with test extras and run the test suite"
-	@echo "make batch  - simulate and fit every config in configs/ into $(RESULTS)/ (use -j N)"
+	@echo "make batch  - fit every config in configs/ (simulated first where it has no data) into $(RESULTS)/ (BATCH_JOBS=N workers)"
 	@echo "make bench  - benchmarks in one table (afmid vs SciPy / PySINDy, scaling, start-up, batch);"
 	@echo "              BENCH_ARGS=--quick for a smoke run"
 	@echo "many traces with one config: afmid batch CONFIG --inputs 'traces/*.csv' -j N -o DIR"
+	@echo "many configs, each its own data: afmid batch --configs 'configs/*.yaml' -j N -o DIR"
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -36,18 +36,14 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-# One simulate + fit per config; make only re-runs what changed (parallel with make -j N).
-# Each config carries its own cantilever and model, so this stays a pattern rule rather than
-# `afmid batch`, which fits many traces with one config (see `afmid batch --help`).
-$(RESULTS)/%.trace.h5: configs/%.yaml $(STAMP)
-	@mkdir -p $(RESULTS)
-	$(AFMID) -q simulate $< -o $@ --overwrite
-
-$(RESULTS)/%.run.h5: configs/%.yaml $(RESULTS)/%.trace.h5
-	$(AFMID) -q fit $< --set data.path=$(abspath $(RESULTS)/$*.trace.h5) -o $@ --overwrite
-
-batch: $(RUNS)
-	@echo "batch results in $(RESULTS)/"
+# Every config in configs/ with its own cantilever and model, in BATCH_JOBS worker processes:
+# a config with data.path fits that file; one without is simulated first into
+# $(RESULTS)/NAME.trace.h5, then fitted into $(RESULTS)/NAME.run.h5 (as `afmid simulate` +
+# `afmid fit --set data.path=...` would). $(RESULTS)/summary.csv and summary.h5 list every run.
+# A re-run skips what is up to date (same config, input bytes and afmid version); a failing
+# config is listed with its error and makes the target fail after the others have run.
+batch: $(STAMP)
+	$(AFMID) batch --configs 'configs/*.yaml' -o $(RESULTS) -j $(BATCH_JOBS)
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'

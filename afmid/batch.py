@@ -1,13 +1,32 @@
-"""Batch fits: many traces, one run config, parallel worker processes, resumable.
+"""Batch runs: many traces with one run config, or many run configs each on its own data; parallel, resumable.
 
 ::
 
-    afmid batch CONFIG --inputs 'traces/*.csv' -j 4 -o DIR
-    afmid batch CONFIG --manifest traces.yaml -j 4 -o DIR
+    afmid batch CONFIG --inputs 'traces/*.csv' -j 4 -o DIR     # many traces, one config
+    afmid batch CONFIG --manifest traces.yaml -j 4 -o DIR      # the same, per-file overrides
+    afmid batch --configs 'configs/*.yaml' -j 4 -o DIR         # many configs, each with its own data
+    afmid batch --manifest runs.yaml -j 4 -o DIR               # manifest rows naming their config
 
-Each trace is fitted exactly as ``afmid fit CONFIG --set data.path=TRACE`` would
-fit it (same config layering, same :func:`afmid.fit.run_fit`, same
-:func:`afmid.fit.write_run`), in a pool of ``spawn``-ed worker processes
+**One config, many traces.** Each trace is fitted exactly as
+``afmid fit CONFIG --set data.path=TRACE`` would fit it (same config layering,
+same :func:`afmid.fit.run_fit`, same :func:`afmid.fit.write_run`).
+
+**Many configs** (``--configs``, or manifest rows with a ``config`` key). Each
+config carries its own cantilever, drive, sample and model, and is run on its
+own data:
+
+- a config with ``data.path`` (after ``--set``): that file is fitted, exactly as
+  ``afmid fit CONFIG`` would fit it;
+- a config without ``data.path`` but with a ``simulate:`` section: the trace is
+  simulated first, into ``DIR/NAME.trace.h5`` (written to a temporary name and
+  renamed into place, exactly what ``afmid simulate CONFIG -o DIR/NAME.trace.h5``
+  writes), then fitted as ``afmid fit CONFIG --set data.path=DIR/NAME.trace.h5``;
+- neither: the run fails with that message (the batch goes on).
+
+A manifest row with both ``config`` and ``path`` fits that trace with that
+config (``data.path`` replaced), e.g. traces taken with different cantilevers.
+
+Every item runs in a pool of ``spawn``-ed worker processes
 (:class:`concurrent.futures.ProcessPoolExecutor`). Each worker imports afmid
 once and loads the numba kernels from numba's on-disk cache; BLAS and OpenMP
 are limited to one thread per worker (set before NumPy is imported), so N
@@ -15,33 +34,42 @@ workers use N cores and the float summation order does not depend on the pool.
 
 Outputs in DIR:
 
-- ``NAME.run.h5``: one run file per trace, NAME from the input's stem (an
-  afmid ``.trace`` suffix dropped); stems that collide get their parent
-  folders prefixed (``a_trace``, ``b_trace``), identical paths listed twice a
-  ``-2``, ``-3`` suffix. A manifest may name an entry explicitly.
-- ``summary.csv`` and ``summary.h5``: one row per trace in input order with
+- ``NAME.run.h5``: one run file per item, NAME from the input's stem (an
+  afmid ``.trace`` suffix dropped), or from the config's stem for a config run
+  on its own data (``configs/dmt.yaml`` -> ``dmt``); stems that collide get
+  their parent folders prefixed (``a_trace``, ``b_trace``), identical paths
+  listed twice a ``-2``, ``-3`` suffix. A manifest may name an entry explicitly.
+- ``NAME.trace.h5``: the simulated trace of a config run on simulated data.
+- ``summary.csv`` and ``summary.h5``: one row per item in input order with
   the status (``ok``, ``failed``, ``skipped`` = up to date from an earlier
-  run), the error message of a failure, the error metric, the separation,
-  every physical parameter with its error and 95 % interval, and the time
-  spent per stage. SI units in the CSV headers (``E_star [Pa]``) and as
-  ``units`` attributes in the h5.
+  run), the error message of a failure, the config, the input, the effects,
+  the error metric, the separation, every physical parameter with its error
+  and 95 % interval (the union over all rows: empty / NaN where a run has no
+  such quantity), and the time spent per stage. SI units in the CSV headers
+  (``E_star [Pa]``) and as ``units`` attributes in the h5. Layout in
+  docs/file-formats.md.
 
 Resuming: every run file written by a batch carries the attribute
 ``batch_key`` = SHA-256 of (afmid version, the input file's SHA-256, the
-merged config with ``data.path`` blanked). A re-run skips a trace whose run
+merged config with ``data.path`` blanked). A re-run skips an item whose run
 file holds the key it would get now, and refits it if the input, the config,
-a per-file override or afmid's version changed. Failed traces are always
-retried.
+a per-file override or afmid's version changed. A simulated trace is reused
+when its provenance (the ``config`` and ``afmid_version`` attributes every
+afmid file carries) equals what ``afmid simulate`` would write now, and
+simulated again otherwise; its bytes are then the run's input, so a new trace
+means a new fit. ``--force`` simulates and fits everything again. Failed items
+are always retried.
 
-Safety: workers write into ``DIR/.afmid-tmp-batch-PID/`` and rename each run
-file into place when it is complete; the summary is rewritten atomically
-after completed traces (at most every ``summary_interval`` seconds) and at
-the end, so an interrupted batch (Ctrl-C, SIGTERM) leaves only whole run files
-and a valid summary of what finished; running it again resumes. A trace that
-fails (bad file, bad override, a fit error) is logged and listed with its error
-and does not stop the batch; a worker that dies (killed, out of memory) is
-replaced, and the traces it may have been fitting are retried one at a time
-to find the culprit, which is then reported as failed.
+Safety: workers write into ``DIR/.afmid-tmp-batch-PID/`` and rename each trace
+and run file into place when it is complete; the summary is rewritten
+atomically after completed items (at most every ``summary_interval`` seconds)
+and at the end, so an interrupted batch (Ctrl-C, SIGTERM) leaves only whole
+files and a valid summary of what finished; running it again resumes (a trace
+simulated before the interruption is not simulated again). An item that fails
+(bad file, bad config, bad override, a simulation or fit error) is logged and
+listed with its error and does not stop the batch; a worker that dies (killed,
+out of memory) is replaced, and the items it may have been running are retried
+one at a time to find the culprit, which is then reported as failed.
 
 This module imports nothing heavy at import time: a worker must be able to
 set its thread limits before NumPy loads.
@@ -49,6 +77,7 @@ set its thread limits before NumPy loads.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import glob
 import hashlib
@@ -59,6 +88,7 @@ import os
 import re
 import shutil
 import signal
+import sys
 import time
 import traceback
 from collections import deque
@@ -85,22 +115,34 @@ SUMMARY_CSV = "summary.csv"
 SUMMARY_H5 = "summary.h5"
 SUMMARY_FORMAT = "afmid-batch-summary"
 RUN_SUFFIX = ".run.h5"
+TRACE_SUFFIX = ".trace.h5"
 TMP_PREFIX = ".afmid-tmp-batch-"
 STATUSES = ("ok", "failed", "skipped")
-#: For tests only: a worker fitting the trace of this name kills itself (exercises crash recovery).
+#: For tests only: a worker running the item of this name kills itself (exercises crash recovery).
 _CRASH_ENV = "_AFMID_BATCH_TEST_CRASH"
-#: For tests only: a worker sleeps this many seconds before each fit (makes interrupting deterministic).
+#: For tests only: a worker sleeps this many seconds before each fit, or, for a simulated trace, between writing
+#: it to its temporary name and renaming it into place (makes interrupting deterministic).
 _DELAY_ENV = "_AFMID_BATCH_TEST_DELAY"
 
 
 # =========================================================================== planning
 @dataclass
 class Entry:
-    """One input as listed: a file, its per-file overrides and an optional explicit name."""
+    """One input as listed: a trace file and/or a run config, per-file overrides, an optional explicit name.
 
-    path: Path
+    ``path`` None: the config's own data (its ``data.path``, or a trace simulated from its ``simulate:``
+    section). ``config`` None: the batch's CONFIG.
+    """
+
+    path: Path | None
     overrides: list[tuple[list[str], Any]] = field(default_factory=list)
     name: str | None = None
+    config: Path | None = None
+
+    @property
+    def source(self) -> Path:
+        """The file the run is named after: the trace, else the config."""
+        return self.path if self.path is not None else self.config  # type: ignore[return-value]
 
     def override_text(self) -> str:
         return "; ".join(f"{'.'.join(k)}={v!r}" for k, v in self.overrides)
@@ -108,15 +150,20 @@ class Entry:
 
 @dataclass
 class Item:
-    """One trace to fit: where its run file goes and the config it is fitted with."""
+    """One run: the trace it fits (simulated first or not), where its run file goes, the config it uses."""
 
     index: int
     name: str
     entry: Entry
     output: Path
+    config_path: Path | None = None  # the run config (the batch's CONFIG or the entry's own)
     raw: dict | None = None  # the merged config mapping (data.path set) or None if invalid
     config_text: str = ""  # the merged config with data.path blanked (part of the key)
-    error: str | None = None  # a problem found while planning (bad override, missing file)
+    input: Path | None = None  # the trace file fitted (absolute)
+    simulate: dict | None = None  # the config mapping to simulate the input from, if it is simulated
+    sim_text: str = ""  # what `afmid simulate` stores as the trace's config (decides whether it is current)
+    need_simulate: bool = False  # simulate (again) before fitting
+    error: str | None = None  # a problem found while planning (bad config or override, missing file)
     crashes: int = 0  # times a worker died while this item was in flight
 
 
@@ -144,6 +191,23 @@ def expand_inputs(patterns: list[str] | tuple[str, ...], exclude_dir: Path | Non
     return entries
 
 
+def expand_configs(patterns: list[str] | tuple[str, ...]) -> list[Entry]:
+    """One entry per run config matching the glob ``patterns`` (``**`` recursive), sorted per pattern, no duplicates."""
+    seen: set[Path] = set()
+    entries: list[Entry] = []
+    for pattern in patterns:
+        matches = sorted(glob.glob(os.path.expanduser(pattern), recursive=True))
+        files = [Path(m) for m in matches if Path(m).is_file()]
+        if not files:
+            raise InputError(f"no files match {pattern!r}", key="--configs")
+        for path in files:
+            resolved = path.resolve()
+            if resolved not in seen:
+                seen.add(resolved)
+                entries.append(Entry(None, config=path))
+    return entries
+
+
 def _is_output_name(name: str) -> bool:
     return name.endswith(RUN_SUFFIX) or name in (SUMMARY_CSV, SUMMARY_H5)
 
@@ -151,12 +215,15 @@ def _is_output_name(name: str) -> bool:
 def read_manifest(path: str | Path) -> list[Entry]:
     """Entries of a manifest (paths relative to the manifest's folder).
 
-    YAML: a list (or ``{traces: [...]}``) of paths or mappings
-    ``{path: ..., name: ..., set: {key.path: value} | [key.path=value, ...]}``.
-    CSV: a header with a ``path`` column, optional ``name`` and ``set``
-    (``key.path=value`` separated by ``;``) columns, and any number of columns
-    headed by a config key path (``sample.separation``) whose cells are values
-    (empty: no override).
+    YAML: a list (or ``{traces: [...]}`` / ``{runs: [...]}``) of paths or mappings
+    ``{path: ..., config: ..., name: ..., set: {key.path: value} | [key.path=value, ...]}``
+    with ``path`` (a trace), ``config`` (a run config) or both: a row with only
+    ``config`` runs that config on its own data (``data.path`` or simulated), a
+    row with only ``path`` fits the trace with the batch's CONFIG.
+    CSV: a header with a ``path`` and/or ``config`` column, optional ``name`` and
+    ``set`` (``key.path=value`` separated by ``;``) columns, and any number of
+    columns headed by a config key path (``sample.separation``) whose cells are
+    values (empty: no override).
     """
     from .config import parse_override
 
@@ -189,21 +256,25 @@ def read_manifest(path: str | Path) -> list[Entry]:
         if not rows:
             raise InputError("the manifest lists no traces", file=path, key="--manifest")
         header = list(rows[0])
-        if "path" not in header:
-            raise InputError(f"a CSV manifest needs a 'path' column; found {header}", file=path, key="--manifest")
+        if "path" not in header and "config" not in header:
+            raise InputError(f"a CSV manifest needs a 'path' or a 'config' column; found {header}", file=path,
+                             key="--manifest")
         import yaml
 
         for i, row in enumerate(rows, start=2):
-            if not (row.get("path") or "").strip():
+            trace = (row.get("path") or "").strip()
+            config = (row.get("config") or "").strip()
+            if not trace and not config:
                 continue
             overrides = parse_set((row.get("set") or "").strip(), f"line {i}: set")
             for column in header:
-                if column in ("path", "name", "set") or "." not in column:
+                if column in ("path", "name", "set", "config") or "." not in column:
                     continue
                 cell = (row.get(column) or "").strip()
                 if cell:
                     overrides.append(([p for p in column.split(".") if p], yaml.safe_load(cell)))
-            entries.append(Entry((base / row["path"].strip()).resolve(), overrides, (row.get("name") or "").strip() or None))
+            entries.append(Entry((base / trace).resolve() if trace else None, overrides,
+                                 (row.get("name") or "").strip() or None, (base / config).resolve() if config else None))
     else:
         from .config import read_yaml
 
@@ -216,9 +287,10 @@ def read_manifest(path: str | Path) -> list[Entry]:
 
             data = yaml.safe_load(path.read_text(encoding="utf-8"))
         if isinstance(data, dict):
-            if "traces" not in data:
-                raise ConfigError("expected a list of traces (or a 'traces:' key)", file=path)
-            data = data["traces"]
+            keys = [k for k in ("traces", "runs") if k in data]
+            if len(keys) != 1 or len(data) != 1:
+                raise ConfigError("expected a list of traces or runs (or one 'traces:' or 'runs:' key)", file=path)
+            data = data[keys[0]]
         if not isinstance(data, list) or not data:
             raise InputError("the manifest lists no traces", file=path, key="--manifest")
         for i, item in enumerate(data):
@@ -226,14 +298,17 @@ def read_manifest(path: str | Path) -> list[Entry]:
             if isinstance(item, str):
                 entries.append(Entry((base / item).resolve()))
                 continue
-            if not isinstance(item, dict) or "path" not in item:
-                raise ConfigError("expected a path or a mapping with 'path' (and optional 'name', 'set')",
-                                  file=path, key=where)
-            unknown = set(item) - {"path", "name", "set"}
+            if not isinstance(item, dict) or not (item.get("path") or item.get("config")):
+                raise ConfigError("expected a path or a mapping with 'path' and/or 'config' (and optional 'name', "
+                                  "'set')", file=path, key=where)
+            unknown = set(item) - {"path", "config", "name", "set"}
             if unknown:
-                raise ConfigError(f"unknown keys {sorted(unknown)}; allowed: path, name, set", file=path, key=where)
-            entries.append(Entry((base / str(item["path"])).resolve(), parse_set(item.get("set"), f"{where}.set"),
-                                 str(item["name"]) if item.get("name") else None))
+                raise ConfigError(f"unknown keys {sorted(unknown)}; allowed: path, config, name, set", file=path,
+                                  key=where)
+            entries.append(Entry((base / str(item["path"])).resolve() if item.get("path") else None,
+                                 parse_set(item.get("set"), f"{where}.set"),
+                                 str(item["name"]) if item.get("name") else None,
+                                 (base / str(item["config"])).resolve() if item.get("config") else None))
     return entries
 
 
@@ -254,7 +329,7 @@ def assign_names(entries: list[Entry]) -> list[str]:
     depth = {i: 0 for i in auto}
 
     def candidate(i: int) -> str:
-        path = entries[i].path
+        path = entries[i].source
         parts = [_NAME_RE.sub("_", p) for p in path.parent.parts[len(path.parent.parts) - depth[i]:]] if depth[i] else []
         return "_".join(parts + [_stem(path)])
 
@@ -267,10 +342,10 @@ def assign_names(entries: list[Entry]) -> list[str]:
         clashes = [group for key, group in taken.items() if len(group) > 1 or key in fixed]
         progressed = False
         for group in clashes:
-            if len(group) > 1 and len({entries[i].path for i in group}) == 1:
+            if len(group) > 1 and len({entries[i].source for i in group}) == 1:
                 continue  # the same file listed twice: numbered below
             for i in group:
-                if depth[i] < len(entries[i].path.parent.parts):
+                if depth[i] < len(entries[i].source.parent.parts):
                     depth[i] += 1
                     current[i] = candidate(i)
                     progressed = True
@@ -288,41 +363,133 @@ def assign_names(entries: list[Entry]) -> list[str]:
     return out
 
 
-def plan(config_path: Path, entries: list[Entry], output_dir: Path, overrides: list[str]) -> tuple[list[Item], str]:
-    """Items with their merged configs; returns (items, the batch config text for provenance)."""
+def plan(config_path: Path | None, entries: list[Entry], output_dir: Path,
+         overrides: list[str]) -> tuple[list[Item], str]:
+    """Items with their merged configs; returns (items, the batch CONFIG's merged text for provenance, or "").
+
+    A bad batch CONFIG or ``--set`` stops the batch; a bad per-entry config or override fails only its item.
+    """
     from .config import apply_overrides, build_config, dump_config, parse_override, read_yaml
 
-    base_raw = read_yaml(config_path)
-    base_raw = apply_overrides(base_raw, [parse_override(o) for o in overrides])
-    base_config = build_config(_deepcopy(base_raw), source=config_path)  # a bad config stops the batch
-    batch_text = dump_config(base_config)
+    common = [parse_override(o) for o in overrides]
+    # config file -> (YAML + --set or None, the error or None, whether the YAML itself has a simulate: section)
+    bases: dict[Path, tuple[dict | None, str | None, bool]] = {}
+    batch_text = ""
+    if config_path is not None:
+        yaml_raw = read_yaml(config_path)
+        has_simulate = "simulate" in yaml_raw
+        base_raw = apply_overrides(yaml_raw, _deepcopy(common))
+        batch_text = dump_config(build_config(_deepcopy(base_raw), source=config_path))  # a bad config stops the batch
+        bases[config_path] = (base_raw, None, has_simulate)
+
+    def base(path: Path) -> tuple[dict | None, str | None, bool]:
+        if path not in bases:
+            try:
+                yaml_raw = read_yaml(path)
+                has_simulate = "simulate" in yaml_raw
+                bases[path] = (apply_overrides(yaml_raw, _deepcopy(common)), None, has_simulate)
+            except ConfigError as exc:
+                bases[path] = (None, exc.format(), False)
+        return bases[path]
+
     names = assign_names(entries)
-    cache: dict[str, tuple[dict | None, str, str | None]] = {}
+    cache: dict[tuple, tuple[dict | None, str, str | None]] = {}
     items = []
     for index, (entry, name) in enumerate(zip(entries, names)):
-        item = Item(index, name, entry, output_dir / f"{name}{RUN_SUFFIX}")
-        signature = entry.override_text()
+        source = entry.config if entry.config is not None else config_path
+        item = Item(index, name, entry, output_dir / f"{name}{RUN_SUFFIX}", config_path=source)
+        items.append(item)
+        if source is None:  # run_batch refuses this before planning
+            item.error = ConfigError("no run config for this entry", key="config").format()
+            continue
+        base_raw, error, has_simulate = base(source)
+        if base_raw is None:
+            item.error = error
+            continue
+        entry_overrides = [(list(k), _deepcopy(v)) for k, v in entry.overrides]
+        if entry.path is None:
+            # Simulated if the config (or the entry's own overrides) has a simulate: section; a --set simulate.x
+            # for the whole batch does not make a config without one simulate.
+            simulated = has_simulate or any(k and k[0] == "simulate" for k, _ in entry_overrides)
+            _plan_own_data(item, apply_overrides(_deepcopy(base_raw), entry_overrides), output_dir, simulated)
+            continue
+        signature = (source, entry.override_text())
         if signature not in cache:
-            raw = apply_overrides(_deepcopy(base_raw), [(list(k), _deepcopy(v)) for k, v in entry.overrides])
+            raw = apply_overrides(_deepcopy(base_raw), entry_overrides)
             raw.setdefault("data", {})
             if not isinstance(raw["data"], dict):
                 raw["data"] = {}
             raw["data"]["path"] = None
             try:
-                config = build_config(_deepcopy(raw), source=config_path)
+                config = build_config(_deepcopy(raw), source=source)
                 cache[signature] = (raw, dump_config(config), None)
             except ConfigError as exc:
-                cache[signature] = (None, "", f"per-file override: {exc.format()}")
+                what = "per-file override: " if entry.overrides else ""
+                cache[signature] = (None, "", f"{what}{exc.format()}")
         raw, text, error = cache[signature]
         if raw is not None:
             item.raw = _deepcopy(raw)
             item.raw["data"]["path"] = str(entry.path)
             item.config_text = text
+            item.input = entry.path
         item.error = error
         if item.error is None and not entry.path.is_file():
             item.error = InputError("trace file not found", file=entry.path, key="data.path").format()
-        items.append(item)
     return items, batch_text
+
+
+def _plan_own_data(item: Item, raw: dict, output_dir: Path, simulated: bool) -> None:
+    """A config run on its own data: its ``data.path``, or a trace simulated into DIR from its ``simulate:``."""
+    from .config import build_config, dump_config
+
+    source = item.config_path
+    try:
+        config = build_config(_deepcopy(raw), source=source)
+    except ConfigError as exc:
+        item.error = f"{'per-file override: ' if item.entry.overrides else ''}{exc.format()}"
+        return
+    data_path = config.data.path
+    config.data.path = None
+    text = dump_config(config)
+    if data_path is not None:  # fitted as `afmid fit CONFIG` fits it (data.path as written, relative to CONFIG)
+        item.raw = raw
+        item.config_text = text
+        item.input = config.resolve_path(data_path).resolve()
+        if not item.input.is_file():
+            item.error = InputError("trace file not found (remove data.path to simulate the trace from the "
+                                    "simulate: section)" if simulated else "trace file not found",
+                                    file=item.input, key="data.path").format()
+        return
+    if not simulated:
+        item.error = ConfigError("no data.path to fit and no simulate: section to simulate a trace from",
+                                 file=source, key="data.path").format()
+        return
+    # `afmid simulate CONFIG -o DIR/NAME.trace.h5`, then `afmid fit CONFIG --set data.path=<that file, absolute>`.
+    trace = (output_dir / f"{item.name}{TRACE_SUFFIX}").resolve()
+    item.simulate = raw
+    item.sim_text = text  # data.path is absent here: the config `afmid simulate` would store
+    item.config_text = text
+    item.raw = _deepcopy(raw)
+    if not isinstance(item.raw.get("data"), dict):
+        item.raw["data"] = {}
+    item.raw["data"]["path"] = str(trace)
+    item.input = trace
+
+
+def trace_is_current(path: Path, sim_text: str) -> bool:
+    """Whether ``path`` is the afmid trace file ``afmid simulate`` would write now from config text ``sim_text``."""
+    import h5py
+
+    if not path.is_file():
+        return False
+    try:
+        with h5py.File(path, "r") as h5:
+            return (_text(h5.attrs.get("format", "")) == "afmid-trace"
+                    and _text(h5.attrs.get("afmid_version", "")) == __version__
+                    and _text(h5.attrs.get("config", "")) == sim_text
+                    and "deflection" in h5)
+    except (OSError, KeyError):
+        return False
 
 
 def _deepcopy(value):
@@ -354,8 +521,10 @@ def read_run_row(path: Path) -> dict:
         terms = [t.decode() if isinstance(t, bytes) else str(t) for t in model["terms"][...]]
         selected = model["selected"][...]
         sep = model["separation"]
+        effects = [_text(e) for e in model["effects"][...]] if "effects" in model else []
         values = {
             "input_sha256": _text(h5.attrs.get("input_sha256", "")),
+            "effects": ";".join(e for e in effects if e),
             "cv_error": float(diag["cv_error"][()]),
             "cv_error_noise_floor": float(diag["cv_error_noise_floor"][()]),
             "chi2_reduced": float(diag["chi2_reduced"][()]),
@@ -404,6 +573,7 @@ def _init_worker(env: dict[str, str], log_level: int) -> None:
     # process group, and the parent decides what to do about it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
+    sys.unraisablehook = _on_unraisable
     logger = logging.getLogger("afmid")
     logger.handlers[:] = []
     logger.setLevel(log_level)
@@ -432,6 +602,39 @@ def _on_sigterm(signum, frame):
     raise _Terminated(143)
 
 
+_default_unraisablehook = sys.unraisablehook
+
+
+def _on_unraisable(unraisable) -> None:
+    """SIGTERM that landed in a callback that cannot raise (a weakref callback, ``__del__``): Python would print it
+    as ignored and let the item run on. Exit now instead; the worker's temporary files are all inside the batch's
+    temporary folder, which the parent removes."""
+    if isinstance(unraisable.exc_value, _Terminated) or _worker_state.get("terminating"):
+        os._exit(143)
+    _default_unraisablehook(unraisable)
+
+
+@contextlib.contextmanager
+def _interrupts_held(reraise: bool = True):
+    """Hold Ctrl-C and SIGTERM while a summary is written, so that an interrupt never lands inside the write (a
+    half-made temporary file); with ``reraise``, one that came meanwhile is raised as KeyboardInterrupt after."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = {s: signal.signal(s, lambda signum, frame: caught.append(signum))
+                for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+    if caught and reraise:
+        raise KeyboardInterrupt()
+
+
 class _Capture(logging.Handler):
     def __init__(self):
         super().__init__()
@@ -445,25 +648,48 @@ class _Capture(logging.Handler):
 
 
 def fit_task(task: dict) -> dict:
-    """Fit one trace in a worker: load, run_fit, write the run file atomically. Never raises for a bad trace."""
+    """Run one item in a worker: simulate its trace if asked (written atomically), load, run_fit, write the run
+    file atomically. Never raises for a bad item."""
     capture = _Capture()
     capture.setLevel(_worker_state.get("log_level", logging.WARNING))
     loggers = [logging.getLogger("afmid"), logging.getLogger("py.warnings")]
     for lg in loggers:
         lg.addHandler(capture)
     tmp = Path(task["tmp_dir"]) / f"{task['name']}.{os.getpid()}{RUN_SUFFIX}"
+    tmp_trace = Path(task["tmp_dir"]) / f"{task['name']}.{os.getpid()}{TRACE_SUFFIX}"
     out: dict[str, Any] = {"index": task["index"], "status": "failed", "error": "", "times": {}}
+    stage = "fit"
     _worker_state["busy"] = True
     try:
         if os.environ.get(_CRASH_ENV) and os.environ.get(_CRASH_ENV) == task["name"]:
             os.kill(os.getpid(), signal.SIGKILL)
-        if os.environ.get(_DELAY_ENV):
-            time.sleep(float(os.environ[_DELAY_ENV]))
+        delay = float(os.environ.get(_DELAY_ENV) or 0.0)
         from .config import build_config
         from .fit import run_fit, write_run
         from .io import load_trace
 
-        t0, c0 = time.perf_counter(), time.process_time()
+        c0 = time.process_time()
+        times = {}
+        if task.get("simulate") is not None:  # exactly `afmid simulate CONFIG -o TRACE`
+            from .config import dump_config
+            from .io import write_trace_file
+            from .simulate import simulate
+
+            stage = "simulate"
+            s0 = time.perf_counter()
+            sim_config = build_config(task["simulate"], source=Path(task["config"]))
+            simulated = simulate(sim_config)
+            write_trace_file(tmp_trace, simulated, dump_config(sim_config), overwrite=True)
+            del simulated
+            if delay:
+                time.sleep(delay)
+                delay = 0.0
+            os.replace(tmp_trace, task["trace"])
+            times["simulate_time"] = time.perf_counter() - s0
+            stage = "fit"
+        if delay:
+            time.sleep(delay)
+        t0 = time.perf_counter()
         config = build_config(task["raw"], source=Path(task["config"]))
         trace = load_trace(config)
         t1 = time.perf_counter()
@@ -479,22 +705,25 @@ def fit_task(task: dict) -> dict:
         t3 = time.perf_counter()
         out["row"] = read_run_row(Path(task["output"]))
         out["status"] = "ok"
-        out["times"] = {"load_time": t1 - t0, "fit_time": t2 - t1, "write_time": t3 - t2,
+        out["times"] = {**times, "load_time": t1 - t0, "fit_time": t2 - t1, "write_time": t3 - t2,
                         "cpu_time": time.process_time() - c0}
     except BaseException as exc:
         if isinstance(exc, _Terminated) or _worker_state.get("terminating") or not isinstance(exc, Exception):
             # Stopped by the parent (the signal may surface as another exception, e.g. from inside a numba
-            # kernel): this is no result, remove the temporary file and go.
+            # kernel): this is no result, remove the temporary files and go.
             tmp.unlink(missing_ok=True)
+            tmp_trace.unlink(missing_ok=True)
             os._exit(143)
+        what = "simulation failed: " if stage == "simulate" else ""
         if isinstance(exc, AfmidError):
-            out["error"] = exc.format()
+            out["error"] = what + exc.format()
         else:  # a bug or an unexpected failure: report it, keep the batch going
-            out["error"] = f"{type(exc).__name__}: {exc}"
+            out["error"] = f"{what}{type(exc).__name__}: {exc}"
             capture.records.append((logging.DEBUG, traceback.format_exc()))
     finally:
         _worker_state["busy"] = False
         tmp.unlink(missing_ok=True)
+        tmp_trace.unlink(missing_ok=True)
         for lg in loggers:
             lg.removeHandler(capture)
     out["logs"] = capture.records
@@ -503,12 +732,14 @@ def fit_task(task: dict) -> dict:
 
 # =========================================================================== summary
 FIXED_COLUMNS = [  # (name, unit or None for text)
-    ("name", None), ("status", None), ("error", None), ("input", None), ("run_file", None), ("input_sha256", None),
-    ("cv_error", "1"), ("cv_error_noise_floor", "1"), ("chi2_reduced", "1"), ("terms", None),
-    ("separation", "m"), ("separation_error", "m"),
+    ("name", None), ("status", None), ("error", None), ("config", None), ("input", None), ("run_file", None),
+    ("input_sha256", None), ("effects", None), ("cv_error", "1"), ("cv_error_noise_floor", "1"),
+    ("chi2_reduced", "1"), ("terms", None), ("separation", "m"), ("separation_error", "m"),
 ]
-#: Wall time of each stage in the worker, and the worker's CPU time for the trace.
-TIME_COLUMNS = [("load_time", "s"), ("fit_time", "s"), ("write_time", "s"), ("cpu_time", "s")]
+#: Wall time of each stage in the worker (simulate_time only for simulated traces), and the worker's CPU time
+#: for the item.
+TIME_COLUMNS = [("simulate_time", "s"), ("load_time", "s"), ("fit_time", "s"), ("write_time", "s"),
+                ("cpu_time", "s")]
 QUANTITY_FIELDS = ("value", "error", "ci_low", "ci_high")
 
 
@@ -522,12 +753,28 @@ class Row:
     times: dict = field(default_factory=dict)
 
 
-def _quantity_columns(rows: list[Row]) -> list[tuple[str, str]]:
-    seen: dict[str, str] = {}
+def _quantity_columns(rows: list[Row]) -> list[tuple[str, str, str]]:
+    """The union of the rows' physical quantities, in order of first appearance: (name, unit, h5 group name).
+
+    Runs of different models report different quantities; a row without one gets an empty cell / NaN. A name
+    is one column per unit (the catalog gives each name one unit; a second unit would get its own column,
+    ``name [unit]`` in the h5).
+    """
+    seen: dict[tuple[str, str], None] = {}
     for row in rows:
         for name, q in row.quantities.items():
-            seen.setdefault(name, q["unit"])
-    return list(seen.items())
+            seen.setdefault((name, q["unit"]), None)
+    first_unit: dict[str, str] = {}
+    out = []
+    for name, unit in seen:
+        first_unit.setdefault(name, unit)
+        out.append((name, unit, name if first_unit[name] == unit else f"{name} [{unit}]"))
+    return out
+
+
+def _quantity(row: Row, name: str, unit: str) -> dict | None:
+    q = row.quantities.get(name)
+    return q if q is not None and q["unit"] == unit else None
 
 
 def _column_title(name: str, unit: str | None) -> str:
@@ -543,9 +790,15 @@ def _fmt(value) -> str:
 
 
 def _row_cells(row: Row, output_dir: Path) -> dict[str, Any]:
+    item = row.item
+    source = item.input if item.input is not None else item.entry.path
+    if item.simulate is not None and row.status == "failed" and not item.input.is_file():
+        source = None  # the simulation failed: there is no trace
     cells: dict[str, Any] = {
-        "name": row.item.name, "status": row.status, "error": row.error, "input": str(row.item.entry.path),
-        "run_file": row.item.output.name if row.status in ("ok", "skipped") else "",
+        "name": item.name, "status": row.status, "error": row.error,
+        "config": "" if item.config_path is None else str(item.config_path),
+        "input": "" if source is None else str(source),
+        "run_file": item.output.name if row.status in ("ok", "skipped") else "",
     }
     cells.update(row.values)
     cells.update(row.times)
@@ -553,14 +806,17 @@ def _row_cells(row: Row, output_dir: Path) -> dict[str, Any]:
 
 
 def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
-    """summary.csv and summary.h5 (atomically), rows in input order."""
+    """summary.csv and summary.h5 (atomically), rows in input order (layout in docs/file-formats.md).
+
+    ``config_text``: the batch CONFIG's merged config, or "" when the items have their own configs.
+    """
     import numpy as np
 
     from .io import atomic_hdf5, atomic_path, write_dataset
 
     quantities = _quantity_columns(rows)
     header = [_column_title(n, u) for n, u in FIXED_COLUMNS]
-    for name, unit in quantities:
+    for name, unit, _ in quantities:
         header += [_column_title(name if f == "value" else f"{name}_{f}", unit) for f in QUANTITY_FIELDS]
     header += [_column_title(n, u) for n, u in TIME_COLUMNS]
     buf = _io.StringIO()
@@ -570,8 +826,8 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
     for row in rows:
         cells = _row_cells(row, output_dir)
         line = [_fmt(cells.get(n)) for n, _ in FIXED_COLUMNS]
-        for name, _ in quantities:
-            q = row.quantities.get(name)
+        for name, unit, _ in quantities:
+            q = _quantity(row, name, unit)
             line += [_fmt(q[f]) if q else "" for f in QUANTITY_FIELDS]
         line += [_fmt(cells.get(n)) for n, _ in TIME_COLUMNS]
         writer.writerow(line)
@@ -590,13 +846,14 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
                 data = np.array([_float(c.get(name)) for c in table], dtype=float)
                 write_dataset(h5, name, data, unit)
         pg = h5.create_group("parameters")
-        pg.attrs["meaning"] = "physical parameters per trace: value, bootstrap error, 95 % interval (NaN if absent)"
-        for name, unit in quantities:
-            g = pg.create_group(name)
-            effects = {r.quantities[name]["effect"] for r in rows if name in r.quantities}
-            g.attrs["effect"] = ";".join(sorted(e for e in effects if e))
+        pg.attrs["meaning"] = ("physical parameters per row: value, bootstrap error, 95 % interval; the union over "
+                               "all rows, NaN where a run has no such quantity")
+        for name, unit, group in quantities:
+            g = pg.create_group(group)
+            found = [_quantity(r, name, unit) for r in rows]
+            g.attrs["effect"] = ";".join(sorted({q["effect"] for q in found if q and q["effect"]}))
             for f in QUANTITY_FIELDS:
-                data = np.array([_float(r.quantities[name][f]) if name in r.quantities else math.nan for r in rows])
+                data = np.array([_float(q[f]) if q else math.nan for q in found], dtype=float)
                 write_dataset(g, f, data, unit)
 
 
@@ -610,18 +867,19 @@ def _float(value) -> float:
 # =========================================================================== the batch
 @dataclass
 class BatchResult:
-    rows: list[Row]  # finished traces (all of them unless interrupted), input order
+    rows: list[Row]  # finished items (all of them unless interrupted), input order
     output_dir: Path
     seconds: float
-    total: int  # traces in the batch
+    total: int  # items in the batch
     interrupted: bool = False
+    unit: str = "traces"  # what the items are called in messages: traces (one config) or runs (own configs)
 
     def count(self, status: str) -> int:
         return sum(r.status == status for r in self.rows)
 
     def line(self) -> str:
         parts = [f"{self.count(s)} {s}" for s in STATUSES if self.count(s)]
-        done = f"{len(self.rows)} of {self.total} traces" if self.interrupted else f"{self.total} traces"
+        done = f"{len(self.rows)} of {self.total} {self.unit}" if self.interrupted else f"{self.total} {self.unit}"
         done += f" ({', '.join(parts)})" if parts else ""
         return f"{done} in {self.seconds:.1f} s; summary in {self.output_dir / SUMMARY_CSV}"
 
@@ -634,7 +892,7 @@ def default_jobs() -> int:
 
 
 def run_batch(
-    config: str | Path,
+    config: str | Path | None,
     output_dir: str | Path,
     inputs: list[str] | tuple[str, ...] = (),
     manifest: str | Path | None = None,
@@ -643,16 +901,40 @@ def run_batch(
     force: bool = False,
     progress: bool = False,
     summary_interval: float = 2.0,
+    configs: list[str] | tuple[str, ...] = (),
 ) -> BatchResult:
-    """Fit every input with ``config`` in ``jobs`` worker processes; see the module docstring."""
+    """Fit every input with ``config``, or run every config in ``configs`` (glob patterns) on its own data (its
+    ``data.path``, or a trace it simulates into ``output_dir`` first), in ``jobs`` worker processes; see the
+    module docstring. ``overrides`` (``key.path=value``) apply to every config."""
     start = time.perf_counter()
-    config_path = Path(config)
+    config_path = None if config is None else Path(config)
     output_dir = Path(output_dir)
-    if bool(inputs) == (manifest is not None):
+    if configs:
+        if config_path is not None or inputs or manifest is not None:
+            raise ConfigError("runs each config on its own data: give it without CONFIG, --inputs or --manifest",
+                              key="--configs")
+    elif config_path is None:
+        if inputs:
+            raise ConfigError("needs a CONFIG to fit the traces with", key="--inputs")
+        if manifest is None:
+            raise ConfigError("give a CONFIG with --inputs or --manifest, or run configs on their own data with "
+                              "--configs 'configs/*.yaml'")
+    elif bool(inputs) == (manifest is not None):
         raise ConfigError("give the traces either with --inputs or with --manifest", key="--inputs")
     if output_dir.exists() and not output_dir.is_dir():
         raise InputError("the output exists and is not a folder", file=output_dir, key="--output")
-    entries = read_manifest(manifest) if manifest is not None else expand_inputs(list(inputs), output_dir)
+    if configs:
+        entries = expand_configs(list(configs))
+    elif manifest is not None:
+        entries = read_manifest(manifest)
+        if config_path is None:
+            orphans = [i for i, e in enumerate(entries) if e.config is None]
+            if orphans:
+                raise ConfigError(f"entry [{orphans[0]}] names no config and no CONFIG was given (add a 'config' to "
+                                  f"every entry, or give the CONFIG to fit them with)", file=Path(manifest))
+    else:
+        entries = expand_inputs(list(inputs), output_dir)
+    unit = "runs" if any(e.config is not None for e in entries) else "traces"
     items, batch_text = plan(config_path, entries, output_dir, list(overrides))
     try:
         output_dir.mkdir(parents=True, exist_ok=True)
@@ -669,11 +951,13 @@ def run_batch(
             rows[item.index] = Row(item, "failed", item.error)
             log.warning("%s: failed: %s", item.name, item.error)
             continue
-        if not force and item.output.is_file():
+        if item.simulate is not None:  # a trace simulated before (and still what the config gives) is reused
+            item.need_simulate = force or not trace_is_current(item.input, item.sim_text)
+        if not force and not item.need_simulate and item.output.is_file():
             from .io import sha256_file
 
             existing = run_key(item.output)
-            if existing is not None and existing == batch_key(sha256_file(item.entry.path), item.config_text):
+            if existing is not None and existing == batch_key(sha256_file(item.input), item.config_text):
                 try:
                     got = read_run_row(item.output)
                     rows[item.index] = Row(item, "skipped", "", got["values"], got["quantities"])
@@ -681,9 +965,10 @@ def run_batch(
                 except (OSError, KeyError):
                     pass  # unreadable: fit again
         todo.append(item)
-    log.info("batch: %d traces: %d to fit in %d worker processes, %d up to date, %d failed before fitting",
-             len(items), len(todo), min(jobs, len(todo)), sum(r.status == "skipped" for r in rows.values()),
-             sum(r.status == "failed" for r in rows.values()))
+    n_sim = sum(item.need_simulate for item in todo)
+    log.info("batch: %d %s: %d to fit%s in %d worker processes, %d up to date, %d failed before fitting",
+             len(items), unit, len(todo), f" ({n_sim} simulated first)" if n_sim else "", min(jobs, len(todo)),
+             sum(r.status == "skipped" for r in rows.values()), sum(r.status == "failed" for r in rows.values()))
 
     state = {"last": time.monotonic(), "dirty": True, "cost": 0.0}
 
@@ -696,7 +981,8 @@ def run_batch(
         interval = max(summary_interval, 20.0 * state["cost"])
         if force_write or (state["dirty"] and time.monotonic() - state["last"] >= interval):
             start = time.monotonic()
-            write_summary(output_dir, ordered(), batch_text)
+            with _interrupts_held():
+                write_summary(output_dir, ordered(), batch_text)
             state["last"] = time.monotonic()
             state["cost"] = state["last"] - start
             state["dirty"] = False
@@ -707,29 +993,30 @@ def run_batch(
     interrupted = False
     tmp_dir = output_dir / f"{TMP_PREFIX}{os.getpid()}"
     previous_term = _term_as_interrupt()
+    previous_hook = sys.unraisablehook
+    sys.unraisablehook = _parent_unraisable
+    _parent_state["interrupt"] = False
     bar = None
     try:
         if todo:
             tmp_dir.mkdir(exist_ok=True)
             with logging_redirect_tqdm(loggers=[logging.getLogger("afmid")], tqdm_class=tqdm):
-                bar = tqdm(total=len(items), initial=len(rows), desc="batch", unit="trace", disable=not progress,
-                           leave=False, dynamic_ncols=True)
-                _run_pool(todo, rows, jobs, tmp_dir, config_path, bar, flush, state)
+                bar = tqdm(total=len(items), initial=len(rows), desc="batch", unit=unit.rstrip("s"),
+                           disable=not progress, leave=False, dynamic_ncols=True)
+                _run_pool(todo, rows, jobs, tmp_dir, bar, flush, state)
         flush(force_write=True)
     except KeyboardInterrupt:
         interrupted = True
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not spoil the summary
-        try:
+        with _interrupts_held(reraise=False):  # a second Ctrl-C must not spoil the summary
             write_summary(output_dir, ordered(), batch_text)
-        finally:
-            signal.signal(signal.SIGINT, previous)
     finally:
         if bar is not None:
             bar.close()
         shutil.rmtree(tmp_dir, ignore_errors=True)
         if previous_term is not None:
             signal.signal(signal.SIGTERM, previous_term)
-    result = BatchResult(ordered(), output_dir, time.perf_counter() - start, len(items), interrupted)
+        sys.unraisablehook = previous_hook
+    result = BatchResult(ordered(), output_dir, time.perf_counter() - start, len(items), interrupted, unit)
     if interrupted:
         raise BatchInterrupted(result)
     return result
@@ -741,6 +1028,18 @@ class BatchInterrupted(KeyboardInterrupt):
     def __init__(self, result: BatchResult):
         super().__init__()
         self.result = result
+
+
+_parent_state = {"interrupt": False}
+
+
+def _parent_unraisable(unraisable) -> None:
+    """In the batch process: a Ctrl-C / SIGTERM that landed in a callback that cannot raise (a weakref callback,
+    ``__del__``) would be printed as ignored and lost; remember it, the pool loop raises it."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        _parent_state["interrupt"] = True
+        return
+    _default_unraisablehook(unraisable)
 
 
 def _raise_interrupt(signum, frame):
@@ -769,8 +1068,8 @@ def _remove_stale_tmp(output_dir: Path) -> None:
             continue
 
 
-def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, config_path: Path, bar, flush, state) -> None:
-    """Keep up to ``jobs`` traces in flight; replace the pool if a worker dies (see the module docstring)."""
+def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, bar, flush, state) -> None:
+    """Keep up to ``jobs`` items in flight; replace the pool if a worker dies (see the module docstring)."""
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
@@ -788,8 +1087,9 @@ def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, config_pat
                                    initargs=(dict(THREAD_ENV), level))
 
     def task(item: Item) -> dict:
-        return {"index": item.index, "name": item.name, "raw": item.raw, "config": str(config_path),
-                "config_text": item.config_text, "output": str(item.output), "tmp_dir": str(tmp_dir)}
+        return {"index": item.index, "name": item.name, "raw": item.raw, "config": str(item.config_path),
+                "config_text": item.config_text, "output": str(item.output), "tmp_dir": str(tmp_dir),
+                "simulate": item.simulate if item.need_simulate else None, "trace": str(item.input)}
 
     saved_env = {k: os.environ.get(k) for k in THREAD_ENV}
     os.environ.update(THREAD_ENV)
@@ -806,6 +1106,8 @@ def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, config_pat
                     item = pending.popleft()
                     in_flight[pool.submit(fit_task, task(item))] = (item, False)
             done, _ = wait(list(in_flight), timeout=1.0, return_when=FIRST_COMPLETED)
+            if _parent_state["interrupt"]:  # a Ctrl-C that landed where Python could not raise it
+                raise KeyboardInterrupt()
             broken = False
             for fut in done:
                 item, isolated = in_flight.pop(fut)
@@ -815,7 +1117,7 @@ def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, config_pat
                     broken = True
                     item.crashes += 1
                     if isolated:
-                        msg = ("the worker process died while fitting this trace (killed, crashed or out of "
+                        msg = ("the worker process died while running this item (killed, crashed or out of "
                                "memory)")
                         rows[item.index] = Row(item, "failed", msg)
                         log.warning("%s: %s", item.name, msg)
@@ -833,7 +1135,7 @@ def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, config_pat
                     item.crashes += 1
                     suspects.append(item)
                 pool.shutdown(wait=True, cancel_futures=True)
-                log.warning("a worker process died; restarting the pool and retrying its traces one at a time")
+                log.warning("a worker process died; restarting the pool and retrying its items one at a time")
                 pool = new_pool()
             flush()
     except BaseException:
@@ -857,16 +1159,16 @@ def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, config_pat
 
 
 def _harvest(in_flight: dict, rows: dict) -> None:
-    """After stopping the workers: record the traces that finished meanwhile (the summary must list every
+    """After stopping the workers: record the items that finished meanwhile (the summary must list every
     run file that was renamed into place, even if its worker's report did not arrive)."""
     from .io import sha256_file
 
     for fut, (item, _) in in_flight.items():
         if fut.done() and not fut.cancelled() and fut.exception() is None:
             _record(item, fut.result(), rows)
-        elif item.output.is_file():
+        elif item.output.is_file() and item.input is not None and item.input.is_file():
             try:
-                if run_key(item.output) == batch_key(sha256_file(item.entry.path), item.config_text):
+                if run_key(item.output) == batch_key(sha256_file(item.input), item.config_text):
                     got = read_run_row(item.output)
                     rows[item.index] = Row(item, "ok", "", got["values"], got["quantities"])
             except (OSError, KeyError):

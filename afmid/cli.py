@@ -142,34 +142,47 @@ def fit(
 
 
 @cli.command()
-@CONFIG_ARG
+@click.argument("config", required=False, type=click.Path(path_type=Path))
 @click.option("-i", "--inputs", multiple=True, metavar="GLOB",
-              help="Trace files to fit, e.g. 'traces/*.csv' (quote it; repeatable; ** recurses).")
+              help="Trace files to fit with CONFIG, e.g. 'traces/*.csv' (quote it; repeatable; ** recurses).")
 @click.option("--manifest", type=click.Path(path_type=Path), default=None,
-              help="YAML or CSV list of traces with per-file overrides (key.path=value) instead of --inputs.")
+              help="YAML or CSV list of traces (path) and/or run configs (config) with per-entry overrides "
+                   "(key.path=value), instead of --inputs / --configs.")
+@click.option("-c", "--configs", multiple=True, metavar="GLOB",
+              help="Run configs to run, each on its own data (data.path, or simulated first from its "
+                   "simulate: section), e.g. 'configs/*.yaml' (quote it; repeatable); no CONFIG.")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
-              help="Folder for the run files and summary.csv / summary.h5 (created if needed).")
+              help="Folder for the run files, simulated traces and summary.csv / summary.h5 (created if needed).")
 @click.option("-j", "--jobs", type=click.IntRange(min=1), default=None,
               help="Worker processes (default: the usable CPU cores).")
 @SET
-@click.option("--force", is_flag=True, help="Refit every trace, even those whose run file is up to date.")
-def batch(config: Path, inputs: tuple[str, ...], manifest: Path | None, output: Path, jobs: int | None,
-          overrides: tuple[str, ...], force: bool) -> None:
-    """Fit many traces with one CONFIG in parallel; resumable.
+@click.option("--force", is_flag=True, help="Simulate and fit everything again, even what is up to date.")
+def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, configs: tuple[str, ...],
+          output: Path, jobs: int | None, overrides: tuple[str, ...], force: bool) -> None:
+    """Fit many traces with one CONFIG, or run many run configs, in parallel; resumable.
 
-    Writes OUTPUT/NAME.run.h5 per trace (NAME from the input file's stem) and
-    OUTPUT/summary.csv + summary.h5: one row per trace with its status (ok,
-    failed, skipped), error message, error metric and physical parameters with
-    errors (SI units). Traces whose run file is up to date (same input bytes,
-    config and afmid version) are skipped; a failing trace does not stop the
-    batch. Exit code 1 if any trace failed, 130 if interrupted.
+    \b
+      afmid batch CONFIG --inputs 'traces/*.csv' -o DIR   # many traces, one config
+      afmid batch --configs 'configs/*.yaml' -o DIR       # many configs, each its own lever/model/data
+
+    With --configs, each config is run on its own data: its data.path is fitted as
+    `afmid fit CONFIG` would; a config without data.path is simulated first into
+    OUTPUT/NAME.trace.h5 (as `afmid simulate`), then fitted. --set applies to every config.
+
+    Writes OUTPUT/NAME.run.h5 per item (NAME from the trace's or the config's stem) and
+    OUTPUT/summary.csv + summary.h5: one row per item with its status (ok, failed,
+    skipped), error message, config, error metric and physical parameters with errors
+    (SI units; the union over all runs, empty where a run has no such quantity). Items
+    whose outputs are up to date (same input bytes, config and afmid version) are
+    skipped; a failing item does not stop the batch. Exit code 1 if any item failed,
+    130 if interrupted.
     """
     from .batch import BatchInterrupted, run_batch
     from .errors import AfmidError
 
     try:
-        result = run_batch(config, output, inputs=inputs, manifest=manifest, jobs=jobs, overrides=overrides,
-                           force=force, progress=not _state["quiet"])
+        result = run_batch(config, output, inputs=inputs, manifest=manifest, configs=configs, jobs=jobs,
+                           overrides=overrides, force=force, progress=not _state["quiet"])
     except BatchInterrupted as exc:
         click.echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
         raise KeyboardInterrupt from None  # main() reports it and exits with 130
@@ -177,8 +190,8 @@ def batch(config: Path, inputs: tuple[str, ...], manifest: Path | None, output: 
     failed = [r.item.name for r in result.rows if r.status == "failed"]
     if failed:
         names = ", ".join(failed[:3]) + (", ..." if len(failed) > 3 else "")
-        raise AfmidError(f"{len(failed)} of {result.total} traces failed ({names}); the errors are in the summary",
-                         file=output / "summary.csv")
+        raise AfmidError(f"{len(failed)} of {result.total} {result.unit} failed ({names}); the errors are in the "
+                         f"summary", file=output / "summary.csv")
 
 
 @cli.command()

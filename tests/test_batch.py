@@ -5,6 +5,10 @@ simulated per module; the other traces are copies with fresh detector noise,
 so every input has its own bytes and its own result. Workers are spawned
 processes (about 2 s each to start and load numba's cache), so the batches
 here are small.
+
+The second half runs many configs (``--configs``), each with its own model:
+DMT and Lennard-Jones configs simulated into the output folder first (20
+periods), a config fitting a trace file of its own, and two bad configs.
 """
 
 from __future__ import annotations
@@ -21,7 +25,8 @@ import h5py
 import numpy as np
 import pytest
 
-from afmid.batch import (RUN_SUFFIX, assign_names, batch_key, read_manifest, read_run_row, run_batch, Entry)
+from afmid.batch import (RUN_SUFFIX, TRACE_SUFFIX, assign_names, batch_key, read_manifest, read_run_row, run_batch,
+                         trace_is_current, Entry)
 from afmid.errors import ConfigError, InputError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,9 +98,14 @@ def _content(path: Path) -> dict:
 
 def _fit_alone(trace: Path, output: Path, *extra: str) -> None:
     """``afmid fit`` in a fresh process, BLAS on one thread like the batch workers (see bench/README.md)."""
+    _afmid_alone("fit", CONFIG, output, *FAST, f"data.path={trace}", *extra)
+
+
+def _afmid_alone(command: str, config: Path, output: Path, *overrides: str) -> None:
+    """``afmid COMMAND CONFIG -o OUTPUT --set ...`` in a fresh process, BLAS on one thread like the batch workers."""
     env = dict(os.environ, **SINGLE_THREAD)
-    args = AFMID + ["-q", "fit", str(CONFIG), "--set", f"data.path={trace}", "-o", str(output)]
-    for o in FAST + list(extra):
+    args = AFMID + ["-q", command, str(config), "-o", str(output)]
+    for o in overrides:
         args += ["--set", o]
     subprocess.run(args, check=True, env=env, cwd=ROOT, timeout=120)
 
@@ -286,3 +296,212 @@ def test_manifests_yaml_and_csv(tmp_path):
         read_manifest(tmp_path / "bad.yaml")
     with pytest.raises(InputError, match="no files match"):
         run_batch(CONFIG, tmp_path / "o", inputs=[str(tmp_path / "nothing" / "*.csv")])
+
+
+# =========================================================================== many configs (--configs)
+#: Settings for every config of the --configs batches: short simulated traces, few bootstrap refits.
+CONFIG_SET = FAST + ["simulate.periods=20"]
+
+
+@pytest.fixture(scope="module")
+def config_dir(traces, tmp_path_factory) -> Path:
+    """Run configs with their own models and data: DMT and Lennard-Jones to simulate, a config fitting its own
+    trace file (``data.path``), an invalid config and one with neither data nor a simulate: section."""
+    folder = tmp_path_factory.mktemp("configs")
+    for name in ("dmt", "lennard_jones"):
+        (folder / f"{name}.yaml").write_text((ROOT / "configs" / f"{name}.yaml").read_text())
+    (folder / "measured.h5").write_bytes((traces / "n01.h5").read_bytes())
+    (folder / "measured.yaml").write_text("data: {path: measured.h5}\n"
+                                          "sample: {separation: 8.5e-9, a0: 0.165e-9}\n"
+                                          "model: {effects: [dmt]}\n")
+    (folder / "bad.yaml").write_text("cantilever: {quality_factor: -3}\nsimulate: {model: dmt}\n")
+    (folder / "nodata.yaml").write_text("model: {effects: [dmt]}\n")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def config_batch(config_dir, tmp_path_factory):
+    """``afmid batch --configs 'DIR/*.yaml' -j 2`` once per module: (output folder, BatchResult)."""
+    out = tmp_path_factory.mktemp("config_batch") / "out"
+    result = run_batch(None, out, configs=[str(config_dir / "*.yaml")], jobs=2, overrides=CONFIG_SET)
+    return out, result
+
+
+def test_configs_are_simulated_then_fitted_like_single_runs(config_dir, config_batch, tmp_path):
+    out, result = config_batch
+    assert [(r.item.name, r.status) for r in result.rows] == [
+        ("bad", "failed"), ("dmt", "ok"), ("lennard_jones", "ok"), ("measured", "ok"), ("nodata", "failed")]
+    assert result.unit == "runs" and "5 runs (3 ok, 2 failed)" in result.line()
+    assert sorted(p.name for p in out.iterdir()) == [
+        "dmt.run.h5", "dmt.trace.h5", "lennard_jones.run.h5", "lennard_jones.trace.h5", "measured.run.h5",
+        "summary.csv", "summary.h5"]
+    # The simulated traces are what `afmid simulate` writes ...
+    for name in ("dmt", "lennard_jones"):
+        alone = tmp_path / f"{name}{TRACE_SUFFIX}"
+        _afmid_alone("simulate", config_dir / f"{name}.yaml", alone, *CONFIG_SET)
+        batch, single = _content(out / f"{name}{TRACE_SUFFIX}"), _content(alone)
+        assert batch.keys() == single.keys()
+        differ = [k for k in batch if batch[k] != single[k]]
+        assert not differ, f"{name}: batch and single simulation differ in {differ[:10]}"
+    # ... and each run is what `afmid fit` writes, for a simulated trace and for a config's own data file.
+    for name, extra in (("dmt", [f"data.path={(out / 'dmt.trace.h5').resolve()}"]), ("measured", [])):
+        alone = tmp_path / f"{name}.single.h5"
+        _afmid_alone("fit", config_dir / f"{name}.yaml", alone, *CONFIG_SET, *extra)
+        batch, single = _content(out / f"{name}{RUN_SUFFIX}"), _content(alone)
+        assert batch.keys() == single.keys()
+        differ = [k for k in batch if batch[k] != single[k]]
+        assert not differ, f"{name}: batch and single run differ in {differ[:10]}"
+    with h5py.File(out / "measured.run.h5", "r") as h5:
+        assert h5.attrs["input_path"] == str((config_dir / "measured.h5").resolve())
+
+
+def test_config_summary_has_the_union_of_the_runs_quantities(config_dir, config_batch):
+    out, result = config_batch
+    rows = {r["name"]: r for r in _summary(out)}
+    assert list(rows) == ["bad", "dmt", "lennard_jones", "measured", "nodata"]
+    header = list(rows["dmt"])
+    for column in ("config", "effects", "E_star [Pa]", "E_star_error [Pa]", "sigma [m]", "sigma_ci_high [m]",
+                   "hamaker [J]", "simulate_time [s]", "fit_time [s]"):
+        assert column in header, column
+    dmt, lj, measured = rows["dmt"], rows["lennard_jones"], rows["measured"]
+    assert dmt["effects"] == "dmt" and lj["effects"] == "lennard_jones"
+    assert dmt["config"] == str(config_dir / "dmt.yaml")
+    assert dmt["input"] == str((out / "dmt.trace.h5").resolve()) and dmt["run_file"] == "dmt.run.h5"
+    assert measured["input"] == str((config_dir / "measured.h5").resolve())
+    assert 1e9 < float(dmt["E_star [Pa]"]) < 3e9 and dmt["sigma [m]"] == "" and dmt["sigma_error [m]"] == ""
+    assert 0.25e-9 < float(lj["sigma [m]"]) < 0.35e-9 and lj["E_star [Pa]"] == "" and lj["E_star_error [Pa]"] == ""
+    assert float(lj["hamaker [J]"]) > 0 and float(dmt["hamaker [J]"]) > 0  # shared by both models: one column
+    assert float(dmt["simulate_time [s]"]) > 0 and measured["simulate_time [s]"] == ""
+    assert rows["bad"]["status"] == "failed" and "quality_factor: must be > 0" in rows["bad"]["error"]
+    assert rows["nodata"]["status"] == "failed" and "no data.path" in rows["nodata"]["error"]
+    assert rows["bad"]["run_file"] == rows["nodata"]["run_file"] == rows["nodata"]["input"] == ""
+    with h5py.File(out / "summary.h5", "r") as h5:
+        assert h5.attrs["config"] == "" and h5.attrs["n_ok"] == 3 and h5.attrs["n_failed"] == 2
+        assert [s.decode() for s in h5["name"][...]] == list(rows)
+        assert h5["config"][2].decode() == str(config_dir / "lennard_jones.yaml")
+        sigma, e_star = h5["parameters/sigma/value"], h5["parameters/E_star/value"]
+        assert sigma.attrs["units"] == "m" and e_star.attrs["units"] == "Pa"
+        assert h5["parameters/sigma"].attrs["effect"] == "lennard_jones"
+        assert np.isnan(sigma[1]) and sigma[2] == float(lj["sigma [m]"]) and np.isnan(e_star[2])
+        assert np.isnan(h5["parameters/sigma/error"][1]) and np.isnan(h5["simulate_time"][3])
+        assert h5["parameters/E_star/value"][1] == read_run_row(out / "dmt.run.h5")["quantities"]["E_star"]["value"]
+
+
+def test_config_batch_resumes_without_simulating_again(config_dir, config_batch, tmp_path):
+    import shutil
+
+    configs, out = tmp_path / "configs", tmp_path / "out"
+    shutil.copytree(config_dir, configs)
+    shutil.copytree(config_batch[0], out)
+    pattern = [str(configs / "*.yaml")]
+
+    def stamps() -> dict:
+        return {p.name: p.stat().st_mtime_ns for p in out.glob("*.h5") if not p.name.startswith("summary")}
+
+    before = stamps()
+    again = run_batch(None, out, configs=pattern, jobs=2, overrides=CONFIG_SET)
+    assert [r.status for r in again.rows] == ["failed", "skipped", "skipped", "skipped", "failed"]
+    assert stamps() == before
+
+    # A lost run file: refitted from the trace already simulated. A changed config (the seed): simulated again.
+    (out / "dmt.run.h5").unlink()
+    lj = configs / "lennard_jones.yaml"
+    assert "  seed: 2" in lj.read_text()
+    lj.write_text(lj.read_text().replace("  seed: 2", "  seed: 3"))
+    third = run_batch(None, out, configs=pattern, jobs=2, overrides=CONFIG_SET)
+    assert [r.status for r in third.rows] == ["failed", "ok", "ok", "skipped", "failed"]
+    now = stamps()
+    assert now["dmt.trace.h5"] == before["dmt.trace.h5"] and now["measured.run.h5"] == before["measured.run.h5"]
+    assert now["lennard_jones.trace.h5"] != before["lennard_jones.trace.h5"]
+    rows = {r["name"]: r for r in _summary(out)}
+    assert rows["dmt"]["simulate_time [s]"] == "" and float(rows["lennard_jones"]["simulate_time [s]"]) > 0
+    with h5py.File(out / "lennard_jones.trace.h5", "r") as h5:
+        assert "seed: 3" in h5.attrs["config"]
+
+
+def test_interrupted_config_batch_leaves_whole_traces_and_resumes(tmp_path):
+    configs, out = tmp_path / "configs", tmp_path / "out"
+    configs.mkdir()
+    text = (ROOT / "configs" / "dmt.yaml").read_text()
+    assert "  seed: 1 " in text
+    for i in (1, 2, 3):
+        (configs / f"s{i}.yaml").write_text(text.replace("  seed: 1 ", f"  seed: {10 + i} "))
+    args = AFMID + ["-q", "batch", "--configs", str(configs / "*.yaml"), "-o", str(out), "-j", "2"]
+    for o in CONFIG_SET:
+        args += ["--set", o]
+    # Each worker sleeps 1.5 s holding its simulated trace under a temporary name: Ctrl-C lands mid-item.
+    env = dict(os.environ, _AFMID_BATCH_TEST_DELAY="1.5")
+    proc = subprocess.Popen(args, env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not list(out.glob(f"*{RUN_SUFFIX}")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert list(out.glob(f"*{RUN_SUFFIX}")), "no run finished within 60 s"
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "of 3 runs" in err
+    assert not _leftovers(out)
+    finished = sorted(p.name for p in out.glob(f"*{RUN_SUFFIX}"))
+    assert 1 <= len(finished) < 3
+    assert sorted(r["run_file"] for r in _summary(out)) == finished
+    traces = {p.name: p.stat().st_mtime_ns for p in out.glob(f"*{TRACE_SUFFIX}")}
+    for name in traces:  # whole trace files, each the one its config gives
+        config = configs / (name[: -len(TRACE_SUFFIX)] + ".yaml")
+        from afmid.config import dump_config, load_config
+
+        assert trace_is_current(out / name, dump_config(load_config(config, CONFIG_SET)))
+
+    again = run_batch(None, out, configs=[str(configs / "*.yaml")], jobs=2, overrides=CONFIG_SET)
+    status = {r.item.output.name: r.status for r in again.rows}
+    assert all(status[n] == "skipped" for n in finished)
+    assert sorted(status.values()).count("ok") == 3 - len(finished)
+    for name, stamp in traces.items():  # traces simulated before the interruption are not simulated again
+        assert (out / name).stat().st_mtime_ns == stamp
+
+
+def test_config_manifests_plans_and_usage_errors(traces, tmp_path):
+    from afmid.batch import plan
+
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "a.yaml").write_text((ROOT / "configs" / "dmt.yaml").read_text())
+    trace = tmp_path / "t" / "x.h5"
+    _copy(traces, tmp_path / "t", ["n01.h5"])[0].rename(trace)
+    (tmp_path / "m.yaml").write_text("runs:\n"
+                                     "  - {config: c/a.yaml}\n"
+                                     "  - {config: c/a.yaml, path: t/x.h5, name: ax, set: {fit.seed: 3}}\n"
+                                     "  - t/x.h5\n")
+    a, ax, x = read_manifest(tmp_path / "m.yaml")
+    assert a.config == (tmp_path / "c" / "a.yaml").resolve() and a.path is None
+    assert ax.config == a.config and ax.path == trace.resolve() and ax.name == "ax"
+    assert x.config is None and x.path == trace.resolve()
+    (tmp_path / "m.csv").write_text("config,path,name,fit.seed\nc/a.yaml,,,\nc/a.yaml,t/x.h5,ax,3\n")
+    a2, ax2 = read_manifest(tmp_path / "m.csv")
+    assert (a2.config, a2.path) == (a.config, None) and (ax2.path, ax2.overrides) == (ax.path, [(["fit", "seed"], 3)])
+    # Names from the config's stem; the same config twice: numbered.
+    entries = [Entry(None, config=tmp_path / "c" / "a.yaml"), Entry(None, config=tmp_path / "d" / "a.yaml"),
+               Entry(None, config=tmp_path / "c" / "b.yaml"), Entry(None, config=tmp_path / "c" / "b.yaml")]
+    assert assign_names(entries) == ["c_a", "d_a", "b", "b-2"]
+    # A config without data.path is simulated into the output folder; a row with a trace fits that trace.
+    items, text = plan(None, [a, ax], tmp_path / "out", ["simulate.periods=20"])
+    assert text == "" and [i.name for i in items] == ["a", "ax"] and all(i.error is None for i in items)
+    assert items[0].simulate is not None and items[0].input == (tmp_path / "out" / "a.trace.h5").resolve()
+    assert items[0].raw["data"]["path"] == str(items[0].input) and items[0].simulate["simulate"]["periods"] == 20
+    assert items[1].simulate is None and items[1].raw["data"]["path"] == str(trace.resolve())
+    assert items[1].raw["fit"]["seed"] == 3 and items[1].config_path == a.config
+    # Usage errors stop the batch before anything runs.
+    out = tmp_path / "o"
+    with pytest.raises(ConfigError, match="names no config"):
+        run_batch(None, out, manifest=tmp_path / "m.yaml")
+    with pytest.raises(ConfigError, match="without CONFIG"):
+        run_batch(CONFIG, out, configs=[str(tmp_path / "c" / "*.yaml")])
+    with pytest.raises(ConfigError, match="--configs"):
+        run_batch(None, out)
+    with pytest.raises(ConfigError, match="needs a CONFIG"):
+        run_batch(None, out, inputs=[str(trace)])
+    with pytest.raises(InputError, match="no files match"):
+        run_batch(None, out, configs=[str(tmp_path / "nothing" / "*.yaml")])
+    assert not out.exists()

@@ -19,7 +19,7 @@ import yaml
 
 from afmid.physics import EFFECTS, MODELS
 
-SUBCOMMANDS = ["simulate", "fit", "report", "effects", "init-config", "inspect"]
+SUBCOMMANDS = ["simulate", "fit", "batch", "report", "effects", "init-config", "inspect"]
 
 
 # --------------------------------------------------------------------------- help
@@ -70,6 +70,22 @@ def test_usage_errors_exit_2(run_cli):
     assert code == 2 and "Missing argument 'CONFIG'" in err
     code, _, err = run_cli("fit", "run.yaml")
     assert code == 2 and "Missing option '-o'" in err
+
+
+def test_batch_usage_errors_exit_2(run_cli, tmp_path):
+    out = tmp_path / "out"
+    code, _, err = run_cli("batch", "-o", out)
+    assert code == 2 and err.startswith("afmid: error: give a CONFIG with --inputs or --manifest, or run configs ")
+    assert len(err.splitlines()) == 1
+    code, _, err = run_cli("batch", "run.yaml", "--configs", "configs/*.yaml", "-o", out)
+    assert code == 2 and "--configs: runs each config on its own data: give it without CONFIG" in err
+    code, _, err = run_cli("batch", "--inputs", "traces/*.csv", "-o", out)
+    assert code == 2 and "--inputs: needs a CONFIG" in err
+    code, _, err = run_cli("batch", "--configs", str(tmp_path / "none" / "*.yaml"), "-o", out)
+    assert code == 1 and "--configs: no files match" in err
+    code, out_text, _ = run_cli("batch", "--help")
+    assert "--configs GLOB" in out_text and "--inputs GLOB" in out_text
+    assert not out.exists()
 
 
 def test_console_script_exit_code(tmp_path):
