@@ -24,7 +24,7 @@ def effect_record(name: str) -> dict:
         ],
         "terms": [
             {"label": t.label, "expression": t.expression, "term_unit": str(term_unit(effect, t)),
-             "coefficient_unit": str(coefficient_unit(effect, t)), "role": t.role}
+             "coefficient_unit": str(coefficient_unit(effect, t)), "roles": list(t.roles)}
             for t in effect.terms
         ],
         "states": [{"name": s.name, "on": s.on, "off": s.off} for s in effect.states],
@@ -63,7 +63,7 @@ def describe_effects(names: list[str], models: bool = False, as_json: bool = Fal
                     f"range [{p['range'][0]:g}, {p['range'][1]:g}]: {p['doc']}{flag}"
                 )
             for t in r["terms"]:
-                role = f"; {TERM_ROLES[t['role']]}" if t["role"] else ""
+                role = "".join(f"; {TERM_ROLES[r]}" for r in t["roles"])
                 lines.append(f"  term  {t['label']}: {t['expression']}  (coefficient in {t['coefficient_unit']}{role})")
             for s in r["states"]:
                 lines.append(f"  state {s['name']}: on when {s['on']}, off when {s['off']}")

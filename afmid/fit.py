@@ -653,11 +653,11 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     if method == "auto":
         method = "exhaustive" if len(library) <= EXHAUSTIVE_MAX_TERMS else "stlsq"
     penalty = term_penalties(library, len(prep.nuisance_names), fit.distractor_odds)
-    requirement = library.requirement(len(prep.nuisance_names))
+    rules = library.selection_rules(len(prep.nuisance_names))
     system = build_system(prep, library, params)
     selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
                                   n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
-                                  requirement=requirement)
+                                  rules=rules)
     chosen = selection.best.mask
     # Second pass: weights that include the regressors' own noise, then select again.
     coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), chosen)
@@ -665,7 +665,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     system = build_system(prep, library, params)
     selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
                                   n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
-                                  requirement=requirement)
+                                  rules=rules)
     chosen = selection.best.mask
     # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the
     # profile's width is their uncertainty (propagated into the read-out below).
@@ -689,7 +689,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
         system = build_system(prep, library, params)
         selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
                                       n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
-                                  requirement=requirement)
+                                  rules=rules)
         chosen = selection.best.mask
         for name, est in nonlinear.items():
             est.value = params[name]
@@ -709,7 +709,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     if fit.bootstrap > 0 and uncertainty:
         rng = np.random.default_rng(fit.seed)
         bagging = regression.bag(system.T_blocks, system.protected, chosen, system.names, method, fit.selection,
-                                 thresholds, fit.bootstrap, rng, system.n_rows, penalty, requirement)
+                                 thresholds, fit.bootstrap, rng, system.n_rows, penalty, rules)
         coef_std = bagging.coef_samples.std(axis=0, ddof=1)
         ci_low, ci_high = np.percentile(bagging.coef_samples, [2.5, 97.5], axis=0)
         inclusion = bagging.inclusion

@@ -35,14 +35,14 @@ class LibraryTerm:
     effect: str | None = None  # effect whose coefficient this is (for the read-out)
     label: str | None = None  # term label within that effect
     doc: str = ""
-    role: str = ""  # afmid.physics.TERM_ROLES: constraint on the sparse selection
+    roles: tuple[str, ...] = ()  # afmid.physics.TERM_ROLES: what the term is to the selection rules
 
 
 @dataclass(frozen=True)
 class Preset:
     name: str
     title: str
-    # (display name, expression, (effect, label) or None[, role]): see afmid.physics.TERM_ROLES
+    # (display name, expression, (effect, label) or None[, roles]): see afmid.physics.TERM_ROLES
     terms: tuple[tuple, ...]
     effects: tuple[str, ...]  # effects whose read-out applies
     references: tuple[str, ...]
@@ -51,18 +51,19 @@ class Preset:
 
 _CONTACT = "[z <= a0]"
 _OUT = "[z > a0]"
-_ELASTIC, _NEEDS = "elastic_contact", "needs_elastic_contact"
+_ELASTIC, _DISSIPATION, _ADHESION, _TAIL = (
+    ("elastic_contact",), ("contact_only",), ("contact_only", "contact_adhesion"), ("attractive_tail",))
 _TABLE_2_4 = (
-    ("z^-2", f"{_OUT} * z^-2", ("dmt", "vdw")),
-    ("z^-3", f"{_OUT} * z^-3", None),
-    ("delta^0.5*deltadot", "delta^0.5 * deltadot", ("viscoelastic", "kelvin_voigt"), _NEEDS),
-    ("delta*deltadot^2", "delta * deltadot^2", None, _NEEDS),
+    ("z^-2", f"{_OUT} * z^-2", ("dmt", "vdw"), _TAIL),
+    ("z^-3", f"{_OUT} * z^-3", None, _TAIL),
+    ("delta^0.5*deltadot", "delta^0.5 * deltadot", ("viscoelastic", "kelvin_voigt"), _DISSIPATION),
+    ("delta*deltadot^2", "delta * deltadot^2", None, _DISSIPATION),
     ("z^0.5*zdot", f"{_OUT} * z^0.5 * zdot", None),
     ("z*zdot^2", "z * zdot^2", None),
     ("delta^2", "delta^2", None, _ELASTIC),
     ("delta^2.5", "delta^2.5", None, _ELASTIC),
     ("delta^1.5", f"{_CONTACT} * delta^1.5", ("dmt", "hertz"), _ELASTIC),
-    ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion"), _NEEDS),
+    ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion"), _ADHESION),
 )
 
 PRESETS: dict[str, Preset] = {
@@ -88,8 +89,8 @@ PRESETS: dict[str, Preset] = {
             "exponential_table3",
             "seed table III: DMT + exponential damping candidates",
             (
-                ("z^-2", f"{_OUT} * z^-2", ("dmt", "vdw")),
-                ("z^-3", f"{_OUT} * z^-3", None),
+                ("z^-2", f"{_OUT} * z^-2", ("dmt", "vdw"), _TAIL),
+                ("z^-3", f"{_OUT} * z^-3", None, _TAIL),
                 ("exp(-z/lambda)*zdot", "exp(-z / damping_length) * zdot", ("exponential_damping", "surface_damping")),
                 ("exp(-z/lambda)^2*zdot^2", "exp(-2 * z / damping_length) * zdot^2", None),
                 ("z*zdot", "z * zdot", None),
@@ -97,7 +98,7 @@ PRESETS: dict[str, Preset] = {
                 ("delta^2", "delta^2", None, _ELASTIC),
                 ("delta^2.5", "delta^2.5", None, _ELASTIC),
                 ("delta^1.5", f"{_CONTACT} * delta^1.5", ("dmt", "hertz"), _ELASTIC),
-                ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion"), _NEEDS),
+                ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion"), _ADHESION),
             ),
             ("dmt", "exponential_damping"),
             ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table III",),
@@ -138,13 +139,22 @@ class Library:
     def __len__(self) -> int:
         return len(self.terms)
 
-    def requirement(self, n_extra: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
-        """(needs, provides) column masks of the selection constraint (afmid.physics.TERM_ROLES), padded with
-        ``n_extra`` unconstrained columns: a support that uses a ``needs`` column must use a ``provides`` one.
-        None when the library has no such pair (nothing to constrain)."""
-        needs = np.array([t.role == "needs_elastic_contact" for t in self.terms] + [False] * n_extra)
-        provides = np.array([t.role == "elastic_contact" for t in self.terms] + [False] * n_extra)
-        return (needs, provides) if needs.any() and provides.any() else None
+    def selection_rules(self, n_extra: int = 0) -> list[tuple[list[np.ndarray], np.ndarray]]:
+        """afmid.physics.SELECTION_RULES as column masks, padded with ``n_extra`` unconstrained columns:
+        (one mask per role of ``if_all``, the mask of ``then_any``). A rule is left out when the library
+        has no term of some ``if_all`` role (it cannot apply) or none of ``then_any`` (it could not be met)."""
+        from .physics import SELECTION_RULES
+
+        def having(roles) -> np.ndarray:
+            return np.array([bool(set(t.roles) & set(roles)) for t in self.terms] + [False] * n_extra)
+
+        rules = []
+        for rule in SELECTION_RULES:
+            conditions = [having((role,)) for role in rule.if_all]
+            then = having(rule.then_any)
+            if all(c.any() for c in conditions) and then.any():
+                rules.append((conditions, then))
+        return rules
 
     def compile(self, params: Mapping[str, float]):
         """A :class:`afmid.expr.ProgramSet` of the terms and the state-gate conditions."""
@@ -276,18 +286,18 @@ def build_library(model_config, source=None) -> Library:
                 nonlinear[p.name] = p.default
     if preset is not None:
         units = _units_context(param_units)
-        for display, expression, origin, *role in preset.terms:
+        for display, expression, origin, *roles in preset.terms:
             unit = expr.expression_units(expression, units, tuple(s.name for s in states))
             effect, label = origin if origin else (None, None)
             terms.append(LibraryTerm(display, expression, str(unit), str(NEWTON / unit), effect, label,
-                                     role=role[0] if role else ""))
+                                     roles=roles[0] if roles else ()))
     else:
         for name in effects:
             eff = EFFECTS.get(name)
             for term in eff.terms:
                 terms.append(LibraryTerm(
                     f"{name}.{term.label}", term.expression, str(term_unit(eff, term)),
-                    str(coefficient_unit(eff, term)), name, term.label, term.doc, term.role,
+                    str(coefficient_unit(eff, term)), name, term.label, term.doc, term.roles,
                 ))
     units = _units_context(param_units)
     for i, text in enumerate(model_config.terms):

@@ -62,16 +62,34 @@ class Term:
     expression: str
     coefficient: Callable[[Mapping[str, float]], float]
     doc: str = ""
-    role: str = ""  # one of TERM_ROLES: how the term constrains the sparse selection
+    roles: tuple[str, ...] = ()  # tags of TERM_ROLES: what the term is to the selection rules
 
 
-#: Roles of terms in model selection. A surface cannot pull on or damp a tip in contact without pushing
-#: back: a contact-only adhesion or dissipation term is only selected together with an elastic contact law.
+#: Roles of terms, used by SELECTION_RULES.
 TERM_ROLES = {
-    "": "no constraint",
-    "elastic_contact": "an elastic contact law (force a function of the indentation only, e.g. Hertz)",
-    "needs_elastic_contact": "acts only in contact and is selected only with an elastic contact law",
+    "elastic_contact": "an elastic contact law (a force of the indentation only, e.g. Hertz)",
+    "contact_only": "acts only in contact and is not elastic (adhesion, dissipation)",
+    "contact_adhesion": "a constant attraction in contact",
+    "attractive_tail": "an attraction out of contact that reaches the contact point (van der Waals)",
 }
+
+
+@dataclass(frozen=True)
+class SelectionRule:
+    """A support that holds a term of every role in ``if_all`` must hold a term of a role in ``then_any``."""
+
+    if_all: tuple[str, ...]
+    then_any: tuple[str, ...]
+    why: str
+
+
+#: Physical consistency of a selected force law: supports that break a rule are not candidates.
+SELECTION_RULES = (
+    SelectionRule(("contact_only",), ("elastic_contact",),
+                  "a surface cannot pull on or damp a tip in contact without pushing back"),
+    SelectionRule(("attractive_tail", "elastic_contact"), ("contact_adhesion",),
+                  "the van der Waals attraction does not vanish when the tip touches"),
+)
 
 
 @dataclass(frozen=True)
@@ -163,8 +181,9 @@ def _validate_effect(effect: Effect) -> None:
     units = _param_units(effect)
     values = {**CHECK_CONTEXT, **effect.defaults()}
     for term in effect.terms:
-        if term.role not in TERM_ROLES:
-            raise DefinitionError(f"term {term.label}: role {term.role!r} is not one of {sorted(TERM_ROLES)}")
+        unknown = set(term.roles) - set(TERM_ROLES)
+        if unknown:
+            raise DefinitionError(f"term {term.label}: roles {sorted(unknown)} are not among {sorted(TERM_ROLES)}")
         term_unit = expr.expression_units(term.expression, units, states=state_names)
         coefficient = term.coefficient(values)
         if not math.isfinite(coefficient):
@@ -259,7 +278,7 @@ EFFECTS.register(
             Term("vdw", "max(z, a0)^-2", lambda p: -p["hamaker"] * p["R"] / 6.0,
                  "van der Waals sphere-plane, saturating at contact (DMT adhesion H R / 6 a0^2)"),
             Term("hertz", "[z <= a0] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"]), "Hertz",
-                 role="elastic_contact"),
+                 roles=("elastic_contact",)),
         ),
         quantities=_CONTACT_QUANTITIES
         + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 4 pi R gamma"),),
@@ -322,11 +341,12 @@ EFFECTS.register(
             ),
         ),
         terms=(
-            Term("vdw", "[not jkr_contact] * z^-2", lambda p: -p["hamaker"] * p["R"] / 6.0),
+            Term("vdw", "[not jkr_contact] * z^-2", lambda p: -p["hamaker"] * p["R"] / 6.0,
+                 roles=("attractive_tail",)),
             Term("hertz", "[jkr_contact] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"]),
-                 role="elastic_contact"),
+                 roles=("elastic_contact",)),
             Term("adhesion", "[jkr_contact]", lambda p: -3.0 * math.pi * p["R"] * p["surface_energy"],
-                 role="needs_elastic_contact"),
+                 roles=("contact_only", "contact_adhesion")),
         ),
         quantities=_CONTACT_QUANTITIES
         + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 3 pi R gamma"),),
@@ -348,7 +368,7 @@ EFFECTS.register(
         formula="F = eta sqrt(R delta) d(delta)/dt  for z <= a0",
         parameters=(Parameter("viscosity", "Pa*s", 100.0, 0.0, 1e5, "sample viscosity eta"),),
         terms=(Term("kelvin_voigt", "delta^0.5 * deltadot", lambda p: p["viscosity"] * math.sqrt(p["R"]),
-                    role="needs_elastic_contact"),),
+                    roles=("contact_only",)),),
         quantities=(Quantity("viscosity", "Pa*s", "sample viscosity eta"),),
         readout=lambda c, ctx: {"viscosity": c["kelvin_voigt"] / math.sqrt(ctx["R"])},
         references=(

@@ -197,7 +197,7 @@ class _SubsetCriteria:
     exhaustive path without building a :class:`Candidate` per subset."""
 
     def __init__(self, protected: np.ndarray, n_rows: int, penalty: np.ndarray | None,
-                 requirement: tuple[np.ndarray, np.ndarray] | None = None):
+                 rules: list | None = None):
         self.protected = np.asarray(protected, dtype=bool)
         self.free = np.flatnonzero(~self.protected)
         nf = self.free.size
@@ -209,10 +209,12 @@ class _SubsetCriteria:
             extra = bits @ np.asarray(penalty, dtype=float)[self.free] + float(penalty[self.protected].sum())
         self.n_rows = n_rows
         self.allowed = np.ones(1 << nf, dtype=bool)
-        if requirement is not None:
-            needs, provides = (np.asarray(m, dtype=float)[self.free] for m in requirement)
-            self.allowed = ~((bits @ needs) > 0) | ((bits @ provides) > 0)
-            extra = np.where(self.allowed, extra, np.inf)
+        for conditions, then in rules or ():
+            applies = np.ones(1 << nf, dtype=bool)
+            for c in conditions:
+                applies &= (bits @ np.asarray(c, dtype=float)[self.free]) > 0
+            self.allowed &= ~applies | ((bits @ np.asarray(then, dtype=float)[self.free]) > 0)
+        extra = np.where(self.allowed, extra, np.inf)
         self.offset = {"bic": k * math.log(n_rows) + extra,
                        "aicc": 2 * k + (2 * k * (k + 1) / np.maximum(n_rows - k - 1, 1)) + extra}
         self.tol = 2.0 * n_rows * _SCREEN_RSS_REL
@@ -240,12 +242,12 @@ class _SubsetCriteria:
 
 def _exhaustive_ranked(T: np.ndarray, rss: np.ndarray, protected: np.ndarray, n_rows: int,
                        penalty: np.ndarray | None, n_best: int,
-                       requirement: tuple[np.ndarray, np.ndarray] | None = None) -> list[Candidate]:
+                       rules: list | None = None) -> list[Candidate]:
     """The candidates of the exhaustive path (residuals ``rss`` of all subsets, by bitmask) that
     :func:`select` can keep: the ``n_best`` lowest BIC and the protected-only support, plus any within
     rounding of the cut; fitted by :func:`subset_fit` and scored, in path order. Ranked on these, the
     candidates come out as ranked on all of :func:`exhaustive_path` with exact fits."""
-    crit = _SubsetCriteria(protected, n_rows, penalty, requirement)
+    crit = _SubsetCriteria(protected, n_rows, penalty, rules)
     bic = crit.values(rss, "bic")
     n_best = min(n_best, int(crit.allowed.sum()))
     cut = np.partition(bic, n_best - 1)[n_best - 1]
@@ -282,17 +284,17 @@ def select(
     n_rows: int | None = None,
     folds: int = 5,
     penalty: np.ndarray | None = None,
-    requirement: tuple[np.ndarray, np.ndarray] | None = None,
+    rules: list | None = None,
 ) -> Selection:
     """Sparsity path on all blocks, scored by BIC/AICc and cross-validation over held-out blocks.
 
     ``penalty`` (per column) is added to the information criteria of every
     candidate that uses the column: ``2 ln(prior odds against the term)``, so a
     term with weak physical motivation needs that much more evidence.
-    ``requirement`` = (needs, provides) column masks: a support that uses a
-    ``needs`` column without a ``provides`` one is not a candidate (e.g. a
-    contact adhesion or damping without an elastic contact law,
-    :meth:`afmid.library.Library.requirement`).
+    ``rules`` = [(condition masks, then mask), ...]: a support that uses a
+    column of every condition mask but none of the then mask is not a
+    candidate (e.g. a contact adhesion or damping without an elastic contact
+    law; :meth:`afmid.library.Library.selection_rules`).
     """
     if thresholds is None:
         thresholds = default_thresholds()
@@ -302,9 +304,9 @@ def select(
         rss = _all_subsets_rss(T, protected)
         if n_rows is None:
             raise ValueError("n_rows: the number of whitened rows behind the factors is needed for the criteria")
-        cands = _exhaustive_ranked(T, rss, protected, n_rows, penalty, CV_CANDIDATES, requirement)
+        cands = _exhaustive_ranked(T, rss, protected, n_rows, penalty, CV_CANDIDATES, rules)
     else:
-        cands = [c for c in candidates_for(T, protected, method, thresholds) if satisfies(c.mask, requirement)]
+        cands = [c for c in candidates_for(T, protected, method, thresholds) if satisfies(c.mask, rules)]
         if n_rows is None:
             raise ValueError("n_rows: the number of whitened rows behind the factors is needed for the criteria")
         score_candidates(cands, n_rows, penalty)
@@ -328,12 +330,13 @@ def select(
 CV_CANDIDATES = 24
 
 
-def satisfies(mask: np.ndarray, requirement: tuple[np.ndarray, np.ndarray] | None) -> bool:
-    """Whether a support meets ``requirement`` = (needs, provides): no needs column, or a provides one too."""
-    if requirement is None:
-        return True
-    needs, provides = requirement
-    return not bool((mask & needs).any()) or bool((mask & provides).any())
+def satisfies(mask: np.ndarray, rules: list | None) -> bool:
+    """Whether a support meets every rule (condition masks, then mask): it does not use a column of every
+    condition mask, or it uses a column of the then mask."""
+    for conditions, then in rules or ():
+        if all((mask & c).any() for c in conditions) and not (mask & then).any():
+            return False
+    return True
 
 
 def score_candidates(cands: list[Candidate], n_rows: int, penalty: np.ndarray | None) -> None:
@@ -397,7 +400,7 @@ def bag(
     rng: np.random.Generator,
     n_rows: int,
     penalty: np.ndarray | None = None,
-    requirement: tuple[np.ndarray, np.ndarray] | None = None,
+    rules: list | None = None,
 ) -> Bagging:
     """Bootstrap over blocks: inclusion probabilities (re-selecting) and coefficient spread (chosen support)."""
     B = T_blocks.shape[0]
@@ -409,14 +412,14 @@ def bag(
     key = "bic" if criterion in ("bic", "cv") else "aicc"
     n_rows_boot = int(B * n_rows_per_block)
     if method == "exhaustive":
-        crit = _SubsetCriteria(protected, n_rows_boot, penalty, requirement)
+        crit = _SubsetCriteria(protected, n_rows_boot, penalty, rules)
     for i in range(n_boot):
         mult = rng.multinomial(B, np.full(B, 1.0 / B)).astype(float)
         T = combine(T_blocks, mult)
         if method == "exhaustive":
             pick_mask = _exhaustive_pick(T, protected, crit, key, penalty)
         else:
-            cands = [c for c in candidates_for(T, protected, method, thresholds) if satisfies(c.mask, requirement)]
+            cands = [c for c in candidates_for(T, protected, method, thresholds) if satisfies(c.mask, rules)]
             score_candidates(cands, n_rows_boot, penalty)
             pick_mask = min(cands, key=lambda c: getattr(c, key)).mask
         counts += pick_mask

@@ -522,9 +522,9 @@ def test_build_library_presets():
         assert lib.names == [entry[0] for entry in preset.terms], name
         assert lib.effects == preset.effects
         assert lib.source == name
-        for term, (_, expression, origin, *role) in zip(lib.terms, preset.terms):
+        for term, (_, expression, origin, *roles) in zip(lib.terms, preset.terms):
             assert term.expression == expression
-            assert term.role == (role[0] if role else "")
+            assert term.roles == (roles[0] if roles else ())
             assert parse_unit(term.coefficient_unit) * parse_unit(term.unit) == parse_unit("N"), term.name
             if origin is None:
                 assert term.effect is None and term.label is None  # a distractor (gets the prior penalty)
@@ -668,45 +668,51 @@ def test_trajectory_variables_contact_conventions():
 
 # --------------------------------------------------------------------------- selection constraint
 def test_term_roles_of_the_catalog_and_the_seed_tables():
-    """Contact-only adhesion and damping need an elastic contact law; the roles are declared and checked."""
-    from afmid.physics import TERM_ROLES
+    """Roles are declared on the registry's terms and the tables' columns, checked, and become rule masks."""
+    from afmid.physics import SELECTION_RULES, TERM_ROLES
 
-    roles = {f"{e.name}.{t.label}": t.role for e in EFFECTS for t in e.terms}
-    assert set(roles.values()) <= set(TERM_ROLES)
-    assert roles["dmt.hertz"] == roles["jkr.hertz"] == "elastic_contact"
-    assert roles["viscoelastic.kelvin_voigt"] == roles["jkr.adhesion"] == "needs_elastic_contact"
-    assert roles["dmt.vdw"] == "" and roles["exponential_damping.surface_damping"] == ""  # act out of contact too
+    roles = {f"{e.name}.{t.label}": t.roles for e in EFFECTS for t in e.terms}
+    assert {r for rs in roles.values() for r in rs} <= set(TERM_ROLES)
+    assert {r for rule in SELECTION_RULES for r in rule.if_all + rule.then_any} <= set(TERM_ROLES)
+    assert roles["dmt.hertz"] == roles["jkr.hertz"] == ("elastic_contact",)
+    assert roles["viscoelastic.kelvin_voigt"] == ("contact_only",)
+    assert roles["jkr.adhesion"] == ("contact_only", "contact_adhesion") and roles["jkr.vdw"] == ("attractive_tail",)
+    assert roles["dmt.vdw"] == () and roles["exponential_damping.surface_damping"] == ()  # act out of contact too
     table2 = build_library(ModelConfig(library="viscoelastic_table2"))
-    needs, provides = table2.requirement(2)
+    (needs,), elastic = table2.selection_rules(2)[0]
     assert [n for n, m in zip(table2.names, needs) if m] == ["delta^0.5*deltadot", "delta*deltadot^2",
                                                                "[z<=a0] (bridging)"]
-    assert [n for n, m in zip(table2.names, provides) if m] == ["delta^2", "delta^2.5", "delta^1.5"]
-    assert needs.size == len(table2) + 2 and not needs[-2:].any() and not provides[-2:].any()
-    assert build_library(ModelConfig(library="lj_table1")).requirement() is None
-    assert build_library(ModelConfig(effects=["dmt"])).requirement() is None  # nothing needs anything
+    assert [n for n, m in zip(table2.names, elastic) if m] == ["delta^2", "delta^2.5", "delta^1.5"]
+    assert needs.size == len(table2) + 2 and not needs[-2:].any() and not elastic[-2:].any()
+    (tail, elastic2), adhesion = table2.selection_rules()[1]
+    assert [n for n, m in zip(table2.names, tail) if m] == ["z^-2", "z^-3"]
+    assert [n for n, m in zip(table2.names, adhesion) if m] == ["[z<=a0] (bridging)"]
+    assert build_library(ModelConfig(library="lj_table1")).selection_rules() == []
+    assert build_library(ModelConfig(effects=["dmt"])).selection_rules() == []  # the tail is tied to the adhesion
+    assert len(build_library(ModelConfig(effects=["jkr", "viscoelastic"])).selection_rules()) == 2
 
 
 @pytest.mark.parametrize("method", ["exhaustive", "stlsq"])
-def test_selection_requirement_excludes_contact_terms_without_elastic_law(method):
-    """Data that a viscous column alone explains best: with the requirement the chosen support must carry
-    an elastic column too; every candidate kept satisfies it, in the selection and in the bootstrap."""
+def test_selection_rules_exclude_unphysical_supports(method):
+    """Data that a viscous column alone explains best: under the rule 'contact-only needs elastic' the chosen
+    support carries an elastic column too, and every candidate kept satisfies it, in the bootstrap as well;
+    a two-condition rule (tail and elastic need adhesion) applies only when both are present."""
     rng = np.random.default_rng(3)
     B, r = 30, 40
-    elastic = rng.normal(size=(B, r))
-    viscous = rng.normal(size=(B, r))
-    other = rng.normal(size=(B, r))
-    drive = rng.normal(size=(B, r))
-    y = 2.0 * viscous + 0.5 * drive + 0.05 * rng.normal(size=(B, r))
-    A = np.stack([elastic, viscous, other, drive], axis=2)
-    T_blocks = regression.factor_blocks(A, y)
-    protected = np.array([False, False, False, True])
-    requirement = (np.array([False, True, False, False]), np.array([True, False, False, False]))
+    cols = rng.normal(size=(5, B, r))  # elastic, viscous, tail, adhesion, drive
+    y = 2.0 * cols[1] + 1.0 * cols[2] + 0.5 * cols[4] + 0.05 * rng.normal(size=(B, r))
+    T_blocks = regression.factor_blocks(np.stack(list(cols), axis=2), y)
+    protected = np.array([False, False, False, False, True])
+    col = {name: np.arange(5) == i for i, name in enumerate(("elastic", "viscous", "tail", "adhesion", "drive"))}
+    rules = [([col["viscous"]], col["elastic"]), ([col["tail"], col["elastic"]], col["adhesion"])]
     free = regression.select(T_blocks, protected, method, "bic", n_rows=B * r)
-    assert list(free.best.mask) == [False, True, False, True]  # unconstrained: the viscous column alone
-    held = regression.select(T_blocks, protected, method, "bic", n_rows=B * r, requirement=requirement)
-    assert held.best.mask[1] and held.best.mask[0]
-    assert all(regression.satisfies(c.mask, requirement) for c in held.candidates)
-    bagging = regression.bag(T_blocks, protected, held.best.mask, ["e", "v", "o", "d"], method, "bic",
-                             regression.default_thresholds(), 20, np.random.default_rng(0), B * r,
-                             requirement=requirement)
-    assert all(("v" not in s) or ("e" in s) for s in bagging.supports)
+    assert list(free.best.mask) == [False, True, True, False, True]  # unconstrained: viscous + tail
+    held = regression.select(T_blocks, protected, method, "bic", n_rows=B * r, rules=rules)
+    assert held.best.mask[1] and held.best.mask[0]  # viscous needs the elastic column ...
+    assert not held.best.mask[2] or held.best.mask[3]  # ... and with the tail, the adhesion
+    assert all(regression.satisfies(c.mask, rules) for c in held.candidates)
+    assert regression.satisfies(col["tail"] | col["drive"], rules)  # a tail alone (no contact) is fine
+    assert not regression.satisfies(col["tail"] | col["elastic"], rules)
+    bagging = regression.bag(T_blocks, protected, held.best.mask, ["e", "v", "t", "a", "d"], method, "bic",
+                             regression.default_thresholds(), 20, np.random.default_rng(0), B * r, rules=rules)
+    assert all(("v" not in s or "e" in s) and not ("t" in s and "e" in s and "a" not in s) for s in bagging.supports)
