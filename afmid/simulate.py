@@ -11,8 +11,13 @@ force law's terms (:func:`afmid.physics.build_force_law`). The paper's
 nondimensional form is :class:`NondimensionalForm`.
 
 Integration is fixed-step RK4 in a numba kernel (:mod:`afmid.kernels.integrate`)
-that steps exactly onto every non-smooth instant (contact, gate flips). Output
-samples fall on step boundaries. Noise: a thermal force (fluctuation-dissipation
+that steps exactly onto every non-smooth instant (contact, gate flips). By
+default the kernel is generated from the force law's compiled programs
+(:mod:`afmid.kernels.lawgen`: straight-line code instead of the VM, ~10x faster,
+compiled once per force-law structure and cached on disk); the generic kernel
+interprets the same programs (``Integrator(kernel="vm")``, or
+``AFMID_SIMULATE_KERNEL=vm``) and gives the same numbers. Output samples fall
+on step boundaries. Noise: a thermal force (fluctuation-dissipation
 consistent with k_B T), white detector noise and ADC rounding, drawn from
 ``numpy.random.Generator(PCG64(seed))`` in a fixed order, so a seed gives a
 bit-identical trace.
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -46,6 +52,8 @@ SETTLED_PERIODS = 5
 SETTLE_CHUNK_PERIODS = 10
 #: Output samples per kernel call while recording (thermal forces are drawn per call).
 RECORD_CHUNK_SAMPLES = 8192
+#: Periods per kernel call in the thermal warm-up (bounds the thermal-force array).
+WARMUP_CHUNK_PERIODS = 64
 #: Thermal warm-up length in units of Q / w0 (the decay time of the oscillator's
 #: energy): the thermal variance then lacks a fraction exp(-7) < 1e-3 of its value.
 THERMAL_WARMUP_ENERGY_TIMES = 7.0
@@ -266,15 +274,24 @@ class CompiledForceLaw:
     def n_gates(self) -> int:
         return len(self.law.states)
 
-    def kernel_arguments(self) -> tuple:
-        """(force bundle, terms + switching bundle, coefficients, owners, condition bundle) for the kernel."""
+    def vm_law(self) -> tuple:
+        """The ``law`` argument of the generic (VM) kernel: (force bundle, terms + switching bundle,
+        coefficients, condition bundle)."""
         return (
             _bundle(self.terms),
             _bundle(self.terms + self.switching),
             self.coefficients,
-            self.owners,
             _bundle(self.conditions),
         )
+
+    def generated_kernel(self):
+        """The kernel generated from these programs (:func:`afmid.kernels.lawgen.law_kernel`).
+
+        Raises :class:`afmid.kernels.lawgen.GenerationError` when it cannot be made.
+        """
+        from .kernels import lawgen
+
+        return lawgen.law_kernel(self.terms, self.switching, self.conditions, self.coefficients, self.n_gates)
 
 
 def _bundle(programs) -> tuple:
@@ -353,6 +370,28 @@ def initial_gates(compiled: CompiledForceLaw, x: float, v: float, t: float, d: f
 
 
 # =========================================================================== running the kernel
+#: Integrator kernel unless one is asked for: "auto", "generated" or "vm" (see :class:`Integrator`).
+DEFAULT_KERNEL = os.environ.get("AFMID_SIMULATE_KERNEL", "auto")
+_NO_THERMAL = np.zeros(0)
+
+
+def _kernel_for(compiled: CompiledForceLaw, kind: str):
+    """(kernel module, its law tuple, the kind used) for a compiled force law."""
+    if kind != "vm":
+        from .kernels.lawgen import GenerationError
+
+        try:
+            generated = compiled.generated_kernel()
+            return generated.module, generated.law, "generated"
+        except GenerationError as exc:
+            if kind == "generated":
+                raise
+            log.debug("using the VM kernel: %s", exc)
+    from .kernels import integrate as kernel
+
+    return kernel, compiled.vm_law(), "vm"
+
+
 @dataclass
 class Segment:
     """A stretch of integrated trajectory, recorded every ``n_sub`` steps."""
@@ -365,19 +404,31 @@ class Segment:
 
 
 class Integrator:
-    """Runs :func:`afmid.kernels.integrate.integrate` for one setup at separation d (m)."""
+    """Runs the integration kernel for one setup at separation d (m).
 
-    def __init__(self, oscillator: Oscillator, compiled: CompiledForceLaw, separation: float):
-        from .kernels import integrate as kernel
+    ``kernel`` picks the force-law evaluation: ``"generated"`` -- a kernel
+    generated from the force law's programs (:mod:`afmid.kernels.lawgen`;
+    compiled once per force-law structure, then cached on disk) --, ``"vm"`` --
+    the generic kernel, which interprets the programs (:mod:`afmid.kernels.vm`;
+    ~10x slower, nothing to compile) --, or ``"auto"`` (the default, from
+    $AFMID_SIMULATE_KERNEL if set): generated, or the VM if generation fails.
+    Both run the same algorithm text and give the same numbers (the tests
+    compare them bit for bit).
+    """
 
-        self._kernel = kernel
+    def __init__(self, oscillator: Oscillator, compiled: CompiledForceLaw, separation: float,
+                 kernel: str | None = None):
+        kernel = kernel or DEFAULT_KERNEL
+        if kernel not in ("auto", "generated", "vm"):
+            raise ValueError(f"kernel must be 'auto', 'generated' or 'vm', not {kernel!r}")
         self.oscillator = oscillator
         self.compiled = compiled
         self.separation = separation
         o = oscillator
         a0 = compiled.law.parameters["a0"]
-        self.dyn = np.array([o.mass, o.damping, o.spring_constant, o.drive_force, o.omega, separation, a0])
-        self._args = compiled.kernel_arguments()
+        self.dyn = np.array([o.mass, o.damping, o.spring_constant, o.drive_force, o.omega, separation, a0,
+                             1.0 / o.mass])
+        self._kernel, self._law, self.kernel = _kernel_for(compiled, kernel)
         # Carried from run to run: the state at the end of the last run.
         self.x = 0.0
         self.v = 0.0
@@ -399,10 +450,9 @@ class Integrator:
         n_rec = n_steps // n_sub + 1
         if out is None:
             out = Segment(np.empty(n_rec), np.empty(n_rec), np.empty(n_rec), np.empty((n_rec, self.compiled.n_gates)), 0)
-        force, full, coef, owners, cond = self._args
-        thermal = np.zeros(0) if thermal is None else thermal
+        thermal = _NO_THERMAL if thermal is None else thermal
         x, v, status, events = self._kernel.integrate(
-            self.x, self.v, t0, h, n_steps, n_sub, self.dyn, self.gates, force, full, coef, owners, cond,
+            self.x, self.v, t0, h, n_steps, n_sub, self.dyn, self.gates, self._law, self.compiled.owners,
             thermal, out.x, out.v, out.force, out.gates)
         if status != self._kernel.OK:
             raise AfmidError(
@@ -417,15 +467,23 @@ class Integrator:
         return out
 
 
-def first_harmonic(x: np.ndarray, omega_h: float) -> tuple[float, float]:
+def harmonic_basis(n: int, omega_h: float) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of w t at t = i h, i = 0..n-1, for :func:`first_harmonic` (``omega_h`` = w h)."""
+    phase = omega_h * np.arange(n)
+    return np.cos(phase), np.sin(phase)
+
+
+def first_harmonic(x: np.ndarray, omega_h: float,
+                   basis: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float]:
     """Amplitude (m) and phase lag (rad) of x = A cos(w t - phi) over one period sampled at t = i h.
 
     ``omega_h`` = w h with w h len(x) = 2 pi (the rectangle rule is exact for
-    trigonometric polynomials over a full period).
+    trigonometric polynomials over a full period). ``basis``: the arrays of
+    :func:`harmonic_basis` for len(x), when called for many periods.
     """
-    phase = omega_h * np.arange(x.size)
-    a = 2.0 / x.size * np.dot(x, np.cos(phase))
-    b = 2.0 / x.size * np.dot(x, np.sin(phase))
+    cos, sin = harmonic_basis(x.size, omega_h) if basis is None else basis
+    a = 2.0 / x.size * np.dot(x, cos)
+    b = 2.0 / x.size * np.dot(x, sin)
     return math.hypot(a, b), math.atan2(b, a)
 
 
@@ -449,6 +507,7 @@ def settle(integrator: Integrator, steps_per_period: int, tolerance: float, max_
     """
     h = integrator.oscillator.period / steps_per_period
     omega_h = 2.0 * math.pi / steps_per_period
+    basis = harmonic_basis(steps_per_period, omega_h)
     previous = None
     calm = 0
     done = 0
@@ -456,7 +515,7 @@ def settle(integrator: Integrator, steps_per_period: int, tolerance: float, max_
         chunk = min(SETTLE_CHUNK_PERIODS, max_periods - done)
         seg = integrator.run(0.0, h, chunk * steps_per_period, 1)
         for p in range(chunk):
-            amplitude, phase = first_harmonic(seg.x[p * steps_per_period:(p + 1) * steps_per_period], omega_h)
+            amplitude, phase = first_harmonic(seg.x[p * steps_per_period:(p + 1) * steps_per_period], omega_h, basis)
             if previous is not None:
                 d_amp = abs(amplitude - previous[0]) / amplitude
                 d_phase = abs(math.remainder(phase - previous[1], 2.0 * math.pi))
@@ -649,10 +708,13 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
                 warmup = math.ceil(THERMAL_WARMUP_ENERGY_TIMES * osc.quality_factor / (2.0 * math.pi))
                 h = osc.period / sim.steps_per_period
                 sigma = thermal_force_std(osc, noise.temperature, h)
-                for _ in range(warmup):
-                    integrator.run(0.0, h, sim.steps_per_period, sim.steps_per_period,
-                                   rng.standard_normal(sim.steps_per_period) * sigma)
-                    bar(1)
+                done = 0
+                while done < warmup:  # whole periods per kernel call, t = 0 at each call's start
+                    chunk = min(WARMUP_CHUNK_PERIODS, warmup - done)
+                    n_steps = chunk * sim.steps_per_period
+                    integrator.run(0.0, h, n_steps, n_steps, rng.standard_normal(n_steps) * sigma)
+                    done += chunk
+                    bar(chunk)
                 extra["thermal_warmup_periods"] = warmup
         else:
             extra["transient_start"] = sim.transient_start
@@ -728,14 +790,40 @@ def _record(integrator: Integrator, grid: Grid, osc: Oscillator, noise, rng, bar
 
 
 # =========================================================================== plain-Python twin
+def reference_drive(oscillator: Oscillator, t0: float, h: float, n_steps: int) -> np.ndarray:
+    """Plain-Python twin of the kernel's drive: F0 cos(w t) (N) at t = t0 + (i + m/2) h.
+
+    Shape (n_steps, 3), columns m = 0, 1, 2 (the RK4 stage times of step i).
+    Exact (``math.cos``) at every DRIVE_ANCHOR_STEPS-th step start, by the
+    angle-addition formula with the table of :func:`afmid.kernels.integrate.drive_table`
+    in between, as :func:`afmid.kernels.integrate.integrate` computes it.
+    """
+    from .kernels.integrate import DRIVE_ANCHOR_STEPS as K
+
+    w, F0 = oscillator.omega, oscillator.drive_force
+    angles = [w * (0.5 * h * m) for m in range(2 * K + 1)]
+    cos_table, sin_table = [math.cos(a) for a in angles], [math.sin(a) for a in angles]
+    out = np.empty((n_steps, 3))
+    c = s = 0.0
+    for i in range(n_steps):
+        k = i % K
+        if k == 0:
+            phase = w * (t0 + i * h)
+            c, s = math.cos(phase), math.sin(phase)
+        for j in range(3):
+            out[i, j] = F0 * (c * cos_table[2 * k + j] - s * sin_table[2 * k + j])
+    return out
+
+
 def reference_integrate(compiled: CompiledForceLaw, oscillator: Oscillator, separation: float,
                         x: float, v: float, t0: float, h: float, n_steps: int, gates=None, thermal=None):
     """Plain NumPy/Python twin of the kernel's RK4 + event logic (slow; for tests).
 
-    Same algorithm as :func:`afmid.kernels.integrate.step`, written without numba
-    and evaluating the force with :func:`afmid.expr.evaluate_numpy`. Returns
-    arrays x (m), v (m/s) and gates at t0 + i h, i = 0..n_steps, and the number
-    of events.
+    Same algorithm as :func:`afmid.kernels.integrate.integrate` and
+    :func:`~afmid.kernels.integrate.event_step` (drive included, see
+    :func:`reference_drive`), written without numba and evaluating the force
+    with :func:`afmid.expr.evaluate_numpy`. Returns arrays x (m), v (m/s) and
+    gates at t0 + i h, i = 0..n_steps, and the number of events.
     """
     from .kernels.integrate import EVENT_TOLERANCE, MAX_EVENTS_PER_STEP, MAX_ROOT_ITERATIONS
 
@@ -743,19 +831,28 @@ def reference_integrate(compiled: CompiledForceLaw, oscillator: Oscillator, sepa
     a0 = compiled.law.parameters["a0"]
     owners = compiled.owners
     gates = initial_gates(compiled, x, v, t0, separation) if gates is None else np.array(gates, float)
+    drives = reference_drive(o, t0, h, n_steps)
 
-    def accel(x, v, t, g, f_th):
+    def drive(t):
+        return o.drive_force * math.cos(o.omega * t)
+
+    inverse_mass = 1.0 / o.mass
+
+    def accel(x, v, t, g, f_th, d):
         f_ts = float(force_numpy(compiled, x, v, t, separation, g)[0])
-        return (-f_ts + o.drive_force * math.cos(o.omega * t) + f_th - o.damping * v - o.spring_constant * x) / o.mass
+        return (d + f_th - o.damping * v - o.spring_constant * x - f_ts) * inverse_mass
 
-    def rk4(x, v, t, dt, g, f_th):
-        a1 = accel(x, v, t, g, f_th)
+    def rk4(x, v, t, dt, g, f_th, d1, d2=None, d4=None):
+        """One RK4 step; the drive at t + dt/2 and t + dt is evaluated directly unless given."""
+        d2 = drive(t + 0.5 * dt) if d2 is None else d2
+        d4 = drive(t + dt) if d4 is None else d4
+        a1 = accel(x, v, t, g, f_th, d1)
         x2, v2 = x + 0.5 * dt * v, v + 0.5 * dt * a1
-        a2 = accel(x2, v2, t + 0.5 * dt, g, f_th)
+        a2 = accel(x2, v2, t + 0.5 * dt, g, f_th, d2)
         x3, v3 = x + 0.5 * dt * v2, v + 0.5 * dt * a2
-        a3 = accel(x3, v3, t + 0.5 * dt, g, f_th)
+        a3 = accel(x3, v3, t + 0.5 * dt, g, f_th, d2)
         x4, v4 = x + dt * v3, v + dt * a3
-        a4 = accel(x4, v4, t + dt, g, f_th)
+        a4 = accel(x4, v4, t + dt, g, f_th, d4)
         return x + dt / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4), v + dt / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
 
     def switching(x, v, t, g):
@@ -772,7 +869,7 @@ def reference_integrate(compiled: CompiledForceLaw, oscillator: Oscillator, sepa
             if (g[i] == 0.0 and values[2 * i] != 0.0) or (g[i] != 0.0 and values[2 * i + 1] != 0.0):
                 g[i] = 1.0 - g[i]
 
-    def crossing(x, v, t, g, f_th, j, s0, s_hi, hi):
+    def crossing(x, v, t, g, f_th, d1, j, s0, s_hi, hi):
         side = s0 > 0.0
         lo, f_lo, f_hi, last = 0.0, s0, s_hi, 0
         for _ in range(MAX_ROOT_ITERATIONS):
@@ -781,7 +878,7 @@ def reference_integrate(compiled: CompiledForceLaw, oscillator: Oscillator, sepa
             theta = hi - f_hi * (hi - lo) / (f_hi - f_lo)
             if not (lo < theta < hi):
                 theta = 0.5 * (lo + hi)
-            f_mid = switching(*rk4(x, v, t, theta, g, f_th), t + theta, g)[j]
+            f_mid = switching(*rk4(x, v, t, theta, g, f_th, d1), t + theta, g)[j]
             if (f_mid > 0.0) == side:
                 lo, f_lo = theta, f_mid
                 f_hi = f_hi * 0.5 if last == -1 else f_hi
@@ -798,27 +895,28 @@ def reference_integrate(compiled: CompiledForceLaw, oscillator: Oscillator, sepa
     for i in range(n_steps):
         f_th = 0.0 if thermal is None else float(thermal[i])
         t_now, remaining, n_ev = t0 + i * h, h, 0
+        d1 = drives[i, 0]
+        x1, v1 = rk4(x, v, t_now, remaining, gates, f_th, d1, drives[i, 1], drives[i, 2])
         while True:
-            x1, v1 = rk4(x, v, t_now, remaining, gates, f_th)
             s_end = switching(x1, v1, t_now + remaining, gates)
             hi, crossed = remaining, False
             if n_ev < MAX_EVENTS_PER_STEP:
                 for j in range(len(s_now)):
                     if not relevant(owners[j], gates) or (s_end[j] > 0.0) == (s_now[j] > 0.0):
                         continue
-                    if hi < remaining:
-                        s_hi = switching(*rk4(x, v, t_now, hi, gates, f_th), t_now + hi, gates)[j]
+                    if crossed:
+                        s_hi = switching(*rk4(x, v, t_now, hi, gates, f_th, d1), t_now + hi, gates)[j]
                         if (s_hi > 0.0) == (s_now[j] > 0.0):
                             continue
                     else:
                         s_hi = s_end[j]
-                    hi = crossing(x, v, t_now, gates, f_th, j, s_now[j], s_hi, hi)
+                    hi = crossing(x, v, t_now, gates, f_th, d1, j, s_now[j], s_hi, hi)
                     crossed = True
             if not crossed:
                 x, v, s_now = x1, v1, s_end
                 flip(x, v, t_now + remaining, gates)
                 break
-            x, v = rk4(x, v, t_now, hi, gates, f_th)
+            x, v = rk4(x, v, t_now, hi, gates, f_th, d1)
             t_now += hi
             remaining -= hi
             n_ev += 1
@@ -826,6 +924,8 @@ def reference_integrate(compiled: CompiledForceLaw, oscillator: Oscillator, sepa
             s_now = switching(x, v, t_now, gates)
             if remaining <= EVENT_TOLERANCE * h:
                 break
+            d1 = drive(t_now)
+            x1, v1 = rk4(x, v, t_now, remaining, gates, f_th, d1)
         events += n_ev
         xs.append(x)
         vs.append(v)

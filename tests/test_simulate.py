@@ -16,7 +16,7 @@ from scipy.integrate import solve_ivp
 from afmid.config import build_config
 from afmid.errors import AfmidError, ConfigError
 from afmid.io import write_trace_file
-from afmid.physics import BOLTZMANN, EPSILON_0, build_force_law
+from afmid.physics import BOLTZMANN, EFFECTS, EPSILON_0, MODELS, ForceLaw, StateGate, build_force_law
 from afmid.simulate import (
     Integrator,
     NondimensionalForm,
@@ -24,6 +24,7 @@ from afmid.simulate import (
     compile_force_law,
     drive_force_for_amplitude,
     force_numpy,
+    reference_drive,
     reference_integrate,
     resolve_setup,
     simulate,
@@ -285,7 +286,8 @@ def test_agrees_with_solve_ivp(model, mode):
     assert deviation < 1e-4, deviation
 
 
-def test_kernel_matches_its_python_twin():
+@pytest.mark.parametrize("kernel", ["generated", "vm"])
+def test_kernel_matches_its_python_twin(kernel):
     for model in ("dmt_viscoelastic", "jkr_hysteretic"):
         config = make_config(model, Q=250.0)
         setup = resolve_setup(config)
@@ -295,7 +297,8 @@ def test_kernel_matches_its_python_twin():
         n = 300  # 1.5 periods: in and out of contact
         rng = np.random.default_rng(0)
         thermal = rng.standard_normal(n) * 1e-11
-        integrator = Integrator(setup.oscillator, compiled, D_TAP)
+        integrator = Integrator(setup.oscillator, compiled, D_TAP, kernel=kernel)
+        assert integrator.kernel == kernel
         integrator.start(x0, v0)
         seg = integrator.run(0.0, h, n, 1, thermal)
         x, v, gates, events = reference_integrate(compiled, setup.oscillator, D_TAP, x0, v0, 0.0, h, n, thermal=thermal)
@@ -303,6 +306,169 @@ def test_kernel_matches_its_python_twin():
         assert np.max(np.abs(seg.x - x)) < 1e-12 * A_FREE
         assert np.max(np.abs(seg.v - v)) < 1e-12 * A_FREE * setup.oscillator.omega
         np.testing.assert_array_equal(seg.gates, gates)
+
+
+# =========================================================================== generated kernels
+# A law whose terms, switching functions and gate conditions use every opcode of the VM, with
+# values that reach inf, nan and -0.0 at some of the points below (z = 0, z < 0, z = a0, ...).
+ALL_OPCODE_TERMS = (
+    "exp(-z / lam) * zdot", "log(z + 1e-9)", "sqrt(abs(x)) * sin(t * w) + cos(xdot)", "pos(a0 - z) ^ 2.5",
+    "max(z, a0)^-3", "z ^ -1.5", "min(z, 2 * a0) ^ 1.7", "[z <= a0 and not meniscus] * delta^1.5",
+    "[z > a0 or deltadot > 0] * [meniscus] * z^-2", "[meniscus]", "-(x * 2)", "z ^ zdot", "deltadot * delta^0.5",
+    "x / (z - a0)", "[z >= a0] * [z < 3 * a0] * (z - a0) ^ 0.5", "[not (z < a0)] * z^0 + z^1 - z^-1 + z^2",
+)
+
+
+def _all_opcode_law():
+    params = {"a0": A0_CONTACT, "R": R, "lam": 1e-9, "w": 2e6, "rup": 1e-9}
+    terms = tuple(("custom", f"t{i}", text, 1.0 + i) for i, text in enumerate(ALL_OPCODE_TERMS))
+    return compile_force_law(ForceLaw(("custom",), params, terms, (StateGate("meniscus", "z <= a0", "z > a0 + rup"),)))
+
+
+def _laws_under_test():
+    laws = {f"effect {name}": compile_force_law(build_force_law([name], {}, {"R": R, "a0": A0_CONTACT}))
+            for name in EFFECTS.names()}
+    for name in MODELS.names():
+        model = MODELS.get(name)
+        laws[f"model {name}"] = compile_force_law(
+            build_force_law(model.effects, dict(model.defaults), {"R": R, "a0": A0_CONTACT}, model.derived_defaults))
+    laws["all opcodes"] = _all_opcode_law()
+    return laws
+
+
+def _points(n_gates, d):
+    """Points (x, v, t, gate rows) across the contact, at its edge, at z = 0, beyond, and non-finite ones."""
+    z = np.concatenate([np.linspace(-0.5e-9, 3e-9, 41), [A0_CONTACT, 0.0, -0.0, 1e-6, np.inf, -np.inf, np.nan]])
+    v = np.resize([0.0, -0.0, 0.3, -0.7, 2e-3, np.nan, np.inf], z.size)
+    t = np.resize([0.0, 1e-7, 3.3e-6, -2e-6], z.size)
+    x = d - z
+    rows = [np.zeros(n_gates), np.ones(n_gates)]
+    x, v, t = (np.repeat(a, len(rows)) for a in (x, v, t))
+    gates = np.tile(np.array(rows).reshape(len(rows), n_gates), (z.size, 1))
+    return x, v, t, gates
+
+
+def _evaluate(module, law, compiled, x, v, t, dyn, gates):
+    n, n_switch = x.size, compiled.owners.size
+    out = (np.empty(n), np.empty(n), np.empty((n, n_switch)), np.empty((n, 2 * compiled.n_gates)))
+    module.evaluate_law(x, v, t, dyn, np.ascontiguousarray(gates), law, n_switch, *out)
+    return out
+
+
+def test_generated_law_is_the_vm_law_bit_for_bit():
+    """Every effect, every model and a law using every opcode: generated code == VM == NumPy twin."""
+    from afmid.expr import evaluate_numpy
+    from afmid.kernels import integrate as vm_kernel
+
+    d = 20e-9
+    for name, compiled in _laws_under_test().items():
+        dyn = np.array([1.0, 1.0, 1.0, 1.0, 1.0, d, compiled.law.parameters["a0"], 1.0])
+        x, v, t, gates = _points(compiled.n_gates, d)
+        generated = compiled.generated_kernel()
+        ours = _evaluate(generated.module, generated.law, compiled, x, v, t, dyn, gates)
+        vm = _evaluate(vm_kernel, compiled.vm_law(), compiled, x, v, t, dyn, gates)
+        for a, b in zip(ours, vm):
+            np.testing.assert_array_equal(a, b, err_msg=name)  # NaN == NaN here; -0.0 == 0.0
+            numbers = ~np.isnan(a)  # (the sign of a NaN is not specified by IEEE 754)
+            assert np.array_equal(np.signbit(a[numbers]), np.signbit(b[numbers])), name
+        np.testing.assert_array_equal(ours[0], ours[1], err_msg=name)  # law_force == law_full's force
+        # The NumPy twin (evaluates the parsed text, without the compiler's constant folding).
+        finite = np.isfinite(x) & np.isfinite(v)
+        with np.errstate(all="ignore"):  # inf - inf in the sum of terms
+            numpy_force = np.array([force_numpy(compiled, x[i], v[i], t[i], d, gates[i])[0] if finite[i] else np.nan
+                                    for i in range(x.size)])
+        ok = np.isfinite(numpy_force) & finite
+        np.testing.assert_allclose(ours[0][ok], numpy_force[ok], rtol=1e-12, atol=0, err_msg=name)
+        np.testing.assert_array_equal(np.isfinite(ours[0][finite]), np.isfinite(numpy_force[finite]), err_msg=name)
+        from afmid.simulate import program_variables
+
+        variables = program_variables(x[finite], v[finite], t[finite], d, dyn[6], gates[finite])
+        for j, p in enumerate(compiled.switching):
+            np.testing.assert_allclose(ours[2][finite, j], evaluate_numpy(p, variables), rtol=1e-12, err_msg=name)
+        for j, p in enumerate(compiled.conditions):
+            np.testing.assert_array_equal(ours[3][finite, j], evaluate_numpy(p, variables), err_msg=name)
+
+
+@pytest.mark.parametrize("model, mode", [("dmt", "steady"), ("dmt_exponential_damping", "steady"),
+                                         ("jkr_hysteretic", "transient"), ("capillary", "transient")])
+def test_generated_kernel_runs_as_the_vm_kernel(model, mode):
+    """Same trajectory, events, gates and forces from both kernels (thermal force on)."""
+    kw = {"mode": mode, "Q": 50.0, "settle_tolerance": 1e-6}
+    config = make_config("dmt", effects=["capillary"], **kw) if model == "capillary" else make_config(model, **kw)
+    setup = resolve_setup(config)
+    compiled = compile_force_law(setup.force_law)
+    h = setup.oscillator.period / 2000
+    n = 4 * 2000
+    thermal = np.random.default_rng(1).standard_normal(n) * 3e-11
+    segments = []
+    for kernel in ("generated", "vm"):
+        integrator = Integrator(setup.oscillator, compiled, D_TAP, kernel=kernel)
+        assert integrator.kernel == kernel
+        integrator.start(*setup.oscillator.free_state(0.0))
+        segments.append(integrator.run(0.1e-6, h, n, 10, thermal))
+    a, b = segments
+    assert a.events == b.events > 0
+    np.testing.assert_array_equal(a.gates, b.gates)
+    assert np.max(np.abs(a.x - b.x)) <= 1e-13 * A_FREE
+    assert np.max(np.abs(a.force - b.force)) <= 1e-11 * np.max(np.abs(b.force))
+
+
+def test_drive_table_and_its_twin():
+    """The drive by angle addition stays within rounding of F0 cos(w t), over a long run, and the twin agrees."""
+    from afmid.kernels.integrate import DRIVE_ANCHOR_STEPS, drive_table
+
+    osc = Oscillator(K, F0_HZ, 250.0, F0_HZ, 2e-9)
+    h = osc.period / 2000
+    table = drive_table(osc.omega, h, DRIVE_ANCHOR_STEPS)
+    angles = osc.omega * (0.5 * h * np.arange(2 * DRIVE_ANCHOR_STEPS + 1))
+    np.testing.assert_allclose(table[0], np.cos(angles), rtol=0, atol=2e-16)
+    np.testing.assert_allclose(table[1], np.sin(angles), rtol=0, atol=2e-16)
+    n = 100_000  # 50 periods
+    t0 = 1.2345e-6
+    drive = reference_drive(osc, t0, h, n)
+    i = np.arange(n)[:, None]
+    exact = osc.drive_force * np.cos(osc.omega * t0 + osc.omega * h * (i + np.array([0.0, 0.5, 1.0])))
+    # |error| is a few ulp of F0, as for cos(w t) evaluated at each t (no error accumulates).
+    assert np.max(np.abs(drive - exact)) < 2e-13 * osc.drive_force
+    np.testing.assert_array_equal(drive[::DRIVE_ANCHOR_STEPS, 0],
+                                  osc.drive_force * np.cos(osc.omega * (t0 + i[::DRIVE_ANCHOR_STEPS, 0] * h)))
+
+
+def test_generated_modules_are_files_written_once(tmp_path, monkeypatch):
+    from afmid.kernels import lawgen
+
+    monkeypatch.setenv("AFMID_KERNEL_DIR", str(tmp_path))
+    assert lawgen.kernel_directory() == tmp_path
+    text = '"""test module"""\nVALUE = 42\n'
+    module = lawgen.load_module(text)
+    assert module.VALUE == 42 and lawgen.load_module(text) is module
+    (path,) = tmp_path.glob("afmid_law_*.py")
+    assert path.read_text() == text and module.SOURCE_PATH == path
+    mtime = path.stat().st_mtime_ns
+    lawgen._write_once(path, text)  # unchanged text: the file (and numba's cache of it) is left alone
+    assert path.stat().st_mtime_ns == mtime
+    # The source of a real kernel: the algorithm section verbatim, then the generated law.
+    compiled = compile_force_law(build_force_law(["dmt"], {}, {"R": R, "a0": A0_CONTACT}))
+    source = lawgen.module_source(compiled.terms, compiled.switching, compiled.conditions, compiled.n_gates)
+    assert lawgen.algorithm_source() in source
+    assert "def law_force(" in source and "max(z, a0)^-2" in source
+
+
+def test_integrator_falls_back_to_the_vm_kernel(monkeypatch):
+    from afmid.kernels import lawgen
+    from afmid.simulate import CompiledForceLaw
+
+    def fail(self):
+        raise lawgen.GenerationError("no place to write")
+
+    monkeypatch.setattr(CompiledForceLaw, "generated_kernel", fail)
+    compiled = _law(["dmt"], {"hamaker": H, "E_star": E_STAR})
+    osc = Oscillator(K, F0_HZ, 100.0, F0_HZ, 1e-9)
+    assert Integrator(osc, compiled, D_TAP).kernel == "vm"
+    with pytest.raises(lawgen.GenerationError):
+        Integrator(osc, compiled, D_TAP, kernel="generated")
+    with pytest.raises(ValueError):
+        Integrator(osc, compiled, D_TAP, kernel="fast")
 
 
 # =========================================================================== (3) energy balance
