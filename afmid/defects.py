@@ -280,12 +280,19 @@ def measure_frequency(x: np.ndarray) -> float | None:
     A Hann-windowed, zero-padded spectrum of the detrended samples gives the
     peak (ignoring anything slower than 2.5 cycles over the trace); a bounded
     search of the windowed DFT power refines it far below the bin width.
+    Traces longer than :data:`afmid.preprocess.EXACT_SPECTRUM_MAX` samples:
+    no zero padding, the search on block moments (same estimator and
+    tolerance; a padded FFT of 1e7 samples took 10 s and 2 GB).
     """
     from scipy.optimize import minimize_scalar
+
+    from .preprocess import EXACT_SPECTRUM_MAX
 
     n = x.size
     if n < 8:
         return None
+    if n > EXACT_SPECTRUM_MAX:
+        return _measure_frequency_long(np.asarray(x, dtype=np.float64))
     xc = _detrended(np.asarray(x, dtype=np.float64))
     if not np.any(xc) or np.max(np.abs(xc)) <= 1e-12 * max(np.max(np.abs(x)), 1e-300):
         return None
@@ -311,6 +318,51 @@ def measure_frequency(x: np.ndarray) -> float | None:
         return float(freqs[i])
     res = minimize_scalar(negative_power, bounds=(lo, hi), method="bounded", options={"xatol": freqs[i] * 1e-9})
     return float(res.x)
+
+
+def _measure_frequency_long(x: np.ndarray) -> float | None:
+    """:func:`measure_frequency` without zero padding or full-length temporaries beyond the windowed samples."""
+    from scipy import fft as sfft
+    from scipy.optimize import minimize_scalar
+
+    from .preprocess import SAMPLE_CHUNK, WindowedPower, hann_weighted
+
+    n = x.size
+    mean = float(x.mean())
+    c = 0.5 * (n - 1)
+    # Least-squares slope against the centred sample index, then the largest detrended deviation.
+    tx = sum(float(np.dot(np.arange(lo, min(lo + SAMPLE_CHUNK, n)) - c, x[lo:lo + SAMPLE_CHUNK]))
+             for lo in range(0, n, SAMPLE_CHUNK))
+    slope = tx / (n * (n * n - 1.0) / 12.0)
+    biggest = max(float(np.max(np.abs(x[lo:lo + SAMPLE_CHUNK] - mean
+                                      - slope * (np.arange(lo, min(lo + SAMPLE_CHUNK, n)) - c))))
+                  for lo in range(0, n, SAMPLE_CHUNK))
+    if biggest == 0 or biggest <= 1e-12 * max(float(np.max(np.abs(x))), 1e-300):
+        return None
+    weighted = hann_weighted(x, mean, slope)
+    nfft = sfft.next_fast_len(n, real=True)
+    spectrum = np.abs(sfft.rfft(weighted, nfft))
+    first = int(math.ceil(2.5 / n * nfft))  # freqs >= 2.5 / n
+    if first >= spectrum.size:
+        return None
+    i = first + int(np.argmax(spectrum[first:]))
+    if spectrum[i] == 0:
+        return None
+    del spectrum
+    df = 1.0 / nfft
+    f_i = i / nfft
+    lo, hi = max(f_i - 1.5 * df, 0.5 / n), min(f_i + 1.5 * df, 0.5)
+    if hi <= lo:
+        return float(f_i)
+    power = WindowedPower(weighted, np.arange(n, dtype=float), f_i, 2.0 * df)
+    # As an offset from the bin (see afmid.preprocess._estimate_drive_long): xatol rules the precision.
+    res = minimize_scalar(lambda u: -power(f_i + u), bounds=(lo - f_i, hi - f_i), method="bounded",
+                          options={"xatol": f_i * 1e-9})
+    return f_i + float(res.x)
+
+
+#: Samples per chunk in :func:`analyse` (bounds its temporaries on long traces).
+ANALYSE_CHUNK_SAMPLES = 1 << 19
 
 
 def _design(L: int, omega: float, K: int) -> np.ndarray:
@@ -387,14 +439,21 @@ def analyse(
     # Slow drift would leak into every harmonic (a sawtooth's 1/n spectrum per period) and pass for a
     # tip-sample force: remove the trend through the per-period means (kept for the offset and drift checks).
     means = x[used].reshape(B, L) @ projector[0]
-    trend = np.interp(np.arange(x.size), starts + 0.5 * (L - 1), means)
-    blocks = (x - trend)[used].reshape(B, L)
-    local = blocks @ projector.T
-    resid = blocks - local @ design.T
+    local = np.empty((B, design.shape[1]))
+    rss = 0.0
+    step = max(8, ANALYSE_CHUNK_SAMPLES // L // 8 * 8)  # blocks per chunk (whole BLAS panels: same rounding)
+    for b0 in range(0, B, step):
+        b1 = min(b0 + step, B)
+        lo, hi = start + b0 * L, start + b1 * L
+        trend = np.interp(np.arange(lo, hi), starts + 0.5 * (L - 1), means)
+        blocks = (x[lo:hi] - trend).reshape(b1 - b0, L)
+        local[b0:b1] = blocks @ projector.T
+        resid = blocks - local[b0:b1] @ design.T
+        rss += float(np.sum(resid**2))
     glob = _to_global(local, starts, omega)
     glob[:, 0] += means
     dof = B * (L - design.shape[1])
-    noise = float(np.sqrt(np.sum(resid**2) / dof)) if dof > 0 else float("nan")
+    noise = float(np.sqrt(rss / dof)) if dof > 0 else float("nan")
     coef = glob.mean(axis=0)
     # Noise of the averages: white noise through the projector, or the scatter between periods if larger
     # (non-white noise, period-to-period variation of the motion).

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,7 +29,7 @@ import numpy as np
 from . import __version__
 from .config import RunConfig, dump_config
 from .errors import AfmidError, ConfigError
-from .io import Trace, atomic_hdf5, check_output_path, load_trace, write_dataset, RUN_FORMAT
+from .io import Trace, atomic_hdf5, check_output_path, create_dataset, load_trace, write_dataset, RUN_FORMAT
 from .library import Library, build_library
 from .physics import BOLTZMANN, EFFECTS
 from .preprocess import (HarmonicBlocks, WeakWindows, detrend, differentiate, estimate_drive, harmonic_blocks,
@@ -85,9 +86,13 @@ class Prepared:
 
 
 def prepare(trace: Trace, fit) -> Prepared:
-    """Everything about the data that the library does not change: drive, blocks, weak-form rows, noise."""
-    x, removed = detrend(trace.deflection, trace.times, fit.detrend)
+    """Everything about the data that the library does not change: drive, blocks, weak-form rows, noise.
+
+    Per-sample work runs chunk by chunk (:data:`afmid.preprocess.CHUNK_BLOCKS` periods): the only arrays as
+    long as the trace are the deflection, its times and the velocity kept for the per-sample forces.
+    """
     t = trace.times
+    x, removed = detrend(trace.deflection, t, fit.detrend)
     if trace.time is not None:
         steps = np.diff(t)
         if np.max(np.abs(steps - steps.mean())) > 1e-3 * steps.mean():
@@ -105,35 +110,56 @@ def prepare(trace: Trace, fit) -> Prepared:
     m, c = k / w0**2, k / (Q * w0)
     fixed = fit.cantilever == "fixed"
 
-    # Per-period Fourier coefficients: the trajectory, the outputs and the noise level.
-    X = blocks.project(x)  # (B, 2K+1, 1)
+    free_baseline = fit.baseline == "free"
+    names = ["drive_cos", "drive_sin"] + (["offset"] if free_baseline else [])
+    n_drive = len(names)
+    weak = fit.form == "weak"
+    # Rows of the weak form: -integral of (m psi'' - c psi' + k psi) x = integral of psi (F_ts - F_drive);
+    # with a free cantilever k x + c x' move to the right-hand side with free coefficients.
+    operator = m * windows.ddpsi + ((k * windows.psi - c * windows.dpsi) if fixed else 0.0)
+    rows = blocks.n_coef
+    # One pass over the samples, chunk by chunk: per-period Fourier coefficients of the deflection and the
+    # drive columns, and the weak-form integrals of the windows starting in the chunk (they reach one period
+    # into the next chunk). The drive columns and the rotations to global phase are made once per chunk.
+    X = np.empty((blocks.n_blocks, rows, 1))
+    nuisance_block = np.empty((blocks.n_blocks, rows, n_drive))
+    W = windows.n_windows
+    if weak:
+        Y = np.empty((W, rows))
+        nuisance = np.empty((W, rows, n_drive + (0 if fixed else 2)))
+        minus_dpsi = -windows.dpsi
+    for b0, b1 in blocks.chunks():
+        lo = blocks.start + b0 * blocks.L
+        n_block = (b1 - b0) * blocks.L
+        hi = lo + n_block + (blocks.L + 1 if weak else 0)
+        xs, cols = x[lo:hi, None], _drive_columns(t[lo:hi], drive.omega, free_baseline)
+        turn = blocks.rotation(b0, b1)
+        X[b0:b1] = blocks.project_blocks(xs[:n_block], b0, turn)
+        nuisance_block[b0:b1] = blocks.project_blocks(cols[:n_block], b0, turn)
+        w1 = min(b1, W)
+        if weak and w1 > b0:
+            Y[b0:w1] = -windows.integrate_samples(operator, xs, b0, w1 - b0, turn)[..., 0]
+            nuisance[b0:w1, :, :n_drive] = windows.integrate_samples(windows.psi, cols, b0, w1 - b0, turn)
+            if not fixed:
+                nuisance[b0:w1, :, n_drive:n_drive + 1] = windows.integrate_samples(windows.psi, xs, b0, w1 - b0, turn)
+                nuisance[b0:w1, :, n_drive + 1:] = windows.integrate_samples(minus_dpsi, xs, b0, w1 - b0, turn)
+    del xs, cols
+    _release_free_memory()
+
+    # The trajectory, the outputs and the noise level.
     V = blocks.derivative(X, 1)
     Y_block = -(m * blocks.derivative(X, 2) + c * V + k * X)[..., 0]
     used = blocks.used
-    resid = x[used] - blocks.synthesize(X)[:, 0]
-    dof = max(resid.size - blocks.n_blocks * blocks.n_coef, 1)
-    noise_rms = float(math.sqrt(np.sum(resid**2) / dof))
+    n_used = blocks.n_blocks * blocks.L
+    dof = max(n_used - blocks.n_blocks * blocks.n_coef, 1)
+    noise_rms = float(math.sqrt(_fit_residual_sum_squares(x, blocks, X) / dof))
     noise_rms = max(noise_rms, 1e-9 * drive.amplitude)  # noise-free input: keep weights finite
-
-    drive_cols = np.column_stack([np.cos(drive.omega * t), np.sin(drive.omega * t)])
-    names = ["drive_cos", "drive_sin"]
-    if fit.baseline == "free":
-        drive_cols = np.column_stack([drive_cols, np.ones_like(t)])
-        names.append("offset")
-    nuisance_block = blocks.project(drive_cols)
     if not fixed:
         nuisance_block = np.concatenate([nuisance_block, X, V], axis=2)
         names += ["stiffness", "damping"]
     thermal = 2 * BOLTZMANN * fit.temperature * c / blocks.dt if fit.thermal_noise else 0.0
     strong = None
-    if fit.form == "weak":
-        # Rows: -integral of (m psi'' - c psi' + k psi) x = integral of psi (F_ts - F_drive).
-        operator = m * windows.ddpsi + ((k * windows.psi - c * windows.dpsi) if fixed else 0.0)
-        Y = -windows.integrate(operator, x)[..., 0]
-        nuisance = windows.integrate(windows.psi, drive_cols)
-        if not fixed:  # k x + c x' moved to the right-hand side with free coefficients
-            nuisance = np.concatenate(
-                [nuisance, windows.integrate(windows.psi, x), windows.integrate(-windows.dpsi, x)], axis=2)
+    if weak:
         # Predicted noise per row: detector noise through the operator, thermal force noise through psi.
         psi_sq = _pair_mean(np.sum(windows.psi**2, axis=1))
         base_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1)) + thermal * psi_sq
@@ -143,7 +169,7 @@ def prepare(trace: Trace, fit) -> Prepared:
                                  fit.differentiation_options)
         shape = (blocks.n_blocks, blocks.L)
         Y = -(m * a + ((c * v + k * xs) if fixed else 0.0))[used].reshape(shape)
-        cols = [drive_cols] + ([] if fixed else [xs[:, None], v[:, None]])
+        cols = [_drive_columns(t, drive.omega, free_baseline)] + ([] if fixed else [xs[:, None], v[:, None]])
         nuisance = np.column_stack(cols)[used].reshape(shape + (-1,))
         psi_sq = np.zeros(blocks.L)
         base_variance = np.full(blocks.L, float(np.var(Y - Y.mean(axis=0))))  # uniform weights
@@ -171,10 +197,66 @@ def prepare(trace: Trace, fit) -> Prepared:
         base_variance=base_variance, psi_sq=psi_sq,
         Y_block=Y_block, nuisance_block=nuisance_block, block_sigma=block_sigma,
         trajectory_noise=noise_rms * math.sqrt(residual_var),
-        xdot_used=blocks.synthesize(V_traj)[:, 0],
+        xdot_used=blocks.synthesize(V_traj)[:, 0],  # chunk by chunk into one array
         X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X), removed=removed,
         form=fit.form, strong=strong,
     )
+
+
+def _release_free_memory() -> None:
+    """Hand the heap pages freed by a chunked pass back to the OS (glibc keeps freed chunk-sized temporaries
+    resident: ~0.2 GB after a pass over a 1e7-sample trace). A no-op elsewhere."""
+    global _MALLOC_TRIM
+    if _MALLOC_TRIM is None:
+        _MALLOC_TRIM = False
+        try:
+            import ctypes
+            import sys
+
+            if sys.platform.startswith("linux"):
+                _MALLOC_TRIM = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):
+            pass
+    if _MALLOC_TRIM:
+        _MALLOC_TRIM(0)
+
+
+_MALLOC_TRIM = None
+
+
+def _drive_columns(t: np.ndarray, omega: float, offset: bool) -> np.ndarray:
+    """The drive's nuisance columns at times ``t``: cos(w t), sin(w t) (and 1 for a free baseline)."""
+    cols = [np.cos(omega * t), np.sin(omega * t)] + ([np.ones_like(t)] if offset else [])
+    return np.column_stack(cols)
+
+
+#: Largest piece np.sum is applied to in :func:`pairwise_sum` (samples).
+PAIRWISE_LEAF = 1 << 17
+
+
+def pairwise_sum(values, n: int, first: int = 0) -> float:
+    """The sum of ``values(lo, hi)`` (a float64 array for elements lo .. hi - 1) over 0 .. n - 1, rounded
+    exactly as ``np.sum`` over all n at once: NumPy sums pairwise, halving the range (at multiples of 8)
+    down to 128 elements, so pieces of that same tree summed by np.sum give the same bits, without the
+    array of n ever existing."""
+    if n <= max(PAIRWISE_LEAF, 128):  # NumPy's own blocks (128) are not split
+        return np.sum(values(first, first + n))
+    half = n // 2
+    half -= half % 8
+    return pairwise_sum(values, half, first) + pairwise_sum(values, n - half, first + half)
+
+
+def _fit_residual_sum_squares(x: np.ndarray, blocks: HarmonicBlocks, X: np.ndarray) -> float:
+    """sum((x - series)^2) over the used samples, chunk by chunk (same bits as over the whole residual)."""
+    L, start = blocks.L, blocks.start
+
+    def squares(lo: int, hi: int) -> np.ndarray:
+        b0 = lo // L // 8 * 8  # whole BLAS panels: the chunk's synthesis rounds like the whole trace's
+        b1 = min(-(-hi // L), blocks.n_blocks)
+        series = blocks.synthesize_blocks(X[b0:b1], b0)[lo - b0 * L:hi - b0 * L, 0]
+        return (x[start + lo:start + hi] - series) ** 2
+
+    return float(pairwise_sum(squares, blocks.n_blocks * L))
 
 
 def _pair_mean(v: np.ndarray) -> np.ndarray:
@@ -228,9 +310,9 @@ def fine_chunks(prep: Prepared, overlap: int = 0):
     B = prep.blocks.n_blocks
     for b0 in range(0, B - overlap if overlap else B, CHUNK_BLOCKS):
         b1 = min(b0 + CHUNK_BLOCKS + overlap, B)
-        x = prep.blocks.synthesize_fine(prep.X_traj[b0:b1, :, None], b0)[..., 0]
-        v = prep.blocks.synthesize_fine(prep.V_traj[b0:b1, :, None], b0)[..., 0]
+        x, v = prep.blocks.synthesize_fine_rows(prep.X_traj[b0:b1], prep.V_traj[b0:b1], first=b0)
         yield b0, x, v, prep.blocks.fine_times(b0, b1)
+    _release_free_memory()
 
 
 def smooth_across_blocks(coef: np.ndarray, window: int) -> np.ndarray:
@@ -731,13 +813,14 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
 
 
 # --------------------------------------------------------------------------- error metric
-def _direct_force_coefficients(prep: Prepared, system: System, coef: np.ndarray) -> np.ndarray:
-    """Model-free force F_ts per period (B, 2K+1): -(m x'' + c x' + k x) plus the fitted drive."""
+def _direct_force_coefficients(prep: Prepared, system: System, coef: np.ndarray, blocks: slice = slice(None)
+                               ) -> np.ndarray:
+    """Model-free force F_ts per period (B, 2K+1): -(m x'' + c x' + k x) plus the fitted drive (``blocks``: of those)."""
     p = system.theta.shape[2]
-    Y = prep.Y_block
+    Y = prep.Y_block[blocks]
     if "stiffness" in prep.nuisance_names:  # free cantilever: the identified k, c replace the calibrated ones
-        Y = -(prep.trace.cantilever.mass * prep.blocks.derivative(prep.X[..., None], 2))[..., 0]
-    return Y - np.einsum("bkm,m->bk", prep.nuisance_block, coef[p:])
+        Y = -(prep.trace.cantilever.mass * prep.blocks.derivative(prep.X[blocks, :, None], 2))[..., 0]
+    return Y - np.einsum("bkm,m->bk", prep.nuisance_block[blocks], coef[p:])
 
 
 def _signal_rows(prep: Prepared, system: System, coef: np.ndarray) -> np.ndarray:
@@ -896,66 +979,166 @@ def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np
     used = prep.blocks.used
     estimate = np.full(n, np.nan)
     x_used, t_used = prep.x[used], prep.t[used]
-    step = CHUNK_BLOCKS * prep.blocks.L
+    L = prep.blocks.L
+    # Hysteresis states are scanned along each evaluated piece: pieces of CHUNK_BLOCKS periods, as always;
+    # without states, pieces of afmid.preprocess.CHUNK_BLOCKS (compiling the library costs ~3 ms a call).
+    step = CHUNK_BLOCKS * L if library.states else prep.blocks.chunks()[0][1] * L
     for i in range(0, x_used.size, step):
         sl = slice(i, i + step)
         cols = library.evaluate(x_used[sl], prep.xdot_used[sl], t_used[sl], system.params)
         estimate[used.start + i: used.start + i + cols.shape[0]] = cols @ coef[:p]
-    F = _direct_force_coefficients(prep, system, coef) * rows[None, :]
     direct = np.full(n, np.nan)
-    direct[used] = prep.blocks.synthesize(F[..., None])[:, 0]
+    for b0, b1 in prep.blocks.chunks():
+        F = _direct_force_coefficients(prep, system, coef, slice(b0, b1)) * rows[None, :]
+        direct[used.start + b0 * L:used.start + b1 * L] = prep.blocks.synthesize_blocks(F[..., None], b0)[:, 0]
     return estimate, direct
 
 
-def period_curves(prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int) -> dict:
-    """Per-period curves on a common phase grid and per-period summaries (SI)."""
-    blocks = prep.blocks
-    B = blocks.n_blocks
-    phase = 2 * np.pi * np.arange(n_phase) / n_phase
-    Xc = prep.X[..., None]
-    x = blocks.evaluate(Xc, phase)[..., 0]
-    v = blocks.evaluate(blocks.derivative(Xc, 1), phase)[..., 0]
+#: Periods per chunk in :func:`period_curves` and when its curves are evaluated (bounds the temporaries). A
+#: multiple of 8, and every evaluation starts at a multiple of it: the BLAS products then round the same way
+#: whenever a curve is evaluated (the summaries, the mapping, the run file agree to the bit).
+PERIOD_CHUNK = 2048
+
+
+def period_curves(prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int
+                  ) -> "PeriodCurves":
+    """Per-period curves on a common phase grid and per-period summaries (SI), chunk by chunk of periods.
+
+    Returns a read-only mapping name -> array (:class:`PeriodCurves`): the summaries are computed here, the
+    curves (periods x phase points each) when asked for or written.
+    """
+    curves = PeriodCurves(prep, library, system, coef, params, rows, n_phase)
+    B = prep.blocks.n_blocks
     period = 2 * np.pi / prep.drive.omega
-    # The series are evaluated at drive phase w t = phase (mod 2 pi): the period that starts in each block.
-    cycles = np.floor(blocks.block_times() * prep.drive.omega / (2 * np.pi))
-    times = (2 * np.pi * cycles[:, None] + phase[None, :]) / prep.drive.omega
-    cols = library.evaluate(x.ravel(), v.ravel(), times.ravel(), params)
-    p = system.theta.shape[2]
-    f_model = (cols @ coef[:p]).reshape(B, n_phase)
-    F = _direct_force_coefficients(prep, system, coef) * rows[None, :]
-    f_direct = blocks.evaluate(F[..., None], phase)[..., 0]
-    d, a0 = params["d"], params["a0"]
-    z = d - x
-    zdot = -v
     dt = period / n_phase
+    d, a0 = params["d"], params["a0"]
+    held = {name: np.empty(B) for name in PeriodCurves.SUMMARIES}
+    # Hysteresis gates are scanned along the evaluated points: in one piece, as the states need (and kept).
+    step = B if library.states else PERIOD_CHUNK
+    for b0 in range(0, B, step):
+        b1 = min(b0 + step, B)
+        x, v, f_direct = (curves.curve(name, b0, b1) for name in ("deflection", "velocity", "force_direct"))
+        f = curves.model_force(x, v, b0, b1)
+        if library.states:
+            held["force_model"] = f
+        z = d - x
+        zdot = -v
+        contact = z <= a0
+        out = {
+            "peak_force": f.max(axis=1),
+            "adhesion_force": np.maximum(-f.min(axis=1), 0.0),
+            "max_indentation": np.maximum(a0 - z, 0.0).max(axis=1),
+            "contact_time": contact.mean(axis=1) * period,
+            # energy taken from the tip per period: -closed integral of F dz
+            "dissipated_energy": -np.sum(f * zdot, axis=1) * dt,
+            "dissipated_energy_direct": -np.sum(f_direct * zdot, axis=1) * dt,
+            # (1/T) integral of (force toward the sample) * x dt
+            "virial": -np.mean(f * x, axis=1),
+            "virial_direct": -np.mean(f_direct * x, axis=1),
+            "period_error": np.sqrt(np.mean((f_direct - f) ** 2, axis=1)),
+        }
+        for name, value in out.items():
+            held[name][b0:b1] = value
+    held["amplitude"] = np.hypot(prep.X[:, 1], prep.X[:, 2])
+    curves.held.update(held)
+    return curves
 
-    def dissipated(f):  # energy taken from the tip per period: -closed integral of F dz
-        return -np.sum(f * zdot, axis=1) * dt
 
-    def virial(f):  # (1/T) integral of (force toward the sample) * x dt
-        return -np.mean(f * x, axis=1)
+class PeriodCurves(Mapping):
+    """The outputs of :func:`period_curves`: a read-only mapping name -> array, in the run file's order.
 
-    contact = z <= a0
-    return {
-        "phase": phase,
-        "period_start_time": times[:, 0],
-        "deflection": x,
-        "velocity": v,
-        "acceleration": blocks.evaluate(blocks.derivative(Xc, 2), phase)[..., 0],
-        "separation": z,
-        "force_model": f_model,
-        "force_direct": f_direct,
-        "peak_force": f_model.max(axis=1),
-        "adhesion_force": np.maximum(-f_model.min(axis=1), 0.0),
-        "max_indentation": np.maximum(a0 - z, 0.0).max(axis=1),
-        "contact_time": contact.mean(axis=1) * period,
-        "dissipated_energy": dissipated(f_model),
-        "dissipated_energy_direct": dissipated(f_direct),
-        "virial": virial(f_model),
-        "virial_direct": virial(f_direct),
-        "amplitude": np.hypot(prep.X[:, 1], prep.X[:, 2]),
-        "period_error": np.sqrt(np.mean((f_direct - f_model) ** 2, axis=1)),
-    }
+    The per-period summaries are held. The curves on the phase grid
+    (deflection, velocity, acceleration, separation, the model and model-free
+    forces: (periods, phase points) each, 0.1 GB apiece at 5e4 periods) are
+    evaluated from the coefficients the fit keeps anyway when asked for, and
+    chunk by chunk when written (:meth:`write`): the values are the same
+    either way. (With hysteresis states the model force is held: its gates are
+    scanned through all periods at once.)
+    """
+
+    NAMES = ("phase", "period_start_time", "deflection", "velocity", "acceleration", "separation", "force_model",
+             "force_direct", "peak_force", "adhesion_force", "max_indentation", "contact_time", "dissipated_energy",
+             "dissipated_energy_direct", "virial", "virial_direct", "amplitude", "period_error")
+    CURVES = ("deflection", "velocity", "acceleration", "separation", "force_model", "force_direct")
+    SUMMARIES = ("peak_force", "adhesion_force", "max_indentation", "contact_time", "dissipated_energy",
+                 "dissipated_energy_direct", "virial", "virial_direct", "period_error")
+
+    def __init__(self, prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int):
+        self.prep, self.library, self.system = prep, library, system
+        self.coef, self.params, self.rows = coef, params, rows
+        self.phase = 2 * np.pi * np.arange(n_phase) / n_phase
+        # The series are evaluated at drive phase w t = phase (mod 2 pi): the period that starts in each block.
+        self.cycles = np.floor(prep.blocks.block_times() * prep.drive.omega / (2 * np.pi))
+        start = (2 * np.pi * self.cycles + self.phase[0]) / prep.drive.omega  # = times(...)[:, 0]
+        self.held = {"phase": self.phase, "period_start_time": start}
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(periods, phase points) of the curves."""
+        return self.prep.blocks.n_blocks, self.phase.size
+
+    def times(self, first: int, stop: int | None) -> np.ndarray:
+        """Times (s) of the phase grid of periods ``first`` .. ``stop - 1``."""
+        return (2 * np.pi * self.cycles[first:stop, None] + self.phase[None, :]) / self.prep.drive.omega
+
+    def model_force(self, x: np.ndarray, v: np.ndarray, first: int, stop: int) -> np.ndarray:
+        """The model force (N) on the phase grid of periods ``first`` .. ``stop - 1`` at deflection x, velocity v."""
+        cols = self.library.evaluate(x.ravel(), v.ravel(), self.times(first, stop).ravel(), self.params)
+        return (cols @ self.coef[:self.system.theta.shape[2]]).reshape(x.shape)
+
+    def curve(self, name: str, first: int, stop: int) -> np.ndarray:
+        """One of :attr:`CURVES` for periods ``first`` .. ``stop - 1``: (stop - first, phase points)."""
+        blocks, X = self.prep.blocks, self.prep.X[first:stop, :, None]
+        if name == "force_direct":
+            F = _direct_force_coefficients(self.prep, self.system, self.coef, slice(first, stop)) * self.rows[None, :]
+            return blocks.evaluate(F[..., None], self.phase)[..., 0]
+        if name == "separation":
+            return self.params["d"] - self.curve("deflection", first, stop)
+        if name == "force_model":
+            return self.model_force(self.curve("deflection", first, stop), self.curve("velocity", first, stop),
+                                    first, stop)
+        order = ("deflection", "velocity", "acceleration").index(name)
+        return blocks.evaluate(blocks.derivative(X, order) if order else X, self.phase)[..., 0]
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name in self.held:
+            return self.held[name]
+        if name not in self.CURVES:
+            raise KeyError(name)
+        out = np.empty(self.shape)
+        for b0, values in self.pieces(name):
+            out[b0:b0 + values.shape[0]] = values
+        return out
+
+    def pieces(self, name: str):
+        """(first period, values) of a curve, :data:`PERIOD_CHUNK` periods at a time."""
+        for b0 in range(0, self.shape[0], PERIOD_CHUNK):
+            yield b0, self.curve(name, b0, min(b0 + PERIOD_CHUNK, self.shape[0]))
+
+    def __iter__(self):
+        return iter(self.NAMES)
+
+    def __len__(self) -> int:
+        return len(self.NAMES)
+
+    def write(self, group, units: dict[str, str]) -> None:
+        """Write every array into ``group`` as :func:`write_dataset` would, the curves chunk by chunk."""
+        for name in self.NAMES:
+            if name in self.held:
+                write_dataset(group, name, self.held[name], units[name])
+                continue
+            ds = create_dataset(group, name, self.shape, np.float64, units[name])
+            rows = ds.chunks[0] if ds.chunks else self.shape[0]
+            # Written in whole HDF5 chunks (each compressed once); the rows past the last whole one wait for
+            # the next piece.
+            pending, first = np.empty((0, self.shape[1])), 0
+            for b0, values in self.pieces(name):
+                pending = np.concatenate([pending, values]) if pending.size else values
+                stop = b0 + values.shape[0]
+                cut = stop if stop == self.shape[0] else first + (stop - first) // rows * rows
+                if cut > first:
+                    ds[first:cut] = pending[:cut - first]
+                    pending, first = pending[cut - first:], cut
 
 
 # --------------------------------------------------------------------------- effects from the CLI
@@ -1057,8 +1240,11 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(fg, "time", result.prep.t, "s")
         write_dataset(fg, "deflection", result.prep.x, "m", positive="toward_sample")
         pgp = h5.create_group("periods")
-        for name, arr in result.periods.items():
-            write_dataset(pgp, name, arr, PERIOD_UNITS[name])
+        if isinstance(result.periods, PeriodCurves):
+            result.periods.write(pgp, PERIOD_UNITS)  # the long curves chunk by chunk
+        else:
+            for name, arr in result.periods.items():
+                write_dataset(pgp, name, arr, PERIOD_UNITS[name])
         dg = h5.create_group("diagnostics")
         write_dataset(dg, "cv_error", result.cv_error, "1", definition="normalised cross-validated force error")
         write_dataset(dg, "cv_error_folds", result.cv_error_folds, "1")
@@ -1070,7 +1256,10 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(dg, "n_rows", result.system.n_rows, "1")
         write_dataset(dg, "chi2_reduced", best.rss / max(result.system.n_rows - int(best.mask.sum()), 1), "1",
                       definition="rss / (n - k); about 1 when the model explains the data to the predicted noise")
-        write_dataset(dg, "residual", result.force_direct - result.force_estimate, "N")
+        residual = create_dataset(dg, "residual", result.force_direct.shape, np.float64, "N")
+        for lo in range(0, residual.shape[0], 1 << 20):  # chunk by chunk: no third per-sample array
+            piece = slice(lo, lo + (1 << 20))
+            residual[piece] = result.force_direct[piece] - result.force_estimate[piece]
         write_dataset(dg, "noise_rms", result.prep.noise_rms, "m")
         write_dataset(dg, "steadiness", result.prep.steadiness, "1")
         write_dataset(dg, "harmonics", result.prep.blocks.harmonics, "1")

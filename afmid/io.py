@@ -197,6 +197,18 @@ def write_dataset(group, name: str, data, units: str, **attrs):
     return ds
 
 
+def create_dataset(group, name: str, shape: tuple[int, ...], dtype, units: str, **attrs):
+    """An empty dataset laid out and compressed as :func:`write_dataset` would store an array of this shape,
+    to be filled in slices (long outputs written chunk by chunk; the stored values are the same)."""
+    size = int(np.prod(shape))
+    kwargs = {"compression": "gzip", "compression_opts": 4, "shuffle": True} if size > 4096 else {}
+    ds = group.create_dataset(name, shape=shape, dtype=dtype, **kwargs)
+    ds.attrs["units"] = units
+    for key, value in attrs.items():
+        ds.attrs[key] = value
+    return ds
+
+
 # --------------------------------------------------------------------------- trace files
 def write_trace_file(path: str | Path, trace: Trace, config_text: str, overwrite: bool = False) -> Path:
     """Write an afmid trace file (layout in docs/file-formats.md)."""

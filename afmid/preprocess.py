@@ -47,6 +47,74 @@ def _harmonic_power(x: np.ndarray, t: np.ndarray, window: np.ndarray, f: float) 
     return float(np.abs(np.dot(window * x, phasor)) ** 2)
 
 
+#: Above this many samples the spectral peak is found without zero padding and the bounded search runs on
+#: per-block moments (:class:`WindowedPower`): a padded FFT of a 1e7-sample trace (2^27 points) took 16 s and
+#: 3 GB, each probe of the search a full-length complex exponential. Up to it the padded FFT costs < 0.5 s and
+#: is kept as it was (the estimate, and so every result, is unchanged bit for bit).
+EXACT_SPECTRUM_MAX = 2**21
+#: Samples per chunk when a whole-trace quantity is accumulated piece by piece (bounds the temporaries).
+SAMPLE_CHUNK = 1 << 18
+
+
+class WindowedPower:
+    """|sum_j y_j exp(-2 pi i f t_j)|^2 for f near ``center``, from per-block moments of y.
+
+    The sum is split into blocks of ``block`` samples with start times t_b;
+    within a block exp(-2 pi i (f - center) (t - t_b)) is a Taylor series in
+    (t - t_b), so with M_bm = sum_{j in b} y_j exp(-2 pi i center t_j) (t_j - t_b)^m
+    every probe costs O(blocks x order) instead of a full-length exponential.
+    The series is truncated where its remainder is below 1e-17 for
+    |f - center| <= ``reach`` (exact to rounding within it).
+    """
+
+    def __init__(self, y: np.ndarray, t: np.ndarray, center: float, reach: float, block: int = 4096):
+        n = y.size
+        starts = np.arange(0, n, block)
+        span = float(np.max(t[np.minimum(starts + block - 1, n - 1)] - t[starts]))  # longest block, s
+        arg = 2 * np.pi * reach * span
+        order, term = 1, arg  # the remainder after `order` terms is at most arg^order / order!
+        while term > 1e-17 and order < 40:
+            order += 1
+            term *= arg / order
+        self.center = center
+        self.t_ref = t[starts]
+        self.factorial = np.cumprod(np.concatenate([[1.0], np.arange(1.0, order)]))
+        moments = np.empty((starts.size, order), dtype=complex)
+        step = max(block, SAMPLE_CHUNK // block * block)
+        for lo in range(0, n, step):
+            hi = min(lo + step, n)
+            tt = t[lo:hi]
+            local = np.arange(0, hi - lo, block)
+            rows = slice(lo // block, lo // block + local.size)
+            u = tt - np.repeat(self.t_ref[rows], block)[: hi - lo]
+            p = y[lo:hi] * np.exp(-2j * np.pi * center * tt)
+            for m in range(order):
+                moments[rows, m] = np.add.reduceat(p, local)
+                if m + 1 < order:
+                    p *= u
+        self.moments = moments
+
+    def __call__(self, f: float) -> float:
+        delta = f - self.center
+        c = (-2j * np.pi * delta) ** np.arange(self.factorial.size) / self.factorial
+        return float(np.abs(np.dot(np.exp(-2j * np.pi * delta * self.t_ref), self.moments @ c)) ** 2)
+
+
+def hann_weighted(x: np.ndarray, offset: float = 0.0, slope: float = 0.0) -> np.ndarray:
+    """``np.hanning(n) * (x - offset - slope * (j - (n - 1) / 2))``, built chunk by chunk (no temporaries of n)."""
+    n = x.size
+    out = np.empty(n)
+    for lo in range(0, n, SAMPLE_CHUNK):
+        hi = min(lo + SAMPLE_CHUNK, n)
+        j = np.arange(lo, hi, dtype=float)
+        window = 0.5 + 0.5 * np.cos(np.pi * (2 * j + 1 - n) / (n - 1)) if n > 1 else np.ones(hi - lo)
+        centred = x[lo:hi] - offset
+        if slope:
+            centred -= slope * (j - 0.5 * (n - 1))
+        np.multiply(window, centred, out=out[lo:hi])
+    return out
+
+
 def estimate_drive(x: np.ndarray, t: np.ndarray, nominal: float, search: float = 0.05) -> DriveEstimate:
     """Measure the drive (response fundamental) frequency near ``nominal``.
 
@@ -54,9 +122,14 @@ def estimate_drive(x: np.ndarray, t: np.ndarray, nominal: float, search: float =
     (relative) of the nominal frequency; a bounded scalar search of the windowed
     DFT power then refines it far below the bin width (~1e-7 relative on a
     50-period trace). Raises InputError if there is no oscillation.
+    Traces longer than :data:`EXACT_SPECTRUM_MAX` samples: unpadded spectrum,
+    the search on block moments, amplitude and phase from chunked normal
+    equations (same estimator and tolerance, O(n) memory and time).
     """
     from scipy.optimize import minimize_scalar
 
+    if x.size > EXACT_SPECTRUM_MAX:
+        return _estimate_drive_long(x, t, nominal, search)
     xc = x - x.mean()
     if not np.any(xc):
         raise InputError("the deflection is constant: no oscillation to analyse", key="data.column")
@@ -90,6 +163,55 @@ def estimate_drive(x: np.ndarray, t: np.ndarray, nominal: float, search: float =
     return DriveEstimate(frequency=f, nominal=nominal, amplitude=amplitude, phase=phase, offset=float(coef[0]))
 
 
+def _estimate_drive_long(x: np.ndarray, t: np.ndarray, nominal: float, search: float) -> DriveEstimate:
+    """:func:`estimate_drive` for long traces: no zero padding, no full-length temporaries."""
+    from scipy import fft as sfft
+    from scipy.optimize import minimize_scalar
+
+    n = x.size
+    mean = x.mean()
+    if not np.any(x != mean):
+        raise InputError("the deflection is constant: no oscillation to analyse", key="data.column")
+    weighted = hann_weighted(x, mean)
+    duration = t[-1] - t[0] + (t[1] - t[0])
+    nfft = sfft.next_fast_len(n, real=True)
+    scale = nfft * duration / n  # bin k is at frequency k / scale
+    spectrum = np.abs(sfft.rfft(weighted, nfft))
+    k0 = max(int(np.floor(nominal * (1 - search) * scale)) - 1, 0)
+    k1 = min(int(np.ceil(nominal * (1 + search) * scale)) + 2, spectrum.size)
+    freqs = np.arange(k0, max(k1, k0)) / scale
+    band = (freqs > nominal * (1 - search)) & (freqs < nominal * (1 + search))
+    if not band.any():
+        raise InputError(
+            f"the drive frequency {nominal:g} Hz is outside the sampled band (sample rate {n / duration:g} Hz)",
+            key="drive.frequency",
+        )
+    idx = np.flatnonzero(band)[np.argmax(spectrum[k0:k1][band])]
+    del spectrum
+    df = 1.0 / scale
+    center = float(freqs[idx])
+    power = WindowedPower(weighted, t, center, 2.0 * df)
+    del weighted
+    # Searched as an offset from the bin: bounded Brent stops at sqrt(eps) |x| + xatol / 3, which for the
+    # frequency itself is 5e-3 Hz at 300 kHz (~1.5e-8, the padded path's real precision); for the offset,
+    # xatol rules (~1e-11 relative), and each probe costs microseconds here.
+    res = minimize_scalar(lambda u: -power(center + u), bounds=(-1.5 * df, 1.5 * df), method="bounded",
+                          options={"xatol": nominal * 1e-10})
+    f = center + float(res.x)
+    # Unwindowed least-squares amplitude and phase over whole periods (normal equations, chunk by chunk).
+    w = 2 * np.pi * f
+    gram, rhs = np.zeros((3, 3)), np.zeros(3)
+    for lo in range(0, n, SAMPLE_CHUNK):
+        tt = t[lo:lo + SAMPLE_CHUNK]
+        design = np.column_stack([np.ones_like(tt), np.cos(w * tt), np.sin(w * tt)])
+        gram += design.T @ design
+        rhs += design.T @ x[lo:lo + SAMPLE_CHUNK]
+    coef = np.linalg.solve(gram, rhs)
+    amplitude = float(np.hypot(coef[1], coef[2]))
+    phase = float(np.arctan2(-coef[2], coef[1]))
+    return DriveEstimate(frequency=f, nominal=nominal, amplitude=amplitude, phase=phase, offset=float(coef[0]))
+
+
 def detrend(x: np.ndarray, t: np.ndarray, mode: str) -> tuple[np.ndarray, dict]:
     """Remove an offset or a linear drift. Returns the corrected trace and what was removed (m, m/s)."""
     if mode == "none":
@@ -104,6 +226,11 @@ def detrend(x: np.ndarray, t: np.ndarray, mode: str) -> tuple[np.ndarray, dict]:
 
 
 # --------------------------------------------------------------------------- harmonic blocks
+#: Blocks (or windows) per chunk when per-sample data are projected, integrated or synthesised: bounds the
+#: temporaries on long traces. A multiple of 8: every chunk's BLAS product then rounds exactly like one
+#: product over all blocks (OpenBLAS works on panels of 4-8 columns), so chunking changes no result.
+CHUNK_BLOCKS = 2048
+
 @dataclass
 class HarmonicBlocks:
     """Least-squares Fourier fits of consecutive blocks of ``L`` samples (about one period each).
@@ -159,13 +286,32 @@ class HarmonicBlocks:
         out[:, 2::2, :] = -s[..., None] * a + c[..., None] * b
         return out
 
+    def chunks(self, size: int | None = None) -> list[tuple[int, int]]:
+        """Block ranges (first, stop) of at most ``size`` blocks (default :data:`CHUNK_BLOCKS`, a multiple of 8)."""
+        size = size or CHUNK_BLOCKS
+        return [(b, min(b + size, self.n_blocks)) for b in range(0, self.n_blocks, size)]
+
     def project(self, columns: np.ndarray) -> np.ndarray:
         """Fourier coefficients (n_blocks, 2K+1, m) of sample columns (N,) or (N, m), global phase."""
         cols = columns[self.used]
         if cols.ndim == 1:
             cols = cols[:, None]
-        blocks = cols.reshape(self.n_blocks, self.L, -1)
-        return self.to_global(apply_rows(self.projector, blocks))
+        out = np.empty((self.n_blocks, self.n_coef, cols.shape[1]))
+        for b0, b1 in self.chunks():
+            out[b0:b1] = self.project_blocks(cols[b0 * self.L:b1 * self.L], b0)
+        return out
+
+    def project_blocks(self, cols: np.ndarray, first: int = 0, turn=None) -> np.ndarray:
+        """Coefficients (n, 2K+1, m) of blocks ``first`` .. ``first + n - 1`` from their samples (n L, m).
+
+        ``turn``: :meth:`rotation` of these blocks, if at hand."""
+        blocks = cols.reshape(-1, self.L, cols.shape[1])
+        local = apply_rows(self.projector, blocks)
+        return rotate_to_global(local, self.block_times()[first:first + blocks.shape[0]], self.omega, turn)
+
+    def rotation(self, first: int = 0, stop: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`rotation` of blocks ``first`` .. ``stop - 1`` (the same for the weak-form windows starting there)."""
+        return rotation(self.block_times()[first:stop], self.omega, self.K)
 
     def fine_times(self, first: int = 0, stop: int | None = None) -> np.ndarray:
         """Times (n, L * oversample) of the fine grid of blocks ``first`` .. ``stop - 1``, s."""
@@ -174,8 +320,21 @@ class HarmonicBlocks:
 
     def synthesize_fine(self, coef: np.ndarray, first: int = 0) -> np.ndarray:
         """The series (n, L * oversample, m) on the fine grid of blocks ``first`` .. ``first + n - 1``."""
-        times = self.block_times()[first : first + coef.shape[0]]
-        return np.matmul(self.design_fine, rotate_to_global(coef, times, -self.omega))
+        n, k, m = coef.shape
+        rows = self.synthesize_fine_rows(*(coef[:, :, j] for j in range(m)), first=first)
+        return np.stack(rows, axis=2)
+
+    def synthesize_fine_rows(self, *coefs: np.ndarray, first: int = 0) -> list[np.ndarray]:
+        """Several series (each (n, 2K+1), global phase) on the fine grid of blocks ``first`` ..: (n, L U) each.
+
+        One BLAS product for all of them ((m n, 2K+1) by (2K+1, L U)); a stacked
+        product per block (121 x 1 columns) runs ~3x slower.
+        """
+        n = coefs[0].shape[0]
+        times = self.block_times()[first:first + n]
+        local = rotate_to_global(np.concatenate(coefs, axis=0)[..., None], np.tile(times, len(coefs)), -self.omega)
+        values = local[..., 0] @ self.design_fine.T
+        return [values[i * n:(i + 1) * n] for i in range(len(coefs))]
 
     def derivative(self, coef: np.ndarray, order: int = 1) -> np.ndarray:
         """Coefficients of the ``order``-th time derivative (exact for the series)."""
@@ -190,13 +349,26 @@ class HarmonicBlocks:
 
     def synthesize(self, coef: np.ndarray) -> np.ndarray:
         """Samples (n_blocks * L, m) of the series, on the used samples."""
-        local = self.to_local(coef)
-        return apply_rows(self.design, local).reshape(self.n_blocks * self.L, -1)
+        out = np.empty((self.n_blocks * self.L, coef.shape[2]))
+        for b0, b1 in self.chunks():
+            out[b0 * self.L:b1 * self.L] = self.synthesize_blocks(coef[b0:b1], b0)
+        return out
+
+    def synthesize_blocks(self, coef: np.ndarray, first: int = 0) -> np.ndarray:
+        """Samples (n L, m) of the series of blocks ``first`` .. ``first + n - 1`` (coef (n, 2K+1, m))."""
+        c, s = self.rotation(first, first + coef.shape[0])  # to local time, as to_local
+        local = coef.copy()
+        a, b = coef[:, 1::2, :], coef[:, 2::2, :]
+        local[:, 1::2, :] = c[..., None] * a + s[..., None] * b
+        local[:, 2::2, :] = -s[..., None] * a + c[..., None] * b
+        return apply_rows(self.design, local).reshape(-1, coef.shape[2])
 
     def evaluate(self, coef: np.ndarray, phase: np.ndarray) -> np.ndarray:
         """Series at drive phases ``phase`` (rad, 0 = t where w t is a multiple of 2 pi): (n_blocks, P, m)."""
         basis = _fourier_design(phase, 1.0, self.K)
-        return np.einsum("pk,bkm->bpm", basis, coef)
+        b, k, m = coef.shape
+        flat = np.ascontiguousarray(coef.transpose(0, 2, 1)).reshape(b * m, k)
+        return (flat @ basis.T).reshape(b, m, -1).transpose(0, 2, 1)  # one BLAS product (einsum is not BLAS)
 
     def noise_variance_factor(self) -> np.ndarray:
         """diag(P P^T): variance of each coefficient per unit white-noise variance of the samples."""
@@ -210,14 +382,22 @@ def apply_rows(matrix: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     return (matrix @ flat).reshape(matrix.shape[0], b, m).transpose(1, 0, 2)
 
 
-def rotate_to_global(local: np.ndarray, start_times: np.ndarray, omega: float) -> np.ndarray:
+def rotation(start_times: np.ndarray, omega: float, K: int) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin (n, K) of n w t0 for each start time t0: what :func:`rotate_to_global` turns by."""
+    theta = np.outer(start_times, np.arange(1, K + 1)) * omega
+    return np.cos(theta), np.sin(theta)
+
+
+def rotate_to_global(local: np.ndarray, start_times: np.ndarray, omega: float,
+                     turn: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Turn rows against cos/sin(n w s) of local time s into rows against cos/sin(n w t), t = start + s.
 
-    Layout (n_windows, 2K+1, m) with rows [0, cos 1, sin 1, cos 2, ...].
+    Layout (n_windows, 2K+1, m) with rows [0, cos 1, sin 1, cos 2, ...]. ``turn``: :func:`rotation` of
+    these start times when already at hand (the same values: saves 2 n K cos/sin).
     """
     K = (local.shape[1] - 1) // 2
-    theta = np.outer(start_times, np.arange(1, K + 1)) * omega
-    c, s = np.cos(theta)[..., None], np.sin(theta)[..., None]
+    c, s = rotation(start_times, omega, K) if turn is None else turn
+    c, s = c[:local.shape[0], :, None], s[:local.shape[0], :, None]
     out = local.copy()
     a, b = local[:, 1::2, :], local[:, 2::2, :]
     out[:, 1::2, :] = c * a - s * b
@@ -251,6 +431,10 @@ class WeakWindows:
     ddpsi: np.ndarray  # (2K+1, 2L+1) psi'' * dt
     psi_fine: np.ndarray  # (2K+1, 2 L U) psi * dt / U on the fine grid of two blocks (C-contiguous halves)
 
+    def __post_init__(self) -> None:
+        half = self.psi_fine.shape[1] // 2  # (2 (2K+1), L U): the first halves, then the second halves
+        self.psi_halves = np.concatenate([self.psi_fine[:, :half], self.psi_fine[:, half:]])
+
     def start_times(self) -> np.ndarray:
         return self.t0 + (self.start + self.L * np.arange(self.n_windows)) * self.dt
 
@@ -263,8 +447,46 @@ class WeakWindows:
 
     def integrate(self, matrix: np.ndarray, samples: np.ndarray) -> np.ndarray:
         """Global-phase integrals (n_windows, 2K+1, m) of sample columns against ``matrix`` rows."""
-        local = apply_rows(matrix, self.windows(samples))
-        return rotate_to_global(local, self.start_times(), self.omega)
+        cols = samples[:, None] if samples.ndim == 1 else samples
+        out = np.empty((self.n_windows, matrix.shape[0], cols.shape[1]))
+        for w0, w1 in self.chunks():
+            lo, hi = self.sample_range(w0, w1)
+            out[w0:w1] = self.integrate_samples(matrix, cols[lo:hi], w0, w1 - w0)
+        return out
+
+    def chunks(self, size: int | None = None) -> list[tuple[int, int]]:
+        """Window ranges (first, stop) of at most ``size`` windows (default :data:`CHUNK_BLOCKS`)."""
+        size = size or CHUNK_BLOCKS
+        return [(w, min(w + size, self.n_windows)) for w in range(0, self.n_windows, size)]
+
+    def sample_range(self, first: int, stop: int) -> tuple[int, int]:
+        """Samples [lo, hi) that windows ``first`` .. ``stop - 1`` span (hi may pass the end of the trace)."""
+        return self.start + self.L * first, self.start + self.L * (stop + 1) + 1
+
+    def integrate_samples(self, matrix: np.ndarray, cols: np.ndarray, first: int, count: int | None = None,
+                          turn=None) -> np.ndarray:
+        """:meth:`integrate` over windows ``first`` .. ``first + count - 1`` (default: up to the last window).
+
+        ``cols`` (n, m) are the samples from ``sample_range(first, ...)[0]`` on, as far as the trace goes
+        (samples past its end count as zero: the windows vanish there). ``turn``: the rotation of these
+        windows (:meth:`HarmonicBlocks.rotation` of the blocks they start at), if at hand.
+        """
+        if count is None:
+            count = self.n_windows - first
+        L, m = self.L, cols.shape[1]
+        need = L * (count + 1) + 1
+        if cols.shape[0] >= need:
+            padded = np.ascontiguousarray(cols[:need])
+        else:
+            padded = np.zeros((need, m))
+            padded[:cols.shape[0]] = cols
+        # The windows' samples laid out as apply_rows lays out its blocks, (2L+1, count m), in one copy.
+        step, item = padded.strides
+        windows = np.lib.stride_tricks.as_strided(padded, (2 * L + 1, count, m), (step, L * step, item),
+                                                  writeable=False)
+        flat = np.ascontiguousarray(windows).reshape(2 * L + 1, count * m)
+        local = (matrix @ flat).reshape(matrix.shape[0], count, m).transpose(1, 0, 2)
+        return rotate_to_global(local, self.start_times()[first:first + count], self.omega, turn)
 
     def integrate_fine(self, fine: np.ndarray, first: int = 0) -> np.ndarray:
         """Integrals over windows ``first``, ``first + 1``, ... of fine-grid block columns (n, L U, m).
@@ -279,7 +501,7 @@ class WeakWindows:
         rows, m = self.psi_fine.shape[0], fine.shape[2]
         # One GEMM for both halves and all blocks: (2 rows, LU) @ (LU, (n + 1) m). A batched matmul over
         # blocks with few columns (m ~ 3-20 terms) runs ~10x slower.
-        halves = np.concatenate([self.psi_fine[:, :half], self.psi_fine[:, half:]])
+        halves = self.psi_halves
         columns = np.ascontiguousarray(fine[: n + 1].transpose(1, 0, 2)).reshape(half, -1)
         both = (halves @ columns).reshape(2, rows, n + 1, m)
         local = (both[0, :, :n] + both[1, :, 1:]).transpose(1, 0, 2)
@@ -370,6 +592,10 @@ def ou_smooth(coef: np.ndarray, noise_var: np.ndarray, rho: float) -> tuple[np.n
     p_f = np.empty((B, n))
     m, P = np.zeros(n), signal_var.copy()
     obs = coef - mean
+    if B >= OU_NUMBA_MIN_BLOCKS:  # the same arithmetic compiled (the loop below costs ~25 us per block)
+        m_s, p_s = np.empty((B, n)), np.empty((B, n))
+        _ou_kernel()(obs, noise_var * np.ones(n), signal_var, q, rho, rho**2, m_f, p_f, m_s, p_s)
+        return m_s + mean, p_s
     for b in range(B):
         if b:
             m, P = rho * m, rho**2 * P + q
@@ -384,6 +610,44 @@ def ou_smooth(coef: np.ndarray, noise_var: np.ndarray, rho: float) -> tuple[np.n
         m_s[b] = m_f[b] + g * (m_s[b + 1] - rho * m_f[b])
         p_s[b] = p_f[b] + g**2 * (p_s[b + 1] - p_pred)
     return m_s + mean, p_s
+
+
+#: From this many blocks on :func:`ou_smooth` runs compiled (numba), below as NumPy (no compilation).
+OU_NUMBA_MIN_BLOCKS = 2000
+_OU_KERNEL = None
+
+
+def _ou_loops(obs, noise_var, signal_var, q, rho, rho2, m_f, p_f, m_s, p_s):  # pragma: no cover - compiled
+    """The filter and smoother loops of :func:`ou_smooth`, element by element in the same operation order."""
+    B, n = obs.shape
+    for b in range(B):
+        for j in range(n):
+            if b:
+                m = rho * m_f[b - 1, j]
+                P = rho2 * p_f[b - 1, j] + q[j]
+            else:
+                m = 0.0
+                P = signal_var[j]
+            gain = P / (P + noise_var[j])
+            m_f[b, j] = m + gain * (obs[b, j] - m)
+            p_f[b, j] = (1 - gain) * P
+    m_s[B - 1] = m_f[B - 1]
+    p_s[B - 1] = p_f[B - 1]
+    for b in range(B - 2, -1, -1):
+        for j in range(n):
+            p_pred = rho2 * p_f[b, j] + q[j]
+            g = rho * p_f[b, j] / p_pred
+            m_s[b, j] = m_f[b, j] + g * (m_s[b + 1, j] - rho * m_f[b, j])
+            p_s[b, j] = p_f[b, j] + g * g * (p_s[b + 1, j] - p_pred)
+
+
+def _ou_kernel():
+    global _OU_KERNEL
+    if _OU_KERNEL is None:
+        from numba import njit
+
+        _OU_KERNEL = njit(cache=True)(_ou_loops)
+    return _OU_KERNEL
 
 
 def amplitude_per_block(coef_x: np.ndarray) -> np.ndarray:

@@ -10,13 +10,16 @@ deflection only (no ground truth), as a measured trace would.
 Each size is fitted in a fresh process (``run_fit`` with ``sample.separation``
 given, ``fit.bootstrap`` = 10, everything else default; one BLAS thread, see
 bench/README.md; one extra row repeats 1e5 with the default thread count), after a warm-up fit of the 1e4 trace in the
-same process (JIT warm). Reported: wall time of the fit (including loading the
-file), and the process's peak resident memory (``ru_maxrss``, what
-``/usr/bin/time -v`` calls maximum resident set size).
+same process (JIT warm). Reported: wall time and CPU time of the fit (including
+loading the file; on a shared machine the CPU time is the one to compare), and
+the process's peak resident memory (``ru_maxrss``, what ``/usr/bin/time -v``
+calls maximum resident set size).
 
-``--profile`` prints a cProfile of the 1e7 fit.
+``--profile`` prints a cProfile (CPU time) of the 1e7 fit; ``--memory`` the
+peak resident memory and CPU time of each stage of the 1e7 fit (Linux: the
+peak is reset between stages through /proc/self/clear_refs).
 
-Run: python bench/bench_scaling.py [--quick] [--profile]
+Run: python bench/bench_scaling.py [--quick] [--profile] [--memory]
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import CONFIGS, RESULTS, cached_trace, machine, row, run_python  # noqa: E402
+from common import CONFIGS, RESULTS, ROOT as ROOT_DIR, cached_trace, machine, row, run_python  # noqa: E402
 
 CONFIG = CONFIGS / "dmt.yaml"
 PERIODS = 5000
@@ -90,14 +93,14 @@ print(json.dumps({{"seconds": seconds, "cpu": cpu, "peak_kb": peak, "warm_peak_k
 """
 
 PROFILE_CODE = """
-import cProfile, pstats, sys
+import cProfile, pstats, sys, time
 sys.path.insert(0, {root!r})
 from afmid.config import load_config
 from afmid.fit import run_fit
 def cfg(path):
     return load_config({config!r}, ["data.path=" + path] + {fit!r})
 run_fit(cfg({warm!r}))
-prof = cProfile.Profile()
+prof = cProfile.Profile(time.process_time)  # CPU time: the machine may be shared
 prof.enable()
 run_fit(cfg({path!r}))
 prof.disable()
@@ -105,6 +108,63 @@ pstats.Stats(prof).sort_stats("cumulative").print_stats(45)
 pstats.Stats(prof).sort_stats("tottime").print_stats(25)
 print("{{}}")
 """
+
+
+STAGES_CODE = """
+import functools, json, sys, time
+sys.path.insert(0, {root!r})
+import afmid.defects, afmid.fit as F, afmid.regression
+from afmid.config import load_config
+def cfg(path):
+    return load_config({config!r}, ["data.path=" + path] + {fit!r})
+F.run_fit(cfg({warm!r}))
+def gb(key):
+    with open("/proc/self/status") as fh:
+        return next(int(line.split()[1]) for line in fh if line.startswith(key)) / 1024**2
+def reset():  # VmHWM := VmRSS
+    with open("/proc/self/clear_refs", "w") as fh:
+        fh.write("5")
+events, depth = [], [0]
+def mark(label):
+    events.append((label, depth[0], gb("VmHWM:"), gb("VmRSS:"), time.process_time()))
+    reset()
+def wrap(module, name):
+    fn = getattr(module, name)
+    @functools.wraps(fn)
+    def wrapped(*args, **kwargs):
+        mark("> " + name)
+        depth[0] += 1
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            depth[0] -= 1
+            mark("< " + name)
+    setattr(module, name, wrapped)
+for name in ("load_trace", "prepare", "estimate_drive", "ou_smooth", "estimate_nonlinear", "build_system",
+             "with_regressor_noise", "force_cv_error", "per_sample_forces", "period_curves"):
+    wrap(F, name)
+wrap(afmid.defects, "analyse_with")
+wrap(F.regression, "select")
+wrap(F.regression, "bag")
+reset()
+mark("start")
+F.run_fit(cfg({path!r}))
+mark("end")
+print(json.dumps(events))
+"""
+
+
+def stages(path: Path, warm: Path) -> str:
+    """Peak RSS (since the previous event) and CPU time at every stage boundary of one fit (Linux only)."""
+    code = STAGES_CODE.format(root=str(ROOT_DIR), config=str(CONFIG), fit=FIT, warm=str(warm), path=str(path))
+    events = run_python(code)
+    t0 = events[0][4]
+    lines = [f"{'CPU s':>7s}  {'peak GB':>7s}  {'RSS GB':>6s}  stage (peak RSS since the line above)"]
+    for label, depth, hwm, rss, cpu in events:
+        indent = "  " * depth
+        lines.append(f"{cpu - t0:7.2f}  {hwm:7.3f}  {rss:6.3f}  {indent}{label}")
+    lines.append(f"peak {max(e[2] for e in events):.3f} GB")
+    return "\n".join(lines)
 
 
 def measure(path: Path, warm: Path, env: dict | None = None, default_threads: bool = False) -> dict:
@@ -144,7 +204,7 @@ def run(quick: bool = False) -> list[dict]:
             (got["seconds"] < TARGET_S and gb < TARGET_GB) if is_top else None,
             f"peak RSS {gb:.2f} GB (after warm-up {got['warm_peak_kb'] / 1024**2:.2f} GB); CPU {got['cpu']:.1f} s; "
             f"{got['summary']}",
-            peak_gb=gb,
+            peak_gb=gb, cpu_s=got["cpu"],
         ))
         previous = got["seconds"]
     if not quick:  # the same 1e5 fit with the BLAS threads the environment gives by default (all cores)
@@ -156,6 +216,7 @@ def run(quick: bool = False) -> list[dict]:
             single / got["seconds"], "report only", None,
             f"'reference' = the one-thread time; CPU {got['cpu']:.1f} s; OpenBLAS with {os.cpu_count()} threads on "
             "a shared machine: thousands of small matrix products spin-wait for a busy core",
+            cpu_s=got["cpu"],
         ))
     return rows
 
@@ -164,18 +225,23 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="1e4 and 1e5 samples only")
     parser.add_argument("--profile", action="store_true", help="cProfile the fit of the largest trace")
+    parser.add_argument("--memory", action="store_true", help="peak RSS and CPU time per stage of the largest fit")
     parser.add_argument("--threads1", action="store_true", help="also time the largest trace with one BLAS thread")
     args = parser.parse_args()
     sizes = SIZES[:2] if args.quick else SIZES
-    if args.profile:
+    if args.profile or args.memory:
         files = traces(sizes)
-        print(profile(files[sizes[-1]], files[sizes[0]]))
+        if args.memory:
+            print(stages(files[sizes[-1]], files[sizes[0]]))
+        if args.profile:
+            print(profile(files[sizes[-1]], files[sizes[0]]))
         return
     rows = run(args.quick)
     print(f"machine: {machine()}")
     for r in rows:
         ratio = f"{r['ratio']:.1f}x" if r["ratio"] else "-"
-        print(f"{r['name']:60s} {r['afmid_s']:8.2f} s  {r['peak_gb']:5.2f} GB  {ratio:>6s}  {r['notes']}")
+        peak = f"{r['peak_gb']:5.2f} GB" if "peak_gb" in r else " " * 8
+        print(f"{r['name']:60s} {r['afmid_s']:8.2f} s  CPU {r['cpu_s']:7.2f} s  {peak}  {ratio:>6s}  {r['notes']}")
     if args.threads1:
         from common import SINGLE_THREAD
 

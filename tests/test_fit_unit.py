@@ -716,3 +716,199 @@ def test_selection_rules_exclude_unphysical_supports(method):
     bagging = regression.bag(T_blocks, protected, held.best.mask, ["e", "v", "t", "a", "d"], method, "bic",
                              regression.default_thresholds(), 20, np.random.default_rng(0), B * r, rules=rules)
     assert all(("v" not in s or "e" in s) and not ("t" in s and "e" in s and "a" not in s) for s in bagging.supports)
+
+
+# --------------------------------------------------------------------------- long traces: chunked = whole
+def _long_trace(periods=40, seed=3, detune=2.3e-4):
+    """A synthetic tapping deflection (Trace) with harmonics, detector noise and a slow thermal-like wander."""
+    from afmid.io import Cantilever, Trace
+
+    rng = np.random.default_rng(seed)
+    n = periods * SPP + 37  # partial periods at the ends
+    t = np.arange(n) / FS
+    w = 2 * np.pi * F_DRIVE * (1 + detune)
+    wander = 1 + 1e-3 * np.sin(2 * np.pi * t / t[-1])
+    x = (9.4e-9 * wander * np.cos(w * t) + 0.15e-9 * np.cos(2 * w * t + 0.3) + 0.05e-9 * np.cos(3 * w * t)
+         + 1e-12 * rng.standard_normal(n))
+    return Trace(deflection=x, sample_rate=FS, cantilever=Cantilever(40.0, 300e3, 250.0, 10e-9),
+                 drive_frequency=F_DRIVE)
+
+
+def _assert_same(a, b, where=""):
+    """Bitwise equality of two Prepared-like objects' arrays (dataclass fields) or two arrays."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(a):
+        for f in dataclasses.fields(a):
+            va, vb = getattr(a, f.name), getattr(b, f.name)
+            if isinstance(va, np.ndarray):
+                np.testing.assert_array_equal(va, vb, err_msg=f"{where}{f.name}")
+            elif isinstance(va, float):
+                assert va == vb, f"{where}{f.name}: {va!r} != {vb!r}"
+    else:
+        np.testing.assert_array_equal(a, b, err_msg=where)
+
+
+@pytest.mark.parametrize("form", ["weak", "strong"])
+@pytest.mark.parametrize("cantilever, baseline", [("fixed", "zero"), ("free", "free")])
+def test_prepare_in_chunks_equals_one_piece(monkeypatch, form, cantilever, baseline):
+    """Chunks of 8 periods (and pairwise-sum leaves of 256 samples) give the same bits as one chunk."""
+    import afmid.fit as fit_mod
+    import afmid.preprocess as pre
+    from afmid.config import FitConfig
+
+    trace = _long_trace()
+    cfg = FitConfig(form=form, cantilever=cantilever, baseline=baseline)
+    whole = fit_mod.prepare(trace, cfg)
+    monkeypatch.setattr(pre, "CHUNK_BLOCKS", 8)
+    monkeypatch.setattr(fit_mod, "PAIRWISE_LEAF", 256)
+    chunked = fit_mod.prepare(trace, cfg)
+    _assert_same(whole, chunked)
+    # the chunked building blocks against their one-piece formulas
+    blocks, windows, x = whole.blocks, whole.windows, whole.x
+    cols = x[blocks.used].reshape(blocks.n_blocks, blocks.L, 1)
+    _assert_same(blocks.project(x), blocks.to_global(pre.apply_rows(blocks.projector, cols)), "project ")
+    X = blocks.project(x)
+    _assert_same(blocks.synthesize(X), pre.apply_rows(blocks.design, blocks.to_local(X)).reshape(-1, 1), "synthesize ")
+    local = pre.apply_rows(windows.psi, windows.windows(x))
+    _assert_same(windows.integrate(windows.psi, x), pre.rotate_to_global(local, windows.start_times(), windows.omega),
+                 "integrate ")
+
+
+def test_pairwise_sum_rounds_like_numpy():
+    from afmid.fit import pairwise_sum
+
+    rng = np.random.default_rng(0)
+    for n in (1, 7, 129, 1000, 123_457):
+        a = rng.standard_normal(n) ** 2 * 1e-20
+        for leaf in (128, 256, 4096):
+            import afmid.fit as fit_mod
+
+            old, fit_mod.PAIRWISE_LEAF = fit_mod.PAIRWISE_LEAF, leaf
+            try:
+                assert pairwise_sum(lambda lo, hi: a[lo:hi], n) == np.sum(a), (n, leaf)
+            finally:
+                fit_mod.PAIRWISE_LEAF = old
+
+
+def test_fine_grid_synthesis_as_one_product():
+    """Several series on the fine grid from one BLAS product equal the per-block products (to rounding)."""
+    trace = _long_trace(periods=12)
+    blocks = harmonic_blocks(trace.n_samples, FS, F_DRIVE * (1 + 2.3e-4), oversample=11)
+    X = blocks.project(trace.deflection)
+    V = blocks.derivative(X, 1)
+    x, v = blocks.synthesize_fine_rows(X[2:9, :, 0], V[2:9, :, 0], first=2)
+    from afmid.preprocess import rotate_to_global
+
+    for series, coef in ((x, X), (v, V)):
+        ref = np.matmul(blocks.design_fine, rotate_to_global(coef[2:9], blocks.block_times()[2:9], -blocks.omega))
+        np.testing.assert_allclose(series, ref[..., 0], rtol=0, atol=1e-13 * np.abs(ref).max())
+    np.testing.assert_allclose(blocks.synthesize_fine(X[2:9], 2)[..., 0], x, rtol=0, atol=1e-13 * np.abs(x).max())
+
+
+def test_ou_smooth_compiled_equals_numpy(monkeypatch):
+    import afmid.preprocess as pre
+
+    rng = np.random.default_rng(1)
+    coef = rng.standard_normal((300, 9)) * np.linspace(1, 1e-3, 9) + 0.2
+    noise_var = np.abs(rng.standard_normal(9)) * 0.1
+    monkeypatch.setattr(pre, "OU_NUMBA_MIN_BLOCKS", 10**9)
+    m_np, p_np = pre.ou_smooth(coef, noise_var, 0.98)
+    monkeypatch.setattr(pre, "OU_NUMBA_MIN_BLOCKS", 1)
+    m_nb, p_nb = pre.ou_smooth(coef, noise_var, 0.98)
+    np.testing.assert_array_equal(m_nb, m_np)
+    np.testing.assert_array_equal(p_nb, p_np)
+
+
+def test_windowed_power_from_block_moments_equals_the_direct_sum():
+    from afmid.preprocess import WindowedPower, _harmonic_power, hann_weighted
+
+    rng = np.random.default_rng(2)
+    n = 50_003
+    t = np.arange(n) / FS
+    x = 1e-8 * np.cos(2 * np.pi * 300_017.3 * t + 0.4) + 1e-11 * rng.standard_normal(n)
+    np.testing.assert_allclose(hann_weighted(x, 0.1e-9), np.hanning(n) * (x - 0.1e-9), rtol=1e-14, atol=1e-30)
+    df = FS / n
+    power = WindowedPower(hann_weighted(x), t, 300_000.0, 2 * df, block=512)
+    for f in 300_000.0 + df * np.array([-2.0, -0.7, 0.0, 0.3, 1.5, 2.0]):
+        assert power(f) == pytest.approx(_harmonic_power(x, t, np.hanning(n), f), rel=1e-11)
+
+
+@pytest.mark.parametrize("detune", [-4e-4, 1.3e-4])
+def test_long_trace_drive_and_frequency_estimates_agree_with_the_padded_ones(monkeypatch, detune):
+    """Above EXACT_SPECTRUM_MAX samples: no zero padding, the search on block moments; same estimate."""
+    import afmid.preprocess as pre
+    from afmid import defects
+
+    trace = _long_trace(periods=400, detune=detune)
+    x, t = trace.deflection, trace.times
+    exact = pre.estimate_drive(x, t, F_DRIVE)
+    f_exact = defects.measure_frequency(x)
+    monkeypatch.setattr(pre, "EXACT_SPECTRUM_MAX", 1000)
+    monkeypatch.setattr(pre, "SAMPLE_CHUNK", 4096)
+    fast = pre.estimate_drive(x, t, F_DRIVE)
+    assert fast.frequency == pytest.approx(exact.frequency, rel=3e-9)
+    assert fast.frequency == pytest.approx(F_DRIVE * (1 + detune), rel=1e-7)
+    assert fast.amplitude == pytest.approx(exact.amplitude, rel=1e-12)
+    assert fast.phase == pytest.approx(exact.phase, abs=3e-5)
+    assert fast.offset == pytest.approx(exact.offset, abs=1e-8 * exact.amplitude)
+    assert defects.measure_frequency(x) == pytest.approx(f_exact, rel=3e-8)
+    with pytest.raises(Exception, match="outside the sampled band"):
+        pre.estimate_drive(x, t, 0.6 * FS)
+    with pytest.raises(Exception, match="constant"):
+        pre.estimate_drive(np.full(x.size, 1e-9), t, F_DRIVE)
+    assert defects.measure_frequency(np.full(x.size, 1e-9)) is None
+
+
+def test_period_curves_are_evaluated_in_chunks_and_written_as_whole_arrays(monkeypatch, tmp_path):
+    """The lazily evaluated curves equal the eager formulas, in any chunking, and the file holds the same."""
+    import h5py
+
+    import afmid.fit as fit_mod
+    from afmid.config import FitConfig
+    from afmid.io import write_dataset
+
+    trace = _long_trace(periods=30)
+    prep = fit_mod.prepare(trace, FitConfig())
+    lib = build_library(ModelConfig(effects=["dmt"]))
+    params = {"d": 8.5e-9, "a0": A0_CONTACT, "R": 10e-9, "w": prep.drive.omega, **lib.nonlinear}
+    system = fit_mod.build_system(prep, lib, params)
+    coef, _ = regression.subset_fit(regression.combine(system.T_blocks), np.ones(system.protected.size, bool))
+    rows = fit_mod._signal_rows(prep, system, coef)
+    whole = dict(fit_mod.period_curves(prep, lib, system, coef, params, rows, 64))  # evaluated in one chunk
+    monkeypatch.setattr(fit_mod, "PERIOD_CHUNK", 8)
+    chunked = fit_mod.period_curves(prep, lib, system, coef, params, rows, 64)
+    assert list(whole) == list(chunked) == list(fit_mod.PERIOD_UNITS)
+    # the eager formulas of the curves
+    blocks, phase = prep.blocks, whole["phase"]
+    Xc = prep.X[..., None]
+    harmonics = [f(n * phase) for n in range(1, blocks.K + 1) for f in (np.cos, np.sin)]
+    basis = np.stack([np.ones_like(phase)] + harmonics, 1)
+    np.testing.assert_allclose(whole["deflection"], prep.X @ basis.T, rtol=0, atol=1e-14 * np.abs(prep.X).sum(1).max())
+    np.testing.assert_allclose(whole["acceleration"], blocks.derivative(Xc, 2)[..., 0] @ basis.T, rtol=1e-12,
+                               atol=1e-12 * np.abs(whole["acceleration"]).max())
+    times = whole["period_start_time"][:, None] + phase[None, :] / prep.drive.omega
+    f_model = (lib.evaluate(whole["deflection"].ravel(), whole["velocity"].ravel(), times.ravel(), params)
+               @ coef[:len(lib)]).reshape(whole["deflection"].shape)
+    np.testing.assert_allclose(whole["force_model"], f_model, rtol=1e-9, atol=1e-9 * np.abs(f_model).max())
+    assert np.all(whole["peak_force"] == whole["force_model"].max(axis=1))
+    for name in whole:
+        np.testing.assert_array_equal(whole[name], chunked[name], err_msg=name)
+    with h5py.File(tmp_path / "streamed.h5", "w") as h5:
+        chunked.write(h5.create_group("periods"), fit_mod.PERIOD_UNITS)
+        small = h5.create_group("small_chunks")  # HDF5 chunks of 3 periods: pieces of 8 written as 6 + 2 + ...
+        monkeypatch.setattr(fit_mod, "create_dataset", lambda g, n, shape, dtype, units: g.create_dataset(
+            n, shape=shape, dtype=dtype, chunks=(3, shape[1]), compression="gzip"))
+        chunked.write(small, fit_mod.PERIOD_UNITS)
+        for name in fit_mod.PeriodCurves.CURVES:
+            np.testing.assert_array_equal(small[name][()], whole[name], err_msg=name)
+    with h5py.File(tmp_path / "eager.h5", "w") as h5:
+        g = h5.create_group("periods")
+        for name, arr in whole.items():
+            write_dataset(g, name, arr, fit_mod.PERIOD_UNITS[name])
+    with h5py.File(tmp_path / "streamed.h5") as a, h5py.File(tmp_path / "eager.h5") as b:
+        for name in whole:
+            da, db = a["periods"][name], b["periods"][name]
+            np.testing.assert_array_equal(da[()], db[()], err_msg=name)
+            assert (da.chunks, da.compression, da.shuffle, dict(da.attrs)) == (db.chunks, db.compression, db.shuffle,
+                                                                              dict(db.attrs)), name
