@@ -287,13 +287,15 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
 
     eps = max(prep.trajectory_noise, 1e-15)
     p = len(library)
+    keep = np.flatnonzero(coef[:p] != 0)  # only the terms of the model enter its stiffness
+    model = dataclasses.replace(library, terms=[library.terms[j] for j in keep])
     total, count = 0.0, 0
-    for _, x, v, t in fine_chunks(prep):
-        f_hi = library.evaluate(x.ravel() + eps, v.ravel(), t.ravel(), params) @ coef[:p]
-        f_lo = library.evaluate(x.ravel() - eps, v.ravel(), t.ravel(), params) @ coef[:p]
+    for _, x, v, t in (fine_chunks(prep) if keep.size else ()):
+        f_hi = model.evaluate(x.ravel() + eps, v.ravel(), t.ravel(), params) @ coef[keep]
+        f_lo = model.evaluate(x.ravel() - eps, v.ravel(), t.ravel(), params) @ coef[keep]
         total += float(np.sum(((f_hi - f_lo) / (2 * eps)) ** 2))
         count += f_hi.size
-    stiffness_sq = total / count
+    stiffness_sq = total / max(count, 1)
     variance = prep.base_variance + prep.psi_sq * stiffness_sq * prep.trajectory_noise**2
     return dataclasses.replace(prep, row_sigma=np.sqrt(variance))
 
@@ -340,11 +342,16 @@ class System:
         return int(self.theta.shape[0] * self.theta.shape[1])
 
 
-def build_system(prep: Prepared, library: Library, params: dict) -> System:
-    """Library columns in the regression's form, whitened and factored per window (chunk by chunk)."""
+def build_system(prep: Prepared, library: Library, params: dict, theta: np.ndarray | None = None) -> System:
+    """Library columns in the regression's form, whitened and factored per window (chunk by chunk).
+
+    ``theta`` reuses the columns of an earlier system at the same parameters (only the row weights changed).
+    """
     used = prep.blocks.used
     B = prep.blocks.n_blocks
-    if prep.form == "strong":
+    if theta is not None:
+        pass
+    elif prep.form == "strong":
         xs, v = prep.strong
         theta = library.evaluate(xs, v, prep.t[used], params).reshape(B, prep.blocks.L, -1)
         _check_finite(theta.reshape(-1, theta.shape[-1]), library, params)
@@ -418,6 +425,8 @@ def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np
 
 
 def _check_finite(columns: np.ndarray, library: Library, params: dict) -> None:
+    if np.isfinite(columns.sum(axis=0)).all():  # cheap: a sum is finite only if every term is (barring overflow)
+        return
     finite = np.isfinite(columns).all(axis=0)
     if not finite.all():
         bad = [library.terms[j].name for j in np.flatnonzero(~finite)]
@@ -744,7 +753,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     # Second pass: weights that include the regressors' own noise, then select again.
     coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), chosen)
     prep = with_regressor_noise(prep, library, params, coef0)
-    system = build_system(prep, library, params)
+    system = build_system(prep, library, params, theta=system.theta)  # same columns, new row weights
     selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
                                   n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
                                   rules=rules)

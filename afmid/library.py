@@ -157,7 +157,17 @@ class Library:
         return rules
 
     def compile(self, params: Mapping[str, float]):
-        """A :class:`afmid.expr.ProgramSet` of the terms and the state-gate conditions."""
+        """A :class:`afmid.expr.ProgramSet` of the terms and the state-gate conditions (cached per parameter set:
+        the fit evaluates the same library at the same parameters many times)."""
+        key = (tuple(t.expression for t in self.terms), tuple(sorted(params.items())))
+        cache = self.__dict__.setdefault("_compiled", {})
+        if key not in cache:
+            if len(cache) > 64:
+                cache.clear()
+            cache[key] = self._compile(params)
+        return cache[key]
+
+    def _compile(self, params: Mapping[str, float]):
         states = self.state_names
         programs = [expr.compile_expression(t.expression, dict(params), states) for t in self.terms]
         gates = []
