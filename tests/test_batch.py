@@ -237,6 +237,13 @@ def test_a_worker_that_dies_fails_only_its_trace(traces, tmp_path, monkeypatch):
     assert [r["status"] for r in _summary(out)] == ["ok", "failed", "ok"]
 
 
+def _terminal_signals() -> None:
+    """In the child: Ctrl-C as in a terminal. A test suite started in the background by a non-interactive shell
+    (e.g. `cmd &` in a CI script) inherits SIGINT ignored, and Python then keeps it ignored: the batch would
+    never see the Ctrl-C this test sends."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_interrupted_batch_leaves_whole_files_and_a_valid_summary(traces, tmp_path):
     names = ["n01.h5", "n02.h5", "n03.h5", "n04.h5", "n05.h5"]
     _copy(traces, tmp_path / "in", names)
@@ -244,7 +251,8 @@ def test_interrupted_batch_leaves_whole_files_and_a_valid_summary(traces, tmp_pa
     args = AFMID + ["-q", "batch", str(CONFIG), "--inputs", str(tmp_path / "in" / "*.h5"), "-o", str(out), "-j",
                     "2", "--set", FAST[0]]
     env = dict(os.environ, _AFMID_BATCH_TEST_DELAY="1.5")  # every fit takes > 1.5 s: Ctrl-C lands mid-fit
-    proc = subprocess.Popen(args, env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(args, env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=_terminal_signals)
     try:
         deadline = time.monotonic() + 60
         while not list(out.glob(f"*{RUN_SUFFIX}")) and time.monotonic() < deadline:
@@ -431,7 +439,8 @@ def test_interrupted_config_batch_leaves_whole_traces_and_resumes(tmp_path):
         args += ["--set", o]
     # Each worker sleeps 1.5 s holding its simulated trace under a temporary name: Ctrl-C lands mid-item.
     env = dict(os.environ, _AFMID_BATCH_TEST_DELAY="1.5")
-    proc = subprocess.Popen(args, env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(args, env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=_terminal_signals)
     try:
         deadline = time.monotonic() + 60
         while not list(out.glob(f"*{RUN_SUFFIX}")) and time.monotonic() < deadline:
