@@ -167,25 +167,30 @@ class Item:
     crashes: int = 0  # times a worker died while this item was in flight
 
 
+def _matching_files(patterns: list[str] | tuple[str, ...], key: str):
+    """(path, resolved path) of the files matching the glob ``patterns`` (``**`` recursive), sorted per pattern,
+    each file once; a pattern that matches no file is an error (of option ``key``)."""
+    seen: set[Path] = set()
+    for pattern in patterns:
+        matches = sorted(glob.glob(os.path.expanduser(pattern), recursive=True))
+        files = [Path(m) for m in matches if Path(m).is_file()]
+        if not files:
+            raise InputError(f"no files match {pattern!r}", key=key)
+        for path in files:
+            resolved = path.resolve()
+            if resolved not in seen:
+                seen.add(resolved)
+                yield path, resolved
+
+
 def expand_inputs(patterns: list[str] | tuple[str, ...], exclude_dir: Path | None = None) -> list[Entry]:
     """Files matching the glob ``patterns`` (``**`` recursive), sorted per pattern, without duplicates.
 
     Files inside ``exclude_dir`` that are batch outputs (``*.run.h5``, ``summary.*``) are left out.
     """
-    seen: set[Path] = set()
-    entries: list[Entry] = []
-    for pattern in patterns:
-        matches = sorted(glob.glob(os.path.expanduser(pattern), recursive=True))
-        files = [Path(m) for m in matches if Path(m).is_file()]
-        if not files:
-            raise InputError(f"no files match {pattern!r}", key="--inputs")
-        for path in files:
-            resolved = path.resolve()
-            if exclude_dir is not None and resolved.parent == exclude_dir.resolve() and _is_output_name(path.name):
-                continue
-            if resolved not in seen:
-                seen.add(resolved)
-                entries.append(Entry(resolved))
+    excluded = exclude_dir.resolve() if exclude_dir is not None else None
+    entries = [Entry(resolved) for path, resolved in _matching_files(patterns, "--inputs")
+               if not (resolved.parent == excluded and _is_output_name(path.name))]
     if not entries:
         raise InputError("the input patterns match only batch outputs", key="--inputs")
     return entries
@@ -193,19 +198,7 @@ def expand_inputs(patterns: list[str] | tuple[str, ...], exclude_dir: Path | Non
 
 def expand_configs(patterns: list[str] | tuple[str, ...]) -> list[Entry]:
     """One entry per run config matching the glob ``patterns`` (``**`` recursive), sorted per pattern, no duplicates."""
-    seen: set[Path] = set()
-    entries: list[Entry] = []
-    for pattern in patterns:
-        matches = sorted(glob.glob(os.path.expanduser(pattern), recursive=True))
-        files = [Path(m) for m in matches if Path(m).is_file()]
-        if not files:
-            raise InputError(f"no files match {pattern!r}", key="--configs")
-        for path in files:
-            resolved = path.resolve()
-            if resolved not in seen:
-                seen.add(resolved)
-                entries.append(Entry(None, config=path))
-    return entries
+    return [Entry(None, config=path) for path, _ in _matching_files(patterns, "--configs")]
 
 
 def _is_output_name(name: str) -> bool:

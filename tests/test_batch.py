@@ -244,6 +244,23 @@ def _terminal_signals() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+def _interrupt_after_first_run(args: list[str], out: Path, env: dict) -> tuple[int, str]:
+    """Start ``afmid batch`` in its own process group, Ctrl-C it once a run file exists; (exit code, stderr)."""
+    proc = subprocess.Popen(args, env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=_terminal_signals)
+    try:
+        deadline = time.monotonic() + 60
+        while not list(out.glob(f"*{RUN_SUFFIX}")) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert list(out.glob(f"*{RUN_SUFFIX}")), "no run finished within 60 s"
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in a terminal: the whole process group
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    return proc.returncode, err
+
+
 def test_interrupted_batch_leaves_whole_files_and_a_valid_summary(traces, tmp_path):
     names = ["n01.h5", "n02.h5", "n03.h5", "n04.h5", "n05.h5"]
     _copy(traces, tmp_path / "in", names)
@@ -251,19 +268,8 @@ def test_interrupted_batch_leaves_whole_files_and_a_valid_summary(traces, tmp_pa
     args = AFMID + ["-q", "batch", str(CONFIG), "--inputs", str(tmp_path / "in" / "*.h5"), "-o", str(out), "-j",
                     "2", "--set", FAST[0]]
     env = dict(os.environ, _AFMID_BATCH_TEST_DELAY="1.5")  # every fit takes > 1.5 s: Ctrl-C lands mid-fit
-    proc = subprocess.Popen(args, env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            preexec_fn=_terminal_signals)
-    try:
-        deadline = time.monotonic() + 60
-        while not list(out.glob(f"*{RUN_SUFFIX}")) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert list(out.glob(f"*{RUN_SUFFIX}")), "no trace finished within 60 s"
-        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in a terminal: the whole process group
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, err
+    code, err = _interrupt_after_first_run(args, out, env)
+    assert code == 130, err
     assert "interrupted" in err
     assert not _leftovers(out)
     finished = sorted(p.name for p in out.glob(f"*{RUN_SUFFIX}"))
@@ -439,19 +445,8 @@ def test_interrupted_config_batch_leaves_whole_traces_and_resumes(tmp_path):
         args += ["--set", o]
     # Each worker sleeps 1.5 s holding its simulated trace under a temporary name: Ctrl-C lands mid-item.
     env = dict(os.environ, _AFMID_BATCH_TEST_DELAY="1.5")
-    proc = subprocess.Popen(args, env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            preexec_fn=_terminal_signals)
-    try:
-        deadline = time.monotonic() + 60
-        while not list(out.glob(f"*{RUN_SUFFIX}")) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert list(out.glob(f"*{RUN_SUFFIX}")), "no run finished within 60 s"
-        os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, err
+    code, err = _interrupt_after_first_run(args, out, env)
+    assert code == 130, err
     assert "interrupted" in err and "of 3 runs" in err
     assert not _leftovers(out)
     finished = sorted(p.name for p in out.glob(f"*{RUN_SUFFIX}"))
