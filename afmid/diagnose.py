@@ -519,7 +519,6 @@ class _ShapeSearch:
     def search(self, config: RunConfig, effect: str, names: list[str]) -> dict[str, float]:
         from dataclasses import replace
 
-        from . import regression
         from .errors import AfmidError
         from .fit import _params_for, _rss, build_system
         from .library import build_library
@@ -534,13 +533,8 @@ class _ShapeSearch:
         own_library = replace(library, terms=own)
 
         def composed(trial: dict) -> float:
-            theta = build_system(prep, own_library, trial).theta
-            if fixed_theta is not None:
-                theta = np.concatenate([fixed_theta, theta], axis=2)
-            sigma = prep.row_sigma
-            T = regression.factor_blocks(np.concatenate([theta, prep.nuisance], axis=2) / sigma[None, :, None],
-                                         prep.Y / sigma[None, :])
-            return regression.subset_fit(regression.combine(T), np.ones(T.shape[2] - 1, dtype=bool))[1]
+            theta = np.concatenate([fixed_theta, build_system(prep, own_library, trial).theta], axis=2)
+            return _rss(build_system(prep, library, trial, theta=theta), None)  # columns in any order: rss only
 
         def full(trial: dict) -> float:
             return _rss(build_system(prep, library, trial), None)

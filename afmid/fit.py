@@ -347,22 +347,8 @@ def build_system(prep: Prepared, library: Library, params: dict, theta: np.ndarr
 
     ``theta`` reuses the columns of an earlier system at the same parameters (only the row weights changed).
     """
-    used = prep.blocks.used
-    B = prep.blocks.n_blocks
-    if theta is not None:
-        pass
-    elif prep.form == "strong":
-        xs, v = prep.strong
-        theta = library.evaluate(xs, v, prep.t[used], params).reshape(B, prep.blocks.L, -1)
-        _check_finite(theta.reshape(-1, theta.shape[-1]), library, params)
-    else:
-        parts = []
-        for b0, x, v, t in fine_chunks(prep, overlap=1):
-            fine = library.evaluate(x.ravel(), v.ravel(), t.ravel(), params).reshape(x.shape + (-1,))
-            average_switching_cells(library, params, x, v, t, fine)
-            _check_finite(fine.reshape(-1, fine.shape[-1]), library, params)
-            parts.append(prep.windows.integrate_fine(fine.reshape(x.shape + (-1,)), b0))
-        theta = np.concatenate(parts, axis=0)
+    if theta is None:
+        theta = _library_columns(prep, library, params)
     T_blocks = np.concatenate([
         regression.factor_blocks(
             np.concatenate([theta[i:i + CHUNK_BLOCKS], prep.nuisance[i:i + CHUNK_BLOCKS]], axis=2)
@@ -375,12 +361,30 @@ def build_system(prep: Prepared, library: Library, params: dict, theta: np.ndarr
     return System(dict(params), theta, T_blocks, protected, library.names + prep.nuisance_names)
 
 
+def _library_columns(prep: Prepared, library: Library, params: dict) -> np.ndarray:
+    """The library's columns in the regression's form: weak-form integrals (windows, rows, p) or samples."""
+    if prep.form == "strong":
+        xs, v = prep.strong
+        theta = library.evaluate(xs, v, prep.t[prep.blocks.used], params).reshape(prep.blocks.n_blocks, prep.blocks.L, -1)
+        _check_finite(theta.reshape(-1, theta.shape[-1]), library, params)
+        return theta
+    parts = []
+    for b0, x, v, t in fine_chunks(prep, overlap=1):
+        # Hysteresis states scanned once: the library columns and the switching cells both use them.
+        states = library.states_along(x.ravel(), v.ravel(), t.ravel(), params) if library.states else None
+        fine = library.evaluate(x.ravel(), v.ravel(), t.ravel(), params, state_values=states).reshape(x.shape + (-1,))
+        average_switching_cells(library, params, x, v, t, fine, states)
+        _check_finite(fine.reshape(-1, fine.shape[-1]), library, params)
+        parts.append(prep.windows.integrate_fine(fine, b0))
+    return np.concatenate(parts, axis=0)
+
+
 #: Sub-samples per fine-grid cell in which a gated term switches on or off.
 SWITCH_SUBSAMPLES = 32
 
 
 def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np.ndarray, t: np.ndarray,
-                            fine: np.ndarray) -> None:
+                            fine: np.ndarray, states: np.ndarray | None = None) -> None:
     """Replace (in place) the library values on fine-grid samples whose cell holds a switching gate by cell averages.
 
     ``x`` (m), ``v`` (m/s), ``t`` (s) are (n, M) rows of the fine grid, each
@@ -394,7 +398,8 @@ def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np
     instead the average of the terms over their cell, from sub-samples on a
     cubic Hermite interpolation of (x, xdot): the integral becomes continuous in
     the switch time, with error O(h^2). State gates (hysteresis) are scanned
-    through the cell from the state of the sample before it.
+    through the cell from the state of the sample before it (``states``:
+    their values along the rows, (n_states, n * M), as the library scans them).
     """
     zero = fine == 0.0
     switch = (zero[:, 1:, :] != zero[:, :-1, :]).any(axis=2)  # between samples j and j + 1
@@ -417,10 +422,13 @@ def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np
     vs = (6 * s2 - 6 * s) * (xa - xb) / h + (3 * s2 - 4 * s + 1) * va + (3 * s2 - 2 * s) * vb
     ts = t[rows, cols][:, None] + u[None, :] * h
     states = None
+    sub_states = None
     if library.states:  # scanned through the cell from the state of the sample before it
-        along = library.states_along(x.ravel(), v.ravel(), t.ravel(), params).reshape(-1, *x.shape)
-        states = library.states_from(along[:, rows, cols - 1], xs, vs, np.broadcast_to(ts, xs.shape), params)
-    sub = library.evaluate(xs.ravel(), vs.ravel(), ts.ravel(), params, state_values=states)
+        if states is None:
+            states = library.states_along(x.ravel(), v.ravel(), t.ravel(), params)
+        along = states.reshape(-1, *x.shape)
+        sub_states = library.states_from(along[:, rows, cols - 1], xs, vs, ts, params)
+    sub = library.evaluate(xs.ravel(), vs.ravel(), ts.ravel(), params, state_values=sub_states)
     fine[rows, cols, :] = sub.reshape(rows.size, SWITCH_SUBSAMPLES, -1).mean(axis=1)
 
 
@@ -531,28 +539,33 @@ def profile_parameter(prep: "Prepared", library: Library, params: dict, name: st
                       ) -> tuple[float, float, np.ndarray, np.ndarray]:
     """Profile the weighted residual over one nonlinear parameter (the others held): (value, sigma, grid, values).
 
-    ``mask`` selects the columns (None: all). sigma comes from a bootstrap of
-    the profile over periods when ``n_boot`` > 0: the weak-form rows of
-    neighbouring periods share a window and are correlated, so the
-    chi-square curvature alone understates it (by 2-4x, measured on simulated
-    traces); each resample re-weights the same grid's per-period factors, so
-    it costs no library evaluation. Otherwise sigma is the curvature's.
+    ``mask`` selects the columns (None: all). With ``n_boot`` > 0 sigma is
+    the larger of the curvature's and the spread of the minimum over a
+    bootstrap of periods (the weak-form rows of neighbouring periods share a
+    window and are correlated, which the chi-square curvature ignores; on the
+    Lennard-Jones accuracy traces the two agreed within 1.5x); each resample
+    re-weights the same grid's per-period factors, so it costs no library
+    evaluation.
     """
     keep = n_boot > 0 and prep.blocks.n_blocks <= PROFILE_BOOTSTRAP_MAX_BLOCKS
     factors: dict[float, np.ndarray] = {}
+    n_rows = 0
 
     def objective(value: float) -> float:
+        nonlocal n_rows
         try:
             system = build_system(prep, library, dict(params, **{name: value}))
         except AfmidError:
             return math.inf
         if keep:
             factors[value] = system.T_blocks
+        n_rows = system.n_rows
         return _rss(system, mask)
 
-    base = build_system(prep, library, params)
-    m = np.ones(base.protected.size, dtype=bool) if mask is None else mask
-    s2 = regression.subset_fit(regression.combine(base.T_blocks), m)[1] / max(base.n_rows - int(m.sum()), 1)
+    n_columns = len(library) + len(prep.nuisance_names)
+    m = np.ones(n_columns, dtype=bool) if mask is None else mask
+    rss = objective(params[name])
+    s2 = rss / max(n_rows - int(m.sum()), 1)
     half = 0.3e-9 if name == "d" else max(0.3 * abs(params[name]), 1e-3 * (bounds[1] - bounds[0]))
     best, sigma, grid, values = profile_minimum(objective, params[name], half, s2, *bounds)
     if keep and math.isfinite(sigma) and all(g in factors for g in grid):
@@ -660,11 +673,12 @@ def _first_contact(prep: Prepared, a0: float) -> float:
     return x_max + a0
 
 
-def estimate_nonlinear(prep, library, config, params, progress=None) -> dict[str, NonlinearEstimate]:
+def estimate_nonlinear(prep, library, config, params, progress=None, physics=None) -> dict[str, NonlinearEstimate]:
     """Coarse outer search over the rest separation and the library's decay lengths.
 
     The objective is the residual of the profile library (:func:`profile_library`: the run's catalog
-    effects, all their terms); :func:`run_fit` then refines each on its profile.
+    effects, all their terms; ``physics`` = its (library, extra parameters) when already built);
+    :func:`run_fit` then refines each on its profile.
     """
     fit = config.fit
     estimates: dict[str, NonlinearEstimate] = {}
@@ -688,7 +702,7 @@ def estimate_nonlinear(prep, library, config, params, progress=None) -> dict[str
                 zero_allowed.add(name)
     if "d" not in params:
         params["d"] = to_search[0][1] + 0.5 * (to_search[0][2] - to_search[0][1])
-    physics, extra = profile_library(library, config)
+    physics, extra = physics or profile_library(library, config)
     for round_ in range(2 if len(to_search) > 1 else 1):
         for name, lo, hi, log_scale, unit in to_search:
             def objective(value, name=name):
@@ -737,7 +751,8 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
     params = _params_for(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
-    nonlinear = estimate_nonlinear(prep, library, config, params)
+    physics, extra = profile_library(library, config)
+    nonlinear = estimate_nonlinear(prep, library, config, params, physics=(physics, extra))
     bar.update(1)
     thresholds = np.asarray(fit.thresholds) if fit.thresholds else regression.default_thresholds()
     method = fit.method
@@ -761,8 +776,6 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the
     # profile's width is their uncertainty (propagated into the read-out below).
     if nonlinear:
-        physics, extra = profile_library(library, config)
-
         rng_profile = np.random.default_rng([fit.seed, 1])
 
         def profile(name, est, mask, n_boot=0):
@@ -780,7 +793,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
         system = build_system(prep, library, params)
         selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
                                       n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
-                                  rules=rules)
+                                      rules=rules)
         chosen = selection.best.mask
         for name, est in nonlinear.items():
             est.value = params[name]

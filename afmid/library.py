@@ -213,7 +213,6 @@ class Library:
             _fill_states(variables, self.compile(params)[1], backend)
         return variables[len(expr.VARIABLES):]
 
-
     def states_from(self, initial: np.ndarray, x: np.ndarray, xdot: np.ndarray, t: np.ndarray,
                     params: Mapping[str, float]) -> np.ndarray:
         """State gates (n_states, m * S) along m short trajectories (m, S) in time order, each from its ``initial`` state
