@@ -1,8 +1,8 @@
 """The bad-input corpus: one table of cases, one contract checked for each.
 
 A :class:`Case` names an ``afmid`` command line, the files it finds in a fresh workspace folder and what
-the user must see: the exit code (1 input/output, 2 config/usage, 130 interrupt), exactly one line on
-stderr, ``afmid: error: ...`` naming the file and the config key, and no traceback. After the command,
+the user must see: the exit code (1 input/output, 2 config/usage, 130 interrupt, 143 SIGTERM), exactly one line on
+stderr (143 after SIGTERM), ``afmid: error: ...`` naming the file and the config key, and no traceback. After the command,
 :func:`check_case` also asserts that *nothing was lost or left*: every file of the workspace is byte for
 byte what it was (inputs are hashed before and after), and no file appeared (no output, no
 ``.afmid-tmp-*``), unless the case lists it in ``leaves``.
@@ -53,8 +53,8 @@ class Case:
     def __post_init__(self):
         if self.category not in CATEGORIES:
             raise ValueError(f"case {self.id}: category {self.category!r} not in {CATEGORIES}")
-        if self.exit_code not in (1, 2, 130):
-            raise ValueError(f"case {self.id}: exit code {self.exit_code} (the contract allows 1, 2, 130)")
+        if self.exit_code not in (1, 2, 130, 143):
+            raise ValueError(f"case {self.id}: exit code {self.exit_code} (the contract allows 1, 2, 130, 143)")
 
 
 def corpus_params(cases: Iterable[Case]):
@@ -141,10 +141,10 @@ def check_case(case: Case, workspace: Path, capsys, monkeypatch) -> str:
 
     assert "Traceback" not in err, err
     lines = [line for line in err.splitlines() if line.strip()]
-    errors = [line for line in lines if line.startswith("afmid: error: ") or line.startswith("afmid: interrupted")]
+    errors = [line for line in lines if line.startswith(("afmid: error: ", "afmid: interrupted", "afmid: terminated"))]
     assert len(errors) == 1, f"expected one error line on stderr, got: {err!r}"
     line = errors[0]
-    if case.exit_code != 130:
+    if case.exit_code not in (130, 143):
         assert len(lines) == 1 or all(ln.startswith("afmid: warning: ") for ln in lines if ln != line), (
             f"expected one line on stderr (warnings aside), got: {err!r}")
     assert code == case.exit_code, f"exit {code}, expected {case.exit_code}: {line}"
