@@ -10,12 +10,13 @@ RESULTS ?= results
 BENCH_ARGS ?=
 BATCH_JOBS ?= 2
 
-.PHONY: help venv demo test batch bench clean
+.PHONY: help venv demo test test-kernels batch bench clean
 .DEFAULT_GOAL := help
 
 help:
 	@echo "make demo   - set up .venv, simulate a soft-polymer trace, fit it, write a report"
 	@echo "make test   - set up .venv with test extras and run the test suite"
+	@echo "make test-kernels - the numerically sensitive tests again under two other OpenBLAS kernels of this CPU"
 	@echo "make batch  - fit every config in configs/ (simulated first where it has no data) into $(RESULTS)/ (BATCH_JOBS=N workers)"
 	@echo "make bench  - benchmarks in one table (afmid vs SciPy / PySINDy, scaling, start-up, batch);"
 	@echo "              BENCH_ARGS=--quick for a smoke run"
@@ -35,6 +36,16 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# The tests marked `numerics` again under other OpenBLAS kernels (OPENBLAS_CORETYPE) that this CPU runs correctly
+# (scripts/blas_kernels.py picks and checks them): a test that holds on one CPU family only fails here.
+test-kernels: $(STAMP)
+	@kernels="$$($(PY) scripts/blas_kernels.py 2)"; \
+	if [ -z "$$kernels" ]; then echo "test-kernels: NumPy does not use OpenBLAS here, or no other kernel runs on this CPU"; fi; \
+	for kernel in $$kernels; do \
+		echo "== numerically sensitive tests with OPENBLAS_CORETYPE=$$kernel"; \
+		OPENBLAS_CORETYPE=$$kernel $(PY) -m pytest -q -p no:cacheprovider -m numerics || exit 1; \
+	done
 
 # Every config in configs/ with its own cantilever and model, in BATCH_JOBS worker processes:
 # a config with data.path fits that file; one without is simulated first into

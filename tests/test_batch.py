@@ -29,6 +29,8 @@ from afmid.batch import (RUN_SUFFIX, TRACE_SUFFIX, assign_names, batch_key, read
                          trace_is_current, Entry)
 from afmid.errors import ConfigError, InputError
 
+pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "dmt.yaml"
 FAST = ["fit.bootstrap=8"]

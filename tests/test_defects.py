@@ -21,6 +21,8 @@ from afmid.config import load_config
 from afmid.errors import InputError
 from afmid.io import load_trace
 
+pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+
 K = 40.0  # N/m
 F0 = 3.0e5  # Hz
 SPP = 100  # samples per period

@@ -44,6 +44,8 @@ from afmid.config import build_config, dump_config, read_yaml
 from afmid.diagnose import (BIC_EVIDENCE, ERROR_RATIO, FLOOR_FACTOR, RunData, Trial, _Base, _implausible, _rejections,
                             _significant, band_limit, candidate_effects, energy_check, localize, refit_config)
 
+pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+
 CONFIGS = Path(__file__).parent / "configs"
 FULL = os.environ.get("AFMID_HIDDEN_FULL", "") not in ("", "0")
 RECORD = os.environ.get("AFMID_HIDDEN_RECORD")

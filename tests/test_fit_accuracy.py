@@ -50,6 +50,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+
 CONFIGS = Path(__file__).parent / "configs"
 MODELS = ("dmt", "lennard_jones", "dmt_viscoelastic", "dmt_exponential_damping", "jkr")
 INSTRUMENTS = {

@@ -17,6 +17,8 @@ from afmid.config import build_config, load_config, template_text
 from afmid.inspect import describe, inspect_file, prefill_config
 from afmid.io import load_trace
 
+pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+
 RATE = 3e7  # Hz
 SPP = 100
 

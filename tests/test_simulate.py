@@ -30,6 +30,8 @@ from afmid.simulate import (
     simulate,
 )
 
+pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+
 K, F0_HZ, R, A0_CONTACT = 40.0, 300e3, 10e-9, 0.165e-9
 A_FREE = 10e-9  # m, free amplitude of the test runs
 D_TAP = 8.5e-9  # m, rest separation of the test runs: tapping with ~1 nm indentation
