@@ -59,12 +59,70 @@ def fit_case(id: str, config, exit_code: int, key: str | None, *fragments: str, 
                 exit_code=exit_code, file=file, key=key, fragments=fragments)
 
 
+#: (id, dotted key, bad value, fragment of the message): one value a user could plausibly write per case.
+BAD_VALUES = [
+    ("spring-constant-zero", "cantilever.spring_constant", 0, "must be > 0"),
+    ("spring-constant-negative", "cantilever.spring_constant", -1.0, "must be > 0"),
+    ("spring-constant-text", "cantilever.spring_constant", "forty", "number"),
+    ("spring-constant-yaml-bool", "cantilever.spring_constant", True, "expected a number"),
+    ("spring-constant-nan", "cantilever.spring_constant", float("nan"), "got nan"),
+    ("resonance-inf", "cantilever.resonance_frequency", float("inf"), "finite"),
+    ("quality-factor-negative", "cantilever.quality_factor", -3, "must be > 0"),
+    ("tip-radius-list", "cantilever.tip_radius", [1e-8], "number"),
+    ("drive-frequency-zero", "drive.frequency", 0, "must be > 0"),
+    ("drive-amplitude-negative", "drive.force_amplitude", -1e-9, "must be > 0"),
+    ("separation-negative", "sample.separation", -8e-9, "must be > 0"),
+    ("a0-zero", "sample.a0", 0.0, "must be > 0"),
+    ("data-units-unknown", "data.units", "mm", "m"),
+    ("data-positive-unknown", "data.positive", "up", "toward_sample"),
+    ("sample-rate-negative", "data.sample_rate", -6e7, "must be > 0"),
+    ("invols-zero", "data.invols", 0, "must be > 0"),
+    ("offset-inf", "data.offset", float("-inf"), "finite"),
+    ("form-unknown", "fit.form", "medium", "weak"),
+    ("method-unknown", "fit.method", "magic", "exhaustive"),
+    ("selection-unknown", "fit.selection", "aic", "bic"),
+    ("max-harmonic-one", "fit.max_harmonic", 1, "must be >= 2"),
+    ("max-harmonic-huge", "fit.max_harmonic", 100000, "must be <= 500"),
+    ("folds-one", "fit.folds", 1, "must be >= 2"),
+    ("bootstrap-negative", "fit.bootstrap", -5, "must be >= 0"),
+    ("bootstrap-float", "fit.bootstrap", 2.5, "expected a whole number"),
+    ("distractor-odds-below-one", "fit.distractor_odds", 0.5, "must be >= 1"),
+    ("thresholds-negative", "fit.thresholds", [0.1, -0.2], "fit.thresholds.1: must be >= 0"),
+    ("phase-points-tiny", "fit.phase_points", 3, "must be >= 16"),
+    ("detrend-unknown", "fit.detrend", "quadratic", "linear"),
+    ("cantilever-mode-unknown", "fit.cantilever", "loose", "free"),
+    ("effects-not-a-list", "model.effects", "dmt", "list"),
+    ("simulate-periods-two", "simulate.periods", 2, "must be >= 3"),
+    ("simulate-mode-unknown", "simulate.mode", "pulsed", "steady"),
+    ("setpoint-above-one", "simulate.setpoint", 1.5, "must be < 1"),
+    ("noise-negative", "simulate.noise.detector_rms", -1e-12, "must be >= 0"),
+]
+
+#: (id, custom term, fragment of the message): the term language is parsed, never evaluated as Python.
+BAD_TERMS = [
+    ("python-call", "__import__('os').system('ls')", "unexpected character"),
+    ("lambda", "lambda: 1", "unexpected character ':'"),
+    ("matmul-operator", "z @ 2", "unexpected character '@'"),
+    ("dangling-operator", "delta^1.5 +", "found end of expression"),
+    ("double-power", "delta^^2", "found '^'"),
+    ("unclosed-parenthesis", "sqrt(delta", "expected ')'"),
+    ("unknown-name", "foo * delta", "unknown name 'foo'"),
+    ("unknown-function", "sinh(z/a0)", "did you mean 'sin'"),
+    ("exp-of-a-length", "exp(z)", "must be dimensionless"),
+]
+
 CASES = [
     fit_case("unknown-top-level-key", base_config(fitt={}), 2, "fitt"),
+    fit_case("unknown-nested-key", base_config(**{"cantilever.springconstant": 40.0}), 2, "cantilever.springconstant"),
     fit_case("missing-data-path", base_config(**{"data.path": None}), 2, "data.path", "required key is missing"),
-    fit_case("negative-spring-constant", base_config(**{"cantilever.spring_constant": -1.0}), 2,
-             "cantilever.spring_constant"),
-    fit_case("yaml-syntax-error", "data: [unclosed\n", 2, None),
+    fit_case("section-not-a-mapping", base_config(cantilever=[40.0]), 2, "cantilever"),
+    fit_case("yaml-syntax-error", "data: [unclosed\n", 2, None, "invalid YAML"),
+    fit_case("yaml-top-level-list", "- data\n- fit\n", 2, None),
+    fit_case("unknown-effect", base_config(**{"model.effects": ["dmtt"]}), 2, "model.effects", "dmt"),
+    fit_case("unknown-library", base_config(**{"model.library": "table9"}), 2, "model.library"),
+    *[fit_case(f"value-{id}", base_config(**{key: value}), 2, key, fragment) for id, key, value, fragment in BAD_VALUES],
+    *[fit_case(f"term-{id}", base_config(**{"model.terms": [term]}), 2, "model.terms[0]", fragment, category="terms")
+      for id, term, fragment in BAD_TERMS],
 ]
 
 
