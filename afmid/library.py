@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import expr
+from .errors import ConfigError
 from .physics import CONTEXT_UNITS, EFFECTS, StateGate, coefficient_unit, term_unit
 from .registry import unknown_name_message
 from .units import parse_unit
@@ -269,9 +270,26 @@ def _units_context(extra_units: Mapping[str, str]) -> dict:
     return units
 
 
+def _check_custom_term_names(texts, param_units: Mapping[str, str], nonlinear: Mapping[str, float], states,
+                             source) -> None:
+    """A custom term may name only values known when it is evaluated: the context (R, a0, w), the nonlinear
+    parameters and the state gates. An effect's linear parameter (E_star, hamaker, ...) is what the fit
+    determines from the coefficients; inside a term it has no value (and would make the term's scale unknown)."""
+    known = set(CONTEXT_UNITS) | {"w"} | set(nonlinear) | {s.name for s in states}
+    for i, text in enumerate(texts):
+        unknown = sorted(expr.free_names(text) - known)
+        if not unknown:
+            continue
+        name = unknown[0]
+        what = ("a parameter the fit determines from the coefficients, with no value inside a term"
+                if name in param_units else "not a value a term can use")
+        allowed = ", ".join(sorted(known)) or "none"
+        raise ConfigError(f"{name!r} is {what}; a custom term may use the variables and {allowed} "
+                          f"(in term {text!r})", file=source, key=f"model.terms[{i}]")
+
+
 def build_library(model_config, source=None) -> Library:
     """The library a run config asks for (``model.library`` preset or ``model.effects``, plus ``model.terms``)."""
-    from .errors import ConfigError
 
     terms: list[LibraryTerm] = []
     states: list[StateGate] = []
@@ -343,5 +361,6 @@ def build_library(model_config, source=None) -> Library:
             raise ConfigError(f"{name!r} is not a nonlinear parameter of the library; allowed: {allowed}",
                               file=source, key=f"model.parameters.{name}")
         nonlinear[name] = value
+    _check_custom_term_names(model_config.terms, param_units, nonlinear, states, source)
     return Library(list(seen.values()), tuple(states), tuple(effects), nonlinear,
                    model_config.library or "effects")

@@ -109,6 +109,8 @@ BAD_TERMS = [
     ("unknown-name", "foo * delta", "unknown name 'foo'"),
     ("unknown-function", "sinh(z/a0)", "did you mean 'sin'"),
     ("exp-of-a-length", "exp(z)", "must be dimensionless"),
+    ("fitted-parameter-in-term", "delta^1.5 * hamaker", "'hamaker' is a parameter the fit determines"),
+    ("fitted-parameter-squared", "E_star^2 * delta", "'E_star' is a parameter the fit determines"),
 ]
 
 CASES = [
