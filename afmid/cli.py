@@ -97,7 +97,7 @@ def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, 
 
     extra = list(overrides) + ([f"simulate.seed={seed}"] if seed is not None else [])
     cfg = load_config(config, extra)
-    check_output_path(output, overwrite)
+    check_output_path(output, overwrite, inputs={config: "the config"})
     from .simulate import simulate as run_simulation
 
     trace = run_simulation(cfg, progress=not _state["quiet"])
@@ -132,7 +132,8 @@ def fit(
     from .io import check_output_path
 
     cfg = load_config(config, list(overrides))
-    check_output_path(output, overwrite)
+    trace_path = None if cfg.data.path is None else cfg.resolve_path(cfg.data.path)
+    check_output_path(output, overwrite, inputs={config: "the run config", trace_path: "the trace file, data.path"})
     from .fit import apply_effect_changes, run_fit, write_run
 
     apply_effect_changes(cfg, add_effects, remove_effects)
@@ -231,6 +232,8 @@ def init_config(output: Path | None, overwrite: bool, from_file: Path | None) ->
     from .io import atomic_path, check_output_path
 
     text = template_text()
+    if output is not None:
+        check_output_path(output, overwrite, inputs={from_file: "the trace file, --from"})
     if from_file is not None:
         from .inspect import prefill_config
 
@@ -238,7 +241,6 @@ def init_config(output: Path | None, overwrite: bool, from_file: Path | None) ->
     if output is None:
         click.echo(text, nl=False)
         return
-    check_output_path(output, overwrite)
     with atomic_path(output) as tmp:
         tmp.write_text(text, encoding="utf-8")
     log.info("wrote %s", output)
