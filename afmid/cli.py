@@ -176,7 +176,7 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     (SI units; the union over all runs, empty where a run has no such quantity). Items
     whose outputs are up to date (same input bytes, config and afmid version) are
     skipped; a failing item does not stop the batch. Exit code 1 if any item failed,
-    130 if interrupted.
+    130 if interrupted. One batch at a time per OUTPUT (lock file OUTPUT/.afmid-batch.lock).
     """
     from .batch import BatchInterrupted, run_batch
     from .errors import AfmidError
@@ -198,12 +198,15 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
 @cli.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Report folder to write.")
-@OVERWRITE
+@click.option("--overwrite", is_flag=True,
+              help="Replace OUTPUT if it is a report folder afmid wrote that holds only afmid's files.")
 @click.option("--no-suggest", is_flag=True, help="Skip refitting with candidate effects.")
 def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bool) -> None:
     """Compare run files: where the model fails, which effect is missing, how the error falls.
 
-    Writes OUTPUT/report.html (self-contained), OUTPUT/*.png and OUTPUT/summary.json.
+    Writes OUTPUT/report.html (self-contained), OUTPUT/*.png, OUTPUT/summary.json and the
+    marker OUTPUT/.afmid-report; a folder without it, or holding other files or an input, is
+    never replaced (docs/file-formats.md).
     """
     from .report import make_report
 
