@@ -132,7 +132,7 @@ def _file_id(path: str | Path) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
-def _lies_inside(path: Path, folder: Path) -> bool:
+def lies_inside(path: Path, folder: Path) -> bool:
     """Whether ``path`` is ``folder`` or anywhere below it, comparing real paths."""
     try:
         return Path(path).resolve().is_relative_to(Path(folder).resolve())
@@ -165,7 +165,7 @@ def refuse_input_as_output(outputs: str | Path | list[str | Path], inputs: dict[
             raise OutputError(f"is an input of this command ({hit[1]}); write the output elsewhere", file=output,
                               key=key)
         for input_path, what in named if folder else ():
-            if _lies_inside(input_path, Path(output)):
+            if lies_inside(input_path, Path(output)):
                 raise OutputError(f"holds an input of this command ({what}: {input_path}); write the output "
                                   "elsewhere", file=output, key=key)
 

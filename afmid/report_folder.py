@@ -24,7 +24,7 @@ from pathlib import Path
 
 from . import __version__
 from .errors import OutputError
-from .io import now_iso, refuse_input_as_output
+from .io import lies_inside, now_iso, refuse_input_as_output
 
 MARKER = ".afmid-report"
 MARKER_FORMAT = "afmid-report"
@@ -49,6 +49,12 @@ def check_report_folder(output: Path, overwrite: bool, inputs: dict[str | Path, 
     ``overwrite``, a report folder afmid wrote that holds only afmid's files and none of the ``inputs``."""
     output = Path(output)
     refuse_input_as_output(output, inputs, folder=True)
+    try:
+        cwd = Path.cwd()
+    except OSError:  # the current folder was removed: nothing to protect
+        cwd = None
+    if cwd is not None and lies_inside(cwd, output):  # replacing it would leave the user's shell in a removed folder
+        raise OutputError("is the current folder or holds it; give a report folder elsewhere", file=output)
     if not output.exists():
         return
     if not output.is_dir():
@@ -63,7 +69,8 @@ def check_report_folder(output: Path, overwrite: bool, inputs: dict[str | Path, 
     if marker is None:
         raise OutputError(f"folder is not empty and is not a report folder afmid wrote (no {MARKER} file); afmid "
                           "replaces only its own report folders: choose a new folder", file=output)
-    foreign = [n for n in names if n != MARKER and n not in marker["files"]]
+    # A listed name that is now a folder is not what afmid wrote either (afmid writes files only).
+    foreign = [n for n in names if n != MARKER and (n not in marker["files"] or (output / n).is_dir())]
     if foreign:
         more = ", ..." if len(foreign) > _NAMED else ""
         raise OutputError(f"holds files afmid did not write ({', '.join(foreign[:_NAMED])}{more}); move them away "
