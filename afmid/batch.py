@@ -64,9 +64,10 @@ Safety: a batch holds an exclusive lock on ``DIR/.afmid-batch.lock`` for its
 whole life (:mod:`afmid.folder_lock`), so a second batch on the same folder
 fails at once, naming the first, instead of mixing its results in; a batch
 that would write a file that is one of its inputs (the manifest, a config, a
-trace) is refused before it starts. Workers write into ``DIR/.afmid-tmp-batch-PID/`` and rename each trace
-and run file into place when it is complete; the summary is rewritten
-atomically after completed items (at most every ``summary_interval`` seconds)
+trace) is refused before it starts. Workers write into
+``DIR/.afmid-tmp-batch-PID/`` and rename each trace and run file into place
+when it is complete; the summary is rewritten atomically after completed items
+(at most every ``summary_interval`` seconds)
 and at the end, so an interrupted batch (Ctrl-C, SIGTERM) leaves only whole
 files and a valid summary of what finished; running it again resumes (a trace
 simulated before the interruption is not simulated again). An item that fails

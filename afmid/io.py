@@ -132,12 +132,17 @@ def _file_id(path: str | Path) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
-def lies_inside(path: Path, folder: Path) -> bool:
-    """Whether ``path`` is ``folder`` or anywhere below it, comparing real paths."""
+def _real(path: str | Path) -> Path:
+    """``path`` with symbolic links resolved (as far as they resolve: a link loop stays as written)."""
     try:
-        return Path(path).resolve().is_relative_to(Path(folder).resolve())
-    except (OSError, RuntimeError):  # a symlink loop: cannot tell, so it is not known to be inside
-        return False
+        return Path(path).resolve()
+    except (OSError, RuntimeError):
+        return Path(path).absolute()
+
+
+def lies_inside(path: str | Path, folder: str | Path) -> bool:
+    """Whether ``path`` is ``folder`` or anywhere below it, comparing real paths."""
+    return _real(path).is_relative_to(_real(folder))
 
 
 def refuse_input_as_output(outputs: str | Path | list[str | Path], inputs: dict[str | Path | None, str] | None,
@@ -157,10 +162,10 @@ def refuse_input_as_output(outputs: str | Path | list[str | Path], inputs: dict[
         file_id = _file_id(input_path)
         if file_id is not None:
             by_id.setdefault(file_id, (input_path, what))
-        by_path.setdefault(input_path.resolve(), (input_path, what))
+        by_path.setdefault(_real(input_path), (input_path, what))
     for output in [outputs] if isinstance(outputs, (str, Path)) else outputs:
         file_id = _file_id(output)
-        hit = (by_id.get(file_id) if file_id is not None else None) or by_path.get(Path(output).resolve())
+        hit = (by_id.get(file_id) if file_id is not None else None) or by_path.get(_real(output))
         if hit is not None:
             raise OutputError(f"is an input of this command ({hit[1]}); write the output elsewhere", file=output,
                               key=key)
