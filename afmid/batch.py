@@ -60,9 +60,14 @@ simulated again otherwise; its bytes are then the run's input, so a new trace
 means a new fit. ``--force`` simulates and fits everything again. Failed items
 are always retried.
 
-Safety: workers write into ``DIR/.afmid-tmp-batch-PID/`` and rename each trace
-and run file into place when it is complete; the summary is rewritten
-atomically after completed items (at most every ``summary_interval`` seconds)
+Safety: a batch holds an exclusive lock on ``DIR/.afmid-batch.lock`` for its
+whole life (:mod:`afmid.folder_lock`), so a second batch on the same folder
+fails at once, naming the first, instead of mixing its results in; a batch
+that would write a file that is one of its inputs (the manifest, a config, a
+trace) is refused before it starts. Workers write into
+``DIR/.afmid-tmp-batch-PID/`` and rename each trace and run file into place
+when it is complete; the summary is rewritten atomically after completed items
+(at most every ``summary_interval`` seconds)
 and at the end, so an interrupted batch (Ctrl-C, SIGTERM) leaves only whole
 files and a valid summary of what finished; running it again resumes (a trace
 simulated before the interruption is not simulated again). An item that fails
@@ -929,11 +934,40 @@ def run_batch(
         entries = expand_inputs(list(inputs), output_dir)
     unit = "runs" if any(e.config is not None for e in entries) else "traces"
     items, batch_text = plan(config_path, entries, output_dir, list(overrides))
+    refuse_outputs_on_inputs(items, output_dir, config_path, None if manifest is None else Path(manifest))
     try:
         output_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"cannot create the output folder: {exc.strerror or exc}", file=output_dir,
                          key="--output") from None
+    from .folder_lock import folder_lock
+
+    with folder_lock(output_dir, key="--output"):  # one batch per folder: a second one would mix its results in
+        return _run_in_folder(items, output_dir, batch_text, unit, jobs, force, progress, summary_interval, start)
+
+
+def refuse_outputs_on_inputs(items: list[Item], output_dir: Path, config_path: Path | None,
+                             manifest: Path | None) -> None:
+    """OutputError if a file the batch would write (a run file, a simulated trace, the summary) is one of its
+    inputs: the batch CONFIG, the manifest, an entry's config or a trace it fits (e.g. ``DIR/a.run.h5`` listed as
+    a trace, or a config's data.path where another config's trace is simulated)."""
+    from .io import refuse_input_as_output
+
+    inputs: dict[Path | None, str] = {config_path: "the batch config", manifest: "the manifest"}
+    for item in items:
+        if item.entry.config is not None:
+            inputs.setdefault(item.entry.config, f"the config of {item.name}")
+        if item.input is not None and item.simulate is None:
+            inputs.setdefault(item.input, f"the trace of {item.name}")
+    outputs = [output_dir / SUMMARY_CSV, output_dir / SUMMARY_H5]
+    outputs += [item.output for item in items]
+    outputs += [item.input for item in items if item.simulate is not None and item.input is not None]
+    refuse_input_as_output(outputs, inputs, key="--output")
+
+
+def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: str, jobs: int | None, force: bool,
+                   progress: bool, summary_interval: float, start: float) -> BatchResult:
+    """The part of :func:`run_batch` that writes in ``output_dir``, under its lock."""
     _remove_stale_tmp(output_dir)
     jobs = max(1, jobs or default_jobs())
     rows: dict[int, Row] = {}

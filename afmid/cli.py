@@ -97,7 +97,7 @@ def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, 
 
     extra = list(overrides) + ([f"simulate.seed={seed}"] if seed is not None else [])
     cfg = load_config(config, extra)
-    check_output_path(output, overwrite)
+    check_output_path(output, overwrite, inputs={config: "the config"})
     from .simulate import simulate as run_simulation
 
     trace = run_simulation(cfg, progress=not _state["quiet"])
@@ -132,7 +132,8 @@ def fit(
     from .io import check_output_path
 
     cfg = load_config(config, list(overrides))
-    check_output_path(output, overwrite)
+    trace_path = None if cfg.data.path is None else cfg.resolve_path(cfg.data.path)
+    check_output_path(output, overwrite, inputs={config: "the run config", trace_path: "the trace file, data.path"})
     from .fit import apply_effect_changes, run_fit, write_run
 
     apply_effect_changes(cfg, add_effects, remove_effects)
@@ -175,7 +176,7 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     (SI units; the union over all runs, empty where a run has no such quantity). Items
     whose outputs are up to date (same input bytes, config and afmid version) are
     skipped; a failing item does not stop the batch. Exit code 1 if any item failed,
-    130 if interrupted.
+    130 if interrupted. One batch at a time per OUTPUT (lock file OUTPUT/.afmid-batch.lock).
     """
     from .batch import BatchInterrupted, run_batch
     from .errors import AfmidError
@@ -197,12 +198,15 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
 @cli.command()
 @click.argument("runs", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Report folder to write.")
-@OVERWRITE
+@click.option("--overwrite", is_flag=True,
+              help="Replace OUTPUT if it is a report folder afmid wrote that holds only afmid's files.")
 @click.option("--no-suggest", is_flag=True, help="Skip refitting with candidate effects.")
 def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bool) -> None:
     """Compare run files: where the model fails, which effect is missing, how the error falls.
 
-    Writes OUTPUT/report.html (self-contained), OUTPUT/*.png and OUTPUT/summary.json.
+    Writes OUTPUT/report.html (self-contained), OUTPUT/*.png, OUTPUT/summary.json and the
+    marker OUTPUT/.afmid-report; a folder without it, or holding other files or an input, is
+    never replaced (docs/file-formats.md).
     """
     from .report import make_report
 
@@ -231,6 +235,8 @@ def init_config(output: Path | None, overwrite: bool, from_file: Path | None) ->
     from .io import atomic_path, check_output_path
 
     text = template_text()
+    if output is not None:
+        check_output_path(output, overwrite, inputs={from_file: "the trace file, --from"})
     if from_file is not None:
         from .inspect import prefill_config
 
@@ -238,7 +244,6 @@ def init_config(output: Path | None, overwrite: bool, from_file: Path | None) ->
     if output is None:
         click.echo(text, nl=False)
         return
-    check_output_path(output, overwrite)
     with atomic_path(output) as tmp:
         tmp.write_text(text, encoding="utf-8")
     log.info("wrote %s", output)

@@ -123,8 +123,63 @@ def now_iso() -> str:
     return _dt.datetime.now().astimezone().isoformat(timespec="seconds")
 
 
-def check_output_path(path: str | Path, overwrite: bool) -> Path:
+def _file_id(path: str | Path) -> tuple[int, int] | None:
+    """(device, inode) of an existing file (following symbolic links), else None."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _real(path: str | Path) -> Path:
+    """``path`` with symbolic links resolved (as far as they resolve: a link loop stays as written)."""
+    try:
+        return Path(path).resolve()
+    except (OSError, RuntimeError):
+        return Path(path).absolute()
+
+
+def lies_inside(path: str | Path, folder: str | Path) -> bool:
+    """Whether ``path`` is ``folder`` or anywhere below it, comparing real paths."""
+    return _real(path).is_relative_to(_real(folder))
+
+
+def refuse_input_as_output(outputs: str | Path | list[str | Path], inputs: dict[str | Path | None, str] | None,
+                           folder: bool = False, key: str | None = None) -> None:
+    """OutputError if an output path (one, or a list) is one of the command's ``inputs`` (input path -> what it
+    is, e.g. ``"the run config"``; None paths are ignored), whether or not ``--overwrite`` was given: afmid never
+    replaces or deletes an input. Every command checks its outputs with this before writing.
+
+    Paths are compared as real files: the same device and inode (symbolic and hard links included), else the
+    same resolved path (for files that do not exist). A ``folder`` output (the report folder) is also refused
+    when an input lies anywhere inside it.
+    """
+    named = [(Path(p), what) for p, what in (inputs or {}).items() if p is not None]
+    by_id: dict[tuple[int, int], tuple[Path, str]] = {}
+    by_path: dict[Path, tuple[Path, str]] = {}
+    for input_path, what in named:
+        file_id = _file_id(input_path)
+        if file_id is not None:
+            by_id.setdefault(file_id, (input_path, what))
+        by_path.setdefault(_real(input_path), (input_path, what))
+    for output in [outputs] if isinstance(outputs, (str, Path)) else outputs:
+        file_id = _file_id(output)
+        hit = (by_id.get(file_id) if file_id is not None else None) or by_path.get(_real(output))
+        if hit is not None:
+            raise OutputError(f"is an input of this command ({hit[1]}); write the output elsewhere", file=output,
+                              key=key)
+        for input_path, what in named if folder else ():
+            if lies_inside(input_path, Path(output)):
+                raise OutputError(f"holds an input of this command ({what}: {input_path}); write the output "
+                                  "elsewhere", file=output, key=key)
+
+
+def check_output_path(path: str | Path, overwrite: bool, inputs: dict[str | Path, str] | None = None) -> Path:
+    """The output file ``path``, after refusing an input (``inputs``: path -> what it is, see
+    :func:`refuse_input_as_output`), an existing file without ``overwrite``, a folder and a missing parent."""
     path = Path(path)
+    refuse_input_as_output(path, inputs)
     if path.exists() and not overwrite:
         raise OutputError("output exists; pass --overwrite to replace it", file=path)
     if path.exists() and path.is_dir():

@@ -3,8 +3,9 @@
 The last run is diagnosed (:mod:`afmid.diagnose`); all runs are compared by
 their cross-validated error and physical parameters. Outputs (pinned):
 ``DIR/report.html`` (figures embedded, opens offline), ``DIR/*.png`` and
-``DIR/summary.json``. The folder is written under a temporary name and renamed
-into place when complete.
+``DIR/summary.json``, and the marker ``DIR/.afmid-report``. The folder is written
+under a temporary name and swapped in when complete; ``--overwrite`` replaces
+only a report folder afmid wrote (:mod:`afmid.report_folder`).
 """
 
 from __future__ import annotations
@@ -14,19 +15,16 @@ import html
 import json
 import logging
 import math
-import os
 import re
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__
 from .diagnose import BIC_EVIDENCE, RunData, band_limit, describe_residual, energy_check, load_run, localize, suggest
-from .errors import OutputError
 from .io import now_iso
 from .physics import EFFECTS
+from .report_folder import report_folder
 
 log = logging.getLogger(__name__)
 NN = 1e9  # N -> nN for display
@@ -479,34 +477,30 @@ def resimulate(run: RunData) -> dict | None:
 
 def make_report(paths: list[Path], output: Path, overwrite: bool = False, suggest_effects: bool = True,
                 progress: bool = False) -> str:
-    """Write the report folder; return the terminal summary table."""
+    """Write the report folder; return the terminal summary table.
+
+    ``output`` must be new, empty, or (with ``overwrite``) a report folder afmid wrote that holds none of the
+    inputs: see :mod:`afmid.report_folder`.
+    """
     output = Path(output)
-    if output.exists() and not output.is_dir():
-        raise OutputError("exists and is not a folder", file=output)
-    if output.exists() and any(output.iterdir()) and not overwrite:
-        raise OutputError("report folder exists and is not empty; pass --overwrite to replace it", file=output)
     runs = [load_run(p) for p in paths]
-    last = runs[-1]
-    local = localize(last)
-    energy = energy_check(last)
-    summary = {
-        "runs": [{"run": str(p), "effects": r.effects, "error": r.cv_error, "noise_floor": r.cv_error_noise_floor,
-                  "n_terms": r.n_terms,
-                  "terms": r.selected_terms, "chi2_reduced": r.chi2_reduced,
-                  "parameters": {k: {"value": v["value"], "error": v["error"], "unit": v["unit"]}
-                                 for k, v in r.quantities.items()}}
-                 for p, r in zip(paths, runs)],
-    }
-    if suggest_effects:
-        summary.update(suggest(last, progress=progress))
-    summary["energy"] = energy
-    summary["afmid_version"] = __version__
-    parent = output.parent if str(output.parent) else Path(".")
-    tmp = Path(tempfile.mkdtemp(prefix=f".afmid-tmp-{output.name}.", dir=parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes the folder private; give it the permissions the umask allows
-    try:
+    inputs = {**{p: "a run file" for p in paths}, **{r.input_path: f"the trace of {r.path}" for r in runs}}
+    with report_folder(output, overwrite, inputs) as tmp:
+        last = runs[-1]
+        local = localize(last)
+        energy = energy_check(last)
+        summary = {
+            "runs": [{"run": str(p), "effects": r.effects, "error": r.cv_error, "noise_floor": r.cv_error_noise_floor,
+                      "n_terms": r.n_terms,
+                      "terms": r.selected_terms, "chi2_reduced": r.chi2_reduced,
+                      "parameters": {k: {"value": v["value"], "error": v["error"], "unit": v["unit"]}
+                                     for k, v in r.quantities.items()}}
+                     for p, r in zip(paths, runs)],
+        }
+        if suggest_effects:
+            summary.update(suggest(last, progress=progress))
+        summary["energy"] = energy
+        summary["afmid_version"] = __version__
         figures = {
             "phase_portraits": fig_phase_portraits(last, tmp, resimulate(last)),
             "force_time": fig_force_time(last, tmp),
@@ -524,12 +518,6 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
         (tmp / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2), encoding="utf-8")
         (tmp / "report.html").write_text(render_html(runs, summary, figures, local, energy, tmp, truth_q),
                                          encoding="utf-8")
-        if output.exists():
-            shutil.rmtree(output)
-        os.replace(tmp, output)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return terminal_summary(summary, output)
 
 
