@@ -1171,13 +1171,19 @@ def apply_effect_changes(config: RunConfig, add: tuple[str, ...] | list[str], re
     if config.model.library is not None:
         raise ConfigError("--add/--remove change model.effects, but this config uses model.library",
                           file=config.source, key="model.library")
+    both = sorted(set(add) & set(remove))
+    if both:
+        raise ConfigError(f"--add {both[0]} and --remove {both[0]} contradict each other; give one of them",
+                          key="--add")
     effects = list(config.model.effects)
     for name in remove:
         if name not in effects:
             raise ConfigError(f"--remove {name}: not in model.effects {effects}", file=config.source, key="model.effects")
         effects.remove(name)
     for name in add:
-        if name not in effects:
+        if name in effects:
+            log.warning("%s: --add %s: already in model.effects %s; nothing to add", config.source, name, effects)
+        else:
             effects.append(name)
     try:
         config.model.effects = effects
