@@ -133,7 +133,7 @@ class ModelConfig(StrictModel):
     @model_validator(mode="after")
     def _library_or_effects(self) -> "ModelConfig":
         # A preset replaces the effects' terms: both given, one of them would be ignored without a word.
-        if self.library is not None and "effects" in self.model_fields_set:
+        if self.library is not None and "effects" in self.model_fields_set and self.effects:
             raise ValueError(f"model.library: the preset {self.library!r} and model.effects {self.effects} are both "
                              "given, but a preset replaces the effects' terms; keep one of them")
         return self
@@ -494,6 +494,8 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> RunConf
 def dump_config(config: RunConfig) -> str:
     """The merged config as YAML text (stored in every output for provenance)."""
     data = config.model_dump(mode="json")
+    if config.model.library is not None:
+        data["model"]["effects"] = []  # a preset's run uses no effects (and both given is refused on reading)
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
 
 

@@ -27,6 +27,7 @@ from .diagnose import BIC_EVIDENCE, RunData, band_limit, describe_residual, ener
 from .errors import OutputError
 from .io import now_iso
 from .physics import EFFECTS
+from .runcheck import check_same_traces
 
 log = logging.getLogger(__name__)
 NN = 1e9  # N -> nN for display
@@ -384,6 +385,7 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
              "above the noise; the model is compared with it on the same harmonics.</p>"]
     diag = summary.get("diagnosis", {})
     parts.append(_verdict_box(summary))
+    parts.extend(f"<p><b>Note:</b> {html.escape(note)}</p>" for note in summary.get("notes", []))
     parts.append("<h2>Runs</h2>")
     rows = [[r.path.name, ", ".join(r.effects) or "(library)", _fmt(r.cv_error), _fmt(r.cv_error_noise_floor),
              r.n_terms, _fmt(r.chi2_reduced), ", ".join(r.selected_terms)] for r in runs]
@@ -478,7 +480,7 @@ def resimulate(run: RunData) -> dict | None:
 
 
 def make_report(paths: list[Path], output: Path, overwrite: bool = False, suggest_effects: bool = True,
-                progress: bool = False) -> str:
+                progress: bool = False, allow_different_traces: bool = False) -> str:
     """Write the report folder; return the terminal summary table."""
     output = Path(output)
     if output.exists() and not output.is_dir():
@@ -486,6 +488,7 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
     if output.exists() and any(output.iterdir()) and not overwrite:
         raise OutputError("report folder exists and is not empty; pass --overwrite to replace it", file=output)
     runs = [load_run(p) for p in paths]
+    notes = check_same_traces(runs, allow_different_traces)
     last = runs[-1]
     local = localize(last)
     energy = energy_check(last)
@@ -497,6 +500,8 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
                                  for k, v in r.quantities.items()}}
                  for p, r in zip(paths, runs)],
     }
+    if notes:
+        summary["notes"] = notes
     if suggest_effects:
         summary.update(suggest(last, progress=progress))
     summary["energy"] = energy
@@ -562,5 +567,6 @@ def terminal_summary(summary: dict, output: Path) -> str:
             lines.append(f"  residual: {diag.get('description', '')}")
     elif summary.get("note"):
         lines.append(summary["note"])
+    lines.extend(f"note: {note}" for note in summary.get("notes", []))
     lines.append(f"report: {output / 'report.html'}")
     return "\n".join(lines)
