@@ -674,7 +674,10 @@ def suggest(run: RunData, progress: bool = False) -> dict:
     if run.input_path is None or not run.input_path.exists():
         raise InputError("the run's input trace is not available for refitting", file=run.path, key="input_path")
     if run.input_sha256 and sha256_file(run.input_path) != run.input_sha256:
-        log.warning("%s changed since the run was made (SHA-256 differs); refitting the current file", run.input_path)
+        # Refits of another trace would be compared with this run's fit: no suggestion can come of that.
+        log.warning("%s changed since the run was made (SHA-256 differs); no effects are suggested", run.input_path)
+        return {"missing_effect": False, "suggestions": [], "tried": [],
+                "note": f"no suggestions: the input trace {run.input_path} changed since the run was made"}
     with _shared_preparation(), _one_blas_thread():
         return _diagnose(run, progress)
 

@@ -184,3 +184,14 @@ def test_runs_of_the_same_trace_need_no_flag(tmp_path, run_cli):
                              "--no-suggest")
     assert code == 0, err
     assert "different traces" not in out
+
+
+def test_no_effects_are_suggested_from_a_changed_trace(run_with_own_trace, caplog):
+    from afmid.diagnose import load_run, suggest
+
+    run = load_run(run_with_own_trace)
+    with h5py.File(run_with_own_trace.with_name("trace.h5"), "r+") as h5:
+        h5.attrs["note"] = "edited after the fit"
+    with caplog.at_level(logging.WARNING, logger="afmid"):
+        out = suggest(run)
+    assert out["suggestions"] == [] and "changed since the run was made" in out["note"]
