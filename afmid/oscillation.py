@@ -97,8 +97,8 @@ def check_drive_line(x: np.ndarray, settings, strongest: float | None = None) ->
     """
     from .defects import DRIVE_SEARCH, Finding, frequency
 
-    if not (settings.sample_rate and settings.nominal_frequency):
-        return []
+    if not (settings.sample_rate and settings.nominal_frequency) or np.ptp(x) == 0:
+        return []  # nothing to test against; a constant channel has its own, plainer message
     test = drive_line_test(x, settings.sample_rate, settings.nominal_frequency, DRIVE_SEARCH)
     if test is None or test["ratio"] > test["threshold"]:
         return []

@@ -102,8 +102,11 @@ def check_same_traces(runs, allow: bool) -> list[str]:
         return []
     first = runs[0]
     other = next(run for run in runs if run.input_sha256 != first.input_sha256)
-    what = (f"{first.path} and {other.path} were fitted on different traces ({first.input_path}, SHA-256 "
-            f"{str(first.input_sha256)[:12]}..., and {other.input_path}, SHA-256 {str(other.input_sha256)[:12]}...)")
+    def digest(run) -> str:
+        return f"SHA-256 {run.input_sha256[:12]}..." if run.input_sha256 else "SHA-256 not recorded"
+
+    what = (f"{first.path} and {other.path} were fitted on different traces ({first.input_path}, {digest(first)}, "
+            f"and {other.input_path}, {digest(other)})")
     if not allow:
         raise ConfigError(f"{what}: comparing them compares the traces, not the models; pass "
                           f"{ALLOW_DIFFERENT_TRACES} to do that on purpose", key=ALLOW_DIFFERENT_TRACES)
