@@ -201,7 +201,10 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
 @click.option("--overwrite", is_flag=True,
               help="Replace OUTPUT if it is a report folder afmid wrote that holds only afmid's files.")
 @click.option("--no-suggest", is_flag=True, help="Skip refitting with candidate effects.")
-def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bool) -> None:
+@click.option("--allow-different-traces", is_flag=True,
+              help="Compare runs fitted on different traces (refused otherwise); the report says so.")
+def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bool,
+           allow_different_traces: bool) -> None:
     """Compare run files: where the model fails, which effect is missing, how the error falls.
 
     Writes OUTPUT/report.html (self-contained), OUTPUT/*.png, OUTPUT/summary.json and the
@@ -210,7 +213,8 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     """
     from .report import make_report
 
-    summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest, progress=not _state["quiet"])
+    summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest,
+                          progress=not _state["quiet"], allow_different_traces=allow_different_traces)
     click.echo(summary)
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import ConfigError
 from .registry import closest, unknown_name_message
@@ -35,6 +35,18 @@ def _not_bool(value: Any) -> Any:
 
 
 _Number = BeforeValidator(_not_bool)
+
+
+def _column_not_bool(value: Any) -> Any:
+    """Refuse YAML booleans where a column is named: ``column: no`` is False, which pydantic takes as index 0."""
+    if isinstance(value, bool):
+        word = "yes/no/on/off/true/false"
+        raise ValueError(f"expected a column name or a 0-based column index, got the YAML boolean {value!r} "
+                         f"({word} unquoted); quote a column named like that, e.g. 'no'")
+    return value
+
+
+_Column = BeforeValidator(_column_not_bool)
 PositiveFloat = Annotated[float, _Number, Field(gt=0, allow_inf_nan=False)]
 NonNegativeFloat = Annotated[float, _Number, Field(ge=0, allow_inf_nan=False)]
 FiniteFloat = Annotated[float, _Number, Field(allow_inf_nan=False)]
@@ -52,8 +64,9 @@ class DataConfig(StrictModel):
 
     path: Path | None = Field(None, description="trace file, relative to the config file")
     format: str = Field("auto", description="auto (from the suffix), csv, npy, hdf5, mat, ibw, tdms")
-    column: str | int | None = Field(None, description="CSV column / HDF5 dataset path / MAT variable")
-    time_column: str | int | None = Field(None, description="optional time column (s)")
+    column: Annotated[str | int | None, _Column] = Field(
+        None, description="CSV column / HDF5 dataset path / MAT variable (or a 0-based column index)")
+    time_column: Annotated[str | int | None, _Column] = Field(None, description="optional time column (s)")
     sample_rate: PositiveFloat | None = Field(None, description="Hz; required if there is no time column")
     units: Literal["m", "nm", "pm", "um", "V", "raw"] | None = Field(
         None, description="units of the samples in the file; V needs invols, raw needs scale"
@@ -64,6 +77,14 @@ class DataConfig(StrictModel):
     positive: Literal["toward_sample", "away_from_sample"] = Field(
         "toward_sample", description="sign convention of the deflection in the file"
     )
+
+
+    @model_validator(mode="after")
+    def _distinct_columns(self) -> "DataConfig":
+        if self.column is not None and self.column == self.time_column:
+            raise ValueError(f"data.time_column: names the same column as data.column ({self.column!r}): the "
+                             "deflection cannot be its own time axis")
+        return self
 
 
 class CantileverConfig(StrictModel):
@@ -108,6 +129,14 @@ class ModelConfig(StrictModel):
         if len(set(names)) != len(names):
             raise ValueError(f"effects listed twice: {names}")
         return names
+
+    @model_validator(mode="after")
+    def _library_or_effects(self) -> "ModelConfig":
+        # A preset replaces the effects' terms: both given, one of them would be ignored without a word.
+        if self.library is not None and "effects" in self.model_fields_set and self.effects:
+            raise ValueError(f"model.library: the preset {self.library!r} and model.effects {self.effects} are both "
+                             "given, but a preset replaces the effects' terms; keep one of them")
+        return self
 
 
 class NoiseConfig(StrictModel):
@@ -207,6 +236,16 @@ class FitConfig(StrictModel):
             raise ValueError(unknown_name_message("differentiator", name, DIFFERENTIATORS.names()))
         return name
 
+    @model_validator(mode="after")
+    def _known_differentiation_options(self) -> "FitConfig":
+        from .preprocess import DIFFERENTIATORS
+
+        if self.differentiation in DIFFERENTIATORS:
+            problem = DIFFERENTIATORS.get(self.differentiation).check_options(self.differentiation_options)
+            if problem:
+                raise ValueError(problem)
+        return self
+
     @field_validator("separation_window")
     @classmethod
     def _two_values(cls, v: list[float]) -> list[float]:
@@ -223,6 +262,16 @@ class RunConfig(StrictModel):
     model: ModelConfig = Field(default_factory=ModelConfig)
     fit: FitConfig = Field(default_factory=FitConfig)
     simulate: SimulateConfig = Field(default_factory=SimulateConfig)
+
+    @model_validator(mode="after")
+    def _usable_terms(self) -> "RunConfig":
+        from .consistency import term_problem
+
+        for i, text in enumerate(self.model.terms):
+            problem = term_problem(text, self.fit.baseline)
+            if problem:
+                raise ValueError(f"model.terms[{i}]: {problem}")
+        return self
 
     # Not part of the YAML: where the config came from, for messages and relative paths.
     _source: Path | None = None
@@ -309,10 +358,16 @@ def _describe(error: dict, schema: type[BaseModel]) -> tuple[str, str]:
     if kind == "list_type":
         return key, f"expected a list, got {_format_value(value)}"
     if kind == "value_error":
-        return key, str(ctx.get("error", error["msg"]))
+        text = str(ctx.get("error", error["msg"]))
+        # A section's own validator names the key it is about: "section.key: message".
+        named = _NAMED_KEY.match(text)
+        if named and (not key or named["key"].startswith(f"{key}.")):
+            return named["key"], named["message"]
+        return key, text
     return key, f"{error['msg']}, got {_format_value(value)}"
 
 
+_NAMED_KEY = re.compile(r"^(?P<key>[A-Za-z_][\w.\[\]]*): (?P<message>.+)$")
 _EXPECTED = re.compile(r"^expected (?P<what>.+), got (?P<got>.+)$")
 
 
@@ -439,6 +494,8 @@ def load_config(path: str | Path, overrides: list[str] | None = None) -> RunConf
 def dump_config(config: RunConfig) -> str:
     """The merged config as YAML text (stored in every output for provenance)."""
     data = config.model_dump(mode="json")
+    if config.model.library is not None:
+        data["model"]["effects"] = []  # a preset's run uses no effects (and both given is refused on reading)
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
 
 

@@ -556,19 +556,22 @@ def check_signal(x: np.ndarray, settings: Settings, analysis: Analysis | None = 
     x = np.asarray(x, dtype=np.float64)
     if analysis is None:
         analysis = analyse_with(x, settings)
+    from .oscillation import check_drive_line
+
     findings: list[Finding] = []
     findings += check_clipping(x, analysis, settings)
     if analysis is None:
         findings += _unanalysable(x, settings)
         findings += check_sampling(None, settings)
-        return findings
+        return check_drive_line(x, settings) + findings
     findings += check_drive_frequency(analysis, settings)
     findings += check_sampling(analysis, settings)
     findings += check_jumps(analysis)
     findings += check_steady(analysis, settings)
     findings += check_offset_and_drift(analysis, settings)
     findings += check_contact(analysis, settings)
-    return findings
+    strongest = analysis.cycles_per_sample * settings.sample_rate if settings.sample_rate else None
+    return check_drive_line(x, settings, strongest) + findings  # the first error is the one reported
 
 
 def _unanalysable(x: np.ndarray, settings: Settings) -> list[Finding]:

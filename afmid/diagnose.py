@@ -134,8 +134,12 @@ def _str_list(ds) -> list[str]:
 
 
 def load_run(path: str | Path) -> RunData:
-    """Read a run file; InputError if it is not one."""
+    """Read a run file; one-line InputError if it is not one, is of a version this afmid does not read,
+    or is damaged (a missing dataset or attribute, a stored config that is not valid, unreadable data)."""
     import h5py
+
+    from .errors import ConfigError
+    from .runcheck import RunReader, check_version, input_unchanged, stored_config
 
     path = Path(path)
     if not path.exists():
@@ -144,57 +148,86 @@ def load_run(path: str | Path) -> RunData:
         h5 = h5py.File(path, "r")
     except OSError:
         raise InputError("not a readable HDF5 file (truncated or corrupt?)", file=path) from None
-    with h5:
-        if h5.attrs.get("format") != RUN_FORMAT:
-            raise InputError(f"not an afmid run file (format attribute {h5.attrs.get('format')!r})", file=path)
-        raw = yaml.safe_load(h5.attrs["config"])
-        input_path = h5.attrs.get("input_path")
-        config = build_config(raw, source=path, base_dir=Path(input_path).parent if input_path else path.parent)
-        m = h5["model"]
-        quantities = {
-            name: {"value": float(ds[()]), "unit": ds.attrs["units"], "error": float(ds.attrs["error"]),
-                   "ci_low": float(ds.attrs["ci_low"]), "ci_high": float(ds.attrs["ci_high"]),
-                   "effect": str(ds.attrs["effect"])}
-            for name, ds in m["parameters"].items()
-        }
-        nonlinear = {name: {"value": float(ds[()]), "error": float(ds.attrs["error"]), "unit": ds.attrs["units"]}
-                     for name, ds in m["nonlinear"].items()}
-        d = h5["diagnostics"]
-        data = RunData(
-            path=path,
-            config=config,
-            effects=[e for e in _str_list(m["effects"]) if e],
-            terms=_str_list(m["terms"]),
-            expressions=_str_list(m["expressions"]),
-            units=_str_list(m["units"]),
-            coefficients=m["coefficients"][...],
-            errors=m["coefficients_errors"][...],
-            selected=m["selected"][...].astype(bool),
-            inclusion=m["inclusion_probability"][...],
-            quantities=quantities,
-            nonlinear=nonlinear,
-            separation=float(m["separation"][()]),
-            cv_error=float(d["cv_error"][()]),
-            cv_error_noise_floor=float(d["cv_error_noise_floor"][()]),
-            bic=float(d["bic"][()]),
-            chi2_reduced=float(d["chi2_reduced"][()]),
-            drive={k: float(v[()]) for k, v in m["drive"].items()},
-            cantilever={k: float(v) for k, v in h5["cantilever"].attrs.items() if k != "units"},
-            periods={k: v[...] for k, v in h5["periods"].items()},
-            force={k: v[...] for k, v in h5["force"].items()},
-            input_path=Path(input_path) if input_path else None,
-            input_sha256=h5.attrs.get("input_sha256"),
-            warnings=list(d.attrs.get("warnings", [])),
-            n_rows=int(d["n_rows"][()]) if "n_rows" in d else 0,
-            harmonics=d["harmonics"][...].astype(int) if "harmonics" in d else None,
-            signal_rows=d["signal_rows"][...].astype(bool) if "signal_rows" in d else None,
-        )
+    try:
+        with h5:
+            if h5.attrs.get("format") != RUN_FORMAT:
+                raise InputError(f"not an afmid run file (format attribute {h5.attrs.get('format')!r})", file=path)
+            check_version(h5.attrs, path)
+            data = _read_run(RunReader(h5, path), path, stored_config(h5.attrs, path))
+    except ConfigError as exc:  # the stored config: the run file is the input here
+        raise InputError(f"the stored config is not valid: {exc.key + ': ' if exc.key else ''}{exc.message}",
+                         file=path, key="config") from None
+    except (OSError, RuntimeError, ValueError, TypeError) as exc:  # h5py: unreadable chunks, wrong shapes/types
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"damaged run file: cannot read its contents ({first})", file=path) from None
     if data.input_path is not None and data.input_path.exists():
-        try:
-            data.truth = read_truth(data.input_path)
-        except (OSError, KeyError):
-            data.truth = None
+        if input_unchanged(data.input_path, data.input_sha256):
+            try:
+                data.truth = read_truth(data.input_path)
+            except (OSError, KeyError):
+                data.truth = None
+        else:
+            log.warning("%s: its input %s changed since the fit (SHA-256 differs): its ground truth is ignored",
+                        path, data.input_path)
     return data
+
+
+def _attr(ds, name: str, path: Path):
+    """An attribute of a dataset of a run file; InputError naming it when missing."""
+    try:
+        return ds.attrs[name]
+    except KeyError:
+        raise InputError(f"missing attribute {name!r} of {ds.name} (damaged or incomplete run file)", file=path,
+                         key=f"{ds.name}@{name}") from None
+
+
+def _read_run(h5, path: Path, raw: dict) -> RunData:
+    """The contents of an open run file (``h5``: a :class:`afmid.runcheck.RunReader`)."""
+    input_path = h5.attrs.get("input_path")
+    model = raw.get("model")
+    if isinstance(model, dict) and model.get("library") is not None:
+        model.pop("effects", None)  # older afmid stored the unused default effects beside a preset
+    config = build_config(raw, source=path, base_dir=Path(input_path).parent if input_path else path.parent)
+    m = h5["model"]
+    quantities = {
+        name: {"value": float(ds[()]), "unit": _attr(ds, "units", path), "error": float(_attr(ds, "error", path)),
+               "ci_low": float(_attr(ds, "ci_low", path)), "ci_high": float(_attr(ds, "ci_high", path)),
+               "effect": str(_attr(ds, "effect", path))}
+        for name, ds in m["parameters"].items()
+    }
+    nonlinear = {name: {"value": float(ds[()]), "error": float(_attr(ds, "error", path)),
+                        "unit": _attr(ds, "units", path)}
+                 for name, ds in m["nonlinear"].items()}
+    d = h5["diagnostics"]
+    return RunData(
+        path=path,
+        config=config,
+        effects=[e for e in _str_list(m["effects"]) if e],
+        terms=_str_list(m["terms"]),
+        expressions=_str_list(m["expressions"]),
+        units=_str_list(m["units"]),
+        coefficients=m["coefficients"][...],
+        errors=m["coefficients_errors"][...],
+        selected=m["selected"][...].astype(bool),
+        inclusion=m["inclusion_probability"][...],
+        quantities=quantities,
+        nonlinear=nonlinear,
+        separation=float(m["separation"][()]),
+        cv_error=float(d["cv_error"][()]),
+        cv_error_noise_floor=float(d["cv_error_noise_floor"][()]),
+        bic=float(d["bic"][()]),
+        chi2_reduced=float(d["chi2_reduced"][()]),
+        drive={k: float(v[()]) for k, v in m["drive"].items()},
+        cantilever={k: float(v) for k, v in h5["cantilever"].attrs.items() if k != "units"},
+        periods={k: v[...] for k, v in h5["periods"].items()},
+        force={k: v[...] for k, v in h5["force"].items()},
+        input_path=Path(input_path) if input_path else None,
+        input_sha256=h5.attrs.get("input_sha256"),
+        warnings=list(d.attrs.get("warnings", [])),
+        n_rows=int(d["n_rows"][()]) if "n_rows" in d else 0,
+        harmonics=d["harmonics"][...].astype(int) if "harmonics" in d else None,
+        signal_rows=d["signal_rows"][...].astype(bool) if "signal_rows" in d else None,
+    )
 
 
 # --------------------------------------------------------------------------- localisation
@@ -641,7 +674,10 @@ def suggest(run: RunData, progress: bool = False) -> dict:
     if run.input_path is None or not run.input_path.exists():
         raise InputError("the run's input trace is not available for refitting", file=run.path, key="input_path")
     if run.input_sha256 and sha256_file(run.input_path) != run.input_sha256:
-        log.warning("%s changed since the run was made (SHA-256 differs); refitting the current file", run.input_path)
+        # Refits of another trace would be compared with this run's fit: no suggestion can come of that.
+        log.warning("%s changed since the run was made (SHA-256 differs); no effects are suggested", run.input_path)
+        return {"missing_effect": False, "suggestions": [], "tried": [],
+                "note": f"no suggestions: the input trace {run.input_path} changed since the run was made"}
     with _shared_preparation(), _one_blas_thread():
         return _diagnose(run, progress)
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from . import __version__
 from .config import RunConfig, dump_config
-from .errors import AfmidError, ConfigError
+from .errors import AfmidError, ConfigError, InputError
 from .io import Trace, atomic_hdf5, check_output_path, create_dataset, load_trace, write_dataset, RUN_FORMAT
 from .library import Library, build_library
 from .physics import BOLTZMANN, EFFECTS
@@ -820,6 +820,11 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     bar.update(1)
     signal_rows = _signal_rows(prep, system, coef)
     cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, signal_rows, fit.folds)
+    try:
+        refuse_unusable(trace, library, coef[:len(library)], cv_error)
+    except AfmidError:
+        bar.close()  # the error line must not land on the progress bar's line
+        raise
     quantities = read_out(library, coef, bagging, params, chosen, trace)
     if uncertainty:
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
@@ -832,6 +837,22 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, signal_rows, force_estimate, force_direct, periods,
                      warnings)
+
+
+def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:
+    """Stop (InputError, nothing written) when the fit has no result afmid can stand behind.
+
+    A NaN error metric means no drive harmonic of the model-free force stood out of the noise on the
+    held-out periods: there was no tip-sample force to identify, and the coefficients only describe noise.
+    """
+    bad = [name for name, c in zip(library.names, coef) if not math.isfinite(c)]
+    if bad:
+        raise InputError(f"the fit's coefficients are not finite for {', '.join(bad)}: the library columns are "
+                         "degenerate on this trace; nothing was written", file=trace.path, key="model")
+    if not math.isfinite(cv_error):
+        raise InputError("the fit has no usable result: its cross-validated error is NaN because no harmonic of "
+                         "the model-free tip-sample force stands above the noise (the tip does not reach the sample, "
+                         "or this is not a tapping trace); nothing was written", file=trace.path, key="data.path")
 
 
 # --------------------------------------------------------------------------- error metric
@@ -1171,13 +1192,19 @@ def apply_effect_changes(config: RunConfig, add: tuple[str, ...] | list[str], re
     if config.model.library is not None:
         raise ConfigError("--add/--remove change model.effects, but this config uses model.library",
                           file=config.source, key="model.library")
+    both = sorted(set(add) & set(remove))
+    if both:
+        raise ConfigError(f"--add {both[0]} and --remove {both[0]} contradict each other; give one of them",
+                          key="--add")
     effects = list(config.model.effects)
     for name in remove:
         if name not in effects:
             raise ConfigError(f"--remove {name}: not in model.effects {effects}", file=config.source, key="model.effects")
         effects.remove(name)
     for name in add:
-        if name not in effects:
+        if name in effects:
+            log.warning("%s: --add %s: already in model.effects %s; nothing to add", config.source, name, effects)
+        else:
             effects.append(name)
     try:
         config.model.effects = effects

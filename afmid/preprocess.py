@@ -17,8 +17,9 @@ sample) are declared in :data:`DIFFERENTIATORS`.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -675,6 +676,24 @@ class Differentiator:
     when: str  # when to use it
     references: tuple[str, ...]
     apply: Callable[[np.ndarray, float, float, dict], tuple[np.ndarray, np.ndarray, np.ndarray]]
+    #: fit.differentiation_options it reads: name -> (what is expected, test of a value)
+    options: dict = field(default_factory=dict)
+
+    def check_options(self, options: dict) -> str | None:
+        """Why ``options`` (fit.differentiation_options) do not suit this differentiator, or None."""
+        from .registry import closest
+
+        for name, value in options.items():
+            key = f"fit.differentiation_options.{name}"
+            if name not in self.options:
+                valid = ", ".join(self.options) if self.options else "none"
+                hint = closest(str(name), list(self.options))
+                return (f"{key}: the {self.name} differentiator has no option {name!r}"
+                        f"{f' (did you mean {hint!r}?)' if hint else ''}; its options: {valid}")
+            expected, accepts = self.options[name]
+            if not (math.isfinite(value) and accepts(value)):
+                return f"{key}: must be {expected}, got {value!r}"
+        return None
 
 
 def _check_differentiator(d: Differentiator) -> None:
@@ -760,15 +779,19 @@ DIFFERENTIATORS.register(Differentiator(
 DIFFERENTIATORS.register(Differentiator(
     "savgol", "Savitzky-Golay local polynomial smoothing and differentiation",
     "transients and general traces; window ~ 1/10 period (fit.differentiation_options.window)",
-    ("Savitzky, Golay, Anal. Chem. 36, 1627 (1964)", "scipy.signal.savgol_filter"), _savgol))
+    ("Savitzky, Golay, Anal. Chem. 36, 1627 (1964)", "scipy.signal.savgol_filter"), _savgol,
+    {"window": ("a whole number of samples >= 3", lambda v: v == int(v) and v >= 3),
+     "order": ("a whole polynomial order from 1 to 10", lambda v: v == int(v) and 1 <= v <= 10)}))
 DIFFERENTIATORS.register(Differentiator(
     "spectral", "Fourier differentiation keeping the drive harmonics above the noise floor",
     "steady-state traces (periodic in the drive); best noise rejection for the per-sample force",
-    ("Trefethen, Spectral Methods in MATLAB (2000)",), _spectral))
+    ("Trefethen, Spectral Methods in MATLAB (2000)",), _spectral,
+    {"snr": ("a power ratio > 0", lambda v: v > 0)}))
 DIFFERENTIATORS.register(Differentiator(
     "spline", "smoothing spline with generalized cross-validation",
     "irregular or transient motion when no periodicity can be assumed",
-    ("Wahba, Spline Models for Observational Data (1990)", "scipy.interpolate.make_smoothing_spline"), _spline))
+    ("Wahba, Spline Models for Observational Data (1990)", "scipy.interpolate.make_smoothing_spline"), _spline,
+    {"lam": ("a smoothing weight > 0 (leave it out for generalized cross-validation)", lambda v: v > 0)}))
 DIFFERENTIATORS.register(Differentiator(
     "period_average", "average all periods on a phase grid, then differentiate spectrally",
     "strictly steady traces when period-to-period variation is of no interest (as in the paper)",

@@ -25,6 +25,7 @@ from .diagnose import BIC_EVIDENCE, RunData, band_limit, describe_residual, ener
 from .io import now_iso
 from .physics import EFFECTS
 from .report_folder import report_folder
+from .runcheck import check_same_traces
 
 log = logging.getLogger(__name__)
 NN = 1e9  # N -> nN for display
@@ -382,6 +383,7 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
              "above the noise; the model is compared with it on the same harmonics.</p>"]
     diag = summary.get("diagnosis", {})
     parts.append(_verdict_box(summary))
+    parts.extend(f"<p><b>Note:</b> {html.escape(note)}</p>" for note in summary.get("notes", []))
     parts.append("<h2>Runs</h2>")
     rows = [[r.path.name, ", ".join(r.effects) or "(library)", _fmt(r.cv_error), _fmt(r.cv_error_noise_floor),
              r.n_terms, _fmt(r.chi2_reduced), ", ".join(r.selected_terms)] for r in runs]
@@ -476,14 +478,16 @@ def resimulate(run: RunData) -> dict | None:
 
 
 def make_report(paths: list[Path], output: Path, overwrite: bool = False, suggest_effects: bool = True,
-                progress: bool = False) -> str:
+                progress: bool = False, allow_different_traces: bool = False) -> str:
     """Write the report folder; return the terminal summary table.
 
     ``output`` must be new, empty, or (with ``overwrite``) a report folder afmid wrote that holds none of the
-    inputs: see :mod:`afmid.report_folder`.
+    inputs: see :mod:`afmid.report_folder`. Runs of different traces are refused unless
+    ``allow_different_traces`` (then the report says so).
     """
     output = Path(output)
     runs = [load_run(p) for p in paths]
+    notes = check_same_traces(runs, allow_different_traces)
     inputs = {**{p: "a run file" for p in paths}, **{r.input_path: f"the trace of {r.path}" for r in runs}}
     with report_folder(output, overwrite, inputs) as tmp:
         last = runs[-1]
@@ -497,6 +501,8 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
                                      for k, v in r.quantities.items()}}
                      for p, r in zip(paths, runs)],
         }
+        if notes:
+            summary["notes"] = notes
         if suggest_effects:
             summary.update(suggest(last, progress=progress))
         summary["energy"] = energy
@@ -550,5 +556,6 @@ def terminal_summary(summary: dict, output: Path) -> str:
             lines.append(f"  residual: {diag.get('description', '')}")
     elif summary.get("note"):
         lines.append(summary["note"])
+    lines.extend(f"note: {note}" for note in summary.get("notes", []))
     lines.append(f"report: {output / 'report.html'}")
     return "\n".join(lines)
