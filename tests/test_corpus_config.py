@@ -17,6 +17,28 @@ def write_trace_csv(folder: Path, name: str = "trace.csv", periods: float = 10) 
     (folder / name).write_text("time_s,deflection_nm\n" + rows + "\n")
 
 
+_TAPPING: dict[str, tuple] = {}  # (time s, deflection nm) of the simulated tapping trace, made once per process
+
+
+def write_tapping_csv(folder: Path, name: str = "trace.csv") -> None:
+    """A real tapping trace (DMT, simulated once per process with the corpus cantilever: 12 periods, 200 samples
+    per period) as CSV (time_s, deflection_nm): for cases that need a fit to succeed (a bare sinusoid has no
+    tip-sample force, and afmid refuses to fit it)."""
+    if "trace" not in _TAPPING:
+        from afmid.config import build_config
+        from afmid.simulate import simulate
+
+        text = (Path(__file__).resolve().parents[1] / "configs" / "dmt.yaml").read_text()
+        mapping = yaml.safe_load(text)
+        mapping["cantilever"] = dict(CANTILEVER)
+        mapping["simulate"]["periods"] = 12
+        trace = simulate(build_config(mapping))
+        _TAPPING["trace"] = (trace.times, trace.deflection * 1e9)
+    t, x = _TAPPING["trace"]
+    rows = "\n".join(f"{ti!r},{xi!r}" for ti, xi in zip(t.tolist(), x.tolist()))
+    (folder / name).write_text("time_s,deflection_nm\n" + rows + "\n")
+
+
 def base_config(**changes) -> dict:
     """The pinned run config of the corpus; ``changes`` maps dotted keys to values (None deletes)."""
     config = {

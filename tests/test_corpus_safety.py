@@ -23,6 +23,7 @@ import h5py
 import pytest
 import yaml
 
+from afmid.io import sha256_file
 from corpus import Case, check_case, corpus_params
 from test_corpus_config import base_config, write_trace_csv
 
@@ -35,15 +36,12 @@ _held_locks: list[int] = []  # lock file descriptors a case holds while afmid ru
 
 
 @pytest.fixture(scope="module", autouse=True)
-def _fitted_run(tmp_path_factory):
-    """One run file of the corpus trace (fitting takes a few seconds), copied into the workspaces that need one."""
-    from afmid.cli import main
+def _fitted_run():
+    """One real run file (a simulated tapping trace, fitted once per test process; a bare sinusoid has no force to
+    fit), copied into the workspaces that need one."""
+    from test_corpus_requests import reference_run
 
-    folder = tmp_path_factory.mktemp("safety-run")
-    write_trace_csv(folder)
-    (folder / "run.yaml").write_text(yaml.safe_dump(base_config(**{"fit.bootstrap": 8}), sort_keys=False))
-    assert main(["-q", "fit", str(folder / "run.yaml"), "-o", str(folder / "r.h5")]) == 0
-    _cache["run"] = folder / "r.h5"
+    _cache["run"] = reference_run()
     yield
 
 
@@ -121,8 +119,9 @@ def run_file(name: str = "r.h5", trace_name: str = "trace.csv"):
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(_cache["run"], folder / name)
         trace(trace_name)(folder)
-        with h5py.File(folder / name, "r+") as h5:
+        with h5py.File(folder / name, "r+") as h5:  # the run is of the workspace's trace
             h5.attrs["input_path"] = str((folder / trace_name).resolve())
+            h5.attrs["input_sha256"] = sha256_file(folder / trace_name)
 
     return write
 

@@ -27,7 +27,7 @@ import yaml
 
 from afmid.errors import OutputError
 from afmid.io import refuse_input_as_output
-from test_corpus_config import base_config, write_trace_csv
+from test_corpus_config import base_config, write_tapping_csv
 
 AFMID = [sys.executable, "-m", "afmid.cli"]
 LOCK = ".afmid-batch.lock"
@@ -66,11 +66,11 @@ def test_a_missing_input_compares_by_its_resolved_path(tmp_path):
 # --------------------------------------------------------------------------- report folders
 @pytest.fixture(scope="module")
 def run_path(tmp_path_factory) -> Path:
-    """A run file of the corpus trace."""
+    """A run file of the corpus tapping trace."""
     from afmid.cli import main
 
     folder = tmp_path_factory.mktemp("safety-report-run")
-    write_trace_csv(folder)
+    write_tapping_csv(folder)
     (folder / "run.yaml").write_text(yaml.safe_dump(base_config(**{"fit.bootstrap": 8}), sort_keys=False))
     assert main(["-q", "fit", str(folder / "run.yaml"), "-o", str(folder / "r.h5")]) == 0
     return folder / "r.h5"
@@ -227,7 +227,7 @@ def _batch_workspace(folder: Path, n_traces: int = 2) -> list[str]:
     """run.yaml and traces t1.csv..tN.csv; returns the batch arguments (without -o)."""
     folder.mkdir(parents=True, exist_ok=True)
     for i in range(1, n_traces + 1):
-        write_trace_csv(folder, f"t{i}.csv")
+        write_tapping_csv(folder, f"t{i}.csv")
     (folder / "run.yaml").write_text(yaml.safe_dump(base_config(**{"fit.bootstrap": 8}), sort_keys=False))
     return ["-q", "batch", str(folder / "run.yaml"), "--inputs", str(folder / "t*.csv"), "-j", "1"]
 
