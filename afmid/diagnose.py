@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from . import plausibility
 from .config import RunConfig, build_config
 from .errors import InputError
 from .io import RUN_FORMAT, Truth, read_truth, sha256_file
@@ -154,7 +155,7 @@ def load_run(path: str | Path) -> RunData:
         quantities = {
             name: {"value": float(ds[()]), "unit": ds.attrs["units"], "error": float(ds.attrs["error"]),
                    "ci_low": float(ds.attrs["ci_low"]), "ci_high": float(ds.attrs["ci_high"]),
-                   "effect": str(ds.attrs["effect"])}
+                   "effect": str(ds.attrs["effect"]), **plausibility.attributes(plausibility.read_verdict(name, ds))}
             for name, ds in m["parameters"].items()
         }
         nonlinear = {name: {"value": float(ds[()]), "error": float(ds.attrs["error"]), "unit": ds.attrs["units"]}

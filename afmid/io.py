@@ -421,6 +421,12 @@ def _merged_value(config, key: str, from_config, from_file, sources: dict, overr
         sources[name] = f"config:{key}"
         return from_config
     if from_file is not None and not (isinstance(from_file, float) and np.isnan(from_file)):
+        from .config import instrument_value_problem
+
+        problem = instrument_value_problem(key, from_file)  # the config's limits hold for a file's metadata too
+        if problem:
+            raise InputError(f"the trace file's {name} {problem}; set {key} in the config if the file is wrong",
+                             file=config.resolve_path(config.data.path), key=key)
         sources[name] = "file"
         return from_file
     raise ConfigError("required key is missing (not in the config nor in the trace file)", file=config.source, key=key)
