@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator
 
 from .errors import ConfigError
 from .registry import closest, unknown_name_message
@@ -81,7 +81,15 @@ INSTRUMENT_LIMITS = {
 
 
 def _instrument(key: str):
-    return Annotated[float, _Number, Field(gt=0, le=INSTRUMENT_LIMITS[key], allow_inf_nan=False)]
+    """A positive, finite float no larger than the key's limit."""
+    limit = INSTRUMENT_LIMITS[key]
+
+    def at_most(value: float) -> float:
+        if value > limit:
+            raise ValueError(f"must be <= {limit:g} (beyond any AFM), got {value:g}")
+        return value
+
+    return Annotated[float, _Number, Field(gt=0, allow_inf_nan=False), AfterValidator(at_most)]
 
 
 def instrument_value_problem(key: str, value: Any) -> str | None:

@@ -86,7 +86,7 @@ def display(value: float, unit: str) -> str:
         power = 3 * math.floor(math.log10(abs(value)) / 3)
         power = min(max(power, min(_PREFIXES)), max(_PREFIXES))
         mantissa = value / 10.0**power
-        if round(abs(mantissa), 2) >= 1000 and power + 3 in _PREFIXES:  # 999.7 nN reads 1 µN
+        if float(f"{abs(mantissa):.3g}") >= 1000 and power + 3 in _PREFIXES:  # 999.97 nN reads 1 µN
             power += 3
             mantissa = value / 10.0**power
         return f"{mantissa:.3g} {_PREFIXES[power]}{unit_words(unit)}"
@@ -130,7 +130,7 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
     label = name.split(".")[-1]
     if math.isnan(value):
         return Verdict(False, f"{label} could not be read out (NaN): the fitted term has the sign opposite to "
-                              f"the effect's, or the read-out needs a value the run lacks (e.g. cantilever.tip_radius)")
+                              f"the effect's, or the read-out needs a value the run lacks, such as cantilever.tip_radius")
     shown = f"{label} = {display(value, unit)}"
     has_interval = math.isfinite(ci_low) and math.isfinite(ci_high)
     interval = f"[{display(ci_low, unit)}, {display(ci_high, unit)}]" if has_interval else ""
