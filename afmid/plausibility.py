@@ -98,8 +98,7 @@ def range_words(low: float, high: float, unit: str) -> str:
     return f"[{_short(low)}, {_short(high)}] {unit_words(unit)}"
 
 
-def plausible_range(name: str, effect: str | None = None) -> tuple[float, float, str] | None:
-    """(low, high, unit) declared for a reported quantity (``name`` or ``effect.name``), None if undeclared."""
+def _declaring_effect(name: str, effect: str | None):
     base = name.split(".")[-1]
     if effect is None and "." in name:
         effect = name.split(".")[0]
@@ -107,9 +106,17 @@ def plausible_range(name: str, effect: str | None = None) -> tuple[float, float,
     for eff in effects:
         for q in eff.quantities:
             if q.name == base:
-                low, high = quantity_range(eff, q)
-                return low, high, q.unit
-    return None
+                return eff, q
+    return None, None
+
+
+def plausible_range(name: str, effect: str | None = None) -> tuple[float, float, str] | None:
+    """(low, high, unit) declared for a reported quantity (``name`` or ``effect.name``), None if undeclared."""
+    eff, q = _declaring_effect(name, effect)
+    if q is None:
+        return None
+    low, high = quantity_range(eff, q)
+    return low, high, q.unit
 
 
 def _field(q, key: str) -> float:
@@ -143,7 +150,12 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
                                       f"{label} lies in {allowed}")
             if value < 0 <= low:
                 what = f"{shown} has the wrong sign: a physical {label} lies in {allowed}"
-                hint = "is the deflection's sign convention right (data.positive)?"
+                eff, _ = _declaring_effect(name, q.get("effect") or None)
+                if eff is not None and eff.character == "dissipative":  # the sample cannot give energy back
+                    hint = ("is the lever's own damping overestimated (cantilever.quality_factor too low), or the "
+                            "deflection's sign convention wrong (data.positive)?")
+                else:
+                    hint = "is the deflection's sign convention right (data.positive)?"
             else:
                 what = f"{shown} is outside the plausible range: a physical {label} lies in {allowed}"
                 hint = ("are the units and calibration right (data.units, data.invols or data.scale, "

@@ -63,9 +63,9 @@ def test_registration_refuses_a_quantity_without_a_sound_range(quantity, message
 # --------------------------------------------------------------------------- the checker
 @pytest.mark.parametrize("name, quantity, plausible, fragments", [
     ("viscosity", {"value": -24000.0, "error": 3000.0, "ci_low": -30000.0, "ci_high": -18000.0, "unit": "Pa*s"},
-     False, ("viscosity = -24 kPa s", "wrong sign", "[0, 1e5] Pa s", "is outside it too", "data.positive")),
+     False, ("viscosity = -24 kPa s", "wrong sign", "[0, 1e5] Pa s", "is outside it too", "quality_factor")),
     ("E_star", 1e13, False, ("E_star = 10 TPa", "outside the plausible range", "[1e5, 1e12] Pa", "data.units")),
-    ("hamaker", {"value": -2e-20, "unit": "J"}, False, ("hamaker = -2e-20 J", "wrong sign")),
+    ("hamaker", {"value": -2e-20, "unit": "J"}, False, ("hamaker = -2e-20 J", "wrong sign", "data.positive")),
     ("adhesion_force", {"value": -1e-9, "ci_low": -3e-9, "ci_high": 1e-9},
      False, ("-1 nN", "only its 95 % interval [-3 nN, 1 nN] reaches into it")),
     ("viscosity", {"value": 3.0, "error": 5.0, "ci_low": -7.0, "ci_high": 13.0}, True, ()),
