@@ -43,8 +43,8 @@ Outputs in DIR:
 - ``summary.csv`` and ``summary.h5``: one row per item in input order with
   the status (``ok``, ``failed``, ``skipped`` = up to date from an earlier
   run, ``suspect`` = a run file whose read-outs are not all plausible), the
-  error message of a failure or the reasons of a suspect item, the config, the input, the effects,
-  the error metric, the separation, every physical parameter with its error
+  error message of a failure or the reasons of a suspect item, the config,
+  the input, the effects, the error metric, the separation, every physical parameter with its error
   and 95 % interval (the union over all rows: empty / NaN where a run has no
   such quantity), and the time spent per stage. SI units in the CSV headers
   (``E_star [Pa]``) and as ``units`` attributes in the h5. Layout in

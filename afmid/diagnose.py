@@ -601,23 +601,9 @@ def _minimise_bumpy(objective, lo: float, hi: float) -> float:
 
 def _implausible(effect: str, quantities: dict, run: RunData) -> list[str]:
     """Reasons why the fitted values of an effect cannot be physical (empty if they can)."""
-    eff = EFFECTS.get(effect)
-    reasons = []
-    for key, q in quantities.items():
-        name = key.split(".")[-1]
-        value = q["value"]
-        if not math.isfinite(value):
-            reasons.append(f"{name} cannot be read out (the fitted term has the sign opposite to this effect's)")
-            continue
-        try:
-            p = eff.parameter(name)
-        except KeyError:
-            if value < 0:  # read-out forces of an effect are stated as positive numbers
-                reasons.append(f"{name} = {_value_words(value, q['unit'])} has the wrong sign for this effect")
-            continue
-        if not (p.low <= value <= p.high):
-            reasons.append(f"{name} = {_value_words(value, q['unit'])} is outside its physical range "
-                           f"[{p.low:g}, {p.high:g}] {q['unit']}")
+    # The registry's plausible ranges (afmid.plausibility), as for every fit's read-out.
+    verdicts = plausibility.check_plausibility({k: {**q, "effect": effect} for k, q in quantities.items()})
+    reasons = [v.finding for v in verdicts.values() if not v.plausible]
     if effect == "squeeze_film":
         Q = run.cantilever.get("quality_factor", math.nan)
         eta = next((q["value"] for k, q in quantities.items() if k.endswith("fluid_viscosity")), math.nan)

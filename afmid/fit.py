@@ -1299,8 +1299,9 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         path_g.attrs["criterion"] = result.selection.criterion
         if result.warnings:
             dg.attrs["warnings"] = result.warnings
-        dg.attrs["n_implausible"] = len(plausibility.violations(verdicts))
-        if plausibility.violations(verdicts):
-            dg.attrs["implausible"] = plausibility.violations(verdicts)
+        implausible = plausibility.violations(verdicts)
+        dg.attrs["n_implausible"] = len(implausible)
+        if implausible:
+            dg.attrs["implausible"] = implausible
     plausibility.warn(verdicts)
     return path

@@ -57,10 +57,19 @@ _PREFIXES = {-18: "a", -15: "f", -12: "p", -9: "n", -6: "µ", -3: "m", 0: "", 3:
 
 @dataclass(frozen=True)
 class Verdict:
-    """Whether a read-out can be physical; ``reason`` (one sentence) says why not, empty when it can."""
+    """Whether a read-out can be physical; ``reason`` (one sentence) says why not, empty when it can.
+
+    ``finding`` is the reason without the advice on what to check in the run's calibration (for a
+    context where the value comes from a trial model, not from the user's settings).
+    """
 
     plausible: bool
     reason: str = ""
+    finding: str = ""
+
+    def __post_init__(self):
+        if not self.finding:
+            object.__setattr__(self, "finding", self.reason)
 
 
 def _short(x: float) -> str:
@@ -137,7 +146,8 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
     label = name.split(".")[-1]
     if math.isnan(value):
         return Verdict(False, f"{label} could not be read out (NaN): the fitted term has the sign opposite to "
-                              f"the effect's, or the read-out needs a value the run lacks, such as cantilever.tip_radius")
+                              f"the effect's, or the read-out needs a value the run lacks, such as cantilever.tip_radius",
+                       f"{label} could not be read out (NaN: the fitted term has the sign opposite to the effect's)")
     shown = f"{label} = {display(value, unit)}"
     has_interval = math.isfinite(ci_low) and math.isfinite(ci_high)
     interval = f"[{display(ci_low, unit)}, {display(ci_high, unit)}]" if has_interval else ""
@@ -165,7 +175,7 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
                     what += f", and its 95 % interval {interval} is outside it too"
                 else:
                     what += f", and only its 95 % interval {interval} reaches into it"
-            return Verdict(False, f"{what}; {hint}")
+            return Verdict(False, f"{what}; {hint}", what)
         if has_interval and (ci_high < low or ci_low > high):
             return Verdict(False, f"{shown} lies in {allowed}, but its whole 95 % interval {interval} lies outside")
     if math.isinf(error) or (value != 0 and math.isfinite(error) and error > UNCONSTRAINED_RATIO * abs(value)):

@@ -413,7 +413,8 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
             row.append(_fmt(truth_q.get(n, math.nan)))
         rows.append(row)
     parts.append(_table(["quantity"] + [r.path.name for r in runs] + (["truth"] if truth_q else []), rows))
-    flagged = [(r.path.name, q["plausibility"]) for r in runs for q in r.quantities.values() if not q["plausible"]]
+    flagged = [(r.path.name, q.get("plausibility", "")) for r in runs for q in r.quantities.values()
+               if not q.get("plausible", True)]
     if flagged:
         parts.append("<p><b>Implausible read-outs</b> (outside the range a physical sample can have, or not "
                      "determined by the data; <code>afmid effects</code> lists the ranges): these are not results.</p><ul>"
@@ -502,7 +503,7 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
                   "n_terms": r.n_terms,
                   "terms": r.selected_terms, "chi2_reduced": r.chi2_reduced,
                   "parameters": {k: {"value": v["value"], "error": v["error"], "unit": v["unit"],
-                                     "plausible": v["plausible"], "plausibility": v["plausibility"]}
+                                     "plausible": v.get("plausible", True), "plausibility": v.get("plausibility", "")}
                                  for k, v in r.quantities.items()}}
                  for p, r in zip(paths, runs)],
     }
