@@ -29,8 +29,10 @@ def effect_record(name: str) -> dict:
             for t in effect.terms
         ],
         "states": [{"name": s.name, "on": s.on, "off": s.off} for s in effect.states],
-        "quantities": [{"name": q.name, "unit": q.unit, "doc": q.doc, "plausible_range": list(quantity_range(effect, q))}
-                       for q in effect.quantities],
+        "quantities": [
+            {"name": q.name, "unit": q.unit, "doc": q.doc, "plausible_range": list(quantity_range(effect, q))}
+            for q in effect.quantities
+        ],
         "references": list(effect.references),
     }
 
@@ -71,7 +73,8 @@ def describe_effects(names: list[str], models: bool = False, as_json: bool = Fal
                 lines.append(f"  state {s['name']}: on when {s['on']}, off when {s['off']}")
             for q in r["quantities"]:
                 low, high = q["plausible_range"]
-                lines.append(f"  yields {q['name']} [{q['unit']}]: {q['doc']} (plausible: {range_words(low, high, q['unit'])})")
+                plausible = range_words(low, high, q["unit"])
+                lines.append(f"  yields {q['name']} [{q['unit']}]: {q['doc']} (plausible: {plausible})")
         for ref in r["references"]:
             lines.append(f"  ref: {ref}")
         lines.append("")

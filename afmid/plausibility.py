@@ -146,7 +146,8 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
     label = name.split(".")[-1]
     if math.isnan(value):
         return Verdict(False, f"{label} could not be read out (NaN): the fitted term has the sign opposite to "
-                              f"the effect's, or the read-out needs a value the run lacks, such as cantilever.tip_radius",
+                              "the effect's, or the read-out needs a value the run lacks, such as "
+                              "cantilever.tip_radius",
                        f"{label} could not be read out (NaN: the fitted term has the sign opposite to the effect's)")
     shown = f"{label} = {display(value, unit)}"
     has_interval = math.isfinite(ci_low) and math.isfinite(ci_high)

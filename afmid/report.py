@@ -417,7 +417,8 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                if not q.get("plausible", True)]
     if flagged:
         parts.append("<p><b>Implausible read-outs</b> (outside the range a physical sample can have, or not "
-                     "determined by the data; <code>afmid effects</code> lists the ranges): these are not results.</p><ul>"
+                     "determined by the data; <code>afmid effects</code> lists the ranges): these are not "
+                     "results.</p><ul>"
                      + "".join(f"<li>{html.escape(run)}: {html.escape(reason)}</li>" for run, reason in flagged)
                      + "</ul>")
     parts.append(f"<h2>The last run: {html.escape(last.path.name)}</h2>")

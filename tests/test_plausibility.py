@@ -139,7 +139,8 @@ def _parameters(path: Path) -> dict:
     with h5py.File(path, "r") as h5:
         params = {n: {"value": float(d[()]), "plausible": bool(d.attrs["plausible"]),
                       "plausibility": str(d.attrs["plausibility"])} for n, d in h5["model/parameters"].items()}
-        return params, int(h5["diagnostics"].attrs["n_implausible"]), list(h5["diagnostics"].attrs.get("implausible", []))
+        diagnostics = h5["diagnostics"].attrs
+        return params, int(diagnostics["n_implausible"]), list(diagnostics.get("implausible", []))
 
 
 @pytest.mark.parametrize("overrides, flagged, fragment", [
@@ -235,3 +236,14 @@ def test_batch_lists_an_implausible_item_as_suspect(workspace, run_cli):
     assert code == 0, err
     with open(out / "summary.csv", newline="") as f:
         assert [r["status"] for r in csv.DictReader(f)] == ["skipped", "suspect"]
+
+
+def test_effects_lists_the_plausible_ranges(run_cli):
+    code, out, _ = run_cli("effects", "viscoelastic", "dmt")
+    assert code == 0
+    assert "yields viscosity [Pa*s]: sample viscosity eta (plausible: [0, 1e5] Pa s)" in out
+    assert "yields adhesion_force [N]: adhesion force in contact (positive number) (plausible: [0, 1e-4] N)" in out
+    code, out, _ = run_cli("effects", "--json", "jkr")
+    (record,) = json.loads(out)
+    ranges = {q["name"]: q["plausible_range"] for q in record["quantities"]}
+    assert ranges["E_star"] == [1e5, 1e12] and ranges["surface_energy"] == [1e-4, 5.0]
