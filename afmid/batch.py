@@ -42,8 +42,9 @@ Outputs in DIR:
 - ``NAME.trace.h5``: the simulated trace of a config run on simulated data.
 - ``summary.csv`` and ``summary.h5``: one row per item in input order with
   the status (``ok``, ``failed``, ``skipped`` = up to date from an earlier
-  run), the error message of a failure, the config, the input, the effects,
-  the error metric, the separation, every physical parameter with its error
+  run, ``suspect`` = a run file whose read-outs are not all plausible), the
+  error message of a failure or the reasons of a suspect item, the config,
+  the input, the effects, the error metric, the separation, every physical parameter with its error
   and 95 % interval (the union over all rows: empty / NaN where a run has no
   such quantity), and the time spent per stage. SI units in the CSV headers
   (``E_star [Pa]``) and as ``units`` attributes in the h5. Layout in
@@ -122,7 +123,9 @@ SUMMARY_FORMAT = "afmid-batch-summary"
 RUN_SUFFIX = ".run.h5"
 TRACE_SUFFIX = ".trace.h5"
 TMP_PREFIX = ".afmid-tmp-batch-"
-STATUSES = ("ok", "failed", "skipped")
+#: ok: fitted now; suspect: a run file exists (fitted now or up to date) but a read-out is implausible
+#: (afmid.plausibility); failed: no run file; skipped: up to date from an earlier batch.
+STATUSES = ("ok", "suspect", "failed", "skipped")
 #: For tests only: a worker running the item of this name kills itself (exercises crash recovery).
 _CRASH_ENV = "_AFMID_BATCH_TEST_CRASH"
 #: For tests only: a worker sleeps this many seconds before each fit, or, for a simulated trace, between writing
@@ -511,6 +514,8 @@ def read_run_row(path: Path) -> dict:
     import h5py
     import numpy as np
 
+    from . import plausibility
+
     with h5py.File(path, "r") as h5:
         key = h5.attrs.get("batch_key")
         key = key.decode() if isinstance(key, bytes) else key
@@ -531,6 +536,7 @@ def read_run_row(path: Path) -> dict:
             "separation_error": float(sep.attrs.get("error", np.nan)),
         }
         quantities = {}
+        implausible = []
         for name, ds in model["parameters"].items():
             quantities[name] = {
                 "value": float(ds[()]),
@@ -540,7 +546,19 @@ def read_run_row(path: Path) -> dict:
                 "unit": _text(ds.attrs.get("units", "")),
                 "effect": _text(ds.attrs.get("effect", "")),
             }
-    return {"key": key, "values": values, "quantities": quantities}
+            verdict = plausibility.read_verdict(name, ds)
+            if not verdict.plausible:
+                implausible.append(verdict.reason)
+    return {"key": key, "values": values, "quantities": quantities, "implausible": implausible}
+
+
+def run_file_row(item: "Item", got: dict, status: str, times: dict | None = None) -> "Row":
+    """The summary row of an item whose run file exists (``got`` from :func:`read_run_row`): ``status``, or
+    ``suspect`` with the reasons in the error column when a read-out is implausible."""
+    if got.get("implausible"):
+        return Row(item, "suspect", "implausible read-outs: " + "; ".join(got["implausible"]), got["values"],
+                   got["quantities"], times or {})
+    return Row(item, status, "", got["values"], got["quantities"], times or {})
 
 
 def _text(value) -> str:
@@ -796,7 +814,7 @@ def _row_cells(row: Row, output_dir: Path) -> dict[str, Any]:
         "name": item.name, "status": row.status, "error": row.error,
         "config": "" if item.config_path is None else str(item.config_path),
         "input": "" if source is None else str(source),
-        "run_file": item.output.name if row.status in ("ok", "skipped") else "",
+        "run_file": item.output.name if row.status != "failed" else "",
     }
     cells.update(row.values)
     cells.update(row.times)
@@ -987,7 +1005,7 @@ def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: s
             if existing is not None and existing == batch_key(sha256_file(item.input), item.config_text):
                 try:
                     got = read_run_row(item.output)
-                    rows[item.index] = Row(item, "skipped", "", got["values"], got["quantities"])
+                    rows[item.index] = run_file_row(item, got, "skipped")
                     continue
                 except (OSError, KeyError):
                     pass  # unreadable: fit again
@@ -1197,7 +1215,7 @@ def _harvest(in_flight: dict, rows: dict) -> None:
             try:
                 if run_key(item.output) == batch_key(sha256_file(item.input), item.config_text):
                     got = read_run_row(item.output)
-                    rows[item.index] = Row(item, "ok", "", got["values"], got["quantities"])
+                    rows[item.index] = run_file_row(item, got, "ok")
             except (OSError, KeyError):
                 pass
 
@@ -1209,8 +1227,7 @@ def _record(item: Item, out: dict, rows: dict) -> None:
         else:
             log.log(level, "%s: %s", item.name, message)
     if out["status"] == "ok":
-        row = out["row"]
-        rows[item.index] = Row(item, "ok", "", row["values"], row["quantities"], out.get("times", {}))
+        rows[item.index] = run_file_row(item, out["row"], "ok", out.get("times", {}))
     else:
         rows[item.index] = Row(item, "failed", out["error"])
         log.warning("%s: failed: %s", item.name, out["error"])

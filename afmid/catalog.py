@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 
-from .physics import EFFECTS, MODELS, TERM_ROLES, coefficient_unit, term_unit
+from .plausibility import range_words
+from .physics import EFFECTS, MODELS, TERM_ROLES, coefficient_unit, quantity_range, term_unit
 from .registry import unknown_name_message
 from .errors import ConfigError
 
@@ -28,7 +29,10 @@ def effect_record(name: str) -> dict:
             for t in effect.terms
         ],
         "states": [{"name": s.name, "on": s.on, "off": s.off} for s in effect.states],
-        "quantities": [{"name": q.name, "unit": q.unit, "doc": q.doc} for q in effect.quantities],
+        "quantities": [
+            {"name": q.name, "unit": q.unit, "doc": q.doc, "plausible_range": list(quantity_range(effect, q))}
+            for q in effect.quantities
+        ],
         "references": list(effect.references),
     }
 
@@ -68,7 +72,9 @@ def describe_effects(names: list[str], models: bool = False, as_json: bool = Fal
             for s in r["states"]:
                 lines.append(f"  state {s['name']}: on when {s['on']}, off when {s['off']}")
             for q in r["quantities"]:
-                lines.append(f"  yields {q['name']} [{q['unit']}]: {q['doc']}")
+                low, high = q["plausible_range"]
+                plausible = range_words(low, high, q["unit"])
+                lines.append(f"  yields {q['name']} [{q['unit']}]: {q['doc']} (plausible: {plausible})")
         for ref in r["references"]:
             lines.append(f"  ref: {ref}")
         lines.append("")

@@ -171,12 +171,15 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     OUTPUT/NAME.trace.h5 (as `afmid simulate`), then fitted. --set applies to every config.
 
     Writes OUTPUT/NAME.run.h5 per item (NAME from the trace's or the config's stem) and
-    OUTPUT/summary.csv + summary.h5: one row per item with its status (ok, failed,
-    skipped), error message, config, error metric and physical parameters with errors
+    OUTPUT/summary.csv + summary.h5: one row per item with its status (ok, suspect,
+    failed, skipped), error message, config, error metric and physical parameters with errors
     (SI units; the union over all runs, empty where a run has no such quantity). Items
     whose outputs are up to date (same input bytes, config and afmid version) are
-    skipped; a failing item does not stop the batch. Exit code 1 if any item failed,
-    130 if interrupted. One batch at a time per OUTPUT (lock file OUTPUT/.afmid-batch.lock).
+    skipped; a failing item does not stop the batch. An item whose read-outs are not all
+    plausible (outside their declared range, see `afmid effects`) is `suspect`, with the
+    reasons in the error column and a warning. Exit code 1 if any item failed (suspect
+    items alone exit 0: their run files are written and flagged), 130 if interrupted.
+    One batch at a time per OUTPUT (lock file OUTPUT/.afmid-batch.lock).
     """
     from .batch import BatchInterrupted, run_batch
     from .errors import AfmidError
@@ -188,6 +191,11 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
         click.echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
         raise KeyboardInterrupt from None  # main() reports it and exits with 130
     log.info("batch: %s", result.line())
+    suspect = [r.item.name for r in result.rows if r.status == "suspect"]
+    if suspect:  # results, but not ones to take as they are: flagged, not an error (see the docstring)
+        log.warning("%d of %d %s suspect (%s): implausible read-outs, the reasons are in %s", len(suspect),
+                    result.total, result.unit, ", ".join(suspect[:3]) + (", ..." if len(suspect) > 3 else ""),
+                    output / "summary.csv")
     failed = [r.item.name for r in result.rows if r.status == "failed"]
     if failed:
         names = ", ".join(failed[:3]) + (", ..." if len(failed) > 3 else "")

@@ -20,7 +20,8 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator,
+                      model_validator)
 
 from .errors import ConfigError
 from .registry import closest, unknown_name_message
@@ -78,7 +79,6 @@ class DataConfig(StrictModel):
         "toward_sample", description="sign convention of the deflection in the file"
     )
 
-
     @model_validator(mode="after")
     def _distinct_columns(self) -> "DataConfig":
         if self.column is not None and self.column == self.time_column:
@@ -87,17 +87,61 @@ class DataConfig(StrictModel):
         return self
 
 
+#: Largest instrument values afmid accepts, far beyond any AFM (so that a typo or a corrupt file is refused,
+#: not fitted into absurd read-outs): the stiffest sensors (length-extension resonators) ~1e6 N/m, the
+#: fastest probes ~100 MHz, Q up to ~1e6 in cold UHV, colloidal probes up to ~50 um, amplitudes of nm to um.
+INSTRUMENT_LIMITS = {
+    "cantilever.spring_constant": 1e6,  # N/m
+    "cantilever.resonance_frequency": 1e9,  # Hz
+    "cantilever.quality_factor": 1e7,  # 1
+    "cantilever.tip_radius": 1e-3,  # m
+    "drive.frequency": 1e9,  # Hz
+    "drive.free_amplitude": 1e-4,  # m
+    "drive.force_amplitude": 1.0,  # N
+}
+
+
+def _instrument(key: str):
+    """A positive, finite float no larger than the key's limit."""
+    limit = INSTRUMENT_LIMITS[key]
+
+    def at_most(value: float) -> float:
+        if value > limit:
+            raise ValueError(f"must be <= {limit:g} (beyond any AFM), got {value:g}")
+        return value
+
+    return Annotated[float, _Number, Field(gt=0, allow_inf_nan=False), AfterValidator(at_most)]
+
+
+def instrument_value_problem(key: str, value: Any) -> str | None:
+    """What is wrong with an instrument value (``key`` of :data:`INSTRUMENT_LIMITS`) that did not come through
+    the config, e.g. from a trace file's metadata; None if it is a possible value (or not a limited key)."""
+    if key not in INSTRUMENT_LIMITS:
+        return None
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return f"expected a number, got {_format_value(value)}"
+    if not math.isfinite(number):
+        return f"must be a finite number, got {_format_value(number)}"
+    if not 0 < number <= INSTRUMENT_LIMITS[key]:
+        return f"must be > 0 and <= {INSTRUMENT_LIMITS[key]:g}, got {_format_value(number)}"
+    return None
+
+
 class CantileverConfig(StrictModel):
-    spring_constant: PositiveFloat | None = Field(None, description="k, N/m")
-    resonance_frequency: PositiveFloat | None = Field(None, description="f0, Hz")
-    quality_factor: PositiveFloat | None = Field(None, description="Q")
-    tip_radius: PositiveFloat | None = Field(None, description="R, m")
+    spring_constant: _instrument("cantilever.spring_constant") | None = Field(None, description="k, N/m")
+    resonance_frequency: _instrument("cantilever.resonance_frequency") | None = Field(None, description="f0, Hz")
+    quality_factor: _instrument("cantilever.quality_factor") | None = Field(None, description="Q")
+    tip_radius: _instrument("cantilever.tip_radius") | None = Field(None, description="R, m")
 
 
 class DriveConfig(StrictModel):
-    frequency: PositiveFloat | None = Field(None, description="drive frequency, Hz")
-    free_amplitude: PositiveFloat | None = Field(None, description="A0, free oscillation amplitude, m")
-    force_amplitude: PositiveFloat | None = Field(None, description="F0, drive force amplitude, N")
+    frequency: _instrument("drive.frequency") | None = Field(None, description="drive frequency, Hz")
+    free_amplitude: _instrument("drive.free_amplitude") | None = Field(
+        None, description="A0, free oscillation amplitude, m")
+    force_amplitude: _instrument("drive.force_amplitude") | None = Field(
+        None, description="F0, drive force amplitude, N")
 
 
 class SampleConfig(StrictModel):
@@ -297,9 +341,11 @@ def _format_value(value: Any) -> str:
 
 
 def _format_limit(limit: Any) -> str:
-    """A bound as the user wrote it: 0 rather than 0.0, 1e-07 as is."""
-    if isinstance(limit, float) and limit.is_integer() and abs(limit) < 1e15:
+    """A bound as the user wrote it: 0 rather than 0.0, 1e-07 and 1e+09 as is."""
+    if isinstance(limit, float) and limit.is_integer() and abs(limit) < 1e6:
         return str(int(limit))
+    if isinstance(limit, float):
+        return f"{limit:g}"
     return _format_value(limit)
 
 

@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import yaml
 
+from . import plausibility
 from .config import RunConfig, build_config
 from .errors import InputError
 from .io import RUN_FORMAT, Truth, read_truth, sha256_file
@@ -192,7 +192,8 @@ def _read_run(h5, path: Path, raw: dict) -> RunData:
     quantities = {
         name: {"value": float(ds[()]), "unit": _attr(ds, "units", path), "error": float(_attr(ds, "error", path)),
                "ci_low": float(_attr(ds, "ci_low", path)), "ci_high": float(_attr(ds, "ci_high", path)),
-               "effect": str(_attr(ds, "effect", path))}
+               "effect": str(_attr(ds, "effect", path)),
+               **plausibility.attributes(plausibility.read_verdict(name, ds))}
         for name, ds in m["parameters"].items()
     }
     nonlinear = {name: {"value": float(ds[()]), "error": float(_attr(ds, "error", path)),
@@ -633,23 +634,9 @@ def _minimise_bumpy(objective, lo: float, hi: float) -> float:
 
 def _implausible(effect: str, quantities: dict, run: RunData) -> list[str]:
     """Reasons why the fitted values of an effect cannot be physical (empty if they can)."""
-    eff = EFFECTS.get(effect)
-    reasons = []
-    for key, q in quantities.items():
-        name = key.split(".")[-1]
-        value = q["value"]
-        if not math.isfinite(value):
-            reasons.append(f"{name} cannot be read out (the fitted term has the sign opposite to this effect's)")
-            continue
-        try:
-            p = eff.parameter(name)
-        except KeyError:
-            if value < 0:  # read-out forces of an effect are stated as positive numbers
-                reasons.append(f"{name} = {_value_words(value, q['unit'])} has the wrong sign for this effect")
-            continue
-        if not (p.low <= value <= p.high):
-            reasons.append(f"{name} = {_value_words(value, q['unit'])} is outside its physical range "
-                           f"[{p.low:g}, {p.high:g}] {q['unit']}")
+    # The registry's plausible ranges (afmid.plausibility), as for every fit's read-out.
+    verdicts = plausibility.check_plausibility({k: {**q, "effect": effect} for k, q in quantities.items()})
+    reasons = [v.finding for v in verdicts.values() if not v.plausible]
     if effect == "squeeze_film":
         Q = run.cantilever.get("quality_factor", math.nan)
         eta = next((q["value"] for k, q in quantities.items() if k.endswith("fluid_viscosity")), math.nan)

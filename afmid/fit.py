@@ -26,7 +26,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import __version__
 from .config import RunConfig, dump_config
 from .errors import AfmidError, ConfigError, InputError
 from .io import Trace, atomic_hdf5, check_output_path, create_dataset, load_trace, write_dataset, RUN_FORMAT
@@ -35,7 +34,7 @@ from .physics import BOLTZMANN, EFFECTS
 from .preprocess import (HarmonicBlocks, WeakWindows, detrend, differentiate, estimate_drive, harmonic_blocks,
                          ou_smooth,
                          steadiness, weak_windows)
-from . import regression
+from . import plausibility, regression
 
 log = logging.getLogger(__name__)
 
@@ -1273,9 +1272,10 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
             write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
             write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
         pg = m.create_group("parameters")
+        verdicts = plausibility.check_plausibility(result.quantities)  # a value outside its range is flagged
         for name, q in result.quantities.items():
             write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
-                          effect=q["effect"], description=q["doc"])
+                          effect=q["effect"], description=q["doc"], **plausibility.attributes(verdicts[name]))
         ng = m.create_group("nonlinear")
         for name, est in result.nonlinear.items():
             write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated)
@@ -1325,4 +1325,9 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         path_g.attrs["criterion"] = result.selection.criterion
         if result.warnings:
             dg.attrs["warnings"] = result.warnings
+        implausible = plausibility.violations(verdicts)
+        dg.attrs["n_implausible"] = len(implausible)
+        if implausible:
+            dg.attrs["implausible"] = implausible
+    plausibility.warn(verdicts)
     return path

@@ -447,6 +447,7 @@ def load_trace(config) -> Trace:
             overridden.append("drive.force_amplitude")
         sources["force_amplitude"] = "config:drive.force_amplitude"
     elif file_amplitude is not None:
+        _check_file_instrument_value(config, "drive.force_amplitude", file_amplitude)
         force_amplitude = file_amplitude
         sources["force_amplitude"] = "file"
 
@@ -476,9 +477,20 @@ def _merged_value(config, key: str, from_config, from_file, sources: dict, overr
         sources[name] = f"config:{key}"
         return from_config
     if from_file is not None and not (isinstance(from_file, float) and np.isnan(from_file)):
+        _check_file_instrument_value(config, key, from_file)
         sources[name] = "file"
         return from_file
     raise ConfigError("required key is missing (not in the config nor in the trace file)", file=config.source, key=key)
+
+
+def _check_file_instrument_value(config, key: str, value) -> None:
+    """The config's instrument limits hold for a trace file's metadata too (InputError naming the file)."""
+    from .config import instrument_value_problem
+
+    problem = instrument_value_problem(key, value)
+    if problem:
+        raise InputError(f"the trace file's {key.split('.')[-1]} {problem}; set {key} in the config if the file "
+                         f"is wrong", file=config.resolve_path(config.data.path), key=key)
 
 
 def _isclose(a, b) -> bool:
@@ -496,6 +508,7 @@ def _merge_cantilever(config, meta: dict, sources: dict, overridden: list) -> Ca
     radius = c.tip_radius
     file_radius = meta.get("tip_radius")
     if radius is None and file_radius is not None and np.isfinite(file_radius):
+        _check_file_instrument_value(config, "cantilever.tip_radius", file_radius)
         radius = float(file_radius)
         sources["tip_radius"] = "file"
     elif radius is not None:

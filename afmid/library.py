@@ -20,7 +20,7 @@ import numpy as np
 
 from . import expr
 from .errors import ConfigError
-from .physics import CONTEXT_UNITS, EFFECTS, StateGate, coefficient_unit, term_unit
+from .physics import CONTEXT_UNITS, EFFECTS, StateGate, coefficient_unit, effect_parameter_names, term_unit
 from .registry import unknown_name_message
 from .units import parse_unit
 
@@ -360,6 +360,10 @@ def build_library(model_config, source=None) -> Library:
             allowed = ", ".join(sorted(nonlinear)) or "none for these effects"
             raise ConfigError(f"{name!r} is not a nonlinear parameter of the library; allowed: {allowed}",
                               file=source, key=f"model.parameters.{name}")
+        declared = effect_parameter_names(effects)[name]  # a fixed value must be one the physics allows
+        if not declared.low <= value <= declared.high:
+            raise ConfigError(f"must be in [{declared.low:g}, {declared.high:g}] {declared.unit} ({declared.doc}), "
+                              f"got {value:g}", file=source, key=f"model.parameters.{name}")
         nonlinear[name] = value
     _check_custom_term_names(model_config.terms, param_units, nonlinear, states, source)
     return Library(list(seen.values()), tuple(states), tuple(effects), nonlinear,

@@ -94,11 +94,19 @@ SELECTION_RULES = (
 
 @dataclass(frozen=True)
 class Quantity:
-    """A physical quantity the fit reports for an effect."""
+    """A physical quantity the fit reports for an effect.
+
+    ``low``/``high`` (inclusive, SI, in ``unit``) are the values a physical sample
+    can have; they also fix the sign (``low >= 0``: a positive number). A quantity
+    that is one of its effect's parameters takes the parameter's range and leaves
+    them None. Read-outs outside the range are flagged (:mod:`afmid.plausibility`).
+    """
 
     name: str
     unit: str
     doc: str
+    low: float | None = None
+    high: float | None = None
 
 
 @dataclass(frozen=True)
@@ -202,13 +210,42 @@ def _validate_effect(effect: Effect) -> None:
     coefficients = {t.label: t.coefficient(values) for t in effect.terms}
     recovered = effect.readout(coefficients, values)
     for q in effect.quantities:
-        parse_unit(q.unit)
+        _validate_quantity_range(effect, q)
         if q.name not in recovered:
             raise DefinitionError(f"readout does not give quantity {q.name}")
         if q.name in values and values[q.name] != 0:
             rel = abs(recovered[q.name] - values[q.name]) / abs(values[q.name])
             if rel > 1e-9:
                 raise DefinitionError(f"readout of {q.name} does not invert its coefficient ({rel:.1e})")
+
+
+def quantity_range(effect: Effect, quantity: Quantity) -> tuple[float, float]:
+    """The plausible range [low, high] (SI, inclusive) of a quantity: its own, or its parameter's."""
+    if quantity.low is not None and quantity.high is not None:
+        return quantity.low, quantity.high
+    parameter = effect.parameter(quantity.name)
+    return parameter.low, parameter.high
+
+
+def _validate_quantity_range(effect: Effect, q: Quantity) -> None:
+    """Every reported quantity has a plausible range, in known units, one per name across the catalog."""
+    unit = parse_unit(q.unit)
+    is_parameter = q.name in {p.name for p in effect.parameters}
+    if is_parameter:
+        if q.low is not None or q.high is not None:
+            raise DefinitionError(f"quantity {q.name} is a parameter: it takes the parameter's range, declare none")
+        if parse_unit(effect.parameter(q.name).unit) != unit:
+            raise DefinitionError(f"quantity {q.name} is in {q.unit}, its parameter in {effect.parameter(q.name).unit}")
+    elif q.low is None or q.high is None:
+        raise DefinitionError(f"quantity {q.name} needs a plausible range (low, high)")
+    low, high = quantity_range(effect, q)
+    if not (math.isfinite(low) and math.isfinite(high) and low < high):
+        raise DefinitionError(f"quantity {q.name}: plausible range [{low}, {high}] needs finite low < high")
+    for other in EFFECTS:  # one name, one meaning: the same unit and range wherever it is reported
+        for o in other.quantities:
+            if o.name == q.name and (parse_unit(o.unit) != unit or quantity_range(other, o) != (low, high)):
+                raise DefinitionError(f"quantity {q.name}: unit or range differs from effect {other.name}'s "
+                                      f"({o.unit} [{quantity_range(other, o)}])")
 
 
 def _validate_model(model: Model) -> None:
@@ -260,10 +297,15 @@ def _dmt_like_readout(adhesion_per_energy: float):
     return readout
 
 
+#: The adhesion force on an AFM tip: up to ~1 uN for sharp tips, ~10-100 uN for 10 um colloidal probes.
+_ADHESION_FORCE_MAX = 1e-4  # N
+#: gamma, as the JKR parameter (adhesion energy per area; water 0.072, metals up to a few J/m^2).
+_SURFACE_ENERGY_RANGE = (1e-4, 5.0)  # J/m^2
+
 _CONTACT_QUANTITIES = (
     Quantity("hamaker", "J", "Hamaker constant from the van der Waals tail"),
     Quantity("E_star", "Pa", "reduced Young's modulus from the Hertz term"),
-    Quantity("adhesion_force", "N", "adhesion force in contact (positive number)"),
+    Quantity("adhesion_force", "N", "adhesion force in contact (positive number)", 0.0, _ADHESION_FORCE_MAX),
 )
 
 EFFECTS.register(
@@ -281,7 +323,7 @@ EFFECTS.register(
                  roles=("elastic_contact",)),
         ),
         quantities=_CONTACT_QUANTITIES
-        + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 4 pi R gamma"),),
+        + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 4 pi R gamma", *_SURFACE_ENERGY_RANGE),),
         readout=_dmt_like_readout(4.0),
         references=(
             "Derjaguin, Muller, Toporov, J. Colloid Interface Sci. 53, 314 (1975)",
@@ -335,7 +377,7 @@ EFFECTS.register(
         parameters=(
             _HAMAKER,
             _E_STAR,
-            Parameter("surface_energy", "J/m^2", 0.05, 1e-4, 5.0, "gamma; adhesion F_a = 3 pi R gamma"),
+            Parameter("surface_energy", "J/m^2", 0.05, *_SURFACE_ENERGY_RANGE, "gamma; adhesion F_a = 3 pi R gamma"),
             Parameter(
                 "neck_length", "m", 0.0, 0.0, 20e-9, "extra separation at which the neck breaks (0: no hysteresis)", True
             ),
@@ -434,7 +476,7 @@ EFFECTS.register(
                 lambda p: -4.0 * math.pi * p["R"] * p["surface_tension"] * math.cos(p["contact_angle"]),
             ),
         ),
-        quantities=(Quantity("capillary_force", "N", "meniscus force (positive number)"),),
+        quantities=(Quantity("capillary_force", "N", "meniscus force (positive number)", 0.0, _ADHESION_FORCE_MAX),),
         readout=lambda c, ctx: {"capillary_force": -c["meniscus"]},
         states=(StateGate("meniscus", on="z <= a0", off="z > a0 + rupture_distance"),),
         references=("Zitzler, Herminghaus, Mugele, Phys. Rev. B 66, 155436 (2002)",),

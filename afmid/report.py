@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
+from . import __version__, plausibility
 from .diagnose import BIC_EVIDENCE, RunData, band_limit, describe_residual, energy_check, load_run, localize, suggest
 from .io import now_iso
 from .physics import EFFECTS
@@ -400,7 +400,9 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
         for r in runs:
             q = r.quantities.get(n) or r.nonlinear.get(n)
             fixed = r.config.model.parameters.get(n)
-            if q:
+            if q and not q.get("plausible", True):
+                row.append(plausibility.flagged_value(n, q))
+            elif q:
                 err = f" ± {q['error']:.2g}" if math.isfinite(q["error"]) else ""
                 row.append(f"{q['value']:.4g}{err} {q['unit']}")
             elif fixed is not None:
@@ -411,6 +413,14 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
             row.append(_fmt(truth_q.get(n, math.nan)))
         rows.append(row)
     parts.append(_table(["quantity"] + [r.path.name for r in runs] + (["truth"] if truth_q else []), rows))
+    flagged = [(r.path.name, q.get("plausibility", "")) for r in runs for q in r.quantities.values()
+               if not q.get("plausible", True)]
+    if flagged:
+        parts.append("<p><b>Implausible read-outs</b> (outside the range a physical sample can have, or not "
+                     "determined by the data; <code>afmid effects</code> lists the ranges): these are not "
+                     "results.</p><ul>"
+                     + "".join(f"<li>{html.escape(run)}: {html.escape(reason)}</li>" for run, reason in flagged)
+                     + "</ul>")
     parts.append(f"<h2>The last run: {html.escape(last.path.name)}</h2>")
     parts.append(_img(folder, figures["force_separation"],
                       "Force vs separation, approach (left) and retraction (right) drawn separately: the model-free "
@@ -497,7 +507,9 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
             "runs": [{"run": str(p), "effects": r.effects, "error": r.cv_error, "noise_floor": r.cv_error_noise_floor,
                       "n_terms": r.n_terms,
                       "terms": r.selected_terms, "chi2_reduced": r.chi2_reduced,
-                      "parameters": {k: {"value": v["value"], "error": v["error"], "unit": v["unit"]}
+                      "parameters": {k: {"value": v["value"], "error": v["error"], "unit": v["unit"],
+                                         "plausible": v.get("plausible", True),
+                                         "plausibility": v.get("plausibility", "")}
                                      for k, v in r.quantities.items()}}
                      for p, r in zip(paths, runs)],
         }
@@ -547,6 +559,11 @@ def terminal_summary(summary: dict, output: Path) -> str:
     lines = [f"{'run':<28} {'effects':<34} {'error':>8} {'terms':>5}"]
     for r in summary["runs"]:
         lines.append(f"{Path(r['run']).name:<28} {', '.join(r['effects']):<34} {r['error']:>8.4f} {r['n_terms']:>5}")
+    for r in summary["runs"]:
+        implausible = [k for k, v in r["parameters"].items() if not v.get("plausible", True)]
+        if implausible:
+            lines.append(f"implausible read-outs in {Path(r['run']).name}: {', '.join(implausible)} (not results; "
+                         "reasons in the report)")
     diag = summary.get("diagnosis") or {}
     if "missing_effect" in summary and diag:
         lines.append(diag.get("verdict") or ("missing effect" if summary["missing_effect"] else "no effect is missing"))

@@ -522,7 +522,7 @@ def test_adhesion_hysteresis_is_not_mistaken_for_viscoelasticity(experiment):
         formula="F = -4 pi R dgamma in contact while retracting",
         parameters=(Parameter("surface_energy_hysteresis", "J/m^2", 0.01, 0.0, 1.0, "gamma_R - gamma_A"),),
         terms=(Term("unloading", "[deltadot < 0]", lambda p: -4 * math.pi * p["R"] * p["surface_energy_hysteresis"]),),
-        quantities=(Quantity("hysteresis_force", "N", "extra adhesion on unloading"),),
+        quantities=(Quantity("hysteresis_force", "N", "extra adhesion on unloading", 0.0, 1e-4),),
         readout=lambda c, ctx: {"hysteresis_force": -c["unloading"]},
         references=("Garcia et al., Phys. Rev. Lett. 97, 016103 (2006)",), character="hysteretic", region="contact")
     raw = read_yaml(CONFIGS / "hidden_clean.yaml")

@@ -72,3 +72,20 @@ def test_provenance_and_physical_read_out(run_file):
         estimate = h5["force/estimate"][...]
         assert np.isfinite(estimate).mean() > 0.8  # all whole blocks are estimated
         assert h5["force/estimate"].attrs["positive"] == "repulsive"
+
+
+def test_parameter_attributes_are_documented_and_hold_the_plausibility_verdict(run_file):
+    text = DOCS.read_text(encoding="utf-8")
+    section = text[text.index("#### `/model/parameters/*`"):text.index("#### `/model/nonlinear/*`")]
+    documented = {name for cell in re.findall(r"^\| (`[^|]+)\|", section, flags=re.M)
+                  for name in re.findall(r"`([a-z_]+)`", cell)}
+    with h5py.File(run_file, "r") as h5:
+        params = h5["model/parameters"]
+        for name, ds in params.items():
+            assert set(ds.attrs) <= documented, (name, sorted(set(ds.attrs) - documented))
+            assert {"plausible", "plausibility"} <= set(ds.attrs), name
+            assert (ds.attrs["plausibility"] == "") == bool(ds.attrs["plausible"]), name
+        flagged = [n for n, ds in params.items() if not ds.attrs["plausible"]]
+        diagnostics = h5["diagnostics"].attrs
+        assert diagnostics["n_implausible"] == len(flagged)
+        assert sorted(diagnostics.get("implausible", [])) == sorted(params[n].attrs["plausibility"] for n in flagged)
