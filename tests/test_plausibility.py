@@ -143,15 +143,20 @@ def _parameters(path: Path) -> dict:
         return params, int(diagnostics["n_implausible"]), list(diagnostics.get("implausible", []))
 
 
+def test_a_trace_in_metres_read_as_nm_is_refused_not_flagged(workspace, run_cli):
+    """A deflection of 1e-17 m: no force stands above the noise, so there is no result to flag (refused, exit 1)."""
+    out = workspace / "run-units.h5"
+    code, _, err = run_cli("-q", "fit", workspace / "run.yaml", "-o", out, "--set", "data.units=nm")
+    assert code == 1 and "the fit has no usable result" in err and not out.exists()
+
+
 @pytest.mark.parametrize("overrides, flagged, fragment", [
     ((), set(), None),
     # a quality factor 100x too low: the lever's own damping is overestimated, the sample seems to give energy back
     (("cantilever.quality_factor=2.5",), {"viscosity"}, "wrong sign"),
     # a spring constant 1000x too high: every force, and E*, 1000x too large
     (("cantilever.spring_constant=40000",), {"E_star", "hamaker", "surface_energy"}, "outside the plausible range"),
-    # a trace in metres read as nm: a deflection of 1e-17 m, no contact identified
-    (("data.units=nm",), {"E_star", "hamaker", "surface_energy"}, "not identified"),
-], ids=["plausible", "wrong-quality-factor", "wrong-spring-constant", "wrong-units"])
+], ids=["plausible", "wrong-quality-factor", "wrong-spring-constant"])
 def test_fit_flags_implausible_read_outs(workspace, run_cli, overrides, flagged, fragment):
     name = "run-" + "-".join(o.split("=")[0] for o in overrides) + ".h5"
     args = [a for o in overrides for a in ("--set", o)]
