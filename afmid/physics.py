@@ -270,7 +270,8 @@ def coefficient_unit(effect: Effect, term: Term) -> Unit:
 
 # =========================================================================== effects
 _HAMAKER = Parameter("hamaker", "J", 1.0e-19, 1e-22, 1e-17, "Hamaker constant H (tip-sample)")
-_E_STAR = Parameter("E_star", "Pa", 1.0e9, 1e5, 1e12, "reduced (effective) Young's modulus E*")
+_E_STAR = Parameter("E_star", "Pa", 1.0e9, 1e2, 1e12,
+                    "reduced (effective) Young's modulus E* (100 Pa: the softest cells and hydrogels; 1e12 Pa: diamond)")
 
 
 def _dmt_like_readout(adhesion_per_energy: float):
