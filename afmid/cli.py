@@ -92,9 +92,12 @@ def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, 
     Writes an afmid trace file with the ground truth (/truth/force, /truth/separation,
     /truth/velocity and the exact parameters). See `afmid effects --models`.
     """
-    from .config import dump_config, load_config
+    from .config import MAX_SEED, dump_config, load_config
+    from .errors import ConfigError
     from .io import check_output_path, write_trace_file
 
+    if seed is not None and not 0 <= seed <= MAX_SEED:
+        raise ConfigError(f"must be a whole number from 0 to {MAX_SEED}, got {seed}", key="--seed")
     extra = list(overrides) + ([f"simulate.seed={seed}"] if seed is not None else [])
     cfg = load_config(config, extra)
     check_output_path(output, overwrite)
