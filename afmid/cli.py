@@ -25,7 +25,8 @@ from . import __version__
 log = logging.getLogger("afmid")
 _state = {"verbose": 0, "quiet": False}
 
-CONFIG_ARG = click.argument("config", type=click.Path(path_type=Path))
+# readable=False: click's own check would print a four-line usage error; afmid.files.check_input_file says it in one.
+CONFIG_ARG = click.argument("config", type=click.Path(path_type=Path, readable=False))
 OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the output if it exists.")
 SET = click.option(
     "--set",
@@ -227,7 +228,8 @@ def effects(models: bool, as_json: bool, names: tuple[str, ...]) -> None:
 @cli.command("init-config")
 @click.option("-o", "--output", type=click.Path(path_type=Path), default=None, help="Write here (default: stdout).")
 @OVERWRITE
-@click.option("--from", "from_file", type=click.Path(path_type=Path), default=None, help="Pre-fill from a trace file.")
+@click.option("--from", "from_file", type=click.Path(path_type=Path, readable=False), default=None,
+              help="Pre-fill from a trace file.")
 def init_config(output: Path | None, overwrite: bool, from_file: Path | None) -> None:
     """Write a commented template run config to edit."""
     from .config import template_text
@@ -248,7 +250,7 @@ def init_config(output: Path | None, overwrite: bool, from_file: Path | None) ->
 
 
 @cli.command()
-@click.argument("file", type=click.Path(path_type=Path))
+@click.argument("file", type=click.Path(path_type=Path, readable=False))
 @click.option("--column", default=None, help="Channel to analyse (default: the reader's choice).")
 @click.option("--sample-rate", type=float, default=None, help="Hz, if the file does not say.")
 def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:

@@ -28,7 +28,7 @@ import os
 import stat
 from pathlib import Path
 
-from .errors import AfmidError, InputError
+from .errors import AfmidError, InputError, OutputError
 
 #: Longest excerpt of a file shown in a message (characters).
 EXCERPT_CHARS = 60
@@ -89,7 +89,7 @@ def check_input_file(
             raise fail(_missing_message(path, what)) from None
         raise fail(f"cannot access the {what}: {exc.strerror or exc}") from None
     if stat.S_ISDIR(info.st_mode):
-        raise fail(f"is a folder, not a {what}")
+        raise fail(f"is a directory (folder), not a {what}")
     for is_kind, kind in _SPECIAL_KINDS:
         if is_kind(info.st_mode):
             raise fail(f"not a regular file ({kind}); give a {what} saved on disk")
@@ -111,6 +111,23 @@ def check_input_file(
     if not first and not allow_empty:
         raise fail(f"the {what} is empty (0 bytes)")
     return path
+
+
+def check_output_target(path: str | Path) -> None:
+    """Refuse an output path that is a FIFO, socket or device (or a link to one), even with --overwrite.
+
+    afmid writes outputs to a temporary file and renames it into place, which
+    would replace the special file itself (``-o /dev/null --overwrite`` run as
+    root would replace /dev/null).
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return  # missing (or unreachable): the writer reports what applies
+    for is_kind, kind in _SPECIAL_KINDS:
+        if is_kind(mode):
+            raise OutputError(f"not a regular file ({kind}); afmid never replaces a special file with its output",
+                              file=path)
 
 
 # --------------------------------------------------------------------------- memory

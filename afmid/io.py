@@ -26,7 +26,7 @@ import numpy as np
 
 from . import __version__
 from .errors import ConfigError, InputError, OutputError
-from .files import check_input_file
+from .files import check_input_file, check_output_target
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +126,7 @@ def now_iso() -> str:
 
 def check_output_path(path: str | Path, overwrite: bool) -> Path:
     path = Path(path)
+    check_output_target(path)  # a FIFO or device: refused even with --overwrite
     if path.exists() and not overwrite:
         raise OutputError("output exists; pass --overwrite to replace it", file=path)
     if path.exists() and path.is_dir():

@@ -67,7 +67,7 @@ def reader_for(path: str | Path, fmt: str = "auto") -> Reader:
 
 def _existing(path: str | Path) -> Path:
     """``path`` if it is a readable regular file (no FIFO, device, folder, link loop), else an InputError."""
-    return check_input_file(path, what="data file", key="data.path", allow_empty=True)
+    return check_input_file(path, what="file", key="data.path", allow_empty=True)
 
 
 #: What parsers raise on a damaged file (h5py: RuntimeError and KeyError on broken object headers).
@@ -91,6 +91,8 @@ def _reader_errors(path: Path, reader: Reader) -> Iterator[None]:
     except InputError:
         raise
     except OSError as exc:
+        if exc.errno is None:  # not the operating system's: h5py's word for damaged content
+            raise not_readable(_KINDS.get(reader.name, reader.name), path, exc) from exc
         raise InputError(f"cannot read the file: {exc.strerror or exc}", file=path) from exc
     except MemoryError:
         raise InputError("not enough memory to read the file (corrupt sizes in it?)", file=path) from None

@@ -39,6 +39,7 @@ from .base import (
     COLUMN_KEY,
     RawTrace,
     Reader,
+    check_array_size,
     choose_channels,
     quoted,
     rate_from_fields,
@@ -68,6 +69,7 @@ class _Layout:
     names: list[str]
     header: str | None  # 'row', 'comment' or None (columns named by index)
     data_start: int  # 0-based line number of the first data row
+    row_chars: float = 1.0  # mean length of the sampled data rows, with the line end (to estimate the row count)
     fields: dict[str, str] = field(default_factory=dict)
     field_lines: dict[str, int] = field(default_factory=dict)  # key -> 1-based line number
 
@@ -202,6 +204,7 @@ def _layout(path: Path) -> _Layout:
         names=names,
         header=header,
         data_start=data_rows[0][0],
+        row_chars=sum(len(text) + 1 for _, text in data_rows) / len(data_rows),
         fields=fields,
         field_lines=field_lines,
     )
@@ -281,7 +284,10 @@ def read(path: Path, channel: str | int | None = None, time_channel: str | int |
     layout = _layout(path)
     names = layout.names
     index, time_index = choose_channels(names, channel, time_channel, file=path, positional=True)
-    data = _load(path, layout, [index] if time_index is None else [index, time_index])
+    columns = [index] if time_index is None else [index, time_index]
+    estimated_rows = path.stat().st_size / layout.row_chars
+    check_array_size((round(estimated_rows), len(columns)), np.float64, file=path, channel=names[index])
+    data = _load(path, layout, columns)
 
     name = names[index]
     units = split_units(name)[1] if layout.header else None
