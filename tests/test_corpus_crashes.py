@@ -66,10 +66,10 @@ def data_case(id: str, write, exit_code: int, key: str | None, *fragments: str, 
 
 
 def command_case(id: str, command: tuple[str, ...], write, *fragments: str, target: str = "trace.h5",
-                 key: str | None = None) -> Case:
+                 key: str | None = None, skip_unless=None) -> Case:
     """``afmid inspect TARGET`` or ``afmid init-config --from TARGET`` refused with an input error."""
     return Case(id=id, category="data", argv=(*command, target), files=write, exit_code=1, file=target, key=key,
-                fragments=fragments)
+                fragments=fragments, skip_unless=skip_unless)
 
 
 def afmid_trace_file(path: Path) -> None:
@@ -308,7 +308,13 @@ CASES = [
     data_case("csv-header-name-of-500-characters", csv_text(f"time_s,{LONG_NAME}\n0,1\n1e-8,2\n"), 1,
               "data.column", "no channel 'deflection_nm'", data_path="trace.csv",
               **{"data.column": "deflection_nm"}),
-    # 8. unreadable and binary configs
+    data_case("csv-header-with-terminal-escape", csv_text("time_s,\x1b]0;owned\x07\x1b[2Jdeflection\n0,1\n1e-8,2\n"),
+              1, "data.column", "available: time_s, ?]0;owned??[2Jdeflection", data_path="trace.csv",
+              **{"data.column": "deflection_nm"}),
+    # 8. unreadable files and binary configs
+    command_case("inspect-unreadable-even-by-root", ("inspect",), lambda folder: None,
+                 "cannot open the file: Permission denied", target=UNREADABLE_FILE, key="data.path",
+                 skip_unless=unreadable_available),
     Case(id="config-unreadable-even-by-root", category="config", argv=("fit", UNREADABLE_FILE, "-o", "out.h5"),
          files=lambda folder: None, exit_code=2, file=UNREADABLE_FILE, key=None,
          fragments=("cannot open the config file: Permission denied",), skip_unless=unreadable_available),
@@ -331,6 +337,7 @@ NOT_ECHOED = {
     "data-path-etc-passwd": ("root:", "/bin/", "nologin"),
     "csv-secret-in-a-number-column": ("s3cr3ts3cr3ts3cr3t",),
     "csv-header-name-of-500-characters": ("x" * 61,),
+    "csv-header-with-terminal-escape": ("\x1b", "\x07"),
 }
 
 
