@@ -100,9 +100,10 @@ def listing(names: Sequence[str]) -> str:
     """Channel names for a message (each as :func:`afmid.files.safe_excerpt`), cut after a screenful."""
     parts: list[str] = []
     for name in names[:_LISTED_NAMES]:
-        if parts and sum(len(p) + 2 for p in parts) + len(name) > _LISTING_CHARS:
+        shown_name = safe_excerpt(name)
+        if parts and sum(len(p) + 2 for p in parts) + len(shown_name) > _LISTING_CHARS:
             break
-        parts.append(safe_excerpt(name))
+        parts.append(shown_name)
     shown = ", ".join(parts) or "(none)"
     if len(names) > len(parts):
         shown += f", ... ({len(names) - len(parts)} more)"
