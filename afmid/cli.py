@@ -86,8 +86,8 @@ def cli(verbose: int, quiet: bool) -> None:
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Trace file to write (.h5).")
 @OVERWRITE
 @SET
-@click.option("--seed", type=int, default=None, help="Random seed (overrides simulate.seed).")
-def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, ...], seed: int | None) -> None:
+@click.option("--seed", default=None, metavar="N", help="Random seed, 0 to 4294967295 (overrides simulate.seed).")
+def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, ...], seed: str | None) -> None:
     """Simulate a deflection trace from the force model in CONFIG's `simulate:` section.
 
     Writes an afmid trace file with the ground truth (/truth/force, /truth/separation,
@@ -97,9 +97,10 @@ def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, 
     from .errors import ConfigError
     from .io import check_output_path, write_trace_file
 
-    if seed is not None and not 0 <= seed <= MAX_SEED:
-        raise ConfigError(f"must be a whole number from 0 to {MAX_SEED}, got {seed}", key="--seed")
-    extra = list(overrides) + ([f"simulate.seed={seed}"] if seed is not None else [])
+    # Checked here rather than by click, whose usage error takes four lines.
+    if seed is not None and not (seed.strip().isdecimal() and int(seed) <= MAX_SEED):
+        raise ConfigError(f"must be a whole number from 0 to {MAX_SEED}, got {seed!r}", key="--seed")
+    extra = list(overrides) + ([f"simulate.seed={int(seed)}"] if seed is not None else [])
     cfg = load_config(config, extra)
     check_output_path(output, overwrite)
     from .simulate import simulate as run_simulation

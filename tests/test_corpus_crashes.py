@@ -238,8 +238,10 @@ CASES = [
     # 1. seeds
     simulate_case("simulate-seed-option-negative", simulate_config(), "--seed", "from 0 to 4294967295",
                   extra=("--seed", "-1")),
-    simulate_case("simulate-seed-option-too-large", simulate_config(), "--seed", "got 18446744073709551616",
+    simulate_case("simulate-seed-option-too-large", simulate_config(), "--seed", "got '18446744073709551616'",
                   extra=("--seed", str(2**64))),
+    simulate_case("simulate-seed-option-not-a-number", simulate_config(), "--seed", "got '1.5'",
+                  extra=("--seed", "1.5")),
     simulate_case("simulate-seed-negative-in-config", simulate_config(**{"simulate.seed": -1}), "simulate.seed",
                   "must be >= 0, got -1"),
     fit_case("fit-seed-negative", base_config(**{"fit.seed": -3}), 2, "fit.seed", "must be >= 0, got -3"),
