@@ -174,6 +174,24 @@ def mat73_with_damaged_group(folder: Path) -> None:
     path.write_bytes(bytes(data))
 
 
+def truncated_tdms(folder: Path) -> None:
+    """A TDMS file cut in its data (an interrupted acquisition): npTDMS warns, then reads what is there."""
+    from test_readers import write_tdms
+
+    _, x_nm = sinusoid(30)
+    path = write_tdms(folder / "trace.tdms", {("AFM", "deflection"): (x_nm, {"wf_increment": 1 / SAMPLE_RATE,
+                                                                          "unit_string": "nm"})})
+    os.truncate(path, path.stat().st_size - 1001)
+
+
+def nptdms_missing() -> str | None:
+    try:
+        import nptdms  # noqa: F401
+    except ImportError:
+        return "npTDMS is not installed"
+    return None
+
+
 def fifo(name: str):
     def write(folder: Path) -> None:
         os.mkfifo(folder / name)
@@ -276,6 +294,8 @@ CASES = [
                  "not a readable HDF5 file"),
     data_case("mat73-struct-heap-bit-flipped", mat73_with_damaged_group, 1, "data.path", "not a readable MATLAB file",
               data_path="trace.mat", **{"data.units": "m"}),
+    command_case("inspect-truncated-tdms-one-line", ("inspect",), truncated_tdms, "not a readable TDMS file",
+                 target="trace.tdms", skip_unless=nptdms_missing),
     # 5. FIFOs and devices are never opened
     Case(id="config-is-a-fifo", category="config", argv=("fit", "run.yaml", "-o", "out.h5"), files=fifo("run.yaml"),
          exit_code=2, file="run.yaml", key=None, fragments=("not a regular file (a FIFO)",)),
