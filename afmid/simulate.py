@@ -586,9 +586,10 @@ def check_memory(config: RunConfig, grid: Grid, oscillator: Oscillator, n_gates:
     per_period = grid.sample_rate / oscillator.drive_frequency
     sampling_key = "data.sample_rate" if config.data.sample_rate is not None else "simulate.samples_per_period"
     usual = {name: field.default for name, field in type(sim).model_fields.items()}
+    steps_factor = sim.steps_per_period / usual["steps_per_period"] if sim.noise.thermal else 0.0
     factors = {"simulate.periods": sim.periods / usual["periods"],
                sampling_key: per_period / usual["samples_per_period"],
-               "simulate.steps_per_period": sim.steps_per_period / usual["steps_per_period"] if sim.noise.thermal else 0.0}
+               "simulate.steps_per_period": steps_factor}
     key = max(factors, key=factors.get)  # the value furthest above its usual size
     raise ConfigError(f"{sim.periods} periods x {per_period:.4g} samples = {grid.n_samples:.3g} samples "
                       f"({sim.steps_per_period} steps per period) {problem}", file=config.source, key=key)

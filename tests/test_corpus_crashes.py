@@ -9,6 +9,7 @@ given as outputs. See tests/corpus.py for the contract every case must meet;
 
 from __future__ import annotations
 
+import io
 import os
 import re
 import struct
@@ -19,7 +20,7 @@ import yaml
 
 from conftest import CANTILEVER, DRIVE_FREQUENCY, SAMPLE_RATE, sinusoid
 from corpus import Case, check_case, corpus_params
-from test_corpus_config import base_config, fit_case, fit_workspace, write_trace_csv
+from test_corpus_config import base_config, fit_case, fit_workspace
 from test_readers import write_mat73
 
 REPO = Path(__file__).resolve().parents[1]
@@ -117,7 +118,6 @@ def damaged_truth_chunk(folder: Path) -> None:
 def npy_header(shape: tuple[int, ...]) -> bytes:
     """A .npy version 1.0 header for float64 of ``shape``."""
     from numpy.lib import format as npy_format
-    import io
 
     buffer = io.BytesIO()
     npy_format.write_array_header_1_0(buffer, {"descr": "<f8", "fortran_order": False, "shape": shape})

@@ -168,3 +168,25 @@ def test_igor_wave_file_too_large_for_the_memory_is_refused_before_loading(tmp_p
     with pytest.raises(InputError, match="this machine has") as info:
         read_trace(path)
     assert info.value.key == "data.path"
+
+
+def test_simulation_sized_before_integrating_names_the_key_too_large():
+    """steps_per_period only allocates the thermal forces of one chunk, but 10^12 steps cannot fit either."""
+    import yaml
+
+    from afmid.config import build_config
+    from afmid.simulate import check_memory, compile_force_law, output_grid, resolve_setup
+
+    raw = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs" / "dmt.yaml").read_text())
+    config = build_config(raw)
+    setup = resolve_setup(config)
+    n_gates = compile_force_law(setup.force_law).n_gates
+    check_memory(config, output_grid(config, setup.oscillator), setup.oscillator, n_gates)  # the example fits
+    raw["simulate"]["steps_per_period"] = 10**12
+    config = build_config(raw)
+    with pytest.raises(ConfigError, match="needs ~") as info:
+        check_memory(config, output_grid(config, setup.oscillator), setup.oscillator, n_gates)
+    assert info.value.key == "simulate.steps_per_period"
+    raw["simulate"]["noise"]["thermal"] = False  # no random forces: only the recorded samples count
+    config = build_config(raw)
+    check_memory(config, output_grid(config, setup.oscillator), setup.oscillator, n_gates)
