@@ -25,7 +25,8 @@ from . import __version__
 log = logging.getLogger("afmid")
 _state = {"verbose": 0, "quiet": False}
 
-CONFIG_ARG = click.argument("config", type=click.Path(path_type=Path))
+# readable=False: click's own check would print a four-line usage error; afmid.files.check_input_file says it in one.
+CONFIG_ARG = click.argument("config", type=click.Path(path_type=Path, readable=False))
 OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the output if it exists.")
 SET = click.option(
     "--set",
@@ -85,17 +86,21 @@ def cli(verbose: int, quiet: bool) -> None:
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Trace file to write (.h5).")
 @OVERWRITE
 @SET
-@click.option("--seed", type=int, default=None, help="Random seed (overrides simulate.seed).")
-def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, ...], seed: int | None) -> None:
+@click.option("--seed", default=None, metavar="N", help="Random seed, 0 to 4294967295 (overrides simulate.seed).")
+def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, ...], seed: str | None) -> None:
     """Simulate a deflection trace from the force model in CONFIG's `simulate:` section.
 
     Writes an afmid trace file with the ground truth (/truth/force, /truth/separation,
     /truth/velocity and the exact parameters). See `afmid effects --models`.
     """
-    from .config import dump_config, load_config
+    from .config import MAX_SEED, dump_config, load_config
+    from .errors import ConfigError
     from .io import check_output_path, write_trace_file
 
-    extra = list(overrides) + ([f"simulate.seed={seed}"] if seed is not None else [])
+    # Checked here rather than by click, whose usage error takes four lines.
+    if seed is not None and not (seed.strip().isdecimal() and int(seed) <= MAX_SEED):
+        raise ConfigError(f"must be a whole number from 0 to {MAX_SEED}, got {seed!r}", key="--seed")
+    extra = list(overrides) + ([f"simulate.seed={int(seed)}"] if seed is not None else [])
     cfg = load_config(config, extra)
     check_output_path(output, overwrite, inputs={config: "the config"})
     from .simulate import simulate as run_simulation
@@ -240,7 +245,8 @@ def effects(models: bool, as_json: bool, names: tuple[str, ...]) -> None:
 @cli.command("init-config")
 @click.option("-o", "--output", type=click.Path(path_type=Path), default=None, help="Write here (default: stdout).")
 @OVERWRITE
-@click.option("--from", "from_file", type=click.Path(path_type=Path), default=None, help="Pre-fill from a trace file.")
+@click.option("--from", "from_file", type=click.Path(path_type=Path, readable=False), default=None,
+              help="Pre-fill from a trace file.")
 def init_config(output: Path | None, overwrite: bool, from_file: Path | None) -> None:
     """Write a commented template run config to edit."""
     from .config import template_text
@@ -262,7 +268,7 @@ def init_config(output: Path | None, overwrite: bool, from_file: Path | None) ->
 
 
 @cli.command()
-@click.argument("file", type=click.Path(path_type=Path))
+@click.argument("file", type=click.Path(path_type=Path, readable=False))
 @click.option("--column", default=None, help="Channel to analyse (default: the reader's choice).")
 @click.option("--sample-rate", type=float, default=None, help="Hz, if the file does not say.")
 def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:

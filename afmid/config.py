@@ -24,6 +24,7 @@ from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Fi
                       model_validator)
 
 from .errors import ConfigError
+from .files import check_input_file
 from .registry import closest, unknown_name_message
 
 
@@ -51,6 +52,10 @@ _Column = BeforeValidator(_column_not_bool)
 PositiveFloat = Annotated[float, _Number, Field(gt=0, allow_inf_nan=False)]
 NonNegativeFloat = Annotated[float, _Number, Field(ge=0, allow_inf_nan=False)]
 FiniteFloat = Annotated[float, _Number, Field(allow_inf_nan=False)]
+#: Largest random seed: numpy's generators take any non-negative integer, but a seed is stored in the
+#: output files as an HDF5 attribute and is conventionally 32-bit.
+MAX_SEED = 2**32 - 1
+Seed = Annotated[int, _Number, Field(ge=0, le=MAX_SEED)]
 
 
 class StrictModel(BaseModel):
@@ -214,7 +219,7 @@ class SimulateConfig(StrictModel):
         "free", description="transient: start at rest or in free steady oscillation far from the sample"
     )
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
-    seed: int = 0
+    seed: Seed = Field(0, description=f"random seed, 0 to {MAX_SEED}")
 
     @field_validator("effects")
     @classmethod
@@ -261,7 +266,7 @@ class FitConfig(StrictModel):
     thresholds: list[NonNegativeFloat] | None = Field(None, description="STLSQ thresholds (relative); default path")
     folds: Annotated[int, Field(ge=2, le=50)] = 5
     bootstrap: Annotated[int, Field(ge=0, le=10000)] = 100
-    seed: int = 0
+    seed: Seed = Field(0, description=f"random seed, 0 to {MAX_SEED}")
     temperature: PositiveFloat = Field(300.0, description="K, for the thermal force noise weights")
     thermal_noise: bool = True
     estimate_nonlinear: bool = Field(True, description="search decay lengths etc. not fixed in model.parameters")
@@ -495,16 +500,24 @@ class _UniqueKeyLoader(yaml.SafeLoader):
 
 
 def read_yaml(path: Path) -> dict:
-    """Read a YAML mapping, with a clear error for a missing file or bad syntax."""
-    if not path.exists():
-        raise ConfigError("config file not found", file=path)
-    if path.is_dir():
-        raise ConfigError("is a directory, expected a YAML config file", file=path)
+    """Read a YAML mapping, with a clear error for a missing, special, unreadable or binary file or bad syntax."""
+    check_input_file(path, what="config file", error=ConfigError, allow_empty=True)
     try:
-        text = path.read_text(encoding="utf-8")
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"cannot read the config file: {exc.strerror or exc}", file=path) from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"not a text file: byte 0x{raw[exc.start]:02x} at offset {exc.start} is not UTF-8 (a config is UTF-8 YAML)",
+            file=path,
+        ) from None
+    if "\0" in text:
+        raise ConfigError(f"not a text file: it holds a NUL byte at offset {text.index(chr(0))} (expected YAML)",
+                          file=path)
+    try:
         data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
-    except UnicodeDecodeError:
-        raise ConfigError("not a text file (expected YAML)", file=path) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""

@@ -117,10 +117,10 @@ def describe(path: str | Path, column: str | None = None, sample_rate: float | N
                               and math.isfinite(cl[k])}
         summary.drive_frequency = meta.get("drive", {}).get("frequency")
         if meta.get("truth_datasets"):
-            import h5py
+            from .io import read_truth
 
-            with h5py.File(path, "r") as h5:
-                summary.simulated = str(h5["truth"].attrs.get("model", "?"))
+            truth = read_truth(path)  # InputError naming the file if /truth is damaged
+            summary.simulated = truth.model if truth is not None and truth.model else "?"
 
     if summary.units in _LENGTH_UNITS:
         summary.values, summary.display_units = values * _LENGTH_UNITS[summary.units], "m"

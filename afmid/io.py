@@ -26,6 +26,7 @@ import numpy as np
 
 from . import __version__
 from .errors import ConfigError, InputError, OutputError
+from .files import check_input_file, check_output_target
 
 log = logging.getLogger(__name__)
 
@@ -180,6 +181,7 @@ def check_output_path(path: str | Path, overwrite: bool, inputs: dict[str | Path
     :func:`refuse_input_as_output`), an existing file without ``overwrite``, a folder and a missing parent."""
     path = Path(path)
     refuse_input_as_output(path, inputs)
+    check_output_target(path)  # a FIFO or device: refused even with --overwrite
     if path.exists() and not overwrite:
         raise OutputError("output exists; pass --overwrite to replace it", file=path)
     if path.exists() and path.is_dir():
@@ -312,7 +314,16 @@ def _attr(group, name: str):
 
 
 def read_truth(path: str | Path) -> Truth | None:
-    """The ``/truth`` group of an afmid trace file, or None."""
+    """The ``/truth`` group of an afmid trace file, or None; InputError naming the file if it is damaged."""
+    try:
+        return _read_truth(path)
+    except (OSError, KeyError, ValueError, RuntimeError, TypeError) as exc:  # what h5py raises on a damaged file
+        detail = " ".join(str(exc).split())[:160] or type(exc).__name__
+        raise InputError(f"cannot read the ground truth (/truth) of this afmid trace file (corrupt?): {detail}",
+                         file=path, key="data.path") from exc
+
+
+def _read_truth(path: str | Path) -> Truth | None:
     import h5py
 
     with h5py.File(path, "r") as h5:
@@ -378,9 +389,7 @@ def load_trace(config) -> Trace:
     data = config.data
     if data.path is None:
         raise ConfigError("required key is missing (the trace file to fit)", file=config.source, key="data.path")
-    path = config.resolve_path(data.path)
-    if not path.exists():
-        raise InputError("trace file not found", file=path, key="data.path")
+    path = check_input_file(config.resolve_path(data.path), what="trace file", key="data.path", allow_empty=True)
     try:
         raw = read_trace(path, data.format, data.column, data.time_column)
     except InputError as exc:

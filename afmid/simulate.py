@@ -40,6 +40,7 @@ import numpy as np
 from . import expr
 from .config import RunConfig
 from .errors import AfmidError, ConfigError
+from .files import memory_shortfall
 from .io import Cantilever, Trace, Truth
 from .physics import BOLTZMANN, CONTEXT_UNITS, MODELS, ForceLaw, build_force_law, effect_parameter_names
 from .registry import unknown_name_message
@@ -568,6 +569,32 @@ def output_grid(config: RunConfig, oscillator: Oscillator) -> Grid:
     return Grid(fs, n_sub, n_samples)
 
 
+def check_memory(config: RunConfig, grid: Grid, oscillator: Oscillator, n_gates: int) -> None:
+    """Refuse, before integrating, a simulation whose arrays would not fit in the available memory.
+
+    Per output sample: x, v, force and the gates recorded, then the deflection,
+    its noise and the separation (8 bytes each); with thermal noise also one
+    chunk of random forces per integration step (warm-up or recording).
+    """
+    sim = config.simulate
+    needed = 8.0 * grid.n_samples * (6 + n_gates)
+    if sim.noise.thermal:
+        needed += 8.0 * max(WARMUP_CHUNK_PERIODS * sim.steps_per_period, RECORD_CHUNK_SAMPLES * grid.steps_per_sample)
+    problem = memory_shortfall(needed)
+    if problem is None:
+        return
+    per_period = grid.sample_rate / oscillator.drive_frequency
+    sampling_key = "data.sample_rate" if config.data.sample_rate is not None else "simulate.samples_per_period"
+    usual = {name: field.default for name, field in type(sim).model_fields.items()}
+    steps_factor = sim.steps_per_period / usual["steps_per_period"] if sim.noise.thermal else 0.0
+    factors = {"simulate.periods": sim.periods / usual["periods"],
+               sampling_key: per_period / usual["samples_per_period"],
+               "simulate.steps_per_period": steps_factor}
+    key = max(factors, key=factors.get)  # the value furthest above its usual size
+    raise ConfigError(f"{sim.periods} periods x {per_period:.4g} samples = {grid.n_samples:.3g} samples "
+                      f"({sim.steps_per_period} steps per period) {problem}", file=config.source, key=key)
+
+
 def thermal_force_std(oscillator: Oscillator, temperature: float, h: float) -> float:
     """Std (N) of the thermal force held constant over each step of h (s).
 
@@ -677,6 +704,7 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
     osc = setup.oscillator
     grid = output_grid(config, osc)
     compiled = compile_force_law(setup.force_law)
+    check_memory(config, grid, osc, compiled.n_gates)
     rng = np.random.Generator(np.random.PCG64(sim.seed))
     bar = _Progress(progress)
     extra: dict = {}

@@ -12,13 +12,17 @@ inside the read functions that need them.
 from __future__ import annotations
 
 import contextlib
+import struct
+import zipfile
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
 from ..errors import InputError
+from ..files import check_input_file
 from ..registry import Registry
 from . import csv, hdf5, igor, matlab, numpy, tdms
-from .base import TIME_KEY, RawTrace, Reader
+from .base import TIME_KEY, RawTrace, Reader, not_readable
 
 __all__ = ["READERS", "RawTrace", "Reader", "list_channels", "read_trace", "reader_for"]
 
@@ -62,21 +66,38 @@ def reader_for(path: str | Path, fmt: str = "auto") -> Reader:
 
 
 def _existing(path: str | Path) -> Path:
-    path = Path(path)
-    if not path.exists():
-        raise InputError("file not found", file=path, key="data.path")
-    if path.is_dir():
-        raise InputError("is a folder, not a data file", file=path, key="data.path")
-    return path
+    """``path`` if it is a readable regular file (no FIFO, device, folder, link loop), else an InputError."""
+    return check_input_file(path, what="file", key="data.path", allow_empty=True)
+
+
+#: What parsers raise on a damaged file (h5py: RuntimeError and KeyError on broken object headers).
+_DAMAGED_FILE_ERRORS = (
+    KeyError, ValueError, RuntimeError, EOFError, IndexError, OverflowError, struct.error, zlib.error,
+    zipfile.BadZipFile,
+)
+#: The kind of file named in "not a readable ... file" messages, by reader name.
+_KINDS = {"csv": "text", "npy": "NumPy", "hdf5": "HDF5", "mat": "MATLAB", "ibw": "Igor binary wave", "tdms": "TDMS"}
 
 
 @contextlib.contextmanager
-def _os_errors(path: Path) -> Iterator[None]:
-    """Permission and I/O errors are the user's environment, not a bug: report them as InputError."""
+def _reader_errors(path: Path, reader: Reader) -> Iterator[None]:
+    """Failures of a third-party parser on a damaged file, permission and I/O errors: one InputError naming the file.
+
+    Each reader turns the failures it expects into InputErrors itself; this
+    catches what a corrupt file provokes elsewhere in h5py, scipy, igor2 or npTDMS.
+    """
     try:
         yield
+    except InputError:
+        raise
     except OSError as exc:
+        if exc.errno is None:  # not the operating system's: h5py's word for damaged content
+            raise not_readable(_KINDS.get(reader.name, reader.name), path, exc) from exc
         raise InputError(f"cannot read the file: {exc.strerror or exc}", file=path) from exc
+    except MemoryError:
+        raise InputError("not enough memory to read the file (corrupt sizes in it?)", file=path) from None
+    except _DAMAGED_FILE_ERRORS as exc:
+        raise not_readable(_KINDS.get(reader.name, reader.name), path, exc) from exc
 
 
 def read_trace(
@@ -94,7 +115,7 @@ def read_trace(
     """
     path = _existing(path)
     reader = reader_for(path, fmt)
-    with _os_errors(path):
+    with _reader_errors(path, reader):
         trace = reader.read(path, channel, time_channel)
     if trace.time is not None and trace.time.size != trace.values.size:
         raise InputError(
@@ -109,5 +130,5 @@ def list_channels(path: str | Path, fmt: str = "auto") -> list[str]:
     """Every channel the file offers (for ``afmid inspect``), with read_trace's checks and errors."""
     path = _existing(path)
     reader = reader_for(path, fmt)
-    with _os_errors(path):
+    with _reader_errors(path, reader):
         return reader.list_channels(path)

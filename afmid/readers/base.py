@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..files import memory_shortfall, safe_excerpt
 from ..registry import closest
 
 COLUMN_KEY = "data.column"
@@ -42,6 +43,7 @@ _NUMBER_WITH_UNIT = re.compile(r"^\s*(?P<number>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][
 _TIME_NAMES = frozenset({"t", "time", "times", "timestamp"})
 _DEFAULT_NAME = "deflection"
 _LISTED_NAMES = 20  # longer channel lists are cut in messages
+_LISTING_CHARS = 300  # and so are lists of long names
 
 
 @dataclass
@@ -95,11 +97,22 @@ def _stem(name: str) -> str:
 
 
 def listing(names: Sequence[str]) -> str:
-    """Channel names for a message, cut after a screenful."""
-    shown = ", ".join(names[:_LISTED_NAMES]) or "(none)"
-    if len(names) > _LISTED_NAMES:
-        shown += f", ... ({len(names) - _LISTED_NAMES} more)"
+    """Channel names for a message (each as :func:`afmid.files.safe_excerpt`), cut after a screenful."""
+    parts: list[str] = []
+    for name in names[:_LISTED_NAMES]:
+        shown_name = safe_excerpt(name)
+        if parts and sum(len(p) + 2 for p in parts) + len(shown_name) > _LISTING_CHARS:
+            break
+        parts.append(shown_name)
+    shown = ", ".join(parts) or "(none)"
+    if len(names) > len(parts):
+        shown += f", ... ({len(names) - len(parts)} more)"
     return shown
+
+
+def quoted(name: object) -> str:
+    """A name read from a file, quoted for a message: printable ASCII, at most 60 characters."""
+    return repr(safe_excerpt(name))
 
 
 def resolve_channel(
@@ -149,13 +162,13 @@ def resolve_channel(
             return hits[0]
         if len(hits) > 1:
             raise InputError(
-                f"channel {text!r} is ambiguous: it matches {listing([names[i] for i in hits])}",
+                f"channel {quoted(text)} is ambiguous: it matches {listing([names[i] for i in hits])}",
                 file=file,
                 key=key,
             )
     hint = closest(text, listed)
-    suggestion = f" (did you mean {hint!r}?)" if hint else ""
-    raise InputError(f"no channel {text!r}{suggestion}; available: {listing(listed)}", file=file, key=key)
+    suggestion = f" (did you mean {quoted(hint)}?)" if hint else ""
+    raise InputError(f"no channel {quoted(text)}{suggestion}; available: {listing(listed)}", file=file, key=key)
 
 
 def default_channel(names: Sequence[str], *, file: Path, exclude: str | None = None) -> int:
@@ -217,17 +230,17 @@ def as_samples(array: Any, *, file: Path, channel: str, key: str = COLUMN_KEY) -
     """
     arr = np.asarray(array)
     if arr.dtype.kind not in "iuf":
-        raise InputError(f"channel {channel!r} is not numeric (dtype {arr.dtype})", file=file, key=key)
+        raise InputError(f"channel {quoted(channel)} is not numeric (dtype {arr.dtype})", file=file, key=key)
     if arr.ndim > 1 and sum(n > 1 for n in arr.shape) <= 1:
         arr = arr.reshape(-1)
     if arr.ndim == 0:
-        raise InputError(f"channel {channel!r} is a single value, not a trace", file=file, key=key)
+        raise InputError(f"channel {quoted(channel)} is a single value, not a trace", file=file, key=key)
     if arr.ndim != 1:
         raise InputError(
-            f"channel {channel!r} has shape {arr.shape}; a trace must be 1-D", file=file, key=key
+            f"channel {quoted(channel)} has shape {arr.shape}; a trace must be 1-D", file=file, key=key
         )
     if arr.size == 0:
-        raise InputError(f"channel {channel!r} is empty", file=file, key=key)
+        raise InputError(f"channel {quoted(channel)} is empty", file=file, key=key)
     return arr.astype(np.float64, copy=False)
 
 
@@ -246,14 +259,14 @@ def time_axis(array: Any, units: str | None, *, file: Path, channel: str) -> np.
         scale = TIME_UNITS.get(units.strip())
         if scale is None:
             raise InputError(
-                f"time channel {channel!r} has units {units!r}, not a time unit ({', '.join(TIME_UNITS)})",
+                f"time channel {quoted(channel)} has units {quoted(units)}, not a time unit ({', '.join(TIME_UNITS)})",
                 file=file,
                 key=TIME_KEY,
             )
         return as_samples(arr, file=file, channel=channel, key=TIME_KEY) * scale
     if arr.dtype.kind in "iu":
         raise InputError(
-            f"time channel {channel!r} holds integers without units (clock ticks or sample numbers?); "
+            f"time channel {quoted(channel)} holds integers without units (clock ticks or sample numbers?); "
             "give data.sample_rate instead of data.time_column",
             file=file,
             key=TIME_KEY,
@@ -336,7 +349,7 @@ def rate_from_fields(
         if number is None:
             unit = "Hz" if name == "sample_rate" else "seconds"
             raise InputError(
-                f"{where(name)} = {plain(fields[name])!r} is not a positive number of {unit}", file=file
+                f"{where(name)} = {quoted(plain(fields[name]))} is not a positive number of {unit}", file=file
             )
         return (1.0 / number if invert else number), f"file:{where(name)}"
     return None
@@ -361,9 +374,29 @@ def plain(value: Any) -> Any:
 
 # --------------------------------------------------------------------------- errors
 def not_readable(kind: str, file: Path, exc: BaseException) -> InputError:
-    """The error for a file the format's parser rejects."""
-    detail = str(exc).strip() or type(exc).__name__
-    return InputError(f"not a readable {kind} file (truncated or corrupt?): {detail}", file=file)
+    """The error for a file the format's parser rejects (the parser's complaint cut to one short line)."""
+    detail = " ".join(str(exc).split()) or type(exc).__name__
+    return InputError(f"not a readable {kind} file (truncated or corrupt?): {safe_excerpt(detail, 160)}", file=file)
+
+
+def check_array_size(shape: Sequence[int], dtype: Any, *, file: Path, channel: str, key: str = COLUMN_KEY) -> None:
+    """Refuse to read an array of ``shape`` and ``dtype`` that would not fit in the available memory.
+
+    Counts the array as stored plus its float64 copy (:func:`as_samples`), so
+    that a file whose header claims 10^12 samples is refused before anything
+    is allocated.
+    """
+    count = math.prod(int(n) for n in shape)
+    itemsize = np.dtype(dtype).itemsize if np.dtype(dtype).kind in "iufcb" else 8
+    needed = count * (itemsize + (0 if np.dtype(dtype) == np.float64 else 8))
+    problem = memory_shortfall(needed)
+    if problem:
+        raise InputError(
+            f"channel {quoted(channel)} has {count:.3g} values (shape {tuple(int(n) for n in shape)}); "
+            f"reading it {problem}",
+            file=file,
+            key=key,
+        )
 
 
 def missing_package(package: str, suffix: str, file: Path) -> InputError:

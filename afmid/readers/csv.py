@@ -34,11 +34,14 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..files import safe_excerpt
 from .base import (
     COLUMN_KEY,
     RawTrace,
     Reader,
+    check_array_size,
     choose_channels,
+    quoted,
     rate_from_fields,
     settle_rate,
     split_units,
@@ -51,6 +54,7 @@ _SAMPLE_ROWS = 50  # rows inspected to detect the layout
 _ENCODING_PROBE = 1 << 16  # bytes inspected to choose the text encoding
 _FIELD_LINE = re.compile(r"^[#%]+\s*(?P<key>[A-Za-z][\w .-]*?)\s*[:=]\s*(?P<value>.*?)\s*$")
 _DECIMAL_COMMA = re.compile(r"^[-+]?\d+,\d*(?:[eE][-+]?\d+)?$")
+_VALUE_CHARS = 20  # longest excerpt of a bad value in a message
 _DELIMITER_NAMES = {"\t": "tab", ";": "semicolon", ",": "comma", None: "whitespace"}
 
 
@@ -65,6 +69,7 @@ class _Layout:
     names: list[str]
     header: str | None  # 'row', 'comment' or None (columns named by index)
     data_start: int  # 0-based line number of the first data row
+    row_chars: float = 1.0  # mean length of the sampled data rows, with the line end (to estimate the row count)
     fields: dict[str, str] = field(default_factory=dict)
     field_lines: dict[str, int] = field(default_factory=dict)  # key -> 1-based line number
 
@@ -119,6 +124,21 @@ def _sniff_delimiter(rows: list[str]) -> str | None:
     return None
 
 
+def _require_numbers(path: Path, rows: list[tuple[int, str]], delimiter: str | None) -> None:
+    """Refuse a file none of whose first rows holds a number: not a data table (``/etc/passwd``, a key file).
+
+    Messages about such a file never quote it: only files that look like data
+    have their column names (and short excerpts of bad values) shown.
+    """
+    for _, text in rows:
+        if any(_is_number(f) or _DECIMAL_COMMA.match(f) for f in _split(text, delimiter)):
+            return
+    raise InputError(
+        f"not a table of numbers: none of its first {len(rows)} rows holds a number; is the file a trace?",
+        file=path,
+    )
+
+
 def _layout(path: Path) -> _Layout:
     encoding = _encoding(path)
     preamble: list[tuple[int, str]] = []  # comment lines before the first row
@@ -141,7 +161,9 @@ def _layout(path: Path) -> _Layout:
         raise InputError("no data rows (empty, or only comments)", file=path)
 
     delimiter = _sniff_delimiter([text for _, text in rows[1:]] or [rows[0][1]])
-    quoted = any('"' in text for _, text in rows)
+    if len(rows) > 1:  # a single row is a header without data, reported below
+        _require_numbers(path, rows, delimiter)
+    has_quotes = any('"' in text for _, text in rows)
     first = _split(rows[0][1], delimiter)
     # Decimal-comma numbers are not a header; they fail later with a hint.
     header = "row" if any(not (_is_number(f) or _DECIMAL_COMMA.match(f)) for f in first) else None
@@ -177,11 +199,12 @@ def _layout(path: Path) -> _Layout:
     return _Layout(
         encoding=encoding,
         delimiter=delimiter,
-        quoted=quoted,
-        comment=used[:1] if quoted else used,
+        quoted=has_quotes,
+        comment=used[:1] if has_quotes else used,
         names=names,
         header=header,
         data_start=data_rows[0][0],
+        row_chars=sum(len(text) + 1 for _, text in data_rows) / len(data_rows),
         fields=fields,
         field_lines=field_lines,
     )
@@ -205,7 +228,7 @@ def _bad_value(path: Path, layout: _Layout, columns: list[int]) -> InputError:
                 name = layout.names[column]
                 if column >= len(values):
                     return InputError(
-                        f"{where} has {len(values)} values, too few for column {name!r} (number {column})",
+                        f"{where} has {len(values)} values, too few for column {quoted(name)} (number {column})",
                         file=path,
                         key=COLUMN_KEY,
                     )
@@ -214,9 +237,14 @@ def _bad_value(path: Path, layout: _Layout, columns: list[int]) -> InputError:
                     hint = ""
                     if _DECIMAL_COMMA.match(value):
                         hint = "; decimal commas are not supported, export with '.' as the decimal separator"
-                    what = "an empty value" if not value else f"{value!r}, not a number"
-                    return InputError(f"column {name!r}: {what} at {where}{hint}", file=path, key=COLUMN_KEY)
+                    what = "an empty value" if not value else f"{_excerpt(value)}, not a number"
+                    return InputError(f"column {quoted(name)}: {what} at {where}{hint}", file=path, key=COLUMN_KEY)
     return InputError("the numbers could not be parsed", file=path, key=COLUMN_KEY)
+
+
+def _excerpt(value: str) -> str:
+    """A bad value for a message: quoted, printable ASCII, at most 20 characters (the policy of afmid.files)."""
+    return repr(safe_excerpt(value, _VALUE_CHARS))
 
 
 def _load(path: Path, layout: _Layout, columns: list[int]) -> np.ndarray:
@@ -256,7 +284,10 @@ def read(path: Path, channel: str | int | None = None, time_channel: str | int |
     layout = _layout(path)
     names = layout.names
     index, time_index = choose_channels(names, channel, time_channel, file=path, positional=True)
-    data = _load(path, layout, [index] if time_index is None else [index, time_index])
+    columns = [index] if time_index is None else [index, time_index]
+    estimated_rows = path.stat().st_size / layout.row_chars
+    check_array_size((round(estimated_rows), len(columns)), np.float64, file=path, channel=names[index])
+    data = _load(path, layout, columns)
 
     name = names[index]
     units = split_units(name)[1] if layout.header else None

@@ -21,6 +21,7 @@ from .base import (
     RawTrace,
     Reader,
     as_samples,
+    check_array_size,
     choose_channels,
     not_readable,
     plain,
@@ -66,6 +67,8 @@ def _attrs(obj) -> dict:
 
 
 def _read_dataset(dataset, path: Path) -> np.ndarray:
+    # A dataset may claim any size without storing it (unwritten chunks read as the fill value).
+    check_array_size(dataset.shape, dataset.dtype, file=path, channel=dataset.name)
     try:
         return dataset[()]
     except OSError as exc:  # a truncated file can open and then fail on the data

@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import InputError
+from ..files import memory_shortfall
 from .base import (
     TIME_UNITS,
     RawTrace,
@@ -49,6 +51,9 @@ def _load(path: Path) -> dict:
         from igor2 import binarywave
     except ImportError:
         raise missing_package("igor2", ".ibw", path) from None
+    problem = memory_shortfall(2 * path.stat().st_size)  # igor2 reads the whole file, then copies the wave
+    if problem:
+        raise InputError(f"reading this {path.stat().st_size:.3g}-byte wave {problem}", file=path, key="data.path")
     try:
         return binarywave.load(str(path))
     except Exception as exc:  # igor2 signals a damaged file with asserts, struct and value errors

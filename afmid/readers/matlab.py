@@ -24,6 +24,7 @@ from .base import (
     RawTrace,
     Reader,
     as_samples,
+    check_array_size,
     choose_channels,
     not_readable,
     plain,
@@ -97,6 +98,7 @@ def _h5_value(dataset, path: Path) -> Any:
     matlab_class = plain(dataset.attrs.get("MATLAB_class"))
     if dataset.attrs.get("MATLAB_empty"):  # the data of an empty array are its dimensions
         return np.empty(0)
+    check_array_size(dataset.shape, dataset.dtype, file=path, channel=dataset.name.lstrip("/").replace("/", "."))
     try:
         data = dataset[()]
     except OSError as exc:

@@ -12,6 +12,7 @@ Arrays are loaded with ``allow_pickle=False``: a data file never runs code.
 
 from __future__ import annotations
 
+import tokenize
 import zipfile
 import zlib
 from pathlib import Path
@@ -24,6 +25,7 @@ from .base import (
     RawTrace,
     Reader,
     as_samples,
+    check_array_size,
     choose_channels,
     no_time_channel,
     not_readable,
@@ -34,8 +36,9 @@ from .base import (
     time_axis,
 )
 
-# What np.load raises on damaged files (zlib.error: a damaged np.savez_compressed member).
-_LOAD_ERRORS = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error)
+# What np.load raises on damaged files (zlib.error: a damaged np.savez_compressed member; TokenError and
+# SyntaxError: a damaged header, which numpy parses as a Python literal).
+_LOAD_ERRORS = (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error, tokenize.TokenError, SyntaxError)
 _NPY_MAGIC = b"\x93NUMPY"
 _ZIP_MAGIC = b"PK\x03\x04"
 
@@ -53,6 +56,48 @@ def _checked(path: Path, name: str, load, *args, **kwargs):
         raise not_readable("NumPy", path, exc) from None
 
 
+def _npy_header(fh, path: Path, name: str) -> tuple[tuple[int, ...], np.dtype, int]:
+    """(shape, dtype, bytes of data the header promises) of the .npy stream ``fh``, positioned at its start."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fh)
+        read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+        shape, _, dtype = read_header(fh)
+    except _LOAD_ERRORS as exc:
+        raise not_readable("NumPy", path, exc) from None
+    if dtype.hasobject:
+        raise InputError(f"array {name!r} holds Python objects, not numbers", file=path, key=COLUMN_KEY)
+    return shape, dtype, int(np.prod(shape, dtype=object)) * dtype.itemsize
+
+
+def _check_sizes(path: Path, is_npy: bool) -> None:
+    """Refuse, before np.load allocates anything, arrays whose header promises more data than the file
+    holds (a corrupt or lying header) or than the available memory."""
+
+    def check(shape, dtype, promised: int, held: int, name: str) -> None:
+        if promised > held:
+            raise not_readable("NumPy", path, ValueError(
+                f"the header of {name!r} promises {promised} bytes of data (shape {shape}) but the file holds {held}"))
+        check_array_size(shape, dtype, file=path, channel=name)
+
+    if is_npy:
+        with open(path, "rb") as fh:
+            shape, dtype, promised = _npy_header(fh, path, path.name)
+            check(shape, dtype, promised, path.stat().st_size - fh.tell(), path.name)
+        return
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for member in archive.infolist():
+                if not member.filename.endswith(".npy"):
+                    continue
+                name = member.filename[: -len(".npy")]
+                with archive.open(member) as fh:
+                    shape, dtype, promised = _npy_header(fh, path, name)
+                    check(shape, dtype, promised, member.file_size - fh.tell(), name)
+    except _LOAD_ERRORS as exc:
+        raise not_readable("NumPy", path, exc) from None
+
+
 def _load(path: Path):
     """An ndarray (.npy) or a lazy archive (.npz), told apart by content, not suffix."""
     with open(path, "rb") as fh:
@@ -60,6 +105,7 @@ def _load(path: Path):
     # Without either signature np.load would try to unpickle the file.
     if not magic.startswith((_NPY_MAGIC, _ZIP_MAGIC)):
         raise not_readable("NumPy", path, ValueError("no .npy or .npz signature at the start"))
+    _check_sizes(path, magic.startswith(_NPY_MAGIC))
     return _checked(path, path.name, np.load, path, allow_pickle=False)
 
 

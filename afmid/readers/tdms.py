@@ -23,6 +23,7 @@ from .base import (
     RawTrace,
     Reader,
     as_samples,
+    check_array_size,
     choose_channels,
     missing_package,
     not_readable,
@@ -59,6 +60,7 @@ def _open(path: Path) -> Iterator[object]:
     collector = _Warnings()
     logger = logging.getLogger("nptdms")
     logger.addHandler(collector)
+    muted = _mute_console_handlers()
     try:
         try:
             # Raw timestamps keep their 2^-64 s resolution; npTDMS would round them to 1 us.
@@ -72,6 +74,23 @@ def _open(path: Path) -> Iterator[object]:
                 raise not_readable("TDMS", path, RuntimeError(problems[0]))
     finally:
         logger.removeHandler(collector)
+        for module_logger, handler in muted:
+            module_logger.addHandler(handler)
+
+
+def _mute_console_handlers() -> list[tuple[logging.Logger, logging.Handler]]:
+    """Detach npTDMS's own stderr handlers (it prints raw bytes of a damaged file); returns them to re-attach.
+
+    Its warnings still reach the collector of :func:`_open` through the 'nptdms' logger.
+    """
+    muted = []
+    for name, module_logger in list(logging.Logger.manager.loggerDict.items()):
+        if name.startswith("nptdms.") and isinstance(module_logger, logging.Logger):
+            for handler in list(module_logger.handlers):
+                if isinstance(handler, logging.StreamHandler):
+                    module_logger.removeHandler(handler)
+                    muted.append((module_logger, handler))
+    return muted
 
 
 def _channels(tdms) -> dict[str, tuple[object, object]]:
@@ -83,6 +102,11 @@ def _channels(tdms) -> dict[str, tuple[object, object]]:
 
 def _data(channel, path: Path):
     """A channel's samples; timestamps as datetime64[ns]."""
+    try:
+        length, dtype = len(channel), channel.dtype
+    except Exception as exc:  # as below: the segment index of a damaged file
+        raise not_readable("TDMS", path, exc) from None
+    check_array_size((length,), dtype if dtype is not None else np.float64, file=path, channel=channel.name)
     try:
         data = channel[:]
     except Exception as exc:  # as in _open: a damaged segment fails in many ways
