@@ -228,9 +228,9 @@ def read_manifest(path: str | Path) -> list[Entry]:
     """
     from .config import parse_override
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("manifest not found", file=path, key="--manifest")
+    from .files import check_input_file
+
+    path = check_input_file(path, what="manifest", key="--manifest")  # missing, a FIFO (would block), a folder
     base = path.parent
     entries: list[Entry] = []
 

@@ -42,6 +42,7 @@ import numpy as np
 from . import plausibility
 from .config import RunConfig, build_config
 from .errors import InputError
+from .files import check_input_file
 from .io import RUN_FORMAT, Truth, read_truth, sha256_file
 from .physics import EFFECTS
 
@@ -141,9 +142,7 @@ def load_run(path: str | Path) -> RunData:
     from .errors import ConfigError
     from .runcheck import RunReader, check_version, input_unchanged, stored_config
 
-    path = Path(path)
-    if not path.exists():
-        raise InputError("run file not found", file=path)
+    path = check_input_file(path, what="run file")  # missing, a link loop, a FIFO (would block), a folder
     try:
         h5 = h5py.File(path, "r")
     except OSError:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import yaml
@@ -147,6 +148,28 @@ CASES = [
     *[fit_case(f"value-{id}", base_config(**{key: value}), 2, key, fragment) for id, key, value, fragment in BAD_VALUES],
     *[fit_case(f"term-{id}", base_config(**{"model.terms": [term]}), 2, "model.terms[0]", fragment, category="terms")
       for id, term, fragment in BAD_TERMS],
+]
+
+
+def fifo(name: str):
+    """files(): a named pipe (opening it for reading would block until a writer comes)."""
+
+    def write(folder: Path) -> None:
+        os.mkfifo(folder / name)
+
+    return write
+
+
+CASES += [
+    Case(id="report-of-a-fifo", category="runfile", argv=("report", "run.h5", "-o", "rep"), files=fifo("run.h5"),
+         exit_code=1, file="run.h5", key=None, fragments=("not a regular file (a FIFO)",)),
+    Case(id="report-of-a-folder", category="runfile", argv=("report", "run.h5", "-o", "rep"),
+         files=lambda folder: (folder / "run.h5").mkdir(), exit_code=1, file="run.h5", key=None,
+         fragments=("is a directory",)),
+    Case(id="batch-manifest-is-a-fifo", category="request",
+         argv=("batch", "run.yaml", "--manifest", "list.csv", "-o", "out"),
+         files=lambda folder: (fit_workspace(base_config())(folder), fifo("list.csv")(folder)), exit_code=1,
+         file="list.csv", key="--manifest", fragments=("not a regular file (a FIFO)",)),
 ]
 
 
