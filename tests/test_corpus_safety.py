@@ -113,12 +113,14 @@ def sim_config(name: str = "sim.yaml"):
 
 
 def run_file(name: str = "r.h5", trace_name: str = "trace.csv"):
-    """The cached run file, pointing at ``trace_name`` in the workspace (written there too)."""
+    """The cached run file, pointing at ``trace_name`` in the workspace: a copy of the trace it was fitted on
+    (an afmid trace file with ground truth; the name's suffix does not matter to the run)."""
 
     def write(folder: Path) -> None:
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / trace_name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(_cache["run"], folder / name)
-        trace(trace_name)(folder)
+        shutil.copyfile(_cache["run"].parent / "trace.h5", folder / trace_name)
         with h5py.File(folder / name, "r+") as h5:  # the run is of the workspace's trace
             h5.attrs["input_path"] = str((folder / trace_name).resolve())
             h5.attrs["input_sha256"] = sha256_file(folder / trace_name)
