@@ -256,7 +256,33 @@ def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Console entry point; returns the exit code."""
+    """Console entry point; returns the exit code.
+
+    Ctrl-C exits with 130 and SIGTERM with 143, each with one line; SIGTERM is raised as an exception like
+    Ctrl-C so that temporary files are removed (afmid/interrupts.py)."""
+    from . import interrupts
+
+    with interrupts.handled():
+        try:
+            code = _run(argv)
+            interrupts.raise_if_pending()  # an interrupt that Python swallowed (a weakref callback) still counts
+        except KeyboardInterrupt as exc:
+            code = _interrupted(exc)
+    return code
+
+
+def _interrupted(exc: BaseException) -> int:
+    from .interrupts import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated, clear
+
+    clear()
+    if isinstance(exc, Terminated):
+        click.echo("afmid: terminated; no partial output was written", err=True)
+        return EXIT_TERMINATED
+    click.echo("afmid: interrupted; no partial output was written", err=True)
+    return EXIT_INTERRUPTED
+
+
+def _run(argv: list[str] | None) -> int:
     from .errors import AfmidError
 
     try:
@@ -272,14 +298,11 @@ def main(argv: list[str] | None = None) -> int:
         exc.show()
         return exc.exit_code
     except click.exceptions.Abort as exc:
-        # click turns Ctrl-C inside a command into Abort (after printing a newline)
+        # click turns Ctrl-C (and SIGTERM, a KeyboardInterrupt here) inside a command into Abort, after
+        # printing a newline
         if isinstance(exc.__cause__, KeyboardInterrupt):
-            click.echo("afmid: interrupted; no partial output was written", err=True)
-        else:
-            click.echo("afmid: aborted", err=True)
-        return 130
-    except KeyboardInterrupt:
-        click.echo("afmid: interrupted; no partial output was written", err=True)
+            return _interrupted(exc.__cause__)
+        click.echo("afmid: aborted", err=True)
         return 130
     return 0
 
