@@ -185,13 +185,19 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
                            overrides=overrides, force=force, progress=not _state["quiet"])
     except BatchInterrupted as exc:
         click.echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
-        raise KeyboardInterrupt from None  # main() reports it and exits with 130
+        from .interrupts import Terminated
+
+        raise (Terminated() if exc.terminated else KeyboardInterrupt()) from None  # main() reports it: 143 / 130
     log.info("batch: %s", result.line())
     failed = [r.item.name for r in result.rows if r.status == "failed"]
     if failed:
+        from .tempfiles import NO_SPACE_TEXT
+
         names = ", ".join(failed[:3]) + (", ..." if len(failed) > 3 else "")
+        full = sum(NO_SPACE_TEXT in r.error for r in result.rows if r.status == "failed")
+        why = f" ({full} of them: {NO_SPACE_TEXT})" if full else ""  # the one cause that fails every item after
         raise AfmidError(f"{len(failed)} of {result.total} {result.unit} failed ({names}); the errors are in the "
-                         f"summary", file=output / "summary.csv")
+                         f"summary{why}", file=output / "summary.csv")
 
 
 @cli.command()
@@ -205,8 +211,15 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     Writes OUTPUT/report.html (self-contained), OUTPUT/*.png and OUTPUT/summary.json.
     """
     from .report import make_report
+    from .tempfiles import disk_full_error, is_disk_full
 
-    summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest, progress=not _state["quiet"])
+    try:
+        summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest,
+                              progress=not _state["quiet"])
+    except OSError as exc:  # the report's temporary folder is removed already
+        if is_disk_full(exc):
+            raise disk_full_error(exc, output) from None
+        raise
     click.echo(summary)
 
 

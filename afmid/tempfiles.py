@@ -28,8 +28,10 @@ log = logging.getLogger(__name__)
 PREFIX = ".afmid-tmp-"
 #: <output name>.<host>.<pid>.<mkstemp's random part, which has no dots>
 _NAME_RE = re.compile(r"^\.afmid-tmp-(?P<name>.+)\.(?P<host>[A-Za-z0-9-]+)\.(?P<pid>\d+)\.(?P<random>[^.]+)$")
+#: What every error line about an output that does not fit says (a batch looks for it in its items' errors).
+NO_SPACE_TEXT = "no space left on device"
 #: errno values that mean the output does not fit, and how the error line says it.
-_NO_SPACE = {errno.ENOSPC: "no space left on device", errno.EDQUOT: "disk quota exceeded (no space left on device)"}
+_NO_SPACE = {errno.ENOSPC: NO_SPACE_TEXT, errno.EDQUOT: f"disk quota exceeded ({NO_SPACE_TEXT})"}
 
 
 def host_tag() -> str:
