@@ -710,8 +710,8 @@ def fit_task(task: dict) -> dict:
             tmp_trace.unlink(missing_ok=True)
             os._exit(143)
         what = "simulation failed: " if stage == "simulate" else ""
-        if isinstance(exc, AfmidError):
-            out["error"] = what + exc.format()
+        if isinstance(exc, AfmidError):  # named by the files the user will look for, not the temporary ones
+            out["error"] = what + exc.format().replace(str(tmp), task["output"]).replace(str(tmp_trace), task["trace"])
         else:  # a bug or an unexpected failure: report it, keep the batch going
             out["error"] = f"{what}{type(exc).__name__}: {exc}"
             capture.records.append((logging.DEBUG, traceback.format_exc()))

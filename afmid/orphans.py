@@ -41,10 +41,10 @@ def _watch_parent(parent_pid: int) -> None:
     os.kill(os.getpid(), signal.SIGTERM)
 
 
-def exit_with_parent(parent_pid: int) -> str:
+def exit_with_parent(parent_pid: int, use_prctl: bool = True) -> str:
     """Make this process receive SIGTERM when process ``parent_pid`` (its parent) dies; returns the mechanism
-    used ("prctl" or "thread")."""
-    how = "prctl" if _set_parent_death_signal(signal.SIGTERM) else "thread"
+    used ("prctl" or "thread"; ``use_prctl=False`` chooses the thread, as on systems without prctl)."""
+    how = "prctl" if use_prctl and _set_parent_death_signal(signal.SIGTERM) else "thread"
     if how == "thread":
         threading.Thread(target=_watch_parent, args=(parent_pid,), name="afmid-parent-watch", daemon=True).start()
     if os.getppid() != parent_pid:  # the parent died before the request above took effect
