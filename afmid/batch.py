@@ -69,7 +69,11 @@ simulated before the interruption is not simulated again). An item that fails
 (bad file, bad config, bad override, a simulation or fit error) is logged and
 listed with its error and does not stop the batch; a worker that dies (killed,
 out of memory) is replaced, and the items it may have been running are retried
-one at a time to find the culprit, which is then reported as failed.
+one at a time to find the culprit, which is then reported as failed. SIGTERM
+to the batch exits with 143 instead of Ctrl-C's 130; a batch killed outright
+(``kill -9``) cannot stop its workers, so each worker stops itself when its
+parent is gone (:mod:`afmid.orphans`). An item whose output does not fit on the
+disk fails with "no space left on device".
 
 This module imports nothing heavy at import time: a worker must be able to
 set its thread limits before NumPy loads.

@@ -145,18 +145,23 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     from . import interrupts, tempfiles
 
+    interrupts.raise_if_pending()  # an interrupt swallowed earlier in the run: do not even start
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     tempfiles.remove_stale(folder)
+    held = contextlib.ExitStack()  # a signal while the file is made must not leave it nameless
+    held.enter_context(interrupts.deferred())
     try:
         fd, tmp = tempfile.mkstemp(prefix=tempfiles.prefix_for(path), dir=folder)
     except OSError as exc:  # unwritable or vanished folder: the user's environment, not a bug
+        held.close()
         if tempfiles.is_disk_full(exc):
             raise tempfiles.disk_full_error(exc, path) from None
         raise OutputError(f"cannot write in folder {path.parent}: {exc.strerror or exc}", file=path) from exc
     os.close(fd)
     tmp_path = Path(tmp)
     try:
+        held.close()  # delivers a signal that came meanwhile, here, where the file is removed
         yield tmp_path
         interrupts.raise_if_pending()
         # mkstemp creates the file private (0600); give the output the permissions the umask allows.

@@ -36,12 +36,13 @@ _NO_SPACE = {errno.ENOSPC: NO_SPACE_TEXT, errno.EDQUOT: f"disk quota exceeded ({
 
 def host_tag() -> str:
     """This machine's name as it appears in temporary names (dots and other separators replaced by '-')."""
-    return re.sub(r"[^A-Za-z0-9-]+", "-", socket.gethostname()).strip("-") or "localhost"
+    return (re.sub(r"[^A-Za-z0-9-]+", "-", socket.gethostname()).strip("-") or "localhost")[:40]
 
 
 def prefix_for(path: Path) -> str:
     """The prefix (for :func:`tempfile.mkstemp`) of this process's temporary files for output ``path``."""
-    return f"{PREFIX}{path.name}.{host_tag()}.{os.getpid()}."
+    # Shortened parts keep the name within the 255 bytes a file system allows.
+    return f"{PREFIX}{path.name[:120]}.{host_tag()}.{os.getpid()}."
 
 
 def owner(name: str) -> tuple[str, int] | None:

@@ -119,12 +119,16 @@ def signalled(signal_name: str, when: str = ".afmid-tmp-*", delay: float = 0.0) 
             "AFMID_TEST_SIGNAL_WHEN": when, "AFMID_TEST_SIGNAL_DELAY": str(delay)}
 
 
-def in_callback(signal_name: str, event: str = "tempfile.mkstemp") -> dict[str, str]:
-    """Environment for a child that receives ``signal_name`` inside a weakref callback when the audit event
-    ``event`` happens (by default: as the temporary file of its output is made)."""
+def at_event(signal_name: str, event: str = "tempfile.mkstemp", in_callback: bool = False) -> dict[str, str]:
+    """Environment for a child that receives ``signal_name`` when it raises the audit event ``event`` (by
+    default: as the temporary file of its output is made), from inside a weakref callback if asked."""
     env = signalled(signal_name, when="")
-    env["AFMID_TEST_SIGNAL_IN_CALLBACK"] = event
+    env.update(AFMID_TEST_SIGNAL_AT=event, AFMID_TEST_SIGNAL_IN_CALLBACK="1" if in_callback else "0")
     return env
+
+
+def in_callback(signal_name: str) -> dict[str, str]:
+    return at_event(signal_name, in_callback=True)
 
 
 FIT = ("-q", "fit", "run.yaml", "-o", "out.h5")
@@ -133,10 +137,10 @@ TERMINATED = "afmid: terminated; no partial output was written"
 BATCH_OUT = ("out", "out/summary.csv", "out/summary.h5")
 
 SIGNAL_CASES = [
-    Case("fit-sigterm-as-write-begins", "signal", FIT, workspace(), 143, None, None, (TERMINATED,),
+    Case("fit-sigterm-during-write", "signal", FIT, workspace(), 143, None, None, (TERMINATED,),
          subprocess=True, env=signalled("SIGTERM")),
-    Case("fit-sigterm-10ms-into-write", "signal", FIT, workspace(), 143, None, None, (TERMINATED,),
-         subprocess=True, env=signalled("SIGTERM", delay=0.01)),
+    Case("fit-sigterm-as-temporary-file-is-made", "signal", FIT, workspace(), 143, None, None, (TERMINATED,),
+         subprocess=True, env=at_event("SIGTERM")),
     Case("fit-sigterm-while-fitting", "signal", FIT, workspace(), 143, None, None, (TERMINATED,),
          subprocess=True, env=signalled("SIGTERM", when="audit:open:trace.h5", delay=0.2)),
     Case("fit-ctrl-c-lost-in-a-weakref-callback", "signal", FIT, workspace(), 130, None, None, (INTERRUPTED,),
@@ -149,9 +153,9 @@ SIGNAL_CASES = [
     Case("init-config-ctrl-c-lost-in-a-weakref-callback", "signal", ("-q", "init-config", "-o", "new.yaml"),
          workspace(trace=False, config=False), 130, None, None, (INTERRUPTED,), subprocess=True,
          env=in_callback("SIGINT")),
-    Case("simulate-sigterm-during-write", "signal",
+    Case("simulate-sigterm-as-temporary-file-is-made", "signal",
          ("-q", "simulate", str(ROOT / "configs" / "dmt.yaml"), "-o", "sim.h5", *SIMULATE_SET), workspace(trace=False),
-         143, None, None, (TERMINATED,), subprocess=True, env=signalled("SIGTERM")),
+         143, None, None, (TERMINATED,), subprocess=True, env=at_event("SIGTERM")),
     Case("report-sigterm-while-drawing", "signal", ("-q", "report", "run.h5", "-o", "rep", "--no-suggest"),
          workspace(run_file=True), 143, None, None, (TERMINATED,), subprocess=True,
          env=signalled("SIGTERM", when=".afmid-tmp-rep.*", delay=0.5)),

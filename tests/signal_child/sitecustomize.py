@@ -9,10 +9,11 @@ Environment (read once, then removed, so that processes it starts, e.g. batch wo
   the audit event EVENT with TEXT in its arguments (e.g. ``audit:open:trace.h5``: the input is read);
   or, if empty, right away;
 - ``AFMID_TEST_SIGNAL_DELAY``: seconds to wait after that (default 0);
-- or ``AFMID_TEST_SIGNAL_IN_CALLBACK``: an audit event (e.g. ``tempfile.mkstemp``, raised when a temporary
-  file is made); when the main thread raises it, the signal is sent from inside a weakref callback, where
-  Python cannot propagate the exception its handler raises: what happens when a real Ctrl-C lands while
-  h5py or NumPy objects are being released (measured: most Ctrl-Cs in ``afmid fit``'s write phase).
+- or ``AFMID_TEST_SIGNAL_AT``: an audit event (e.g. ``tempfile.mkstemp``, raised as a temporary file is
+  made): the main thread sends the signal itself the first time it raises that event, so it arrives at
+  exactly that point; with ``AFMID_TEST_SIGNAL_IN_CALLBACK=1`` it sends it from inside a weakref callback,
+  where Python cannot propagate the exception its handler raises: what happens when a real Ctrl-C lands
+  while h5py or NumPy objects are being released (measured: most Ctrl-Cs in ``afmid fit``'s write phase).
 
 SIGINT is first reset to Python's default: a test suite started in the background by a non-interactive shell
 inherits SIGINT ignored, and the child would then never see the Ctrl-C it stands for.
@@ -29,7 +30,8 @@ if _signal_name:
 
     _when = os.environ.pop("AFMID_TEST_SIGNAL_WHEN", "")
     _delay = float(os.environ.pop("AFMID_TEST_SIGNAL_DELAY", "0") or 0)
-    _in_callback = os.environ.pop("AFMID_TEST_SIGNAL_IN_CALLBACK", "")
+    _at = os.environ.pop("AFMID_TEST_SIGNAL_AT", "")
+    _in_callback = os.environ.pop("AFMID_TEST_SIGNAL_IN_CALLBACK", "") == "1"
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
     _seen = threading.Event()
@@ -43,7 +45,7 @@ if _signal_name:
         time.sleep(_delay)
         os.kill(os.getpid(), getattr(signal, _signal_name))
 
-    if _in_callback:
+    if _at:
         import sys
         import weakref
 
@@ -53,9 +55,12 @@ if _signal_name:
         _sent = []
 
         def _audit(event, args) -> None:
-            if event != _in_callback or _sent or threading.current_thread() is not threading.main_thread():
+            if event != _at or _sent or threading.current_thread() is not threading.main_thread():
                 return
             _sent.append(event)
+            if not _in_callback:
+                os.kill(os.getpid(), getattr(signal, _signal_name))
+                return
             obj = _Released()
             # os.kill delivers a signal to the own process at once: the handler runs inside the callback.
             ref = weakref.ref(obj, lambda _: os.kill(os.getpid(), getattr(signal, _signal_name)))
