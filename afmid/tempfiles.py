@@ -117,14 +117,22 @@ class ErrorHoldingFile(io.RawIOBase):
         return True
 
     def seek(self, offset: int, whence: int = 0) -> int:
-        return self._raw.seek(offset, whence)
+        try:
+            return self._raw.seek(offset, whence)
+        except BaseException as exc:
+            self._hold(exc)
+            return offset
 
     def tell(self) -> int:
-        return self._raw.tell()
+        try:
+            return self._raw.tell()
+        except BaseException as exc:
+            self._hold(exc)
+            return 0
 
     def read(self, size: int = -1) -> bytes:
-        if size is None or size < 0:
-            return self.readall()
+        if size is None or size < 0:  # the rest of the file, as it is (no padding: there is no end to pad to)
+            return self._raw.read()
         buffer = bytearray(size)
         self.readinto(buffer)
         return bytes(buffer)
