@@ -9,6 +9,8 @@ root only).
 from __future__ import annotations
 
 import csv
+import errno
+import io
 import logging
 import os
 import signal
@@ -296,6 +298,38 @@ def _fill(folder: Path, leave: int) -> None:
     stat = os.statvfs(folder)
     with open(folder / "filler.bin", "wb") as fh:
         fh.write(b"\0" * max(0, stat.f_bavail * stat.f_frsize - leave))
+
+
+class _DiskOf(io.BytesIO):
+    """An in-memory file on a 'disk' of ``capacity`` bytes: writes past it fail with ENOSPC (no mount needed)."""
+
+    def __init__(self, capacity: int):
+        super().__init__()
+        self.capacity = capacity
+
+    def write(self, data) -> int:
+        if self.tell() + memoryview(data).nbytes > self.capacity:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return super().write(data)
+
+
+def test_the_hdf5_library_never_sees_a_failed_write():
+    data = np.random.default_rng(2).normal(size=50_000)
+    disk = _DiskOf(100_000)
+    sink = tempfiles.ErrorHoldingFile(disk)
+    with h5py.File(sink, "w") as h5:  # would print HDF5 errors and crash at close with the bare file object
+        h5.create_dataset("x", data=data, chunks=(5_000,), compression="gzip")
+        h5.create_dataset("y", data=data[:100])
+        h5.attrs["note"] = "written after the disk filled up"
+    assert isinstance(sink.error, OSError) and sink.error.errno == errno.ENOSPC
+    # On a disk with room, the same file object changes nothing.
+    room = _DiskOf(10**8)
+    roomy = tempfiles.ErrorHoldingFile(room)
+    with h5py.File(roomy, "w") as h5:
+        h5.create_dataset("x", data=data, chunks=(5_000,), compression="gzip")
+    assert roomy.error is None
+    with h5py.File(io.BytesIO(room.getvalue()), "r") as h5:
+        assert np.array_equal(h5["x"][...], data)
 
 
 def test_hdf5_on_a_full_disk_is_one_error_and_nothing_left(small_disk):
