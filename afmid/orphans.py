@@ -6,6 +6,10 @@ minutes, holding memory and cores. :func:`exit_with_parent` makes a worker send 
 handler removes its temporary file and exits) as soon as the parent dies: on Linux through
 ``prctl(PR_SET_PDEATHSIG)``, elsewhere (or if that call fails) by a daemon thread that checks the parent
 process id every :data:`POLL_SECONDS`.
+
+Linux sends the signal when the *thread* that started the process ends. The batch starts its workers from
+its main thread (``ProcessPoolExecutor.submit``, which spawns workers as needed; without
+``max_tasks_per_child`` the pool's manager thread never spawns one), so that is when the batch process ends.
 """
 
 from __future__ import annotations
