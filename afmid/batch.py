@@ -75,7 +75,11 @@ simulated before the interruption is not simulated again). An item that fails
 (bad file, bad config, bad override, a simulation or fit error) is logged and
 listed with its error and does not stop the batch; a worker that dies (killed,
 out of memory) is replaced, and the items it may have been running are retried
-one at a time to find the culprit, which is then reported as failed.
+one at a time to find the culprit, which is then reported as failed. SIGTERM
+to the batch exits with 143 instead of Ctrl-C's 130; a batch killed outright
+(``kill -9``) cannot stop its workers, so each worker stops itself when its
+parent is gone (:mod:`afmid.orphans`). An item whose output does not fit on the
+disk fails with "no space left on device".
 
 This module imports nothing heavy at import time: a worker must be able to
 set its thread limits before NumPy loads.
@@ -582,13 +586,17 @@ def run_key(path: Path) -> str | None:
 _worker_state: dict[str, Any] = {}
 
 
-def _init_worker(env: dict[str, str], log_level: int) -> None:
+def _init_worker(env: dict[str, str], log_level: int, parent_pid: int | None = None) -> None:
     """Worker start-up: thread limits before NumPy loads, signals, logging, warm imports."""
     os.environ.update(env)
     # The parent stops workers with SIGTERM (see _stop_workers); Ctrl-C in a terminal reaches the whole
     # process group, and the parent decides what to do about it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
+    if parent_pid is not None:  # a parent killed outright (kill -9) cannot stop its workers: they stop themselves
+        from .orphans import exit_with_parent
+
+        exit_with_parent(parent_pid)
     sys.unraisablehook = _on_unraisable
     logger = logging.getLogger("afmid")
     logger.handlers[:] = []
@@ -648,7 +656,9 @@ def _interrupts_held(reraise: bool = True):
         for s, handler in previous.items():
             signal.signal(s, handler)
     if caught and reraise:
-        raise KeyboardInterrupt()
+        from .interrupts import Terminated
+
+        raise Terminated() if signal.SIGTERM in caught else KeyboardInterrupt()
 
 
 class _Capture(logging.Handler):
@@ -712,11 +722,7 @@ def fit_task(task: dict) -> dict:
         result = run_fit(config, trace=trace)
         t2 = time.perf_counter()
         key = batch_key(trace.sha256, task["config_text"])
-        write_run(tmp, result, config, overwrite=True)
-        import h5py
-
-        with h5py.File(tmp, "r+") as h5:
-            h5.attrs["batch_key"] = key
+        write_run(tmp, result, config, overwrite=True, root_attrs={"batch_key": key})
         os.replace(tmp, task["output"])
         t3 = time.perf_counter()
         out["row"] = read_run_row(Path(task["output"]))
@@ -731,8 +737,8 @@ def fit_task(task: dict) -> dict:
             tmp_trace.unlink(missing_ok=True)
             os._exit(143)
         what = "simulation failed: " if stage == "simulate" else ""
-        if isinstance(exc, AfmidError):
-            out["error"] = what + exc.format()
+        if isinstance(exc, AfmidError):  # named by the files the user will look for, not the temporary ones
+            out["error"] = what + exc.format().replace(str(tmp), task["output"]).replace(str(tmp_trace), task["trace"])
         else:  # a bug or an unexpected failure: report it, keep the batch going
             out["error"] = f"{what}{type(exc).__name__}: {exc}"
             capture.records.append((logging.DEBUG, traceback.format_exc()))
@@ -1035,12 +1041,12 @@ def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: s
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    interrupted = False
+    from . import interrupts
+
+    interrupted: KeyboardInterrupt | None = None
     tmp_dir = output_dir / f"{TMP_PREFIX}{os.getpid()}"
-    previous_term = _term_as_interrupt()
-    previous_hook = sys.unraisablehook
-    sys.unraisablehook = _parent_unraisable
-    _parent_state["interrupt"] = False
+    handling = contextlib.ExitStack()
+    handling.enter_context(interrupts.handled())  # Ctrl-C and SIGTERM raise, and are never lost
     bar = None
     try:
         if todo:
@@ -1050,54 +1056,31 @@ def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: s
                            disable=not progress, leave=False, dynamic_ncols=True)
                 _run_pool(todo, rows, jobs, tmp_dir, bar, flush, state)
         flush(force_write=True)
-    except KeyboardInterrupt:
-        interrupted = True
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (interrupts.Terminated)
+        interrupted = exc
+        interrupts.clear()  # handled here: the summary below must not be stopped by it again
         with _interrupts_held(reraise=False):  # a second Ctrl-C must not spoil the summary
             write_summary(output_dir, ordered(), batch_text)
     finally:
         if bar is not None:
             bar.close()
         shutil.rmtree(tmp_dir, ignore_errors=True)
-        if previous_term is not None:
-            signal.signal(signal.SIGTERM, previous_term)
-        sys.unraisablehook = previous_hook
-    result = BatchResult(ordered(), output_dir, time.perf_counter() - start, len(items), interrupted, unit)
-    if interrupted:
-        raise BatchInterrupted(result)
+        handling.close()
+    result = BatchResult(ordered(), output_dir, time.perf_counter() - start, len(items), interrupted is not None,
+                         unit)
+    if interrupted is not None:
+        raise BatchInterrupted(result, terminated=isinstance(interrupted, interrupts.Terminated))
     return result
 
 
 class BatchInterrupted(KeyboardInterrupt):
-    """Ctrl-C during a batch, after the workers were stopped and the summary of what finished was written."""
+    """Ctrl-C (or SIGTERM: ``terminated``) during a batch, after the workers were stopped and the summary of what
+    finished was written."""
 
-    def __init__(self, result: BatchResult):
+    def __init__(self, result: BatchResult, terminated: bool = False):
         super().__init__()
         self.result = result
-
-
-_parent_state = {"interrupt": False}
-
-
-def _parent_unraisable(unraisable) -> None:
-    """In the batch process: a Ctrl-C / SIGTERM that landed in a callback that cannot raise (a weakref callback,
-    ``__del__``) would be printed as ignored and lost; remember it, the pool loop raises it."""
-    if isinstance(unraisable.exc_value, KeyboardInterrupt):
-        _parent_state["interrupt"] = True
-        return
-    _default_unraisablehook(unraisable)
-
-
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt()
-
-
-def _term_as_interrupt():
-    """SIGTERM to the batch process stops it like Ctrl-C (workers stopped, summary written); returns the old handler."""
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return None
-    return signal.signal(signal.SIGTERM, _raise_interrupt)
+        self.terminated = terminated
 
 
 def _remove_stale_tmp(output_dir: Path) -> None:
@@ -1119,6 +1102,8 @@ def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, bar, flush
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
 
+    from . import interrupts
+
     ctx = multiprocessing.get_context("spawn")
     level = logging.getLogger("afmid").getEffectiveLevel()
     pending = deque(todo)
@@ -1129,7 +1114,7 @@ def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, bar, flush
         # The thread caps go in the environment the workers are spawned with (so they hold before any import)
         # and again in the initializer.
         return ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=_init_worker,
-                                   initargs=(dict(THREAD_ENV), level))
+                                   initargs=(dict(THREAD_ENV), level, os.getpid()))
 
     def task(item: Item) -> dict:
         return {"index": item.index, "name": item.name, "raw": item.raw, "config": str(item.config_path),
@@ -1151,8 +1136,7 @@ def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, bar, flush
                     item = pending.popleft()
                     in_flight[pool.submit(fit_task, task(item))] = (item, False)
             done, _ = wait(list(in_flight), timeout=1.0, return_when=FIRST_COMPLETED)
-            if _parent_state["interrupt"]:  # a Ctrl-C that landed where Python could not raise it
-                raise KeyboardInterrupt()
+            interrupts.raise_if_pending()  # a Ctrl-C / SIGTERM that landed where Python could not raise it
             broken = False
             for fut in done:
                 item, isolated = in_flight.pop(fut)

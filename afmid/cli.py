@@ -194,7 +194,9 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
                            overrides=overrides, force=force, progress=not _state["quiet"])
     except BatchInterrupted as exc:
         click.echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
-        raise KeyboardInterrupt from None  # main() reports it and exits with 130
+        from .interrupts import Terminated
+
+        raise (Terminated() if exc.terminated else KeyboardInterrupt()) from None  # main() reports it: 143 / 130
     log.info("batch: %s", result.line())
     suspect = [r.item.name for r in result.rows if r.status == "suspect"]
     if suspect:  # results, but not ones to take as they are: flagged, not an error (see the docstring)
@@ -203,9 +205,13 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
                     output / "summary.csv")
     failed = [r.item.name for r in result.rows if r.status == "failed"]
     if failed:
+        from .tempfiles import NO_SPACE_TEXT
+
         names = ", ".join(failed[:3]) + (", ..." if len(failed) > 3 else "")
+        full = sum(NO_SPACE_TEXT in r.error for r in result.rows if r.status == "failed")
+        why = f" ({full} of them: {NO_SPACE_TEXT})" if full else ""  # the one cause that fails every item after
         raise AfmidError(f"{len(failed)} of {result.total} {result.unit} failed ({names}); the errors are in the "
-                         f"summary", file=output / "summary.csv")
+                         f"summary{why}", file=output / "summary.csv")
 
 
 @cli.command()
@@ -225,9 +231,15 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     never replaced (docs/file-formats.md).
     """
     from .report import make_report
+    from .tempfiles import disk_full_error, is_disk_full
 
-    summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest,
-                          progress=not _state["quiet"], allow_different_traces=allow_different_traces)
+    try:
+        summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest,
+                              progress=not _state["quiet"], allow_different_traces=allow_different_traces)
+    except OSError as exc:  # the report's temporary folder is removed already
+        if is_disk_full(exc):
+            raise disk_full_error(exc, output) from None
+        raise
     click.echo(summary)
 
 
@@ -279,7 +291,33 @@ def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Console entry point; returns the exit code."""
+    """Console entry point; returns the exit code.
+
+    Ctrl-C exits with 130 and SIGTERM with 143, each with one line; SIGTERM is raised as an exception like
+    Ctrl-C so that temporary files are removed (afmid/interrupts.py)."""
+    from . import interrupts
+
+    with interrupts.handled():
+        try:
+            code = _run(argv)
+            interrupts.raise_if_pending()  # an interrupt that Python swallowed (a weakref callback) still counts
+        except KeyboardInterrupt as exc:
+            code = _interrupted(exc)
+    return code
+
+
+def _interrupted(exc: BaseException) -> int:
+    from .interrupts import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated, clear
+
+    clear()
+    if isinstance(exc, Terminated):
+        click.echo("afmid: terminated; no partial output was written", err=True)
+        return EXIT_TERMINATED
+    click.echo("afmid: interrupted; no partial output was written", err=True)
+    return EXIT_INTERRUPTED
+
+
+def _run(argv: list[str] | None) -> int:
     from .errors import AfmidError
 
     try:
@@ -295,14 +333,11 @@ def main(argv: list[str] | None = None) -> int:
         exc.show()
         return exc.exit_code
     except click.exceptions.Abort as exc:
-        # click turns Ctrl-C inside a command into Abort (after printing a newline)
+        # click turns Ctrl-C (and SIGTERM, a KeyboardInterrupt here) inside a command into Abort, after
+        # printing a newline
         if isinstance(exc.__cause__, KeyboardInterrupt):
-            click.echo("afmid: interrupted; no partial output was written", err=True)
-        else:
-            click.echo("afmid: aborted", err=True)
-        return 130
-    except KeyboardInterrupt:
-        click.echo("afmid: interrupted; no partial output was written", err=True)
+            return _interrupted(exc.__cause__)
+        click.echo("afmid: aborted", err=True)
         return 130
     return 0
 

@@ -1228,8 +1228,9 @@ PERIOD_UNITS = {
 }
 
 
-def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = False):
-    """Write the run file (layout: docs/file-formats.md)."""
+def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = False, root_attrs: dict | None = None):
+    """Write the run file (layout: docs/file-formats.md); ``root_attrs`` are further root attributes (a batch's
+    resume key), written with the rest rather than by opening the file again."""
     path = check_output_path(path, overwrite)
     trace = result.prep.trace
     inputs = {str(trace.path): trace.sha256} if trace.path else {}
@@ -1237,6 +1238,8 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
     units = [t.coefficient_unit for t in result.library.terms]
     with atomic_hdf5(path, RUN_FORMAT, dump_config(config), inputs) as h5:
         h5.attrs["cv_error"] = result.cv_error
+        for name, value in (root_attrs or {}).items():
+            h5.attrs[name] = value
         h5.attrs["overridden"] = list(trace.overridden) or [""]
         h5.attrs["value_sources"] = "; ".join(f"{k}: {v}" for k, v in trace.sources.items())
         cg = h5.create_group("cantilever")

@@ -194,24 +194,43 @@ def check_output_path(path: str | Path, overwrite: bool, inputs: dict[str | Path
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it into place on success only."""
+    """Yield a temporary path beside ``path``; rename it into place on success only.
+
+    The temporary name tells host and process (:mod:`afmid.tempfiles`); temporary files that processes gone
+    since left in the folder are removed first. A full disk is one :class:`OutputError` naming ``path``; an
+    interrupt, even one that Python swallowed on the way (:mod:`afmid.interrupts`), leaves nothing.
+    """
+    from . import interrupts, tempfiles
+
+    interrupts.raise_if_pending()  # an interrupt swallowed earlier in the run: do not even start
     path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    tempfiles.remove_stale(folder)
+    held = contextlib.ExitStack()  # a signal while the file is made must not leave it nameless
+    held.enter_context(interrupts.deferred())
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".afmid-tmp-{path.name}.", dir=path.parent or ".")
+        fd, tmp = tempfile.mkstemp(prefix=tempfiles.prefix_for(path), dir=folder)
     except OSError as exc:  # unwritable or vanished folder: the user's environment, not a bug
+        held.close()
+        if tempfiles.is_disk_full(exc):
+            raise tempfiles.disk_full_error(exc, path) from None
         raise OutputError(f"cannot write in folder {path.parent}: {exc.strerror or exc}", file=path) from exc
     os.close(fd)
     tmp_path = Path(tmp)
     try:
+        held.close()  # delivers a signal that came meanwhile, here, where the file is removed
         yield tmp_path
+        interrupts.raise_if_pending()
         # mkstemp creates the file private (0600); give the output the permissions the umask allows.
         umask = os.umask(0)
         os.umask(umask)
         if tmp_path.is_file():
             os.chmod(tmp_path, 0o666 & ~umask)
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as exc:
         tmp_path.unlink(missing_ok=True)
+        if tempfiles.is_disk_full(exc):
+            raise tempfiles.disk_full_error(exc, path) from None
         raise
 
 
@@ -220,22 +239,48 @@ def atomic_hdf5(path: str | Path, file_format: str, config_text: str, inputs: di
     """Open a new afmid HDF5 file for writing, with provenance root attributes.
 
     ``inputs`` maps input paths to their SHA-256. The file appears at ``path``
-    only if the block completes.
+    only if the block completes. The HDF5 library writes through a file object that holds a failed write
+    (a full disk) instead of failing it, and Ctrl-C / SIGTERM wait until the file is closed: either could
+    otherwise make the library crash (:mod:`afmid.tempfiles`, :mod:`afmid.interrupts`).
     """
     import h5py
 
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as h5:
-            h5.attrs["afmid_version"] = __version__
-            h5.attrs["format"] = file_format
-            h5.attrs["format_version"] = FORMAT_VERSION
-            h5.attrs["created"] = now_iso()
-            h5.attrs["config"] = config_text
-            for i, (ipath, digest) in enumerate((inputs or {}).items()):
-                suffix = "" if i == 0 else f"_{i}"
-                h5.attrs[f"input_path{suffix}"] = str(Path(ipath).resolve())
-                h5.attrs[f"input_sha256{suffix}"] = digest
-            yield h5
+    from . import interrupts
+    from .tempfiles import ErrorHoldingFile
+
+    with atomic_path(path) as tmp, open(tmp, "r+b", buffering=0) as raw:
+        sink = ErrorHoldingFile(raw)
+        with interrupts.deferred():
+            try:
+                with h5py.File(sink, "w") as h5:
+                    h5.attrs["afmid_version"] = __version__
+                    h5.attrs["format"] = file_format
+                    h5.attrs["format_version"] = FORMAT_VERSION
+                    h5.attrs["created"] = now_iso()
+                    h5.attrs["config"] = config_text
+                    for i, (ipath, digest) in enumerate((inputs or {}).items()):
+                        suffix = "" if i == 0 else f"_{i}"
+                        h5.attrs[f"input_path{suffix}"] = str(Path(ipath).resolve())
+                        h5.attrs[f"input_sha256{suffix}"] = digest
+                    yield h5
+            except Exception:
+                if sink.error is None:
+                    raise
+                # The library failed after a write was held (it read back what never reached the disk): the
+                # held error is the cause.
+            sink.flush()
+            if sink.error is not None:
+                _raise_held(sink.error, path)
+
+
+def _raise_held(error: BaseException, path: Path | str) -> None:
+    """Raise what went wrong while the HDF5 library wrote ``path``: an interrupt as it is, a full disk for
+    :func:`atomic_path` to report, any other failed write as one error line naming the output."""
+    from .tempfiles import is_disk_full
+
+    if isinstance(error, OSError) and not is_disk_full(error):
+        raise OutputError(f"cannot write: {error.strerror or error}", file=path) from error
+    raise error
 
 
 def write_dataset(group, name: str, data, units: str, **attrs):
