@@ -163,7 +163,8 @@ def load_run(path: str | Path) -> RunData:
         if input_unchanged(data.input_path, data.input_sha256):
             try:
                 data.truth = read_truth(data.input_path)
-            except (OSError, KeyError):
+            except InputError as exc:  # the truth is an extra for the report, not what it is about
+                log.warning("%s: the ground truth of its input is ignored: %s", path, exc.format())
                 data.truth = None
         else:
             log.warning("%s: its input %s changed since the fit (SHA-256 differs): its ground truth is ignored",

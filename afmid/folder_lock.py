@@ -20,6 +20,7 @@ from pathlib import Path
 
 from .errors import OutputError
 from .io import now_iso
+from .tempfiles import disk_full_error, is_disk_full
 
 LOCK_NAME = ".afmid-batch.lock"
 
@@ -33,8 +34,14 @@ def folder_lock(folder: Path, key: str | None = None) -> Iterator[Path]:
     path = Path(folder) / LOCK_NAME
     fd = _acquire(path, Path(folder), key)
     try:
-        os.ftruncate(fd, 0)
-        os.write(fd, f"pid {os.getpid()} on host {socket.gethostname()}, started {now_iso()}\n".encode())
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"pid {os.getpid()} on host {socket.gethostname()}, started {now_iso()}\n".encode())
+        except OSError as exc:  # a full disk: say so (the lock is released and its file removed below)
+            if is_disk_full(exc):
+                raise disk_full_error(exc, path) from None
+            raise OutputError(f"cannot write the lock file {LOCK_NAME}: {exc.strerror or exc}", file=folder,
+                              key=key) from None
         yield path
     finally:
         # Remove the file while still holding the lock: a process that opened it meanwhile finds, once it gets

@@ -359,8 +359,13 @@ def _attr(group, name: str):
 
 
 def read_truth(path: str | Path) -> Truth | None:
-    """The ``/truth`` group of an afmid trace file, or None; InputError naming the file if it is damaged."""
+    """The ``/truth`` group of an afmid trace file, or None (also for a file that is not HDF5: a measured trace
+    in another format has no ground truth); InputError naming the file if it is damaged."""
+    import h5py
+
     try:
+        if not h5py.is_hdf5(path):
+            return None
         return _read_truth(path)
     except (OSError, KeyError, ValueError, RuntimeError, TypeError) as exc:  # what h5py raises on a damaged file
         detail = " ".join(str(exc).split())[:160] or type(exc).__name__

@@ -24,7 +24,9 @@ from pathlib import Path
 
 from . import __version__
 from .errors import OutputError
+from .interrupts import raise_if_pending
 from .io import lies_inside, now_iso, refuse_input_as_output
+from .tempfiles import prefix_for, remove_stale
 
 MARKER = ".afmid-report"
 MARKER_FORMAT = "afmid-report"
@@ -88,7 +90,8 @@ def report_folder(output: Path, overwrite: bool, inputs: dict[str | Path, str] |
     check_report_folder(output, overwrite, inputs)
     real = output.resolve()  # a symbolic link to a folder: the report replaces the folder it points to
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".afmid-tmp-{real.name}.", dir=real.parent))
+        remove_stale(real.parent)  # report folders of afmid processes killed outright (kill -9)
+        tmp = Path(tempfile.mkdtemp(prefix=prefix_for(real), dir=real.parent))
     except OSError as exc:  # read-only file system, no permission, missing parent: the user's environment
         raise OutputError(f"cannot write in folder {real.parent}: {exc.strerror or exc}", file=output) from None
     try:
@@ -99,6 +102,7 @@ def report_folder(output: Path, overwrite: bool, inputs: dict[str | Path, str] |
         write_marker(tmp)
         with _signals_held():
             check_report_folder(output, overwrite)  # again: files may have been put there while the report was made
+            raise_if_pending()  # an interrupt Python swallowed while the report was written (a weakref callback)
             _swap(tmp, real, output)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -117,6 +121,8 @@ def _swap(new: Path, real: Path, output: Path) -> None:
     old = None
     try:
         if real.exists():
+            # not in the temporary-name form: if afmid is killed between the two renames, the old report stays
+            # (never removed as stale) for the user to find
             old = real.parent / f".afmid-tmp-{real.name}.old-{os.getpid()}-{secrets.token_hex(4)}"
             os.rename(real, old)
         try:

@@ -18,6 +18,7 @@ import io
 import logging
 import os
 import re
+import shutil
 import socket
 from pathlib import Path
 
@@ -62,7 +63,8 @@ def _process_is_gone(pid: int) -> bool:
 
 
 def remove_stale(folder: Path) -> list[Path]:
-    """Remove the temporary files in ``folder`` left by processes of this host that are gone; returns them."""
+    """Remove the temporary files (and report folders) in ``folder`` left by processes of this host that are gone;
+    returns them."""
     here = host_tag()
     removed = []
     try:
@@ -74,9 +76,14 @@ def remove_stale(folder: Path) -> list[Path]:
         if who is None or who[0] != here or who[1] == os.getpid() or not _process_is_gone(who[1]):
             continue
         try:
-            if path.is_symlink() or not path.is_file():
+            if path.is_symlink():
                 continue
-            path.unlink()
+            if path.is_dir():  # a report folder being made (afmid.report_folder)
+                shutil.rmtree(path)
+            elif path.is_file():
+                path.unlink()
+            else:
+                continue
         except OSError:
             continue
         log.info("removed %s, a temporary file left by process %d, which no longer runs", path, who[1])

@@ -74,6 +74,26 @@ def test_a_new_write_removes_only_temporary_files_of_dead_processes_of_this_host
         sleeper.wait()
 
 
+def test_a_report_folder_left_by_a_dead_process_is_removed_by_the_next_report_write(tmp_path):
+    """A report is made in a temporary folder; after kill -9 the next report written beside it removes it (a live
+    process's folder and a folder of the old-report form are kept)."""
+    from afmid.report_folder import report_folder
+
+    here = tempfiles.host_tag()
+    dead = tmp_path / f".afmid-tmp-rep.{here}.{_dead_pid()}.k2j4h5l6"
+    live = tmp_path / f".afmid-tmp-rep.{here}.{os.getppid()}.a1b2c3d4"
+    old_report = tmp_path / f".afmid-tmp-rep.old-{_dead_pid()}-1a2b3c4d"  # left between the swap's two renames
+    for folder in (dead, live, old_report):
+        folder.mkdir()
+        (folder / "report.html").write_text("<html></html>")
+    with report_folder(tmp_path / "rep2", overwrite=False) as tmp:
+        assert tempfiles.owner(tmp.name) == (here, os.getpid())
+        (tmp / "report.html").write_text("<html>new</html>")
+    assert not dead.exists()
+    assert live.exists() and old_report.exists()
+    assert (tmp_path / "rep2" / "report.html").read_text() == "<html>new</html>"
+
+
 def test_fit_killed_outright_leaves_a_temporary_file_the_next_run_removes(tmp_path):
     """kill -9 cannot be handled: the next write in the folder cleans up after it."""
     _fit_workspace(tmp_path)
