@@ -197,6 +197,9 @@ DISKFULL_CASES = [
 ]
 
 
+CASES = SIGNAL_CASES + DISKFULL_CASES  # the whole file's corpus (tests/test_corpus_size.py counts it)
+
+
 @corpus_params(SIGNAL_CASES)
 def test_signal_case(case, tmp_path, capsys, monkeypatch):
     check_case(case, tmp_path / "ws", capsys, monkeypatch)
