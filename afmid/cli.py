@@ -144,7 +144,11 @@ def fit(
     apply_effect_changes(cfg, add_effects, remove_effects)
     result = run_fit(cfg, progress=not _state["quiet"])
     write_run(output, result, cfg, overwrite=overwrite)
-    log.info("wrote %s: %s", output, result.summary_line())
+    from .plausibility import check_plausibility, violations
+
+    implausible = violations(check_plausibility(result.quantities))
+    flagged = f"; {len(implausible)} read-out(s) implausible, flagged in the file (see the warnings)" if implausible else ""
+    log.info("wrote %s: %s%s", output, result.summary_line(), flagged)
 
 
 @cli.command()

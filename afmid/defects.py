@@ -103,7 +103,7 @@ def length(value: float, units: str | None = "m") -> str:
         return f"{value:.3g}{suffix}"
     size = abs(value)
     for scale, name in ((1e-12, "pm"), (1e-9, "nm"), (1e-6, "um"), (1e-3, "mm")):
-        if size < 1000 * scale:
+        if float(f"{size / scale:.3g}") < 1000:  # as printed: 999.9999 pm is "1 nm", not "1e+03 pm"
             return f"{value / scale:.3g} {name}"
     return f"{value:.3g} m"
 
@@ -557,9 +557,11 @@ def check_signal(x: np.ndarray, settings: Settings, analysis: Analysis | None = 
     if analysis is None:
         analysis = analyse_with(x, settings)
     from .oscillation import check_drive_line
+    from .resolution import check_quantization
 
     findings: list[Finding] = []
     findings += check_clipping(x, analysis, settings)
+    findings += check_quantization(x)
     if analysis is None:
         findings += _unanalysable(x, settings)
         findings += check_sampling(None, settings)

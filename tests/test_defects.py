@@ -319,3 +319,19 @@ def test_the_cli_stops_with_one_line_naming_file_and_key(tmp_path, run_cli):
     assert code == 1
     assert err.startswith(f"afmid: error: {tmp_path / 'trace.npy'}: data.column: the deflection is clipped: flat tops")
     assert len(err.splitlines()) == 1 and not (tmp_path / "out.h5").exists()
+
+
+def test_a_coarsely_quantized_trace_is_warned_about_and_a_fine_one_is_not():
+    """An 8-bit-like recording (1 nm steps on a ~9 nm swing) is named with its step; a float trace or a 16-bit one
+    (the same trace at 0.5 pm steps) is not."""
+    from afmid.resolution import MIN_LEVELS, check_quantization
+
+    t = np.arange(20_000) / 6e7
+    x = 9.4e-9 * np.cos(2 * np.pi * 3e5 * t) + 1e-12 * np.random.default_rng(0).standard_normal(t.size)
+    coarse = np.round(x / 1e-9) * 1e-9
+    findings = check_quantization(coarse)
+    assert [f.name for f in findings] == ["quantization"] and findings[0].severity == "warning"
+    assert findings[0].numbers["levels"] == 19 and "ADC step 1 nm" in findings[0].message
+    assert check_quantization(x) == []
+    assert check_quantization(np.round(x / 0.5e-12) * 0.5e-12) == []
+    assert np.unique(np.round(x / 0.5e-12)).size > MIN_LEVELS
