@@ -333,6 +333,11 @@ def _run(argv: list[str] | None) -> int:
         return exc.exit_code
     except click.exceptions.Exit as exc:
         return exc.exit_code
+    except click.UsageError as exc:  # one line, as every user error (click's own form takes four)
+        command = exc.ctx.command_path if exc.ctx is not None else "afmid"
+        message = " ".join(exc.format_message().split())
+        click.echo(f"afmid: error: {message} (see '{command} --help')", err=True)
+        return exc.exit_code
     except click.ClickException as exc:
         exc.show()
         return exc.exit_code

@@ -66,6 +66,10 @@ def test_version(run_cli):
 def test_usage_errors_exit_2(run_cli):
     code, _, err = run_cli("no-such-command")
     assert code == 2 and "No such command" in err and "Traceback" not in err
+    assert err.count("\n") == 1 and err.startswith("afmid: error: ") and "see 'afmid --help'" in err
+    code, _, err = run_cli("inspect", "x.csv", "--sample-rate", "abc")
+    assert code == 2 and err == ("afmid: error: Invalid value for '--sample-rate': 'abc' is not a valid float. "
+                                 "(see 'afmid inspect --help')\n")
     code, _, err = run_cli("fit")
     assert code == 2 and "Missing argument 'CONFIG'" in err
     code, _, err = run_cli("fit", "run.yaml")
@@ -142,6 +146,8 @@ def test_effects_unknown_name(run_cli):
 
 # --------------------------------------------------------------------------- fit plumbing (fit stubbed)
 class _StubResult:
+    quantities: dict = {}  # no read-outs (nothing to judge for plausibility)
+
     def summary_line(self) -> str:
         return "cv_error 0.0000; terms: stub"
 
