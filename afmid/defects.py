@@ -38,7 +38,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .io import MIN_PERIODS, MIN_SAMPLES_PER_PERIOD  # the limits check_trace also applies
+from .errors import InputError
+from .harmonics import (  # the engine the fit uses too; the limits check_trace also applies
+    MIN_PERIODS, MIN_SAMPLES_PER_PERIOD, MeasuredDrive, estimate_drive, fourier_design, least_squares_projector,
+    measure_frequency, rotate_to_global, strongest_peak,
+)
+from .preprocess import detrend
 
 log = logging.getLogger(__name__)
 
@@ -267,131 +272,8 @@ class Analysis:
         return np.concatenate([[s[0]], np.sqrt(0.5 * (s[1::2] ** 2 + s[2::2] ** 2))])
 
 
-def _detrended(x: np.ndarray) -> np.ndarray:
-    t = np.arange(x.size) - 0.5 * (x.size - 1)
-    xc = x - x.mean()
-    denom = float(np.dot(t, t))
-    return xc - (np.dot(t, xc) / denom) * t if denom else xc
-
-
-def measure_frequency(x: np.ndarray) -> float | None:
-    """The strongest oscillation, cycles per sample, or None if there is none (constant, too short).
-
-    A Hann-windowed, zero-padded spectrum of the detrended samples gives the
-    peak (ignoring anything slower than 2.5 cycles over the trace); a bounded
-    search of the windowed DFT power refines it far below the bin width.
-    Traces longer than :data:`afmid.preprocess.EXACT_SPECTRUM_MAX` samples:
-    no zero padding, the search on block moments (same estimator and
-    tolerance; a padded FFT of 1e7 samples took 10 s and 2 GB).
-    """
-    from scipy.optimize import minimize_scalar
-
-    from .preprocess import EXACT_SPECTRUM_MAX
-
-    n = x.size
-    if n < 8:
-        return None
-    if n > EXACT_SPECTRUM_MAX:
-        return _measure_frequency_long(np.asarray(x, dtype=np.float64))
-    xc = _detrended(np.asarray(x, dtype=np.float64))
-    if not np.any(xc) or np.max(np.abs(xc)) <= 1e-12 * max(np.max(np.abs(x)), 1e-300):
-        return None
-    window = np.hanning(n)
-    pad = 4 * int(2 ** math.ceil(math.log2(n)))
-    spectrum = np.abs(np.fft.rfft(window * xc, pad))
-    freqs = np.arange(spectrum.size) / pad
-    band = freqs >= 2.5 / n
-    if not band.any():
-        return None
-    i = int(np.flatnonzero(band)[np.argmax(spectrum[band])])
-    if spectrum[i] == 0:
-        return None
-    df = 1.0 / pad
-    weighted = window * xc
-    t = np.arange(n)
-
-    def negative_power(f: float) -> float:
-        return -float(np.abs(np.dot(weighted, np.exp(-2j * np.pi * f * t))) ** 2)
-
-    lo, hi = max(freqs[i] - 1.5 * df, 0.5 / n), min(freqs[i] + 1.5 * df, 0.5)
-    if hi <= lo:
-        return float(freqs[i])
-    res = minimize_scalar(negative_power, bounds=(lo, hi), method="bounded", options={"xatol": freqs[i] * 1e-9})
-    return float(res.x)
-
-
-def _measure_frequency_long(x: np.ndarray) -> float | None:
-    """:func:`measure_frequency` without zero padding or full-length temporaries beyond the windowed samples."""
-    from scipy import fft as sfft
-    from scipy.optimize import minimize_scalar
-
-    from .preprocess import SAMPLE_CHUNK, WindowedPower, hann_weighted
-
-    n = x.size
-    mean = float(x.mean())
-    c = 0.5 * (n - 1)
-    # Least-squares slope against the centred sample index, then the largest detrended deviation.
-    tx = sum(float(np.dot(np.arange(lo, min(lo + SAMPLE_CHUNK, n)) - c, x[lo:lo + SAMPLE_CHUNK]))
-             for lo in range(0, n, SAMPLE_CHUNK))
-    slope = tx / (n * (n * n - 1.0) / 12.0)
-    biggest = max(float(np.max(np.abs(x[lo:lo + SAMPLE_CHUNK] - mean
-                                      - slope * (np.arange(lo, min(lo + SAMPLE_CHUNK, n)) - c))))
-                  for lo in range(0, n, SAMPLE_CHUNK))
-    if biggest == 0 or biggest <= 1e-12 * max(float(np.max(np.abs(x))), 1e-300):
-        return None
-    weighted = hann_weighted(x, mean, slope)
-    nfft = sfft.next_fast_len(n, real=True)
-    spectrum = np.abs(sfft.rfft(weighted, nfft))
-    first = int(math.ceil(2.5 / n * nfft))  # freqs >= 2.5 / n
-    if first >= spectrum.size:
-        return None
-    i = first + int(np.argmax(spectrum[first:]))
-    if spectrum[i] == 0:
-        return None
-    del spectrum
-    df = 1.0 / nfft
-    f_i = i / nfft
-    lo, hi = max(f_i - 1.5 * df, 0.5 / n), min(f_i + 1.5 * df, 0.5)
-    if hi <= lo:
-        return float(f_i)
-    power = WindowedPower(weighted, np.arange(n, dtype=float), f_i, 2.0 * df)
-    # As an offset from the bin (see afmid.preprocess._estimate_drive_long): xatol rules the precision.
-    res = minimize_scalar(lambda u: -power(f_i + u), bounds=(lo - f_i, hi - f_i), method="bounded",
-                          options={"xatol": f_i * 1e-9})
-    return f_i + float(res.x)
-
-
 #: Samples per chunk in :func:`analyse` (bounds its temporaries on long traces).
 ANALYSE_CHUNK_SAMPLES = 1 << 19
-
-
-def _design(L: int, omega: float, K: int) -> np.ndarray:
-    """Columns 1, cos(n w s), sin(n w s) for n = 1..K (interleaved)."""
-    s = np.arange(L)[:, None] * (omega * np.arange(1, K + 1))[None, :]
-    out = np.empty((L, 2 * K + 1))
-    out[:, 0] = 1.0
-    out[:, 1::2] = np.cos(s)
-    out[:, 2::2] = np.sin(s)
-    return out
-
-
-def _projector(design: np.ndarray) -> np.ndarray:
-    """Least-squares projector (D^T D)^-1 D^T by Cholesky (the basis is well conditioned for K <= 0.45 L)."""
-    from scipy.linalg import cho_factor, cho_solve
-
-    return cho_solve(cho_factor(design.T @ design), design.T)
-
-
-def _to_global(local: np.ndarray, starts: np.ndarray, omega: float) -> np.ndarray:
-    """Rows of (B, 2K+1) local-time coefficients rotated to global time (t = start + s)."""
-    K = (local.shape[1] - 1) // 2
-    theta = np.outer(starts, np.arange(1, K + 1)) * omega
-    c, s = np.cos(theta), np.sin(theta)
-    a, b = local[:, 1::2], local[:, 2::2]
-    out = local.copy()
-    out[:, 1::2] = c * a - s * b
-    out[:, 2::2] = s * a + c * b
-    return out
 
 
 def _series(coef: np.ndarray, phase: np.ndarray, harmonics, weights=None, derivative_weights=None) -> np.ndarray:
@@ -432,8 +314,8 @@ def analyse(
     K = max(1, min(MAX_HARMONIC, int(math.floor(0.45 * spp))))
     omega = 2.0 * math.pi * f
     start = (x.size - B * L) // 2
-    design = _design(L, omega, K)
-    projector = _projector(design)
+    design = fourier_design(np.arange(L, dtype=float), omega, K)  # time in samples: omega in rad per sample
+    projector = least_squares_projector(design)
     used = slice(start, start + B * L)
     starts = start + L * np.arange(B)
     # Slow drift would leak into every harmonic (a sawtooth's 1/n spectrum per period) and pass for a
@@ -450,7 +332,7 @@ def analyse(
         local[b0:b1] = blocks @ projector.T
         resid = blocks - local[b0:b1] @ design.T
         rss += float(np.sum(resid**2))
-    glob = _to_global(local, starts, omega)
+    glob = rotate_to_global(local[..., None], starts, omega)[..., 0]
     glob[:, 0] += means
     dof = B * (L - design.shape[1])
     noise = float(np.sqrt(rss / dof)) if dof > 0 else float("nan")
@@ -540,9 +422,12 @@ def settings_for(trace, config) -> Settings:
     )
 
 
-def analyse_with(x: np.ndarray, settings: Settings) -> Analysis | None:
-    """:func:`analyse` with the resonance ratio and Q from ``settings`` (when known)."""
-    f = measure_frequency(x)
+def analyse_with(x: np.ndarray, settings: Settings, cycles_per_sample: float | None = None) -> Analysis | None:
+    """:func:`analyse` with the resonance ratio and Q from ``settings`` (when known).
+
+    ``cycles_per_sample``: the oscillation frequency when already measured (else the strongest one).
+    """
+    f = measure_frequency(x) if cycles_per_sample is None else cycles_per_sample
     if f is None:
         return None
     r = None
@@ -846,9 +731,44 @@ def check_contact(a: Analysis, s: Settings) -> list[Finding]:
 
 
 # --------------------------------------------------------------------------- loaded traces
-def check_loaded(trace, config) -> list[Finding]:
-    """The signal checks for a loaded trace (SI, positive toward the sample) with its config."""
-    return check_signal(trace.deflection, settings_for(trace, config))
+def check_loaded(trace, config) -> tuple[list[Finding], MeasuredDrive | None]:
+    """The signal checks for a loaded trace (SI, positive toward the sample) with its config, and its drive.
+
+    The drive is measured once, here, as the fit measures it
+    (:func:`afmid.harmonics.estimate_drive` of the deflection detrended with
+    fit.detrend, searched within :data:`DRIVE_SEARCH` of the nominal frequency),
+    when the strongest oscillation lies in that band; the checks then analyse
+    the trace at that frequency and the fit reuses it (:meth:`afmid.io.Trace.drive_for`).
+    Otherwise (no oscillation, or one far from the nominal drive: an error for the
+    fit) the checks use the strongest oscillation and the drive is None.
+    """
+    settings = settings_for(trace, config)
+    x = np.asarray(trace.deflection, dtype=np.float64)
+    peak = strongest_peak(x)
+    drive = None
+    if peak is not None and abs(peak.cycles_per_sample * trace.sample_rate / trace.drive_frequency - 1) <= DRIVE_SEARCH:
+        drive = measure_drive(trace, config.fit.detrend)
+    if drive is not None:
+        f = drive.estimate.frequency / trace.sample_rate
+    else:
+        f = None if peak is None else peak.refine()
+    analysis = None if f is None else analyse_with(x, settings, f)
+    return check_signal(x, settings, analysis), drive
+
+
+def measure_drive(trace, detrend_mode: str) -> MeasuredDrive | None:
+    """The fit's drive measurement of a loaded trace (deflection detrended with ``detrend_mode``), None if none.
+
+    The same samples, times and estimator as :func:`afmid.fit.prepare`, so the
+    fit can use the result in place of measuring again.
+    """
+    t = trace.times
+    x, _ = detrend(trace.deflection, t, detrend_mode)
+    try:
+        estimate = estimate_drive(x, t, trace.drive_frequency)
+    except InputError:  # no oscillation in the band: the checks say why, the fit measures (and fails) itself
+        return None
+    return MeasuredDrive(estimate, detrend_mode, trace.deflection, trace.sample_rate, trace.time)
 
 
 def report(findings: list[Finding], file, logger: logging.Logger | None = None) -> None:

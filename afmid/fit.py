@@ -97,7 +97,7 @@ def prepare(trace: Trace, fit) -> Prepared:
         if np.max(np.abs(steps - steps.mean())) > 1e-3 * steps.mean():
             raise AfmidError("the time column is not uniformly sampled (gaps or jitter); resample or crop it first",
                              file=trace.path, key="data.time_column")
-    drive = estimate_drive(x, t, trace.drive_frequency)
+    drive = trace.drive_for(fit.detrend) or estimate_drive(x, t, trace.drive_frequency)  # measured on loading
     spp = trace.sample_rate / drive.frequency
     oversample = fit.oversample or max(1, int(math.ceil(FINE_POINTS_PER_PERIOD / spp)))
     blocks = harmonic_blocks(x.size, trace.sample_rate, drive.frequency, t0=float(t[0]),

@@ -27,16 +27,13 @@ import numpy as np
 from . import __version__
 from .errors import ConfigError, InputError, OutputError
 from .files import check_input_file, check_output_target
+from .harmonics import MIN_PERIODS  # the least a trace must hold (the harmonic analysis needs it too)
 
 log = logging.getLogger(__name__)
 
 TRACE_FORMAT = "afmid-trace"
 RUN_FORMAT = "afmid-run"
 FORMAT_VERSION = 1
-#: Fewer samples per drive period than this cannot resolve the motion's harmonics well.
-MIN_SAMPLES_PER_PERIOD = 20
-#: A trace must hold at least this many drive periods.
-MIN_PERIODS = 3
 
 _UNIT_SCALE = {"m": 1.0, "nm": 1e-9, "pm": 1e-12, "um": 1e-6}
 
@@ -89,6 +86,16 @@ class Trace:
     overridden: list[str] = field(default_factory=list)  # config keys that overrode file metadata
     drive_force_amplitude: float | None = None  # N, if known
     findings: list = field(default_factory=list)  # afmid.defects.Finding: defects found on loading
+    #: afmid.harmonics.MeasuredDrive: the drive measured on loading (by the defect checks, as the fit measures it)
+    drive: Any = None
+
+    def drive_for(self, detrend: str):
+        """The drive measured on loading (an :class:`afmid.harmonics.DriveEstimate`), if it holds for a fit with
+        fit.detrend ``detrend`` on these very samples, times and nominal frequency; else None (measure it)."""
+        if self.drive is None or not self.drive.matches(self.deflection, self.sample_rate, self.time,
+                                                        self.drive_frequency, detrend):
+            return None
+        return self.drive.estimate
 
     @property
     def n_samples(self) -> int:
@@ -600,5 +607,5 @@ def check_trace(trace: Trace, config) -> None:
             file=path,
             key="data.path",
         )
-    trace.findings = defects.check_loaded(trace, config)  # includes the samples-per-period warning
+    trace.findings, trace.drive = defects.check_loaded(trace, config)  # findings include the samples-per-period warning
     defects.report(trace.findings, path)

@@ -1,8 +1,8 @@
-"""Preprocessing: drive estimation, segmentation, filtering and differentiation.
+"""Preprocessing: segmentation, filtering and differentiation.
 
 Steady tapping motion is periodic in the drive, so afmid works period by period.
-:func:`estimate_drive` measures the actual drive frequency from the data (the
-nominal value is not trusted), :func:`harmonic_blocks` cuts the trace into
+:func:`afmid.harmonics.estimate_drive` measures the actual drive frequency from
+the data (the nominal value is not trusted), :func:`harmonic_blocks` cuts the trace into
 blocks of about one period and fits each with a truncated Fourier series in the
 drive harmonics (a least-squares projection, exact for a non-integer number of
 samples per period). Derivatives of a Fourier series are exact, so the second
@@ -24,193 +24,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
+from .harmonics import (  # noqa: F401 - DriveEstimate, estimate_drive: the fit's drive, measured by the engine
+    DriveEstimate, apply_rows, estimate_drive, fourier_design, least_squares_projector, rotate_to_global, rotation,
+)
 from .registry import Registry
 
 log = logging.getLogger(__name__)
-
-
-# --------------------------------------------------------------------------- drive
-@dataclass
-class DriveEstimate:
-    frequency: float  # Hz, measured
-    nominal: float  # Hz, from the config or file
-    amplitude: float  # m, first-harmonic amplitude of the deflection
-    phase: float  # rad, phase of the first harmonic relative to t = 0 (x ~ A cos(w t + phase))
-    offset: float  # m, mean deflection
-
-    @property
-    def omega(self) -> float:
-        return 2.0 * np.pi * self.frequency
-
-
-def _harmonic_power(x: np.ndarray, t: np.ndarray, window: np.ndarray, f: float) -> float:
-    phasor = np.exp(-2j * np.pi * f * t)
-    return float(np.abs(np.dot(window * x, phasor)) ** 2)
-
-
-#: Above this many samples the spectral peak is found without zero padding and the bounded search runs on
-#: per-block moments (:class:`WindowedPower`): a padded FFT of a 1e7-sample trace (2^27 points) took 16 s and
-#: 3 GB, each probe of the search a full-length complex exponential. Up to it the padded FFT costs < 0.5 s and
-#: is kept as it was (the estimate, and so every result, is unchanged bit for bit).
-EXACT_SPECTRUM_MAX = 2**21
-#: Samples per chunk when a whole-trace quantity is accumulated piece by piece (bounds the temporaries).
-SAMPLE_CHUNK = 1 << 18
-
-
-class WindowedPower:
-    """|sum_j y_j exp(-2 pi i f t_j)|^2 for f near ``center``, from per-block moments of y.
-
-    The sum is split into blocks of ``block`` samples with start times t_b;
-    within a block exp(-2 pi i (f - center) (t - t_b)) is a Taylor series in
-    (t - t_b), so with M_bm = sum_{j in b} y_j exp(-2 pi i center t_j) (t_j - t_b)^m
-    every probe costs O(blocks x order) instead of a full-length exponential.
-    The series is truncated where its remainder is below 1e-17 for
-    |f - center| <= ``reach`` (exact to rounding within it).
-    """
-
-    def __init__(self, y: np.ndarray, t: np.ndarray, center: float, reach: float, block: int = 4096):
-        n = y.size
-        starts = np.arange(0, n, block)
-        span = float(np.max(t[np.minimum(starts + block - 1, n - 1)] - t[starts]))  # longest block, s
-        arg = 2 * np.pi * reach * span
-        order, term = 1, arg  # the remainder after `order` terms is at most arg^order / order!
-        while term > 1e-17 and order < 40:
-            order += 1
-            term *= arg / order
-        self.center = center
-        self.t_ref = t[starts]
-        self.factorial = np.cumprod(np.concatenate([[1.0], np.arange(1.0, order)]))
-        moments = np.empty((starts.size, order), dtype=complex)
-        step = max(block, SAMPLE_CHUNK // block * block)
-        for lo in range(0, n, step):
-            hi = min(lo + step, n)
-            tt = t[lo:hi]
-            local = np.arange(0, hi - lo, block)
-            rows = slice(lo // block, lo // block + local.size)
-            u = tt - np.repeat(self.t_ref[rows], block)[: hi - lo]
-            p = y[lo:hi] * np.exp(-2j * np.pi * center * tt)
-            for m in range(order):
-                moments[rows, m] = np.add.reduceat(p, local)
-                if m + 1 < order:
-                    p *= u
-        self.moments = moments
-
-    def __call__(self, f: float) -> float:
-        delta = f - self.center
-        c = (-2j * np.pi * delta) ** np.arange(self.factorial.size) / self.factorial
-        return float(np.abs(np.dot(np.exp(-2j * np.pi * delta * self.t_ref), self.moments @ c)) ** 2)
-
-
-def hann_weighted(x: np.ndarray, offset: float = 0.0, slope: float = 0.0) -> np.ndarray:
-    """``np.hanning(n) * (x - offset - slope * (j - (n - 1) / 2))``, built chunk by chunk (no temporaries of n)."""
-    n = x.size
-    out = np.empty(n)
-    for lo in range(0, n, SAMPLE_CHUNK):
-        hi = min(lo + SAMPLE_CHUNK, n)
-        j = np.arange(lo, hi, dtype=float)
-        window = 0.5 + 0.5 * np.cos(np.pi * (2 * j + 1 - n) / (n - 1)) if n > 1 else np.ones(hi - lo)
-        centred = x[lo:hi] - offset
-        if slope:
-            centred -= slope * (j - 0.5 * (n - 1))
-        np.multiply(window, centred, out=out[lo:hi])
-    return out
-
-
-def estimate_drive(x: np.ndarray, t: np.ndarray, nominal: float, search: float = 0.05) -> DriveEstimate:
-    """Measure the drive (response fundamental) frequency near ``nominal``.
-
-    A Hann-windowed, zero-padded spectrum finds the peak within ``search``
-    (relative) of the nominal frequency; a bounded scalar search of the windowed
-    DFT power then refines it far below the bin width (~1e-7 relative on a
-    50-period trace). Raises InputError if there is no oscillation.
-    Traces longer than :data:`EXACT_SPECTRUM_MAX` samples: unpadded spectrum,
-    the search on block moments, amplitude and phase from chunked normal
-    equations (same estimator and tolerance, O(n) memory and time).
-    """
-    from scipy.optimize import minimize_scalar
-
-    if x.size > EXACT_SPECTRUM_MAX:
-        return _estimate_drive_long(x, t, nominal, search)
-    xc = x - x.mean()
-    if not np.any(xc):
-        raise InputError("the deflection is constant: no oscillation to analyse", key="data.column")
-    n = x.size
-    duration = t[-1] - t[0] + (t[1] - t[0])
-    window = np.hanning(n)
-    pad = 8 * int(2 ** np.ceil(np.log2(n)))
-    spectrum = np.abs(np.fft.rfft(window * xc, pad))
-    freqs = np.fft.rfftfreq(pad, d=duration / n)
-    band = (freqs > nominal * (1 - search)) & (freqs < nominal * (1 + search))
-    if not band.any():
-        raise InputError(
-            f"the drive frequency {nominal:g} Hz is outside the sampled band (sample rate {n / duration:g} Hz)",
-            key="drive.frequency",
-        )
-    idx = np.flatnonzero(band)[np.argmax(spectrum[band])]
-    df = freqs[1] - freqs[0]
-    res = minimize_scalar(
-        lambda f: -_harmonic_power(xc, t, window, f),
-        bounds=(freqs[idx] - 1.5 * df, freqs[idx] + 1.5 * df),
-        method="bounded",
-        options={"xatol": nominal * 1e-10},
-    )
-    f = float(res.x)
-    # Unwindowed least-squares amplitude and phase over whole periods.
-    w = 2 * np.pi * f
-    design = np.column_stack([np.ones_like(t), np.cos(w * t), np.sin(w * t)])
-    coef, *_ = np.linalg.lstsq(design, x, rcond=None)
-    amplitude = float(np.hypot(coef[1], coef[2]))
-    phase = float(np.arctan2(-coef[2], coef[1]))
-    return DriveEstimate(frequency=f, nominal=nominal, amplitude=amplitude, phase=phase, offset=float(coef[0]))
-
-
-def _estimate_drive_long(x: np.ndarray, t: np.ndarray, nominal: float, search: float) -> DriveEstimate:
-    """:func:`estimate_drive` for long traces: no zero padding, no full-length temporaries."""
-    from scipy import fft as sfft
-    from scipy.optimize import minimize_scalar
-
-    n = x.size
-    mean = x.mean()
-    if not np.any(x != mean):
-        raise InputError("the deflection is constant: no oscillation to analyse", key="data.column")
-    weighted = hann_weighted(x, mean)
-    duration = t[-1] - t[0] + (t[1] - t[0])
-    nfft = sfft.next_fast_len(n, real=True)
-    scale = nfft * duration / n  # bin k is at frequency k / scale
-    spectrum = np.abs(sfft.rfft(weighted, nfft))
-    k0 = max(int(np.floor(nominal * (1 - search) * scale)) - 1, 0)
-    k1 = min(int(np.ceil(nominal * (1 + search) * scale)) + 2, spectrum.size)
-    freqs = np.arange(k0, max(k1, k0)) / scale
-    band = (freqs > nominal * (1 - search)) & (freqs < nominal * (1 + search))
-    if not band.any():
-        raise InputError(
-            f"the drive frequency {nominal:g} Hz is outside the sampled band (sample rate {n / duration:g} Hz)",
-            key="drive.frequency",
-        )
-    idx = np.flatnonzero(band)[np.argmax(spectrum[k0:k1][band])]
-    del spectrum
-    df = 1.0 / scale
-    center = float(freqs[idx])
-    power = WindowedPower(weighted, t, center, 2.0 * df)
-    del weighted
-    # Searched as an offset from the bin: bounded Brent stops at sqrt(eps) |x| + xatol / 3, which for the
-    # frequency itself is 5e-3 Hz at 300 kHz (~1.5e-8, the padded path's real precision); for the offset,
-    # xatol rules (~1e-11 relative), and each probe costs microseconds here.
-    res = minimize_scalar(lambda u: -power(center + u), bounds=(-1.5 * df, 1.5 * df), method="bounded",
-                          options={"xatol": nominal * 1e-10})
-    f = center + float(res.x)
-    # Unwindowed least-squares amplitude and phase over whole periods (normal equations, chunk by chunk).
-    w = 2 * np.pi * f
-    gram, rhs = np.zeros((3, 3)), np.zeros(3)
-    for lo in range(0, n, SAMPLE_CHUNK):
-        tt = t[lo:lo + SAMPLE_CHUNK]
-        design = np.column_stack([np.ones_like(tt), np.cos(w * tt), np.sin(w * tt)])
-        gram += design.T @ design
-        rhs += design.T @ x[lo:lo + SAMPLE_CHUNK]
-    coef = np.linalg.solve(gram, rhs)
-    amplitude = float(np.hypot(coef[1], coef[2]))
-    phase = float(np.arctan2(-coef[2], coef[1]))
-    return DriveEstimate(frequency=f, nominal=nominal, amplitude=amplitude, phase=phase, offset=float(coef[0]))
 
 
 def detrend(x: np.ndarray, t: np.ndarray, mode: str) -> tuple[np.ndarray, dict]:
@@ -366,7 +185,7 @@ class HarmonicBlocks:
 
     def evaluate(self, coef: np.ndarray, phase: np.ndarray) -> np.ndarray:
         """Series at drive phases ``phase`` (rad, 0 = t where w t is a multiple of 2 pi): (n_blocks, P, m)."""
-        basis = _fourier_design(phase, 1.0, self.K)
+        basis = fourier_design(phase, 1.0, self.K)
         b, k, m = coef.shape
         flat = np.ascontiguousarray(coef.transpose(0, 2, 1)).reshape(b * m, k)
         return (flat @ basis.T).reshape(b, m, -1).transpose(0, 2, 1)  # one BLAS product (einsum is not BLAS)
@@ -374,36 +193,6 @@ class HarmonicBlocks:
     def noise_variance_factor(self) -> np.ndarray:
         """diag(P P^T): variance of each coefficient per unit white-noise variance of the samples."""
         return np.einsum("kl,kl->k", self.projector, self.projector)
-
-
-def apply_rows(matrix: np.ndarray, blocks: np.ndarray) -> np.ndarray:
-    """``matrix`` (r, l) applied to every block (b, l, m) -> (b, r, m), as one BLAS matrix product."""
-    b, l, m = blocks.shape
-    flat = np.ascontiguousarray(blocks.transpose(1, 0, 2)).reshape(l, b * m)
-    return (matrix @ flat).reshape(matrix.shape[0], b, m).transpose(1, 0, 2)
-
-
-def rotation(start_times: np.ndarray, omega: float, K: int) -> tuple[np.ndarray, np.ndarray]:
-    """cos and sin (n, K) of n w t0 for each start time t0: what :func:`rotate_to_global` turns by."""
-    theta = np.outer(start_times, np.arange(1, K + 1)) * omega
-    return np.cos(theta), np.sin(theta)
-
-
-def rotate_to_global(local: np.ndarray, start_times: np.ndarray, omega: float,
-                     turn: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """Turn rows against cos/sin(n w s) of local time s into rows against cos/sin(n w t), t = start + s.
-
-    Layout (n_windows, 2K+1, m) with rows [0, cos 1, sin 1, cos 2, ...]. ``turn``: :func:`rotation` of
-    these start times when already at hand (the same values: saves 2 n K cos/sin).
-    """
-    K = (local.shape[1] - 1) // 2
-    c, s = rotation(start_times, omega, K) if turn is None else turn
-    c, s = c[:local.shape[0], :, None], s[:local.shape[0], :, None]
-    out = local.copy()
-    a, b = local[:, 1::2, :], local[:, 2::2, :]
-    out[:, 1::2, :] = c * a - s * b
-    out[:, 2::2, :] = s * a + c * b
-    return out
 
 
 @dataclass
@@ -555,24 +344,14 @@ def harmonic_blocks(
         raise InputError(f"{spp:.1f} samples per period cannot resolve any harmonic beyond the drive", key="data.sample_rate")
     dt = 1.0 / sample_rate
     omega = 2 * np.pi * frequency
-    design = _fourier_design(np.arange(L) * dt, omega, K)
-    # Least-squares projector (A^T A)^-1 A^T via QR: well conditioned (the basis is nearly orthogonal over a
-    # period) and far cheaper than an SVD-based pseudo-inverse.
-    q, r = np.linalg.qr(design)
-    projector = np.linalg.solve(r, q.T)
+    design = fourier_design(np.arange(L) * dt, omega, K)
+    projector = least_squares_projector(design)
     # Library terms are evaluated on this fine grid of the smooth reconstructed trajectory: terms with
     # kinks or steps (contact onset, adhesion) have slowly decaying harmonics, and on the sample grid
     # their edges would be quantised to a sample (a phase error of up to n w dt / 2 at harmonic n).
-    design_fine = _fourier_design(np.arange(L * oversample) * (dt / oversample), omega, K)
+    design_fine = fourier_design(np.arange(L * oversample) * (dt / oversample), omega, K)
     start = (n_samples - n_blocks * L) // 2  # centre the used part; drops partial periods at both ends
     return HarmonicBlocks(omega, dt, L, K, start, n_blocks, t0, design, projector, oversample, design_fine)
-
-
-def _fourier_design(s: np.ndarray, omega: float, K: int) -> np.ndarray:
-    """Columns 1, cos(n w s), sin(n w s) for n = 1..K (interleaved)."""
-    n = np.arange(1, K + 1)
-    arg = omega * np.outer(s, n)
-    return np.concatenate([np.ones((s.size, 1)), np.stack([np.cos(arg), np.sin(arg)], -1).reshape(s.size, -1)], axis=1)
 
 
 def ou_smooth(coef: np.ndarray, noise_var: np.ndarray, rho: float) -> tuple[np.ndarray, np.ndarray]:
