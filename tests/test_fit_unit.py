@@ -870,46 +870,6 @@ def test_ou_smooth_compiled_equals_numpy(monkeypatch):
     np.testing.assert_array_equal(p_nb, p_np)
 
 
-def test_windowed_power_from_block_moments_equals_the_direct_sum():
-    from afmid.preprocess import WindowedPower, _harmonic_power, hann_weighted
-
-    rng = np.random.default_rng(2)
-    n = 50_003
-    t = np.arange(n) / FS
-    x = 1e-8 * np.cos(2 * np.pi * 300_017.3 * t + 0.4) + 1e-11 * rng.standard_normal(n)
-    np.testing.assert_allclose(hann_weighted(x, 0.1e-9), np.hanning(n) * (x - 0.1e-9), rtol=1e-14, atol=1e-30)
-    df = FS / n
-    power = WindowedPower(hann_weighted(x), t, 300_000.0, 2 * df, block=512)
-    for f in 300_000.0 + df * np.array([-2.0, -0.7, 0.0, 0.3, 1.5, 2.0]):
-        assert power(f) == pytest.approx(_harmonic_power(x, t, np.hanning(n), f), rel=1e-11)
-
-
-@pytest.mark.parametrize("detune", [-4e-4, 1.3e-4])
-def test_long_trace_drive_and_frequency_estimates_agree_with_the_padded_ones(monkeypatch, detune):
-    """Above EXACT_SPECTRUM_MAX samples: no zero padding, the search on block moments; same estimate."""
-    import afmid.preprocess as pre
-    from afmid import defects
-
-    trace = _long_trace(periods=400, detune=detune)
-    x, t = trace.deflection, trace.times
-    exact = pre.estimate_drive(x, t, F_DRIVE)
-    f_exact = defects.measure_frequency(x)
-    monkeypatch.setattr(pre, "EXACT_SPECTRUM_MAX", 1000)
-    monkeypatch.setattr(pre, "SAMPLE_CHUNK", 4096)
-    fast = pre.estimate_drive(x, t, F_DRIVE)
-    assert fast.frequency == pytest.approx(exact.frequency, rel=3e-9)
-    assert fast.frequency == pytest.approx(F_DRIVE * (1 + detune), rel=1e-7)
-    assert fast.amplitude == pytest.approx(exact.amplitude, rel=1e-12)
-    assert fast.phase == pytest.approx(exact.phase, abs=3e-5)
-    assert fast.offset == pytest.approx(exact.offset, abs=1e-8 * exact.amplitude)
-    assert defects.measure_frequency(x) == pytest.approx(f_exact, rel=3e-8)
-    with pytest.raises(Exception, match="outside the sampled band"):
-        pre.estimate_drive(x, t, 0.6 * FS)
-    with pytest.raises(Exception, match="constant"):
-        pre.estimate_drive(np.full(x.size, 1e-9), t, F_DRIVE)
-    assert defects.measure_frequency(np.full(x.size, 1e-9)) is None
-
-
 def test_period_curves_are_evaluated_in_chunks_and_written_as_whole_arrays(monkeypatch, tmp_path):
     """The lazily evaluated curves equal the eager formulas, in any chunking (to rounding), and the file holds them."""
     import dataclasses
