@@ -40,8 +40,9 @@ import numpy as np
 
 from .errors import InputError
 from .harmonics import (  # the engine the fit uses too; the limits check_trace also applies
-    MIN_PERIODS, MIN_SAMPLES_PER_PERIOD, MeasuredDrive, estimate_drive, fourier_design, least_squares_projector,
-    measure_frequency, rotate_to_global, strongest_peak,
+    DRIVE_SEARCH, MIN_PERIODS, MIN_SAMPLES_PER_PERIOD, MeasuredDrive, amplitude_change, block_layout, estimate_drive,
+    fourier_design, highest_harmonic, least_squares_projector, measure_frequency, noise_variance_factor,
+    rotate_to_global, strongest_peak,
 )
 from .preprocess import detrend
 
@@ -55,16 +56,15 @@ MIN_ANALYSABLE_SPP = 4.0
 #: central: finite differences amplify noise unless sampled far above the drive (its registry note);
 #: savgol: the default window (spp / 10, odd, >= 5) must exceed the polynomial order 4 by 3 to smooth.
 DIFFERENTIATOR_MIN_SPP = {"central": 500.0, "savgol": 60.0}
-#: Highest harmonic analysed: up to 0.45 x samples per period (as afmid.preprocess), and no more than
-#: fit.max_harmonic's default: harmonics the fit does not use need no checking.
+#: Highest harmonic analysed (afmid.harmonics.highest_harmonic), no more than fit.max_harmonic's default:
+#: harmonics the fit does not use need no checking.
 MAX_HARMONIC = 60
 #: A harmonic "stands above the noise" above this many standard deviations (per cos/sin coefficient).
 DETECT_SIGMA = 5.0
-#: The fit searches the drive frequency within this relative distance of the nominal value.
-DRIVE_SEARCH = 0.05
 #: Below this relative difference the measured and nominal drive frequencies agree.
 DRIVE_TOLERANCE = 1e-3
-#: Relative amplitude change over the trace above which it is not in steady state (as afmid.fit).
+#: Relative amplitude change over the trace (afmid.harmonics.amplitude_change, as the fit's steadiness)
+#: above which it is not in steady state.
 STEADINESS_LIMIT = 0.02
 #: An offset is reported when the mean deflection exceeds both this fraction of the amplitude ...
 OFFSET_FRACTION = 0.02
@@ -307,13 +307,11 @@ def analyse(
     spp = 1.0 / f
     if spp < MIN_ANALYSABLE_SPP:
         return None
-    L = int(round(spp))
-    B = x.size // L
+    L, B, start = block_layout(x.size, spp)
     if B < MIN_PERIODS:
         return None
-    K = max(1, min(MAX_HARMONIC, int(math.floor(0.45 * spp))))
+    K = max(1, highest_harmonic(spp, MAX_HARMONIC))
     omega = 2.0 * math.pi * f
-    start = (x.size - B * L) // 2
     design = fourier_design(np.arange(L, dtype=float), omega, K)  # time in samples: omega in rad per sample
     projector = least_squares_projector(design)
     used = slice(start, start + B * L)
@@ -339,7 +337,7 @@ def analyse(
     coef = glob.mean(axis=0)
     # Noise of the averages: white noise through the projector, or the scatter between periods if larger
     # (non-white noise, period-to-period variation of the motion).
-    white = noise * np.sqrt(np.sum(projector**2, axis=1)) if math.isfinite(noise) else np.zeros(2 * K + 1)
+    white = noise * np.sqrt(noise_variance_factor(projector)) if math.isfinite(noise) else np.zeros(2 * K + 1)
     sigma = np.maximum(white, glob.std(axis=0)) / math.sqrt(B)
     amp = np.hypot(glob[:, 1], glob[:, 2])
     phase = np.unwrap(np.arctan2(-glob[:, 2], glob[:, 1]))
@@ -625,8 +623,7 @@ def check_steady(a: Analysis, s: Settings) -> list[Finding]:
     B = amp.size
     if B < 3 or amp.mean() <= 0:
         return []
-    slope = np.polyfit(np.arange(B), amp, 1)[0]
-    change = float(abs(slope) * B / amp.mean())
+    change = amplitude_change(amp)
     if change <= STEADINESS_LIMIT:
         return []
     final = float(np.median(amp[-max(3, B // 5):]))

@@ -32,6 +32,11 @@ from .errors import InputError
 MIN_SAMPLES_PER_PERIOD = 20
 #: A trace must hold at least this many drive periods.
 MIN_PERIODS = 3
+#: The drive frequency is searched within this relative distance of the nominal one.
+DRIVE_SEARCH = 0.05
+#: Highest harmonic fitted: at most this fraction of the samples per period (well inside Nyquist, so the
+#: least-squares Fourier fit of a block stays well conditioned).
+NYQUIST_FRACTION = 0.45
 #: Above this many samples the spectral peak is found without zero padding and the bounded search runs on
 #: per-block moments (:class:`WindowedPower`): a padded FFT of a 1e7-sample trace (2^27 points) took 16 s and
 #: 3 GB, each probe of the search a full-length complex exponential. Up to it the padded FFT costs < 0.5 s and
@@ -170,7 +175,7 @@ def _unpadded_spectrum(weighted: np.ndarray) -> tuple[np.ndarray, int]:
     return np.abs(sfft.rfft(weighted, nfft)), nfft
 
 
-def estimate_drive(x: np.ndarray, t: np.ndarray, nominal: float, search: float = 0.05) -> DriveEstimate:
+def estimate_drive(x: np.ndarray, t: np.ndarray, nominal: float, search: float = DRIVE_SEARCH) -> DriveEstimate:
     """Measure the drive (response fundamental) frequency near ``nominal`` (Hz; ``t`` in s).
 
     A Hann-windowed, zero-padded spectrum finds the peak within ``search``
@@ -360,6 +365,22 @@ def measure_frequency(x: np.ndarray) -> float | None:
 
 
 # --------------------------------------------------------------------------- per-block Fourier fits
+def highest_harmonic(samples_per_period: float, cap: int) -> int:
+    """The highest harmonic a block fit uses: :data:`NYQUIST_FRACTION` x samples per period, at most ``cap``."""
+    return int(min(cap, math.floor(NYQUIST_FRACTION * samples_per_period)))
+
+
+def block_layout(n_samples: int, samples_per_block: float) -> tuple[int, int, int]:
+    """(samples per block L, number of whole blocks, first sample used) of a trace cut into blocks.
+
+    L is ``samples_per_block`` rounded; the used part is centred, dropping
+    partial blocks at both ends.
+    """
+    L = int(round(samples_per_block))
+    n_blocks = n_samples // L
+    return L, n_blocks, (n_samples - n_blocks * L) // 2
+
+
 def fourier_design(s: np.ndarray, omega: float, K: int) -> np.ndarray:
     """Columns 1, cos(n w s), sin(n w s) for n = 1..K (interleaved); ``omega`` in radians per unit of ``s``."""
     n = np.arange(1, K + 1)
@@ -375,6 +396,19 @@ def least_squares_projector(design: np.ndarray) -> np.ndarray:
     """
     q, r = np.linalg.qr(design)
     return np.linalg.solve(r, q.T)
+
+
+def noise_variance_factor(projector: np.ndarray) -> np.ndarray:
+    """diag(P P^T): variance of each coefficient per unit white-noise variance of the samples."""
+    return np.einsum("kl,kl->k", projector, projector)
+
+
+def amplitude_change(amplitude: np.ndarray) -> float:
+    """Relative change of per-block amplitudes across the trace from a linear fit (0 = steady; < 3 blocks: 0)."""
+    if amplitude.size < 3:
+        return 0.0
+    slope = np.polyfit(np.arange(amplitude.size), amplitude, 1)[0]
+    return float(abs(slope) * amplitude.size / amplitude.mean())
 
 
 def apply_rows(matrix: np.ndarray, blocks: np.ndarray) -> np.ndarray:

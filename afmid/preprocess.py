@@ -25,7 +25,8 @@ import numpy as np
 
 from .errors import InputError
 from .harmonics import (  # noqa: F401 - DriveEstimate, estimate_drive: the fit's drive, measured by the engine
-    DriveEstimate, apply_rows, estimate_drive, fourier_design, least_squares_projector, rotate_to_global, rotation,
+    DriveEstimate, amplitude_change, apply_rows, block_layout, estimate_drive, fourier_design, highest_harmonic,
+    least_squares_projector, noise_variance_factor, rotate_to_global, rotation,
 )
 from .registry import Registry
 
@@ -192,7 +193,7 @@ class HarmonicBlocks:
 
     def noise_variance_factor(self) -> np.ndarray:
         """diag(P P^T): variance of each coefficient per unit white-noise variance of the samples."""
-        return np.einsum("kl,kl->k", self.projector, self.projector)
+        return noise_variance_factor(self.projector)
 
 
 @dataclass
@@ -334,12 +335,10 @@ def harmonic_blocks(
 ) -> HarmonicBlocks:
     """Blocks of ``round(periods_per_block * samples_per_period)`` samples, and their LS Fourier projector."""
     spp = sample_rate / frequency
-    L = int(round(periods_per_block * spp))
-    n_blocks = n_samples // L
+    L, n_blocks, start = block_layout(n_samples, periods_per_block * spp)
     if n_blocks < 3:
         raise InputError(f"only {n_blocks} whole blocks of {L} samples; need at least 3 drive periods", key="data.path")
-    # Highest harmonic: keep the basis well inside Nyquist so the LS fit is well conditioned.
-    K = int(min(max_harmonic, np.floor(0.45 * spp)))
+    K = highest_harmonic(spp, max_harmonic)
     if K < 2:
         raise InputError(f"{spp:.1f} samples per period cannot resolve any harmonic beyond the drive", key="data.sample_rate")
     dt = 1.0 / sample_rate
@@ -350,7 +349,6 @@ def harmonic_blocks(
     # kinks or steps (contact onset, adhesion) have slowly decaying harmonics, and on the sample grid
     # their edges would be quantised to a sample (a phase error of up to n w dt / 2 at harmonic n).
     design_fine = fourier_design(np.arange(L * oversample) * (dt / oversample), omega, K)
-    start = (n_samples - n_blocks * L) // 2  # centre the used part; drops partial periods at both ends
     return HarmonicBlocks(omega, dt, L, K, start, n_blocks, t0, design, projector, oversample, design_fine)
 
 
@@ -438,11 +436,7 @@ def amplitude_per_block(coef_x: np.ndarray) -> np.ndarray:
 
 def steadiness(coef_x: np.ndarray) -> float:
     """Relative amplitude change across the trace from a linear fit (0 = steady)."""
-    amp = amplitude_per_block(coef_x)
-    if amp.size < 3:
-        return 0.0
-    slope = np.polyfit(np.arange(amp.size), amp, 1)[0]
-    return float(abs(slope) * amp.size / amp.mean())
+    return amplitude_change(amplitude_per_block(coef_x))
 
 
 # --------------------------------------------------------------------------- differentiators
