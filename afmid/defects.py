@@ -13,7 +13,7 @@ Severities:
 - ``warning``: the fit can run but its result is doubtful, or a setting is recommended.
 - ``repaired``: a harmless defect that the run's settings already remove
   (an offset with ``fit.baseline: free``, a drift with ``fit.detrend: linear``,
-  a drive frequency the fit re-measures).
+  a drive frequency off the nominal one: the fit uses the measured one).
 
 Offset and drift are never changed silently: the data are passed on as they
 are, and the message recommends the ``fit.detrend`` / ``fit.baseline`` setting
@@ -22,7 +22,9 @@ reported as ``repaired`` (the fit does the removal).
 
 The signal checks work in samples, not seconds, so they also run on files
 without a sample rate (``afmid inspect``). They share one analysis
-(:func:`analyse`): the oscillation frequency from the spectrum, then a
+(:func:`analyse`, on the engine the fit uses too, :mod:`afmid.harmonics`): the
+oscillation frequency from the spectrum (for a loaded trace the drive as the fit
+measures it, measured here once and carried on the trace, :func:`check_loaded`), then a
 least-squares Fourier fit of every drive period (harmonics up to 0.45 x
 samples per period, at most 60), giving per-period amplitude, phase and mean, the
 period-averaged harmonics with their noise, and the model-free tip-sample force
