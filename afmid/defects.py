@@ -610,8 +610,6 @@ def report(findings: list[Finding], file, logger: logging.Logger | None = None) 
     Warnings are logged as warnings, 'repaired' findings as information, each
     prefixed with the file.
     """
-    from .errors import InputError
-
     logger = logger or log
     for finding in findings:
         if finding.severity == "error":
