@@ -35,6 +35,10 @@ from .preprocess import (HarmonicBlocks, WeakWindows, detrend, differentiate, es
                          ou_smooth,
                          steadiness, weak_windows)
 from . import plausibility, regression
+from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
+from .fit_selection import SelectionSettings
+# Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
+from .fit_selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
 
 log = logging.getLogger(__name__)
 
@@ -42,14 +46,6 @@ log = logging.getLogger(__name__)
 SIGNAL_SNR = 1.0
 #: Library terms are evaluated on a grid of at least this many points per drive period (see harmonic_blocks).
 FINE_POINTS_PER_PERIOD = 2048
-#: Libraries up to this many terms are searched exhaustively (2^14 small least-squares problems).
-EXHAUSTIVE_MAX_TERMS = 14
-
-
-def term_penalties(library: Library, n_nuisance: int, odds: float) -> np.ndarray:
-    """BIC penalty per column: 2 ln(odds) for terms that belong to no catalog effect (distractors)."""
-    extra = 2.0 * math.log(odds)
-    return np.array([0.0 if t.effect else extra for t in library.terms] + [0.0] * n_nuisance)
 
 
 # --------------------------------------------------------------------------- preparation
@@ -444,91 +440,15 @@ def _check_finite(columns: np.ndarray, library: Library, params: dict) -> None:
         )
 
 
-def _rss(system: System, mask: np.ndarray | None) -> float:
+def residual_sum_squares(system: System, mask: np.ndarray | None = None) -> float:
+    """Weighted residual sum of squares (dimensionless: rows are whitened) of the least-squares fit of ``system``
+    on the columns ``mask`` selects (None: all columns, library and nuisance)."""
     T = regression.combine(system.T_blocks)
     mask = np.ones(T.shape[1] - 1, dtype=bool) if mask is None else mask
     return regression.subset_fit(T, mask)[1]
 
 
 # --------------------------------------------------------------------------- nonlinear search
-def _search_1d(objective, lo: float, hi: float, n_grid: int, log_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
-    """Grid then bounded Brent refinement; returns (argmin, grid, values)."""
-    from scipy.optimize import minimize_scalar
-
-    grid = np.geomspace(lo, hi, n_grid) if log_scale else np.linspace(lo, hi, n_grid)
-    values = np.array([objective(g) for g in grid])
-    values[~np.isfinite(values)] = np.inf
-    i = int(np.argmin(values))
-    a, b = grid[max(i - 1, 0)], grid[min(i + 1, n_grid - 1)]
-    if a == b:
-        return float(grid[i]), grid, values
-    if log_scale:
-        res = minimize_scalar(lambda u: objective(math.exp(u)), bounds=(math.log(a), math.log(b)), method="bounded",
-                              options={"xatol": 1e-6})
-        best = math.exp(res.x)
-    else:
-        res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": (b - a) * 1e-6})
-        best = float(res.x)
-    return (best, grid, values) if res.fun <= values[i] else (float(grid[i]), grid, values)
-
-
-def _parabola(grid: np.ndarray, values: np.ndarray, s2: float) -> tuple[float, float, int]:
-    """Vertex and curvature of a parabola through the profile points within 9 chi-square units of its minimum
-    (at least the 5 around it); returns (vertex clipped to those points, curvature, number of points)."""
-    i = int(np.argmin(values))
-    near = np.flatnonzero(values - values[i] <= 9 * s2)
-    if near.size < 5:
-        near = np.arange(max(i - 2, 0), min(i + 3, grid.size))
-    c2, c1, _ = np.polyfit(grid[near], values[near], 2)
-    if not c2 > 0:
-        return float(grid[i]), c2, near.size
-    return float(np.clip(-c1 / (2 * c2), grid[near].min(), grid[near].max())), c2, near.size
-
-
-def profile_minimum(objective, center: float, half_width: float, s2: float, lo: float = -math.inf,
-                    hi: float = math.inf, n_points: int = 13) -> tuple[float, float, np.ndarray, np.ndarray]:
-    """Minimum and 1-sigma of a chi-square-like profile ``objective`` (a residual sum of squares), from a parabola.
-
-    ``s2`` is the residual variance (rss / s2 is the chi-square). The profile
-    is evaluated on a grid of ``n_points`` over ``center +- half_width``
-    (clipped to [lo, hi]); the window moves while the minimum sits on its
-    edge, widens while the profile is flatter than the window and narrows
-    while it is much sharper. A parabola through the points within 9
-    chi-square units of the minimum gives the estimate (its vertex) and
-    sigma = sqrt(s2 / curvature): robust to the small steps the quadrature
-    leaves in the residual, where a three-point curvature is not. Returns
-    (value, sigma, grid, values); sigma is NaN when the profile has no minimum
-    in [lo, hi] (the parameter is not determined by the data).
-    """
-    grid = values = np.zeros(0)
-    for _ in range(8):
-        a, b = max(lo, center - half_width), min(hi, center + half_width)
-        grid = np.linspace(a, b, n_points)
-        values = np.array([objective(g) for g in grid])
-        values[~np.isfinite(values)] = np.inf
-        i = int(np.argmin(values))
-        if not np.isfinite(values[i]) or np.isfinite(values).sum() < 5:
-            return center, math.nan, grid, values
-        if (i == 0 and a > lo) or (i == n_points - 1 and b < hi):  # on the window's edge: move
-            center = float(grid[i])
-            continue
-        ok = np.isfinite(values)
-        best, c2, n_near = _parabola(grid[ok], values[ok], s2)
-        if not c2 > 0:
-            break
-        sigma = math.sqrt(s2 / c2)
-        if sigma > half_width and half_width < (hi - lo):  # flatter than the window: look wider
-            half_width *= 3
-            center = best
-        elif n_near < 5 and sigma < half_width / 6:  # much sharper than the grid: look closer
-            half_width = 3 * sigma
-            center = best
-        else:
-            return best, sigma, grid, values
-    i = int(np.argmin(values))
-    return float(grid[i]), math.nan, grid, values
-
-
 #: Above this many blocks the bootstrap of a profile is skipped (it keeps the factors of every grid point).
 PROFILE_BOOTSTRAP_MAX_BLOCKS = 2000
 
@@ -559,7 +479,7 @@ def profile_parameter(prep: "Prepared", library: Library, params: dict, name: st
         if keep:
             factors[value] = system.T_blocks
         n_rows = system.n_rows
-        return _rss(system, mask)
+        return residual_sum_squares(system, mask)
 
     n_columns = len(library) + len(prep.nuisance_names)
     m = np.ones(n_columns, dtype=bool) if mask is None else mask
@@ -573,7 +493,7 @@ def profile_parameter(prep: "Prepared", library: Library, params: dict, name: st
         for _ in range(n_boot):
             mult = rng.multinomial(B, np.full(B, 1.0 / B)).astype(float)
             vals = np.array([regression.subset_fit(regression.combine(factors[g], mult), m)[1] for g in grid])
-            vertex, c2, _ = _parabola(grid, vals, s2)
+            vertex, c2, _ = parabola_vertex(grid, vals, s2)
             if c2 > 0:
                 vertices.append(vertex)
         if len(vertices) >= max(10, n_boot // 2):
@@ -603,18 +523,6 @@ def profile_library(library: Library, config: RunConfig) -> tuple[Library, dict[
     physics = build_library(ModelConfig(effects=list(library.effects)), config.source)
     extra = {k: v for k, v in physics.nonlinear.items() if k not in library.nonlinear}
     return physics, extra
-
-
-@dataclass
-class NonlinearEstimate:
-    name: str
-    value: float
-    sigma: float
-    unit: str
-    estimated: bool
-    grid: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    objective: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    bounds: tuple[float, float] = (-math.inf, math.inf)  # searched range
 
 
 # --------------------------------------------------------------------------- result
@@ -658,7 +566,14 @@ class FitResult:
         return f"cv_error {self.cv_error:.4f}; terms: {terms}"
 
 
-def _params_for(prep: Prepared, config: RunConfig, library: Library) -> dict:
+def library_parameters(prep: Prepared, config: RunConfig, library: Library) -> dict:
+    """The parameters the library's columns are evaluated with, before the outer search (SI).
+
+    The sample's a0, the measured drive frequency ``w`` (rad/s), the tip radius
+    ``R`` when the cantilever has one, and the library's nonlinear parameters at
+    their defaults or fixed values. The rest separation ``d`` is not included:
+    the outer search (or ``sample.separation``) sets it.
+    """
     params = {"a0": config.sample.a0, "w": prep.drive.omega}
     if prep.trace.cantilever.tip_radius is not None:
         params["R"] = prep.trace.cantilever.tip_radius
@@ -693,11 +608,9 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
         for name in library.nonlinear:
             if name in config.model.parameters:
                 continue
-            p = next(p for e in library.effects for p in EFFECTS.get(e).parameters if p.name == name)
-            # A log grid cannot hold a lower bound of 0 (no neck, no hysteresis): 0 is tried on its own.
-            lo = max(p.low, 1e-12) if p.low > 0 else 0.02e-9
-            to_search.append((name, lo, min(p.high, 20e-9), True, p.unit))
-            if p.low == 0:
+            span = search_range(library, name)
+            to_search.append((name, span.low, span.high, True, span.unit))
+            if span.zero_allowed:
                 zero_allowed.add(name)
     if "d" not in params:
         params["d"] = to_search[0][1] + 0.5 * (to_search[0][2] - to_search[0][1])
@@ -707,7 +620,7 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
             def objective(value, name=name):
                 trial = dict(params, **extra, **{name: value})
                 try:
-                    return _rss(build_system(prep, physics, trial), None)
+                    return residual_sum_squares(build_system(prep, physics, trial), None)
                 except AfmidError:
                     return math.inf
             n_grid = 25 if round_ == 0 else 11
@@ -720,7 +633,7 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
                     lo_r, hi_r = (max(lo, cur / 2), min(hi, cur * 2)) if cur > 0 else (lo, min(hi, 4 * lo))
             else:
                 lo_r, hi_r = lo, hi
-            best, grid, values = _search_1d(objective, lo_r, hi_r, n_grid, log_scale)
+            best, grid, values = search_1d(objective, lo_r, hi_r, n_grid, log_scale)
             if name in zero_allowed and objective(0.0) <= min(objective(best), float(np.min(values))):
                 best = 0.0
             params[name] = best
@@ -731,46 +644,58 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
     return estimates
 
 
-def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = None, uncertainty: bool = True) -> FitResult:
+def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = None, uncertainty: bool = True,
+            prepared: Prepared | None = None) -> FitResult:
     """Fit the trace named by ``config`` (or ``trace``) and return everything the run file holds.
 
     ``uncertainty=False`` skips the error bars (bootstrap, profile widths of the
     nonlinear parameters and their propagation): for quick comparative refits.
+    ``prepared`` is :func:`prepare` of the trace with ``config.fit`` done once
+    and shared by fits of other libraries or parameters on the same trace (it
+    is never modified); its trace is the one fitted.
     """
-    from tqdm import tqdm
-
-    fit = config.fit
-    if trace is None:
+    if prepared is not None:
+        if trace is not None and trace is not prepared.trace:
+            raise ValueError("run_fit: `trace` is not the trace `prepared` was made from")
+        trace = prepared.trace
+    elif trace is None:
         trace = load_trace(config)
     library = build_library(config.model, config.source)
     if len(library) == 0:
         raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source, key="model")
-    prep = prepare(trace, fit)
+    prep = prepared if prepared is not None else prepare(trace, config.fit)
+    return fit_prepared(prep, library, config, progress=progress, uncertainty=uncertainty)
+
+
+def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: bool = False,
+                 uncertainty: bool = True) -> FitResult:
+    """Fit ``library`` to a prepared trace (:func:`prepare` with ``config.fit``): the fit after the preparation.
+
+    ``config`` gives the sample (a0, a fixed separation), fixed model parameters
+    and the fit settings; ``config.model`` is not read (``library`` is fitted).
+    ``prep`` is not modified, so one preparation serves fits of many libraries
+    and parameter sets. ``uncertainty`` as in :func:`run_fit`.
+    """
+    from tqdm import tqdm
+
+    fit = config.fit
+    trace = prep.trace
     # Defects were detected and reported when the trace was loaded (afmid.defects); keep them with the run.
     warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
-    params = _params_for(prep, config, library)
+    params = library_parameters(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     physics, extra = profile_library(library, config)
     nonlinear = estimate_nonlinear(prep, library, config, params, physics=(physics, extra))
     bar.update(1)
-    thresholds = np.asarray(fit.thresholds) if fit.thresholds else regression.default_thresholds()
-    method = fit.method
-    if method == "auto":
-        method = "exhaustive" if len(library) <= EXHAUSTIVE_MAX_TERMS else "stlsq"
-    penalty = term_penalties(library, len(prep.nuisance_names), fit.distractor_odds)
-    rules = library.selection_rules(len(prep.nuisance_names))
+    settings = SelectionSettings.for_library(fit, library, len(prep.nuisance_names))
     system = build_system(prep, library, params)
-    selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
-                                  n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
-                                  rules=rules)
+    selection = settings.select(system)
     chosen = selection.best.mask
     # Second pass: weights that include the regressors' own noise, then select again.
     coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), chosen)
     prep = with_regressor_noise(prep, library, params, coef0)
     system = build_system(prep, library, params, theta=system.theta)  # same columns, new row weights
-    selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
-                                  n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
-                                  rules=rules)
+    selection = settings.select(system)
     chosen = selection.best.mask
     # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the
     # profile's width is their uncertainty (propagated into the read-out below).
@@ -790,9 +715,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
             profiled[name] = sigma
         support = chosen
         system = build_system(prep, library, params)
-        selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
-                                      n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
-                                      rules=rules)
+        selection = settings.select(system)
         chosen = selection.best.mask
         for name, est in nonlinear.items():
             est.value = params[name]
@@ -811,8 +734,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
         est.value = params[name]
     if fit.bootstrap > 0 and uncertainty:
         rng = np.random.default_rng(fit.seed)
-        bagging = regression.bag(system.T_blocks, system.protected, chosen, system.names, method, fit.selection,
-                                 thresholds, fit.bootstrap, rng, system.n_rows, penalty, rules)
+        bagging = settings.bag(system, chosen, fit.bootstrap, rng)
         coef_std = bagging.coef_samples.std(axis=0, ddof=1)
         ci_low, ci_high = np.percentile(bagging.coef_samples, [2.5, 97.5], axis=0)
         inclusion = bagging.inclusion
