@@ -48,6 +48,7 @@ from .fit_forces import (CHUNK_BLOCKS, PeriodCurves, force_cv_error, per_sample_
 from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
 from .fit_selection import SelectionSettings
 # Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
+from .fit_forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from .fit_selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
 
 log = logging.getLogger(__name__)
