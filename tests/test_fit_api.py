@@ -199,7 +199,8 @@ def test_selection_settings_resolve_auto_and_select_as_regression_does():
 
 
 # --------------------------------------------------------------------------- module boundaries
-@pytest.mark.parametrize("module", ["diagnose.py", "fit.py", "fit_search.py", "fit_selection.py"])
+@pytest.mark.parametrize("module", ["diagnose.py", "candidate_shapes.py", "fit.py", "fit_forces.py", "fit_search.py",
+                                    "fit_selection.py"])
 def test_the_fit_and_the_diagnosis_use_other_modules_public_names_only(module):
     """No import of another module's private names, no assignment to another module's attributes, no retry
     on TypeError (which hid real bugs as 'an afmid without the quick mode')."""
