@@ -58,6 +58,10 @@ class SelectionSettings:
                                  n_rows=system.n_rows, folds=self.folds, penalty=self.penalty, rules=self.rules)
 
     def bag(self, system, chosen: np.ndarray, n_boot: int, rng: np.random.Generator) -> regression.Bagging:
-        """Bootstrap over periods of ``system``: inclusion probabilities and the spread of the ``chosen`` support."""
+        """Bootstrap over periods of ``system``: inclusion probabilities and the spread of the ``chosen`` support.
+
+        Each resample re-selects by BIC when the criterion is "cv" (a cross-validation per resample would
+        cost folds x resamples selections; :func:`afmid.regression.bag`), by AICc when it is "aicc".
+        """
         return regression.bag(system.T_blocks, system.protected, chosen, system.names, self.method, self.criterion,
                               self.thresholds, n_boot, rng, system.n_rows, self.penalty, self.rules)
