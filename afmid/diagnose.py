@@ -44,6 +44,7 @@ from .config import RunConfig, build_config
 from .errors import InputError
 from .files import check_input_file
 from .io import RUN_FORMAT, Truth, read_truth, sha256_file
+from .candidate_shapes import ShapeSearch
 from .physics import EFFECTS
 
 log = logging.getLogger(__name__)
@@ -70,12 +71,10 @@ RATE_CORRELATION = 0.5
 #: Effects that are base contact models: one at a time, never suggested on top of another.
 BASE_MODELS = ("dmt", "jkr", "lennard_jones")
 #: Search an added effect's nonlinear parameters (decay length, rupture distance) with the quick search of
-#: _ShapeSearch and refit with them fixed, instead of the fit's own outer search. Measured on the 16
+#: afmid.candidate_shapes.ShapeSearch and refit with them fixed, instead of the fit's own outer search. Measured on the 16
 #: hidden-effect variants: the same ranking, parameters within their statistical scatter, 4-5x faster
 #: (a diagnosis 2 s instead of 9-10 s).
 QUICK_SHAPE = True
-#: Points of the coarse logarithmic grid of that search (then refined, see _minimise_bumpy).
-SHAPE_GRID = 10
 #: Quality factors above this mean the lever oscillates in a gas (in liquids Q is ~1-10).
 GAS_QUALITY_FACTOR = 30.0
 #: Largest plausible viscosity of a gas film, Pa s (air 1.8e-5; every gas is below 1e-4).
@@ -478,41 +477,16 @@ def refit_config(run: RunData, effects: list[str]) -> RunConfig:
     return config
 
 
-@contextlib.contextmanager
-def _shared_preparation():
-    """Prepare the trace once for all the refits of one diagnosis.
+def _fit_quick(config: RunConfig, prepared):
+    """The fit of ``config`` without error bars, on the shared preparation ``prepared`` (None: load and prepare).
 
-    Every refit of :func:`suggest` fits the same trace with the same fit
-    settings, and :func:`afmid.fit.prepare` (drive, blocks, weak-form rows,
-    noise) does not depend on the library; ``run_fit`` has no way to take a
-    prepared trace, so its module-level ``prepare`` is memoised for the
-    duration (it returns a fresh object that the fit never modifies in place).
+    Every refit of one diagnosis fits the same trace with the same fit settings
+    (:func:`refit_config`), so the trace is prepared once (drive, blocks,
+    weak-form rows, noise do not depend on the library).
     """
-    from . import fit as fit_module
-
-    original = fit_module.prepare
-    cache: dict = {}
-
-    def prepare(trace, fit):
-        key = (id(trace), fit.model_dump_json() if hasattr(fit, "model_dump_json") else repr(fit))
-        if key not in cache:
-            cache[key] = original(trace, fit)
-        return cache[key]
-
-    fit_module.prepare = prepare
-    try:
-        yield
-    finally:
-        fit_module.prepare = original
-
-
-def _fit_quick(config: RunConfig, trace):
     from .fit import run_fit
 
-    try:
-        return run_fit(config, trace=trace, uncertainty=False)
-    except TypeError:  # an afmid without the quick mode
-        return run_fit(config, trace=trace)
+    return run_fit(config, prepared=prepared, uncertainty=False)
 
 
 def _chi2(result) -> tuple[float, float, int]:
@@ -520,116 +494,6 @@ def _chi2(result) -> tuple[float, float, int]:
     n = int(result.system.n_rows)
     dof = max(n - int(best.mask.sum()), 1)
     return best.rss / dof, 1.0 + CHI2_SIGMAS * math.sqrt(2.0 / dof), n
-
-
-class _ShapeSearch:
-    """Nonlinear parameters of a candidate effect (decay lengths, rupture distance) by a coarse search.
-
-    The fit's own outer search is thorough (a fine grid, two rounds and a
-    refinement for the chosen terms) and dominates the cost of a refit. For
-    ranking candidates a coarse logarithmic grid over the parameter's range,
-    refined by parabolas through finer grids, on the same objective (the
-    full-library weighted residual) is enough; the fit then runs with the value
-    fixed. The data preparation is shared by all candidates, and the columns of
-    the terms that do not depend on the searched parameter are computed once:
-    only the candidate's own columns are recomputed at each trial value. That
-    shortcut is checked against the fit's own system at the first trial value
-    and dropped if they disagree.
-    """
-
-    def __init__(self, trace, config: RunConfig):
-        self.trace = trace
-        self.config = config
-        self._prep = None
-        self.evaluations = 0
-
-    def prep(self):
-        if self._prep is None:
-            from .fit import prepare
-
-            self._prep = prepare(self.trace, self.config.fit)
-        return self._prep
-
-    def search(self, config: RunConfig, effect: str, names: list[str]) -> dict[str, float]:
-        from dataclasses import replace
-
-        from .errors import AfmidError
-        from .fit import _params_for, _rss, build_system
-        from .library import build_library
-
-        prep = self.prep()
-        library = build_library(config.model, config.source)
-        params = _params_for(prep, config, library)
-        params["d"] = config.sample.separation
-        own = [t for t in library.terms if t.effect == effect]
-        rest = [t for t in library.terms if t.effect != effect]
-        fixed_theta = build_system(prep, replace(library, terms=rest), params).theta if rest else None
-        own_library = replace(library, terms=own)
-
-        def composed(trial: dict) -> float:
-            theta = np.concatenate([fixed_theta, build_system(prep, own_library, trial).theta], axis=2)
-            return _rss(build_system(prep, library, trial, theta=theta), None)  # columns in any order: rss only
-
-        def full(trial: dict) -> float:
-            return _rss(build_system(prep, library, trial), None)
-
-        rss = [composed if own and rest else full]
-        checked = [False]
-        found: dict[str, float] = {}
-        for _round in range(2 if len(names) > 1 else 1):
-            for name in names:
-                p = next(p for e in library.effects for p in EFFECTS.get(e).parameters if p.name == name)
-                lo, hi = (max(p.low, 1e-12) if p.low > 0 else 0.02e-9), min(p.high, 20e-9)
-
-                def objective(log_value, name=name):
-                    trial = dict(params, **{name: math.exp(log_value)})
-                    self.evaluations += 1
-                    try:
-                        value = rss[0](trial)
-                        if not checked[0] and rss[0] is composed:
-                            checked[0] = True
-                            reference = full(trial)
-                            if not math.isclose(value, reference, rel_tol=1e-6, abs_tol=1e-9):
-                                log.debug("column shortcut disagrees with the fit (%g vs %g); not used", value, reference)
-                                rss[0] = full
-                                value = reference
-                        return value
-                    except AfmidError:
-                        return math.inf
-
-                best = _minimise_bumpy(objective, math.log(lo), math.log(hi))
-                params[name] = found[name] = math.exp(best)
-        return found
-
-
-def _minimise_bumpy(objective, lo: float, hi: float) -> float:
-    """Minimum of a 1-D objective that is smooth on large scales but steppy on small ones.
-
-    Gated terms (a meniscus that ruptures at a distance) switch on the fit's
-    quadrature grid, so the residual moves in small steps as the parameter
-    changes and a bracketing search stops on a step. A coarse grid finds the
-    valley; two rounds of a parabola fitted to a finer grid across it give
-    the minimum of the smooth part (clipped to the searched interval).
-    """
-    grid = np.linspace(lo, hi, SHAPE_GRID)
-    values = np.array([objective(g) for g in grid])
-    values[~np.isfinite(values)] = np.inf
-    i = int(np.argmin(values))
-    best = float(grid[i])
-    half = grid[1] - grid[0]
-    for points in (9, 7):
-        a, b = max(lo, best - half), min(hi, best + half)
-        fine = np.linspace(a, b, points)
-        vals = np.array([objective(g) for g in fine])
-        ok = np.isfinite(vals)
-        j = int(np.argmin(np.where(ok, vals, np.inf)))
-        best = float(fine[j])
-        if ok.sum() >= 4:
-            c2, c1, _ = np.polyfit(fine[ok], vals[ok], 2)
-            if c2 > 0:
-                best = float(np.clip(-c1 / (2 * c2), a, b))
-        half = (b - a) / 4
-    return best
 
 
 def _implausible(effect: str, quantities: dict, run: RunData) -> list[str]:
@@ -665,7 +529,7 @@ def suggest(run: RunData, progress: bool = False) -> dict:
         log.warning("%s changed since the run was made (SHA-256 differs); no effects are suggested", run.input_path)
         return {"missing_effect": False, "suggestions": [], "tried": [],
                 "note": f"no suggestions: the input trace {run.input_path} changed since the run was made"}
-    with _shared_preparation(), _one_blas_thread():
+    with _one_blas_thread():
         return _diagnose(run, progress)
 
 
@@ -687,20 +551,22 @@ def _one_blas_thread():
 def _diagnose(run: RunData, progress: bool) -> dict:
     from tqdm import tqdm
 
+    from .fit import prepare
     from .io import load_trace
 
     started = time.perf_counter()
     local = localize(run)
     base_config = refit_config(run, run.effects)
-    trace = load_trace(base_config)
-    base_result = _fit_quick(base_config, trace)
+    # Every refit below differs from this one only in its library and fixed parameters: one preparation.
+    prepared = prepare(load_trace(base_config), base_config.fit)
+    base_result = _fit_quick(base_config, prepared)
     chi2, limit, n_rows = _chi2(base_result)
     base = _Base(base_result.cv_error, base_result.cv_error_noise_floor, base_result.selection.best.bic,
                  chi2, limit, n_rows)
     if abs(base.error - run.cv_error) > 0.02 * max(run.cv_error, 1e-12):
         log.warning("refitting %s gives error %.4g, the run file says %.4g (made by another afmid version?); "
                     "comparing with the refit", run.path.name, base.error, run.cv_error)
-    shapes = _ShapeSearch(trace, base_config)
+    shapes = ShapeSearch(prepared)
     trials: list[Trial] = []
     for effect in tqdm(candidate_effects(run.effects), desc="trying effects", disable=not progress, leave=False):
         t0 = time.perf_counter()
@@ -716,7 +582,7 @@ def _diagnose(run: RunData, progress: bool) -> dict:
                 except Exception as exc:  # fall back to the fit's own search
                     log.debug("quick search for %s failed (%s); using the fit's own", effect, exc)
                     shape = {}
-            result = _fit_quick(config, trace)
+            result = _fit_quick(config, prepared)
         except Exception as exc:  # one effect that cannot be fitted must not stop the diagnosis
             log.info("refit with %s failed: %s", effect, exc)
             continue
@@ -737,7 +603,7 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         t.explains = not _significant(t.chi2_after, t.chi2_limit_after, t.error_after, t.noise_floor_after)
     trials.sort(key=lambda t: (not t.significant, t.delta_bic))
     good = [t for t in trials if t.significant]
-    final, final_bic = _forward(run, trace, good)
+    final, final_bic = _forward(run, prepared, good)
     good = [t for t in good if t.significant]
     trials.sort(key=lambda t: (not t.significant, t.delta_bic))
     # A catalog shape with physically impossible values (e.g. an attractive "hydration" force) that fits much
@@ -795,14 +661,14 @@ class _SetFit:
     selected: dict[str, bool]
 
 
-def _fit_set(run: RunData, trace, members: list[Trial]) -> _SetFit | None:
+def _fit_set(run: RunData, prepared, members: list[Trial]) -> _SetFit | None:
     config = refit_config(run, run.effects + [m.effect for m in members])
     fixed = {**config.model.parameters}
     for m in members:
         fixed.update(m.shape)
     config.model.parameters = fixed
     try:
-        result = _fit_quick(config, trace)
+        result = _fit_quick(config, prepared)
     except Exception as exc:
         log.info("refit with %s failed: %s", [m.effect for m in members], exc)
         return None
@@ -819,7 +685,7 @@ def _fit_set(run: RunData, trace, members: list[Trial]) -> _SetFit | None:
 PAIR_CANDIDATES = 5
 
 
-def _forward(run: RunData, trace, good: list[Trial]) -> tuple[tuple[float, float, float, float], float]:
+def _forward(run: RunData, prepared, good: list[Trial]) -> tuple[tuple[float, float, float, float], float]:
     """Which of the accepted candidates are needed; returns ((chi2, limit, error, floor), BIC) of the final set.
 
     Forward selection: the best candidate is kept; each further one is refitted
@@ -839,7 +705,7 @@ def _forward(run: RunData, trace, good: list[Trial]) -> tuple[tuple[float, float
     bic, error = top.bic_after, top.error_after
     verdicts: dict[str, str] = {}
     for t in good[1:]:
-        fitted = _fit_set(run, trace, kept + [t])
+        fitted = _fit_set(run, prepared, kept + [t])
         if fitted is None:
             verdicts[t.effect] = "could not be refitted together with " + ", ".join(k.effect for k in kept)
             continue
@@ -861,7 +727,7 @@ def _forward(run: RunData, trace, good: list[Trial]) -> tuple[tuple[float, float
                 pair = [pool[i], pool[j]]
                 if {p.effect for p in pair} <= {k.effect for k in kept}:
                     continue
-                fitted = _fit_set(run, trace, pair)
+                fitted = _fit_set(run, prepared, pair)
                 if fitted is None or not all(fitted.selected.values()):
                     continue
                 if best is None or fitted.bic < best[1].bic:

@@ -8,6 +8,15 @@ one period, Fourier coefficients, noise level, the model-free force) ->
 parameters (separation, decay lengths) by an outer search -> bagging for error
 bars -> physical read-out -> per-sample and per-period forces -> :func:`write_run`.
 
+:func:`run_fit` is load + :func:`prepare` + :func:`fit_prepared`. Fits of many
+libraries or parameter sets on one trace (the diagnosis, force maps) prepare
+it once and pass it (``run_fit(config, prepared=...)`` or :func:`fit_prepared`);
+:func:`build_system`, :func:`residual_sum_squares` and :func:`library_parameters`
+serve searches of their own on a prepared trace. The pieces live beside this
+module: :mod:`afmid.fit_selection` (selection settings), :mod:`afmid.fit_search`
+(1-D searches and search ranges of the nonlinear parameters),
+:mod:`afmid.fit_forces` (error metric, read-out, forces).
+
 Equation (SI, x toward the sample, F_ts repulsive positive):
     m x'' + (m w0 / Q) x' + k x = -F_ts + F_drive,   m = k / w0^2
 so  Y := -(m x'' + (m w0/Q) x' + k x) = F_ts - F_drive = Theta c - (a cos wt + b sin wt).
@@ -21,7 +30,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,26 +38,23 @@ from .config import RunConfig, dump_config
 from .errors import AfmidError, ConfigError, InputError
 from .io import Trace, atomic_hdf5, check_output_path, create_dataset, load_trace, write_dataset, RUN_FORMAT
 from .library import Library, build_library
-from .physics import BOLTZMANN, EFFECTS
+from .physics import BOLTZMANN
 from .preprocess import (HarmonicBlocks, WeakWindows, detrend, differentiate, estimate_drive, harmonic_blocks,
                          ou_smooth,
                          steadiness, weak_windows)
 from . import plausibility, regression
+from .fit_forces import (CHUNK_BLOCKS, PeriodCurves, force_cv_error, per_sample_forces, period_curves, read_out,
+                         signal_rows)
+from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
+from .fit_selection import SelectionSettings
+# Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
+from .fit_forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
+from .fit_selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
 
 log = logging.getLogger(__name__)
 
-#: A harmonic counts as signal in the error metric when its mean exceeds this many noise sigmas per block.
-SIGNAL_SNR = 1.0
 #: Library terms are evaluated on a grid of at least this many points per drive period (see harmonic_blocks).
 FINE_POINTS_PER_PERIOD = 2048
-#: Libraries up to this many terms are searched exhaustively (2^14 small least-squares problems).
-EXHAUSTIVE_MAX_TERMS = 14
-
-
-def term_penalties(library: Library, n_nuisance: int, odds: float) -> np.ndarray:
-    """BIC penalty per column: 2 ln(odds) for terms that belong to no catalog effect (distractors)."""
-    extra = 2.0 * math.log(odds)
-    return np.array([0.0 if t.effect else extra for t in library.terms] + [0.0] * n_nuisance)
 
 
 # --------------------------------------------------------------------------- preparation
@@ -299,8 +304,6 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
     return dataclasses.replace(prep, row_sigma=np.sqrt(variance))
 
 
-#: Blocks (periods) per chunk when the fine grid is evaluated: bounds memory for long traces.
-CHUNK_BLOCKS = 256
 
 
 def fine_chunks(prep: Prepared, overlap: int = 0):
@@ -444,91 +447,15 @@ def _check_finite(columns: np.ndarray, library: Library, params: dict) -> None:
         )
 
 
-def _rss(system: System, mask: np.ndarray | None) -> float:
+def residual_sum_squares(system: System, mask: np.ndarray | None = None) -> float:
+    """Weighted residual sum of squares (dimensionless: rows are whitened) of the least-squares fit of ``system``
+    on the columns ``mask`` selects (None: all columns, library and nuisance)."""
     T = regression.combine(system.T_blocks)
     mask = np.ones(T.shape[1] - 1, dtype=bool) if mask is None else mask
     return regression.subset_fit(T, mask)[1]
 
 
 # --------------------------------------------------------------------------- nonlinear search
-def _search_1d(objective, lo: float, hi: float, n_grid: int, log_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
-    """Grid then bounded Brent refinement; returns (argmin, grid, values)."""
-    from scipy.optimize import minimize_scalar
-
-    grid = np.geomspace(lo, hi, n_grid) if log_scale else np.linspace(lo, hi, n_grid)
-    values = np.array([objective(g) for g in grid])
-    values[~np.isfinite(values)] = np.inf
-    i = int(np.argmin(values))
-    a, b = grid[max(i - 1, 0)], grid[min(i + 1, n_grid - 1)]
-    if a == b:
-        return float(grid[i]), grid, values
-    if log_scale:
-        res = minimize_scalar(lambda u: objective(math.exp(u)), bounds=(math.log(a), math.log(b)), method="bounded",
-                              options={"xatol": 1e-6})
-        best = math.exp(res.x)
-    else:
-        res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": (b - a) * 1e-6})
-        best = float(res.x)
-    return (best, grid, values) if res.fun <= values[i] else (float(grid[i]), grid, values)
-
-
-def _parabola(grid: np.ndarray, values: np.ndarray, s2: float) -> tuple[float, float, int]:
-    """Vertex and curvature of a parabola through the profile points within 9 chi-square units of its minimum
-    (at least the 5 around it); returns (vertex clipped to those points, curvature, number of points)."""
-    i = int(np.argmin(values))
-    near = np.flatnonzero(values - values[i] <= 9 * s2)
-    if near.size < 5:
-        near = np.arange(max(i - 2, 0), min(i + 3, grid.size))
-    c2, c1, _ = np.polyfit(grid[near], values[near], 2)
-    if not c2 > 0:
-        return float(grid[i]), c2, near.size
-    return float(np.clip(-c1 / (2 * c2), grid[near].min(), grid[near].max())), c2, near.size
-
-
-def profile_minimum(objective, center: float, half_width: float, s2: float, lo: float = -math.inf,
-                    hi: float = math.inf, n_points: int = 13) -> tuple[float, float, np.ndarray, np.ndarray]:
-    """Minimum and 1-sigma of a chi-square-like profile ``objective`` (a residual sum of squares), from a parabola.
-
-    ``s2`` is the residual variance (rss / s2 is the chi-square). The profile
-    is evaluated on a grid of ``n_points`` over ``center +- half_width``
-    (clipped to [lo, hi]); the window moves while the minimum sits on its
-    edge, widens while the profile is flatter than the window and narrows
-    while it is much sharper. A parabola through the points within 9
-    chi-square units of the minimum gives the estimate (its vertex) and
-    sigma = sqrt(s2 / curvature): robust to the small steps the quadrature
-    leaves in the residual, where a three-point curvature is not. Returns
-    (value, sigma, grid, values); sigma is NaN when the profile has no minimum
-    in [lo, hi] (the parameter is not determined by the data).
-    """
-    grid = values = np.zeros(0)
-    for _ in range(8):
-        a, b = max(lo, center - half_width), min(hi, center + half_width)
-        grid = np.linspace(a, b, n_points)
-        values = np.array([objective(g) for g in grid])
-        values[~np.isfinite(values)] = np.inf
-        i = int(np.argmin(values))
-        if not np.isfinite(values[i]) or np.isfinite(values).sum() < 5:
-            return center, math.nan, grid, values
-        if (i == 0 and a > lo) or (i == n_points - 1 and b < hi):  # on the window's edge: move
-            center = float(grid[i])
-            continue
-        ok = np.isfinite(values)
-        best, c2, n_near = _parabola(grid[ok], values[ok], s2)
-        if not c2 > 0:
-            break
-        sigma = math.sqrt(s2 / c2)
-        if sigma > half_width and half_width < (hi - lo):  # flatter than the window: look wider
-            half_width *= 3
-            center = best
-        elif n_near < 5 and sigma < half_width / 6:  # much sharper than the grid: look closer
-            half_width = 3 * sigma
-            center = best
-        else:
-            return best, sigma, grid, values
-    i = int(np.argmin(values))
-    return float(grid[i]), math.nan, grid, values
-
-
 #: Above this many blocks the bootstrap of a profile is skipped (it keeps the factors of every grid point).
 PROFILE_BOOTSTRAP_MAX_BLOCKS = 2000
 
@@ -559,7 +486,7 @@ def profile_parameter(prep: "Prepared", library: Library, params: dict, name: st
         if keep:
             factors[value] = system.T_blocks
         n_rows = system.n_rows
-        return _rss(system, mask)
+        return residual_sum_squares(system, mask)
 
     n_columns = len(library) + len(prep.nuisance_names)
     m = np.ones(n_columns, dtype=bool) if mask is None else mask
@@ -573,7 +500,7 @@ def profile_parameter(prep: "Prepared", library: Library, params: dict, name: st
         for _ in range(n_boot):
             mult = rng.multinomial(B, np.full(B, 1.0 / B)).astype(float)
             vals = np.array([regression.subset_fit(regression.combine(factors[g], mult), m)[1] for g in grid])
-            vertex, c2, _ = _parabola(grid, vals, s2)
+            vertex, c2, _ = parabola_vertex(grid, vals, s2)
             if c2 > 0:
                 vertices.append(vertex)
         if len(vertices) >= max(10, n_boot // 2):
@@ -603,18 +530,6 @@ def profile_library(library: Library, config: RunConfig) -> tuple[Library, dict[
     physics = build_library(ModelConfig(effects=list(library.effects)), config.source)
     extra = {k: v for k, v in physics.nonlinear.items() if k not in library.nonlinear}
     return physics, extra
-
-
-@dataclass
-class NonlinearEstimate:
-    name: str
-    value: float
-    sigma: float
-    unit: str
-    estimated: bool
-    grid: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    objective: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    bounds: tuple[float, float] = (-math.inf, math.inf)  # searched range
 
 
 # --------------------------------------------------------------------------- result
@@ -658,7 +573,14 @@ class FitResult:
         return f"cv_error {self.cv_error:.4f}; terms: {terms}"
 
 
-def _params_for(prep: Prepared, config: RunConfig, library: Library) -> dict:
+def library_parameters(prep: Prepared, config: RunConfig, library: Library) -> dict:
+    """The parameters the library's columns are evaluated with, before the outer search (SI).
+
+    The sample's a0, the measured drive frequency ``w`` (rad/s), the tip radius
+    ``R`` when the cantilever has one, and the library's nonlinear parameters at
+    their defaults or fixed values. The rest separation ``d`` is not included:
+    the outer search (or ``sample.separation``) sets it.
+    """
     params = {"a0": config.sample.a0, "w": prep.drive.omega}
     if prep.trace.cantilever.tip_radius is not None:
         params["R"] = prep.trace.cantilever.tip_radius
@@ -693,11 +615,9 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
         for name in library.nonlinear:
             if name in config.model.parameters:
                 continue
-            p = next(p for e in library.effects for p in EFFECTS.get(e).parameters if p.name == name)
-            # A log grid cannot hold a lower bound of 0 (no neck, no hysteresis): 0 is tried on its own.
-            lo = max(p.low, 1e-12) if p.low > 0 else 0.02e-9
-            to_search.append((name, lo, min(p.high, 20e-9), True, p.unit))
-            if p.low == 0:
+            span = search_range(library, name)
+            to_search.append((name, span.low, span.high, True, span.unit))
+            if span.zero_allowed:
                 zero_allowed.add(name)
     if "d" not in params:
         params["d"] = to_search[0][1] + 0.5 * (to_search[0][2] - to_search[0][1])
@@ -707,7 +627,7 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
             def objective(value, name=name):
                 trial = dict(params, **extra, **{name: value})
                 try:
-                    return _rss(build_system(prep, physics, trial), None)
+                    return residual_sum_squares(build_system(prep, physics, trial), None)
                 except AfmidError:
                     return math.inf
             n_grid = 25 if round_ == 0 else 11
@@ -720,7 +640,7 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
                     lo_r, hi_r = (max(lo, cur / 2), min(hi, cur * 2)) if cur > 0 else (lo, min(hi, 4 * lo))
             else:
                 lo_r, hi_r = lo, hi
-            best, grid, values = _search_1d(objective, lo_r, hi_r, n_grid, log_scale)
+            best, grid, values = search_1d(objective, lo_r, hi_r, n_grid, log_scale)
             if name in zero_allowed and objective(0.0) <= min(objective(best), float(np.min(values))):
                 best = 0.0
             params[name] = best
@@ -731,46 +651,58 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
     return estimates
 
 
-def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = None, uncertainty: bool = True) -> FitResult:
+def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = None, uncertainty: bool = True,
+            prepared: Prepared | None = None) -> FitResult:
     """Fit the trace named by ``config`` (or ``trace``) and return everything the run file holds.
 
     ``uncertainty=False`` skips the error bars (bootstrap, profile widths of the
     nonlinear parameters and their propagation): for quick comparative refits.
+    ``prepared`` is :func:`prepare` of the trace with ``config.fit`` done once
+    and shared by fits of other libraries or parameters on the same trace (it
+    is never modified); its trace is the one fitted.
     """
-    from tqdm import tqdm
-
-    fit = config.fit
-    if trace is None:
+    if prepared is not None:
+        if trace is not None and trace is not prepared.trace:
+            raise ValueError("run_fit: `trace` is not the trace `prepared` was made from")
+        trace = prepared.trace
+    elif trace is None:
         trace = load_trace(config)
     library = build_library(config.model, config.source)
     if len(library) == 0:
         raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source, key="model")
-    prep = prepare(trace, fit)
+    prep = prepared if prepared is not None else prepare(trace, config.fit)
+    return fit_prepared(prep, library, config, progress=progress, uncertainty=uncertainty)
+
+
+def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: bool = False,
+                 uncertainty: bool = True) -> FitResult:
+    """Fit ``library`` to a prepared trace (:func:`prepare` with ``config.fit``): the fit after the preparation.
+
+    ``config`` gives the sample (a0, a fixed separation), fixed model parameters
+    and the fit settings; ``config.model`` is not read (``library`` is fitted).
+    ``prep`` is not modified, so one preparation serves fits of many libraries
+    and parameter sets. ``uncertainty`` as in :func:`run_fit`.
+    """
+    from tqdm import tqdm
+
+    fit = config.fit
+    trace = prep.trace
     # Defects were detected and reported when the trace was loaded (afmid.defects); keep them with the run.
     warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
-    params = _params_for(prep, config, library)
+    params = library_parameters(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     physics, extra = profile_library(library, config)
     nonlinear = estimate_nonlinear(prep, library, config, params, physics=(physics, extra))
     bar.update(1)
-    thresholds = np.asarray(fit.thresholds) if fit.thresholds else regression.default_thresholds()
-    method = fit.method
-    if method == "auto":
-        method = "exhaustive" if len(library) <= EXHAUSTIVE_MAX_TERMS else "stlsq"
-    penalty = term_penalties(library, len(prep.nuisance_names), fit.distractor_odds)
-    rules = library.selection_rules(len(prep.nuisance_names))
+    settings = SelectionSettings.for_library(fit, library, len(prep.nuisance_names))
     system = build_system(prep, library, params)
-    selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
-                                  n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
-                                  rules=rules)
+    selection = settings.select(system)
     chosen = selection.best.mask
     # Second pass: weights that include the regressors' own noise, then select again.
     coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), chosen)
     prep = with_regressor_noise(prep, library, params, coef0)
     system = build_system(prep, library, params, theta=system.theta)  # same columns, new row weights
-    selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
-                                  n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
-                                  rules=rules)
+    selection = settings.select(system)
     chosen = selection.best.mask
     # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the
     # profile's width is their uncertainty (propagated into the read-out below).
@@ -790,9 +722,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
             profiled[name] = sigma
         support = chosen
         system = build_system(prep, library, params)
-        selection = regression.select(system.T_blocks, system.protected, method, fit.selection, thresholds,
-                                      n_rows=system.n_rows, folds=fit.folds, penalty=penalty,
-                                      rules=rules)
+        selection = settings.select(system)
         chosen = selection.best.mask
         for name, est in nonlinear.items():
             est.value = params[name]
@@ -811,14 +741,13 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
         est.value = params[name]
     if fit.bootstrap > 0 and uncertainty:
         rng = np.random.default_rng(fit.seed)
-        bagging = regression.bag(system.T_blocks, system.protected, chosen, system.names, method, fit.selection,
-                                 thresholds, fit.bootstrap, rng, system.n_rows, penalty, rules)
+        bagging = settings.bag(system, chosen, fit.bootstrap, rng)
         coef_std = bagging.coef_samples.std(axis=0, ddof=1)
         ci_low, ci_high = np.percentile(bagging.coef_samples, [2.5, 97.5], axis=0)
         inclusion = bagging.inclusion
     bar.update(1)
-    signal_rows = _signal_rows(prep, system, coef)
-    cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, signal_rows, fit.folds)
+    rows = signal_rows(prep, system, coef)
+    cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, rows, fit.folds)
     try:
         refuse_unusable(trace, library, coef[:len(library)], cv_error)
     except AfmidError:
@@ -827,14 +756,14 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     quantities = read_out(library, coef, bagging, params, chosen, trace)
     if uncertainty:
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
-    force_estimate, force_direct = per_sample_forces(prep, library, system, coef, signal_rows)
-    periods = period_curves(prep, library, system, coef, params, signal_rows, fit.phase_points)
+    force_estimate, force_direct = per_sample_forces(prep, library, system, coef, rows)
+    periods = period_curves(prep, library, system, coef, params, rows, fit.phase_points)
     bar.update(1)
     bar.close()
     for name, est in nonlinear.items():
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
-                     nonlinear, quantities, cv_error, per_fold, noise_floor, signal_rows, force_estimate, force_direct, periods,
+                     nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_direct, periods,
                      warnings)
 
 
@@ -852,128 +781,6 @@ def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: 
         raise InputError("the fit has no usable result: its cross-validated error is NaN because no harmonic of "
                          "the model-free tip-sample force stands above the noise (the tip does not reach the sample, "
                          "or this is not a tapping trace); nothing was written", file=trace.path, key="data.path")
-
-
-# --------------------------------------------------------------------------- error metric
-def _direct_force_coefficients(prep: Prepared, system: System, coef: np.ndarray, blocks: slice = slice(None)
-                               ) -> np.ndarray:
-    """Model-free force F_ts per period (B, 2K+1): -(m x'' + c x' + k x) plus the fitted drive (``blocks``: of those)."""
-    p = system.theta.shape[2]
-    Y = prep.Y_block[blocks]
-    if "stiffness" in prep.nuisance_names:  # free cantilever: the identified k, c replace the calibrated ones
-        Y = -(prep.trace.cantilever.mass * prep.blocks.derivative(prep.X[blocks, :, None], 2))[..., 0]
-    return Y - np.einsum("bkm,m->bk", prep.nuisance_block[blocks], coef[p:])
-
-
-def _signal_rows(prep: Prepared, system: System, coef: np.ndarray) -> np.ndarray:
-    """Rows whose mean model-free force stands above the per-block noise."""
-    F = _direct_force_coefficients(prep, system, coef)
-    mean = np.abs(F.mean(axis=0))
-    rows = mean > SIGNAL_SNR * prep.block_sigma
-    harmonics = prep.blocks.harmonics
-    # Keep cos/sin of a harmonic together.
-    for n in np.unique(harmonics[rows]):
-        rows[harmonics == n] = True
-    return rows
-
-
-def _power(F: np.ndarray, harmonics: np.ndarray) -> np.ndarray:
-    """Mean-square value of series with coefficients F (..., 2K+1) (Parseval)."""
-    w = np.where(harmonics == 0, 1.0, 0.5)
-    return np.sum(w * F**2, axis=-1)
-
-
-def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.ndarray, folds: int):
-    """Normalised cross-validated force error over held-out periods (0 = perfect, 1 = a constant force).
-
-    For each fold of contiguous periods the model is refitted on the other
-    periods. On the held-out periods, averaged like the paper averages periods,
-    the model force is compared with the model-free force
-    F_ts = drive - (m x'' + c x' + k x) on the drive harmonics where that
-    average stands 3 sigma above its noise:
-    error^2 = sum |F_free - F_model|^2 / sum |F_free - mean(F_free)|^2
-    (Parseval over harmonics, summed over folds). Returns the error, the error
-    of each fold, and the noise floor: the error a perfect model would show.
-    """
-    if prep.form == "strong":
-        return _time_domain_cv_error(prep, system, mask, folds)
-    harmonics = prep.blocks.harmonics
-    num = den = noise = 0.0
-    per_fold = []
-    p = system.theta.shape[2]
-    for test in regression.fold_slices(system.T_blocks.shape[0], folds):
-        train = regression.training_blocks(system.T_blocks.shape[0], test)
-        coef, _ = regression.subset_fit(regression.combine(system.T_blocks[train]), mask)
-        free = (prep.Y[test] - np.einsum("bkm,m->bk", prep.nuisance[test], coef[p:])).mean(axis=0)
-        model = np.einsum("bkm,m->bk", system.theta[test], coef[:p]).mean(axis=0)
-        sigma = prep.row_sigma / math.sqrt(test.size)
-        keep = rows & (np.abs(free) > 3 * sigma)
-        for n in np.unique(harmonics[keep]):  # cos and sin of a harmonic together
-            keep[harmonics == n] = True
-        h = harmonics[keep]
-        n_f = _power((free - model)[keep], h)
-        ac = np.where(h == 0, 0.0, free[keep])
-        d_f = _power(ac, h)
-        per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
-        num += n_f
-        den += d_f
-        noise += _power(sigma[keep], h)
-    if den <= 0:
-        return math.nan, np.asarray(per_fold), math.nan
-    return math.sqrt(num / den), np.asarray(per_fold), math.sqrt(noise / den)
-
-
-def _time_domain_cv_error(prep: Prepared, system: System, mask: np.ndarray, folds: int):
-    """The strong form's error: per-sample force on held-out periods (no noise floor is predicted)."""
-    p = system.theta.shape[2]
-    num = den = 0.0
-    per_fold = []
-    for test in regression.fold_slices(system.T_blocks.shape[0], folds):
-        train = regression.training_blocks(system.T_blocks.shape[0], test, gap=0)
-        coef, _ = regression.subset_fit(regression.combine(system.T_blocks[train]), mask)
-        free = prep.Y[test] - np.einsum("bkm,m->bk", prep.nuisance[test], coef[p:])
-        model = np.einsum("bkm,m->bk", system.theta[test], coef[:p])
-        n_f, d_f = float(np.sum((free - model) ** 2)), float(np.sum((free - free.mean()) ** 2))
-        per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
-        num += n_f
-        den += d_f
-    return (math.sqrt(num / den) if den > 0 else math.nan), np.asarray(per_fold), math.nan
-
-
-# --------------------------------------------------------------------------- read-out
-def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) -> dict[str, dict]:
-    """Physical quantities of each effect from its terms' coefficients, with bootstrap intervals."""
-    out: dict[str, dict] = {}
-    ctx = dict(params)
-    if "R" not in ctx:
-        ctx["R"] = math.nan
-    for effect_name in library.effects:
-        effect = EFFECTS.get(effect_name)
-        index = {t.label: j for j, t in enumerate(library.terms) if t.effect == effect_name}
-        if not index:
-            continue
-
-        def quantities(c):
-            values = {label: (c[j] if mask[j] else 0.0) for label, j in index.items()}
-            values.update({t.label: 0.0 for t in effect.terms if t.label not in values})
-            with np.errstate(all="ignore"):
-                try:
-                    return effect.readout(values, ctx)
-                except (ZeroDivisionError, ValueError):
-                    return {q.name: math.nan for q in effect.quantities}
-
-        central = quantities(coef)
-        samples = [quantities(c) for c in bagging.coef_samples] if bagging is not None else []
-        for q in effect.quantities:
-            value = float(central.get(q.name, math.nan))
-            arr = np.array([s.get(q.name, math.nan) for s in samples], dtype=float)
-            arr = arr[np.isfinite(arr)]
-            err = float(arr.std(ddof=1)) if arr.size > 2 else math.nan
-            lo, hi = (np.percentile(arr, [2.5, 97.5]) if arr.size > 2 else (math.nan, math.nan))
-            key = q.name if q.name not in out else f"{effect_name}.{q.name}"
-            out[key] = {"value": value, "error": err, "ci_low": float(lo), "ci_high": float(hi), "unit": q.unit,
-                        "effect": effect_name, "doc": q.doc}
-    return out
 
 
 def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params, mask, trace) -> None:
@@ -1011,176 +818,6 @@ def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params
                 q["ci_high"] = q["value"] + math.hypot(hi - q["value"], half)
             else:
                 q["ci_low"], q["ci_high"] = q["value"] - half, q["value"] + half
-
-
-# --------------------------------------------------------------------------- forces
-def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np.ndarray, rows: np.ndarray):
-    """Model force on every used sample and the band-limited model-free force (N; NaN elsewhere)."""
-    n = prep.x.size
-    p = system.theta.shape[2]
-    used = prep.blocks.used
-    estimate = np.full(n, np.nan)
-    x_used, t_used = prep.x[used], prep.t[used]
-    L = prep.blocks.L
-    # Hysteresis states are scanned along each evaluated piece: pieces of CHUNK_BLOCKS periods, as always;
-    # without states, pieces of afmid.preprocess.CHUNK_BLOCKS (compiling the library costs ~3 ms a call).
-    step = CHUNK_BLOCKS * L if library.states else prep.blocks.chunks()[0][1] * L
-    for i in range(0, x_used.size, step):
-        sl = slice(i, i + step)
-        cols = library.evaluate(x_used[sl], prep.xdot_used[sl], t_used[sl], system.params)
-        estimate[used.start + i: used.start + i + cols.shape[0]] = cols @ coef[:p]
-    direct = np.full(n, np.nan)
-    for b0, b1 in prep.blocks.chunks():
-        F = _direct_force_coefficients(prep, system, coef, slice(b0, b1)) * rows[None, :]
-        direct[used.start + b0 * L:used.start + b1 * L] = prep.blocks.synthesize_blocks(F[..., None], b0)[:, 0]
-    return estimate, direct
-
-
-#: Periods per chunk in :func:`period_curves` and when its curves are evaluated (bounds the temporaries). A
-#: multiple of 8, and every evaluation starts at a multiple of it: the BLAS products then round the same way
-#: whenever a curve is evaluated (the summaries, the mapping, the run file agree to the bit).
-PERIOD_CHUNK = 2048
-
-
-def period_curves(prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int
-                  ) -> "PeriodCurves":
-    """Per-period curves on a common phase grid and per-period summaries (SI), chunk by chunk of periods.
-
-    Returns a read-only mapping name -> array (:class:`PeriodCurves`): the summaries are computed here, the
-    curves (periods x phase points each) when asked for or written.
-    """
-    curves = PeriodCurves(prep, library, system, coef, params, rows, n_phase)
-    B = prep.blocks.n_blocks
-    period = 2 * np.pi / prep.drive.omega
-    dt = period / n_phase
-    d, a0 = params["d"], params["a0"]
-    held = {name: np.empty(B) for name in PeriodCurves.SUMMARIES}
-    # Hysteresis gates are scanned along the evaluated points: in one piece, as the states need (and kept).
-    step = B if library.states else PERIOD_CHUNK
-    for b0 in range(0, B, step):
-        b1 = min(b0 + step, B)
-        x, v, f_direct = (curves.curve(name, b0, b1) for name in ("deflection", "velocity", "force_direct"))
-        f = curves.model_force(x, v, b0, b1)
-        if library.states:
-            held["force_model"] = f
-        z = d - x
-        zdot = -v
-        contact = z <= a0
-        out = {
-            "peak_force": f.max(axis=1),
-            "adhesion_force": np.maximum(-f.min(axis=1), 0.0),
-            "max_indentation": np.maximum(a0 - z, 0.0).max(axis=1),
-            "contact_time": contact.mean(axis=1) * period,
-            # energy taken from the tip per period: -closed integral of F dz
-            "dissipated_energy": -np.sum(f * zdot, axis=1) * dt,
-            "dissipated_energy_direct": -np.sum(f_direct * zdot, axis=1) * dt,
-            # (1/T) integral of (force toward the sample) * x dt
-            "virial": -np.mean(f * x, axis=1),
-            "virial_direct": -np.mean(f_direct * x, axis=1),
-            "period_error": np.sqrt(np.mean((f_direct - f) ** 2, axis=1)),
-        }
-        for name, value in out.items():
-            held[name][b0:b1] = value
-    held["amplitude"] = np.hypot(prep.X[:, 1], prep.X[:, 2])
-    curves.held.update(held)
-    return curves
-
-
-class PeriodCurves(Mapping):
-    """The outputs of :func:`period_curves`: a read-only mapping name -> array, in the run file's order.
-
-    The per-period summaries are held. The curves on the phase grid
-    (deflection, velocity, acceleration, separation, the model and model-free
-    forces: (periods, phase points) each, 0.1 GB apiece at 5e4 periods) are
-    evaluated from the coefficients the fit keeps anyway when asked for, and
-    chunk by chunk when written (:meth:`write`): the values are the same
-    either way. (With hysteresis states the model force is held: its gates are
-    scanned through all periods at once.)
-    """
-
-    NAMES = ("phase", "period_start_time", "deflection", "velocity", "acceleration", "separation", "force_model",
-             "force_direct", "peak_force", "adhesion_force", "max_indentation", "contact_time", "dissipated_energy",
-             "dissipated_energy_direct", "virial", "virial_direct", "amplitude", "period_error")
-    CURVES = ("deflection", "velocity", "acceleration", "separation", "force_model", "force_direct")
-    SUMMARIES = ("peak_force", "adhesion_force", "max_indentation", "contact_time", "dissipated_energy",
-                 "dissipated_energy_direct", "virial", "virial_direct", "period_error")
-
-    def __init__(self, prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int):
-        self.prep, self.library, self.system = prep, library, system
-        self.coef, self.params, self.rows = coef, params, rows
-        self.phase = 2 * np.pi * np.arange(n_phase) / n_phase
-        # The series are evaluated at drive phase w t = phase (mod 2 pi): the period that starts in each block.
-        self.cycles = np.floor(prep.blocks.block_times() * prep.drive.omega / (2 * np.pi))
-        start = (2 * np.pi * self.cycles + self.phase[0]) / prep.drive.omega  # = times(...)[:, 0]
-        self.held = {"phase": self.phase, "period_start_time": start}
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """(periods, phase points) of the curves."""
-        return self.prep.blocks.n_blocks, self.phase.size
-
-    def times(self, first: int, stop: int | None) -> np.ndarray:
-        """Times (s) of the phase grid of periods ``first`` .. ``stop - 1``."""
-        return (2 * np.pi * self.cycles[first:stop, None] + self.phase[None, :]) / self.prep.drive.omega
-
-    def model_force(self, x: np.ndarray, v: np.ndarray, first: int, stop: int) -> np.ndarray:
-        """The model force (N) on the phase grid of periods ``first`` .. ``stop - 1`` at deflection x, velocity v."""
-        cols = self.library.evaluate(x.ravel(), v.ravel(), self.times(first, stop).ravel(), self.params)
-        return (cols @ self.coef[:self.system.theta.shape[2]]).reshape(x.shape)
-
-    def curve(self, name: str, first: int, stop: int) -> np.ndarray:
-        """One of :attr:`CURVES` for periods ``first`` .. ``stop - 1``: (stop - first, phase points)."""
-        blocks, X = self.prep.blocks, self.prep.X[first:stop, :, None]
-        if name == "force_direct":
-            F = _direct_force_coefficients(self.prep, self.system, self.coef, slice(first, stop)) * self.rows[None, :]
-            return blocks.evaluate(F[..., None], self.phase)[..., 0]
-        if name == "separation":
-            return self.params["d"] - self.curve("deflection", first, stop)
-        if name == "force_model":
-            return self.model_force(self.curve("deflection", first, stop), self.curve("velocity", first, stop),
-                                    first, stop)
-        order = ("deflection", "velocity", "acceleration").index(name)
-        return blocks.evaluate(blocks.derivative(X, order) if order else X, self.phase)[..., 0]
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        if name in self.held:
-            return self.held[name]
-        if name not in self.CURVES:
-            raise KeyError(name)
-        out = np.empty(self.shape)
-        for b0, values in self.pieces(name):
-            out[b0:b0 + values.shape[0]] = values
-        return out
-
-    def pieces(self, name: str):
-        """(first period, values) of a curve, :data:`PERIOD_CHUNK` periods at a time."""
-        for b0 in range(0, self.shape[0], PERIOD_CHUNK):
-            yield b0, self.curve(name, b0, min(b0 + PERIOD_CHUNK, self.shape[0]))
-
-    def __iter__(self):
-        return iter(self.NAMES)
-
-    def __len__(self) -> int:
-        return len(self.NAMES)
-
-    def write(self, group, units: dict[str, str]) -> None:
-        """Write every array into ``group`` as :func:`write_dataset` would, the curves chunk by chunk."""
-        for name in self.NAMES:
-            if name in self.held:
-                write_dataset(group, name, self.held[name], units[name])
-                continue
-            ds = create_dataset(group, name, self.shape, np.float64, units[name])
-            rows = ds.chunks[0] if ds.chunks else self.shape[0]
-            # Written in whole HDF5 chunks (each compressed once); the rows past the last whole one wait for
-            # the next piece.
-            pending, first = np.empty((0, self.shape[1])), 0
-            for b0, values in self.pieces(name):
-                pending = np.concatenate([pending, values]) if pending.size else values
-                stop = b0 + values.shape[0]
-                cut = stop if stop == self.shape[0] else first + (stop - first) // rows * rows
-                if cut > first:
-                    ds[first:cut] = pending[:cut - first]
-                    pending, first = pending[cut - first:], cut
 
 
 # --------------------------------------------------------------------------- effects from the CLI

@@ -877,6 +877,7 @@ def test_period_curves_are_evaluated_in_chunks_and_written_as_whole_arrays(monke
     import h5py
 
     import afmid.fit as fit_mod
+    import afmid.fit_forces as forces
     from afmid.config import FitConfig
     from afmid.io import write_dataset
 
@@ -886,9 +887,9 @@ def test_period_curves_are_evaluated_in_chunks_and_written_as_whole_arrays(monke
     params = {"d": 8.5e-9, "a0": A0_CONTACT, "R": 10e-9, "w": prep.drive.omega, **lib.nonlinear}
     system = fit_mod.build_system(prep, lib, params)
     coef, _ = regression.subset_fit(regression.combine(system.T_blocks), np.ones(system.protected.size, bool))
-    rows = fit_mod._signal_rows(prep, system, coef)
+    rows = forces.signal_rows(prep, system, coef)
     whole = dict(fit_mod.period_curves(prep, lib, system, coef, params, rows, 64))  # evaluated in one chunk
-    monkeypatch.setattr(fit_mod, "PERIOD_CHUNK", 8)
+    monkeypatch.setattr(forces, "PERIOD_CHUNK", 8)
     chunked = fit_mod.period_curves(prep, lib, system, coef, params, rows, 64)
     assert list(whole) == list(chunked) == list(fit_mod.PERIOD_UNITS)
     # the eager formulas of the curves
@@ -919,10 +920,10 @@ def test_period_curves_are_evaluated_in_chunks_and_written_as_whole_arrays(monke
     with h5py.File(tmp_path / "streamed.h5", "w") as h5:
         chunked.write(h5.create_group("periods"), fit_mod.PERIOD_UNITS)
         small = h5.create_group("small_chunks")  # HDF5 chunks of 3 periods: pieces of 8 written as 6 + 2 + ...
-        monkeypatch.setattr(fit_mod, "create_dataset", lambda g, n, shape, dtype, units: g.create_dataset(
+        monkeypatch.setattr(forces, "create_dataset", lambda g, n, shape, dtype, units: g.create_dataset(
             n, shape=shape, dtype=dtype, chunks=(3, shape[1]), compression="gzip"))
         chunked.write(small, fit_mod.PERIOD_UNITS)
-        for name in fit_mod.PeriodCurves.CURVES:  # the same chunked evaluation, stored in other HDF5 chunks: same bits
+        for name in forces.PeriodCurves.CURVES:  # the same chunked evaluation, stored in other HDF5 chunks: same bits
             np.testing.assert_array_equal(small[name][()], chunked_values[name], err_msg=name)
     with h5py.File(tmp_path / "eager.h5", "w") as h5:
         g = h5.create_group("periods")
