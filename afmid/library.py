@@ -20,6 +20,7 @@ import numpy as np
 
 from . import expr
 from .errors import ConfigError
+from .kinematics import contact_kinematics, next_gate_state
 from .effect_tags import SELECTION_RULES, Role
 from .physics import CONTEXT_UNITS, EFFECTS, StateGate, coefficient_unit, effect_parameter_names, term_unit
 from .presets import PRESETS
@@ -145,8 +146,8 @@ class Library:
             on = expr.evaluate_numpy(on_prog, variables).reshape(m, S) != 0
             off = expr.evaluate_numpy(off_prog, variables).reshape(m, S) != 0
             state = initial[k].astype(float)
-            for j in range(S):  # the rule of kernels.hysteresis.scan_hysteresis
-                state = np.where(state == 0.0, np.where(on[:, j], 1.0, 0.0), np.where(off[:, j], 0.0, 1.0))
+            for j in range(S):
+                state = next_gate_state(state, on[:, j], off[:, j])
                 out[k, :, j] = state
         return out.reshape(len(self.states), -1)
 
@@ -155,13 +156,7 @@ def trajectory_variables(x, xdot, t, d: float, a0: float, n_states: int = 0) -> 
     """The term-language variables (z, zdot, delta, deltadot, x, xdot, t, states...) along a trajectory."""
     n = x.size
     v = np.zeros((len(expr.VARIABLES) + n_states, n))
-    z = d - x
-    zdot = -xdot
-    contact = z <= a0
-    v[0] = z
-    v[1] = zdot
-    v[2] = np.where(contact, a0 - z, 0.0)
-    v[3] = np.where(contact, -zdot, 0.0)
+    v[0], v[1], v[2], v[3] = contact_kinematics(x, xdot, d, a0)
     v[4] = x
     v[5] = xdot
     v[6] = t
