@@ -64,7 +64,7 @@ class Library:
         return len(self.terms)
 
     def selection_rules(self, n_extra: int = 0) -> list[tuple[list[np.ndarray], np.ndarray]]:
-        """afmid.physics.SELECTION_RULES as column masks, padded with ``n_extra`` unconstrained columns:
+        """afmid.effect_tags.SELECTION_RULES as column masks, padded with ``n_extra`` unconstrained columns:
         (one mask per role of ``if_all``, the mask of ``then_any``). A rule is left out when the library
         has no term of some ``if_all`` role (it cannot apply) or none of ``then_any`` (it could not be met)."""
         def having(roles) -> np.ndarray:
