@@ -102,25 +102,17 @@ import sys
 import time
 import traceback
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from . import __version__
 from .errors import AfmidError, ConfigError, InputError
+from .threads import SINGLE_THREAD_ENV
 
 log = logging.getLogger(__name__)
 
-#: Environment variables that cap the thread pools of BLAS/OpenMP/numba in the workers.
-THREAD_ENV = {
-    "OMP_NUM_THREADS": "1",
-    "OPENBLAS_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "BLIS_NUM_THREADS": "1",
-    "VECLIB_MAXIMUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-    "NUMBA_NUM_THREADS": "1",
-}
 SUMMARY_CSV = "summary.csv"
 SUMMARY_H5 = "summary.h5"
 SUMMARY_FORMAT = "afmid-batch-summary"
@@ -130,8 +122,6 @@ TMP_PREFIX = ".afmid-tmp-batch-"
 #: ok: fitted now; suspect: a run file exists (fitted now or up to date) but a read-out is implausible
 #: (afmid.plausibility); failed: no run file; skipped: up to date from an earlier batch.
 STATUSES = ("ok", "suspect", "failed", "skipped")
-#: For tests only: a worker running the item of this name kills itself (exercises crash recovery).
-_CRASH_ENV = "_AFMID_BATCH_TEST_CRASH"
 #: For tests only: a worker sleeps this many seconds before each fit, or, for a simulated trace, between writing
 #: it to its temporary name and renaming it into place (makes interrupting deterministic).
 _DELAY_ENV = "_AFMID_BATCH_TEST_DELAY"
@@ -687,8 +677,6 @@ def fit_task(task: dict) -> dict:
     stage = "fit"
     _worker_state["busy"] = True
     try:
-        if os.environ.get(_CRASH_ENV) and os.environ.get(_CRASH_ENV) == task["name"]:
-            os.kill(os.getpid(), signal.SIGKILL)
         delay = float(os.environ.get(_DELAY_ENV) or 0.0)
         from .config import build_config
         from .fit import run_fit, write_run
@@ -924,10 +912,14 @@ def run_batch(
     progress: bool = False,
     summary_interval: float = 2.0,
     configs: list[str] | tuple[str, ...] = (),
+    worker: Callable[[dict], dict] = fit_task,
 ) -> BatchResult:
     """Fit every input with ``config``, or run every config in ``configs`` (glob patterns) on its own data (its
     ``data.path``, or a trace it simulates into ``output_dir`` first), in ``jobs`` worker processes; see the
-    module docstring. ``overrides`` (``key.path=value``) apply to every config."""
+    module docstring. ``overrides`` (``key.path=value``) apply to every config.
+
+    ``worker`` runs one item in a worker process (a module-level function, pickled to spawned workers): one
+    task dict in, one result dict out, as :func:`fit_task`, which it may wrap (e.g. to inject a fault)."""
     start = time.perf_counter()
     config_path = None if config is None else Path(config)
     output_dir = Path(output_dir)
@@ -967,7 +959,8 @@ def run_batch(
     from .folder_lock import folder_lock
 
     with folder_lock(output_dir, key="--output"):  # one batch per folder: a second one would mix its results in
-        return _run_in_folder(items, output_dir, batch_text, unit, jobs, force, progress, summary_interval, start)
+        return _run_in_folder(items, output_dir, batch_text, unit, jobs, force, progress, summary_interval, start,
+                              worker)
 
 
 def refuse_outputs_on_inputs(items: list[Item], output_dir: Path, config_path: Path | None,
@@ -990,7 +983,8 @@ def refuse_outputs_on_inputs(items: list[Item], output_dir: Path, config_path: P
 
 
 def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: str, jobs: int | None, force: bool,
-                   progress: bool, summary_interval: float, start: float) -> BatchResult:
+                   progress: bool, summary_interval: float, start: float,
+                   worker: Callable[[dict], dict] = fit_task) -> BatchResult:
     """The part of :func:`run_batch` that writes in ``output_dir``, under its lock."""
     _remove_stale_tmp(output_dir)
     jobs = max(1, jobs or default_jobs())
@@ -1054,7 +1048,7 @@ def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: s
             with logging_redirect_tqdm(loggers=[logging.getLogger("afmid")], tqdm_class=tqdm):
                 bar = tqdm(total=len(items), initial=len(rows), desc="batch", unit=unit.rstrip("s"),
                            disable=not progress, leave=False, dynamic_ncols=True)
-                _run_pool(todo, rows, jobs, tmp_dir, bar, flush, state)
+                _run_pool(todo, rows, jobs, tmp_dir, bar, flush, state, worker)
         flush(force_write=True)
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (interrupts.Terminated)
         interrupted = exc
@@ -1096,7 +1090,8 @@ def _remove_stale_tmp(output_dir: Path) -> None:
             continue
 
 
-def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, bar, flush, state) -> None:
+def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, bar, flush, state,
+              worker: Callable[[dict], dict]) -> None:
     """Keep up to ``jobs`` items in flight; replace the pool if a worker dies (see the module docstring)."""
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -1114,15 +1109,15 @@ def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, bar, flush
         # The thread caps go in the environment the workers are spawned with (so they hold before any import)
         # and again in the initializer.
         return ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=_init_worker,
-                                   initargs=(dict(THREAD_ENV), level, os.getpid()))
+                                   initargs=(dict(SINGLE_THREAD_ENV), level, os.getpid()))
 
     def task(item: Item) -> dict:
         return {"index": item.index, "name": item.name, "raw": item.raw, "config": str(item.config_path),
                 "config_text": item.config_text, "output": str(item.output), "tmp_dir": str(tmp_dir),
                 "simulate": item.simulate if item.need_simulate else None, "trace": str(item.input)}
 
-    saved_env = {k: os.environ.get(k) for k in THREAD_ENV}
-    os.environ.update(THREAD_ENV)
+    saved_env = {k: os.environ.get(k) for k in SINGLE_THREAD_ENV}
+    os.environ.update(SINGLE_THREAD_ENV)
     pool = new_pool()
     in_flight: dict = {}  # future -> (item, isolated)
     try:
@@ -1130,11 +1125,11 @@ def _run_pool(todo: list[Item], rows: dict, jobs: int, tmp_dir: Path, bar, flush
             if suspects:
                 if not in_flight:  # a suspect runs alone: if the worker dies again, it is the culprit
                     item = suspects.popleft()
-                    in_flight[pool.submit(fit_task, task(item))] = (item, True)
+                    in_flight[pool.submit(worker, task(item))] = (item, True)
             else:
                 while pending and len(in_flight) < n_workers:
                     item = pending.popleft()
-                    in_flight[pool.submit(fit_task, task(item))] = (item, False)
+                    in_flight[pool.submit(worker, task(item))] = (item, False)
             done, _ = wait(list(in_flight), timeout=1.0, return_when=FIRST_COMPLETED)
             interrupts.raise_if_pending()  # a Ctrl-C / SIGTERM that landed where Python could not raise it
             broken = False

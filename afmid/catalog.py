@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 
 from .plausibility import range_words
-from .physics import EFFECTS, MODELS, TERM_ROLES, coefficient_unit, quantity_range, term_unit
+from .effect_tags import TERM_ROLES
+from .physics import EFFECTS, MODELS, coefficient_unit, quantity_range, term_unit
 from .registry import unknown_name_message
 from .errors import ConfigError
 

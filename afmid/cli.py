@@ -8,19 +8,17 @@ print one line and exit with its code; ``-v`` adds the traceback.
 from __future__ import annotations
 
 import logging
-import os
 import sys
 from pathlib import Path
 
-# One BLAS / OpenMP thread unless the user chose otherwise (set before NumPy loads). afmid's fit does
-# thousands of small matrix products, which multi-threaded OpenBLAS runs 2-4x slower, much slower on busy
-# cores (bench/README.md, "Threads"); one thread also makes results independent of the core count.
-for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_variable, "1")
+from .threads import limit_native_threads
 
-import click
+# One BLAS / OpenMP / numba thread unless the user chose otherwise: before NumPy loads (afmid.threads says why).
+limit_native_threads()
 
-from . import __version__
+import click  # noqa: E402
+
+from . import __version__  # noqa: E402
 
 log = logging.getLogger("afmid")
 _state = {"verbose": 0, "quiet": False}

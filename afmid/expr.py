@@ -27,8 +27,9 @@ Text is parsed by a hand-written tokenizer and recursive-descent parser (user
 text is never given to eval, exec, compile or ast.parse). :func:`compile_expression`
 turns an expression into a :class:`Program` for the numba stack VM in
 :mod:`afmid.kernels.vm`; :func:`evaluate_numpy` is its plain-NumPy twin, used to
-test the VM. This module does not import numba; :func:`evaluate_numba` imports
-the kernel on first use.
+test the VM. This module does not import numba (nor any kernel: the VM imports
+its opcodes from here; :func:`afmid.kernels.vm.evaluate_numba` evaluates one
+expression with it).
 """
 
 from __future__ import annotations
@@ -1091,7 +1092,8 @@ class ProgramSet:
 # ---------------------------------------------------------------------------
 
 
-def _check_variables(variables, n_vars: int) -> np.ndarray:
+def check_variables(variables, n_vars: int) -> np.ndarray:
+    """``variables`` as a float64 array of shape (n_vars or more, N); ValueError if it has another shape."""
     variables = np.asarray(variables, dtype=np.float64)
     if variables.ndim != 2 or variables.shape[0] < n_vars:
         raise ValueError(f"variables must have shape ({n_vars}, N), got {variables.shape}")
@@ -1117,7 +1119,7 @@ def evaluate_numpy(program_or_text: Program | str, variables: np.ndarray,
         states = tuple(states)
     node = parse(text)
     tree = _resolve(node, _param_values(node, text, params, states), states)
-    variables = _check_variables(variables, len(VARIABLES) + len(states))
+    variables = check_variables(variables, len(VARIABLES) + len(states))
     with np.errstate(all="ignore"):
         value = _np_value(tree, variables)
     return np.array(np.broadcast_to(value, variables.shape[1:]), dtype=np.float64)
@@ -1144,24 +1146,3 @@ def _np_cond(node, variables: np.ndarray):
         combine = np.logical_and if node.op == "and" else np.logical_or
         return combine(_np_cond(node.left, variables), _np_cond(node.right, variables))
     return _NP_COMPARE[node.op](_np_value(node.left, variables), _np_value(node.right, variables))
-
-
-def evaluate_numba(program_or_text: Program | str, variables: np.ndarray,
-                   params: Mapping[str, float] | None = None, states: tuple[str, ...] = ()) -> np.ndarray:
-    """Evaluate one expression on ``variables`` (shape (n_vars, N)) with the numba VM; returns (N,).
-
-    A convenience wrapper around :func:`afmid.kernels.vm.eval_set` (imported
-    here, so importing this module does not import numba). Text is compiled
-    with ``params`` and ``states`` first.
-    """
-    from .kernels.vm import eval_set
-
-    if isinstance(program_or_text, Program):
-        program = program_or_text
-    else:
-        program = compile_expression(program_or_text, {} if params is None else params, states)
-    pset = ProgramSet([program])
-    variables = np.ascontiguousarray(_check_variables(variables, pset.n_vars))
-    out = np.empty((variables.shape[1], 1))
-    eval_set(pset.code, pset.code_offsets, pset.consts, pset.const_offsets, variables, out)
-    return out[:, 0]

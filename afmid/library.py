@@ -2,7 +2,7 @@
 
 A :class:`Library` is an ordered list of :class:`LibraryTerm` (expressions in the
 term language of :mod:`afmid.expr`), built from the effect catalog
-(``model.effects``), from a preset (the seed's tables I-IV, ``model.library``),
+(``model.effects``), from a preset (the seed's tables I-IV in :mod:`afmid.presets`, ``model.library``),
 and from custom terms in the config (``model.terms``). Each term knows its SI
 units and, where it comes from an effect, which effect coefficient it is, so
 fitted coefficients can be read out as physical quantities.
@@ -20,7 +20,10 @@ import numpy as np
 
 from . import expr
 from .errors import ConfigError
+from .kinematics import contact_kinematics, next_gate_state
+from .effect_tags import SELECTION_RULES, Role
 from .physics import CONTEXT_UNITS, EFFECTS, StateGate, coefficient_unit, effect_parameter_names, term_unit
+from .presets import PRESETS
 from .registry import unknown_name_message
 from .units import parse_unit
 
@@ -36,87 +39,7 @@ class LibraryTerm:
     effect: str | None = None  # effect whose coefficient this is (for the read-out)
     label: str | None = None  # term label within that effect
     doc: str = ""
-    roles: tuple[str, ...] = ()  # afmid.physics.TERM_ROLES: what the term is to the selection rules
-
-
-@dataclass(frozen=True)
-class Preset:
-    name: str
-    title: str
-    # (display name, expression, (effect, label) or None[, roles]): see afmid.physics.TERM_ROLES
-    terms: tuple[tuple, ...]
-    effects: tuple[str, ...]  # effects whose read-out applies
-    references: tuple[str, ...]
-    notes: str = ""
-
-
-_CONTACT = "[z <= a0]"
-_OUT = "[z > a0]"
-_ELASTIC, _DISSIPATION, _ADHESION, _TAIL = (
-    ("elastic_contact",), ("contact_only",), ("contact_only", "contact_adhesion"), ("attractive_tail",))
-_TABLE_2_4 = (
-    ("z^-2", f"{_OUT} * z^-2", ("dmt", "vdw"), _TAIL),
-    ("z^-3", f"{_OUT} * z^-3", None, _TAIL),
-    ("delta^0.5*deltadot", "delta^0.5 * deltadot", ("viscoelastic", "kelvin_voigt"), _DISSIPATION),
-    ("delta*deltadot^2", "delta * deltadot^2", None, _DISSIPATION),
-    ("z^0.5*zdot", f"{_OUT} * z^0.5 * zdot", None),
-    ("z*zdot^2", "z * zdot^2", None),
-    ("delta^2", "delta^2", None, _ELASTIC),
-    ("delta^2.5", "delta^2.5", None, _ELASTIC),
-    ("delta^1.5", f"{_CONTACT} * delta^1.5", ("dmt", "hertz"), _ELASTIC),
-    ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion"), _ADHESION),
-)
-
-PRESETS: dict[str, Preset] = {
-    p.name: p
-    for p in (
-        Preset(
-            "lj_table1",
-            "seed table I: inverse powers z^-1..z^-8, z^1.5, z^2",
-            tuple((f"z^-{n}", f"z^-{n}", {2: ("lennard_jones", "attraction"), 8: ("lennard_jones", "repulsion")}.get(n))
-                  for n in range(1, 9))
-            + (("z^1.5", "z^1.5", None), ("z^2", "z^2", None)),
-            ("lennard_jones",),
-            ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table I",),
-        ),
-        Preset(
-            "viscoelastic_table2",
-            "seed table II: DMT + viscoelastic candidates",
-            _TABLE_2_4,
-            ("dmt", "viscoelastic"),
-            ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table II",),
-        ),
-        Preset(
-            "exponential_table3",
-            "seed table III: DMT + exponential damping candidates",
-            (
-                ("z^-2", f"{_OUT} * z^-2", ("dmt", "vdw"), _TAIL),
-                ("z^-3", f"{_OUT} * z^-3", None, _TAIL),
-                ("exp(-z/lambda)*zdot", "exp(-z / damping_length) * zdot", ("exponential_damping", "surface_damping")),
-                ("exp(-z/lambda)^2*zdot^2", "exp(-2 * z / damping_length) * zdot^2", None),
-                ("z*zdot", "z * zdot", None),
-                ("z*zdot^2", "z * zdot^2", None),
-                ("delta^2", "delta^2", None, _ELASTIC),
-                ("delta^2.5", "delta^2.5", None, _ELASTIC),
-                ("delta^1.5", f"{_CONTACT} * delta^1.5", ("dmt", "hertz"), _ELASTIC),
-                ("[z<=a0] (bridging)", _CONTACT, ("dmt", "adhesion"), _ADHESION),
-            ),
-            ("dmt", "exponential_damping"),
-            ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table III",),
-        ),
-        Preset(
-            "jkr_table4",
-            "seed table IV: JKR candidates (same functions as table II)",
-            tuple((t[0], t[1], ("jkr", t[2][1]) if t[2] and t[2][0] == "dmt" else t[2]) + t[3:] for t in _TABLE_2_4),
-            ("jkr", "viscoelastic"),
-            ("Chandrashekar et al., Nanoscale Adv. (2022), supplement table IV",),
-        ),
-    )
-}
-# The seed tables' sin(Omega tau) is not listed: afmid always fits the drive as
-# free cos and sin terms (its amplitude and phase are unknown in a measurement).
-# The tables' "z^-2 for z <= a0" bridging function is the constant in-contact
-# adhesion term (C3 / a0^2 of eq. 1); inverse powers act out of contact as in eq. 1.
+    roles: tuple[Role, ...] = ()  # what the term is to the selection rules (afmid.effect_tags)
 
 
 @dataclass
@@ -141,11 +64,9 @@ class Library:
         return len(self.terms)
 
     def selection_rules(self, n_extra: int = 0) -> list[tuple[list[np.ndarray], np.ndarray]]:
-        """afmid.physics.SELECTION_RULES as column masks, padded with ``n_extra`` unconstrained columns:
+        """afmid.effect_tags.SELECTION_RULES as column masks, padded with ``n_extra`` unconstrained columns:
         (one mask per role of ``if_all``, the mask of ``then_any``). A rule is left out when the library
         has no term of some ``if_all`` role (it cannot apply) or none of ``then_any`` (it could not be met)."""
-        from .physics import SELECTION_RULES
-
         def having(roles) -> np.ndarray:
             return np.array([bool(set(t.roles) & set(roles)) for t in self.terms] + [False] * n_extra)
 
@@ -225,8 +146,8 @@ class Library:
             on = expr.evaluate_numpy(on_prog, variables).reshape(m, S) != 0
             off = expr.evaluate_numpy(off_prog, variables).reshape(m, S) != 0
             state = initial[k].astype(float)
-            for j in range(S):  # the rule of kernels.hysteresis.scan_hysteresis
-                state = np.where(state == 0.0, np.where(on[:, j], 1.0, 0.0), np.where(off[:, j], 0.0, 1.0))
+            for j in range(S):
+                state = next_gate_state(state, on[:, j], off[:, j])
                 out[k, :, j] = state
         return out.reshape(len(self.states), -1)
 
@@ -235,13 +156,7 @@ def trajectory_variables(x, xdot, t, d: float, a0: float, n_states: int = 0) -> 
     """The term-language variables (z, zdot, delta, deltadot, x, xdot, t, states...) along a trajectory."""
     n = x.size
     v = np.zeros((len(expr.VARIABLES) + n_states, n))
-    z = d - x
-    zdot = -xdot
-    contact = z <= a0
-    v[0] = z
-    v[1] = zdot
-    v[2] = np.where(contact, a0 - z, 0.0)
-    v[3] = np.where(contact, -zdot, 0.0)
+    v[0], v[1], v[2], v[3] = contact_kinematics(x, xdot, d, a0)
     v[4] = x
     v[5] = xdot
     v[6] = t
@@ -297,9 +212,9 @@ def build_library(model_config, source=None) -> Library:
     param_units: dict[str, str] = {}
     if model_config.library is not None:
         if model_config.library not in PRESETS:
-            raise ConfigError(unknown_name_message("library preset", model_config.library, list(PRESETS)),
+            raise ConfigError(unknown_name_message("library preset", model_config.library, PRESETS.names()),
                               file=source, key="model.library")
-        preset = PRESETS[model_config.library]
+        preset = PRESETS.get(model_config.library)
         effects = preset.effects
     else:
         preset = None
@@ -313,11 +228,10 @@ def build_library(model_config, source=None) -> Library:
                 nonlinear[p.name] = p.default
     if preset is not None:
         units = _units_context(param_units)
-        for display, expression, origin, *roles in preset.terms:
-            unit = expr.expression_units(expression, units, tuple(s.name for s in states))
-            effect, label = origin if origin else (None, None)
-            terms.append(LibraryTerm(display, expression, str(unit), str(NEWTON / unit), effect, label,
-                                     roles=roles[0] if roles else ()))
+        for term in preset.terms:
+            unit = expr.expression_units(term.expression, units, tuple(s.name for s in states))
+            terms.append(LibraryTerm(term.name, term.expression, str(unit), str(NEWTON / unit), term.effect,
+                                     term.label, roles=term.roles))
     else:
         for name in effects:
             eff = EFFECTS.get(name)

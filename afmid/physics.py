@@ -13,8 +13,10 @@ separation, ``delta = max(a0 - z, 0)`` the indentation, ``zdot = dz/dt``,
 ``deltadot = -zdot`` in contact and 0 outside.
 
 Adding an effect = one ``EFFECTS.register(Effect(...))`` declaration plus its
-tests. Registration checks units (coefficient x term = N), ranges, and that the
-readout inverts the coefficients at the default parameters.
+tests. Registration checks units (each term's declared coefficient unit x the
+units of its expression = N), ranges, the region, character and term roles
+(members of the enumerations in :mod:`afmid.effect_tags`), and that the readout
+inverts the coefficients at the default parameters.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 from . import expr
+from .effect_tags import Character, Region, Role, check_member, check_roles
 from .errors import DefinitionError
 from .registry import Registry
 from .units import Unit, parse_unit
@@ -55,41 +58,17 @@ class Term:
 
     ``label`` names the term within its effect (keys of the readout's input).
     ``coefficient`` maps the effect's parameters (plus context R, a0) to the SI
-    coefficient, so that ``coefficient * expression`` is a force in newtons.
+    coefficient, so that ``coefficient * expression`` is a force in newtons;
+    ``coefficient_unit`` states its SI units, and registration checks that they
+    times the expression's units are newtons.
     """
 
     label: str
     expression: str
     coefficient: Callable[[Mapping[str, float]], float]
     doc: str = ""
-    roles: tuple[str, ...] = ()  # tags of TERM_ROLES: what the term is to the selection rules
-
-
-#: Roles of terms, used by SELECTION_RULES.
-TERM_ROLES = {
-    "elastic_contact": "an elastic contact law (a force of the indentation only, e.g. Hertz)",
-    "contact_only": "acts only in contact and is not elastic (adhesion, dissipation)",
-    "contact_adhesion": "a constant attraction in contact",
-    "attractive_tail": "an attraction out of contact that reaches the contact point (van der Waals)",
-}
-
-
-@dataclass(frozen=True)
-class SelectionRule:
-    """A support that holds a term of every role in ``if_all`` must hold a term of a role in ``then_any``."""
-
-    if_all: tuple[str, ...]
-    then_any: tuple[str, ...]
-    why: str
-
-
-#: Physical consistency of a selected force law: supports that break a rule are not candidates.
-SELECTION_RULES = (
-    SelectionRule(("contact_only",), ("elastic_contact",),
-                  "a surface cannot pull on or damp a tip in contact without pushing back"),
-    SelectionRule(("attractive_tail", "elastic_contact"), ("contact_adhesion",),
-                  "the van der Waals attraction does not vanish when the tip touches"),
-)
+    roles: tuple[Role, ...] = ()  # what the term is to the selection rules (afmid.effect_tags.SELECTION_RULES)
+    coefficient_unit: str = ""  # SI units of the coefficient, e.g. "J*m" for H R / 6 (required: checked at registration)
 
 
 @dataclass(frozen=True)
@@ -134,9 +113,13 @@ class Effect:
     readout: Callable[[Mapping[str, float], Mapping[str, float]], dict[str, float]]
     references: tuple[str, ...]
     states: tuple[StateGate, ...] = ()
-    character: str = "conservative"  # or "dissipative" / "hysteretic": guides the diagnosis
-    region: str = "contact"  # where it acts: "contact", "near", "long_range", "all"
+    character: Character = Character.CONSERVATIVE  # guides the diagnosis
+    region: Region = Region.CONTACT  # where it acts
     notes: str = ""
+    # Terms a library may fit under this effect's name, for its read-out, that the effect itself does not add
+    # (neither to the simulated force nor to an effects library): e.g. DMT ties its adhesion to the tail, but
+    # the seed tables fit the adhesion as a term of its own. Checked like ``terms``; presets may name them.
+    readout_only_terms: tuple[Term, ...] = ()
 
     def parameter(self, name: str) -> Parameter:
         for p in self.parameters:
@@ -175,10 +158,31 @@ def _param_units(effect: Effect) -> dict[str, Unit]:
     return units
 
 
+def _validate_term(effect: Effect, term: Term, units: Mapping[str, Unit], values: Mapping[str, float]) -> None:
+    """A term's roles are known, its expression names only declared values, its coefficient is finite at the
+    defaults and in its declared units, and coefficient x term is a force (N)."""
+    state_names = tuple(s.name for s in effect.states)
+    check_roles(term.roles, f"term {term.label}")
+    undeclared = expr.free_names(term.expression) - set(state_names) - set(units)
+    if undeclared:
+        raise DefinitionError(f"term {term.label}: undeclared names {sorted(undeclared)}")
+    if not math.isfinite(term.coefficient(values)):
+        raise DefinitionError(f"term {term.label}: coefficient not finite at defaults")
+    if not term.coefficient_unit:
+        raise DefinitionError(f"term {term.label}: declare coefficient_unit (SI units of the coefficient)")
+    expression_unit = expr.expression_units(term.expression, units, states=state_names)
+    force = parse_unit(term.coefficient_unit) * expression_unit
+    if force != NEWTON:
+        raise DefinitionError(f"term {term.label}: coefficient ({term.coefficient_unit}) x term ({expression_unit}) "
+                              f"is {force}, not N; the coefficient should be in {NEWTON / expression_unit}")
+
+
 def _validate_effect(effect: Effect) -> None:
     if not effect.terms:
         raise DefinitionError("an effect needs at least one term")
-    labels = [t.label for t in effect.terms]
+    check_member(Character, effect.character, "character")
+    check_member(Region, effect.region, "region")
+    labels = [t.label for t in effect.terms + effect.readout_only_terms]
     if len(set(labels)) != len(labels):
         raise DefinitionError(f"term labels repeat: {labels}")
     for p in effect.parameters:
@@ -188,21 +192,8 @@ def _validate_effect(effect: Effect) -> None:
     state_names = tuple(s.name for s in effect.states)
     units = _param_units(effect)
     values = {**CHECK_CONTEXT, **effect.defaults()}
-    for term in effect.terms:
-        unknown = set(term.roles) - set(TERM_ROLES)
-        if unknown:
-            raise DefinitionError(f"term {term.label}: roles {sorted(unknown)} are not among {sorted(TERM_ROLES)}")
-        term_unit = expr.expression_units(term.expression, units, states=state_names)
-        coefficient = term.coefficient(values)
-        if not math.isfinite(coefficient):
-            raise DefinitionError(f"term {term.label}: coefficient not finite at defaults")
-        # Dimensional check: coefficient units follow from the readout quantities,
-        # so check instead that the expression's free names are all declared.
-        names = expr.free_names(term.expression) - set(state_names)
-        undeclared = names - set(units)
-        if undeclared:
-            raise DefinitionError(f"term {term.label}: undeclared names {sorted(undeclared)}")
-        del term_unit
+    for term in effect.terms + effect.readout_only_terms:
+        _validate_term(effect, term, units, values)
     for gate in effect.states:
         for cond in (gate.on, gate.off):
             expr.expression_units(f"[{cond}]", units, states=state_names)
@@ -217,6 +208,15 @@ def _validate_effect(effect: Effect) -> None:
             rel = abs(recovered[q.name] - values[q.name]) / abs(values[q.name])
             if rel > 1e-9:
                 raise DefinitionError(f"readout of {q.name} does not invert its coefficient ({rel:.1e})")
+    # A read-out-only term stands for part of the effect's force: fitted at the value the effect implies,
+    # it must not change what the readout reports.
+    if effect.readout_only_terms:
+        with_extra = effect.readout({**coefficients, **{t.label: t.coefficient(values)
+                                                         for t in effect.readout_only_terms}}, values)
+        for name, value in recovered.items():
+            if not math.isclose(with_extra.get(name, math.nan), value, rel_tol=1e-9):
+                raise DefinitionError(f"readout of {name} changes with the read-out-only terms at the defaults "
+                                      f"({value!r} -> {with_extra.get(name)!r})")
 
 
 def quantity_range(effect: Effect, quantity: Quantity) -> tuple[float, float]:
@@ -319,9 +319,17 @@ EFFECTS.register(
             # One term for the tail and the DMT adhesion: the force is continuous at contact, which
             # ties the adhesion to the Hamaker constant and makes the contact point identifiable.
             Term("vdw", "max(z, a0)^-2", lambda p: -p["hamaker"] * p["R"] / 6.0,
-                 "van der Waals sphere-plane, saturating at contact (DMT adhesion H R / 6 a0^2)"),
+                 "van der Waals sphere-plane, saturating at contact (DMT adhesion H R / 6 a0^2)",
+                 coefficient_unit="J*m"),
             Term("hertz", "[z <= a0] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"]), "Hertz",
-                 roles=("elastic_contact",)),
+                 roles=(Role.ELASTIC_CONTACT,), coefficient_unit="Pa*m^0.5"),
+        ),
+        # The seed tables (library presets) fit the in-contact adhesion as a term of its own ("bridging",
+        # C3 / a0^2 of seed eq. 1); its coefficient is the adhesion force, read out instead of H R / (6 a0^2).
+        readout_only_terms=(
+            Term("adhesion", "[z <= a0]", lambda p: -p["hamaker"] * p["R"] / (6.0 * p["a0"] ** 2),
+                 "constant adhesion in contact, -H R / (6 a0^2) in DMT (fitted on its own by the seed tables)",
+                 roles=(Role.CONTACT_ONLY, Role.CONTACT_ADHESION), coefficient_unit="N"),
         ),
         quantities=_CONTACT_QUANTITIES
         + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 4 pi R gamma", *_SURFACE_ENERGY_RANGE),),
@@ -330,7 +338,7 @@ EFFECTS.register(
             "Derjaguin, Muller, Toporov, J. Colloid Interface Sci. 53, 314 (1975)",
             "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 1",
         ),
-        region="contact",
+        region=Region.CONTACT,
     )
 )
 
@@ -351,8 +359,9 @@ EFFECTS.register(
             Parameter("sigma", "m", 0.30e-9, 0.05e-9, 2e-9, "LJ length; force minimum at sigma / 30^(1/6)"),
         ),
         terms=(
-            Term("attraction", "z^-2", lambda p: -p["hamaker"] * p["R"] / 6.0),
-            Term("repulsion", "z^-8", lambda p: p["hamaker"] * p["R"] * p["sigma"] ** 6 / 180.0),
+            Term("attraction", "z^-2", lambda p: -p["hamaker"] * p["R"] / 6.0, coefficient_unit="J*m"),
+            Term("repulsion", "z^-8", lambda p: p["hamaker"] * p["R"] * p["sigma"] ** 6 / 180.0,
+                 coefficient_unit="J*m^7"),
         ),
         quantities=(
             Quantity("hamaker", "J", "Hamaker constant"),
@@ -363,7 +372,7 @@ EFFECTS.register(
             "Rutzel, Lee, Raman, Proc. R. Soc. A 459, 1925 (2003)",
             "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 2",
         ),
-        region="near",
+        region=Region.NEAR,
     )
 )
 
@@ -385,11 +394,11 @@ EFFECTS.register(
         ),
         terms=(
             Term("vdw", "[not jkr_contact] * z^-2", lambda p: -p["hamaker"] * p["R"] / 6.0,
-                 roles=("attractive_tail",)),
+                 roles=(Role.ATTRACTIVE_TAIL,), coefficient_unit="J*m"),
             Term("hertz", "[jkr_contact] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"]),
-                 roles=("elastic_contact",)),
+                 roles=(Role.ELASTIC_CONTACT,), coefficient_unit="Pa*m^0.5"),
             Term("adhesion", "[jkr_contact]", lambda p: -3.0 * math.pi * p["R"] * p["surface_energy"],
-                 roles=("contact_only", "contact_adhesion")),
+                 roles=(Role.CONTACT_ONLY, Role.CONTACT_ADHESION), coefficient_unit="N"),
         ),
         quantities=_CONTACT_QUANTITIES
         + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 3 pi R gamma"),),
@@ -399,8 +408,8 @@ EFFECTS.register(
             "Johnson, Kendall, Roberts, Proc. R. Soc. A 324, 301 (1971)",
             "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 5",
         ),
-        character="hysteretic",
-        region="contact",
+        character=Character.HYSTERETIC,
+        region=Region.CONTACT,
     )
 )
 
@@ -411,15 +420,15 @@ EFFECTS.register(
         formula="F = eta sqrt(R delta) d(delta)/dt  for z <= a0",
         parameters=(Parameter("viscosity", "Pa*s", 100.0, 0.0, 1e5, "sample viscosity eta"),),
         terms=(Term("kelvin_voigt", "delta^0.5 * deltadot", lambda p: p["viscosity"] * math.sqrt(p["R"]),
-                    roles=("contact_only",)),),
+                    roles=(Role.CONTACT_ONLY,), coefficient_unit="Pa*s*m^0.5"),),
         quantities=(Quantity("viscosity", "Pa*s", "sample viscosity eta"),),
         readout=lambda c, ctx: {"viscosity": c["kelvin_voigt"] / math.sqrt(ctx["R"])},
         references=(
             "Garcia, San Paulo, Phys. Rev. B 60, 4961 (1999)",
             "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 3",
         ),
-        character="dissipative",
-        region="contact",
+        character=Character.DISSIPATIVE,
+        region=Region.CONTACT,
     )
 )
 
@@ -432,15 +441,16 @@ EFFECTS.register(
             Parameter("damping_coefficient", "kg/s", 2e-6, 0.0, 1e-2, "gamma0, damping at z = 0"),
             Parameter("damping_length", "m", 1.0e-9, 0.05e-9, 50e-9, "decay length lambda", True),
         ),
-        terms=(Term("surface_damping", "exp(-z / damping_length) * zdot", lambda p: -p["damping_coefficient"]),),
+        terms=(Term("surface_damping", "exp(-z / damping_length) * zdot", lambda p: -p["damping_coefficient"],
+                    coefficient_unit="kg/s"),),
         quantities=(Quantity("damping_coefficient", "kg/s", "gamma0"),),
         readout=lambda c, ctx: {"damping_coefficient": -c["surface_damping"]},
         references=(
             "Gotsmann, Seidel, Anczykowski, Fuchs, Phys. Rev. B 60, 11051 (1999)",
             "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 4",
         ),
-        character="dissipative",
-        region="near",
+        character=Character.DISSIPATIVE,
+        region=Region.NEAR,
     )
 )
 
@@ -450,13 +460,14 @@ EFFECTS.register(
         title="Electrostatic sphere-plane attraction (tip-sample potential difference V)",
         formula="F = -pi eps0 R V^2 / z  (z clipped at a0)",
         parameters=(Parameter("voltage", "V", 1.0, 0.0, 100.0, "tip-sample potential difference"),),
-        terms=(Term("coulomb", "max(z, a0)^-1", lambda p: -math.pi * EPSILON_0 * p["R"] * p["voltage"] ** 2),),
+        terms=(Term("coulomb", "max(z, a0)^-1", lambda p: -math.pi * EPSILON_0 * p["R"] * p["voltage"] ** 2,
+                    coefficient_unit="J"),),
         quantities=(Quantity("voltage", "V", "magnitude of the tip-sample potential difference"),),
         readout=lambda c, ctx: {
             "voltage": math.sqrt(-c["coulomb"] / (math.pi * EPSILON_0 * ctx["R"])) if c["coulomb"] < 0 else float("nan")
         },
         references=("Hudlet, Saint Jean, Guthmann, Berger, Eur. Phys. J. B 2, 5 (1998)",),
-        region="long_range",
+        region=Region.LONG_RANGE,
     )
 )
 
@@ -475,14 +486,15 @@ EFFECTS.register(
                 "meniscus",
                 "[meniscus]",
                 lambda p: -4.0 * math.pi * p["R"] * p["surface_tension"] * math.cos(p["contact_angle"]),
+                coefficient_unit="N",
             ),
         ),
         quantities=(Quantity("capillary_force", "N", "meniscus force (positive number)", 0.0, _ADHESION_FORCE_MAX),),
         readout=lambda c, ctx: {"capillary_force": -c["meniscus"]},
         states=(StateGate("meniscus", on="z <= a0", off="z > a0 + rupture_distance"),),
         references=("Zitzler, Herminghaus, Mugele, Phys. Rev. B 66, 155436 (2002)",),
-        character="hysteretic",
-        region="near",
+        character=Character.HYSTERETIC,
+        region=Region.NEAR,
     )
 )
 
@@ -500,12 +512,13 @@ EFFECTS.register(
                 "hydration",
                 "exp(-z / hydration_length)",
                 lambda p: p["hydration_force"] * math.exp(p["a0"] / p["hydration_length"]),
+                coefficient_unit="N",
             ),
         ),
         quantities=(Quantity("hydration_force", "N", "repulsion at z = a0"),),
         readout=lambda c, ctx: {"hydration_force": c["hydration"] * math.exp(-ctx["a0"] / ctx["hydration_length"])},
         references=("Israelachvili, Intermolecular and Surface Forces, 3rd ed., ch. 15 (2011)",),
-        region="near",
+        region=Region.NEAR,
     )
 )
 
@@ -516,13 +529,14 @@ EFFECTS.register(
         formula="F = -6 pi eta_f R^2 (dz/dt) / z  (z clipped at a0)",
         parameters=(Parameter("fluid_viscosity", "Pa*s", 1.8e-5, 0.0, 10.0, "viscosity of the medium eta_f"),),
         terms=(
-            Term("squeeze", "zdot * max(z, a0)^-1", lambda p: -6.0 * math.pi * p["fluid_viscosity"] * p["R"] ** 2),
+            Term("squeeze", "zdot * max(z, a0)^-1", lambda p: -6.0 * math.pi * p["fluid_viscosity"] * p["R"] ** 2,
+                 coefficient_unit="Pa*s*m^2"),
         ),
         quantities=(Quantity("fluid_viscosity", "Pa*s", "viscosity of the medium"),),
         readout=lambda c, ctx: {"fluid_viscosity": -c["squeeze"] / (6.0 * math.pi * ctx["R"] ** 2)},
         references=("Reynolds lubrication, sphere-plane: Chan, Horn, J. Chem. Phys. 83, 5311 (1985)",),
-        character="dissipative",
-        region="near",
+        character=Character.DISSIPATIVE,
+        region=Region.NEAR,
     )
 )
 

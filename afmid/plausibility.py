@@ -43,6 +43,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+from .effect_tags import Character
 from .physics import EFFECTS, quantity_range
 
 log = logging.getLogger("afmid")
@@ -162,7 +163,7 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
             if value < 0 <= low:
                 what = f"{shown} has the wrong sign: a physical {label} lies in {allowed}"
                 eff, _ = _declaring_effect(name, q.get("effect") or None)
-                if eff is not None and eff.character == "dissipative":  # the sample cannot give energy back
+                if eff is not None and eff.character is Character.DISSIPATIVE:  # the sample cannot give energy back
                     hint = ("is the lever's own damping overestimated (cantilever.quality_factor too low), or the "
                             "deflection's sign convention wrong (data.positive)?")
                 else:

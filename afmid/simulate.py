@@ -42,6 +42,7 @@ from .config import RunConfig
 from .errors import AfmidError, ConfigError
 from .files import memory_shortfall
 from .io import Cantilever, Trace, Truth
+from .kinematics import contact_kinematics, next_gate_state
 from .physics import BOLTZMANN, CONTEXT_UNITS, MODELS, ForceLaw, build_force_law, effect_parameter_names
 from .registry import unknown_name_message
 
@@ -345,9 +346,7 @@ def program_variables(x, v, t, d: float, a0: float, gates) -> np.ndarray:
     Arrays broadcast; returns shape (7 + n_gates, N).
     """
     x, v, t = np.broadcast_arrays(np.atleast_1d(np.asarray(x, float)), np.asarray(v, float), np.asarray(t, float))
-    z = d - x
-    contact = z <= a0
-    rows = [z, -v, np.where(contact, a0 - z, 0.0), np.where(contact, v, 0.0), x, v, t]
+    rows = [*contact_kinematics(x, v, d, a0), x, v, t]
     gates = np.asarray(gates, float)
     if gates.ndim == 1:
         rows += [np.full(x.shape, g) for g in gates]
@@ -894,8 +893,7 @@ def reference_integrate(compiled: CompiledForceLaw, oscillator: Oscillator, sepa
         variables = program_variables(x, v, t, separation, a0, g)
         values = [expr.evaluate_numpy(p, variables)[0] for p in compiled.conditions]
         for i in range(g.size):
-            if (g[i] == 0.0 and values[2 * i] != 0.0) or (g[i] != 0.0 and values[2 * i + 1] != 0.0):
-                g[i] = 1.0 - g[i]
+            g[i] = next_gate_state(g[i], values[2 * i], values[2 * i + 1])
 
     def crossing(x, v, t, g, f_th, d1, j, s0, s_hi, hi):
         side = s0 > 0.0

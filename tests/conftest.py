@@ -10,12 +10,12 @@ puts it back so tests do not depend on their order.
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
-# As the CLI does (afmid/cli.py): one BLAS thread, set before NumPy loads.
-for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_variable, "1")
+from afmid.threads import limit_native_threads
+
+# As the CLI does: one BLAS / OpenMP / numba thread, set before NumPy loads.
+limit_native_threads()
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

@@ -227,11 +227,14 @@ def test_bad_traces_and_overrides_are_reported_and_do_not_stop_the_batch(traces,
     assert not (out / "n02.run.h5").exists() and not _leftovers(out)
 
 
-def test_a_worker_that_dies_fails_only_its_trace(traces, tmp_path, monkeypatch):
+def test_a_worker_that_dies_fails_only_its_trace(traces, tmp_path):
+    from batch_workers import DYING_ITEM, fit_task_dying_on_one_item
+
+    assert DYING_ITEM == "n02"
     _copy(traces, tmp_path / "in", ["n01.h5", "n02.h5", "n03.h5"])
-    monkeypatch.setenv("_AFMID_BATCH_TEST_CRASH", "n02")  # that worker SIGKILLs itself
     out = tmp_path / "out"
-    result = run_batch(CONFIG, out, inputs=[str(tmp_path / "in" / "*.h5")], jobs=2, overrides=FAST)
+    result = run_batch(CONFIG, out, inputs=[str(tmp_path / "in" / "*.h5")], jobs=2, overrides=FAST,
+                       worker=fit_task_dying_on_one_item)  # the worker of n02 SIGKILLs itself
     status = {r.item.name: (r.status, r.error) for r in result.rows}
     assert status["n01"][0] == "ok" and status["n03"][0] == "ok"
     assert status["n02"][0] == "failed" and "worker process died" in status["n02"][1]

@@ -460,6 +460,7 @@ def test_two_hidden_effects_are_both_named(experiment):
 
 
 def _outside_effect():
+    from afmid.effect_tags import Region
     from afmid.physics import Effect, Parameter, Quantity, Term
 
     return Effect(
@@ -469,11 +470,12 @@ def _outside_effect():
         parameters=(Parameter("attraction_force", "N", 1e-9, 0.0, 1e-6, "attraction at contact"),
                     Parameter("attraction_length", "m", 1.5e-9, 0.1e-9, 20e-9, "decay length")),
         terms=(Term("attraction", "exp(-max(z, a0) / attraction_length)",
-                    lambda p: -p["attraction_force"] * math.exp(p["a0"] / p["attraction_length"])),),
+                    lambda p: -p["attraction_force"] * math.exp(p["a0"] / p["attraction_length"]),
+                    coefficient_unit="N"),),
         quantities=(Quantity("attraction_force", "N", "attraction at contact"),),
         readout=lambda c, ctx: {"attraction_force": -c["attraction"] * math.exp(-ctx["a0"] / ctx["attraction_length"])},
         references=("Israelachvili, Intermolecular and Surface Forces, 3rd ed., ch. 21 (2011)",),
-        region="near",
+        region=Region.NEAR,
     )
 
 
@@ -515,16 +517,19 @@ def test_force_outside_the_catalog_is_not_claimed(experiment, variant):
                           "(floor 0.084), so it is reported as viscoelastic; a setpoint series would tell them apart",
                    strict=False)
 def test_adhesion_hysteresis_is_not_mistaken_for_viscoelasticity(experiment):
+    from afmid.effect_tags import Character, Region
     from afmid.physics import Effect, Parameter, Quantity, Term
 
     effect = Effect(
         name="adhesion_hysteresis", title="Surface-energy hysteresis: extra adhesion while the contact unloads",
         formula="F = -4 pi R dgamma in contact while retracting",
         parameters=(Parameter("surface_energy_hysteresis", "J/m^2", 0.01, 0.0, 1.0, "gamma_R - gamma_A"),),
-        terms=(Term("unloading", "[deltadot < 0]", lambda p: -4 * math.pi * p["R"] * p["surface_energy_hysteresis"]),),
+        terms=(Term("unloading", "[deltadot < 0]", lambda p: -4 * math.pi * p["R"] * p["surface_energy_hysteresis"],
+                    coefficient_unit="N"),),
         quantities=(Quantity("hysteresis_force", "N", "extra adhesion on unloading", 0.0, 1e-4),),
         readout=lambda c, ctx: {"hysteresis_force": -c["unloading"]},
-        references=("Garcia et al., Phys. Rev. Lett. 97, 016103 (2006)",), character="hysteretic", region="contact")
+        references=("Garcia et al., Phys. Rev. Lett. 97, 016103 (2006)",), character=Character.HYSTERETIC,
+        region=Region.CONTACT)
     raw = read_yaml(CONFIGS / "hidden_clean.yaml")
     raw["simulate"]["effects"] = ["adhesion_hysteresis"]
     raw["simulate"]["parameters"] = {"E_star": 3e9, "hamaker": 4e-20, "surface_energy_hysteresis": 0.02}

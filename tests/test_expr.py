@@ -22,7 +22,6 @@ from afmid.expr import (
     ProgramSet,
     StateRef,
     compile_expression,
-    evaluate_numba,
     evaluate_numpy,
     expression_units,
     free_names,
@@ -30,6 +29,7 @@ from afmid.expr import (
     switching_programs,
     unparse,
 )
+from afmid.kernels.vm import evaluate_numba
 from afmid.units import parse_unit
 
 pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again

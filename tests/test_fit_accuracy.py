@@ -147,7 +147,7 @@ EXPECT["lennard_jones", "poor", "known"] = Expect(  # seed 2: sigma -1.45 %, H +
     contact=_C(sigma=REQ, hamaker=0.51),  # sigma: seed 3 -2.2 %; H: 1.2 x seed 2's 42 % (seed 1 drops z^-2)
     sigma_max=_C(sigma=0.01, hamaker=0.18),
     force=0.147, may_drop=_TAIL)  # 1.5 x median 9.8 % (seeds 5.6-10.4 %)
-# Selection constraint (afmid.physics.TERM_ROLES): a contact-only viscous or adhesion term needs an elastic
+# Selection constraint (afmid.effect_tags.TERM_ROLES): a contact-only viscous or adhesion term needs an elastic
 # contact law; without it the criterion took z^-2 + viscous (seeds 1, 3: E* and adhesion read 0, force 37 %).
 EXPECT["dmt_viscoelastic", "poor", "known"] = Expect(  # seed 3: E* +12.2 %, adh. +15.1 %, eta -4.1 %, force 6.6 %
     contact=_C(E_star=0.55, adhesion_force=0.46, viscosity=0.215),  # 3 x 18.3 %, 3 x 15.3 %, 3 x 7.2 %

@@ -21,7 +21,8 @@ from afmid.config import ModelConfig
 from afmid.errors import ConfigError
 from afmid.kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy
 from afmid.kernels.sparse import _subset_lstsq, stlsq_factor, stlsq_factor_numpy, subset_rss, subset_rss_numpy
-from afmid.library import PRESETS, build_library, trajectory_variables
+from afmid.library import build_library, trajectory_variables
+from afmid.presets import PRESETS
 from afmid.physics import EFFECTS
 from afmid.preprocess import estimate_drive, harmonic_blocks, weak_windows
 from afmid.units import parse_unit
@@ -519,19 +520,19 @@ def test_weak_windows_integrate_by_parts_for_non_periodic_motion(spp, tol):
 
 # --------------------------------------------------------------------------- library
 def test_build_library_presets():
-    for name, preset in PRESETS.items():
-        lib = build_library(ModelConfig(library=name))
-        assert lib.names == [entry[0] for entry in preset.terms], name
+    for preset in PRESETS:
+        lib = build_library(ModelConfig(library=preset.name))
+        assert lib.names == [entry.name for entry in preset.terms], preset.name
         assert lib.effects == preset.effects
-        assert lib.source == name
-        for term, (_, expression, origin, *roles) in zip(lib.terms, preset.terms):
-            assert term.expression == expression
-            assert term.roles == (roles[0] if roles else ())
+        assert lib.source == preset.name
+        for term, entry in zip(lib.terms, preset.terms):
+            assert term.expression == entry.expression
+            assert term.roles == entry.roles
             assert parse_unit(term.coefficient_unit) * parse_unit(term.unit) == parse_unit("N"), term.name
-            if origin is None:
+            if entry.effect is None:
                 assert term.effect is None and term.label is None  # a distractor (gets the prior penalty)
             else:
-                assert (term.effect, term.label) == origin
+                assert (term.effect, term.label) == (entry.effect, entry.label)
                 assert term.effect in preset.effects
     # the seed tables' true terms are labelled with the effects the read-out needs
     labels = {t.name: (t.effect, t.label) for t in build_library(ModelConfig(library="lj_table1")).terms}
@@ -615,7 +616,7 @@ def _tapping_trajectory(seed=0, periods=4):
     return x, v, t
 
 
-LIBRARIES = [{"library": name} for name in PRESETS] + [
+LIBRARIES = [{"library": name} for name in PRESETS.names()] + [
     {"effects": ["dmt", "viscoelastic", "exponential_damping"]},
     {"effects": ["jkr"], "parameters": {"neck_length": 0.5e-9}},
     {"effects": ["capillary", "hydration", "electrostatic", "squeeze_film"]},
@@ -671,7 +672,7 @@ def test_trajectory_variables_contact_conventions():
 # --------------------------------------------------------------------------- selection constraint
 def test_term_roles_of_the_catalog_and_the_seed_tables():
     """Roles are declared on the registry's terms and the tables' columns, checked, and become rule masks."""
-    from afmid.physics import SELECTION_RULES, TERM_ROLES
+    from afmid.effect_tags import SELECTION_RULES, TERM_ROLES
 
     roles = {f"{e.name}.{t.label}": t.roles for e in EFFECTS for t in e.terms}
     assert {r for rs in roles.values() for r in rs} <= set(TERM_ROLES)

@@ -36,7 +36,7 @@ def _effect(name: str, *quantities: Quantity) -> Effect:
     return Effect(
         name=name, title="a test effect", formula="F = -k_t z",
         parameters=(Parameter("test_stiffness", "N/m", 1.0, 0.0, 10.0, "stiffness"),),
-        terms=(Term("spring", "z", lambda p: -p["test_stiffness"]),),
+        terms=(Term("spring", "z", lambda p: -p["test_stiffness"], coefficient_unit="N/m"),),
         quantities=quantities,
         readout=lambda c, ctx: {"test_stiffness": -c["spring"], "test_force": 1e-9, "hamaker": 1e-19},
         references=("none",),

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .integrate import next_gate_state_at
+
 
 @njit(cache=True)
 def scan_hysteresis(on: np.ndarray, off: np.ndarray, initial: float, out: np.ndarray) -> float:
@@ -16,11 +18,7 @@ def scan_hysteresis(on: np.ndarray, off: np.ndarray, initial: float, out: np.nda
     """
     state = initial
     for i in range(on.size):
-        if state == 0.0:
-            if on[i] != 0.0:
-                state = 1.0
-        elif off[i] != 0.0:
-            state = 0.0
+        state = next_gate_state_at(state, on[i], off[i])
         out[i] = state
     return state
 

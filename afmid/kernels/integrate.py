@@ -90,6 +90,25 @@ _jit = njit(cache=True, error_model="numpy")
 _inline = njit(cache=True, error_model="numpy", inline="always")
 
 
+@_inline
+def contact_kinematics_at(x, v, separation, a0):
+    """(z, zdot, delta, deltadot) at deflection x (m), velocity v (m/s): the numba twin of
+    afmid.kinematics.contact_kinematics (rest separation and a0 in m)."""
+    z = separation - x
+    if z <= a0:
+        return z, -v, a0 - z, v  # deltadot = -zdot in contact
+    return z, -v, 0.0, 0.0
+
+
+@_inline
+def next_gate_state_at(state, on, off):
+    """The gate (0.0 or 1.0) after a sample with conditions on/off (non-zero: true): the numba twin of
+    afmid.kinematics.next_gate_state."""
+    if state == 0.0:
+        return 1.0 if on != 0.0 else 0.0
+    return 0.0 if off != 0.0 else state
+
+
 @_jit
 def drive_table(w, h, n):
     """cos (row 0) and sin (row 1) of the angles w (m h / 2), m = 0..2n (w rad/s, h s)."""
@@ -168,12 +187,9 @@ def update_gates(x, v, t, dyn, gates, law, work, cond_values):
     law_conditions(x, v, t, dyn, gates, law, work, cond_values)
     flipped = False
     for g in range(gates.size):
-        if gates[g] == 0.0:
-            if cond_values[2 * g] != 0.0:
-                gates[g] = 1.0
-                flipped = True
-        elif cond_values[2 * g + 1] != 0.0:
-            gates[g] = 0.0
+        state = next_gate_state_at(gates[g], cond_values[2 * g], cond_values[2 * g + 1])
+        if state != gates[g]:
+            gates[g] = state
             flipped = True
     return flipped
 
@@ -400,15 +416,7 @@ def evaluate_law(x, v, t, dyn, gates, law, n_switch, out_force, out_full, out_sw
 @_inline
 def fill_variables(x, v, t, dyn, gates, var):
     """Program variables at deflection x (m), velocity v (m/s), time t (s)."""
-    z = dyn[5] - x
-    var[0] = z
-    var[1] = -v
-    if z <= dyn[6]:
-        var[2] = dyn[6] - z
-        var[3] = v  # deltadot = -zdot in contact
-    else:
-        var[2] = 0.0
-        var[3] = 0.0
+    var[0], var[1], var[2], var[3] = contact_kinematics_at(x, v, dyn[5], dyn[6])
     var[4] = x
     var[5] = v
     var[6] = t

@@ -218,17 +218,8 @@ def _variables(w: _Writer, programs: list[expr.Program]) -> None:
             if op == expr.PUSH_VAR:
                 used.add(code[pc + 1])
             pc += 2 if op in (expr.PUSH_VAR, expr.PUSH_CONST, expr.JUMP_IF_FALSE_PUSH0, expr.POW_HALVES) else 1
-    if used & {0, 2, 3}:
-        w.emit(1, "z = dyn[5] - x")
-    if 1 in used:
-        w.emit(1, "zdot = -v")
-    if used & {2, 3}:
-        w.emit(1, "if z <= dyn[6]:")
-        w.emit(2, "delta = dyn[6] - z")
-        w.emit(2, "deltadot = v  # deltadot = -zdot in contact")
-        w.emit(1, "else:")
-        w.emit(2, "delta = 0.0")
-        w.emit(2, "deltadot = 0.0")
+    if used & {0, 1, 2, 3}:  # contact_kinematics_at is in the algorithm section copied into the kernel
+        w.emit(1, "z, zdot, delta, deltadot = contact_kinematics_at(x, v, dyn[5], dyn[6])")
 
 
 def _offsets(programs: list[expr.Program]) -> list[int]:

@@ -24,10 +24,16 @@ from __future__ import annotations
 
 import math
 
+from collections.abc import Mapping
+
 import numpy as np
 from numba import njit
 
 from ..expr import (
+    Program,
+    ProgramSet,
+    check_variables,
+    compile_expression,
     ABS,
     ADD,
     AND,
@@ -249,3 +255,21 @@ def eval_set(code, code_offsets, consts, const_offsets, variables, out):
             _run(code, c0, c1, consts, const_offsets[j], variables, i0, nb, stack)
             for i in range(nb):
                 out[i0 + i, j] = stack[0, i]
+
+
+def evaluate_numba(program_or_text: Program | str, variables: np.ndarray,
+                   params: Mapping[str, float] | None = None, states: tuple[str, ...] = ()) -> np.ndarray:
+    """Evaluate one expression on ``variables`` (shape (n_vars, N)) with the numba VM; returns (N,).
+
+    A convenience wrapper around :func:`eval_set` (for tests and checks). Text is compiled with ``params`` and
+    ``states`` first.
+    """
+    if isinstance(program_or_text, Program):
+        program = program_or_text
+    else:
+        program = compile_expression(program_or_text, {} if params is None else params, states)
+    pset = ProgramSet([program])
+    variables = np.ascontiguousarray(check_variables(variables, pset.n_vars))
+    out = np.empty((variables.shape[1], 1))
+    eval_set(pset.code, pset.code_offsets, pset.consts, pset.const_offsets, variables, out)
+    return out[:, 0]
