@@ -137,7 +137,8 @@ def fit(
     cfg = load_config(config, list(overrides))
     trace_path = None if cfg.data.path is None else cfg.resolve_path(cfg.data.path)
     check_output_path(output, overwrite, inputs={config: "the run config", trace_path: "the trace file, data.path"})
-    from .fit import apply_effect_changes, run_fit, write_run
+    from .fit import apply_effect_changes, run_fit
+    from .runfile import write_run
 
     apply_effect_changes(cfg, add_effects, remove_effects)
     result = run_fit(cfg, progress=not _state["quiet"])

@@ -35,17 +35,17 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from . import plausibility
-from .config import RunConfig, build_config
+from .config import RunConfig
 from .errors import InputError
-from .files import check_input_file
-from .io import RUN_FORMAT, Truth, read_truth, sha256_file
+from .io import sha256_file
 from .candidate_shapes import ShapeSearch
 from .physics import EFFECTS
+# The run-file reader lives in afmid.runfile; `from afmid.diagnose import load_run, RunData` keeps working.
+from .runfile import RunData, load_run  # noqa: F401
 
 log = logging.getLogger(__name__)
 
@@ -79,155 +79,6 @@ QUICK_SHAPE = True
 GAS_QUALITY_FACTOR = 30.0
 #: Largest plausible viscosity of a gas film, Pa s (air 1.8e-5; every gas is below 1e-4).
 GAS_VISCOSITY_MAX = 1e-4
-
-
-@dataclass
-class RunData:
-    """A run file's contents (SI)."""
-
-    path: Path
-    config: RunConfig
-    effects: list[str]
-    terms: list[str]
-    expressions: list[str]
-    units: list[str]
-    coefficients: np.ndarray
-    errors: np.ndarray
-    selected: np.ndarray
-    inclusion: np.ndarray
-    quantities: dict[str, dict]
-    nonlinear: dict[str, dict]
-    separation: float
-    cv_error: float
-    cv_error_noise_floor: float
-    bic: float
-    chi2_reduced: float
-    drive: dict
-    cantilever: dict  # spring_constant (N/m), resonance_frequency (Hz), quality_factor, tip_radius (m)
-    periods: dict[str, np.ndarray]
-    force: dict[str, np.ndarray]
-    input_path: Path | None
-    input_sha256: str | None
-    truth: Truth | None = None
-    warnings: list[str] = field(default_factory=list)
-    n_rows: int = 0  # whitened equations behind bic / chi2_reduced (0 if the file does not say)
-    harmonics: np.ndarray | None = None  # drive harmonic of each Fourier row (0, 1, 1, 2, 2, ...)
-    signal_rows: np.ndarray | None = None  # rows used by the model-free force (above the noise)
-
-    @property
-    def n_terms(self) -> int:
-        return int(self.selected.sum())
-
-    @property
-    def selected_terms(self) -> list[str]:
-        return [t for t, s in zip(self.terms, self.selected) if s]
-
-    @property
-    def chi2_limit(self) -> float:
-        """Reduced chi-square above which the misfit is significant (CHI2_SIGMAS standard deviations)."""
-        dof = max(self.n_rows - self.n_terms, 1) if self.n_rows else 1000
-        return 1.0 + CHI2_SIGMAS * math.sqrt(2.0 / dof)
-
-
-def _str_list(ds) -> list[str]:
-    return [v.decode() if isinstance(v, bytes) else str(v) for v in ds[...]]
-
-
-def load_run(path: str | Path) -> RunData:
-    """Read a run file; one-line InputError if it is not one, is of a version this afmid does not read,
-    or is damaged (a missing dataset or attribute, a stored config that is not valid, unreadable data)."""
-    import h5py
-
-    from .errors import ConfigError
-    from .runcheck import RunReader, check_version, input_unchanged, stored_config
-
-    path = check_input_file(path, what="run file")  # missing, a link loop, a FIFO (would block), a folder
-    try:
-        h5 = h5py.File(path, "r")
-    except OSError:
-        raise InputError("not a readable HDF5 file (truncated or corrupt?)", file=path) from None
-    try:
-        with h5:
-            if h5.attrs.get("format") != RUN_FORMAT:
-                raise InputError(f"not an afmid run file (format attribute {h5.attrs.get('format')!r})", file=path)
-            check_version(h5.attrs, path)
-            data = _read_run(RunReader(h5, path), path, stored_config(h5.attrs, path))
-    except ConfigError as exc:  # the stored config: the run file is the input here
-        raise InputError(f"the stored config is not valid: {exc.key + ': ' if exc.key else ''}{exc.message}",
-                         file=path, key="config") from None
-    except (OSError, RuntimeError, ValueError, TypeError) as exc:  # h5py: unreadable chunks, wrong shapes/types
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"damaged run file: cannot read its contents ({first})", file=path) from None
-    if data.input_path is not None and data.input_path.exists():
-        if input_unchanged(data.input_path, data.input_sha256):
-            try:
-                data.truth = read_truth(data.input_path)
-            except InputError as exc:  # the truth is an extra for the report, not what it is about
-                log.warning("%s: the ground truth of its input is ignored: %s", path, exc.format())
-                data.truth = None
-        else:
-            log.warning("%s: its input %s changed since the fit (SHA-256 differs): its ground truth is ignored",
-                        path, data.input_path)
-    return data
-
-
-def _attr(ds, name: str, path: Path):
-    """An attribute of a dataset of a run file; InputError naming it when missing."""
-    try:
-        return ds.attrs[name]
-    except KeyError:
-        raise InputError(f"missing attribute {name!r} of {ds.name} (damaged or incomplete run file)", file=path,
-                         key=f"{ds.name}@{name}") from None
-
-
-def _read_run(h5, path: Path, raw: dict) -> RunData:
-    """The contents of an open run file (``h5``: a :class:`afmid.runcheck.RunReader`)."""
-    input_path = h5.attrs.get("input_path")
-    model = raw.get("model")
-    if isinstance(model, dict) and model.get("library") is not None:
-        model.pop("effects", None)  # older afmid stored the unused default effects beside a preset
-    config = build_config(raw, source=path, base_dir=Path(input_path).parent if input_path else path.parent)
-    m = h5["model"]
-    quantities = {
-        name: {"value": float(ds[()]), "unit": _attr(ds, "units", path), "error": float(_attr(ds, "error", path)),
-               "ci_low": float(_attr(ds, "ci_low", path)), "ci_high": float(_attr(ds, "ci_high", path)),
-               "effect": str(_attr(ds, "effect", path)),
-               **plausibility.attributes(plausibility.read_verdict(name, ds))}
-        for name, ds in m["parameters"].items()
-    }
-    nonlinear = {name: {"value": float(ds[()]), "error": float(_attr(ds, "error", path)),
-                        "unit": _attr(ds, "units", path)}
-                 for name, ds in m["nonlinear"].items()}
-    d = h5["diagnostics"]
-    return RunData(
-        path=path,
-        config=config,
-        effects=[e for e in _str_list(m["effects"]) if e],
-        terms=_str_list(m["terms"]),
-        expressions=_str_list(m["expressions"]),
-        units=_str_list(m["units"]),
-        coefficients=m["coefficients"][...],
-        errors=m["coefficients_errors"][...],
-        selected=m["selected"][...].astype(bool),
-        inclusion=m["inclusion_probability"][...],
-        quantities=quantities,
-        nonlinear=nonlinear,
-        separation=float(m["separation"][()]),
-        cv_error=float(d["cv_error"][()]),
-        cv_error_noise_floor=float(d["cv_error_noise_floor"][()]),
-        bic=float(d["bic"][()]),
-        chi2_reduced=float(d["chi2_reduced"][()]),
-        drive={k: float(v[()]) for k, v in m["drive"].items()},
-        cantilever={k: float(v) for k, v in h5["cantilever"].attrs.items() if k != "units"},
-        periods={k: v[...] for k, v in h5["periods"].items()},
-        force={k: v[...] for k, v in h5["force"].items()},
-        input_path=Path(input_path) if input_path else None,
-        input_sha256=h5.attrs.get("input_sha256"),
-        warnings=list(d.attrs.get("warnings", [])),
-        n_rows=int(d["n_rows"][()]) if "n_rows" in d else 0,
-        harmonics=d["harmonics"][...].astype(int) if "harmonics" in d else None,
-        signal_rows=d["signal_rows"][...].astype(bool) if "signal_rows" in d else None,
-    )
 
 
 # --------------------------------------------------------------------------- localisation

@@ -6,7 +6,7 @@ one period, Fourier coefficients, noise level, the model-free force) ->
 :func:`build_system` (library columns projected like the data, whitened, factored)
 -> :func:`afmid.regression.select` (sparsity path + BIC / CV) -> nonlinear
 parameters (separation, decay lengths) by an outer search -> bagging for error
-bars -> physical read-out -> per-sample and per-period forces -> :func:`write_run`.
+bars -> physical read-out -> per-sample and per-period forces -> :func:`afmid.runfile.write_run`.
 
 :func:`run_fit` is load + :func:`prepare` + :func:`fit_prepared`. Fits of many
 libraries or parameter sets on one trace (the diagnosis, force maps) prepare
@@ -34,22 +34,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .config import RunConfig, dump_config
+from .config import RunConfig
 from .errors import AfmidError, ConfigError, InputError
-from .io import Trace, atomic_hdf5, check_output_path, create_dataset, load_trace, write_dataset, RUN_FORMAT
+from .io import Trace, load_trace
 from .library import Library, build_library
 from .physics import BOLTZMANN
 from .preprocess import (HarmonicBlocks, WeakWindows, detrend, differentiate, estimate_drive, harmonic_blocks,
                          ou_smooth,
                          steadiness, weak_windows)
-from . import plausibility, regression
-from .fit_forces import (CHUNK_BLOCKS, PeriodCurves, force_cv_error, per_sample_forces, period_curves, read_out,
+from . import regression
+from .fit_forces import (CHUNK_BLOCKS, force_cv_error, per_sample_forces, period_curves, read_out,
                          signal_rows)
 from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
 from .fit_selection import SelectionSettings
 # Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
 from .fit_forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from .fit_selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
+# The run-file writer lives in afmid.runfile; `from afmid.fit import write_run` keeps working.
+from .runfile import PERIOD_UNITS, write_run  # noqa: F401
 
 log = logging.getLogger(__name__)
 
@@ -854,120 +856,3 @@ def apply_effect_changes(config: RunConfig, add: tuple[str, ...] | list[str], re
             raise ConfigError(err.message.replace("unknown effect", "--add: unknown effect"), file=config.source,
                               key="model.effects") from None
         raise
-
-
-# --------------------------------------------------------------------------- run file
-PERIOD_UNITS = {
-    "phase": "rad", "period_start_time": "s", "deflection": "m", "velocity": "m/s", "acceleration": "m/s^2", "separation": "m",
-    "force_model": "N", "force_direct": "N", "peak_force": "N", "adhesion_force": "N", "max_indentation": "m",
-    "contact_time": "s", "dissipated_energy": "J", "dissipated_energy_direct": "J", "virial": "J",
-    "virial_direct": "J", "amplitude": "m", "period_error": "N",
-}
-
-
-def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = False, root_attrs: dict | None = None):
-    """Write the run file (layout: docs/file-formats.md); ``root_attrs`` are further root attributes (a batch's
-    resume key), written with the rest rather than by opening the file again."""
-    path = check_output_path(path, overwrite)
-    trace = result.prep.trace
-    inputs = {str(trace.path): trace.sha256} if trace.path else {}
-    p = result.n_library
-    units = [t.coefficient_unit for t in result.library.terms]
-    with atomic_hdf5(path, RUN_FORMAT, dump_config(config), inputs) as h5:
-        h5.attrs["cv_error"] = result.cv_error
-        for name, value in (root_attrs or {}).items():
-            h5.attrs[name] = value
-        h5.attrs["overridden"] = list(trace.overridden) or [""]
-        h5.attrs["value_sources"] = "; ".join(f"{k}: {v}" for k, v in trace.sources.items())
-        cg = h5.create_group("cantilever")
-        cl = trace.cantilever
-        cg.attrs["spring_constant"] = cl.spring_constant
-        cg.attrs["resonance_frequency"] = cl.resonance_frequency
-        cg.attrs["quality_factor"] = cl.quality_factor
-        cg.attrs["tip_radius"] = np.nan if cl.tip_radius is None else cl.tip_radius
-        cg.attrs["units"] = "spring_constant: N/m; resonance_frequency: Hz; quality_factor: 1; tip_radius: m"
-        m = h5.create_group("model")
-        write_dataset(m, "terms", np.array(result.library.names), "1")
-        write_dataset(m, "expressions", np.array([t.expression for t in result.library.terms]), "1")
-        write_dataset(m, "units", np.array(units), "1")
-        write_dataset(m, "coefficients", np.where(result.selected[:p], result.coef[:p], 0.0), "see /model/units")
-        write_dataset(m, "coefficients_errors", result.coef_std[:p], "see /model/units", meaning="bootstrap std")
-        write_dataset(m, "coefficients_ci_low", result.ci_low[:p], "see /model/units", meaning="2.5 % bootstrap")
-        write_dataset(m, "coefficients_ci_high", result.ci_high[:p], "see /model/units", meaning="97.5 % bootstrap")
-        write_dataset(m, "selected", result.selected[:p], "1")
-        write_dataset(m, "inclusion_probability", result.inclusion[:p], "1")
-        write_dataset(m, "effects", np.array(list(result.library.effects) or [""]), "1")
-        m.attrs["library"] = result.library.source
-        dg = m.create_group("drive")
-        nu = result.coef[p:]
-        write_dataset(dg, "force_amplitude", float(np.hypot(nu[0], nu[1])), "N")
-        # F_drive = cos * cos(w t) + sin * sin(w t) in the trace's time base (the fit's columns are -F_drive)
-        write_dataset(dg, "cos", float(-nu[0]), "N")
-        write_dataset(dg, "sin", float(-nu[1]), "N")
-        write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
-        write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
-        if "offset" in result.system.names:
-            write_dataset(dg, "offset_force", float(nu[result.system.names.index("offset") - p]), "N")
-        if config.fit.cantilever == "free":
-            write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
-            write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
-        pg = m.create_group("parameters")
-        verdicts = plausibility.check_plausibility(result.quantities)  # a value outside its range is flagged
-        for name, q in result.quantities.items():
-            write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
-                          effect=q["effect"], description=q["doc"], **plausibility.attributes(verdicts[name]))
-        ng = m.create_group("nonlinear")
-        for name, est in result.nonlinear.items():
-            write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated)
-        fixed_d = config.sample.separation
-        write_dataset(m, "separation", result.system.params["d"], "m", estimated=fixed_d is None,
-                      error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0)
-        fg = h5.create_group("force")
-        write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive")
-        write_dataset(fg, "direct", result.force_direct, "N", positive="repulsive",
-                      meaning="model-free force from the equation of motion, band-limited to signal harmonics")
-        write_dataset(fg, "time", result.prep.t, "s")
-        write_dataset(fg, "deflection", result.prep.x, "m", positive="toward_sample")
-        pgp = h5.create_group("periods")
-        if isinstance(result.periods, PeriodCurves):
-            result.periods.write(pgp, PERIOD_UNITS)  # the long curves chunk by chunk
-        else:
-            for name, arr in result.periods.items():
-                write_dataset(pgp, name, arr, PERIOD_UNITS[name])
-        dg = h5.create_group("diagnostics")
-        write_dataset(dg, "cv_error", result.cv_error, "1", definition="normalised cross-validated force error")
-        write_dataset(dg, "cv_error_folds", result.cv_error_folds, "1")
-        write_dataset(dg, "cv_error_noise_floor", result.cv_error_noise_floor, "1",
-                      definition="expected cv_error of a perfect model at the estimated noise")
-        best = result.selection.best
-        write_dataset(dg, "bic", best.bic, "1", definition="n ln(rss/n) + k ln n over whitened rows")
-        write_dataset(dg, "rss", best.rss, "1", definition="whitened residual sum of squares")
-        write_dataset(dg, "n_rows", result.system.n_rows, "1")
-        write_dataset(dg, "chi2_reduced", best.rss / max(result.system.n_rows - int(best.mask.sum()), 1), "1",
-                      definition="rss / (n - k); about 1 when the model explains the data to the predicted noise")
-        residual = create_dataset(dg, "residual", result.force_direct.shape, np.float64, "N")
-        for lo in range(0, residual.shape[0], 1 << 20):  # chunk by chunk: no third per-sample array
-            piece = slice(lo, lo + (1 << 20))
-            residual[piece] = result.force_direct[piece] - result.force_estimate[piece]
-        write_dataset(dg, "noise_rms", result.prep.noise_rms, "m")
-        write_dataset(dg, "steadiness", result.prep.steadiness, "1")
-        write_dataset(dg, "harmonics", result.prep.blocks.harmonics, "1")
-        write_dataset(dg, "row_sigma", result.prep.row_sigma, "N*s", meaning="noise of each weak-form row")
-        write_dataset(dg, "signal_rows", result.signal_rows, "1")
-        path_g = dg.create_group("path")
-        cands = result.selection.candidates
-        write_dataset(path_g, "masks", np.array([c.mask[:p] for c in cands]), "1")
-        write_dataset(path_g, "n_terms", np.array([c.n_free for c in cands]), "1")
-        write_dataset(path_g, "rss", np.array([c.rss for c in cands]), "1", meaning="whitened residual sum of squares")
-        write_dataset(path_g, "bic", np.array([c.bic for c in cands]), "1")
-        write_dataset(path_g, "cv_rss", np.array([c.cv_rss for c in cands]), "1")
-        path_g.attrs["chosen"] = result.selection.chosen
-        path_g.attrs["criterion"] = result.selection.criterion
-        if result.warnings:
-            dg.attrs["warnings"] = result.warnings
-        implausible = plausibility.violations(verdicts)
-        dg.attrs["n_implausible"] = len(implausible)
-        if implausible:
-            dg.attrs["implausible"] = implausible
-    plausibility.warn(verdicts)
-    return path

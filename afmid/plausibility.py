@@ -28,7 +28,7 @@ is flagged, never written or shown as a plain result:
   is an upper limit and stays fine;
 - no error (no bootstrap, NaN) is no verdict on its own.
 
-Where the verdicts go (:func:`afmid.fit.write_run`): attributes ``plausible``
+Where the verdicts go (:func:`afmid.runfile.write_run`): attributes ``plausible``
 (bool) and ``plausibility`` (the reason, one sentence, empty when plausible)
 on ``/model/parameters/NAME``, ``n_implausible`` and ``implausible`` (the
 reasons) on ``/diagnostics``, one ``afmid: warning:`` line per violation; the
@@ -202,7 +202,11 @@ def attributes(verdict: Verdict) -> dict:
 
 
 def read_verdict(name: str, dataset) -> Verdict:
-    """The verdict stored on a run file's ``/model/parameters/NAME`` (judged now for files older than it)."""
+    """The verdict stored on a run file's ``/model/parameters/NAME`` (judged now for files older than it).
+
+    Superseded by :func:`afmid.runfile.read_verdict`, the run-file reader's own; kept only while afmid.batch
+    still reads run files itself (remove it when the batch reads through :func:`afmid.runfile.read_summary`).
+    """
     attrs = dataset.attrs
     if "plausible" in attrs:
         reason = attrs.get("plausibility", "")

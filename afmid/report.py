@@ -21,11 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, plausibility
-from .diagnose import BIC_EVIDENCE, RunData, band_limit, describe_residual, energy_check, load_run, localize, suggest
+from .diagnose import BIC_EVIDENCE, band_limit, describe_residual, energy_check, localize, suggest
 from .io import now_iso
 from .physics import EFFECTS
 from .report_folder import report_folder
 from .runcheck import check_same_traces
+from .runfile import RunData, load_run
 
 log = logging.getLogger(__name__)
 NN = 1e9  # N -> nN for display

@@ -1,6 +1,6 @@
 """Run files as inputs: which versions afmid reads, damage, and whether runs and traces still belong together.
 
-:func:`afmid.diagnose.load_run` reads a run file through :class:`RunReader`,
+:func:`afmid.runfile.load_run` reads a run file through :class:`RunReader`,
 which turns a missing group, dataset or attribute into one line naming the
 file and the path inside it. :func:`check_same_traces` refuses to compare runs
 made on different traces unless asked to, and :func:`input_unchanged` tells
@@ -41,16 +41,14 @@ def check_version(attrs, path: Path) -> None:
                          f"{readable}); was it written by another afmid version?", file=path, key="format_version")
 
 
-def stored_config(attrs, path: Path) -> dict:
-    """The run's stored config (the ``config`` attribute) as a mapping; InputError if missing or not YAML."""
-    text = attrs.get("config")
+def stored_config(text: str | None, path: Path) -> dict:
+    """The run's stored config as a mapping, from the text of its ``config`` attribute (None: the attribute is
+    missing); InputError if missing or not YAML."""
     if text is None:
         raise InputError("the stored config attribute is missing (damaged or incomplete run file)", file=path,
                          key="config")
-    if isinstance(text, bytes):
-        text = text.decode("utf-8", "replace")
     try:
-        raw = yaml.safe_load(str(text))
+        raw = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""

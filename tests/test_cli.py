@@ -1,6 +1,6 @@
 """The command line: help stays light, sub-commands answer, the effect catalog, and the fit command's plumbing.
 
-The fit itself is stubbed (``afmid.fit.run_fit`` / ``write_run``): these tests
+The fit itself is stubbed (``afmid.fit.run_fit`` / ``afmid.runfile.write_run``): these tests
 check what the CLI passes on (layered config, --set, --add/--remove), how it
 reports warnings, interruptions and success, not the identification.
 """
@@ -156,6 +156,7 @@ class _StubResult:
 def stub_fit(monkeypatch):
     """Replace the fit with: load the trace (the real loader), write a tiny run file atomically."""
     import afmid.fit
+    import afmid.runfile
     from afmid.config import dump_config
     from afmid.io import atomic_hdf5, check_output_path, load_trace
 
@@ -175,7 +176,7 @@ def stub_fit(monkeypatch):
         return path
 
     monkeypatch.setattr(afmid.fit, "run_fit", run_fit)
-    monkeypatch.setattr(afmid.fit, "write_run", write_run)
+    monkeypatch.setattr(afmid.runfile, "write_run", write_run)
     return seen
 
 

@@ -89,3 +89,79 @@ def test_parameter_attributes_are_documented_and_hold_the_plausibility_verdict(r
         diagnostics = h5["diagnostics"].attrs
         assert diagnostics["n_implausible"] == len(flagged)
         assert sorted(diagnostics.get("implausible", [])) == sorted(params[n].attrs["plausibility"] for n in flagged)
+
+
+# --------------------------------------------------------------------------- afmid.runfile: the one reader and writer
+def test_the_old_import_paths_name_the_one_reader_and_writer():
+    import afmid.diagnose
+    import afmid.fit
+    import afmid.runfile
+
+    assert afmid.fit.write_run is afmid.runfile.write_run
+    assert afmid.diagnose.load_run is afmid.runfile.load_run
+    assert afmid.diagnose.RunData is afmid.runfile.RunData
+
+
+def test_text_decodes_what_h5py_returns_for_strings():
+    from afmid.runfile import text
+
+    assert text("Pa*s") == "Pa*s"
+    assert text(b"Pa*s") == "Pa*s"
+    assert text(np.bytes_(b"dmt")) == "dmt"  # fixed-length strings come back as numpy.bytes_
+    assert text("µm".encode()) == "µm"
+    assert text(3) == "3"
+    assert text(b"a\xffb", errors="replace") == "a\ufffdb"
+    with pytest.raises(UnicodeDecodeError):
+        text(b"a\xffb")
+
+
+def test_strings_stored_as_bytes_are_read_as_text(run_file, tmp_path):
+    """Text written by another tool as fixed-length bytes reads as the same str (not "b'...'")."""
+    import shutil
+
+    from afmid.runfile import load_run, read_summary
+
+    copy = tmp_path / "bytes.h5"
+    shutil.copyfile(run_file, copy)
+    reference = load_run(run_file)
+    with h5py.File(copy, "r+") as h5:
+        for ds in h5["model/parameters"].values():
+            for name in ("units", "effect", "plausibility"):
+                ds.attrs[name] = np.bytes_(str(ds.attrs[name]).encode())
+        h5.attrs["input_sha256"] = np.bytes_(h5.attrs["input_sha256"].encode())
+        h5.attrs["batch_key"] = np.bytes_(b"0123")
+    again = load_run(copy)
+    assert again.quantities == reference.quantities
+    assert again.input_sha256 == reference.input_sha256
+    summary = read_summary(copy)
+    assert summary["key"] == "0123"
+    assert summary["values"]["input_sha256"] == reference.input_sha256
+    assert {name: (q["unit"], q["effect"]) for name, q in summary["quantities"].items()} == \
+        {name: (q["unit"], q["effect"]) for name, q in reference.quantities.items()}
+
+
+def test_the_summary_row_agrees_with_the_full_reader(run_file):
+    from afmid.runfile import load_run, read_batch_key, read_summary
+
+    run, summary = load_run(run_file), read_summary(run_file)
+    assert summary["key"] is None and read_batch_key(run_file) is None  # `afmid fit` writes no batch key
+    values = summary["values"]
+    assert values["input_sha256"] == run.input_sha256
+    assert values["effects"] == ";".join(run.effects)
+    assert values["terms"] == ";".join(run.selected_terms)
+    assert (values["cv_error"], values["cv_error_noise_floor"], values["chi2_reduced"], values["separation"]) == \
+        (run.cv_error, run.cv_error_noise_floor, run.chi2_reduced, run.separation)
+    assert set(summary["quantities"]) == set(run.quantities)
+    for name, q in summary["quantities"].items():
+        full = run.quantities[name]
+        assert {k: q[k] for k in ("value", "error", "ci_low", "ci_high", "unit", "effect")} == \
+            {k: full[k] for k in ("value", "error", "ci_low", "ci_high", "unit", "effect")}, name
+    assert summary["implausible"] == [q["plausibility"] for q in run.quantities.values() if not q["plausible"]]
+
+
+def test_a_missing_batch_key_or_unreadable_file_has_no_key(tmp_path):
+    from afmid.runfile import read_batch_key
+
+    (tmp_path / "not.h5").write_bytes(b"not HDF5")
+    assert read_batch_key(tmp_path / "not.h5") is None
+    assert read_batch_key(tmp_path / "missing.h5") is None

@@ -1,0 +1,385 @@
+"""Run files: the one writer (:func:`write_run`) and the readers of what ``afmid fit`` stores.
+
+The layout is documented in docs/file-formats.md (tests/test_run_file.py checks
+it against a written file). Readers:
+
+- :func:`load_run`: the whole run as a :class:`RunData`, for the diagnosis and
+  the report. Strict: a run file of another version, a missing dataset or
+  attribute, a stored config that is not valid or unreadable data is one
+  InputError naming the file and the path inside it (the checks of
+  :mod:`afmid.runcheck`).
+- :func:`read_summary` and :func:`read_batch_key`: the values of one row of a
+  batch summary and the key that tells whether a run file is up to date. Lenient
+  on purpose: a batch reads the files it wrote itself, older files lack a few
+  attributes (NaN or an empty string then), and a file it cannot read is fitted
+  again rather than reported (OSError / KeyError, as h5py raises them).
+
+Text comes back from h5py as ``str`` or ``bytes`` depending on how it was
+stored; every reader here turns it into ``str`` with :func:`text`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from . import plausibility
+from .config import RunConfig, build_config, dump_config
+from .errors import ConfigError, InputError
+from .files import check_input_file
+from .fit_forces import PeriodCurves
+from .io import RUN_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
+from .runcheck import RunReader, check_version, input_unchanged, stored_config
+
+if TYPE_CHECKING:  # afmid.fit re-exports write_run: importing it here would be a cycle
+    from .fit import FitResult
+
+log = logging.getLogger(__name__)
+
+#: Units of the datasets in ``/periods`` (per-period summaries and curves), by name.
+PERIOD_UNITS = {
+    "phase": "rad", "period_start_time": "s", "deflection": "m", "velocity": "m/s", "acceleration": "m/s^2", "separation": "m",
+    "force_model": "N", "force_direct": "N", "peak_force": "N", "adhesion_force": "N", "max_indentation": "m",
+    "contact_time": "s", "dissipated_energy": "J", "dissipated_energy_direct": "J", "virial": "J",
+    "virial_direct": "J", "amplitude": "m", "period_error": "N",
+}
+
+
+def text(value, errors: str = "strict") -> str:
+    """An HDF5 string as ``str``.
+
+    h5py returns attributes written as ``str`` as ``str``, but fixed-length strings and the elements of string
+    datasets as ``bytes`` (UTF-8); anything else (a number) goes through ``str()``. ``errors`` as for
+    :meth:`bytes.decode`.
+    """
+    if isinstance(value, bytes):
+        return value.decode("utf-8", errors)
+    return str(value)
+
+
+# --------------------------------------------------------------------------- writer
+def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = False, root_attrs: dict | None = None):
+    """Write the run file (layout: docs/file-formats.md); ``root_attrs`` are further root attributes (a batch's
+    resume key), written with the rest rather than by opening the file again."""
+    path = check_output_path(path, overwrite)
+    trace = result.prep.trace
+    inputs = {str(trace.path): trace.sha256} if trace.path else {}
+    p = result.n_library
+    units = [t.coefficient_unit for t in result.library.terms]
+    with atomic_hdf5(path, RUN_FORMAT, dump_config(config), inputs) as h5:
+        h5.attrs["cv_error"] = result.cv_error
+        for name, value in (root_attrs or {}).items():
+            h5.attrs[name] = value
+        h5.attrs["overridden"] = list(trace.overridden) or [""]
+        h5.attrs["value_sources"] = "; ".join(f"{k}: {v}" for k, v in trace.sources.items())
+        cg = h5.create_group("cantilever")
+        cl = trace.cantilever
+        cg.attrs["spring_constant"] = cl.spring_constant
+        cg.attrs["resonance_frequency"] = cl.resonance_frequency
+        cg.attrs["quality_factor"] = cl.quality_factor
+        cg.attrs["tip_radius"] = np.nan if cl.tip_radius is None else cl.tip_radius
+        cg.attrs["units"] = "spring_constant: N/m; resonance_frequency: Hz; quality_factor: 1; tip_radius: m"
+        m = h5.create_group("model")
+        write_dataset(m, "terms", np.array(result.library.names), "1")
+        write_dataset(m, "expressions", np.array([t.expression for t in result.library.terms]), "1")
+        write_dataset(m, "units", np.array(units), "1")
+        write_dataset(m, "coefficients", np.where(result.selected[:p], result.coef[:p], 0.0), "see /model/units")
+        write_dataset(m, "coefficients_errors", result.coef_std[:p], "see /model/units", meaning="bootstrap std")
+        write_dataset(m, "coefficients_ci_low", result.ci_low[:p], "see /model/units", meaning="2.5 % bootstrap")
+        write_dataset(m, "coefficients_ci_high", result.ci_high[:p], "see /model/units", meaning="97.5 % bootstrap")
+        write_dataset(m, "selected", result.selected[:p], "1")
+        write_dataset(m, "inclusion_probability", result.inclusion[:p], "1")
+        write_dataset(m, "effects", np.array(list(result.library.effects) or [""]), "1")
+        m.attrs["library"] = result.library.source
+        dg = m.create_group("drive")
+        nu = result.coef[p:]
+        write_dataset(dg, "force_amplitude", float(np.hypot(nu[0], nu[1])), "N")
+        # F_drive = cos * cos(w t) + sin * sin(w t) in the trace's time base (the fit's columns are -F_drive)
+        write_dataset(dg, "cos", float(-nu[0]), "N")
+        write_dataset(dg, "sin", float(-nu[1]), "N")
+        write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
+        write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
+        if "offset" in result.system.names:
+            write_dataset(dg, "offset_force", float(nu[result.system.names.index("offset") - p]), "N")
+        if config.fit.cantilever == "free":
+            write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
+            write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
+        pg = m.create_group("parameters")
+        verdicts = plausibility.check_plausibility(result.quantities)  # a value outside its range is flagged
+        for name, q in result.quantities.items():
+            write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
+                          effect=q["effect"], description=q["doc"], **plausibility.attributes(verdicts[name]))
+        ng = m.create_group("nonlinear")
+        for name, est in result.nonlinear.items():
+            write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated)
+        fixed_d = config.sample.separation
+        write_dataset(m, "separation", result.system.params["d"], "m", estimated=fixed_d is None,
+                      error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0)
+        fg = h5.create_group("force")
+        write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive")
+        write_dataset(fg, "direct", result.force_direct, "N", positive="repulsive",
+                      meaning="model-free force from the equation of motion, band-limited to signal harmonics")
+        write_dataset(fg, "time", result.prep.t, "s")
+        write_dataset(fg, "deflection", result.prep.x, "m", positive="toward_sample")
+        pgp = h5.create_group("periods")
+        if isinstance(result.periods, PeriodCurves):
+            result.periods.write(pgp, PERIOD_UNITS)  # the long curves chunk by chunk
+        else:
+            for name, arr in result.periods.items():
+                write_dataset(pgp, name, arr, PERIOD_UNITS[name])
+        dg = h5.create_group("diagnostics")
+        write_dataset(dg, "cv_error", result.cv_error, "1", definition="normalised cross-validated force error")
+        write_dataset(dg, "cv_error_folds", result.cv_error_folds, "1")
+        write_dataset(dg, "cv_error_noise_floor", result.cv_error_noise_floor, "1",
+                      definition="expected cv_error of a perfect model at the estimated noise")
+        best = result.selection.best
+        write_dataset(dg, "bic", best.bic, "1", definition="n ln(rss/n) + k ln n over whitened rows")
+        write_dataset(dg, "rss", best.rss, "1", definition="whitened residual sum of squares")
+        write_dataset(dg, "n_rows", result.system.n_rows, "1")
+        write_dataset(dg, "chi2_reduced", best.rss / max(result.system.n_rows - int(best.mask.sum()), 1), "1",
+                      definition="rss / (n - k); about 1 when the model explains the data to the predicted noise")
+        residual = create_dataset(dg, "residual", result.force_direct.shape, np.float64, "N")
+        for lo in range(0, residual.shape[0], 1 << 20):  # chunk by chunk: no third per-sample array
+            piece = slice(lo, lo + (1 << 20))
+            residual[piece] = result.force_direct[piece] - result.force_estimate[piece]
+        write_dataset(dg, "noise_rms", result.prep.noise_rms, "m")
+        write_dataset(dg, "steadiness", result.prep.steadiness, "1")
+        write_dataset(dg, "harmonics", result.prep.blocks.harmonics, "1")
+        write_dataset(dg, "row_sigma", result.prep.row_sigma, "N*s", meaning="noise of each weak-form row")
+        write_dataset(dg, "signal_rows", result.signal_rows, "1")
+        path_g = dg.create_group("path")
+        cands = result.selection.candidates
+        write_dataset(path_g, "masks", np.array([c.mask[:p] for c in cands]), "1")
+        write_dataset(path_g, "n_terms", np.array([c.n_free for c in cands]), "1")
+        write_dataset(path_g, "rss", np.array([c.rss for c in cands]), "1", meaning="whitened residual sum of squares")
+        write_dataset(path_g, "bic", np.array([c.bic for c in cands]), "1")
+        write_dataset(path_g, "cv_rss", np.array([c.cv_rss for c in cands]), "1")
+        path_g.attrs["chosen"] = result.selection.chosen
+        path_g.attrs["criterion"] = result.selection.criterion
+        if result.warnings:
+            dg.attrs["warnings"] = result.warnings
+        implausible = plausibility.violations(verdicts)
+        dg.attrs["n_implausible"] = len(implausible)
+        if implausible:
+            dg.attrs["implausible"] = implausible
+    plausibility.warn(verdicts)
+    return path
+
+
+# --------------------------------------------------------------------------- the whole run
+@dataclass
+class RunData:
+    """A run file's contents (SI)."""
+
+    path: Path
+    config: RunConfig
+    effects: list[str]
+    terms: list[str]
+    expressions: list[str]
+    units: list[str]
+    coefficients: np.ndarray
+    errors: np.ndarray
+    selected: np.ndarray
+    inclusion: np.ndarray
+    quantities: dict[str, dict]
+    nonlinear: dict[str, dict]
+    separation: float
+    cv_error: float
+    cv_error_noise_floor: float
+    bic: float
+    chi2_reduced: float
+    drive: dict
+    cantilever: dict  # spring_constant (N/m), resonance_frequency (Hz), quality_factor, tip_radius (m)
+    periods: dict[str, np.ndarray]
+    force: dict[str, np.ndarray]
+    input_path: Path | None
+    input_sha256: str | None
+    truth: Truth | None = None
+    warnings: list[str] = field(default_factory=list)
+    n_rows: int = 0  # whitened equations behind bic / chi2_reduced (0 if the file does not say)
+    harmonics: np.ndarray | None = None  # drive harmonic of each Fourier row (0, 1, 1, 2, 2, ...)
+    signal_rows: np.ndarray | None = None  # rows used by the model-free force (above the noise)
+
+    @property
+    def n_terms(self) -> int:
+        return int(self.selected.sum())
+
+    @property
+    def selected_terms(self) -> list[str]:
+        return [t for t, s in zip(self.terms, self.selected) if s]
+
+
+def load_run(path: str | Path) -> RunData:
+    """Read a run file; one-line InputError if it is not one, is of a version this afmid does not read,
+    or is damaged (a missing dataset or attribute, a stored config that is not valid, unreadable data)."""
+    import h5py
+
+    path = check_input_file(path, what="run file")  # missing, a link loop, a FIFO (would block), a folder
+    try:
+        h5 = h5py.File(path, "r")
+    except OSError:
+        raise InputError("not a readable HDF5 file (truncated or corrupt?)", file=path) from None
+    try:
+        with h5:
+            if h5.attrs.get("format") != RUN_FORMAT:
+                raise InputError(f"not an afmid run file (format attribute {h5.attrs.get('format')!r})", file=path)
+            check_version(h5.attrs, path)
+            config_attr = h5.attrs.get("config")
+            # decoded leniently: an undecodable byte shows up in the YAML error, not as an unreadable file
+            config_text = None if config_attr is None else text(config_attr, errors="replace")
+            data = _read_run(RunReader(h5, path), path, stored_config(config_text, path))
+    except ConfigError as exc:  # the stored config: the run file is the input here
+        raise InputError(f"the stored config is not valid: {exc.key + ': ' if exc.key else ''}{exc.message}",
+                         file=path, key="config") from None
+    except (OSError, RuntimeError, ValueError, TypeError) as exc:  # h5py: unreadable chunks, wrong shapes/types
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"damaged run file: cannot read its contents ({first})", file=path) from None
+    if data.input_path is not None and data.input_path.exists():
+        if input_unchanged(data.input_path, data.input_sha256):
+            try:
+                data.truth = read_truth(data.input_path)
+            except InputError as exc:  # the truth is an extra for the report, not what it is about
+                log.warning("%s: the ground truth of its input is ignored: %s", path, exc.format())
+                data.truth = None
+        else:
+            log.warning("%s: its input %s changed since the fit (SHA-256 differs): its ground truth is ignored",
+                        path, data.input_path)
+    return data
+
+
+def _required_attr(ds, name: str, path: Path):
+    """An attribute of a dataset of a run file; InputError naming it when missing."""
+    try:
+        return ds.attrs[name]
+    except KeyError:
+        raise InputError(f"missing attribute {name!r} of {ds.name} (damaged or incomplete run file)", file=path,
+                         key=f"{ds.name}@{name}") from None
+
+
+def _texts(ds) -> list[str]:
+    """A string dataset as a list of ``str``."""
+    return [text(v) for v in ds[...]]
+
+
+def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
+    """The contents of an open run file (``raw``: its stored config as a mapping)."""
+    input_path = h5.attrs.get("input_path")
+    input_sha256 = h5.attrs.get("input_sha256")
+    model = raw.get("model")
+    if isinstance(model, dict) and model.get("library") is not None:
+        model.pop("effects", None)  # older afmid stored the unused default effects beside a preset
+    config = build_config(raw, source=path, base_dir=Path(text(input_path)).parent if input_path else path.parent)
+    m = h5["model"]
+    quantities = {
+        name: {"value": float(ds[()]), "unit": text(_required_attr(ds, "units", path)),
+               "error": float(_required_attr(ds, "error", path)),
+               "ci_low": float(_required_attr(ds, "ci_low", path)), "ci_high": float(_required_attr(ds, "ci_high", path)),
+               "effect": text(_required_attr(ds, "effect", path)),
+               **plausibility.attributes(read_verdict(name, ds))}
+        for name, ds in m["parameters"].items()
+    }
+    nonlinear = {name: {"value": float(ds[()]), "error": float(_required_attr(ds, "error", path)),
+                        "unit": text(_required_attr(ds, "units", path))}
+                 for name, ds in m["nonlinear"].items()}
+    d = h5["diagnostics"]
+    return RunData(
+        path=path,
+        config=config,
+        effects=[e for e in _texts(m["effects"]) if e],
+        terms=_texts(m["terms"]),
+        expressions=_texts(m["expressions"]),
+        units=_texts(m["units"]),
+        coefficients=m["coefficients"][...],
+        errors=m["coefficients_errors"][...],
+        selected=m["selected"][...].astype(bool),
+        inclusion=m["inclusion_probability"][...],
+        quantities=quantities,
+        nonlinear=nonlinear,
+        separation=float(m["separation"][()]),
+        cv_error=float(d["cv_error"][()]),
+        cv_error_noise_floor=float(d["cv_error_noise_floor"][()]),
+        bic=float(d["bic"][()]),
+        chi2_reduced=float(d["chi2_reduced"][()]),
+        drive={k: float(v[()]) for k, v in m["drive"].items()},
+        cantilever={k: float(v) for k, v in h5["cantilever"].attrs.items() if k != "units"},
+        periods={k: v[...] for k, v in h5["periods"].items()},
+        force={k: v[...] for k, v in h5["force"].items()},
+        input_path=Path(text(input_path)) if input_path else None,
+        input_sha256=text(input_sha256) if input_sha256 is not None else None,
+        warnings=[text(w) for w in d.attrs.get("warnings", [])],
+        n_rows=int(d["n_rows"][()]) if "n_rows" in d else 0,
+        harmonics=d["harmonics"][...].astype(int) if "harmonics" in d else None,
+        signal_rows=d["signal_rows"][...].astype(bool) if "signal_rows" in d else None,
+    )
+
+
+def read_verdict(name: str, dataset) -> plausibility.Verdict:
+    """The plausibility verdict stored on ``/model/parameters/NAME`` (judged now for files older than it)."""
+    attrs = dataset.attrs
+    if "plausible" in attrs:
+        return plausibility.Verdict(bool(attrs["plausible"]), text(attrs.get("plausibility", "")))
+    quantity = {"value": float(dataset[()]), "unit": text(attrs.get("units", "")), "effect": text(attrs.get("effect", ""))}
+    quantity.update({k: float(attrs[k]) for k in ("error", "ci_low", "ci_high") if k in attrs})
+    return plausibility.judge(name, quantity)
+
+
+# --------------------------------------------------------------------------- a batch's view
+def read_batch_key(path: Path) -> str | None:
+    """The ``batch_key`` root attribute of a run file (None if absent or the file is unreadable)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as h5:
+            return text(h5.attrs["batch_key"]) if "batch_key" in h5.attrs else None
+    except (OSError, KeyError):
+        return None
+
+
+def read_summary(path: Path) -> dict:
+    """The values of a run file that a batch summary lists, SI: ``{'key', 'values', 'quantities', 'implausible'}``.
+
+    ``key`` is the ``batch_key`` attribute (None if absent); ``values`` the columns of the row (input SHA-256,
+    effects and selected terms joined by ``;``, errors, chi-square, separation); ``quantities`` each read-out's
+    value, error, interval, unit and effect; ``implausible`` the reasons of the implausible read-outs. Raises
+    OSError or KeyError (as h5py does) for a file it cannot read.
+    """
+    import h5py
+
+    with h5py.File(path, "r") as h5:
+        key = h5.attrs.get("batch_key")
+        diag = h5["diagnostics"]
+        model = h5["model"]
+        terms = _texts(model["terms"])
+        selected = model["selected"][...]
+        sep = model["separation"]
+        effects = _texts(model["effects"]) if "effects" in model else []
+        values = {
+            "input_sha256": text(h5.attrs.get("input_sha256", "")),
+            "effects": ";".join(e for e in effects if e),
+            "cv_error": float(diag["cv_error"][()]),
+            "cv_error_noise_floor": float(diag["cv_error_noise_floor"][()]),
+            "chi2_reduced": float(diag["chi2_reduced"][()]),
+            "terms": ";".join(t for t, s in zip(terms, selected) if s),
+            "separation": float(sep[()]),
+            "separation_error": float(sep.attrs.get("error", np.nan)),
+        }
+        quantities = {}
+        implausible = []
+        for name, ds in model["parameters"].items():
+            quantities[name] = {
+                "value": float(ds[()]),
+                "error": float(ds.attrs.get("error", np.nan)),
+                "ci_low": float(ds.attrs.get("ci_low", np.nan)),
+                "ci_high": float(ds.attrs.get("ci_high", np.nan)),
+                "unit": text(ds.attrs.get("units", "")),
+                "effect": text(ds.attrs.get("effect", "")),
+            }
+            verdict = read_verdict(name, ds)
+            if not verdict.plausible:
+                implausible.append(verdict.reason)
+    return {"key": None if key is None else text(key), "values": values, "quantities": quantities,
+            "implausible": implausible}
