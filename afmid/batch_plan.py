@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .batch_summary import SUMMARY_CSV, SUMMARY_H5
+from .batch_summary import SUMMARY_CSV, SUMMARY_H5, attr_text
 from .errors import ConfigError, InputError
 
 RUN_SUFFIX = ".run.h5"
@@ -375,9 +375,9 @@ def trace_is_current(path: Path, sim_text: str) -> bool:
         return False
     try:
         with h5py.File(path, "r") as h5:
-            return (_text(h5.attrs.get("format", "")) == "afmid-trace"
-                    and _text(h5.attrs.get("afmid_version", "")) == __version__
-                    and _text(h5.attrs.get("config", "")) == sim_text
+            return (attr_text(h5.attrs.get("format", "")) == "afmid-trace"
+                    and attr_text(h5.attrs.get("afmid_version", "")) == __version__
+                    and attr_text(h5.attrs.get("config", "")) == sim_text
                     and "deflection" in h5)
     except (OSError, KeyError):
         return False
@@ -404,15 +404,9 @@ def run_key(path: Path) -> str | None:
 
     try:
         with h5py.File(path, "r") as h5:
-            return _text(h5.attrs["batch_key"]) if "batch_key" in h5.attrs else None
+            return attr_text(h5.attrs["batch_key"]) if "batch_key" in h5.attrs else None
     except (OSError, KeyError):
         return None
-
-
-def _text(value) -> str:
-    if isinstance(value, bytes):
-        return value.decode()
-    return str(value)
 
 
 def refuse_outputs_on_inputs(items: list[Item], output_dir: Path, config_path: Path | None,

@@ -39,9 +39,9 @@ def read_run_row(path: Path) -> dict:
         terms = [t.decode() if isinstance(t, bytes) else str(t) for t in model["terms"][...]]
         selected = model["selected"][...]
         sep = model["separation"]
-        effects = [_text(e) for e in model["effects"][...]] if "effects" in model else []
+        effects = [attr_text(e) for e in model["effects"][...]] if "effects" in model else []
         values = {
-            "input_sha256": _text(h5.attrs.get("input_sha256", "")),
+            "input_sha256": attr_text(h5.attrs.get("input_sha256", "")),
             "effects": ";".join(e for e in effects if e),
             "cv_error": float(diag["cv_error"][()]),
             "cv_error_noise_floor": float(diag["cv_error_noise_floor"][()]),
@@ -58,8 +58,8 @@ def read_run_row(path: Path) -> dict:
                 "error": float(ds.attrs.get("error", np.nan)),
                 "ci_low": float(ds.attrs.get("ci_low", np.nan)),
                 "ci_high": float(ds.attrs.get("ci_high", np.nan)),
-                "unit": _text(ds.attrs.get("units", "")),
-                "effect": _text(ds.attrs.get("effect", "")),
+                "unit": attr_text(ds.attrs.get("units", "")),
+                "effect": attr_text(ds.attrs.get("effect", "")),
             }
             verdict = plausibility.read_verdict(name, ds)
             if not verdict.plausible:
@@ -76,7 +76,8 @@ def run_file_row(item: "Item", got: dict, status: str, times: dict | None = None
     return Row(item, status, "", got["values"], got["quantities"], times or {})
 
 
-def _text(value) -> str:
+def attr_text(value) -> str:
+    """An HDF5 string attribute (bytes or str) as str."""
     if isinstance(value, bytes):
         return value.decode()
     return str(value)

@@ -10,6 +10,7 @@ import logging
 import os
 import time
 import traceback
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -18,9 +19,6 @@ from .batch_plan import RUN_SUFFIX, TRACE_SUFFIX, batch_key
 from .batch_summary import read_run_row
 from .errors import AfmidError
 
-#: For tests only: a worker sleeps this many seconds before each fit, or, for a simulated trace, between writing
-#: it to its temporary name and renaming it into place (makes interrupting deterministic).
-_DELAY_ENV = "_AFMID_BATCH_TEST_DELAY"
 
 
 class _Capture(logging.Handler):
@@ -35,9 +33,13 @@ class _Capture(logging.Handler):
             pass
 
 
-def fit_task(task: dict) -> dict:
+def fit_task(task: dict, pause: Callable[[], None] | None = None) -> dict:
     """Run one item in a worker: simulate its trace if asked (written atomically), load, run_fit, write the run
-    file atomically. Never raises for a bad item."""
+    file atomically. Never raises for a bad item.
+
+    ``pause``: called once in mid-item, after a simulated trace was written under its temporary name and before
+    it is renamed into place, else before the fit (a wrapping worker holds the item there, e.g. to test
+    interruptions)."""
     capture = _Capture()
     capture.setLevel(worker_log_level())
     loggers = [logging.getLogger("afmid"), logging.getLogger("py.warnings")]
@@ -49,7 +51,6 @@ def fit_task(task: dict) -> dict:
     stage = "fit"
     set_worker_busy(True)
     try:
-        delay = float(os.environ.get(_DELAY_ENV) or 0.0)
         from .config import build_config
         from .fit import run_fit, write_run
         from .io import load_trace
@@ -67,14 +68,14 @@ def fit_task(task: dict) -> dict:
             simulated = simulate(sim_config)
             write_trace_file(tmp_trace, simulated, dump_config(sim_config), overwrite=True)
             del simulated
-            if delay:
-                time.sleep(delay)
-                delay = 0.0
+            if pause is not None:
+                pause()
+                pause = None
             os.replace(tmp_trace, task["trace"])
             times["simulate_time"] = time.perf_counter() - s0
             stage = "fit"
-        if delay:
-            time.sleep(delay)
+        if pause is not None:
+            pause()
         t0 = time.perf_counter()
         config = build_config(task["raw"], source=Path(task["config"]))
         trace = load_trace(config)
