@@ -166,8 +166,11 @@ def fit(
               help="Worker processes (default: the usable CPU cores).")
 @SET
 @click.option("--force", is_flag=True, help="Simulate and fit everything again, even what is up to date.")
+@click.option("--worker", "worker", default=None, hidden=True,
+              help="MODULE:FUNCTION (MODULE a name or a .py file) that each worker runs per item instead of "
+                   "afmid's own (afmid.batch_task.fit_task), e.g. a test's wrapper that injects a fault.")
 def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, configs: tuple[str, ...],
-          output: Path, jobs: int | None, overrides: tuple[str, ...], force: bool) -> None:
+          output: Path, jobs: int | None, overrides: tuple[str, ...], force: bool, worker: str | None) -> None:
     """Fit many traces with one CONFIG, or run many run configs, in parallel; resumable.
 
     \b
@@ -189,12 +192,13 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     items alone exit 0: their run files are written and flagged), 130 if interrupted.
     One batch at a time per OUTPUT (lock file OUTPUT/.afmid-batch.lock).
     """
-    from .batch import BatchInterrupted, run_batch
+    from .batch import BatchInterrupted, fit_task, load_worker, run_batch
     from .errors import AfmidError
 
     try:
         result = run_batch(config, output, inputs=inputs, manifest=manifest, configs=configs, jobs=jobs,
-                           overrides=overrides, force=force, progress=not _state["quiet"])
+                           overrides=overrides, force=force, progress=not _state["quiet"],
+                           worker=fit_task if worker is None else load_worker(worker))
     except BatchInterrupted as exc:
         click.echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
         from .interrupts import Terminated

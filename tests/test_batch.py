@@ -242,6 +242,36 @@ def test_a_worker_that_dies_fails_only_its_trace(traces, tmp_path):
     assert [r["status"] for r in _summary(out)] == ["ok", "failed", "ok"]
 
 
+def test_another_engine_runs_the_items(traces, tmp_path):
+    from batch_workers import SerialEngine
+
+    _copy(traces, tmp_path / "in", ["n01.h5", "n02.h5", "n03.h5"])
+    out = tmp_path / "out"
+    engine = SerialEngine()
+    first = run_batch(CONFIG, out, inputs=[str(tmp_path / "in" / "n0[12].h5")], overrides=FAST, engine=engine)
+    assert engine.ran == [0, 1] and [r.status for r in first.rows] == ["ok", "ok"]
+    again = run_batch(CONFIG, out, inputs=[str(tmp_path / "in" / "*.h5")], overrides=FAST, engine=engine)
+    assert engine.ran == [0, 1, 2], "only the new item runs: the others are up to date"
+    assert [r["status"] for r in _summary(out)] == ["skipped", "skipped", "ok"]
+    for name in ("n01", "n02", "n03"):
+        read_run_row(out / f"{name}{RUN_SUFFIX}")  # whole, readable run files
+
+
+def test_load_worker_finds_the_function_or_fails_naming_it():
+    import batch_workers
+
+    from afmid.batch import fit_task, load_worker
+
+    assert load_worker("afmid.batch_task:fit_task") is fit_task
+    held = load_worker(f"{batch_workers.__file__}:fit_task_holding_2s")
+    assert held is batch_workers.fit_task_holding_2s
+    for spec, message in [("nosuch_module:f", "No module named 'nosuch_module'"), ("fit_task", "MODULE:FUNCTION"),
+                          ("afmid.batch_task:nofn", "no attribute 'nofn'"),
+                          ("afmid.batch_plan:RUN_SUFFIX", "not a function")]:
+        with pytest.raises(ConfigError, match=message):
+            load_worker(spec)
+
+
 def _terminal_signals() -> None:
     """In the child: Ctrl-C as in a terminal. A test suite started in the background by a non-interactive shell
     (e.g. `cmd &` in a CI script) inherits SIGINT ignored, and Python then keeps it ignored: the batch would
@@ -270,10 +300,12 @@ def test_interrupted_batch_leaves_whole_files_and_a_valid_summary(traces, tmp_pa
     names = ["n01.h5", "n02.h5", "n03.h5", "n04.h5", "n05.h5"]
     _copy(traces, tmp_path / "in", names)
     out = tmp_path / "out"
+    from batch_workers import HOLD_1500MS
+
     args = AFMID + ["-q", "batch", str(CONFIG), "--inputs", str(tmp_path / "in" / "*.h5"), "-o", str(out), "-j",
                     "2", "--set", FAST[0]]
-    env = dict(os.environ, _AFMID_BATCH_TEST_DELAY="1.5")  # every fit takes > 1.5 s: Ctrl-C lands mid-fit
-    code, err = _interrupt_after_first_run(args, out, env)
+    args += HOLD_1500MS  # every fit takes > 1.5 s: Ctrl-C lands mid-fit
+    code, err = _interrupt_after_first_run(args, out, dict(os.environ))
     assert code == 130, err
     assert "interrupted" in err
     assert not _leftovers(out)
@@ -448,9 +480,10 @@ def test_interrupted_config_batch_leaves_whole_traces_and_resumes(tmp_path):
     args = AFMID + ["-q", "batch", "--configs", str(configs / "*.yaml"), "-o", str(out), "-j", "2"]
     for o in CONFIG_SET:
         args += ["--set", o]
-    # Each worker sleeps 1.5 s holding its simulated trace under a temporary name: Ctrl-C lands mid-item.
-    env = dict(os.environ, _AFMID_BATCH_TEST_DELAY="1.5")
-    code, err = _interrupt_after_first_run(args, out, env)
+    from batch_workers import HOLD_1500MS
+
+    args += HOLD_1500MS  # each worker sleeps 1.5 s holding its simulated trace under a temporary name: Ctrl-C
+    code, err = _interrupt_after_first_run(args, out, dict(os.environ))  # lands mid-item
     assert code == 130, err
     assert "interrupted" in err and "of 3 runs" in err
     assert not _leftovers(out)

@@ -247,9 +247,11 @@ def test_batch_workers_exit_when_the_parent_is_killed(tmp_path, trace_bytes):
     for i in range(3):
         (tmp_path / "in" / f"t{i}.h5").write_bytes(trace_bytes)
     (tmp_path / "run.yaml").write_text(yaml.safe_dump(RUN_CONFIG))
-    env = dict(os.environ, _AFMID_BATCH_TEST_DELAY="30")  # every worker sits in its item for 30 s
+    from batch_workers import HOLD_30S
+
     parent = subprocess.Popen([sys.executable, "-m", "afmid.cli", "-q", "batch", "run.yaml", "--inputs", "in/*.h5",
-                               "-o", "out", "-j", "2"], cwd=tmp_path, env=env, stderr=subprocess.DEVNULL)
+                               "-o", "out", "-j", "2"] + HOLD_30S,  # every worker sits in its item for 30 s
+                              cwd=tmp_path, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 60
         workers: list[int] = []

@@ -243,14 +243,16 @@ def _wait_for(predicate, timeout: float = 60.0) -> None:
 def test_a_second_batch_on_the_same_folder_fails_at_once_naming_the_first(tmp_path):
     args = _batch_workspace(tmp_path / "ws")
     out = tmp_path / "out"
-    env = dict(os.environ, _AFMID_BATCH_TEST_DELAY="2.0")  # the first batch stays busy a few seconds
-    first = subprocess.Popen(AFMID + args + ["-o", str(out)], env=env, stderr=subprocess.PIPE, text=True)
+    from batch_workers import HOLD_2S
+
+    args += HOLD_2S  # the first batch stays busy a few seconds
+    first = subprocess.Popen(AFMID + args + ["-o", str(out)], stderr=subprocess.PIPE, text=True)
     try:
         _wait_for(lambda: (out / LOCK).is_file() and (out / LOCK).read_text().strip())
         holder = (out / LOCK).read_text().strip()
         assert holder.startswith(f"pid {first.pid} on host ")
         start = time.monotonic()
-        second = subprocess.run(AFMID + args + ["-o", str(out)], env=env, capture_output=True, text=True, timeout=60)
+        second = subprocess.run(AFMID + args + ["-o", str(out)], capture_output=True, text=True, timeout=60)
         took = time.monotonic() - start
         assert first.poll() is None, "the first batch should still be running"
     finally:
