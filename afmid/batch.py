@@ -9,7 +9,7 @@
 
 **One config, many traces.** Each trace is fitted exactly as
 ``afmid fit CONFIG --set data.path=TRACE`` would fit it (same config layering,
-same :func:`afmid.fit.run_fit`, same :func:`afmid.fit.write_run`).
+same :func:`afmid.fit.run_fit`, same :func:`afmid.runfile.write_run`).
 
 **Many configs** (``--configs``, or manifest rows with a ``config`` key). Each
 config carries its own cantilever, drive, sample and model, and is run on its

@@ -399,14 +399,10 @@ def batch_key(input_sha256: str, config_text: str) -> str:
 
 
 def run_key(path: Path) -> str | None:
-    """The ``batch_key`` attribute of a run file (None if absent or unreadable)."""
-    import h5py
+    """The ``batch_key`` attribute of a run file (None if absent or unreadable): :func:`afmid.runfile.read_batch_key`."""
+    from .runfile import read_batch_key
 
-    try:
-        with h5py.File(path, "r") as h5:
-            return attr_text(h5.attrs["batch_key"]) if "batch_key" in h5.attrs else None
-    except (OSError, KeyError):
-        return None
+    return read_batch_key(path)
 
 
 def refuse_outputs_on_inputs(items: list[Item], output_dir: Path, config_path: Path | None,

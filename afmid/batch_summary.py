@@ -25,46 +25,11 @@ STATUSES = ("ok", "suspect", "failed", "skipped")
 
 
 def read_run_row(path: Path) -> dict:
-    """The summary values of one run file: {'key', 'values', 'quantities'} (SI)."""
-    import h5py
-    import numpy as np
+    """The summary values of one run file: {'key', 'values', 'quantities', 'implausible'} (SI), read by the run
+    file's owner (:func:`afmid.runfile.read_summary`)."""
+    from .runfile import read_summary
 
-    from . import plausibility
-
-    with h5py.File(path, "r") as h5:
-        key = h5.attrs.get("batch_key")
-        key = key.decode() if isinstance(key, bytes) else key
-        diag = h5["diagnostics"]
-        model = h5["model"]
-        terms = [t.decode() if isinstance(t, bytes) else str(t) for t in model["terms"][...]]
-        selected = model["selected"][...]
-        sep = model["separation"]
-        effects = [attr_text(e) for e in model["effects"][...]] if "effects" in model else []
-        values = {
-            "input_sha256": attr_text(h5.attrs.get("input_sha256", "")),
-            "effects": ";".join(e for e in effects if e),
-            "cv_error": float(diag["cv_error"][()]),
-            "cv_error_noise_floor": float(diag["cv_error_noise_floor"][()]),
-            "chi2_reduced": float(diag["chi2_reduced"][()]),
-            "terms": ";".join(t for t, s in zip(terms, selected) if s),
-            "separation": float(sep[()]),
-            "separation_error": float(sep.attrs.get("error", np.nan)),
-        }
-        quantities = {}
-        implausible = []
-        for name, ds in model["parameters"].items():
-            quantities[name] = {
-                "value": float(ds[()]),
-                "error": float(ds.attrs.get("error", np.nan)),
-                "ci_low": float(ds.attrs.get("ci_low", np.nan)),
-                "ci_high": float(ds.attrs.get("ci_high", np.nan)),
-                "unit": attr_text(ds.attrs.get("units", "")),
-                "effect": attr_text(ds.attrs.get("effect", "")),
-            }
-            verdict = plausibility.read_verdict(name, ds)
-            if not verdict.plausible:
-                implausible.append(verdict.reason)
-    return {"key": key, "values": values, "quantities": quantities, "implausible": implausible}
+    return read_summary(path)
 
 
 def run_file_row(item: "Item", got: dict, status: str, times: dict | None = None) -> "Row":
@@ -77,10 +42,10 @@ def run_file_row(item: "Item", got: dict, status: str, times: dict | None = None
 
 
 def attr_text(value) -> str:
-    """An HDF5 string attribute (bytes or str) as str."""
-    if isinstance(value, bytes):
-        return value.decode()
-    return str(value)
+    """An HDF5 string attribute (bytes or str) as str (:func:`afmid.runfile.text`)."""
+    from .runfile import text
+
+    return text(value)
 
 
 FIXED_COLUMNS = [  # (name, unit or None for text)

@@ -52,7 +52,8 @@ def fit_task(task: dict, pause: Callable[[], None] | None = None) -> dict:
     set_worker_busy(True)
     try:
         from .config import build_config
-        from .fit import run_fit, write_run
+        from .fit import run_fit
+        from .runfile import write_run
         from .io import load_trace
 
         c0 = time.process_time()

@@ -201,23 +201,6 @@ def attributes(verdict: Verdict) -> dict:
     return {"plausible": bool(verdict.plausible), "plausibility": verdict.reason}
 
 
-def read_verdict(name: str, dataset) -> Verdict:
-    """The verdict stored on a run file's ``/model/parameters/NAME`` (judged now for files older than it).
-
-    Superseded by :func:`afmid.runfile.read_verdict`, the run-file reader's own; kept only while afmid.batch
-    still reads run files itself (remove it when the batch reads through :func:`afmid.runfile.read_summary`).
-    """
-    attrs = dataset.attrs
-    if "plausible" in attrs:
-        reason = attrs.get("plausibility", "")
-        return Verdict(bool(attrs["plausible"]), reason.decode() if isinstance(reason, bytes) else str(reason))
-    effect = attrs.get("effect", "")
-    quantity = {"value": float(dataset[()]), "unit": attrs.get("units", ""),
-                "effect": effect.decode() if isinstance(effect, bytes) else str(effect)}
-    quantity.update({k: float(attrs[k]) for k in ("error", "ci_low", "ci_high") if k in attrs})
-    return judge(name, quantity)
-
-
 def flagged_value(name: str, quantity: Mapping) -> str:
     """How a table shows an implausible read-out: never as a plain number.
 

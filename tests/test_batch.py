@@ -252,6 +252,7 @@ def test_another_engine_runs_the_items(traces, tmp_path):
     assert engine.ran == [0, 1] and [r.status for r in first.rows] == ["ok", "ok"]
     again = run_batch(CONFIG, out, inputs=[str(tmp_path / "in" / "*.h5")], overrides=FAST, engine=engine)
     assert engine.ran == [0, 1, 2], "only the new item runs: the others are up to date"
+    assert [r.status for r in again.rows] == ["skipped", "skipped", "ok"]
     assert [r["status"] for r in _summary(out)] == ["skipped", "skipped", "ok"]
     for name in ("n01", "n02", "n03"):
         read_run_row(out / f"{name}{RUN_SUFFIX}")  # whole, readable run files
