@@ -33,21 +33,22 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import InputError
+from .findings import SEVERITIES, Finding, frequency, length, yaml_number  # noqa: F401 (re-exported)
 from .harmonics import (  # the engine the fit uses too
     DRIVE_SEARCH, MIN_SAMPLES_PER_PERIOD, MeasuredDrive, amplitude_change, estimate_drive, measure_frequency,
     strongest_peak,
 )
+from .oscillation import check_drive_line
 from .preprocess import detrend
+from .resolution import check_quantization
 from .trace_analysis import MAX_HARMONIC, MIN_ANALYSABLE_SPP, Analysis, analyse
 
 log = logging.getLogger(__name__)
-
-SEVERITIES = ("repaired", "warning", "error")
 
 #: Samples per drive period each time-domain differentiator needs (others: MIN_SAMPLES_PER_PERIOD).
 #: central: finite differences amplify noise unless sampled far above the drive (its registry note);
@@ -69,59 +70,6 @@ DRIFT_SIGMA = 5.0
 TIME_JITTER = 1e-3
 #: A phase step counts as a jump above this many robust standard deviations and half a sample.
 JUMP_SIGMA = 8.0
-
-
-@dataclass(frozen=True)
-class Finding:
-    """One defect: what it is, how bad, a one-line explanation, and the numbers behind it."""
-
-    name: str
-    severity: str  # repaired | warning | error
-    message: str
-    key: str | None = None  # the config key the message is about (for errors)
-    numbers: dict = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        if self.severity not in SEVERITIES:
-            raise ValueError(f"severity must be one of {SEVERITIES}, got {self.severity!r}")
-        if "\n" in self.message:
-            raise ValueError("a finding's message is one line")
-
-    def line(self) -> str:
-        """``severity: name: message``, as ``afmid inspect`` prints it."""
-        return f"{self.severity}: {self.name}: {self.message}"
-
-
-# --------------------------------------------------------------------------- formatting
-def length(value: float, units: str | None = "m") -> str:
-    """A length for a message: metres as pm/nm/um, other units as they are."""
-    if units != "m":
-        suffix = f" {units}" if units else " (file units)"
-        return f"{value:.3g}{suffix}"
-    size = abs(value)
-    for scale, name in ((1e-12, "pm"), (1e-9, "nm"), (1e-6, "um"), (1e-3, "mm")):
-        if float(f"{size / scale:.3g}") < 1000:  # as printed: 999.9999 pm is "1 nm", not "1e+03 pm"
-            return f"{value / scale:.3g} {name}"
-    return f"{value:.3g} m"
-
-
-def frequency(value: float) -> str:
-    """A frequency for a message: Hz, kHz or MHz."""
-    for scale, name in ((1e6, "MHz"), (1e3, "kHz")):
-        if abs(value) >= scale:
-            return f"{value / scale:.6g} {name}"
-    return f"{value:.6g} Hz"
-
-
-def yaml_number(value: float) -> str:
-    """A float as a config takes it (PyYAML needs a '.' in the mantissa): 3.0e+07, 0.25, 400.0."""
-    value = float(value)
-    if value != 0 and not 1e-3 <= abs(value) < 1e5:
-        mantissa, _, exponent = f"{value:.9e}".partition("e")
-        mantissa = mantissa.rstrip("0")
-        return f"{mantissa}0e{exponent}" if mantissa.endswith(".") else f"{mantissa}e{exponent}"
-    text = f"{value:.10g}"
-    return text if "." in text else text + ".0"
 
 
 def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -275,8 +223,6 @@ def check_signal(x: np.ndarray, settings: Settings, analysis: Analysis | None = 
     x = np.asarray(x, dtype=np.float64)
     if analysis is None:
         analysis = analyse_with(x, settings)
-    from .oscillation import check_drive_line
-    from .resolution import check_quantization
 
     findings: list[Finding] = []
     findings += check_clipping(x, analysis, settings)

@@ -95,7 +95,7 @@ def check_drive_line(x: np.ndarray, settings, strongest: float | None = None) ->
     of the strongest oscillation found in the trace; when that is a real line away from the drive
     frequency, the drive-frequency check says better what to do (set drive.frequency), and this one is quiet.
     """
-    from .defects import Finding, frequency
+    from .findings import Finding, frequency
     from .harmonics import DRIVE_SEARCH
 
     if not (settings.sample_rate and settings.nominal_frequency) or np.ptp(x) == 0:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .defects import Finding, length
+from .findings import Finding, length
 
 #: Fewer distinct values than this across the trace's swing (8 bits) is a coarse recording.
 MIN_LEVELS = 256
