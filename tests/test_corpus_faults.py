@@ -9,6 +9,7 @@ free by an input file that must stay untouched like every other input.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 from functools import lru_cache
@@ -40,7 +41,7 @@ NO_SPACE = "no space left on device"
 
 # --------------------------------------------------------------------------- inputs
 @lru_cache(maxsize=None)
-def _trace_bytes() -> bytes:
+def trace_file_bytes() -> bytes:
     """An afmid trace file (simulated once per session)."""
     import tempfile
 
@@ -64,14 +65,14 @@ def _run_bytes() -> bytes:
     from afmid.fit import run_fit, write_run
 
     with tempfile.TemporaryDirectory() as folder:
-        (Path(folder) / "trace.h5").write_bytes(_trace_bytes())
+        (Path(folder) / "trace.h5").write_bytes(trace_file_bytes())
         config = build_config(yaml.safe_load(yaml.safe_dump(RUN_CONFIG)), source=Path(folder) / "run.yaml")
         path = Path(folder) / "run.h5"
         write_run(path, run_fit(config), config)
         return path.read_bytes()
 
 
-def _fill(folder: Path, leave: int) -> None:
+def fill_disk(folder: Path, leave: int) -> None:
     """Fill the file system of ``folder`` until ``leave`` bytes are free (an input file, filler.bin)."""
     stat = os.statvfs(folder)
     free = stat.f_bavail * stat.f_frsize
@@ -96,7 +97,7 @@ def workspace(*, trace: bool = True, run_file: bool = False, config: bool = True
         if config:
             (folder / "run.yaml").write_text(yaml.safe_dump(RUN_CONFIG, sort_keys=False))
         if trace:
-            (folder / "trace.h5").write_bytes(_trace_bytes())
+            (folder / "trace.h5").write_bytes(trace_file_bytes())
         if run_file:
             (folder / "run.h5").write_bytes(_run_bytes())
         if existing_output:
@@ -105,7 +106,7 @@ def workspace(*, trace: bool = True, run_file: bool = False, config: bool = True
             (folder / "configs").mkdir()
             (folder / "configs" / "sim.yaml").write_text((ROOT / "configs" / "dmt.yaml").read_text())
         if leave is not None:
-            _fill(folder, leave)
+            fill_disk(folder, leave)
         if no_inodes:
             _use_all_inodes(folder)
 
@@ -210,7 +211,14 @@ def small_disk(tmp_path, request):
     """A tmpfs mounted at tmp_path/ws for one case (unmounted after it); skips where mount is not permitted."""
     folder = tmp_path / "ws"
     folder.mkdir()
-    options = MOUNT_OPTIONS.get(request.node.callspec.params["case"].id, f"size={TMPFS_SIZE}")
+    with mounted_tmpfs(folder, MOUNT_OPTIONS.get(request.node.callspec.params["case"].id, f"size={TMPFS_SIZE}")):
+        yield folder
+
+
+@contextlib.contextmanager
+def mounted_tmpfs(folder: Path, options: str):
+    """A tmpfs mounted at ``folder`` with ``options`` for the block (unmounted after); skips the test where
+    mount is not permitted."""
     mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True,
                              text=True)
     if mounted.returncode != 0:

@@ -27,6 +27,7 @@ import yaml
 from afmid import interrupts, tempfiles
 from afmid.errors import OutputError
 from afmid.io import atomic_hdf5, atomic_path
+from test_corpus_faults import RUN_CONFIG, fill_disk, mounted_tmpfs, trace_file_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 SIGNAL_CHILD = Path(__file__).resolve().parent / "signal_child"
@@ -154,27 +155,10 @@ def test_sigterm_is_restored_after_the_command(tmp_path):
     assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before
 
 
-RUN_CONFIG = {
-    "data": {"path": "trace.h5"},
-    "cantilever": {"spring_constant": 40.0, "resonance_frequency": 300.0e3, "quality_factor": 250.0,
-                   "tip_radius": 10.0e-9},
-    "drive": {"frequency": 300.0e3},
-    "sample": {"a0": 0.165e-9},
-    "model": {"effects": ["dmt"]},
-    "fit": {"bootstrap": 8},
-}
-
-
 @pytest.fixture(scope="module")
-def trace_bytes(tmp_path_factory) -> bytes:
-    from afmid.config import dump_config, load_config
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
-
-    cfg = load_config(ROOT / "configs" / "dmt.yaml", ["simulate.periods=20"])
-    path = tmp_path_factory.mktemp("trace") / "trace.h5"
-    write_trace_file(path, simulate(cfg), dump_config(cfg))
-    return path.read_bytes()
+def trace_bytes() -> bytes:
+    """The fault corpus's trace file (the example DMT config, 20 periods), simulated once per session."""
+    return trace_file_bytes()
 
 
 def _fit_workspace(folder: Path, trace: bytes | None = None) -> None:
@@ -306,20 +290,8 @@ def small_disk(tmp_path):
     """A 4 MB tmpfs at tmp_path/disk (unmounted after the test); skips where mount is not permitted."""
     folder = tmp_path / "disk"
     folder.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(folder)], capture_output=True,
-                             text=True)
-    if mounted.returncode != 0:
-        pytest.skip(f"cannot mount a small tmpfs to fill up (needs root): {mounted.stderr.strip()}")
-    try:
+    with mounted_tmpfs(folder, "size=4m"):
         yield folder
-    finally:
-        subprocess.run(["umount", "-l", str(folder)], check=False)
-
-
-def _fill(folder: Path, leave: int) -> None:
-    stat = os.statvfs(folder)
-    with open(folder / "filler.bin", "wb") as fh:
-        fh.write(b"\0" * max(0, stat.f_bavail * stat.f_frsize - leave))
 
 
 class _DiskOf(io.BytesIO):
@@ -355,7 +327,7 @@ def test_the_hdf5_library_never_sees_a_failed_write():
 
 
 def test_hdf5_on_a_full_disk_is_one_error_and_nothing_left(small_disk):
-    _fill(small_disk, 64_000)
+    fill_disk(small_disk, 64_000)
     data = np.random.default_rng(1).normal(size=200_000)  # 1.6 MB, does not compress
     with pytest.raises(OutputError) as info:
         with atomic_hdf5(small_disk / "big.h5", "test", "") as h5:
@@ -371,7 +343,7 @@ def test_hdf5_on_a_full_disk_is_one_error_and_nothing_left(small_disk):
 
 
 def test_text_output_on_a_full_disk(small_disk):
-    _fill(small_disk, 0)
+    fill_disk(small_disk, 0)
     with pytest.raises(OutputError, match=tempfiles.NO_SPACE_TEXT):
         with atomic_path(small_disk / "notes.txt") as tmp:
             tmp.write_text("x" * 100_000)
@@ -383,7 +355,7 @@ def test_a_batch_item_that_does_not_fit_says_so_in_the_summary(small_disk, trace
 
     (small_disk / "trace.h5").write_bytes(trace_bytes)
     (small_disk / "run.yaml").write_text(yaml.safe_dump(RUN_CONFIG))
-    _fill(small_disk, 120_000)  # the summary fits, the run file (~400 kB) does not
+    fill_disk(small_disk, 120_000)  # the summary fits, the run file (~400 kB) does not
     result = run_batch(small_disk / "run.yaml", small_disk / "out", inputs=[str(small_disk / "trace.h5")], jobs=1)
     assert [r.status for r in result.rows] == ["failed"]
     assert tempfiles.NO_SPACE_TEXT in result.rows[0].error and "trace.run.h5" in result.rows[0].error
