@@ -29,7 +29,6 @@ from afmid.errors import OutputError
 from afmid.io import atomic_hdf5, atomic_path
 from test_corpus_faults import RUN_CONFIG, fill_disk, mounted_tmpfs, trace_file_bytes
 
-ROOT = Path(__file__).resolve().parents[1]
 SIGNAL_CHILD = Path(__file__).resolve().parent / "signal_child"
 
 
@@ -162,15 +161,7 @@ def trace_bytes() -> bytes:
 
 
 def _fit_workspace(folder: Path, trace: bytes | None = None) -> None:
-    if trace is None:
-        from afmid.config import dump_config, load_config
-        from afmid.io import write_trace_file
-        from afmid.simulate import simulate
-
-        cfg = load_config(ROOT / "configs" / "dmt.yaml", ["simulate.periods=20"])
-        write_trace_file(folder / "trace.h5", simulate(cfg), dump_config(cfg))
-    else:
-        (folder / "trace.h5").write_bytes(trace)
+    (folder / "trace.h5").write_bytes(trace_file_bytes() if trace is None else trace)
     (folder / "run.yaml").write_text(yaml.safe_dump(RUN_CONFIG))
 
 
