@@ -113,7 +113,7 @@ from .batch_plan import (RUN_SUFFIX, TRACE_SUFFIX, Entry, Item, assign_names, ba
 from .batch_summary import (FIXED_COLUMNS, QUANTITY_FIELDS, STATUSES, SUMMARY_CSV, SUMMARY_FORMAT, SUMMARY_H5,
                             TIME_COLUMNS, Row, read_run_row, run_file_row, write_summary)
 from .batch_task import fit_task
-from .errors import ConfigError, InputError
+from .errors import ConfigError, InputError, OutputError
 
 __all__ = [
     "FIXED_COLUMNS", "QUANTITY_FIELDS", "RUN_SUFFIX", "STATUSES", "SUMMARY_CSV", "SUMMARY_FORMAT", "SUMMARY_H5",
@@ -257,11 +257,19 @@ def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: s
         interval = max(summary_interval, 20.0 * state["cost"])
         if force_write or (state["dirty"] and time.monotonic() - state["last"] >= interval):
             start = time.monotonic()
-            with _interrupts_held():
-                write_summary(output_dir, ordered(), batch_text)
+            try:
+                with _interrupts_held():
+                    write_summary(output_dir, ordered(), batch_text)
+            except OutputError as exc:
+                if force_write:
+                    raise
+                # A summary written on the way is a courtesy: a disk filled for a moment by a worker's run file
+                # must not stop the batch. The final summary (force_write) must be written, or the batch fails.
+                log.warning("the summary could not be updated now (%s); trying again later", exc)
+            else:
+                state["dirty"] = False
             state["last"] = time.monotonic()
             state["cost"] = state["last"] - start
-            state["dirty"] = False
 
     from tqdm import tqdm
     from tqdm.contrib.logging import logging_redirect_tqdm

@@ -354,3 +354,41 @@ def test_a_batch_item_that_does_not_fit_says_so_in_the_summary(small_disk, trace
         (row,) = list(csv.DictReader(fh))
     assert row["status"] == "failed" and tempfiles.NO_SPACE_TEXT in row["error"]
     assert sorted(p.name for p in (small_disk / "out").iterdir()) == ["summary.csv", "summary.h5"]
+
+
+class _EngineFillingTheDiskMidItem:
+    """An engine that, before running each item, fills the disk for a moment and lets the batch update its summary
+    (what happens when a worker's run file fills the disk while the summary's 2 s interval comes round)."""
+
+    def __init__(self, disk: Path):
+        self.disk = disk
+
+    def workers_for(self, n_tasks: int) -> int:
+        return min(1, n_tasks)
+
+    def run(self, worker, tasks, report, tick) -> None:
+        from afmid.batch_engine import Outcome
+
+        for key, task in tasks:
+            fill_disk(self.disk, 0)
+            tick()  # the summary is due (interval 0): it cannot be written now
+            (self.disk / "filler.bin").unlink()
+            report(Outcome(key, worker(task)))
+            tick()
+
+
+def test_a_summary_update_on_a_momentarily_full_disk_does_not_stop_the_batch(small_disk, trace_bytes, caplog):
+    from afmid.batch import run_batch
+    from afmid.batch_task import fit_task
+
+    (small_disk / "trace.h5").write_bytes(trace_bytes)
+    (small_disk / "run.yaml").write_text(yaml.safe_dump(RUN_CONFIG))
+    with caplog.at_level("WARNING", logger="afmid"):
+        result = run_batch(small_disk / "run.yaml", small_disk / "out", inputs=[str(small_disk / "trace.h5")],
+                           engine=_EngineFillingTheDiskMidItem(small_disk), worker=fit_task, summary_interval=0.0)
+    assert [r.status for r in result.rows] == ["ok"]
+    assert any("summary could not be updated now" in r.getMessage() for r in caplog.records)
+    with open(small_disk / "out" / "summary.csv", newline="") as fh:
+        (row,) = list(csv.DictReader(fh))
+    assert row["status"] == "ok"
+    assert sorted(p.name for p in (small_disk / "out").iterdir()) == ["summary.csv", "summary.h5", "trace.run.h5"]
