@@ -83,12 +83,18 @@ class DataConfig(StrictModel):
     positive: Literal["toward_sample", "away_from_sample"] = Field(
         "toward_sample", description="sign convention of the deflection in the file"
     )
+    start: NonNegativeFloat | None = Field(
+        None, description="s from the first sample: fit the record from here on; default: from the first sample, "
+        "or after the onset of the oscillation when the record starts at rest (the drive switched on mid-record)")
+    stop: PositiveFloat | None = Field(None, description="s from the first sample: fit the record up to here")
 
     @model_validator(mode="after")
     def _distinct_columns(self) -> "DataConfig":
         if self.column is not None and self.column == self.time_column:
             raise ValueError(f"data.time_column: names the same column as data.column ({self.column!r}): the "
                              "deflection cannot be its own time axis")
+        if self.start is not None and self.stop is not None and self.stop <= self.start:
+            raise ValueError(f"data.stop: {self.stop:g} s is not after data.start ({self.start:g} s)")
         return self
 
 
@@ -255,6 +261,13 @@ class FitConfig(StrictModel):
         "zero", description="zero: the file's zero deflection is the rest position; free: fit an offset"
     )
     detrend: Literal["none", "offset", "linear"] = "none"
+    drive_frequency: Literal["auto", "response", "search", "nominal"] = Field(
+        "auto",
+        description="response: the deflection's spectral peak (exact in steady state); search: the frequency at "
+        "which the regression's residual is smallest (a record from rest or still settling holds the free "
+        "response too, which biases the peak); nominal: drive.frequency as given; auto: search in records whose "
+        "amplitude changes by more than 2 %, else response",
+    )
     method: Literal["auto", "stlsq", "lasso", "exhaustive"] = Field(
         "auto", description="auto: exhaustive search up to 14 free terms, STLSQ path beyond"
     )

@@ -44,6 +44,7 @@ from .harmonics import (  # the engine the fit uses too
     strongest_peak,
 )
 from .oscillation import check_drive_line
+from .onset import check_onset, find_onset
 from .preprocess import detrend
 from .resolution import check_quantization
 from .trace_analysis import MAX_HARMONIC, MIN_ANALYSABLE_SPP, Analysis, analyse
@@ -233,6 +234,7 @@ def check_signal(x: np.ndarray, settings: Settings, analysis: Analysis | None = 
         return check_drive_line(x, settings) + findings
     findings += check_drive_frequency(analysis, settings)
     findings += check_sampling(analysis, settings)
+    findings += check_onset(analysis, settings)
     findings += check_jumps(analysis)
     findings += check_steady(analysis, settings)
     findings += check_offset_and_drift(analysis, settings)
@@ -372,12 +374,16 @@ def check_sampling(a: Analysis | None, s: Settings) -> list[Finding]:
 
 def check_jumps(a: Analysis) -> list[Finding]:
     """Phase steps between periods: dropped or repeated samples (or a re-locked drive). An error."""
-    B = a.n_blocks
+    # Before the onset of a record that starts at rest the phase is that of noise: only the motion is read.
+    onset = find_onset(a)
+    first = 0 if onset is None else onset + 2  # from where a fit uses the record (afmid.onset.check_onset)
+    B = a.n_blocks - first
     if B < 9:
         return []
     from scipy.ndimage import median_filter
 
-    d = a.block_phase[2:] - a.block_phase[:-2]  # phase change across two blocks, centred on blocks 1..B-2
+    phase = a.block_phase[first:]
+    d = phase[2:] - phase[:-2]  # phase change across two blocks, centred on blocks 1..B-2
     res = d - median_filter(d, size=7, mode="nearest")
     mad = float(np.median(np.abs(res - np.median(res))))
     one = 2 * np.pi / a.spp  # phase of one sample
@@ -388,7 +394,7 @@ def check_jumps(a: Analysis) -> list[Finding]:
     groups = np.split(hits, np.flatnonzero(np.diff(hits) > 2) + 1)
     peaks = [int(g[np.argmax(np.abs(res[g]))]) for g in groups]
     sizes = [float(res[p] / one) for p in peaks]
-    sample = a.start + (peaks[0] + 1) * a.L + a.L // 2  # the middle of the period the jump falls in
+    sample = a.start + (first + peaks[0] + 1) * a.L + a.L // 2  # the middle of the period the jump falls in
     kind = "dropped" if sizes[0] > 0 else "repeated"
     return [Finding(
         "phase_jump", "error",
@@ -400,7 +406,7 @@ def check_jumps(a: Analysis) -> list[Finding]:
 
 
 def check_steady(a: Analysis, s: Settings) -> list[Finding]:
-    """Amplitude still changing (a transient): a warning, the fit assumes a steady oscillation."""
+    """Amplitude still changing (a transient): a warning; the fit searches the drive frequency (afmid.drive_search)."""
     amp = a.block_amplitude
     B = amp.size
     if B < 3 or amp.mean() <= 0:
@@ -419,8 +425,9 @@ def check_steady(a: Analysis, s: Settings) -> list[Finding]:
     return [Finding(
         "not_steady", "warning",
         f"the oscillation amplitude changes by {100 * change:.1f} % over the trace (from "
-        f"{length(amp[0], s.units)} to {length(amp[-1], s.units)}): not in steady state; the weak-form fit copes, "
-        f"but per-period results mix different states: {advice}",
+        f"{length(amp[0], s.units)} to {length(amp[-1], s.units)}): not in steady state; the fit takes the drive "
+        f"frequency from the regression (fit.drive_frequency: auto), but per-period results mix different states: "
+        f"{advice}",
         "data.path", {"change": change, "settled_period": settled, "first": float(amp[0]), "last": float(amp[-1])})]
 
 

@@ -47,6 +47,7 @@ from .fit_forces import (CHUNK_BLOCKS, force_cv_error, per_sample_forces, period
                          signal_rows)
 from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
 from .fit_selection import SelectionSettings
+from .drive_search import DriveSearch, drive_columns, is_transient, search_drive_frequency, with_drive_frequency
 # Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
 from .fit_forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from .fit_selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
@@ -138,7 +139,7 @@ def prepare(trace: Trace, fit) -> Prepared:
         lo = blocks.start + b0 * blocks.L
         n_block = (b1 - b0) * blocks.L
         hi = lo + n_block + (blocks.L + 1 if weak else 0)
-        xs, cols = x[lo:hi, None], _drive_columns(t[lo:hi], drive.omega, free_baseline)
+        xs, cols = x[lo:hi, None], drive_columns(t[lo:hi], drive.omega, free_baseline)
         turn = blocks.rotation(b0, b1)
         X[b0:b1] = blocks.project_blocks(xs[:n_block], b0, turn)
         nuisance_block[b0:b1] = blocks.project_blocks(cols[:n_block], b0, turn)
@@ -175,7 +176,7 @@ def prepare(trace: Trace, fit) -> Prepared:
                                  fit.differentiation_options)
         shape = (blocks.n_blocks, blocks.L)
         Y = -(m * a + ((c * v + k * xs) if fixed else 0.0))[used].reshape(shape)
-        cols = [_drive_columns(t, drive.omega, free_baseline)] + ([] if fixed else [xs[:, None], v[:, None]])
+        cols = [drive_columns(t, drive.omega, free_baseline)] + ([] if fixed else [xs[:, None], v[:, None]])
         nuisance = np.column_stack(cols)[used].reshape(shape + (-1,))
         psi_sq = np.zeros(blocks.L)
         base_variance = np.full(blocks.L, float(np.var(Y - Y.mean(axis=0))))  # uniform weights
@@ -228,12 +229,6 @@ def _release_free_memory() -> None:
 
 
 _MALLOC_TRIM = None
-
-
-def _drive_columns(t: np.ndarray, omega: float, offset: bool) -> np.ndarray:
-    """The drive's nuisance columns at times ``t``: cos(w t), sin(w t) (and 1 for a free baseline)."""
-    cols = [np.cos(omega * t), np.sin(omega * t)] + ([np.ones_like(t)] if offset else [])
-    return np.column_stack(cols)
 
 
 #: Largest piece np.sum is applied to in :func:`pairwise_sum` (samples).
@@ -558,6 +553,7 @@ class FitResult:
     force_direct: np.ndarray  # N per input sample, model-free (band-limited)
     periods: dict[str, np.ndarray]
     warnings: list[str] = field(default_factory=list)
+    drive_search: DriveSearch | None = None  # the drive frequency searched by the regression (transient records)
 
     @property
     def selected(self) -> np.ndarray:
@@ -695,6 +691,7 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     physics, extra = profile_library(library, config)
     nonlinear = estimate_nonlinear(prep, library, config, params, physics=(physics, extra))
+    prep, drive_search = settle_drive_frequency(prep, library, config, params, (physics, extra), nonlinear)
     bar.update(1)
     settings = SelectionSettings.for_library(fit, library, len(prep.nuisance_names))
     system = build_system(prep, library, params)
@@ -766,7 +763,33 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_direct, periods,
-                     warnings)
+                     warnings, drive_search)
+
+
+def settle_drive_frequency(prep: Prepared, library: Library, config: RunConfig, params: dict, physics: tuple,
+                           nonlinear: dict) -> tuple[Prepared, DriveSearch | None]:
+    """The record's drive frequency by ``fit.drive_frequency`` (:mod:`afmid.drive_search`): in a transient
+    (auto) or always (search) the one the regression prefers, alternating twice with the separation and decay
+    lengths (``params`` and ``nonlinear`` updated in place); the nominal one; or the response's spectral peak."""
+    choice = config.fit.drive_frequency
+    if choice == "nominal":
+        return with_drive_frequency(prep, prep.drive.nominal), None
+    if choice == "response" or (choice == "auto" and not is_transient(prep)):
+        return prep, None
+    profile, extra = physics
+    response = prep.drive.frequency
+    rng = np.random.default_rng([config.fit.seed, 2])
+    found = None
+    for _ in range(2):
+        trial = dict(params, **extra)
+        theta = _library_columns(prep, profile, trial)
+        found = search_drive_frequency(prep, lambda p: build_system(p, profile, trial, theta=theta).T_blocks, rng,
+                                       response)
+        prep = with_drive_frequency(prep, found.frequency)
+        if not nonlinear:
+            break
+        nonlinear.update(estimate_nonlinear(prep, library, config, params, physics=physics))
+    return prep, found
 
 
 def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:

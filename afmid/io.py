@@ -18,7 +18,7 @@ import logging
 import os
 import tempfile
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +88,7 @@ class Trace:
     findings: list = field(default_factory=list)  # afmid.defects.Finding: defects found on loading
     #: afmid.harmonics.MeasuredDrive: the drive measured on loading (by the defect checks, as the fit measures it)
     drive: Any = None
+    first_sample: int = 0  # index in the file of the first sample kept (data.start, or the onset of the motion)
 
     def drive_for(self, detrend: str):
         """The drive measured on loading (an :class:`afmid.harmonics.DriveEstimate`), if it holds for a fit with
@@ -106,7 +107,7 @@ class Trace:
         """Sample times, s (from the time column, else from the sample rate)."""
         if self.time is not None:
             return self.time
-        return np.arange(self.n_samples) / self.sample_rate
+        return (self.first_sample + np.arange(self.n_samples)) / self.sample_rate
 
     @property
     def samples_per_period(self) -> float:
@@ -530,7 +531,25 @@ def load_trace(config) -> Trace:
         overridden=overridden,
         drive_force_amplitude=None if force_amplitude is None else float(force_amplitude),
     )
-    check_trace(trace, config)
+    if data.start is not None or data.stop is not None:
+        trace = _cropped_by_config(trace, config)
+    return check_trace(trace, config)
+
+
+def _cropped_by_config(trace: Trace, config) -> Trace:
+    """The part of ``trace`` between data.start and data.stop (s from its first sample)."""
+    from .onset import crop, sample_index
+
+    data = config.data
+    duration = trace.n_samples / trace.sample_rate
+    for key, value in (("data.start", data.start), ("data.stop", data.stop)):
+        if value is not None and value >= duration:
+            raise ConfigError(f"{value:g} s is beyond the end of the record ({duration:g} s long)",
+                              file=config.source, key=key)
+    first = 0 if data.start is None else sample_index(trace, data.start)
+    stop = None if data.stop is None else sample_index(trace, data.stop)
+    trace = crop(trace, first, stop)
+    trace.sources["crop"] = f"config: samples {first} to {first + trace.n_samples} of the file"
     return trace
 
 
@@ -584,7 +603,7 @@ def _merge_cantilever(config, meta: dict, sources: dict, overridden: list) -> Ca
     return Cantilever(tip_radius=radius, **values)
 
 
-def check_trace(trace: Trace, config) -> None:
+def check_trace(trace: Trace, config) -> Trace:
     """Reject traces that cannot be fitted; warn about doubtful ones.
 
     The defects (afmid.defects: time gaps, clipping, drive frequency, sampling,
@@ -608,4 +627,19 @@ def check_trace(trace: Trace, config) -> None:
             key="data.path",
         )
     trace.findings, trace.drive = defects.check_loaded(trace, config)  # findings include the samples-per-period warning
+    onset = next((f for f in trace.findings if f.name == "onset"), None)
+    if onset is not None and config.data.start is None:
+        # The record starts at rest: fit it from the onset on (reported, not an error).
+        from .onset import crop
+
+        first = trace.first_sample
+        trace = crop(trace, onset.numbers["sample"])
+        trace.sources["crop"] = f"onset of the oscillation: samples {trace.first_sample} to " \
+                                f"{trace.first_sample + trace.n_samples} of the file (from sample {first})"
+        if trace.n_periods < MIN_PERIODS:
+            raise InputError(f"{onset.message}; then only {trace.n_periods:.2f} drive periods remain, need at least "
+                             f"{MIN_PERIODS}", file=path, key="data.start")
+        trace.findings, trace.drive = defects.check_loaded(trace, config)
+        trace.findings.insert(0, replace(onset, severity="repaired"))
     defects.report(trace.findings, path)
+    return trace

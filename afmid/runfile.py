@@ -103,6 +103,15 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(dg, "sin", float(-nu[1]), "N")
         write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
         write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
+        found = getattr(result, "drive_search", None)
+        if found is not None:  # a transient record: the regression chose the drive frequency (afmid.drive_search)
+            write_dataset(dg, "frequency_sigma", found.sigma, "Hz", meaning="1 sigma")
+            write_dataset(dg, "response_frequency", found.response_frequency, "Hz",
+                          meaning="spectral peak of the deflection, replaced by the searched drive frequency")
+        dg.attrs["frequency_source"] = (
+            "regression search (record not in steady state)" if found is not None
+            else "nominal (fit.drive_frequency: nominal)" if config.fit.drive_frequency == "nominal"
+            else "spectral peak of the deflection")
         if "offset" in result.system.names:
             write_dataset(dg, "offset_force", float(nu[result.system.names.index("offset") - p]), "N")
         if config.fit.cantilever == "free":

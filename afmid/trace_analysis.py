@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .harmonics import (
-    MIN_PERIODS, block_layout, fourier_design, highest_harmonic, least_squares_projector, measure_frequency,
+    MIN_PERIODS, amplitude_change, block_layout, fourier_design, highest_harmonic, least_squares_projector, measure_frequency,
     noise_variance_factor, rotate_to_global,
 )
 
@@ -31,6 +31,15 @@ MIN_ANALYSABLE_SPP = 4.0
 MAX_HARMONIC = 60
 #: A harmonic "stands above the noise" above this many standard deviations (per cos/sin coefficient).
 DETECT_SIGMA = 5.0
+#: The interaction is put at the negative turning point (the sign flipped) only when its shape is this many times
+#: larger there: on records with strong contact and few harmonics above the noise the ratio reaches 2.4-2.7 with
+#: the right sign (a transient into tapping, d 6.5 nm, A0 10 nm), against 4-7 for a flipped trace.
+FLIP_RATIO = 3.0
+#: Relative amplitude change across a record above which its harmonics are averaged over the settled end only,
+#: each period aligned on its own phase (the same limit as the not-steady warning).
+TRANSIENT_CHANGE = 0.02
+#: The settled end: the last periods within this fraction of the final amplitude (at least 3, or the last fifth).
+SETTLED_FRACTION = 0.05
 
 
 @dataclass
@@ -136,13 +145,14 @@ def analyse(
     glob[:, 0] += means
     dof = B * (L - design.shape[1])
     noise = float(np.sqrt(rss / dof)) if dof > 0 else float("nan")
-    coef = glob.mean(axis=0)
+    amp = np.hypot(glob[:, 1], glob[:, 2])
+    phase = np.unwrap(np.arctan2(-glob[:, 2], glob[:, 1]))
+    averaged = glob if amplitude_change(amp) <= TRANSIENT_CHANGE else settled_periods(glob, amp, phase)
+    coef = averaged.mean(axis=0)
     # Noise of the averages: white noise through the projector, or the scatter between periods if larger
     # (non-white noise, period-to-period variation of the motion).
     white = noise * np.sqrt(noise_variance_factor(projector)) if math.isfinite(noise) else np.zeros(2 * K + 1)
-    sigma = np.maximum(white, glob.std(axis=0)) / math.sqrt(B)
-    amp = np.hypot(glob[:, 1], glob[:, 2])
-    phase = np.unwrap(np.arctan2(-glob[:, 2], glob[:, 1]))
+    sigma = np.maximum(white, averaged.std(axis=0)) / math.sqrt(averaged.shape[0])
     out = Analysis(
         n=x.size, cycles_per_sample=f, spp=spp, K=K, L=L, start=start,
         amplitude=float(np.hypot(coef[1], coef[2])), mean=float(x.mean()), noise_rms=noise,
@@ -151,6 +161,29 @@ def analyse(
     )
     _interaction(out, 1.0 if resonance_ratio is None else resonance_ratio, quality_factor)
     return out
+
+
+def settled_periods(glob: np.ndarray, amp: np.ndarray, phase: np.ndarray) -> np.ndarray:
+    """The per-period coefficients (B, 2K+1) of a record that is not steady, reduced to its settled end and each
+    period turned to the phase of the last one.
+
+    Averaged over a transient, periods of another amplitude (before the tip
+    reached the sample) and another phase (the free response and the drive
+    beat; the frequency measured from such a record is off the drive) blur the
+    harmonics and can put the interaction on the wrong turning point.
+    """
+    final = float(np.median(amp[-max(3, amp.size // 5):]))
+    outside = np.flatnonzero(np.abs(amp - final) > SETTLED_FRACTION * final)
+    first = int(outside[-1]) + 1 if outside.size else 0
+    first = min(first, amp.size - max(3, amp.size // 5))
+    part = glob[first:]
+    K = (glob.shape[1] - 1) // 2
+    n = np.arange(1, K + 1)
+    turn = np.exp(-1j * np.outer(phase[first:] - phase[-1], n))  # (b, K): shift each period to the last one's phase
+    c = (part[:, 1::2] - 1j * part[:, 2::2]) * turn  # x ~ Re[(a - i b) exp(i n theta)]
+    aligned = part.copy()
+    aligned[:, 1::2], aligned[:, 2::2] = c.real, -c.imag
+    return aligned
 
 
 def _interaction(a: Analysis, r: float, Q: float | None) -> None:
@@ -180,7 +213,7 @@ def _interaction(a: Analysis, r: float, Q: float | None) -> None:
     size_top = float(np.max(np.abs(g[near(top, np.pi / 4)])))
     size_bottom = float(np.max(np.abs(g[near(bottom, np.pi / 4)])))
     odd = any(n % 2 for n in include)
-    a.flipped = bool(odd and size_bottom > 1.5 * size_top)
+    a.flipped = bool(odd and size_bottom > FLIP_RATIO * size_top)
     turn, sign = (bottom, -1.0) if a.flipped else (top, 1.0)
     # Contact: the force rises (repulsion) towards the closest approach; attraction only: it is lowest there.
     force = sign * g

@@ -244,8 +244,8 @@ def test_not_in_steady_state_warns_where_it_settles(load):
     (finding,) = load(x).findings
     assert (finding.name, finding.severity) == ("not_steady", "warning")
     assert finding.message.startswith("the oscillation amplitude changes by ")
-    assert ("not in steady state; the weak-form fit copes, but per-period results mix different states: crop the "
-            "first ") in finding.message
+    assert ("not in steady state; the fit takes the drive frequency from the regression (fit.drive_frequency: "
+            "auto), but per-period results mix different states: crop the first ") in finding.message
     assert finding.numbers["settled_period"] == pytest.approx(12, abs=3)
 
 
