@@ -43,6 +43,7 @@ from .config import RunConfig
 from .errors import InputError
 from .io import sha256_file
 from .candidate_shapes import ShapeSearch
+from .harmonics import settled_start
 from .physics import EFFECTS
 # The run-file reader lives in afmid.runfile; `from afmid.diagnose import load_run, RunData` keeps working.
 from .runfile import RunData, load_run  # noqa: F401
@@ -121,14 +122,16 @@ def localize(run: RunData) -> dict:
     systematic is there at all (about 1 for a perfect model).
     """
     P = run.periods
-    f_direct = P["force_direct"]
-    f_model = band_limit(P["force_model"], run)
-    r_all = f_direct - f_model  # (periods, phase)
+    # A transient: the average at equal drive phase over its settled end only (afmid.harmonics.settled_start).
+    first = settled_start(0.5 * (P["separation"].max(axis=1) - P["separation"].min(axis=1)))
+    r_every = P["force_direct"] - band_limit(P["force_model"], run)  # (periods, phase)
+    f_direct = P["force_direct"][first:]
+    r_all = r_every[first:]
     n_periods = r_all.shape[0]
     r = r_all.mean(axis=0)
     noise = r_all.std(axis=0, ddof=1) / math.sqrt(n_periods) if n_periods > 1 else np.zeros_like(r)
-    z = P["separation"].mean(axis=0)
-    zdot = -P["velocity"].mean(axis=0)  # dz/dt; the separation falls on approach
+    z = P["separation"][first:].mean(axis=0)
+    zdot = -P["velocity"][first:].mean(axis=0)  # dz/dt; the separation falls on approach
     force = f_direct.mean(axis=0)
     a0 = run.config.sample.a0
     regions = {
@@ -213,7 +216,7 @@ def localize(run: RunData) -> dict:
         "rate_correlation_interacting": _corr(r[interacting], zdot[interacting]),
         "by_harmonic": spectrum,
         "by_phase": by_phase,
-        "per_period_rms": np.sqrt(np.mean(r_all**2, axis=1)),
+        "per_period_rms": np.sqrt(np.mean(r_every**2, axis=1)),  # every period, the transient's too
         "mean_residual": r,
         "mean_noise": noise,
         "mean_separation": z,

@@ -29,9 +29,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .harmonics import TRANSIENT_CHANGE
+
 #: Relative amplitude change across a record above which it is treated as a transient (the drive searched).
 #: The same limit as the not-steady warning of :mod:`afmid.defects`.
-TRANSIENT_LIMIT = 0.02
+TRANSIENT_LIMIT = TRANSIENT_CHANGE
 #: Grid points per valley width 1 / (2 pi N) of the residual over the drive frequency.
 POINTS_PER_VALLEY = 3
 #: Most grid points of the search (a wider window is searched coarser: the nominal frequency far off).

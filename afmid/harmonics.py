@@ -411,6 +411,29 @@ def amplitude_change(amplitude: np.ndarray) -> float:
     return float(abs(slope) * amplitude.size / amplitude.mean())
 
 
+#: Relative amplitude change across a record above which it is a transient (the not-steady warning, the drive
+#: search, and the averages over periods taken over its settled end only).
+TRANSIENT_CHANGE = 0.02
+#: The settled end of a transient: the last periods within this fraction of the final amplitude.
+SETTLED_FRACTION = 0.05
+
+
+def settled_start(amplitude: np.ndarray) -> int:
+    """First block of the settled end of a record (0 if it is steady, :data:`TRANSIENT_CHANGE`): the last blocks
+    within :data:`SETTLED_FRACTION` of the final amplitude, and at least the last fifth (at least 3 blocks).
+
+    Averages over the periods of a transient at equal drive phase mix periods of other amplitudes and phases
+    (before the tip reached the sample, while the free response beat with the drive)."""
+    B = amplitude.size
+    if B < 3 or amplitude_change(amplitude) <= TRANSIENT_CHANGE:
+        return 0
+    tail = max(3, B // 5)
+    final = float(np.median(amplitude[-tail:]))
+    outside = np.flatnonzero(np.abs(amplitude - final) > SETTLED_FRACTION * final)
+    first = int(outside[-1]) + 1 if outside.size else 0
+    return max(0, min(first, B - tail))
+
+
 def apply_rows(matrix: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     """``matrix`` (r, l) applied to every block (b, l, m) -> (b, r, m), as one BLAS matrix product."""
     b, l, m = blocks.shape

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .harmonics import (
-    MIN_PERIODS, amplitude_change, block_layout, fourier_design, highest_harmonic, least_squares_projector, measure_frequency,
-    noise_variance_factor, rotate_to_global,
+    MIN_PERIODS, TRANSIENT_CHANGE, amplitude_change, block_layout, fourier_design, highest_harmonic,
+    least_squares_projector, measure_frequency, noise_variance_factor, rotate_to_global, settled_start,
 )
 
 #: Fewer samples per period than this and no signal check is meaningful (near Nyquist).
@@ -35,11 +35,6 @@ DETECT_SIGMA = 5.0
 #: larger there: on records with strong contact and few harmonics above the noise the ratio reaches 2.4-2.7 with
 #: the right sign (a transient into tapping, d 6.5 nm, A0 10 nm), against 4-7 for a flipped trace.
 FLIP_RATIO = 3.0
-#: Relative amplitude change across a record above which its harmonics are averaged over the settled end only,
-#: each period aligned on its own phase (the same limit as the not-steady warning).
-TRANSIENT_CHANGE = 0.02
-#: The settled end: the last periods within this fraction of the final amplitude (at least 3, or the last fifth).
-SETTLED_FRACTION = 0.05
 
 
 @dataclass
@@ -147,7 +142,8 @@ def analyse(
     noise = float(np.sqrt(rss / dof)) if dof > 0 else float("nan")
     amp = np.hypot(glob[:, 1], glob[:, 2])
     phase = np.unwrap(np.arctan2(-glob[:, 2], glob[:, 1]))
-    averaged = glob if amplitude_change(amp) <= TRANSIENT_CHANGE else settled_periods(glob, amp, phase)
+    steady = amplitude_change(amp) <= TRANSIENT_CHANGE
+    averaged = glob if steady else aligned_periods(glob, phase, settled_start(amp))
     coef = averaged.mean(axis=0)
     # Noise of the averages: white noise through the projector, or the scatter between periods if larger
     # (non-white noise, period-to-period variation of the motion).
@@ -163,19 +159,15 @@ def analyse(
     return out
 
 
-def settled_periods(glob: np.ndarray, amp: np.ndarray, phase: np.ndarray) -> np.ndarray:
-    """The per-period coefficients (B, 2K+1) of a record that is not steady, reduced to its settled end and each
-    period turned to the phase of the last one.
+def aligned_periods(glob: np.ndarray, phase: np.ndarray, first: int) -> np.ndarray:
+    """The per-period coefficients (B, 2K+1) of a record that is not steady, from block ``first`` on (its settled
+    end, :func:`afmid.harmonics.settled_start`), each period turned to the phase of the last one.
 
     Averaged over a transient, periods of another amplitude (before the tip
     reached the sample) and another phase (the free response and the drive
     beat; the frequency measured from such a record is off the drive) blur the
     harmonics and can put the interaction on the wrong turning point.
     """
-    final = float(np.median(amp[-max(3, amp.size // 5):]))
-    outside = np.flatnonzero(np.abs(amp - final) > SETTLED_FRACTION * final)
-    first = int(outside[-1]) + 1 if outside.size else 0
-    first = min(first, amp.size - max(3, amp.size // 5))
     part = glob[first:]
     K = (glob.shape[1] - 1) // 2
     n = np.arange(1, K + 1)
