@@ -463,13 +463,15 @@ def pick_support(T: np.ndarray, protected: np.ndarray, method: str, key: str, th
 
 def vote_support(T: np.ndarray, protected: np.ndarray, votes: np.ndarray, method: str, key: str,
                  thresholds: np.ndarray, n_rows: int, penalty: np.ndarray | None = None, rules: list | None = None,
-                 extra: list[np.ndarray] = ()) -> np.ndarray:
-    """The support that agrees best with the majority of the votes: it holds the columns voted for by more
-    than half (``votes`` = fraction of voters per column) and none voted for by fewer, among the supports the
-    rules allow; columns voted for by exactly half, and any other tie, go to the lowest criterion ``key`` on
-    ``T`` (the whole record). Candidates: every subset for the exhaustive method, else the sparsity path of
-    ``T`` plus the supports in ``extra`` (e.g. the voters' own choices)."""
+                 extra: list[np.ndarray] = (), undecided: float = 0.0) -> np.ndarray:
+    """The support that agrees best with the clear majorities of the votes: it holds the columns voted for
+    by more than half + ``undecided`` (``votes`` = fraction of voters per column) and none voted for by fewer
+    than half - ``undecided``, among the supports the rules allow; the columns in between, and any other tie,
+    go to the lowest criterion ``key`` on ``T`` (the whole record). Candidates: every subset for the
+    exhaustive method, else the sparsity path of ``T`` plus the supports in ``extra`` (e.g. the voters' own
+    choices)."""
     margin = np.asarray(votes, dtype=float) - 0.5
+    margin[np.abs(margin) <= undecided + 1e-12] = 0.0
     if method == "exhaustive":
         crit = _SubsetCriteria(protected, n_rows, penalty, rules)
         free = crit.free

@@ -11,9 +11,10 @@ short-range terms, through the per-period trajectory reconstruction). A term of 
 of it lowers the residual in proportion to the record's length, while BIC's penalty grows only like log(n):
 on the whole record, every such distractor is eventually selected (Lennard-Jones, table I: right support in
 6/10 draws at 50 periods, 0/10 at 500). Within a group of a fixed number of periods the misfit's gain stays
-below the penalty, and a real term of the force law stays above it; so the majority of the groups' own
-selections converges to the true support as the groups multiply, and the coefficients are then fitted on
-the whole record.
+below the penalty (and the distractor prior), and a real term of the force law stays above it; so the
+majority of the groups' own selections converges on the distractors as the groups multiply. The physical
+(catalog) terms, which carry no such prior and may be too weak to be seen in one group, are then chosen
+on the whole record, and the coefficients are fitted on it.
 """
 
 from __future__ import annotations
@@ -59,9 +60,11 @@ def period_groups(n_blocks: int, group_blocks: int) -> list[np.ndarray]:
 class PeriodVote:
     """The support held by the majority of the selections made on groups of ``periods`` periods each.
 
-    Each group selects with the fit's criterion on its own rows (BIC with ``n`` the group's rows); a term is
-    kept when more than half of the groups chose it, dropped when fewer did, and exact halves (and any other
-    tie, e.g. a support the rules forbid) go to the criterion on the whole record. Records shorter than two
+    Each group selects with the fit's criterion on its own rows (BIC with ``n`` the group's rows); a
+    distractor (a term of no catalog effect) is kept when clearly more than half of the groups chose it and
+    dropped when clearly fewer did ("clearly": by more than one binomial standard error 0.5 / sqrt(groups));
+    the other distractors and every physical (catalog) term are then chosen by the criterion on the whole
+    record, among the supports the rules allow. Records shorter than two
     groups are decided by the whole record's criterion alone. The candidates, criteria and CV errors kept for
     the diagnostics are those of the whole record (the voted support among them).
     """
@@ -89,9 +92,17 @@ class PeriodVote:
             for g in groups])
 
     def _vote(self, settings, system, T: np.ndarray, picks: np.ndarray) -> np.ndarray:
-        return regression.vote_support(T, system.protected, picks.mean(axis=0), settings.method,
+        # A majority overrules the whole record's criterion only when it is clear: more than one binomial
+        # standard error of a fair vote (0.5 / sqrt(groups)) away from one half. With 4-5 groups (50 periods)
+        # only near-unanimous votes count; as the groups multiply, any majority does.
+        # Only the distractors (terms of no catalog effect, settings.penalty > 0) are put to the vote: the
+        # physical terms are chosen by the record's criterion given the voted distractors, so a weak real term
+        # (a van der Waals tail at the poor instrument) keeps the power of the whole record.
+        votes = np.where(np.asarray(settings.penalty) > 0, picks.mean(axis=0), 0.5)
+        return regression.vote_support(T, system.protected, votes, settings.method,
                                        regression.resample_key(settings.criterion), settings.thresholds,
-                                       system.n_rows, settings.penalty, settings.rules, extra=list(picks))
+                                       system.n_rows, settings.penalty, settings.rules, extra=list(picks),
+                                       undecided=0.5 / np.sqrt(len(picks)))
 
     def select(self, settings, system) -> regression.Selection:
         record = RecordSelection().select(settings, system)
