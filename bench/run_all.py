@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import RESULTS, load_average, machine  # noqa: E402  (sets the BLAS thread count first)
 
-BENCHES = ["simulate", "fit", "scaling", "coldstart", "batch"]
+BENCHES = ["simulate", "fit", "selection", "scaling", "coldstart", "batch"]
 
 
 def _seconds(value) -> str:
