@@ -83,7 +83,6 @@ def block_stats(result) -> dict:
 def signed_residual(result) -> np.ndarray:
     """Whitened residual rows (W, rows) of the chosen support, rebuilt from the system's columns."""
     prep, sysm = result.prep, result.system
-    p = len(result.library)
     A = np.concatenate([sysm.theta, prep.nuisance], axis=2) / prep.row_sigma[None, :, None]
     y = prep.Y / prep.row_sigma[None, :]
     return y - A @ np.where(result.selected, result.coef, 0.0)
