@@ -276,6 +276,14 @@ class FitConfig(StrictModel):
         description="prior odds against a library term that belongs to no catalog effect (1 = no prior)",
     )
     selection: Literal["bic", "aicc", "cv"] = "bic"
+    selection_scope: str = Field(
+        "vote",
+        description="vote: the support held by the majority of the selections on groups of fit.vote_periods "
+        "periods (consistent as the record grows); record: one selection on all periods at once",
+    )
+    vote_periods: Annotated[int, Field(ge=1, le=10000)] = Field(
+        10, description="periods per group of the selection vote (fit.selection_scope: vote)"
+    )
     thresholds: list[NonNegativeFloat] | None = Field(None, description="STLSQ thresholds (relative); default path")
     folds: Annotated[int, Field(ge=2, le=50)] = 5
     bootstrap: Annotated[int, Field(ge=0, le=10000)] = 100
@@ -296,6 +304,15 @@ class FitConfig(StrictModel):
 
         if name not in DIFFERENTIATORS:
             raise ValueError(unknown_name_message("differentiator", name, DIFFERENTIATORS.names()))
+        return name
+
+    @field_validator("selection_scope")
+    @classmethod
+    def _known_selection_scope(cls, name: str) -> str:
+        from .selection_strategies import SELECTION_SCOPES
+
+        if name not in SELECTION_SCOPES:
+            raise ValueError(unknown_name_message("selection scope", name, SELECTION_SCOPES.names()))
         return name
 
     @model_validator(mode="after")

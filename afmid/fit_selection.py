@@ -9,12 +9,13 @@ criterion, thresholds, folds, per-column penalties and rules, held here.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import regression
 from .library import Library
+from .selection_strategies import SELECTION_SCOPES, RecordSelection
 
 #: Libraries up to this many terms are searched exhaustively (2^14 small least-squares problems).
 EXHAUSTIVE_MAX_TERMS = 14
@@ -41,6 +42,9 @@ class SelectionSettings:
     folds: int  # cross-validation folds (contiguous groups of periods)
     penalty: np.ndarray  # per column, added to the information criteria of a support that uses it
     rules: list  # [(condition masks, then mask), ...] (Library.selection_rules)
+    #: where the support is decided (afmid.selection_strategies: the whole record, or a vote of period groups)
+    strategy: object = field(default_factory=RecordSelection)
+    periods_per_block: int = 1  # drive periods per regression block (fit.periods_per_block)
 
     @classmethod
     def for_library(cls, fit, library: Library, n_nuisance: int) -> SelectionSettings:
@@ -50,18 +54,18 @@ class SelectionSettings:
             method = "exhaustive" if len(library) <= EXHAUSTIVE_MAX_TERMS else "stlsq"
         thresholds = np.asarray(fit.thresholds) if fit.thresholds else regression.default_thresholds()
         return cls(method, fit.selection, thresholds, fit.folds,
-                   term_penalties(library, n_nuisance, fit.distractor_odds), library.selection_rules(n_nuisance))
+                   term_penalties(library, n_nuisance, fit.distractor_odds), library.selection_rules(n_nuisance),
+                   SELECTION_SCOPES.get(fit.selection_scope).configured(fit), fit.periods_per_block)
 
     def select(self, system) -> regression.Selection:
-        """The sparsity path of ``system`` (an afmid.fit.System) scored and the best support chosen."""
-        return regression.select(system.T_blocks, system.protected, self.method, self.criterion, self.thresholds,
-                                 n_rows=system.n_rows, folds=self.folds, penalty=self.penalty, rules=self.rules)
+        """The sparsity path of ``system`` (an afmid.fit.System) scored and the support chosen by the strategy."""
+        return self.strategy.select(self, system)
 
     def bag(self, system, chosen: np.ndarray, n_boot: int, rng: np.random.Generator) -> regression.Bagging:
         """Bootstrap over periods of ``system``: inclusion probabilities and the spread of the ``chosen`` support.
 
-        Each resample re-selects by BIC when the criterion is "cv" (a cross-validation per resample would
-        cost folds x resamples selections; :func:`afmid.regression.bag`), by AICc when it is "aicc".
+        Each re-selection uses BIC when the criterion is "cv" (a cross-validation per resample would cost folds x
+        resamples selections; :func:`afmid.regression.resample_key`), AICc when it is "aicc"; what is resampled
+        is the strategy's (:mod:`afmid.selection_strategies`).
         """
-        return regression.bag(system.T_blocks, system.protected, chosen, system.names, self.method, self.criterion,
-                              self.thresholds, n_boot, rng, system.n_rows, self.penalty, self.rules)
+        return self.strategy.bag(self, system, chosen, n_boot, rng)

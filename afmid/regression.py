@@ -263,6 +263,8 @@ class Selection:
     candidates: list[Candidate]
     chosen: int  # index into candidates
     criterion: str
+    #: per column, the fraction of period groups whose own selection used it (None: selected on the whole record)
+    votes: np.ndarray | None = None
 
     @property
     def best(self) -> Candidate:
@@ -409,19 +411,13 @@ def bag(
     counts = np.zeros(p)
     samples = np.empty((n_boot, p))
     supports: dict[tuple, int] = {}
-    key = "bic" if criterion in ("bic", "cv") else "aicc"
+    key = resample_key(criterion)
     n_rows_boot = int(B * n_rows_per_block)
-    if method == "exhaustive":
-        crit = _SubsetCriteria(protected, n_rows_boot, penalty, rules)
+    crit = _SubsetCriteria(protected, n_rows_boot, penalty, rules) if method == "exhaustive" else None
     for i in range(n_boot):
         mult = rng.multinomial(B, np.full(B, 1.0 / B)).astype(float)
         T = combine(T_blocks, mult)
-        if method == "exhaustive":
-            pick_mask = _exhaustive_pick(T, protected, crit, key, penalty)
-        else:
-            cands = [c for c in candidates_for(T, protected, method, thresholds) if satisfies(c.mask, rules)]
-            score_candidates(cands, n_rows_boot, penalty)
-            pick_mask = min(cands, key=lambda c: getattr(c, key)).mask
+        pick_mask = _pick(T, protected, method, key, thresholds, n_rows_boot, penalty, rules, crit)
         counts += pick_mask
         support = tuple(n for n, m, prot in zip(names, pick_mask, protected) if m and not prot)
         supports[support] = supports.get(support, 0) + 1
@@ -440,3 +436,86 @@ def _exhaustive_pick(T: np.ndarray, protected: np.ndarray, crit: _SubsetCriteria
     if near.size == 1:
         return crit.mask(int(near[0]))
     return min(crit.exact(T, near.tolist(), penalty), key=lambda c: getattr(c, key)).mask
+
+
+def resample_key(criterion: str) -> str:
+    """The information criterion a re-selection uses for ``criterion`` (cross-validation per resample would
+    cost folds x resamples selections, so "cv" re-selects by BIC)."""
+    return "bic" if criterion in ("bic", "cv") else "aicc"
+
+
+def _pick(T: np.ndarray, protected: np.ndarray, method: str, key: str, thresholds: np.ndarray, n_rows: int,
+          penalty: np.ndarray | None, rules: list | None, crit: _SubsetCriteria | None = None) -> np.ndarray:
+    if method == "exhaustive":
+        crit = crit if crit is not None else _SubsetCriteria(protected, n_rows, penalty, rules)
+        return _exhaustive_pick(T, protected, crit, key, penalty)
+    cands = [c for c in candidates_for(T, protected, method, thresholds) if satisfies(c.mask, rules)]
+    score_candidates(cands, n_rows, penalty)
+    return min(cands, key=lambda c: getattr(c, key)).mask
+
+
+def pick_support(T: np.ndarray, protected: np.ndarray, method: str, key: str, thresholds: np.ndarray, n_rows: int,
+                 penalty: np.ndarray | None = None, rules: list | None = None) -> np.ndarray:
+    """Mask of the support with the lowest criterion ``key`` ("bic" or "aicc") on the factor ``T`` of
+    ``n_rows`` whitened rows: the choice :func:`select` makes by that criterion, without the diagnostics."""
+    return _pick(T, protected, method, key, thresholds, n_rows, penalty, rules)
+
+
+def vote_support(T: np.ndarray, protected: np.ndarray, votes: np.ndarray, method: str, key: str,
+                 thresholds: np.ndarray, n_rows: int, penalty: np.ndarray | None = None, rules: list | None = None,
+                 extra: list[np.ndarray] = (), undecided: float = 0.0) -> np.ndarray:
+    """The support that agrees best with the clear majorities of the votes: it holds the columns voted for
+    by more than half + ``undecided`` (``votes`` = fraction of voters per column) and none voted for by fewer
+    than half - ``undecided``, among the supports the rules allow; the columns in between, and any other tie,
+    go to the lowest criterion ``key`` on ``T`` (the whole record). Candidates: every subset for the
+    exhaustive method, else the sparsity path of ``T`` plus the supports in ``extra`` (e.g. the voters' own
+    choices)."""
+    margin = np.asarray(votes, dtype=float) - 0.5
+    margin[np.abs(margin) <= undecided + 1e-12] = 0.0
+    if method == "exhaustive":
+        crit = _SubsetCriteria(protected, n_rows, penalty, rules)
+        free = crit.free
+        bits = (np.arange(1 << free.size)[:, None] >> np.arange(free.size)) & 1
+        agreement = np.where(crit.allowed, bits @ margin[free], -np.inf)
+        ties = np.flatnonzero(agreement >= agreement.max() - 1e-9)
+        if ties.size == 1:  # a clear majority: the record's criterion is not needed
+            return crit.mask(int(ties[0]))
+        values = crit.values(_all_subsets_rss(T, protected), key)[ties]
+        near = ties[values <= values.min() + crit.tol + 1e-12 * abs(values.min())]
+        if near.size == 1:
+            return crit.mask(int(near[0]))
+        return min(crit.exact(T, near.tolist(), penalty), key=lambda c: getattr(c, key)).mask
+    cands = [c for c in candidates_for(T, protected, method, thresholds) if satisfies(c.mask, rules)]
+    known = {c.mask.tobytes() for c in cands}
+    for mask in extra:
+        if mask.tobytes() not in known and satisfies(mask, rules):
+            known.add(mask.tobytes())
+            coef, rss = subset_fit(T, mask)
+            cands.append(Candidate(mask.copy(), coef, rss, int((mask & ~protected).sum())))
+    score_candidates(cands, n_rows, penalty)
+    free = ~protected
+    best = max(float(margin[c.mask & free].sum()) for c in cands)
+    tied = [c for c in cands if float(margin[c.mask & free].sum()) >= best - 1e-9]
+    return min(tied, key=lambda c: getattr(c, key)).mask
+
+
+def scored_candidate(T_blocks: np.ndarray, protected: np.ndarray, mask: np.ndarray, n_rows: int,
+                     penalty: np.ndarray | None, folds: int) -> Candidate:
+    """One support fitted on all blocks and scored as :func:`select` scores its candidates (criteria, CV)."""
+    coef, rss = subset_fit(combine(T_blocks), mask)
+    cand = Candidate(mask.copy(), coef, rss, int((mask & ~protected).sum()))
+    score_candidates([cand], n_rows, penalty)
+    cross_validate(T_blocks, [cand], folds)
+    return cand
+
+
+def resampled_coefficients(T_blocks: np.ndarray, chosen_mask: np.ndarray, n_boot: int,
+                           rng: np.random.Generator) -> np.ndarray:
+    """(n_boot, p) coefficients of the support ``chosen_mask`` refitted on block resamples (the same draws
+    and order as :func:`bag`)."""
+    B = T_blocks.shape[0]
+    samples = np.empty((n_boot, T_blocks.shape[-1] - 1))
+    for i in range(n_boot):
+        mult = rng.multinomial(B, np.full(B, 1.0 / B)).astype(float)
+        samples[i], _ = subset_fit(combine(T_blocks, mult), chosen_mask)
+    return samples

@@ -169,6 +169,10 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(path_g, "cv_rss", np.array([c.cv_rss for c in cands]), "1")
         path_g.attrs["chosen"] = result.selection.chosen
         path_g.attrs["criterion"] = result.selection.criterion
+        path_g.attrs["scope"] = result.config.fit.selection_scope
+        if result.selection.votes is not None:
+            write_dataset(path_g, "votes", np.asarray(result.selection.votes[:p], dtype=float), "1",
+                          meaning="fraction of the period groups whose own selection used each term")
         if result.warnings:
             dg.attrs["warnings"] = result.warnings
         implausible = plausibility.violations(verdicts)

@@ -15,6 +15,7 @@ DOCS = Path(__file__).resolve().parents[1] / "docs" / "file-formats.md"
 OPTIONAL = {  # written only with non-default settings
     "/model/identified_stiffness", "/model/identified_damping", "/model/drive/offset_force",
     "/model/drive/frequency_sigma", "/model/drive/response_frequency",  # a transient record (drive searched)
+    "/diagnostics/path/votes",  # only when at least two period groups voted (this trace has 12 periods: one)
 }
 
 
@@ -166,3 +167,21 @@ def test_a_missing_batch_key_or_unreadable_file_has_no_key(tmp_path):
     (tmp_path / "not.h5").write_bytes(b"not HDF5")
     assert read_batch_key(tmp_path / "not.h5") is None
     assert read_batch_key(tmp_path / "missing.h5") is None
+
+
+def test_a_voted_selection_records_its_votes(tmp_path):
+    """With fit.selection_scope: vote (the default) on a record of two groups or more, the run file holds each
+    term's vote share and the scope."""
+    config = tmp_path / "votes.yaml"
+    text = (Path(__file__).resolve().parents[1] / "configs" / "dmt_viscoelastic.yaml").read_text()
+    text = text.replace("periods: 50 ", "periods: 30 ")
+    config.write_text(text + "\ndata: {path: trace.h5}\nfit: {bootstrap: 0}\n")
+    assert main(["-q", "simulate", str(config), "-o", str(tmp_path / "trace.h5")]) == 0
+    assert main(["-q", "fit", str(config), "-o", str(tmp_path / "run.h5")]) == 0
+    with h5py.File(tmp_path / "run.h5", "r") as h5:
+        path = h5["diagnostics/path"]
+        assert path.attrs["scope"] == "vote"
+        votes = path["votes"][()]
+        assert path["votes"].attrs["units"] == "1"
+        assert votes.shape == (path["masks"].shape[1],)
+        assert np.all((votes >= 0) & (votes <= 1))
