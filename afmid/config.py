@@ -139,6 +139,10 @@ class CantileverConfig(StrictModel):
     resonance_frequency: _instrument("cantilever.resonance_frequency") | None = Field(None, description="f0, Hz")
     quality_factor: _instrument("cantilever.quality_factor") | None = Field(None, description="Q")
     tip_radius: _instrument("cantilever.tip_radius") | None = Field(None, description="R, m")
+    spring_constant_uncertainty: Annotated[float, Field(ge=0, lt=1)] | None = Field(
+        None, description="relative 1-sigma uncertainty of k (0.1 = 10 %), propagated into every read-out")
+    quality_factor_uncertainty: Annotated[float, Field(ge=0, lt=1)] | None = Field(
+        None, description="relative 1-sigma uncertainty of Q (0.1 = 10 %), propagated into every read-out")
 
 
 class DriveConfig(StrictModel):

@@ -44,6 +44,9 @@ from .errors import InputError
 from .io import sha256_file
 from .candidate_shapes import ShapeSearch
 from .physics import EFFECTS
+# A cross-validated error within FLOOR_FACTOR of its noise floor counts as the noise level (one constant with
+# the fit's model-limited mark).
+from .uncertainty import FLOOR_FACTOR
 # The run-file reader lives in afmid.runfile; `from afmid.diagnose import load_run, RunData` keeps working.
 from .runfile import RunData, load_run  # noqa: F401
 
@@ -60,9 +63,6 @@ BIC_DISTINCT = 6.0
 #: When the current model's cross-validated error stands above its noise floor, an added effect must cut
 #: the excess error sqrt(error^2 - floor^2) to at most this fraction (remove >= 36 % of the excess variance).
 ERROR_RATIO = 0.8
-#: A cross-validated error within this factor of its noise floor counts as the noise level. (Measured on
-#: clean simulated traces: error / floor = 0.95-1.3, the floor being an estimate itself.)
-FLOOR_FACTOR = 1.3
 #: A reduced chi-square above 1 + CHI2_SIGMAS * sqrt(2 / dof) is a significant misfit (the rows are
 #: whitened by their predicted noise, so a perfect model gives 1 +- sqrt(2 / dof)).
 CHI2_SIGMAS = 5.0

@@ -47,6 +47,7 @@ from .fit_forces import (CHUNK_BLOCKS, force_cv_error, per_sample_forces, period
                          signal_rows)
 from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
 from .fit_selection import SelectionSettings
+from .uncertainty import finish as finish_uncertainty
 # Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
 from .fit_forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from .fit_selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
@@ -558,6 +559,8 @@ class FitResult:
     force_direct: np.ndarray  # N per input sample, model-free (band-limited)
     periods: dict[str, np.ndarray]
     warnings: list[str] = field(default_factory=list)
+    force_calibration_uncertainty: float = 0.0  # relative, 1 sigma: the force's share of the k / Q calibration
+    model_limited: bool = False  # cv_error above its noise floor: parameters biased beyond their error bars
 
     @property
     def selected(self) -> np.ndarray:
@@ -758,6 +761,8 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     quantities = read_out(library, coef, bagging, params, chosen, trace)
     if uncertainty:
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
+    force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,
+                                                    trace, config, cv_error, noise_floor, read_out, uncertainty)
     force_estimate, force_direct = per_sample_forces(prep, library, system, coef, rows)
     periods = period_curves(prep, library, system, coef, params, rows, fit.phase_points)
     bar.update(1)
@@ -766,7 +771,7 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_direct, periods,
-                     warnings)
+                     warnings, force_calibration, limited)
 
 
 def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:
