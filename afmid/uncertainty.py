@@ -197,3 +197,23 @@ def finish(quantities: dict, warnings: list, prep, library, system, coef, mask, 
     if limited:
         warnings.append("warning: " + model_limited_warning(cv_error, noise_floor))
     return force_calibration, limited
+
+
+def quantity_lines(quantities: dict) -> list[str]:
+    """One line per read-out for the console: value, 1-sigma error (statistical and calibration parts when
+    a calibration uncertainty was declared), the 95 % interval and the model-limited mark."""
+    lines = []
+    for name, q in quantities.items():
+        unit = q.get("unit", "")
+        text = f"{name} = {q['value']:.4g} {unit}"
+        if math.isfinite(q.get("error", math.nan)):
+            text += f" ± {q['error']:.2g} (1 sigma"
+            if q.get("error_calibration", 0.0) > 0:
+                text += f": statistical {q.get('error_statistical', math.nan):.2g}, calibration {q['error_calibration']:.2g}"
+            text += ")"
+        if math.isfinite(q.get("ci_low", math.nan)) and math.isfinite(q.get("ci_high", math.nan)):
+            text += f", 95 % interval [{q['ci_low']:.4g}, {q['ci_high']:.4g}]"
+        if q.get("model_limited"):
+            text += "; MODEL-LIMITED (biased beyond its error bar)"
+        lines.append(text)
+    return lines
