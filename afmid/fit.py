@@ -47,6 +47,7 @@ from .fit_forces import (CHUNK_BLOCKS, force_cv_error, per_sample_forces, period
                          signal_rows)
 from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
 from .fit_selection import SelectionSettings
+from .baseline import BaselineColumns, remove_drift
 from .uncertainty import finish as finish_uncertainty
 # Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
 from .fit_forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
@@ -111,14 +112,16 @@ def prepare(trace: Trace, fit) -> Prepared:
     blocks = harmonic_blocks(x.size, trace.sample_rate, drive.frequency, t0=float(t[0]),
                              periods_per_block=fit.periods_per_block, max_harmonic=fit.max_harmonic,
                              oversample=oversample)
+    if fit.detrend == "linear":  # the trajectory without the drift; the regression's columns take the rest
+        x, removed["drift"] = remove_drift(x, t, blocks)
     windows = weak_windows(blocks)
     cl = trace.cantilever
     k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
     m, c = k / w0**2, k / (Q * w0)
     fixed = fit.cantilever == "fixed"
 
-    free_baseline = fit.baseline == "free"
-    names = ["drive_cos", "drive_sin"] + (["offset"] if free_baseline else [])
+    columns = BaselineColumns(drive.omega, float(t[0]), float(t[-1]), fit.baseline == "free", fit.detrend == "linear")
+    names = columns.names
     n_drive = len(names)
     weak = fit.form == "weak"
     # Rows of the weak form: -integral of (m psi'' - c psi' + k psi) x = integral of psi (F_ts - F_drive);
@@ -139,7 +142,7 @@ def prepare(trace: Trace, fit) -> Prepared:
         lo = blocks.start + b0 * blocks.L
         n_block = (b1 - b0) * blocks.L
         hi = lo + n_block + (blocks.L + 1 if weak else 0)
-        xs, cols = x[lo:hi, None], _drive_columns(t[lo:hi], drive.omega, free_baseline)
+        xs, cols = x[lo:hi, None], columns(t[lo:hi])
         turn = blocks.rotation(b0, b1)
         X[b0:b1] = blocks.project_blocks(xs[:n_block], b0, turn)
         nuisance_block[b0:b1] = blocks.project_blocks(cols[:n_block], b0, turn)
@@ -176,7 +179,7 @@ def prepare(trace: Trace, fit) -> Prepared:
                                  fit.differentiation_options)
         shape = (blocks.n_blocks, blocks.L)
         Y = -(m * a + ((c * v + k * xs) if fixed else 0.0))[used].reshape(shape)
-        cols = [_drive_columns(t, drive.omega, free_baseline)] + ([] if fixed else [xs[:, None], v[:, None]])
+        cols = [columns(t)] + ([] if fixed else [xs[:, None], v[:, None]])
         nuisance = np.column_stack(cols)[used].reshape(shape + (-1,))
         psi_sq = np.zeros(blocks.L)
         base_variance = np.full(blocks.L, float(np.var(Y - Y.mean(axis=0))))  # uniform weights
@@ -229,12 +232,6 @@ def _release_free_memory() -> None:
 
 
 _MALLOC_TRIM = None
-
-
-def _drive_columns(t: np.ndarray, omega: float, offset: bool) -> np.ndarray:
-    """The drive's nuisance columns at times ``t``: cos(w t), sin(w t) (and 1 for a free baseline)."""
-    cols = [np.cos(omega * t), np.sin(omega * t)] + ([np.ones_like(t)] if offset else [])
-    return np.column_stack(cols)
 
 
 #: Largest piece np.sum is applied to in :func:`pairwise_sum` (samples).

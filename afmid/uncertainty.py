@@ -56,6 +56,13 @@ def model_limited(cv_error: float, noise_floor: float) -> bool:
     return bool(math.isfinite(cv_error) and math.isfinite(noise_floor) and cv_error > FLOOR_FACTOR * noise_floor)
 
 
+def at_noise_floor(cv_error: float, noise_floor: float) -> bool:
+    """True when the fit's error is at or below its noise floor: nothing is left for a missing effect to
+    explain (a misfit the chi-square still sees there is numerical, e.g. the Gibbs ringing of the
+    model-free force at a step on noise-free data), so the diagnosis names none."""
+    return bool(math.isfinite(cv_error) and math.isfinite(noise_floor) and cv_error <= noise_floor)
+
+
 def model_limited_warning(cv_error: float, noise_floor: float) -> str:
     """The warning line of a model-limited fit."""
     return MODEL_LIMITED_TEXT.format(error=cv_error, floor=noise_floor, ratio=cv_error / noise_floor)
