@@ -48,6 +48,7 @@ from .fit_forces import (CHUNK_BLOCKS, force_cv_error, per_sample_forces, period
 from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
 from .fit_selection import SelectionSettings
 from .baseline import BaselineColumns, remove_drift
+from .motion import classify as classify_motion
 from .uncertainty import finish as finish_uncertainty
 # Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
 from .fit_forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
@@ -91,6 +92,7 @@ class Prepared:
     removed: dict  # detrend info
     form: str = "weak"
     strong: tuple | None = None  # (x, xdot) on the used samples from the differentiator (strong form)
+    motion: object = None  # afmid.motion.Motion: periodic, period doubling or non-periodic (None: not judged)
 
 
 def prepare(trace: Trace, fit) -> Prepared:
@@ -191,12 +193,15 @@ def prepare(trace: Trace, fit) -> Prepared:
     # The library is evaluated on a trajectory smoothed across periods: detector noise is independent from
     # period to period while the real motion wanders slowly (thermal correlation time Q / pi periods), and
     # noise in the regressors biases stiff terms low (errors in variables).
+    rho = math.exp(-math.pi * blocks.L * blocks.dt * drive.frequency / Q)
+    noise_var = blocks.noise_variance_factor() * noise_rms**2
+    motion = classify_motion(X[..., 0], noise_var, BOLTZMANN * fit.temperature / k if fit.thermal_noise else 0.0, rho)
     if fit.smooth_periods is not None:
         X_traj = smooth_across_blocks(X, fit.smooth_periods)
         residual_var = smoothing_variance_factor(blocks.n_blocks, fit.smooth_periods)
+    elif motion is not None and motion.non_periodic:  # no one orbit to smooth towards: each period as it is
+        X_traj, residual_var = X, 1.0
     else:
-        rho = math.exp(-math.pi * blocks.L * blocks.dt * drive.frequency / Q)
-        noise_var = blocks.noise_variance_factor() * noise_rms**2
         X_s, post_var = ou_smooth(X[..., 0], noise_var, rho)
         X_traj = X_s[..., None]
         residual_var = float(np.mean(post_var.sum(axis=1) / noise_var.sum()))
@@ -209,7 +214,7 @@ def prepare(trace: Trace, fit) -> Prepared:
         trajectory_noise=noise_rms * math.sqrt(residual_var),
         xdot_used=blocks.synthesize(V_traj)[:, 0],  # chunk by chunk into one array
         X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X), removed=removed,
-        form=fit.form, strong=strong,
+        form=fit.form, strong=strong, motion=motion,
     )
 
 
@@ -691,6 +696,8 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     trace = prep.trace
     # Defects were detected and reported when the trace was loaded (afmid.defects); keep them with the run.
     warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
+    if prep.motion is not None and prep.motion.non_periodic:
+        warnings.append(f"warning: {prep.motion.words()}; the trajectory is not smoothed across periods")
     params = library_parameters(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     physics, extra = profile_library(library, config)
