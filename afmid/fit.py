@@ -195,7 +195,7 @@ def prepare(trace: Trace, fit) -> Prepared:
     # noise in the regressors biases stiff terms low (errors in variables).
     rho = math.exp(-math.pi * blocks.L * blocks.dt * drive.frequency / Q)
     noise_var = blocks.noise_variance_factor() * noise_rms**2
-    motion = classify_motion(X[..., 0], noise_var, BOLTZMANN * fit.temperature / k if fit.thermal_noise else 0.0, rho)
+    motion = classify_motion(X[..., 0], noise_var, BOLTZMANN * fit.temperature / k if fit.thermal_noise else 0.0)
     if fit.smooth_periods is not None:
         X_traj = smooth_across_blocks(X, fit.smooth_periods)
         residual_var = smoothing_variance_factor(blocks.n_blocks, fit.smooth_periods)
