@@ -106,6 +106,9 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
         if "offset" in result.system.names:
             write_dataset(dg, "offset_force", float(nu[result.system.names.index("offset") - p]), "N")
+        if "drift" in result.system.names:  # fit.detrend: linear
+            write_dataset(dg, "baseline_drift", baseline_drift(result), "m/s",
+                          meaning="slope of the deflection baseline estimated with the force law (afmid.baseline)")
         if config.fit.cantilever == "free":
             write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
             write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
@@ -178,6 +181,17 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
             dg.attrs["implausible"] = implausible
     plausibility.warn(verdicts)
     return path
+
+
+def baseline_drift(result: FitResult) -> float:
+    """The deflection baseline's slope, m/s: the slope removed from the trajectory plus what the regression's
+    drift column took (its coefficient is -k x slope x half the record's duration in the equation)."""
+    p = result.n_library
+    t = result.prep.t
+    half = 0.5 * float(t[-1] - t[0])
+    k = result.prep.trace.cantilever.spring_constant
+    residual = -float(result.coef[p + result.system.names.index("drift") - p]) / (k * half) if half > 0 else 0.0
+    return float(result.prep.removed.get("drift", 0.0)) + residual
 
 
 # --------------------------------------------------------------------------- the whole run

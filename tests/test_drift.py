@@ -72,5 +72,24 @@ def test_linear_detrend_recovers_the_drift_free_fit(fits, seed, total):
     assert error <= 0.01
     assert error <= reference + 0.001, (error, reference)
     duration = trace.times[-1] - trace.times[0]
-    assert fitted.prep.removed["drift"] == pytest.approx(total / duration, abs=0.02 * max(total, 0.5e-9) / duration)
+    from afmid.runfile import baseline_drift
+
+    tolerance = 0.02 * max(total, 0.5e-9) / duration
+    assert fitted.prep.removed["drift"] == pytest.approx(total / duration, abs=tolerance)
+    assert baseline_drift(fitted) == pytest.approx(total / duration, abs=tolerance)  # what the run file stores
     assert "drift" in fitted.system.names and fitted.system.protected[fitted.system.names.index("drift")]
+
+
+@pytest.mark.slow
+def test_run_file_stores_the_baseline_drift(fits, tmp_path):
+    import h5py
+
+    from afmid.runfile import write_run
+
+    trace, result = fits[1, DRIFTS[0], "linear"]
+    write_run(tmp_path / "run.h5", result, _config(1, "linear"))
+    with h5py.File(tmp_path / "run.h5", "r") as h5:
+        ds = h5["model/drive/baseline_drift"]
+        assert ds.attrs["units"] == "m/s"
+        duration = trace.times[-1] - trace.times[0]
+        assert float(ds[()]) == pytest.approx(DRIFTS[0] / duration, rel=0.02)

@@ -14,6 +14,7 @@ from afmid.cli import main
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "file-formats.md"
 OPTIONAL = {  # written only with non-default settings
     "/model/identified_stiffness", "/model/identified_damping", "/model/drive/offset_force",
+    "/model/drive/baseline_drift",
 }
 
 
