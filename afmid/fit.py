@@ -48,7 +48,7 @@ from .fit_forces import (CHUNK_BLOCKS, force_cv_error, per_sample_forces, period
 from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
 from .fit_selection import SelectionSettings
 from .baseline import BaselineColumns, remove_drift
-from .motion import classify as classify_motion
+from .motion import classify as classify_motion, fit_warning as motion_warning
 from .uncertainty import finish as finish_uncertainty
 # Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
 from .fit_forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
@@ -697,7 +697,7 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     # Defects were detected and reported when the trace was loaded (afmid.defects); keep them with the run.
     warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
     if prep.motion is not None and prep.motion.non_periodic:
-        warnings.append(f"warning: {prep.motion.words()}; the trajectory is not smoothed across periods")
+        warnings.append(motion_warning(prep.motion, prep.noise_rms))
     params = library_parameters(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     physics, extra = profile_library(library, config)
