@@ -58,6 +58,9 @@ FIXED_COLUMNS = [  # (name, unit or None for text)
 TIME_COLUMNS = [("simulate_time", "s"), ("load_time", "s"), ("fit_time", "s"), ("write_time", "s"),
                 ("cpu_time", "s")]
 QUANTITY_FIELDS = ("value", "error", "ci_low", "ci_high")
+#: What the error and interval fields are (attributes of their datasets in summary.h5).
+FIELD_MEANINGS = {"error": {"error_kind": "1 sigma"}, "ci_low": {"interval": "95 %, lower end"},
+                  "ci_high": {"interval": "95 %, upper end"}}
 
 
 @dataclass
@@ -163,7 +166,8 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
                 data = np.array([_float(c.get(name)) for c in table], dtype=float)
                 write_dataset(h5, name, data, unit)
         pg = h5.create_group("parameters")
-        pg.attrs["meaning"] = ("physical parameters per row: value, bootstrap error, 95 % interval; the union over "
+        pg.attrs["meaning"] = ("physical parameters per row: value, error (1 sigma: bootstrap, profiles of the "
+                               "nonlinear parameters and the declared calibration), 95 % interval; the union over "
                                "all rows, NaN where a run has no such quantity")
         for name, unit, group in quantities:
             g = pg.create_group(group)
@@ -171,7 +175,7 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
             g.attrs["effect"] = ";".join(sorted({q["effect"] for q in found if q and q["effect"]}))
             for f in QUANTITY_FIELDS:
                 data = np.array([_float(q[f]) if q else math.nan for q in found], dtype=float)
-                write_dataset(g, f, data, unit)
+                write_dataset(g, f, data, unit, **FIELD_MEANINGS.get(f, {}))
 
 
 def _float(value) -> float:

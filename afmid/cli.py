@@ -148,6 +148,19 @@ def fit(
     implausible = violations(check_plausibility(result.quantities))
     flagged = f"; {len(implausible)} read-out(s) implausible, flagged in the file (see the warnings)" if implausible else ""
     log.info("wrote %s: %s%s", output, result.summary_line(), flagged)
+    from .uncertainty import quantity_lines
+
+    for line in quantity_lines(result.quantities):
+        log.info("  %s", line)
+    force_calibration = getattr(result, "force_calibration_uncertainty", 0.0)  # absent on older result objects
+    if force_calibration > 0:
+        log.info("  force: calibration share %.2g %% (1 sigma, relative)", 100 * force_calibration)
+    # The fit's own warnings (model-limited, non-periodic motion); the trace's findings were logged on loading.
+    prep = getattr(result, "prep", None)
+    loaded = {f"{f.severity}: {f.message}" for f in getattr(getattr(prep, "trace", None), "findings", [])}
+    for line in getattr(result, "warnings", []):
+        if line not in loaded:
+            log.warning("%s: %s", output, line.removeprefix("warning: "))
 
 
 @cli.command()

@@ -52,6 +52,8 @@ _Column = BeforeValidator(_column_not_bool)
 PositiveFloat = Annotated[float, _Number, Field(gt=0, allow_inf_nan=False)]
 NonNegativeFloat = Annotated[float, _Number, Field(ge=0, allow_inf_nan=False)]
 FiniteFloat = Annotated[float, _Number, Field(allow_inf_nan=False)]
+#: A relative 1-sigma uncertainty: 0.1 = 10 % (a percentage written as 10 is an error, not a 1000 % error bar).
+RelativeUncertainty = Annotated[float, _Number, Field(ge=0, lt=1, allow_inf_nan=False)]
 #: Largest random seed: numpy's generators take any non-negative integer, but a seed is stored in the
 #: output files as an HDF5 attribute and is conventionally 32-bit.
 MAX_SEED = 2**32 - 1
@@ -145,6 +147,10 @@ class CantileverConfig(StrictModel):
     resonance_frequency: _instrument("cantilever.resonance_frequency") | None = Field(None, description="f0, Hz")
     quality_factor: _instrument("cantilever.quality_factor") | None = Field(None, description="Q")
     tip_radius: _instrument("cantilever.tip_radius") | None = Field(None, description="R, m")
+    spring_constant_uncertainty: RelativeUncertainty | None = Field(
+        None, description="relative 1-sigma uncertainty of k (0.1 = 10 %), propagated into every read-out")
+    quality_factor_uncertainty: RelativeUncertainty | None = Field(
+        None, description="relative 1-sigma uncertainty of Q (0.1 = 10 %), propagated into every read-out")
 
 
 class DriveConfig(StrictModel):

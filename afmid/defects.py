@@ -460,7 +460,7 @@ def check_offset_and_drift(a: Analysis, s: Settings) -> list[Finding]:
                 findings.append(Finding(
                     "drift", "warning",
                     f"{what}: the fit would read it as a slowly changing force; set fit.detrend: linear "
-                    "(with fit.baseline: free)", "fit.detrend", numbers))
+                    "(the fit then estimates the drift with the force law)", "fit.detrend", numbers))
     offset = a.mean
     limit = max(OFFSET_FRACTION * a.amplitude, OFFSET_FORCE_MULTIPLE * a.force_range)
     if abs(offset) > limit and a.amplitude > 0:
@@ -470,7 +470,7 @@ def check_offset_and_drift(a: Analysis, s: Settings) -> list[Finding]:
         if s.baseline == "free":
             findings.append(Finding("offset", "repaired", f"{what}; fit.baseline: free absorbs it", "fit.baseline",
                                     numbers))
-        elif s.detrend in ("offset", "linear"):
+        elif s.detrend == "offset":  # (linear estimates a drift about the record's centre, no offset)
             findings.append(Finding("offset", "repaired", f"{what}; fit.detrend: {s.detrend} removes it "
                                     "(fit.baseline: free would keep the mean force)", "fit.detrend", numbers))
         else:

@@ -45,6 +45,9 @@ from .io import sha256_file
 from .candidate_shapes import ShapeSearch
 from .harmonics import settled_start
 from .physics import EFFECTS
+# A cross-validated error within FLOOR_FACTOR of its noise floor counts as the noise level (one constant with
+# the fit's model-limited mark).
+from .uncertainty import FLOOR_FACTOR, at_noise_floor
 # The run-file reader lives in afmid.runfile; `from afmid.diagnose import load_run, RunData` keeps working.
 from .runfile import RunData, load_run  # noqa: F401
 
@@ -61,9 +64,6 @@ BIC_DISTINCT = 6.0
 #: When the current model's cross-validated error stands above its noise floor, an added effect must cut
 #: the excess error sqrt(error^2 - floor^2) to at most this fraction (remove >= 36 % of the excess variance).
 ERROR_RATIO = 0.8
-#: A cross-validated error within this factor of its noise floor counts as the noise level. (Measured on
-#: clean simulated traces: error / floor = 0.95-1.3, the floor being an estimate itself.)
-FLOOR_FACTOR = 1.3
 #: A reduced chi-square above 1 + CHI2_SIGMAS * sqrt(2 / dof) is a significant misfit (the rows are
 #: whitened by their predicted noise, so a perfect model gives 1 +- sqrt(2 / dof)).
 CHI2_SIGMAS = 5.0
@@ -622,12 +622,17 @@ def _significant(chi2: float, limit: float, error: float, floor: float) -> bool:
     cross-validated error looks only at those, but against a noise floor that is
     itself an estimate (hence FLOOR_FACTOR).
     """
+    if at_noise_floor(error, floor):  # no diagnosis below the noise floor (a chi-square there is numerical)
+        return False
     above_floor = math.isfinite(error) and math.isfinite(floor) and error > FLOOR_FACTOR * floor
     return bool(chi2 > limit or above_floor)
 
 
 def _rejections(t: Trial, base: _Base) -> list[str]:
     reasons = []
+    if at_noise_floor(base.error, base.floor):
+        reasons.append(f"the model's error {base.error:.3g} is at or below its noise floor {base.floor:.3g}: "
+                       "nothing is left to explain")
     if not t.effect_terms_selected:
         reasons.append("its terms were not selected")
     if t.delta_bic > -BIC_EVIDENCE:

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .baseline import DRIFT, OFFSET, BaselineColumns
 from .harmonics import TRANSIENT_CHANGE
 
 #: Relative amplitude change across a record above which it is treated as a transient (the drive searched).
@@ -42,24 +43,20 @@ MAX_GRID = 241
 MARGIN_VALLEYS = 3.0
 
 
-def drive_columns(t: np.ndarray, omega: float, offset: bool) -> np.ndarray:
-    """The drive's nuisance columns at times ``t`` (s): cos(w t), sin(w t) (and 1 for a free baseline)."""
-    cols = [np.cos(omega * t), np.sin(omega * t)] + ([np.ones_like(t)] if offset else [])
-    return np.column_stack(cols)
-
-
 def is_transient(prep) -> bool:
     """True if the amplitude of the prepared record changes by more than :data:`TRANSIENT_LIMIT`."""
     return bool(prep.steadiness > TRANSIENT_LIMIT)
 
 
 def with_drive_frequency(prep, frequency: float):
-    """``prep`` (an :class:`afmid.fit.Prepared`) with its drive columns at ``frequency`` (Hz); blocks, windows,
-    trajectory and noise unchanged. A new object: ``prep`` is not modified."""
+    """``prep`` (an :class:`afmid.fit.Prepared`) with its drive columns at ``frequency`` (Hz), made as
+    :func:`afmid.fit.prepare` makes them (:class:`afmid.baseline.BaselineColumns`); blocks, windows, trajectory
+    and noise unchanged. A new object: ``prep`` is not modified."""
     blocks, windows = prep.blocks, prep.windows
-    omega = 2.0 * math.pi * frequency
-    n_drive = 3 if "offset" in prep.nuisance_names else 2
-    x, t = prep.x, prep.t
+    names = prep.nuisance_names
+    t = prep.t
+    columns = BaselineColumns(2.0 * math.pi * frequency, float(t[0]), float(t[-1]), OFFSET in names, DRIFT in names)
+    n_drive = len(columns.names)
     nuisance = prep.nuisance.copy()
     nuisance_block = prep.nuisance_block.copy()
     weak = prep.form == "weak"
@@ -67,7 +64,7 @@ def with_drive_frequency(prep, frequency: float):
         lo = blocks.start + b0 * blocks.L
         n_block = (b1 - b0) * blocks.L
         hi = lo + n_block + (blocks.L + 1 if weak else 0)
-        cols = drive_columns(t[lo:hi], omega, n_drive == 3)
+        cols = columns(t[lo:hi])
         turn = blocks.rotation(b0, b1)
         nuisance_block[b0:b1, :, :n_drive] = blocks.project_blocks(cols[:n_block], b0, turn)
         w1 = min(b1, windows.n_windows)
@@ -75,8 +72,7 @@ def with_drive_frequency(prep, frequency: float):
             nuisance[b0:w1, :, :n_drive] = windows.integrate_samples(windows.psi, cols, b0, w1 - b0, turn)
     if not weak:
         shape = (blocks.n_blocks, blocks.L)
-        nuisance[..., :n_drive] = drive_columns(t, omega, n_drive == 3)[blocks.used].reshape(shape + (n_drive,))
-    del x
+        nuisance[..., :n_drive] = columns(t)[blocks.used].reshape(shape + (n_drive,))
     drive = dataclasses.replace(prep.drive, frequency=float(frequency))
     return dataclasses.replace(prep, drive=drive, nuisance=nuisance, nuisance_block=nuisance_block)
 

@@ -47,7 +47,10 @@ from .fit_forces import (CHUNK_BLOCKS, force_cv_error, per_sample_forces, period
                          signal_rows)
 from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
 from .fit_selection import SelectionSettings
-from .drive_search import DriveSearch, drive_columns, is_transient, search_drive_frequency, with_drive_frequency
+from .drive_search import DriveSearch, is_transient, search_drive_frequency, with_drive_frequency
+from .baseline import BaselineColumns, remove_drift
+from .motion import classify as classify_motion, fit_warning as motion_warning
+from .uncertainty import finish as finish_uncertainty
 # Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
 from .fit_forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from .fit_selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
@@ -90,6 +93,7 @@ class Prepared:
     removed: dict  # detrend info
     form: str = "weak"
     strong: tuple | None = None  # (x, xdot) on the used samples from the differentiator (strong form)
+    motion: object = None  # afmid.motion.Motion: periodic, period doubling or non-periodic (None: not judged)
 
 
 def prepare(trace: Trace, fit) -> Prepared:
@@ -111,14 +115,16 @@ def prepare(trace: Trace, fit) -> Prepared:
     blocks = harmonic_blocks(x.size, trace.sample_rate, drive.frequency, t0=float(t[0]),
                              periods_per_block=fit.periods_per_block, max_harmonic=fit.max_harmonic,
                              oversample=oversample)
+    if fit.detrend == "linear":  # the trajectory without the drift; the regression's columns take the rest
+        x, removed["drift"] = remove_drift(x, t, blocks)
     windows = weak_windows(blocks)
     cl = trace.cantilever
     k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
     m, c = k / w0**2, k / (Q * w0)
     fixed = fit.cantilever == "fixed"
 
-    free_baseline = fit.baseline == "free"
-    names = ["drive_cos", "drive_sin"] + (["offset"] if free_baseline else [])
+    columns = BaselineColumns(drive.omega, float(t[0]), float(t[-1]), fit.baseline == "free", fit.detrend == "linear")
+    names = columns.names
     n_drive = len(names)
     weak = fit.form == "weak"
     # Rows of the weak form: -integral of (m psi'' - c psi' + k psi) x = integral of psi (F_ts - F_drive);
@@ -139,7 +145,7 @@ def prepare(trace: Trace, fit) -> Prepared:
         lo = blocks.start + b0 * blocks.L
         n_block = (b1 - b0) * blocks.L
         hi = lo + n_block + (blocks.L + 1 if weak else 0)
-        xs, cols = x[lo:hi, None], drive_columns(t[lo:hi], drive.omega, free_baseline)
+        xs, cols = x[lo:hi, None], columns(t[lo:hi])
         turn = blocks.rotation(b0, b1)
         X[b0:b1] = blocks.project_blocks(xs[:n_block], b0, turn)
         nuisance_block[b0:b1] = blocks.project_blocks(cols[:n_block], b0, turn)
@@ -176,7 +182,7 @@ def prepare(trace: Trace, fit) -> Prepared:
                                  fit.differentiation_options)
         shape = (blocks.n_blocks, blocks.L)
         Y = -(m * a + ((c * v + k * xs) if fixed else 0.0))[used].reshape(shape)
-        cols = [drive_columns(t, drive.omega, free_baseline)] + ([] if fixed else [xs[:, None], v[:, None]])
+        cols = [columns(t)] + ([] if fixed else [xs[:, None], v[:, None]])
         nuisance = np.column_stack(cols)[used].reshape(shape + (-1,))
         psi_sq = np.zeros(blocks.L)
         base_variance = np.full(blocks.L, float(np.var(Y - Y.mean(axis=0))))  # uniform weights
@@ -188,12 +194,15 @@ def prepare(trace: Trace, fit) -> Prepared:
     # The library is evaluated on a trajectory smoothed across periods: detector noise is independent from
     # period to period while the real motion wanders slowly (thermal correlation time Q / pi periods), and
     # noise in the regressors biases stiff terms low (errors in variables).
+    rho = math.exp(-math.pi * blocks.L * blocks.dt * drive.frequency / Q)
+    noise_var = blocks.noise_variance_factor() * noise_rms**2
+    motion = classify_motion(X[..., 0], noise_var, BOLTZMANN * fit.temperature / k if fit.thermal_noise else 0.0)
     if fit.smooth_periods is not None:
         X_traj = smooth_across_blocks(X, fit.smooth_periods)
         residual_var = smoothing_variance_factor(blocks.n_blocks, fit.smooth_periods)
+    elif motion is not None and motion.non_periodic:  # no one orbit to smooth towards: each period as it is
+        X_traj, residual_var = X, 1.0
     else:
-        rho = math.exp(-math.pi * blocks.L * blocks.dt * drive.frequency / Q)
-        noise_var = blocks.noise_variance_factor() * noise_rms**2
         X_s, post_var = ou_smooth(X[..., 0], noise_var, rho)
         X_traj = X_s[..., None]
         residual_var = float(np.mean(post_var.sum(axis=1) / noise_var.sum()))
@@ -206,7 +215,7 @@ def prepare(trace: Trace, fit) -> Prepared:
         trajectory_noise=noise_rms * math.sqrt(residual_var),
         xdot_used=blocks.synthesize(V_traj)[:, 0],  # chunk by chunk into one array
         X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X), removed=removed,
-        form=fit.form, strong=strong,
+        form=fit.form, strong=strong, motion=motion,
     )
 
 
@@ -554,6 +563,8 @@ class FitResult:
     periods: dict[str, np.ndarray]
     warnings: list[str] = field(default_factory=list)
     drive_search: DriveSearch | None = None  # the drive frequency searched by the regression (transient records)
+    force_calibration_uncertainty: float = 0.0  # relative, 1 sigma: the force's share of the k / Q calibration
+    model_limited: bool = False  # cv_error above its noise floor: parameters biased beyond their error bars
 
     @property
     def selected(self) -> np.ndarray:
@@ -687,6 +698,8 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     trace = prep.trace
     # Defects were detected and reported when the trace was loaded (afmid.defects); keep them with the run.
     warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
+    if prep.motion is not None and prep.motion.non_periodic:
+        warnings.append(motion_warning(prep.motion, prep.noise_rms))
     params = library_parameters(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     physics, extra = profile_library(library, config)
@@ -755,6 +768,8 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     quantities = read_out(library, coef, bagging, params, chosen, trace)
     if uncertainty:
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
+    force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,
+                                                    trace, config, cv_error, noise_floor, read_out, uncertainty)
     force_estimate, force_direct = per_sample_forces(prep, library, system, coef, rows)
     periods = period_curves(prep, library, system, coef, params, rows, fit.phase_points)
     bar.update(1)
@@ -763,7 +778,7 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_direct, periods,
-                     warnings, drive_search)
+                     warnings, drive_search, force_calibration, limited)
 
 
 def settle_drive_frequency(prep: Prepared, library: Library, config: RunConfig, params: dict, physics: tuple,

@@ -228,7 +228,12 @@ def inspect_file(file: str | Path, column: str | None = None, sample_rate: float
             noise += f" ({a.noise_rms / math.sqrt(s.sample_rate / 2) * 1e15:.3g} fm/sqrt(Hz))"
         if a.amplitude > 0:
             noise += f", {a.noise_rms / a.amplitude:.2g} of the amplitude"
+        if a.motion is not None and a.motion.non_periodic:
+            noise += "; inflated by the non-periodic motion (see motion), not only detector noise"
         rows.append(("noise floor", f"{noise} (residual of per-period fits with {a.K} harmonics)"))
+        if a.motion is not None:
+            rows.append(("motion", a.motion.words() if a.motion.non_periodic else
+                         "periodic (consecutive periods agree to the noise)"))
         rows.append(("harmonics", _harmonics(a)))
         rows.append(("interaction", _interaction(a, s)))
     if s.is_afmid:

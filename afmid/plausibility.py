@@ -181,7 +181,7 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
         if has_interval and (ci_high < low or ci_low > high):
             return Verdict(False, f"{shown} lies in {allowed}, but its whole 95 % interval {interval} lies outside")
     if math.isinf(error) or (value != 0 and math.isfinite(error) and error > UNCONSTRAINED_RATIO * abs(value)):
-        return Verdict(False, f"{shown} ± {display(error, unit)} is unconstrained: its error is more than "
+        return Verdict(False, f"{shown} ± {display(error, unit)} (1σ) is unconstrained: its error is more than "
                               f"{UNCONSTRAINED_RATIO:g} times the value, the data do not determine it")
     return Verdict(True, "")
 
@@ -204,14 +204,14 @@ def attributes(verdict: Verdict) -> dict:
 def flagged_value(name: str, quantity: Mapping) -> str:
     """How a table shows an implausible read-out: never as a plain number.
 
-    ``implausible: -24 kPa s ± 3 kPa s (plausible: [0, 1e5] Pa s)``.
+    ``implausible: -24 kPa s ± 3 kPa s (1σ) (plausible: [0, 1e5] Pa s)``.
     """
     value, error = _field(quantity, "value"), _field(quantity, "error")
     declared = plausible_range(name, quantity.get("effect") or None)
     unit = str(quantity.get("unit") or (declared[2] if declared else ""))
     text = f"implausible: {display(value, unit)}"
     if math.isfinite(error):
-        text += f" ± {display(error, unit)}"
+        text += f" ± {display(error, unit)} (1σ)"
     if declared is not None:
         text += f" (plausible: {range_words(declared[0], declared[1], unit)})"
     return text

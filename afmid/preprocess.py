@@ -34,15 +34,17 @@ log = logging.getLogger(__name__)
 
 
 def detrend(x: np.ndarray, t: np.ndarray, mode: str) -> tuple[np.ndarray, dict]:
-    """Remove an offset or a linear drift. Returns the corrected trace and what was removed (m, m/s)."""
+    """Remove an offset (``offset``). Returns the corrected trace and what was removed (m). ``linear`` changes
+    nothing here: :func:`afmid.fit.prepare` estimates the drift (:mod:`afmid.baseline`)."""
     if mode == "none":
         return x, {}
     if mode == "offset":
         offset = float(x.mean())
         return x - offset, {"offset": offset}
     if mode == "linear":
-        slope, intercept = np.polyfit(t - t.mean(), x, 1)
-        return x - (intercept + slope * (t - t.mean())), {"offset": float(intercept), "drift": float(slope)}
+        # Not a line through the oscillation (its partial period alone makes a fake ramp): the fit estimates
+        # the drift with the force law (afmid.baseline) once the periods are known.
+        return x, {}
     raise ValueError(mode)
 
 

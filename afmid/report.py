@@ -27,6 +27,7 @@ from .physics import EFFECTS
 from .report_folder import report_folder
 from .runcheck import check_same_traces
 from .runfile import RunData, load_run
+from .uncertainty import ERROR_LABEL
 
 log = logging.getLogger(__name__)
 NN = 1e9  # N -> nN for display
@@ -387,8 +388,10 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     parts.extend(f"<p><b>Note:</b> {html.escape(note)}</p>" for note in summary.get("notes", []))
     parts.append("<h2>Runs</h2>")
     rows = [[r.path.name, ", ".join(r.effects) or "(library)", _fmt(r.cv_error), _fmt(r.cv_error_noise_floor),
-             r.n_terms, _fmt(r.chi2_reduced), ", ".join(r.selected_terms)] for r in runs]
-    parts.append(_table(["run", "effects", "cv error", "noise floor", "terms", "χ²_red", "selected terms"], rows))
+             "yes" if r.model_limited else "no", r.n_terms, _fmt(r.chi2_reduced), ", ".join(r.selected_terms)]
+            for r in runs]
+    parts.append(_table(["run", "effects", "cv error", "noise floor", "model-limited", "terms", "χ²_red",
+                         "selected terms"], rows))
     if "error_by_run" in figures:
         parts.append(_img(folder, figures["error_by_run"], "Cross-validated error of each run, in the order given, "
                                                            "with the error a perfect model would show (noise floor)"))
@@ -404,8 +407,7 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
             if q and not q.get("plausible", True):
                 row.append(plausibility.flagged_value(n, q))
             elif q:
-                err = f" ± {q['error']:.2g}" if math.isfinite(q["error"]) else ""
-                row.append(f"{q['value']:.4g}{err} {q['unit']}")
+                row.append(quantity_cell(q))
             elif fixed is not None:
                 row.append(f"{fixed:.4g} (fixed)")
             else:
@@ -414,6 +416,16 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
             row.append(_fmt(truth_q.get(n, math.nan)))
         rows.append(row)
     parts.append(_table(["quantity"] + [r.path.name for r in runs] + (["truth"] if truth_q else []), rows))
+    parts.append("<p>Errors are 1 σ: the bootstrap over periods (and the nonlinear parameters' profiles), plus, "
+                 "where <code>cantilever.spring_constant_uncertainty</code> / <code>quality_factor_uncertainty</code> "
+                 "are declared, the calibration's share in quadrature (shown as stat / cal). 95 % intervals are in "
+                 "the run file (<code>ci_low</code>, <code>ci_high</code>).</p>")
+    limited = [r.path.name for r in runs if r.model_limited]
+    if limited:
+        parts.append(f"<p><b>Model-limited</b>: {html.escape(', '.join(limited))}: the cross-validated error stands "
+                     "above the noise floor, so the model misses part of the force and its parameters are biased by "
+                     "more than their error bars (which cover noise and calibration only). Do not publish them as "
+                     "measurements.</p>")
     flagged = [(r.path.name, q.get("plausibility", "")) for r in runs for q in r.quantities.values()
                if not q.get("plausible", True)]
     if flagged:
@@ -429,7 +441,7 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                       "at full bandwidth" + (", and the true force of the simulation" if last.truth is not None else "")))
     parts.append(_img(folder, figures["force_time"], "Force vs time over three periods: model-free vs model"))
     parts.append(_img(folder, figures["phase_portraits"], "Phase portraits: measured periods vs the identified model re-simulated"))
-    parts.append(_img(folder, figures["coefficients"], "Coefficients with bootstrap standard errors (truth when simulated)"))
+    parts.append(_img(folder, figures["coefficients"], "Coefficients with bootstrap standard errors, 1 σ (truth when simulated)"))
     parts.append("<h2>Where the model fails</h2>")
     parts.append(f"<p>{_rich(diag.get('description', '') or describe_residual(local, last))}.</p>")
     rows = [[k, f"{100 * v['fraction_of_time']:.0f} %", f"{100 * v['share_of_residual']:.0f} %", _fmt(v["rms"] * NN, "nN"),
@@ -508,7 +520,11 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
             "runs": [{"run": str(p), "effects": r.effects, "error": r.cv_error, "noise_floor": r.cv_error_noise_floor,
                       "n_terms": r.n_terms,
                       "terms": r.selected_terms, "chi2_reduced": r.chi2_reduced,
-                      "parameters": {k: {"value": v["value"], "error": v["error"], "unit": v["unit"],
+                      "model_limited": r.model_limited,
+                      "parameters": {k: {"value": v["value"], "error": v["error"], "error_kind": ERROR_LABEL,
+                                         "error_statistical": v.get("error_statistical", v["error"]),
+                                         "error_calibration": v.get("error_calibration", 0.0),
+                                         "model_limited": v.get("model_limited", False), "unit": v["unit"],
                                          "plausible": v.get("plausible", True),
                                          "plausibility": v.get("plausibility", "")}
                                      for k, v in r.quantities.items()}}
@@ -577,3 +593,18 @@ def terminal_summary(summary: dict, output: Path) -> str:
     lines.extend(f"note: {note}" for note in summary.get("notes", []))
     lines.append(f"report: {output / 'report.html'}")
     return "\n".join(lines)
+
+
+def quantity_cell(q: dict) -> str:
+    """A read-out in the parameter table: value ± 1-sigma error (stat / cal when a calibration uncertainty was
+    declared) and unit, marked when the run is model-limited."""
+    text = f"{q['value']:.4g}"
+    if math.isfinite(q["error"]):
+        text += f" ± {q['error']:.2g} (1σ"
+        if q.get("error_calibration", 0.0) > 0:
+            text += f"; stat {q.get('error_statistical', math.nan):.2g} / cal {q['error_calibration']:.2g}"
+        text += ")"
+    text += f" {q['unit']}"
+    if q.get("model_limited"):
+        text += " [model-limited]"
+    return text

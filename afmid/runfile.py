@@ -33,6 +33,7 @@ from .errors import ConfigError, InputError
 from .files import check_input_file
 from .fit_forces import PeriodCurves
 from .io import RUN_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
+from .uncertainty import ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR
 from .runcheck import RunReader, check_version, input_unchanged, stored_config
 
 if TYPE_CHECKING:  # afmid.fit re-exports write_run: importing it here would be a cycle
@@ -88,9 +89,9 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(m, "expressions", np.array([t.expression for t in result.library.terms]), "1")
         write_dataset(m, "units", np.array(units), "1")
         write_dataset(m, "coefficients", np.where(result.selected[:p], result.coef[:p], 0.0), "see /model/units")
-        write_dataset(m, "coefficients_errors", result.coef_std[:p], "see /model/units", meaning="bootstrap std")
-        write_dataset(m, "coefficients_ci_low", result.ci_low[:p], "see /model/units", meaning="2.5 % bootstrap")
-        write_dataset(m, "coefficients_ci_high", result.ci_high[:p], "see /model/units", meaning="97.5 % bootstrap")
+        write_dataset(m, "coefficients_errors", result.coef_std[:p], "see /model/units", meaning="bootstrap std, 1 sigma")
+        write_dataset(m, "coefficients_ci_low", result.ci_low[:p], "see /model/units", meaning="lower end of the 95 % bootstrap interval (2.5 % percentile)")
+        write_dataset(m, "coefficients_ci_high", result.ci_high[:p], "see /model/units", meaning="upper end of the 95 % bootstrap interval (97.5 % percentile)")
         write_dataset(m, "selected", result.selected[:p], "1")
         write_dataset(m, "inclusion_probability", result.inclusion[:p], "1")
         write_dataset(m, "effects", np.array(list(result.library.effects) or [""]), "1")
@@ -114,22 +115,31 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
             else "spectral peak of the deflection")
         if "offset" in result.system.names:
             write_dataset(dg, "offset_force", float(nu[result.system.names.index("offset") - p]), "N")
+        if "drift" in result.system.names:  # fit.detrend: linear
+            write_dataset(dg, "baseline_drift", baseline_drift(result), "m/s",
+                          meaning="slope of the deflection baseline estimated with the force law (afmid.baseline)")
         if config.fit.cantilever == "free":
             write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
             write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
         pg = m.create_group("parameters")
         verdicts = plausibility.check_plausibility(result.quantities)  # a value outside its range is flagged
         for name, q in result.quantities.items():
+            parts = {k: q[k] for k in ("error_statistical", "error_calibration") if k in q}
             write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
-                          effect=q["effect"], description=q["doc"], **plausibility.attributes(verdicts[name]))
+                          effect=q["effect"], description=q["doc"], model_limited=bool(q.get("model_limited", False)),
+                          **ERROR_ATTRS, **parts, **plausibility.attributes(verdicts[name]))
         ng = m.create_group("nonlinear")
         for name, est in result.nonlinear.items():
-            write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated)
+            write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated,
+                          error_kind=ERROR_LABEL)
         fixed_d = config.sample.separation
         write_dataset(m, "separation", result.system.params["d"], "m", estimated=fixed_d is None,
-                      error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0)
+                      error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0, error_kind=ERROR_LABEL)
         fg = h5.create_group("force")
-        write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive")
+        write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive",
+                      calibration_relative_uncertainty=result.force_calibration_uncertainty, error_kind=ERROR_LABEL,
+                      meaning="model force; calibration_relative_uncertainty: its relative 1-sigma share of the "
+                              "declared k and Q uncertainties")
         write_dataset(fg, "direct", result.force_direct, "N", positive="repulsive",
                       meaning="model-free force from the equation of motion, band-limited to signal harmonics")
         write_dataset(fg, "time", result.prep.t, "s")
@@ -145,6 +155,9 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(dg, "cv_error_folds", result.cv_error_folds, "1")
         write_dataset(dg, "cv_error_noise_floor", result.cv_error_noise_floor, "1",
                       definition="expected cv_error of a perfect model at the estimated noise")
+        write_dataset(dg, "model_limited", bool(result.model_limited), "1",
+                      definition=f"cv_error above {FLOOR_FACTOR} x cv_error_noise_floor: the parameters are biased "
+                                 "by a missing effect beyond their error bars")
         best = result.selection.best
         write_dataset(dg, "bic", best.bic, "1", definition="n ln(rss/n) + k ln n over whitened rows")
         write_dataset(dg, "rss", best.rss, "1", definition="whitened residual sum of squares")
@@ -183,6 +196,17 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
     return path
 
 
+def baseline_drift(result: FitResult) -> float:
+    """The deflection baseline's slope, m/s: the slope removed from the trajectory plus what the regression's
+    drift column took (its coefficient is -k x slope x half the record's duration in the equation)."""
+    p = result.n_library
+    t = result.prep.t
+    half = 0.5 * float(t[-1] - t[0])
+    k = result.prep.trace.cantilever.spring_constant
+    residual = -float(result.coef[p + result.system.names.index("drift") - p]) / (k * half) if half > 0 else 0.0
+    return float(result.prep.removed.get("drift", 0.0)) + residual
+
+
 # --------------------------------------------------------------------------- the whole run
 @dataclass
 class RunData:
@@ -216,6 +240,8 @@ class RunData:
     n_rows: int = 0  # whitened equations behind bic / chi2_reduced (0 if the file does not say)
     harmonics: np.ndarray | None = None  # drive harmonic of each Fourier row (0, 1, 1, 2, 2, ...)
     signal_rows: np.ndarray | None = None  # rows used by the model-free force (above the noise)
+    model_limited: bool = False  # cv_error above its noise floor (afmid.uncertainty.model_limited)
+    force_calibration_uncertainty: float = 0.0  # relative 1 sigma of the force from the declared k / Q
 
     @property
     def n_terms(self) -> int:
@@ -292,6 +318,8 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
                "error": float(_required_attr(ds, "error", path)),
                "ci_low": float(_required_attr(ds, "ci_low", path)), "ci_high": float(_required_attr(ds, "ci_high", path)),
                "effect": text(_required_attr(ds, "effect", path)),
+               **{k: float(ds.attrs[k]) for k in ("error_statistical", "error_calibration") if k in ds.attrs},
+               "model_limited": bool(ds.attrs.get("model_limited", False)),
                **plausibility.attributes(read_verdict(name, ds))}
         for name, ds in m["parameters"].items()
     }
@@ -327,6 +355,8 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         n_rows=int(d["n_rows"][()]) if "n_rows" in d else 0,
         harmonics=d["harmonics"][...].astype(int) if "harmonics" in d else None,
         signal_rows=d["signal_rows"][...].astype(bool) if "signal_rows" in d else None,
+        model_limited=bool(d["model_limited"][()]) if "model_limited" in d else False,
+        force_calibration_uncertainty=float(h5["force"]["estimate"].attrs.get("calibration_relative_uncertainty", 0.0)),
     )
 
 

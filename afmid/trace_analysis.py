@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .motion import classify as classify_motion
 from .harmonics import (
     MIN_PERIODS, TRANSIENT_CHANGE, amplitude_change, block_layout, fourier_design, highest_harmonic,
     least_squares_projector, measure_frequency, noise_variance_factor, rotate_to_global, settled_start,
@@ -59,6 +60,7 @@ class Analysis:
     force_range: float = 0.0  # range of the model-free force / k (lengths units), 0 without interaction
     contact: str = "none"  # 'contact', 'attractive' (never touches), 'none' (no interaction detected)
     flipped: bool = False  # the interaction is at the negative deflection peaks
+    motion: object = None  # afmid.motion.Motion of the per-period coefficients (None: too few periods)
 
     @property
     def n_blocks(self) -> int:
@@ -153,7 +155,7 @@ def analyse(
         n=x.size, cycles_per_sample=f, spp=spp, K=K, L=L, start=start,
         amplitude=float(np.hypot(coef[1], coef[2])), mean=float(x.mean()), noise_rms=noise,
         block_amplitude=amp, block_phase=phase, block_mean=glob[:, 0].copy(), coef=coef, coef_sigma=sigma,
-        above_noise=[],
+        above_noise=[], motion=classify_motion(glob, white**2),
     )
     _interaction(out, 1.0 if resonance_ratio is None else resonance_ratio, quality_factor)
     return out

@@ -173,7 +173,7 @@ def test_drift_is_reported_with_the_setting_that_removes_it(load):
     assert finding.message.startswith("the mean deflection drifts by 5")
     assert "pm over the trace (5 % of the amplitude; detector or thermal drift)" in finding.message
     assert finding.numbers["drift"] == pytest.approx(0.5e-9, rel=0.02)
-    assert finding.message.endswith("set fit.detrend: linear (with fit.baseline: free)")
+    assert finding.message.endswith("set fit.detrend: linear (the fit then estimates the drift with the force law)")
     (finding,) = load(x, fit={"detrend": "linear"}).findings
     assert finding.severity == "repaired" and finding.message.endswith("fit.detrend: linear removes it")
 

@@ -112,7 +112,7 @@ def test_display_units(value, unit, text):
 
 def test_flagged_value_is_never_a_plain_number():
     text = flagged_value("viscosity", {"value": -24000.0, "error": 3000.0, "unit": "Pa*s", "effect": "viscoelastic"})
-    assert text == "implausible: -24 kPa s ± 3 kPa s (plausible: [0, 1e5] Pa s)"
+    assert text == "implausible: -24 kPa s ± 3 kPa s (1σ) (plausible: [0, 1e5] Pa s)"
 
 
 # --------------------------------------------------------------------------- after a fit

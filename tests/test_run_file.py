@@ -16,6 +16,7 @@ OPTIONAL = {  # written only with non-default settings
     "/model/identified_stiffness", "/model/identified_damping", "/model/drive/offset_force",
     "/model/drive/frequency_sigma", "/model/drive/response_frequency",  # a transient record (drive searched)
     "/diagnostics/path/votes",  # only when at least two period groups voted (this trace has 12 periods: one)
+    "/model/drive/baseline_drift",
 }
 
 
