@@ -179,3 +179,29 @@ def search_drive_frequency(prep, factors: Callable[[object], np.ndarray], rng: n
         sigma = max(sigma, float(np.std(vertices, ddof=1)))
     return DriveSearch(best, sigma, response, nominal, np.concatenate([grid, local]),
                        np.concatenate([values, local_values]))
+
+
+def settle_drive_frequency(prep, choice: str, seed: int, factors_at: Callable[[object], Callable],
+                           estimate_again: Callable[[object], None] | None = None) -> tuple[object, DriveSearch | None]:
+    """The prepared record with its drive frequency by ``fit.drive_frequency`` ``choice``, and the search if one
+    ran: in a transient (auto) or always (search) the one the regression prefers, alternating twice with the
+    separation and decay lengths; the nominal one; or the response's spectral peak (unchanged ``prep``).
+
+    ``factors_at(prep)`` returns the per-window factor function of :func:`search_drive_frequency` with the
+    library's columns evaluated once at the current parameters; ``estimate_again(prep)`` searches those
+    parameters again on the new drive (None: nothing to search).
+    """
+    if choice == "nominal":
+        return with_drive_frequency(prep, prep.drive.nominal), None
+    if choice == "response" or (choice == "auto" and not is_transient(prep)):
+        return prep, None
+    response = prep.drive.frequency
+    rng = np.random.default_rng([seed, 2])
+    found = None
+    for _ in range(2):
+        found = search_drive_frequency(prep, factors_at(prep), rng, response)
+        prep = with_drive_frequency(prep, found.frequency)
+        if estimate_again is None:
+            break
+        estimate_again(prep)
+    return prep, found

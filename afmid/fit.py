@@ -47,7 +47,7 @@ from .fit_forces import (CHUNK_BLOCKS, force_cv_error, per_sample_forces, period
                          signal_rows)
 from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
 from .fit_selection import SelectionSettings
-from .drive_search import DriveSearch, is_transient, search_drive_frequency, with_drive_frequency
+from .drive_search import DriveSearch, settle_drive_frequency
 from .baseline import BaselineColumns, remove_drift
 from .motion import classify as classify_motion, fit_warning as motion_warning
 from .uncertainty import finish as finish_uncertainty
@@ -704,7 +704,17 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     physics, extra = profile_library(library, config)
     nonlinear = estimate_nonlinear(prep, library, config, params, physics=(physics, extra))
-    prep, drive_search = settle_drive_frequency(prep, library, config, params, (physics, extra), nonlinear)
+
+    def factors_at(p: Prepared):  # the profile library's columns at the current parameters, held
+        trial = dict(params, **extra)
+        theta = _library_columns(p, physics, trial)
+        return lambda q: build_system(q, physics, trial, theta=theta).T_blocks
+
+    def estimate_again(p: Prepared) -> None:
+        nonlinear.update(estimate_nonlinear(p, library, config, params, physics=(physics, extra)))
+
+    prep, drive_search = settle_drive_frequency(prep, fit.drive_frequency, fit.seed, factors_at,
+                                                estimate_again if nonlinear else None)
     bar.update(1)
     settings = SelectionSettings.for_library(fit, library, len(prep.nuisance_names))
     system = build_system(prep, library, params)
@@ -779,32 +789,6 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_direct, periods,
                      warnings, drive_search, force_calibration, limited)
-
-
-def settle_drive_frequency(prep: Prepared, library: Library, config: RunConfig, params: dict, physics: tuple,
-                           nonlinear: dict) -> tuple[Prepared, DriveSearch | None]:
-    """The record's drive frequency by ``fit.drive_frequency`` (:mod:`afmid.drive_search`): in a transient
-    (auto) or always (search) the one the regression prefers, alternating twice with the separation and decay
-    lengths (``params`` and ``nonlinear`` updated in place); the nominal one; or the response's spectral peak."""
-    choice = config.fit.drive_frequency
-    if choice == "nominal":
-        return with_drive_frequency(prep, prep.drive.nominal), None
-    if choice == "response" or (choice == "auto" and not is_transient(prep)):
-        return prep, None
-    profile, extra = physics
-    response = prep.drive.frequency
-    rng = np.random.default_rng([config.fit.seed, 2])
-    found = None
-    for _ in range(2):
-        trial = dict(params, **extra)
-        theta = _library_columns(prep, profile, trial)
-        found = search_drive_frequency(prep, lambda p: build_system(p, profile, trial, theta=theta).T_blocks, rng,
-                                       response)
-        prep = with_drive_frequency(prep, found.frequency)
-        if not nonlinear:
-            break
-        nonlinear.update(estimate_nonlinear(prep, library, config, params, physics=physics))
-    return prep, found
 
 
 def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:
