@@ -403,13 +403,14 @@ def _diagnose(run: RunData, progress: bool) -> dict:
     from tqdm import tqdm
 
     from .fit import prepare
+    from .instrument import from_config as instrument_from_config
     from .io import load_trace
 
     started = time.perf_counter()
     local = localize(run)
     base_config = refit_config(run, run.effects)
     # Every refit below differs from this one only in its library and fixed parameters: one preparation.
-    prepared = prepare(load_trace(base_config), base_config.fit)
+    prepared = prepare(load_trace(base_config), base_config.fit, instrument_from_config(base_config))
     base_result = _fit_quick(base_config, prepared)
     chi2, limit, n_rows = _chi2(base_result)
     base = _Base(base_result.cv_error, base_result.cv_error_noise_floor, base_result.selection.best.bic,
