@@ -288,16 +288,28 @@ def deflection_views(x: np.ndarray, blocks, instrument: Instrument | None, canti
     tip_coef = apply_per_harmonic(measured, tip_gain)
     # The motion is not exactly periodic (thermal wander): what the block series leave out, the residual about
     # them, goes through the same gains by FFT, up to harmonic K + 1/2 (above it the samples stay as measured).
+    # Each frequency takes the gain of its nearest harmonic: the noise model of the rows is per harmonic, and
+    # between harmonics the modes' gain H_1 / H can be huge (at an antiresonance the tip does not move, and
+    # inverting there would amplify the noise without bound).
     residual = x - crossfaded_series(blocks, measured, x.size)
     spectrum = np.fft.rfft(residual)
-    f_fft = np.fft.rfftfreq(x.size, blocks.dt)
-    in_band = f_fft <= (K + 0.5) * f[1]
-    tip_fft = np.where(in_band, instrument.tip_gain(f_fft), 1.0)
+    nearest = np.rint(np.fft.rfftfreq(x.size, blocks.dt) / f[1]).astype(int)
+    in_band = nearest <= K
+    nearest = np.minimum(nearest, K)
+    tip_fft = np.where(in_band, tip_gain[nearest], 1.0)
     tip = x + crossfaded_series(blocks, tip_coef - measured, x.size) + np.fft.irfft(spectrum * (tip_fft - 1), x.size)
     if equation_gain is None:
         equation = tip
     else:
-        eq_fft = tip_fft * np.where(in_band, instrument.equation_gain(cantilever, f_fft), 1.0)
+        # The modes' gain at each frequency (a higher mode's ringing between harmonics is taken out), its size
+        # capped by the larger of the two neighbouring harmonics' (no blow-up at an antiresonance).
+        f_fft = np.fft.rfftfreq(x.size, blocks.dt)
+        below = np.minimum(np.floor(f_fft / f[1]).astype(int), K)
+        cap = np.maximum(np.abs(equation_gain[below]), np.abs(equation_gain[np.minimum(below + 1, K)]))
+        exact = instrument.equation_gain(cantilever, f_fft)
+        size = np.abs(exact)
+        exact = np.where(size > cap, exact * cap / np.maximum(size, 1e-300), exact)
+        eq_fft = tip_fft * np.where(in_band, exact, 1.0)
         equation = (x + crossfaded_series(blocks, apply_per_harmonic(tip_coef, equation_gain) - measured, x.size)
                     + np.fft.irfft(spectrum * (eq_fft - 1), x.size))
     inverted = instrument.invertible_up_to(f)
