@@ -316,7 +316,7 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
             deflection = record.x.copy()
         else:
             record, deflection = _record_detected(integrator, grid, osc, noise, rng, bar, declared.detector,
-                                                  sim.mode == "steady")
+                                                  sim.mode == "steady", config.source)
     finally:
         bar.close()
 
@@ -364,12 +364,18 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
                  drive_frequency=osc.drive_frequency, truth=truth, drive_force_amplitude=osc.drive_force)
 
 
-def _record_detected(integrator, grid: Grid, osc: Oscillator, noise, rng, bar: _Progress, detector, steady: bool):
+def _record_detected(integrator, grid: Grid, osc: Oscillator, noise, rng, bar: _Progress, detector, steady: bool,
+                     source=None):
     """Record the tip on the integration grid, pass it through the detector (:func:`sim_instrument.detect`) and
     keep the output samples; the truth (force, velocity, tip) at the output samples. In steady mode whole drive
     periods run through the filter first (its start-up transient gone); a transient record starts the filter
     at rest with the motion. Returns (record at the output samples, detected deflection)."""
     n_sub = grid.steps_per_sample
+    if detector.bandwidth >= 0.25 * grid.sample_rate * n_sub:
+        raise ConfigError(f"the detector bandwidth {detector.bandwidth:g} Hz is not below a quarter of the "
+                          f"integration rate {grid.sample_rate * n_sub:g} Hz, where the simulator filters; raise "
+                          "simulate.steps_per_period or leave the detector out (it is then ideal)",
+                          file=source, key="data.detector.bandwidth")
     fine_per_period = grid.sample_rate * n_sub / osc.drive_frequency
     lead_samples = 0
     if steady and abs(fine_per_period - round(fine_per_period)) < 1e-9 * fine_per_period:
