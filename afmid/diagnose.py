@@ -473,7 +473,8 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         explained = True
     missing = bool(good) or residual_significant
     description = describe_residual(local, run)
-    finding = _undeclared_instrument(base_config, prepared, base_result, base, good) if missing else None
+    finding = (instrument_signature.undeclared(base_config, prepared, base_result, base.bic, [t.delta_bic for t in good],
+                                               _fit_quick, BIC_EVIDENCE, BIC_DISTINCT) if missing else None)
     if outside:
         description += "; " + _outside_words(outside[0], good[0] if good else None)
         for t in good:
@@ -503,23 +504,6 @@ def _diagnose(run: RunData, progress: bool) -> dict:
     }
     return summary if finding is None else instrument_signature.name_instrument(summary, finding)
 
-
-def _undeclared_instrument(base_config: RunConfig, prepared, base_result, base: _Base, good: list):
-    """An undeclared detector or eigenmode that explains the residual better than every sample effect
-    (:func:`afmid.instrument_signature.check`), or None."""
-    from .fit import prepare
-    from .instrument import from_config as instrument_from_config
-
-    declared = instrument_from_config(base_config)
-    cl = prepared.trace.cantilever
-
-    def refit(instrument):
-        return _fit_quick(base_config, prepare(prepared.trace, base_config.fit, instrument))
-
-    finding = instrument_signature.check(base_result, cl, prepared.drive.frequency, declared, refit, base.bic,
-                                         BIC_EVIDENCE)
-    best_effect = min((t.delta_bic for t in good), default=math.inf)
-    return finding if finding is not None and finding.delta_bic < best_effect - BIC_DISTINCT else None
 
 
 @dataclass

@@ -253,6 +253,23 @@ def check(base_result, cantilever, drive_frequency: float, declared: Instrument,
     return best
 
 
+def undeclared(config, prepared, base_result, base_bic: float, effect_delta_bics: list[float], fit_quick,
+               bic_evidence: float, bic_distinct: float) -> Finding | None:
+    """The diagnosis's hook: an undeclared detector or eigenmode that explains the residual of ``base_result``
+    (the fit of ``config`` on ``prepared``) better than every accepted sample effect (their ΔBICs) by
+    ``bic_distinct``, or None. ``fit_quick(config, prepared)`` refits without error bars."""
+    from .fit import prepare
+    from .instrument import from_config
+
+    def refit(instrument: Instrument):
+        return fit_quick(config, prepare(prepared.trace, config.fit, instrument))
+
+    finding = check(base_result, prepared.trace.cantilever, prepared.drive.frequency, from_config(config), refit,
+                    base_bic, bic_evidence)
+    best_effect = min(effect_delta_bics, default=math.inf)
+    return finding if finding is not None and finding.delta_bic < best_effect - bic_distinct else None
+
+
 def name_instrument(summary: dict, finding: Finding) -> dict:
     """The diagnosis ``summary`` (afmid.diagnose.suggest) with the instrument named instead of sample effects:
     the verdict is the finding's text, no effect is suggested (the candidates stay in ``tried``)."""
