@@ -8,7 +8,9 @@ f_2 / f. :func:`screen` fits both shapes to the per-harmonic residual of the fit
 scale fitted by least squares, f_2 on a grid); only when one explains most of a significant residual are
 candidate instruments refitted (:func:`check`): a short search over the bandwidth or f_2 by refits with the
 candidate declared (minimising the cross-validated error), kept when it lowers the BIC by ``bic_evidence`` and
-brings the cross-validated error to the noise level or removes 80 % of its excess over it. The diagnosis (:mod:`afmid.diagnose`) then names the instrument instead of a sample effect.
+brings the cross-validated error to the noise level or removes 80 % of its excess over it. The diagnosis
+(:mod:`afmid.diagnose`, only when no sample effect explains the data) then names the instrument instead of a
+sample effect.
 
 The refits assume, for the mode, the modal stiffness fitted by the screen and Q_2 = :data:`MODE_Q_RATIO` Q_1
 (Q_2 matters only within f_2 / Q_2 of the resonance); for the detector a 2-pole Butterworth or a first-order
@@ -186,7 +188,7 @@ def check(base_result, cantilever, drive_frequency: float, declared: Instrument,
             try:
                 cache[key] = refit(instrument)
             except Exception as exc:  # a candidate that cannot be fitted is no candidate
-                log.info("instrument refit with %s failed: %s", instrument.describe(), exc)
+                log.debug("instrument refit with %s failed: %s", instrument.describe(), exc)
                 cache[key] = None
         return cache[key]
 
@@ -246,7 +248,7 @@ def check(base_result, cantilever, drive_frequency: float, declared: Instrument,
         excess_before = math.sqrt(max(base_result.cv_error**2 - floor**2, 0.0))
         excess_after = math.sqrt(max(result.cv_error**2 - floor**2, 0.0))
         explains = (result.cv_error <= EXPLAINS_FACTOR * floor or excess_after <= EXCESS_LEFT * excess_before)
-        log.info("instrument candidate %s: ΔBIC %.0f, error %.3g (floor %.3g)", instrument.describe(), delta,
+        log.debug("instrument candidate %s: ΔBIC %.0f, error %.3g (floor %.3g)", instrument.describe(), delta,
                  result.cv_error, result.cv_error_noise_floor)
         if delta <= -bic_evidence and explains and (best is None or delta < best.delta_bic):
             best = Finding(kind, instrument, frequency, delta, result.cv_error, result.cv_error_noise_floor)
