@@ -41,6 +41,9 @@ SEARCH_REFITS = 7
 #: ... or leave at most this fraction of the error in excess of the floor (the candidate's f_2, k_2 come from a
 #: short search: near a harmonic a few % off leave part of a large residual).
 EXCESS_LEFT = 0.2
+#: A candidate that leaves at most this fraction of the excess error is named when it beats every tried sample
+#: effect (a sample effect may be missing as well: the verdict says a residual remains).
+MOST_LEFT = 0.5
 #: Refits of the final joint (f_2, k_2) polish of a second-mode candidate (Nelder-Mead).
 POLISH_REFITS = 20
 #: The refitted candidate must bring the cross-validated error within this factor of its noise floor.
@@ -72,9 +75,14 @@ class Finding:
     delta_bic: float
     error_after: float
     noise_floor_after: float
+    explains: bool = True  # the error falls to the noise level (else: most of its excess removed)
 
     @property
     def text(self) -> str:
+        more = "" if self.explains else "; a residual remains: declare it and diagnose again"
+        return self._text() + more
+
+    def _text(self) -> str:
         if self.kind == "second_eigenmode":
             return (f"instrument: second eigenmode near {_hz(self.frequency)} (not a sample effect; declare "
                     "cantilever.higher_modes from the lever's calibration)")
@@ -247,19 +255,25 @@ def check(base_result, cantilever, drive_frequency: float, declared: Instrument,
         floor = result.cv_error_noise_floor
         excess_before = math.sqrt(max(base_result.cv_error**2 - floor**2, 0.0))
         excess_after = math.sqrt(max(result.cv_error**2 - floor**2, 0.0))
-        explains = (result.cv_error <= EXPLAINS_FACTOR * floor or excess_after <= EXCESS_LEFT * excess_before)
+        explains = result.cv_error <= EXPLAINS_FACTOR * floor or excess_after <= EXCESS_LEFT * excess_before
+        most = excess_after <= MOST_LEFT * excess_before
         log.debug("instrument candidate %s: ΔBIC %.0f, error %.3g (floor %.3g)", instrument.describe(), delta,
                  result.cv_error, result.cv_error_noise_floor)
-        if delta <= -bic_evidence and explains and (best is None or delta < best.delta_bic):
-            best = Finding(kind, instrument, frequency, delta, result.cv_error, result.cv_error_noise_floor)
+        if delta <= -bic_evidence and (explains or most) and (best is None or delta < best.delta_bic):
+            best = Finding(kind, instrument, frequency, delta, result.cv_error, result.cv_error_noise_floor, explains)
     return best
 
 
-def undeclared(config, prepared, base_result, base_bic: float, effect_delta_bics: list[float], fit_quick,
-               bic_evidence: float, bic_distinct: float) -> Finding | None:
+def undeclared(config, prepared, base_result, base_bic: float, trials: list, fit_quick, bic_evidence: float,
+               bic_distinct: float) -> Finding | None:
     """The diagnosis's hook: an undeclared detector or eigenmode that explains the residual of ``base_result``
-    (the fit of ``config`` on ``prepared``) better than every accepted sample effect (their ΔBICs) by
-    ``bic_distinct``, or None. ``fit_quick(config, prepared)`` refits without error bars."""
+    (the fit of ``config`` on ``prepared``), or None.
+
+    ``trials`` are the diagnosis's candidate effects (``delta_bic``, ``significant``). A candidate instrument
+    that brings the error to the noise level must beat every accepted effect by ``bic_distinct``; one that only
+    removes most of the excess error (a sample effect may be missing too) must beat every tried effect by it.
+    ``fit_quick(config, prepared)`` refits without error bars.
+    """
     from .fit import prepare
     from .instrument import from_config
 
@@ -268,8 +282,10 @@ def undeclared(config, prepared, base_result, base_bic: float, effect_delta_bics
 
     finding = check(base_result, prepared.trace.cantilever, prepared.drive.frequency, from_config(config), refit,
                     base_bic, bic_evidence)
-    best_effect = min(effect_delta_bics, default=math.inf)
-    return finding if finding is not None and finding.delta_bic < best_effect - bic_distinct else None
+    if finding is None:
+        return None
+    rivals = [t.delta_bic for t in trials if t.significant or not finding.explains]
+    return finding if finding.delta_bic < min(rivals, default=math.inf) - bic_distinct else None
 
 
 def name_instrument(summary: dict, finding: Finding) -> dict:
