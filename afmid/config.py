@@ -60,6 +60,10 @@ MAX_SEED = 2**32 - 1
 Seed = Annotated[int, _Number, Field(ge=0, le=MAX_SEED)]
 
 
+#: A frequency in Hz (positive, finite, at most 1e10: beyond any detector).
+_instrument_hz = Annotated[float, _Number, Field(gt=0, le=1e10, allow_inf_nan=False)]
+
+
 class StrictModel(BaseModel):
     """Base for config sections: unknown keys are errors, values are re-validated on assignment."""
 
@@ -67,6 +71,38 @@ class StrictModel(BaseModel):
 
 
 # --------------------------------------------------------------------------- data
+class DetectorConfig(StrictModel):
+    """The detector / anti-alias low-pass between the deflection and the samples (afmid.instrument)."""
+
+    bandwidth: _instrument_hz = Field(..., description="-3 dB frequency, Hz")
+    filter: str = Field("butterworth", description="butterworth, bessel or first_order")
+    order: Annotated[int, _Number, Field(ge=1, le=12)] | None = Field(
+        None, description="filter order (poles); default 2 (butterworth, bessel) or 1 (first_order)")
+
+    @field_validator("filter")
+    @classmethod
+    def _known_filter(cls, name: str) -> str:
+        from .instrument import FILTERS
+
+        if name not in FILTERS:
+            raise ValueError(unknown_name_message("detector filter", name, FILTERS.names()))
+        return name
+
+    @model_validator(mode="after")
+    def _order_fits_filter(self) -> "DetectorConfig":
+        from .instrument import FILTERS
+
+        kind = FILTERS.get(self.filter)
+        if self.order is not None and self.order > kind.max_order:
+            raise ValueError(f"data.detector.order: a {self.filter} filter has at most order {kind.max_order}, "
+                             f"got {self.order}")
+        return self
+
+    @property
+    def resolved_order(self) -> int:
+        return self.order if self.order is not None else (1 if self.filter == "first_order" else 2)
+
+
 class DataConfig(StrictModel):
     """Where the deflection trace is and how to read it."""
 
@@ -89,6 +125,8 @@ class DataConfig(StrictModel):
         None, description="s from the first sample: fit the record from here on; default: from the first sample, "
         "or after the onset of the oscillation when the record starts at rest (the drive switched on mid-record)")
     stop: PositiveFloat | None = Field(None, description="s from the first sample: fit the record up to here")
+    detector: DetectorConfig | None = Field(
+        None, description="detector low-pass {bandwidth, filter, order}; absent: an ideal detector")
 
     @model_validator(mode="after")
     def _distinct_columns(self) -> "DataConfig":
@@ -142,6 +180,14 @@ def instrument_value_problem(key: str, value: Any) -> str | None:
     return None
 
 
+class ModeConfig(StrictModel):
+    """A higher flexural mode of the lever, seen at the tip (afmid.instrument.Mode)."""
+
+    resonance_frequency: _instrument("cantilever.resonance_frequency") = Field(..., description="f_i, Hz")
+    quality_factor: _instrument("cantilever.quality_factor") = Field(..., description="Q_i")
+    spring_constant: _instrument("cantilever.spring_constant") = Field(..., description="k_i, N/m")
+
+
 class CantileverConfig(StrictModel):
     spring_constant: _instrument("cantilever.spring_constant") | None = Field(None, description="k, N/m")
     resonance_frequency: _instrument("cantilever.resonance_frequency") | None = Field(None, description="f0, Hz")
@@ -151,6 +197,18 @@ class CantileverConfig(StrictModel):
         None, description="relative 1-sigma uncertainty of k (0.1 = 10 %), propagated into every read-out")
     quality_factor_uncertainty: RelativeUncertainty | None = Field(
         None, description="relative 1-sigma uncertainty of Q (0.1 = 10 %), propagated into every read-out")
+    higher_modes: list[ModeConfig] = Field(
+        default_factory=list, description="higher flexural modes [{resonance_frequency, quality_factor, "
+        "spring_constant}]; the tip is the sum of the modes")
+
+    @model_validator(mode="after")
+    def _modes_above_first(self) -> "CantileverConfig":
+        f0 = self.resonance_frequency
+        for i, mode in enumerate(self.higher_modes):
+            if f0 is not None and mode.resonance_frequency <= f0:
+                raise ValueError(f"cantilever.higher_modes[{i}].resonance_frequency: must be above the first "
+                                 f"mode's {f0:g} Hz, got {mode.resonance_frequency:g}")
+        return self
 
 
 class DriveConfig(StrictModel):
@@ -358,6 +416,18 @@ class RunConfig(StrictModel):
                 raise ValueError(f"model.terms[{i}]: {problem}")
         return self
 
+    @model_validator(mode="after")
+    def _instrument_fits_the_fit(self) -> "RunConfig":
+        declared = [k for k, on in (("data.detector", self.data.detector is not None),
+                                    ("cantilever.higher_modes", bool(self.cantilever.higher_modes))) if on]
+        if declared and self.fit.form == "strong":
+            raise ValueError(f"fit.form: the strong form cannot model {' and '.join(declared)} (the weak form "
+                             "applies them per harmonic); use fit.form: weak")
+        if "cantilever.higher_modes" in declared and self.fit.cantilever == "free":
+            raise ValueError("fit.cantilever: free identifies one mode's k and damping; with "
+                             "cantilever.higher_modes declared use fit.cantilever: fixed")
+        return self
+
     # Not part of the YAML: where the config came from, for messages and relative paths.
     _source: Path | None = None
     _base_dir: Path = Path(".")
@@ -390,18 +460,27 @@ def _format_limit(limit: Any) -> str:
     return _format_value(limit)
 
 
+def _type_arguments(annotation) -> list:
+    """The types inside an optional or a list annotation (``X | None``, ``list[X]``), one level deep."""
+    import typing
+
+    return [a for a in typing.get_args(annotation) if a is not type(None)]
+
+
 def _section_fields(model: type[BaseModel], loc: tuple) -> list[str]:
     """The allowed keys at ``loc`` (the parent of an unknown key)."""
     current: Any = model
     for part in loc:
+        if isinstance(part, int):  # an item of a list section: same model
+            continue
         field = getattr(current, "model_fields", {}).get(part)
         if field is None:
             return []
-        annotation = field.annotation
-        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-            current = annotation
-        else:
+        models = [a for a in (field.annotation, *_type_arguments(field.annotation))
+                  if isinstance(a, type) and issubclass(a, BaseModel)]
+        if not models:
             return []
+        current = models[0]
     return list(getattr(current, "model_fields", {}))
 
 

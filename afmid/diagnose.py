@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import plausibility
+from . import instrument_signature, plausibility
 from .config import RunConfig
 from .errors import InputError
 from .io import sha256_file
@@ -406,13 +406,14 @@ def _diagnose(run: RunData, progress: bool) -> dict:
     from tqdm import tqdm
 
     from .fit import prepare
+    from .instrument import from_config as instrument_from_config
     from .io import load_trace
 
     started = time.perf_counter()
     local = localize(run)
     base_config = refit_config(run, run.effects)
     # Every refit below differs from this one only in its library and fixed parameters: one preparation.
-    prepared = prepare(load_trace(base_config), base_config.fit)
+    prepared = prepare(load_trace(base_config), base_config.fit, instrument_from_config(base_config))
     base_result = _fit_quick(base_config, prepared)
     chi2, limit, n_rows = _chi2(base_result)
     base = _Base(base_result.cv_error, base_result.cv_error_noise_floor, base_result.selection.best.bic,
@@ -475,11 +476,14 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         explained = True
     missing = bool(good) or residual_significant
     description = describe_residual(local, run)
+    finding = (instrument_signature.undeclared(base_config, prepared, base_result, base.bic, trials, _fit_quick,
+                                               BIC_EVIDENCE, BIC_DISTINCT)
+               if missing and not (good and explained) else None)  # a residual no sample effect explains
     if outside:
         description += "; " + _outside_words(outside[0], good[0] if good else None)
         for t in good:
             t.evidence += f"; but {_outside_words(outside[0], t)}, so `{t.effect}` is at best a partial stand-in"
-    return {
+    summary = {
         "missing_effect": missing,
         "diagnosis": {
             "region": local["region"],
@@ -502,6 +506,8 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         "tried": [_trial_record(t) for t in trials],
         "seconds": time.perf_counter() - started,
     }
+    return summary if finding is None else instrument_signature.name_instrument(summary, finding)
+
 
 
 @dataclass

@@ -36,6 +36,7 @@ import numpy as np
 
 from .config import RunConfig
 from .errors import AfmidError, ConfigError, InputError
+from .instrument import deflection_views, from_config as instrument_from_config
 from .io import Trace, load_trace
 from .library import Library, build_library
 from .physics import BOLTZMANN
@@ -96,8 +97,11 @@ class Prepared:
     motion: object = None  # afmid.motion.Motion: periodic, period doubling or non-periodic (None: not judged)
 
 
-def prepare(trace: Trace, fit) -> Prepared:
+def prepare(trace: Trace, fit, instrument=None) -> Prepared:
     """Everything about the data that the library does not change: drive, blocks, weak-form rows, noise.
+
+    ``instrument`` (:class:`afmid.instrument.Instrument`, None: ideal) is undone per harmonic first
+    (:func:`afmid.instrument.deflection_views`): the library sees the tip, the equation its single-mode twin.
 
     Per-sample work runs chunk by chunk (:data:`afmid.preprocess.CHUNK_BLOCKS` periods): the only arrays as
     long as the trace are the deflection, its times and the velocity kept for the per-sample forces.
@@ -117,6 +121,8 @@ def prepare(trace: Trace, fit) -> Prepared:
                              oversample=oversample)
     if fit.detrend == "linear":  # the trajectory without the drift; the regression's columns take the rest
         x, removed["drift"] = remove_drift(x, t, blocks)
+    views = deflection_views(x, blocks, instrument, trace.cantilever)
+    x, x_equation = views.tip, views.equation
     windows = weak_windows(blocks)
     cl = trace.cantilever
     k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
@@ -146,26 +152,29 @@ def prepare(trace: Trace, fit) -> Prepared:
         n_block = (b1 - b0) * blocks.L
         hi = lo + n_block + (blocks.L + 1 if weak else 0)
         xs, cols = x[lo:hi, None], columns(t[lo:hi])
+        xe = xs if x_equation is x else x_equation[lo:hi, None]
         turn = blocks.rotation(b0, b1)
         X[b0:b1] = blocks.project_blocks(xs[:n_block], b0, turn)
         nuisance_block[b0:b1] = blocks.project_blocks(cols[:n_block], b0, turn)
         w1 = min(b1, W)
         if weak and w1 > b0:
-            Y[b0:w1] = -windows.integrate_samples(operator, xs, b0, w1 - b0, turn)[..., 0]
+            Y[b0:w1] = -windows.integrate_samples(operator, xe, b0, w1 - b0, turn)[..., 0]
             nuisance[b0:w1, :, :n_drive] = windows.integrate_samples(windows.psi, cols, b0, w1 - b0, turn)
             if not fixed:
                 nuisance[b0:w1, :, n_drive:n_drive + 1] = windows.integrate_samples(windows.psi, xs, b0, w1 - b0, turn)
                 nuisance[b0:w1, :, n_drive + 1:] = windows.integrate_samples(minus_dpsi, xs, b0, w1 - b0, turn)
-    del xs, cols
+    del xs, xe, cols
     _release_free_memory()
 
     # The trajectory, the outputs and the noise level.
     V = blocks.derivative(X, 1)
-    Y_block = -(m * blocks.derivative(X, 2) + c * V + k * X)[..., 0]
+    X_eq = views.equation_coefficients(X)
+    Y_block = -(m * blocks.derivative(X_eq, 2) + c * blocks.derivative(X_eq, 1) + k * X_eq)[..., 0]
     used = blocks.used
     n_used = blocks.n_blocks * blocks.L
     dof = max(n_used - blocks.n_blocks * blocks.n_coef, 1)
-    noise_rms = float(math.sqrt(_fit_residual_sum_squares(x, blocks, X) / dof))
+    rss = views.residual_sum_squares if views.tip_gain is not None else _fit_residual_sum_squares(x, blocks, X)
+    noise_rms = float(math.sqrt(rss / dof))
     noise_rms = max(noise_rms, 1e-9 * drive.amplitude)  # noise-free input: keep weights finite
     if not fixed:
         nuisance_block = np.concatenate([nuisance_block, X, V], axis=2)
@@ -175,7 +184,10 @@ def prepare(trace: Trace, fit) -> Prepared:
     if weak:
         # Predicted noise per row: detector noise through the operator, thermal force noise through psi.
         psi_sq = _pair_mean(np.sum(windows.psi**2, axis=1))
-        base_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1)) + thermal * psi_sq
+        detector_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1))
+        if views.tip_gain is not None:  # the declared instrument's inverse amplifies the noise per harmonic
+            detector_variance = detector_variance * views.noise_gain(blocks.harmonics)
+        base_variance = detector_variance + thermal * psi_sq
     else:
         # Rows: the equation at every used sample, derivatives from a registered differentiator.
         xs, v, a = differentiate(x, trace.sample_rate, drive.frequency, fit.differentiation,
@@ -189,6 +201,8 @@ def prepare(trace: Trace, fit) -> Prepared:
         strong = (xs[used], v[used])
     n = blocks.harmonics * drive.omega
     H2 = (1 - (n / w0) ** 2) ** 2 + (n / (Q * w0)) ** 2
+    if views.tip_gain is not None:
+        H2 = H2 * views.noise_gain(blocks.harmonics)
     block_sigma = np.sqrt(blocks.noise_variance_factor() * (thermal + k**2 * H2 * noise_rms**2))
 
     # The library is evaluated on a trajectory smoothed across periods: detector noise is independent from
@@ -196,6 +210,8 @@ def prepare(trace: Trace, fit) -> Prepared:
     # noise in the regressors biases stiff terms low (errors in variables).
     rho = math.exp(-math.pi * blocks.L * blocks.dt * drive.frequency / Q)
     noise_var = blocks.noise_variance_factor() * noise_rms**2
+    if views.tip_gain is not None:  # an undone detector amplifies the noise of each harmonic by |1 / G|
+        noise_var = noise_var * np.abs(views.tip_gain[blocks.harmonics]) ** 2
     motion = classify_motion(X[..., 0], noise_var, BOLTZMANN * fit.temperature / k if fit.thermal_noise else 0.0)
     if fit.smooth_periods is not None:
         X_traj = smooth_across_blocks(X, fit.smooth_periods)
@@ -679,7 +695,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     library = build_library(config.model, config.source)
     if len(library) == 0:
         raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source, key="model")
-    prep = prepared if prepared is not None else prepare(trace, config.fit)
+    prep = prepared if prepared is not None else prepare(trace, config.fit, instrument_from_config(config))
     return fit_prepared(prep, library, config, progress=progress, uncertainty=uncertainty)
 
 

@@ -236,6 +236,7 @@ def inspect_file(file: str | Path, column: str | None = None, sample_rate: float
                          "periodic (consecutive periods agree to the noise)"))
         rows.append(("harmonics", _harmonics(a)))
         rows.append(("interaction", _interaction(a, s)))
+        rows.append(("instrument", _instrument(a, s)))
     if s.is_afmid:
         cl = s.cantilever
         parts = [f"{name} = {value}" for name, value in (
@@ -268,6 +269,19 @@ def _harmonics(a: defects.Analysis) -> str:
     listed = a.above_noise
     text = ", ".join(str(n) for n in listed[:12]) + (", ..." if len(listed) > 12 else "")
     return f"{len(listed)} of 2..{a.K} above the noise (n = {text})"
+
+
+def _instrument(a: defects.Analysis, s: FileSummary) -> str:
+    """A higher eigenmode seen as a resonance bump in the harmonics (afmid.instrument_signature)."""
+    from .instrument_signature import harmonic_resonance
+
+    at = harmonic_resonance(a.harmonic_amplitudes(), a.above_noise)
+    if at is None:
+        return ("no resonance among the harmonics (a detector low-pass shows only against a force model: "
+                "afmid diagnose)")
+    where = f" = {defects.frequency(at * s.frequency)}" if s.frequency else ""
+    return (f"a resonance near harmonic {at:.1f}{where}: a higher eigenmode of the lever? If the lever has one "
+            "there, declare cantilever.higher_modes")
 
 
 def _interaction(a: defects.Analysis, s: FileSummary) -> str:

@@ -39,6 +39,7 @@ the names of
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -49,7 +50,9 @@ from .config import RunConfig
 from .errors import ConfigError
 from .files import memory_shortfall
 from .io import Cantilever, Trace, Truth
+from .instrument import from_config as instrument_from_config
 from .physics import BOLTZMANN
+from .sim_instrument import MultiModeIntegrator, detect, detector_lead_periods, integrator_for  # noqa: F401
 from .sim_integrator import (  # noqa: F401 (re-exported)
     DEFAULT_KERNEL,
     SETTLE_CHUNK_PERIODS,
@@ -188,7 +191,8 @@ class _Progress:
             self.bar.close()
 
 
-def _search_separation(setup: Setup, compiled: CompiledForceLaw, config: RunConfig, progress: _Progress):
+def _search_separation(setup: Setup, compiled: CompiledForceLaw, config: RunConfig, progress: _Progress,
+                       make_integrator=Integrator):
     """Rest separation d (m) whose steady amplitude is simulate.setpoint * A0.
 
     Brent's method on A(d)/A0 - setpoint over steady simulations on a coarser
@@ -206,7 +210,7 @@ def _search_separation(setup: Setup, compiled: CompiledForceLaw, config: RunConf
     evaluations = 0
 
     def integrator_at(d: float) -> Integrator:
-        integrator = Integrator(setup.oscillator, compiled, d)
+        integrator = make_integrator(setup.oscillator, compiled, d)
         if warm:
             integrator.start(*warm[0])
         else:
@@ -265,14 +269,16 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
     rng = np.random.Generator(np.random.PCG64(sim.seed))
     bar = _Progress(progress)
     extra: dict = {}
+    declared = instrument_from_config(config)
+    make_integrator = functools.partial(integrator_for, declared)
     try:
         if sim.setpoint is not None:
             bar.stage("setpoint search")
-            d, integrator, evaluations = _search_separation(setup, compiled, config, bar)
+            d, integrator, evaluations = _search_separation(setup, compiled, config, bar, make_integrator)
             extra.update(setpoint_target=float(sim.setpoint), setpoint_search_evaluations=evaluations)
         else:
             d = setup.separation
-            integrator = Integrator(osc, compiled, d)
+            integrator = make_integrator(osc, compiled, d)
             integrator.start(*osc.free_state(0.0))
         if sim.mode == "transient" and sim.transient_start == "rest":
             integrator.start(0.0, 0.0)
@@ -305,11 +311,15 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
             extra["transient_start"] = sim.transient_start
 
         bar.stage("recording")
-        record = _record(integrator, grid, osc, noise, rng, bar)
+        if declared.detector is None:
+            record = _record(integrator, grid, osc, noise, rng, bar)
+            deflection = record.x.copy()
+        else:
+            record, deflection = _record_detected(integrator, grid, osc, noise, rng, bar, declared.detector,
+                                                  sim.mode == "steady", config.source)
     finally:
         bar.close()
 
-    deflection = record.x.copy()
     detector_rms = noise.detector_rms if noise.detector_density is None else noise.detector_density * math.sqrt(
         grid.sample_rate / 2.0)
     if detector_rms > 0:
@@ -337,6 +347,8 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
                "steady_amplitude: m; steady_phase: rad (lag behind the drive); integration_step: s; "
                "temperature: K; detector_rms: m; adc_step: m"),
     )
+    if not declared.ideal:
+        extra["instrument"] = declared.describe()
     truth = Truth(
         force=record.force,
         separation=d - record.x,
@@ -350,6 +362,38 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
     cantilever = Cantilever(osc.spring_constant, osc.resonance_frequency, osc.quality_factor, setup.tip_radius)
     return Trace(deflection=deflection, sample_rate=grid.sample_rate, cantilever=cantilever,
                  drive_frequency=osc.drive_frequency, truth=truth, drive_force_amplitude=osc.drive_force)
+
+
+def _record_detected(integrator, grid: Grid, osc: Oscillator, noise, rng, bar: _Progress, detector, steady: bool,
+                     source=None):
+    """Record the tip on the integration grid, pass it through the detector (:func:`sim_instrument.detect`) and
+    keep the output samples; the truth (force, velocity, tip) at the output samples. In steady mode whole drive
+    periods run through the filter first (its start-up transient gone); a transient record starts the filter
+    at rest with the motion. Returns (record at the output samples, detected deflection)."""
+    n_sub = grid.steps_per_sample
+    if detector.bandwidth >= 0.25 * grid.sample_rate * n_sub:
+        raise ConfigError(f"the detector bandwidth {detector.bandwidth:g} Hz is not below a quarter of the "
+                          f"integration rate {grid.sample_rate * n_sub:g} Hz, where the simulator filters; raise "
+                          "simulate.steps_per_period or leave the detector out (it is then ideal)",
+                          file=source, key="data.detector.bandwidth")
+    fine_per_period = grid.sample_rate * n_sub / osc.drive_frequency
+    lead_samples = 0
+    if steady and abs(fine_per_period - round(fine_per_period)) < 1e-9 * fine_per_period:
+        # Whole periods from the settled state (drive phase 0), so the recording starts at drive phase 0.
+        lead_samples = detector_lead_periods(detector, osc.drive_frequency) * round(fine_per_period)
+    elif steady:
+        log.warning("the detector filter starts at rest at the first sample: %.6g integration steps per drive "
+                    "period is not a whole number, so no whole periods can run through it first", fine_per_period)
+    fine_grid = Grid(grid.sample_rate * n_sub, 1, (grid.n_samples - 1) * n_sub + 1)
+    head = None
+    if lead_samples:
+        head = _record(integrator, Grid(fine_grid.sample_rate, 1, lead_samples + 1), osc, noise, rng, bar)
+    fine = _record(integrator, fine_grid, osc, noise, rng, bar)
+    tip = fine.x if head is None else np.concatenate([head.x[:-1], fine.x])
+    deflection = detect(tip, fine_grid.sample_rate, n_sub, detector, lead_samples)
+    record = Segment(fine.x[::n_sub].copy(), fine.v[::n_sub].copy(), fine.force[::n_sub].copy(),
+                     fine.gates[::n_sub].copy(), fine.events)
+    return record, deflection
 
 
 def _record(integrator: Integrator, grid: Grid, osc: Oscillator, noise, rng, bar: _Progress) -> Segment:
