@@ -27,8 +27,10 @@ log = logging.getLogger(__name__)
 #: The separation is searched again within this distance of the run's estimate, m. A missing long-range
 #: attraction moves the run's estimate far: a hidden 3 V electrostatic force put a [dmt] fit's separation
 #: 1.9 nm too high (the tip seemed not to touch), so the window is wide; the search is a coarse grid refined
-#: twice (afmid.candidate_shapes.minimise_bumpy), so its cost does not grow with the window.
+#: (:func:`search_separation`): its cost grows only with the logarithm of the window.
 SEPARATION_WINDOW = 2.5e-9
+#: The window of the later rounds, m (the shape moved, the separation follows by much less).
+SEPARATION_REFINE_WINDOW = 0.3e-9
 #: Alternations of (candidate's shape parameters at the current separation, separation with that shape).
 REPROFILE_ROUNDS = 2
 
@@ -38,24 +40,50 @@ def separation_estimated(run) -> bool:
     return run.config.sample.separation is None and math.isfinite(run.separation)
 
 
+#: Points of the coarse grid of the separation search, and of each zoom (a zoom halves the step).
+SEPARATION_GRID = 11
+SEPARATION_ZOOM = 5
+#: The search zooms until the step is below this, m (the fit then uses the value; a tenth of the thermal
+#: deflection of a stiff lever).
+SEPARATION_STEP = 2e-12
+
+
 def search_separation(prepared, config: RunConfig, centre: float, window: float = SEPARATION_WINDOW) -> float:
     """The rest separation within ``window`` of ``centre`` that minimises the weighted residual of ``config``'s
-    full library (its nonlinear parameters as ``config.model.parameters`` fixes them), m."""
-    from .candidate_shapes import minimise_bumpy
+    full library (its nonlinear parameters as ``config.model.parameters`` fixes them), m.
+
+    A coarse grid, then zooms on the lowest point (each a grid of SEPARATION_ZOOM points between its
+    neighbours) and a parabola through the last three (:func:`afmid.profile.local_minimum`: no parabola
+    through a kink)."""
+    import numpy as np
+
     from .errors import AfmidError
     from .fit import build_system, library_parameters, residual_sum_squares
     from .library import build_library
+    from .profile import local_minimum
 
     library = build_library(config.model, config.source)
     params = library_parameters(prepared, config, library)
+    values: dict[float, float] = {}
 
-    def objective(d: float) -> float:
-        try:
-            return residual_sum_squares(build_system(prepared, library, dict(params, d=d)))
-        except AfmidError:
-            return math.inf
+    def evaluate(grid) -> tuple[np.ndarray, np.ndarray]:
+        for d in grid:
+            d = float(d)
+            if d not in values:
+                try:
+                    values[d] = residual_sum_squares(build_system(prepared, library, dict(params, d=d)))
+                except AfmidError:
+                    values[d] = math.inf
+        x = np.array(sorted(values))
+        return x, np.array([values[v] for v in x])
 
-    return minimise_bumpy(objective, centre - window, centre + window)
+    x, y = evaluate(np.linspace(centre - window, centre + window, SEPARATION_GRID))
+    step = x[1] - x[0]
+    while step > SEPARATION_STEP:
+        i = int(np.argmin(y))
+        x, y = evaluate(np.linspace(x[i] - step, x[i] + step, SEPARATION_ZOOM))
+        step /= (SEPARATION_ZOOM - 1) / 2
+    return local_minimum(x, y) if np.isfinite(y).any() else centre
 
 
 def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: list[str], shapes, fit_quick,
@@ -75,7 +103,8 @@ def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: 
     separation = trial.sample.separation
     quick = bool(shape_names) and trial.fit.estimate_nonlinear and quick_shape
     shape: dict[str, float] = {}
-    for _ in range(REPROFILE_ROUNDS if free else 1):
+    window = SEPARATION_WINDOW
+    for _ in range(REPROFILE_ROUNDS if free and quick else 1):
         if quick:
             try:
                 shape = shapes.search(trial, effect, shape_names)
@@ -85,8 +114,9 @@ def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: 
                 quick, shape = False, {}
                 trial.model.parameters = dict(config.model.parameters)
         if free:
-            separation = search_separation(prepared, trial, separation)
+            separation = search_separation(prepared, trial, separation, window)
             trial.sample.separation = separation
+            window = SEPARATION_REFINE_WINDOW  # the next round starts from a separation that fits the effect
     result = fit_quick(trial, prepared)
     if not shape:
         shape = {k: est.value for k, est in result.nonlinear.items() if k in shape_names}

@@ -8,19 +8,22 @@ regressors) are correlated, so the chi-square curvature with a white-noise
 residual variance understates the spread of the minimum. Hence:
 
 - the minimum is located by zooming in on the grid point with the lowest
-  residual (never by the vertex of a parabola through far points: a parabola
-  through a V puts its vertex where the V is not); the last step is a
-  three-point parabola between the neighbours of that point, so the estimate
-  is off by less than the finest grid step, which is kept below a tenth of the
-  interval;
-- the chi-square interval is where the profile rises by one chi-square unit
-  (residual variance ``s2``) on each side, read off the evaluated points (a V
-  gets its true width, not the zero width of its kink's curvature);
+  residual, until the grid step is below a tenth of the chi-square
+  half-width (so there are always enough points near the minimum: the old
+  fallback to 5 points 50 pm apart is gone);
+- where the profile is a parabola around its minimum, the vertex of a
+  parabola through the points within 9 chi-square units is the estimate (it
+  averages over the small steps the quadrature leaves) and its curvature gives
+  the chi-square sigma; where it is not (the vertex lands away from the lowest
+  point: a V, a kink at the contact point), the lowest point refined between
+  its neighbours is the estimate and the chi-square sigma is half the interval
+  where the profile rises by one chi-square unit (residual variance ``s2``),
+  read off the evaluated points (a V gets its true width, not the zero width of
+  its kink's curvature), with the finest grid step added in quadrature;
 - the spread of the minimum over a block jackknife (the periods split into
   contiguous groups, each left out in turn: the correlation between
   neighbouring rows stays inside a group) measures what the chi-square misses;
-- the reported 1-sigma is the larger of the two, with the finest grid step
-  added in quadrature.
+- the reported 1-sigma is the larger of the two.
 
 Everything here is plain numerics on per-block factors (:func:`afmid.regression.combine`):
 the caller (:func:`afmid.fit.profile_parameter`) gives a function that returns
@@ -157,6 +160,37 @@ def chi2_interval(x: np.ndarray, y: np.ndarray, s2: float, centre: float | None 
     return _crossing(x, y, i, level, -1), _crossing(x, y, i, level, +1)
 
 
+def estimate_minimum(x: np.ndarray, y: np.ndarray, s2: float) -> tuple[float, float, bool]:
+    """(minimum, curvature sigma, kinked) of a profile given by its points.
+
+    Where the profile is a parabola around its minimum, the vertex of a
+    parabola through the points within 9 chi-square units is the estimate and
+    sqrt(s2 / curvature) its chi-square sigma: it averages over the small
+    steps the quadrature leaves in the residual, which the lowest point alone
+    follows. Where it is not (the vertex lands more than the chi-square
+    half-width from the lowest point, or the curvature's sigma differs from
+    that half-width by more than 2x: a V, a kink at the contact point), the lowest point refined between its
+    neighbours (:func:`local_minimum`) is the estimate and the sigma is NaN
+    (the caller takes the chi-square interval instead)."""
+    i = int(np.argmin(y))
+    lowest = local_minimum(x, y)
+    near = np.isfinite(y) & (y - y[i] <= 9 * s2)
+    if near.sum() < 5:
+        return lowest, math.nan, True
+    scale = float(np.ptp(x[near])) or 1.0
+    u = (x[near] - x[i]) / scale
+    c2, c1, _ = np.polyfit(u, y[near], 2)
+    if not c2 > 0:
+        return lowest, math.nan, True
+    vertex = x[i] + scale * float(np.clip(-c1 / (2 * c2), u.min(), u.max()))
+    sigma = scale * math.sqrt(s2 / c2)
+    lower, upper = chi2_interval(x, y, s2)
+    half = 0.5 * (upper - lower) if math.isfinite(lower) and math.isfinite(upper) else sigma
+    if abs(vertex - lowest) > half or not 0.5 <= sigma / half <= 2.0:  # not a parabola: a kink
+        return lowest, math.nan, True
+    return vertex, sigma, False
+
+
 def robust_profile(profile: GroupedProfile, center: float, half_width: float, s2: float, lo: float = -math.inf,
                    hi: float = math.inf, min_step: float = 0.0, jackknife: bool = True) -> ProfileResult:
     """Minimum and honest 1-sigma of ``profile`` (a residual sum of squares; rss / s2 is a chi-square).
@@ -218,20 +252,20 @@ def robust_profile(profile: GroupedProfile, center: float, half_width: float, s2
             profile(min(max(edge + side * reach, lo), hi))
     x, y = profile.points()
     i = int(np.argmin(y))
-    best = local_minimum(x, y)
+    best, sigma_parabola, kinked = estimate_minimum(x, y, s2)
     resolution = float(max(x[i] - x[max(i - 1, 0)], x[min(i + 1, x.size - 1)] - x[i]))
     lower, upper = chi2_interval(x, y, s2)
     if not (math.isfinite(lower) and math.isfinite(upper)):  # no minimum inside [lo, hi]
         return ProfileResult(best, math.nan, resolution=resolution, grid=x, values=y, evaluations=x.size)
-    width = 0.5 * (upper - lower)
-    sigma_jk = _jackknife(profile, best, width, lo, hi) if jackknife else math.nan
+    width = 0.5 * (upper - lower) if kinked else sigma_parabola
+    sigma_jk = _jackknife(profile, best, width, s2, lo, hi) if jackknife else math.nan
     sigma = max(width, sigma_jk) if math.isfinite(sigma_jk) else width
-    sigma = math.hypot(sigma, resolution)
+    sigma = math.hypot(sigma, resolution if kinked else 0.0)
     x, y = profile.points()
     return ProfileResult(best, sigma, width, sigma_jk, resolution, x, y, x.size)
 
 
-def _jackknife(profile: GroupedProfile, best: float, width: float, lo: float, hi: float) -> float:
+def _jackknife(profile: GroupedProfile, best: float, width: float, s2: float, lo: float, hi: float) -> float:
     """Spread (1 sigma) of the profile minimum over the leave-one-group-out profiles; NaN without groups."""
     G = profile.jackknife_groups()
     if G < 3:
@@ -247,7 +281,7 @@ def _jackknife(profile: GroupedProfile, best: float, width: float, lo: float, hi
             y = np.array([profile.leave_out(v, group) for v in x])
             j = int(np.argmin(y))
             on_edge |= (j == 0 and x[0] > lo) or (j == x.size - 1 and x[-1] < hi)
-            minima.append(local_minimum(x, y))
+            minima.append(estimate_minimum(x, y, s2 * (G - 1) / G)[0])
         if not on_edge:
             break
         reach *= 3

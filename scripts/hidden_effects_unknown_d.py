@@ -123,8 +123,13 @@ def main(argv=None) -> int:
     if args.table:
         print(table(args.table))
         return 0
+    done = set()
+    if args.out and args.out.exists():  # resume: the cases already measured into --out are skipped
+        done = {json.loads(line)["case"] for line in args.out.read_text().splitlines() if line.strip()}
     with tempfile.TemporaryDirectory() as tmp:
         for effect, variant, overrides in cases(args.only):
+            if f"{effect}-{variant}" in done:
+                continue
             try:
                 entry = measure(effect, variant, overrides, Path(tmp))
             except Exception as exc:  # record and go on: one failing trace must not stop the measurement

@@ -43,14 +43,24 @@ class _Curve:
 
 
 def test_minimum_of_a_v_shaped_profile_is_at_the_kink():
-    """rss = 100 + 40 |x - x0| / s (s2 = 1): a V whose chi-square rises by 1 within s / 40 of the kink."""
+    """rss = 100 + 40 (x0 - x) / s below x0, 100 + 4 (x - x0) / s above (s2 = 1): an asymmetric V (the contact
+    point of a stiff sample). A parabola through its points within 9 chi-square units puts the vertex ~0.5 s
+    above the kink; the profile must find the kink, and its interval where the chi-square rises by 1."""
     x0, s = 8.4817e-9, 50e-12
-    curve = _Curve(lambda x: 100.0 + 40.0 * abs(x - x0) / s)
+    curve = _Curve(lambda x: 100.0 + (40.0 * (x0 - x) if x < x0 else 4.0 * (x - x0)) / s)
     found = robust_profile(curve, 8.43e-9, 0.3e-9, 1.0, jackknife=False)
-    half = s / 40  # where the chi-square has risen by 1
+    half = 0.5 * (s / 40 + s / 4)  # half the interval where the chi-square has risen by 1
     assert found.sigma_width == pytest.approx(half, rel=0.05)
     assert abs(found.value - x0) <= 0.2 * half  # the resolution is a tenth of the half-width
     assert found.sigma >= found.sigma_width
+
+
+def test_symmetric_v_gets_a_sigma_at_least_its_chi2_width():
+    x0, s = 8.4817e-9, 50e-12
+    curve = _Curve(lambda x: 100.0 + 40.0 * abs(x - x0) / s)
+    found = robust_profile(curve, 8.43e-9, 0.3e-9, 1.0, jackknife=False)
+    assert found.sigma >= s / 40
+    assert abs(found.value - x0) <= 0.1 * found.sigma
 
 
 def test_interval_of_a_parabolic_profile_is_its_sigma():
