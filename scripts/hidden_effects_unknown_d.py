@@ -10,6 +10,7 @@ estimated samples / peak) before and after adding the named effect, and the sepa
 
     python scripts/hidden_effects_unknown_d.py --out hidden.jsonl [--only electrostatic]
     python scripts/hidden_effects_unknown_d.py --table hidden.jsonl   # the markdown table
+    python scripts/hidden_effects_unknown_d.py --compare before.jsonl after.jsonl
 
 Run from the repository root (PYTHONPATH=other/checkout measures another version with the same traces).
 """
@@ -114,12 +115,50 @@ def table(path: Path) -> str:
     return "\n".join(out)
 
 
+def compare(before: Path, after: Path) -> str:
+    """One markdown table: each trace before and after (two runs of this script on two versions)."""
+    def load(path):
+        return {r["case"]: r for r in map(json.loads, path.read_text().splitlines()) if "failed" not in r}
+
+    old, new = load(before), load(after)
+    out = ["| trace | named first: before / after | cv error -> with the named effect (floor): before / after | "
+           "force error % of peak -> with it: before / after | d error pm (run): before / after |",
+           "|---|---|---|---|---|"]
+
+    def err(r):
+        if r["top"] is None:
+            return f"{r['error_before']:.3f} ({r['floor']:.3f})"
+        return f"{r['error_before']:.3f} -> {r['error_after']:.3f} ({r['floor_after']:.3f})"
+
+    def force(r):
+        text = f"{100 * r['force_before']:.2f}"
+        return text + (f" -> {100 * r['force_after']:.2f}" if r["top"] else "")
+
+    for case in [c for c in new if c in old]:
+        a, b = old[case], new[case]
+        out.append(f"| {case} | {a['top'] or '—'} / {b['top'] or '—'} | {err(a)} / {err(b)} | {force(a)} / {force(b)} | "
+                   f"{1e12 * a['d_error_before']:+.0f} / {1e12 * b['d_error_before']:+.0f} |")
+    for name, rows in (("before", old), ("after", new)):
+        hidden = [r for c, r in rows.items() if r["expected"] and c in new and c in old]
+        hits = sum(r["top"] == r["expected"] for r in hidden)
+        within = sum(r["top"] == r["expected"] and r["error_after"] <= 1.5 * r["floor_after"] for r in hidden)
+        clean = [r for c, r in rows.items() if not r["expected"] and c in new and c in old]
+        alarms = sum(r["top"] is not None for r in clean)
+        out.append(f"\n{name}: named first {hits}/{len(hidden)}; named and error within 1.5x the floor "
+                   f"{within}/{len(hidden)}; false alarms {alarms}/{len(clean)}")
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path)
     parser.add_argument("--only")
     parser.add_argument("--table", type=Path)
+    parser.add_argument("--compare", type=Path, nargs=2, metavar=("BEFORE", "AFTER"))
     args = parser.parse_args(argv)
+    if args.compare:
+        print(compare(*args.compare))
+        return 0
     if args.table:
         print(table(args.table))
         return 0
