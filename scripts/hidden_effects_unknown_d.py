@@ -134,18 +134,24 @@ def compare(before: Path, after: Path) -> str:
         text = f"{100 * r['force_before']:.2f}"
         return text + (f" -> {100 * r['force_after']:.2f}" if r["top"] else "")
 
+    def named(r):
+        kind = ("" if r["verdict"].startswith("missing effect") else " (part)" if r["top"] else
+                " (no effect is missing)" if r["verdict"].startswith("no effect") else " (not explained)")
+        return (r["top"] or "—") + kind
+
     for case in [c for c in new if c in old]:
         a, b = old[case], new[case]
-        out.append(f"| {case} | {a['top'] or '—'} / {b['top'] or '—'} | {err(a)} / {err(b)} | {force(a)} / {force(b)} | "
+        out.append(f"| {case} | {named(a)} / {named(b)} | {err(a)} / {err(b)} | {force(a)} / {force(b)} | "
                    f"{1e12 * a['d_error_before']:+.0f} / {1e12 * b['d_error_before']:+.0f} |")
     for name, rows in (("before", old), ("after", new)):
         hidden = [r for c, r in rows.items() if r["expected"] and c in new and c in old]
         hits = sum(r["top"] == r["expected"] for r in hidden)
         within = sum(r["top"] == r["expected"] and r["error_after"] <= 1.5 * r["floor_after"] for r in hidden)
         clean = [r for c, r in rows.items() if not r["expected"] and c in new and c in old]
-        alarms = sum(r["top"] is not None for r in clean)
-        out.append(f"\n{name}: named first {hits}/{len(hidden)}; named and error within 1.5x the floor "
-                   f"{within}/{len(hidden)}; false alarms {alarms}/{len(clean)}")
+        alarms = sum(r["top"] is not None or not r["verdict"].startswith("no effect") for r in clean)
+        explained = sum(r["top"] == r["expected"] and r["verdict"].startswith("missing effect") for r in hidden)
+        out.append(f"\n{name}: named first {hits}/{len(hidden)} (verdict \"missing effect\": {explained}); named and "
+                   f"error within 1.5x the floor {within}/{len(hidden)}; alarms on clean traces {alarms}/{len(clean)}")
     return "\n".join(out)
 
 
