@@ -42,6 +42,7 @@ from . import instrument_signature, plausibility
 from .config import RunConfig
 from .errors import InputError
 from .io import sha256_file
+from .candidate_refit import refit_candidate, search_separation, separation_estimated
 from .candidate_shapes import ShapeSearch
 from .harmonics import settled_start
 from .physics import EFFECTS
@@ -290,6 +291,7 @@ class Trial:
     conditional_delta_bic: float = math.nan  # BIC change when added on top of the better accepted effects
     evidence: str = ""
     reasons: list[str] = field(default_factory=list)  # why it was not accepted
+    separation: float = math.nan  # the rest separation of the refit, m (re-profiled when the run estimated it)
 
 
 @dataclass
@@ -429,20 +431,11 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         shape_names = [p.name for p in EFFECTS.get(effect).parameters
                        if p.nonlinear and p.name not in config.model.parameters]
         try:
-            shape = {}
-            if shape_names and config.fit.estimate_nonlinear and QUICK_SHAPE:
-                try:
-                    shape = shapes.search(config, effect, shape_names)
-                    config.model.parameters = {**config.model.parameters, **shape}
-                except Exception as exc:  # fall back to the fit's own search
-                    log.debug("quick search for %s failed (%s); using the fit's own", effect, exc)
-                    shape = {}
-            result = _fit_quick(config, prepared)
+            result, shape, separation = refit_candidate(run, prepared, config, effect, shape_names, shapes, _fit_quick,
+                                                        QUICK_SHAPE)
         except Exception as exc:  # one effect that cannot be fitted must not stop the diagnosis
             log.info("refit with %s failed: %s", effect, exc)
             continue
-        if not shape:
-            shape = {k: est.value for k, est in result.nonlinear.items() if k in shape_names}
         names = result.library.names
         selected = any(s and n.startswith(effect + ".") for n, s in zip(names, result.selected))
         bic_after = result.selection.best.bic + math.log(max(n_rows, 2)) * len(shape)
@@ -450,7 +443,7 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         qty = {k: v for k, v in result.quantities.items() if v["effect"] == effect}
         trials.append(Trial(effect, result.cv_error, result.cv_error_noise_floor, bic_after, bic_after - base.bic,
                             chi2_after, limit_after, selected, qty, shape, _implausible(effect, qty, run),
-                            time.perf_counter() - t0))
+                            time.perf_counter() - t0, separation=separation))
     residual_significant = _significant(base.chi2, base.chi2_limit, base.error, base.floor)
     for t in trials:
         t.reasons = _rejections(t, base)
@@ -527,6 +520,8 @@ def _fit_set(run: RunData, prepared, members: list[Trial]) -> _SetFit | None:
     for m in members:
         fixed.update(m.shape)
     config.model.parameters = fixed
+    if separation_estimated(run) and math.isfinite(members[0].separation):
+        config.sample.separation = search_separation(prepared, config, members[0].separation)
     try:
         result = _fit_quick(config, prepared)
     except Exception as exc:
@@ -658,7 +653,7 @@ def _trial_record(t: Trial) -> dict:
             "delta_bic": t.delta_bic, "noise_floor_after": t.noise_floor_after, "chi2_after": t.chi2_after,
             "terms_selected": t.effect_terms_selected, "significant": t.significant,
             "explains_residual": t.explains, "rejected_because": t.reasons,
-            "nonlinear": dict(t.shape), "seconds": t.seconds, "delta_bic_on_top": t.conditional_delta_bic,
+            "nonlinear": dict(t.shape), "separation": t.separation, "seconds": t.seconds, "delta_bic_on_top": t.conditional_delta_bic,
             "parameters": {k: {"value": v["value"], "error": v["error"], "unit": v["unit"]}
                            for k, v in t.quantities.items()}}
 

@@ -46,7 +46,8 @@ from .preprocess import (HarmonicBlocks, WeakWindows, detrend, differentiate, es
 from . import regression
 from .fit_forces import (CHUNK_BLOCKS, force_cv_error, per_sample_forces, period_curves, read_out,
                          signal_rows)
-from .fit_search import NonlinearEstimate, parabola_vertex, profile_minimum, search_1d, search_range
+from .fit_search import NonlinearEstimate, search_1d, search_range
+from .profile import GroupedProfile, ProfileResult, robust_profile
 from .fit_selection import SelectionSettings
 from .drive_search import DriveSearch, settle_drive_frequency
 from .baseline import BaselineColumns, remove_drift
@@ -478,56 +479,29 @@ def residual_sum_squares(system: System, mask: np.ndarray | None = None) -> floa
 
 
 # --------------------------------------------------------------------------- nonlinear search
-#: Above this many blocks the bootstrap of a profile is skipped (it keeps the factors of every grid point).
-PROFILE_BOOTSTRAP_MAX_BLOCKS = 2000
-
-
 def profile_parameter(prep: "Prepared", library: Library, params: dict, name: str, bounds: tuple[float, float],
-                      mask: np.ndarray | None, n_boot: int = 0, rng: np.random.Generator | None = None
-                      ) -> tuple[float, float, np.ndarray, np.ndarray]:
-    """Profile the weighted residual over one nonlinear parameter (the others held): (value, sigma, grid, values).
+                      mask: np.ndarray | None, jackknife: bool = True) -> ProfileResult:
+    """Profile the weighted residual over one nonlinear parameter (the others held): :class:`ProfileResult`.
 
-    ``mask`` selects the columns (None: all). With ``n_boot`` > 0 sigma is
-    the larger of the curvature's and the spread of the minimum over a
-    bootstrap of periods (the weak-form rows of neighbouring periods share a
-    window and are correlated, which the chi-square curvature ignores; on the
-    Lennard-Jones accuracy traces the two agreed within 1.5x); each resample
-    re-weights the same grid's per-period factors, so it costs no library
-    evaluation.
+    ``mask`` selects the columns (None: all). The minimum, its chi-square
+    interval and the block jackknife of the minimum (``jackknife``: the
+    honest sigma; off for quick refits) are :func:`afmid.profile.robust_profile`'s.
     """
-    keep = n_boot > 0 and prep.blocks.n_blocks <= PROFILE_BOOTSTRAP_MAX_BLOCKS
-    factors: dict[float, np.ndarray] = {}
-    n_rows = 0
-
-    def objective(value: float) -> float:
-        nonlocal n_rows
+    def factors_at(value: float):
         try:
             system = build_system(prep, library, dict(params, **{name: value}))
         except AfmidError:
-            return math.inf
-        if keep:
-            factors[value] = system.T_blocks
-        n_rows = system.n_rows
-        return residual_sum_squares(system, mask)
+            return None
+        return system.T_blocks, system.n_rows
 
+    grouped = GroupedProfile(factors_at, mask)
+    rss = grouped(params[name])
     n_columns = len(library) + len(prep.nuisance_names)
     m = np.ones(n_columns, dtype=bool) if mask is None else mask
-    rss = objective(params[name])
-    s2 = rss / max(n_rows - int(m.sum()), 1)
+    s2 = rss / max(grouped.n_rows - int(m.sum()), 1)
     half = 0.3e-9 if name == "d" else max(0.3 * abs(params[name]), 1e-3 * (bounds[1] - bounds[0]))
-    best, sigma, grid, values = profile_minimum(objective, params[name], half, s2, *bounds)
-    if keep and math.isfinite(sigma) and all(g in factors for g in grid):
-        B = factors[grid[0]].shape[0]  # windows (the weak form's blocks)
-        vertices = []
-        for _ in range(n_boot):
-            mult = rng.multinomial(B, np.full(B, 1.0 / B)).astype(float)
-            vals = np.array([regression.subset_fit(regression.combine(factors[g], mult), m)[1] for g in grid])
-            vertex, c2, _ = parabola_vertex(grid, vals, s2)
-            if c2 > 0:
-                vertices.append(vertex)
-        if len(vertices) >= max(10, n_boot // 2):
-            sigma = max(sigma, float(np.std(vertices, ddof=1)))
-    return best, sigma, grid, values
+    min_step = 1e-14 if name == "d" else 1e-4 * half
+    return robust_profile(grouped, params[name], half, s2, *bounds, min_step=min_step, jackknife=jackknife)
 
 
 def profile_library(library: Library, config: RunConfig) -> tuple[Library, dict[str, float]]:
@@ -613,7 +587,7 @@ def library_parameters(prep: Prepared, config: RunConfig, library: Library) -> d
     return params
 
 
-def _first_contact(prep: Prepared, a0: float) -> float:
+def first_contact(prep: Prepared, a0: float) -> float:
     """Separation at which the lowest turning point just touches (z_min = a0), m."""
     x_max = float(np.max(prep.blocks.synthesize(prep.X[..., None])[:, 0]))
     return x_max + a0
@@ -631,7 +605,7 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
     to_search: list[tuple[str, float, float, bool, str]] = []
     zero_allowed: set[str] = set()
     if config.sample.separation is None:
-        d_touch = _first_contact(prep, config.sample.a0)
+        d_touch = first_contact(prep, config.sample.a0)
         below, above = fit.separation_window
         to_search.append(("d", d_touch - below, d_touch + above, False, "m"))
     else:
@@ -745,19 +719,16 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the
     # profile's width is their uncertainty (propagated into the read-out below).
     if nonlinear:
-        rng_profile = np.random.default_rng([fit.seed, 1])
-
-        def profile(name, est, mask, n_boot=0):
+        def profile(name, est, mask):
             # A preset is profiled with all the terms of its catalog effects.
             return profile_parameter(prep, physics, dict(params, **extra), name, est.bounds,
-                                     mask if physics is library else None, n_boot, rng_profile)
+                                     mask if physics is library else None, jackknife=uncertainty)
 
-        n_boot = min(fit.bootstrap, 100) if uncertainty else 0
         profiled = {}
         for name, est in nonlinear.items():
-            best, sigma, _, _ = profile(name, est, chosen, n_boot)
-            params[name] = best
-            profiled[name] = sigma
+            found = profile(name, est, chosen)
+            params[name] = found.value
+            profiled[name] = found.sigma
         support = chosen
         system = build_system(prep, library, params)
         selection = settings.select(system)
@@ -767,7 +738,7 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
             if uncertainty:
                 # The profile of the final support (the first one's when the support did not change).
                 same = np.array_equal(chosen, support) or physics is not library
-                est.sigma = profiled[name] if same else profile(name, est, chosen, n_boot)[1]
+                est.sigma = profiled[name] if same else profile(name, est, chosen).sigma
     bar.update(1)
     T = regression.combine(system.T_blocks)
     coef, _ = regression.subset_fit(T, chosen)
