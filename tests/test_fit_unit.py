@@ -800,7 +800,7 @@ def test_prepare_in_chunks_equals_one_piece(monkeypatch, form, cantilever, basel
     of each product, so chunking changes the last bits on some CPUs (measured on AVX-512: up to 1e-9 relative in
     fields formed by cancellation). The tolerances are derived from the arithmetic (see ROUNDING_PERTURBATION).
     """
-    import afmid.fit as fit_mod
+    import afmid.fit_prepare as fit_mod
     import afmid.preprocess as pre
     from afmid.config import FitConfig
 
@@ -827,19 +827,19 @@ def test_prepare_in_chunks_equals_one_piece(monkeypatch, form, cantilever, basel
 
 
 def test_pairwise_sum_rounds_like_numpy():
-    from afmid.fit import pairwise_sum
+    from afmid.fit_prepare import pairwise_sum
 
     rng = np.random.default_rng(0)
     for n in (1, 7, 129, 1000, 123_457):
         a = rng.standard_normal(n) ** 2 * 1e-20
         for leaf in (128, 256, 4096):
-            import afmid.fit as fit_mod
+            import afmid.fit_prepare as prepare_module
 
-            old, fit_mod.PAIRWISE_LEAF = fit_mod.PAIRWISE_LEAF, leaf
+            old, prepare_module.PAIRWISE_LEAF = prepare_module.PAIRWISE_LEAF, leaf
             try:
                 assert pairwise_sum(lambda lo, hi: a[lo:hi], n) == np.sum(a), (n, leaf)
             finally:
-                fit_mod.PAIRWISE_LEAF = old
+                prepare_module.PAIRWISE_LEAF = old
 
 
 def test_fine_grid_synthesis_as_one_product():
