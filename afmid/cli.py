@@ -336,10 +336,11 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     cfg = load_config(config, list(overrides))
     engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
     counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite)
-    if counts["failed"]:
-        log.warning("%d of %d pixels failed (reasons in %s:/maps/message)", counts["failed"], sum(counts.values()),
-                    output)
-        raise click.exceptions.Exit(1)
+    if counts["failed"]:  # the maps are written; the failed pixels are NaN there, flagged in /maps/status
+        from .errors import AfmidError
+
+        raise AfmidError(f"{counts['failed']} of {sum(counts.values())} pixels failed; the maps are written, the "
+                         "reasons are in /maps/message", file=output)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -40,7 +40,7 @@ class DaskEngine:
     """Runs tasks on dask.distributed workers: a local cluster of ``jobs`` processes, or the cluster at
     ``scheduler``."""
 
-    def __init__(self, jobs: int | None = None, scheduler: str | None = None, connect_timeout: float = 30.0):
+    def __init__(self, jobs: int | None = None, scheduler: str | None = None, connect_timeout: float = 10.0):
         self.jobs = max(1, jobs or default_jobs())
         self.scheduler = scheduler
         self.connect_timeout = connect_timeout
@@ -63,8 +63,11 @@ class DaskEngine:
                                   key="--scheduler") from None
             self.n_workers_seen = len(client.scheduler_info().get("workers", {}))
             return client, None
+        # A terminal's Ctrl-C reaches the whole process group: the workers ignore it (afmid.dask_worker_setup)
+        # and leave it to this process, which cancels the tasks and keeps what finished.
         cluster = LocalCluster(n_workers=self.workers_for(n_tasks), threads_per_worker=1, processes=True,
-                               dashboard_address=None, env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR)
+                               dashboard_address=None, env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR,
+                               preload=["afmid.dask_worker_setup"])
         self.n_workers_seen = len(cluster.workers)
         return Client(cluster, set_as_default=False), cluster
 
@@ -86,7 +89,7 @@ class DaskEngine:
             client, cluster = self._client(len(tasks))
             for key, task in tasks:
                 futures[client.submit(worker, task, pure=False)] = key
-            pending = as_completed(list(futures), with_results=False)
+            pending = as_completed(list(futures), loop=client.loop, with_results=False)
             while not pending.is_empty():
                 interrupts.raise_if_pending()
                 batch = pending.next_batch(block=False)

@@ -57,15 +57,17 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
     bounds = [(lo, min(n, lo + chunk)) for lo in range(0, n, chunk)]
     key = {"input_sha256": sha256_file(source.path), "config_sha256": hashlib.sha256(config_text.encode()).hexdigest(),
            "shape": [source.rows, source.cols, source.samples], "chunk": chunk}
-    folder = _open_sidecar(sidecar_for(output), key)
+    folder = _open_sidecar(sidecar_for(output), key)  # made when the first chunk is saved
     done = {i for i in range(len(bounds)) if (folder / _chunk_name(i)).is_file()}
     if done:
         log.info("resuming: %d of %d chunks already fitted (%s)", len(done), len(bounds), folder)
     tasks = [(i, {"input": str(source.path.resolve()), "config": config_text,
                   "source": str(config.source) if config.source else None, "first": lo, "stop": hi})
              for i, (lo, hi) in enumerate(bounds) if i not in done]
-    log.info("map %dx%d (%d samples per pixel): %d chunks of %d pixels on %d workers", source.rows, source.cols,
-             source.samples, len(tasks), chunk, engine.workers_for(len(tasks)) if tasks else 0)
+    where = (f"the dask cluster at {engine.scheduler}" if getattr(engine, "scheduler", None)
+             else f"{engine.workers_for(len(tasks)) if tasks else 0} local workers")
+    log.info("map %dx%d (%d samples per pixel): %d chunks of %d pixels to fit on %s", source.rows, source.cols,
+             source.samples, len(tasks), chunk, where)
     progress = {"done": len(done)}
 
     def report(outcome) -> None:
@@ -73,6 +75,7 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
         if outcome.result is None and not outcome.crashed:
             return  # stopped before it finished: fitted again on the next run
         result = outcome.result if outcome.result is not None else _crashed_chunk(lo, hi, outcome.crashed)
+        _make_sidecar(folder, key)
         _save_chunk(folder / _chunk_name(outcome.key), result)
         progress["done"] += 1
         failed = int(np.count_nonzero(np.asarray(result["status"]) == STATUS_FAILED))
@@ -94,23 +97,31 @@ def _chunk_name(index: int) -> str:
 
 
 def _open_sidecar(folder: Path, key: dict) -> Path:
-    """The sidecar folder for ``key``; one left by a run with another input, config or chunking is started anew."""
-    key_file = folder / "key.json"
+    """The sidecar folder for ``key``; one left by a run with another input, config or chunking is removed (the
+    map starts anew). Nothing is created here: :func:`_make_sidecar` makes it when the first chunk is saved, so a
+    run that fails before any chunk leaves nothing."""
     if folder.is_dir():
         try:
-            old = json.loads(key_file.read_text())
+            old = json.loads((folder / "key.json").read_text())
         except (OSError, ValueError):
             old = None
         if old == key:
             return folder
         log.warning("%s holds chunks of another input, config or chunking: starting the map anew", folder)
         shutil.rmtree(folder)
-    folder.mkdir()
+    return folder
+
+
+def _make_sidecar(folder: Path, key: dict) -> None:
+    """Create the sidecar folder with its key (once)."""
     from .io import atomic_path
 
+    key_file = folder / "key.json"
+    if key_file.is_file():
+        return
+    folder.mkdir(exist_ok=True)
     with atomic_path(key_file) as tmp:
         tmp.write_text(json.dumps(key))
-    return folder
 
 
 def _save_chunk(path: Path, result: dict) -> None:
