@@ -176,8 +176,11 @@ def fit(
 @click.option("--worker", "worker", default=None, hidden=True,
               help="MODULE:FUNCTION (MODULE a name or a .py file) that each worker runs per item instead of "
                    "afmid's own (afmid.batch_task.fit_task), e.g. a test's wrapper that injects a fault.")
+@click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
+              help="Run the items on this dask cluster's workers (they must see the same paths).")
 def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, configs: tuple[str, ...],
-          output: Path, jobs: int | None, overrides: tuple[str, ...], force: bool, worker: str | None) -> None:
+          output: Path, jobs: int | None, overrides: tuple[str, ...], force: bool, worker: str | None,
+          scheduler: str | None) -> None:
     """Fit many traces with one CONFIG, or run many run configs, in parallel; resumable.
 
     \b
@@ -202,10 +205,15 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     from .batch import BatchInterrupted, fit_task, load_worker, run_batch
     from .errors import AfmidError
 
+    engine = None
+    if scheduler is not None:  # the items on an existing dask cluster (afmid.engine_dask)
+        from .engine_dask import DaskEngine, scheduler_address
+
+        engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
     try:
         result = run_batch(config, output, inputs=inputs, manifest=manifest, configs=configs, jobs=jobs,
                            overrides=overrides, force=force, progress=not _state["quiet"],
-                           worker=fit_task if worker is None else load_worker(worker))
+                           worker=fit_task if worker is None else load_worker(worker), engine=engine)
     except BatchInterrupted as exc:
         click.echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
         from .interrupts import Terminated

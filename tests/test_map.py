@@ -244,3 +244,26 @@ def test_an_interrupted_map_resumes_from_its_finished_chunks(workspace, local_re
     assert f"resuming: {len(saved)} of 9 chunks already fitted" in done.stderr
     assert not sidecar.exists()
     assert_identical(local_result, out)
+
+
+def test_a_batch_runs_on_the_dask_cluster_as_on_the_local_pool(workspace, dask_cluster):
+    """``afmid batch --scheduler``: the same engine interface; the run files equal the local pool's."""
+    import yaml
+
+    raw = yaml.safe_load(CONFIG.read_text())
+    del raw["simulate"]["map"]
+    folder = workspace / "batch_configs"
+    folder.mkdir()
+    for seed in (1, 2):
+        raw["simulate"]["seed"] = seed
+        (folder / f"item{seed}.yaml").write_text(yaml.safe_dump(raw))
+    runs = {}
+    for name, extra in (("remote", ("--scheduler", dask_cluster.address)), ("pool", ("-j", "2"))):
+        done = afmid("-q", "batch", "--configs", str(folder / "*.yaml"), "-o", name, *extra, cwd=workspace)
+        assert done.returncode == 0, done.stderr
+        runs[name] = sorted((workspace / name).glob("*.run.h5"))
+        assert len(runs[name]) == 2
+    for remote, pool in zip(runs["remote"], runs["pool"]):
+        with h5py.File(remote, "r") as a, h5py.File(pool, "r") as b:
+            for key in ("model/coefficients", "model/separation", "diagnostics/cv_error"):
+                np.testing.assert_array_equal(a[key][()], b[key][()], err_msg=f"{remote.name}:{key}")
