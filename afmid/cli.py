@@ -210,6 +210,7 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
         from .engine_dask import DaskEngine, scheduler_address
 
         engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
+        output = output.absolute()  # the workers run elsewhere: every path they get must be absolute
     try:
         result = run_batch(config, output, inputs=inputs, manifest=manifest, configs=configs, jobs=jobs,
                            overrides=overrides, force=force, progress=not _state["quiet"],

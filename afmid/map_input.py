@@ -120,7 +120,7 @@ def open_map(path: str | Path, config) -> MapSource:
         values[key] = merged(f"cantilever.{key}", getattr(config.cantilever, key), key)
     for key in CANTILEVER_KEYS[:3]:
         if values[key] is None or not np.isfinite(values[key]) or values[key] <= 0:
-            raise ConfigError(f"required (the map file does not state it), a positive number", file=config.source,
+            raise ConfigError("required (the map file does not state it), a positive number", file=config.source,
                               key=f"cantilever.{key}")
     radius = values.pop("tip_radius")
     cantilever = Cantilever(tip_radius=None if radius is None or not np.isfinite(radius) else float(radius),

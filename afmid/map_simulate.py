@@ -34,7 +34,6 @@ def phase_map(spec) -> np.ndarray:
 def simulate_map(config, progress: bool = False) -> dict:
     """Simulate every pixel; returns ``{"deflection", "truth": {name: (map, unit)}, "phase", "sample_rate",
     "cantilever", "drive_frequency", "x", "y"}`` (SI)."""
-    from . import physics
     from .simulate import simulate
 
     spec = config.simulate.map
@@ -73,15 +72,15 @@ def simulate_map(config, progress: bool = False) -> dict:
     finally:
         config.simulate.parameters, config.sample.separation, config.simulate.seed = base_params, base_d, base_seed
     units = dict(first.truth.units)
-    out_truth = {name: (truth[name], units.get(name, _unit_of(physics, name))) for name in names}
+    missing = [name for name in names if name not in units]
+    if missing:  # a phase parameter the model does not have: the simulator would have ignored it
+        raise ConfigError(f"not a parameter of simulate.model {config.simulate.model!r}: {', '.join(missing)}",
+                          file=config.source, key="simulate.map.phases")
+    out_truth = {name: (truth[name], units[name]) for name in names}
     out_truth["separation"] = (separation, "m")
     return {"deflection": traces, "truth": out_truth, "phase": phase, "phase_names": [p.name for p in spec.phases],
             "sample_rate": first.sample_rate, "cantilever": first.cantilever, "drive_frequency": first.drive_frequency,
             "x": np.arange(spec.cols) * spec.pixel_size, "y": np.arange(spec.rows) * spec.pixel_size}
-
-
-def _unit_of(physics, name: str) -> str:
-    return "1"
 
 
 def write_map_file(path: str | Path, simulated: dict, config_text: str, overwrite: bool = False) -> Path:

@@ -88,7 +88,8 @@ def fit_chunk(task: dict) -> dict:
         out["cv_error"][i] = result.cv_error
         out["cv_error_noise_floor"][i] = result.cv_error_noise_floor
         out["selected"][i] = int(sum(1 << k for k, m in enumerate(result.selected[:len(library)]) if m))
-        doubts = [w for w in result.warnings] + [f"implausible: {name}" for name in
+        # Defects the checks only warned about (not those repaired or informational), and implausible read-outs.
+        doubts = [w for w in result.warnings if w.startswith("warning")] + [f"implausible: {name}" for name in
                                                  plausibility.violations(
                                                      plausibility.check_plausibility(result.quantities))]
         out["status"][i] = STATUS_SUSPECT if doubts else STATUS_OK

@@ -267,3 +267,45 @@ def test_a_batch_runs_on_the_dask_cluster_as_on_the_local_pool(workspace, dask_c
         with h5py.File(remote, "r") as a, h5py.File(pool, "r") as b:
             for key in ("model/coefficients", "model/separation", "diagnostics/cv_error"):
                 np.testing.assert_array_equal(a[key][()], b[key][()], err_msg=f"{remote.name}:{key}")
+
+
+# --------------------------------------------------------------------------- pieces, in process
+def test_phases_are_drawn_as_round_domains_over_the_matrix():
+    from afmid.config import load_config
+    from afmid.map_simulate import phase_map
+
+    spec = load_config(CONFIG).simulate.map
+    # domain centre (0, 0), radius 25 nm, pixels 20 nm apart: (0,0), (0,1), (1,0) inside; (1,1) at 28 nm is not
+    np.testing.assert_array_equal(phase_map(spec), [[1, 1, 0], [1, 0, 0], [0, 0, 0]])
+
+
+def test_scheduler_address_and_default_chunking():
+    from afmid.engine_dask import scheduler_address
+    from afmid.errors import ConfigError
+    from afmid.map_run import default_chunk
+
+    assert scheduler_address("tcp://127.0.0.1:8786") == "tcp://127.0.0.1:8786"
+    with pytest.raises(ConfigError, match="--scheduler"):
+        scheduler_address("127.0.0.1:8786")
+    assert [default_chunk(n) for n in (1, 16, 32, 33, 4096, 10**6)] == [1, 1, 1, 2, 64, 64]
+
+
+def test_a_npy_map_gives_the_pixels_of_the_hdf5_map(workspace, tmp_path):
+    """The .npy layout (everything but the samples from the config) fits a pixel exactly as the HDF5 layout."""
+    import yaml
+
+    from afmid.config import dump_config, load_config
+    from afmid.map_task import fit_chunk
+
+    with h5py.File(workspace / "clean.h5", "r") as h5:
+        np.save(tmp_path / "map.npy", h5["deflection"][()])
+        rate = float(h5.attrs["sample_rate"])
+    raw = yaml.safe_load(CONFIG.read_text())
+    raw["data"] = {"sample_rate": rate, "units": "m"}
+    (tmp_path / "run.yaml").write_text(yaml.safe_dump(raw))
+    config_text = dump_config(load_config(tmp_path / "run.yaml"))
+    got = {name: fit_chunk({"input": str(path), "config": config_text, "source": None, "first": 4, "stop": 5})
+           for name, path in (("npy", tmp_path / "map.npy"), ("h5", workspace / "clean.h5"))}
+    assert got["npy"]["status"][0] == 0, got["npy"]["message"]
+    np.testing.assert_array_equal(got["npy"]["values"], got["h5"]["values"])
+    np.testing.assert_array_equal(got["npy"]["separation"], got["h5"]["separation"])
