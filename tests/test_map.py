@@ -209,10 +209,12 @@ def test_a_worker_killed_mid_map_is_survived(workspace, local_result, dask_clust
     proc = start_map("map", str(CONFIG), "--input", "map.h5", "-o", out.name, "--scheduler", dask_cluster.address,
                      "--chunk", "1", cwd=workspace)
     try:
-        wait_for_chunks(workspace / "killed.h5.afmid-map", 1, proc)
+        sidecar = workspace / "killed.h5.afmid-map"
+        wait_for_chunks(sidecar, 1, proc)
         victim = dask_cluster.workers[0]
         victim.kill()  # SIGKILL: no goodbye to the scheduler
         victim.wait()
+        assert len(list(sidecar.glob("chunk_*.npz"))) < 9, "the map was over before the worker was killed"
         _, err = proc.communicate(timeout=RUN_TIMEOUT)
     finally:
         if proc.poll() is None:
