@@ -4,7 +4,7 @@ A map is ``rows`` x ``cols`` pixels ``pixel_size`` apart. The first phase is the
 covered by a domain); every further phase is a round domain (``center`` [x, y] in m from the first pixel,
 ``radius`` in m) with its own force-model parameters (merged over ``simulate.parameters``) and ``height`` (m,
 raises the sample there: the rest separation of the pixel is ``sample.separation - height``). Later domains
-are drawn over earlier ones. Example (``configs/blend_map.yaml``)::
+are drawn over earlier ones. Example (``configs/maps/blend_map.yaml``)::
 
     simulate:
       map:

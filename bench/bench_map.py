@@ -1,6 +1,6 @@
 """Benchmark: ``afmid map`` on a local dask cluster of 1 and 2 worker processes.
 
-Map: configs/blend_map.yaml (a glassy matrix with soft raised domains; 25 periods at 128 samples per period,
+Map: configs/maps/blend_map.yaml (a glassy matrix with soft raised domains; 25 periods at 128 samples per period,
 3,200 samples per pixel, bootstrap 20), 6x6 pixels (quick: 3x3), simulated once and cached in bench/results/.
 Timed: ``afmid -q map ... -j N --chunk 2`` end to end (process start to exit, cluster start-up included) for
 N = 1 and 2; per-pixel cost = the 1-worker wall time / pixels. Rows with the issue's targets: the 64x64 map of
@@ -21,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import CONFIGS, RESULTS, row, wall  # noqa: E402
 
-CONFIG = CONFIGS / "blend_map.yaml"
+CONFIG = CONFIGS / "maps" / "blend_map.yaml"
 AFMID = [sys.executable, "-m", "afmid.cli"]
 TARGET_64_S = 90.0
 TARGET_SPEEDUP = 1.8
