@@ -311,3 +311,12 @@ def test_a_npy_map_gives_the_pixels_of_the_hdf5_map(workspace, tmp_path):
     assert got["npy"]["status"][0] == 0, got["npy"]["message"]
     np.testing.assert_array_equal(got["npy"]["values"], got["h5"]["values"])
     np.testing.assert_array_equal(got["npy"]["separation"], got["h5"]["separation"])
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "configs" / "maps").glob("*.yaml")), ids=lambda p: p.name)
+def test_shipped_map_configs_validate(path):
+    from afmid.config import load_config
+    from afmid.map_simulate import phase_map
+
+    spec = load_config(path).simulate.map
+    assert spec is not None and len(np.unique(phase_map(spec))) == len(spec.phases)  # every phase has pixels
