@@ -101,6 +101,13 @@ def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, 
     extra = list(overrides) + ([f"simulate.seed={int(seed)}"] if seed is not None else [])
     cfg = load_config(config, extra)
     check_output_path(output, overwrite, inputs={config: "the config"})
+    if cfg.simulate.map is not None:  # a force map over phases (afmid.map_simulate)
+        from .map_simulate import simulate_map, write_map_file
+
+        simulated = simulate_map(cfg, progress=not _state["quiet"])
+        write_map_file(output, simulated, dump_config(cfg), overwrite=overwrite)
+        log.info("wrote %s (map %dx%d, %d samples per pixel)", output, *simulated["deflection"].shape)
+        return
     from .simulate import simulate as run_simulation
 
     trace = run_simulation(cfg, progress=not _state["quiet"])
@@ -182,8 +189,11 @@ def fit(
 @click.option("--worker", "worker", default=None, hidden=True,
               help="MODULE:FUNCTION (MODULE a name or a .py file) that each worker runs per item instead of "
                    "afmid's own (afmid.batch_task.fit_task), e.g. a test's wrapper that injects a fault.")
+@click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
+              help="Run the items on this dask cluster's workers (they must see the same paths).")
 def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, configs: tuple[str, ...],
-          output: Path, jobs: int | None, overrides: tuple[str, ...], force: bool, worker: str | None) -> None:
+          output: Path, jobs: int | None, overrides: tuple[str, ...], force: bool, worker: str | None,
+          scheduler: str | None) -> None:
     """Fit many traces with one CONFIG, or run many run configs, in parallel; resumable.
 
     \b
@@ -208,10 +218,16 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     from .batch import BatchInterrupted, fit_task, load_worker, run_batch
     from .errors import AfmidError
 
+    engine = None
+    if scheduler is not None:  # the items on an existing dask cluster (afmid.engine_dask)
+        from .engine_dask import DaskEngine, scheduler_address
+
+        engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
+        output = output.absolute()  # the workers run elsewhere: every path they get must be absolute
     try:
         result = run_batch(config, output, inputs=inputs, manifest=manifest, configs=configs, jobs=jobs,
                            overrides=overrides, force=force, progress=not _state["quiet"],
-                           worker=fit_task if worker is None else load_worker(worker))
+                           worker=fit_task if worker is None else load_worker(worker), engine=engine)
     except BatchInterrupted as exc:
         click.echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
         from .interrupts import Terminated
@@ -308,6 +324,45 @@ def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
     from .inspect import inspect_file
 
     click.echo(inspect_file(file, column=column, sample_rate=sample_rate))
+
+
+@cli.command(name="map")
+@CONFIG_ARG
+@click.option("--input", "input_path", required=True, type=click.Path(path_type=Path),
+              help="Map file: HDF5 with /deflection (rows, cols, samples), or a .npy array of that shape.")
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="Result file to write (.h5).")
+@click.option("-j", "--jobs", type=click.IntRange(min=1), default=None, help="Local worker processes (default: CPUs).")
+@click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
+              help="Use this dask scheduler's workers (default: $AFMID_SCHEDULER, else a local cluster).")
+@click.option("--chunk", type=click.IntRange(min=1), default=None, metavar="PIXELS",
+              help="Pixels per task (default: about 32 tasks per map).")
+@OVERWRITE
+@SET
+def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, scheduler: str | None,
+                chunk: int | None, overwrite: bool, overrides: tuple[str, ...]) -> None:
+    """Fit every pixel of a force map with CONFIG and write maps of the parameters.
+
+    Each pixel's trace is fitted as `afmid fit` would (the separation estimated per pixel:
+    the topography). RESULT.h5 holds /maps/NAME and /maps/NAME_sigma (1 sigma) per
+    parameter, the separation, the cv error and its noise floor, the selected terms (bit
+    mask), and a status per pixel (0 ok, 1 suspect, 2 failed; reasons in /maps/message).
+    Runs on dask.distributed: a local cluster of -j single-threaded processes, or the
+    cluster at --scheduler. Finished chunks are kept beside the output
+    (RESULT.h5.afmid-map/): after Ctrl-C, run the same command again to resume.
+    Exit code 1 if any pixel failed.
+    """
+    from .config import dump_config, load_config
+    from .engine_dask import DaskEngine, scheduler_address
+    from .map_run import run_map
+
+    cfg = load_config(config, list(overrides))
+    engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
+    counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite)
+    if counts["failed"]:  # the maps are written; the failed pixels are NaN there, flagged in /maps/status
+        from .errors import AfmidError
+
+        raise AfmidError(f"{counts['failed']} of {sum(counts.values())} pixels failed; the maps are written, the "
+                         "reasons are in /maps/message", file=output)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,6 +25,7 @@ from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Fi
 
 from .errors import ConfigError
 from .files import check_input_file
+from .map_config import MapSimulation
 from .registry import closest, unknown_name_message
 
 
@@ -290,6 +291,8 @@ class SimulateConfig(StrictModel):
     )
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
     seed: Seed = Field(0, description=f"random seed, 0 to {MAX_SEED}")
+    map: MapSimulation | None = Field(None, description="a force map over phases (afmid.map_config); afmid simulate "
+                                      "then writes a map file")
 
     @field_validator("effects")
     @classmethod
