@@ -372,7 +372,10 @@ def main(argv: list[str] | None = None) -> int:
     Ctrl-C so that temporary files are removed (afmid/interrupts.py)."""
     from . import interrupts
 
-    with interrupts.handled():
+    # Run as the process's command (no argv given): once the command is over, the process only exits, and a
+    # Ctrl-C or SIGTERM then is ignored (with the default handlers back, it would print a traceback or kill a
+    # command that had finished with whole outputs). Called with argv (tests, scripts): the handlers restored.
+    with interrupts.handled(then_ignore=argv is None):
         try:
             code = _run(argv)
             interrupts.raise_if_pending()  # an interrupt that Python swallowed (a weakref callback) still counts

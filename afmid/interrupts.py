@@ -80,10 +80,14 @@ def clear() -> None:
 
 
 @contextlib.contextmanager
-def handled() -> Iterator[None]:
+def handled(then_ignore: bool = False) -> Iterator[None]:
     """SIGINT and SIGTERM raise (KeyboardInterrupt, :class:`Terminated`) and are remembered until the outermost
     block ends. Nests; does nothing outside the main thread. A SIGINT that was ignored when the process
-    started (a job started in the background by a non-interactive shell) stays ignored."""
+    started (a job started in the background by a non-interactive shell) stays ignored.
+
+    ``then_ignore``: when the block ends, ignore the two signals instead of restoring the handlers from before
+    (for a process whose command is over and that only exits: a signal then must neither print a traceback
+    nor turn a finished command's exit code into a kill)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -104,7 +108,7 @@ def handled() -> Iterator[None]:
     finally:
         _state["depth"] -= 1
         for signum, handler in previous.items():
-            signal.signal(signum, handler)
+            signal.signal(signum, signal.SIG_IGN if then_ignore else handler)
         if outermost:
             sys.unraisablehook = _state["hook"] or sys.__unraisablehook__
             _state["hook"] = None
