@@ -18,7 +18,7 @@ import numpy as np
 
 from .errors import AfmidError
 from .instrument import Detector, Instrument
-from .sim_integrator import Integrator, Segment
+from .sim_integrator import Integrator, Segment, dynamics_vector
 from .sim_model import CompiledForceLaw, Oscillator, initial_gates
 
 #: Periods integrated through the detector before recording, per unit of f_drive / bandwidth: the slowest
@@ -37,9 +37,7 @@ class MultiModeIntegrator:
         self.compiled = compiled
         self.separation = separation
         o = oscillator
-        a0 = compiled.law.parameters["a0"]
-        self.dyn = np.array([o.mass, o.damping, o.spring_constant, o.drive_force, o.omega, separation, a0,
-                             1.0 / o.mass])
+        self.dyn = dynamics_vector(oscillator, compiled, separation)
         rows = [(o.mass, o.damping, o.spring_constant)]
         for mode in instrument.higher_modes:
             w = 2.0 * math.pi * mode.resonance_frequency

@@ -69,6 +69,14 @@ class Segment:
     events: int  # non-smooth instants stepped onto
 
 
+def dynamics_vector(oscillator: Oscillator, compiled: CompiledForceLaw, separation: float) -> np.ndarray:
+    """The kernels' parameter vector of the first mode: mass (kg), damping (kg/s), k (N/m), drive force (N),
+    drive angular frequency (rad/s), separation d (m), a0 (m), 1 / mass."""
+    o = oscillator
+    return np.array([o.mass, o.damping, o.spring_constant, o.drive_force, o.omega, separation,
+                     compiled.law.parameters["a0"], 1.0 / o.mass])
+
+
 class Integrator:
     """Runs the integration kernel for one setup at separation d (m).
 
@@ -90,10 +98,7 @@ class Integrator:
         self.oscillator = oscillator
         self.compiled = compiled
         self.separation = separation
-        o = oscillator
-        a0 = compiled.law.parameters["a0"]
-        self.dyn = np.array([o.mass, o.damping, o.spring_constant, o.drive_force, o.omega, separation, a0,
-                             1.0 / o.mass])
+        self.dyn = dynamics_vector(oscillator, compiled, separation)
         self._kernel, self._law, self.kernel = _kernel_for(compiled, kernel)
         # Carried from run to run: the state at the end of the last run.
         self.x = 0.0
