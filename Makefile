@@ -9,6 +9,8 @@ DEMO_DIR ?= demo_output
 RESULTS ?= results
 BENCH_ARGS ?=
 BATCH_JOBS ?= 2
+# Test processes (pytest-xdist): the suite's tests are independent; 2 matches the CI machine's cores.
+TEST_JOBS ?= 2
 
 .PHONY: help venv demo test test-kernels batch bench clean
 .DEFAULT_GOAL := help
@@ -35,7 +37,7 @@ demo: $(STAMP)
 	$(PY) -m afmid.demo --output $(DEMO_DIR)
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_JOBS)
 
 # The tests marked `numerics` again under other OpenBLAS kernels (OPENBLAS_CORETYPE) that this CPU runs correctly
 # (scripts/blas_kernels.py picks and checks them): a test that holds on one CPU family only fails here.
@@ -44,7 +46,7 @@ test-kernels: $(STAMP)
 	if [ -z "$$kernels" ]; then echo "test-kernels: NumPy does not use OpenBLAS here, or no other kernel runs on this CPU"; fi; \
 	for kernel in $$kernels; do \
 		echo "== numerically sensitive tests with OPENBLAS_CORETYPE=$$kernel"; \
-		OPENBLAS_CORETYPE=$$kernel $(PY) -m pytest -q -p no:cacheprovider -m numerics || exit 1; \
+		OPENBLAS_CORETYPE=$$kernel $(PY) -m pytest -q -p no:cacheprovider -n $(TEST_JOBS) -m numerics || exit 1; \
 	done
 
 # Every config in configs/ with its own cantilever and model, in BATCH_JOBS worker processes:
