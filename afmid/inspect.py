@@ -64,9 +64,9 @@ class FileSummary:
 
 
 def _time_candidates(channels: list[str], chosen: str | None) -> list[str]:
-    from .readers.base import _TIME_NAMES, _stem
+    from .readers.base import TIME_NAMES, column_stem
 
-    return [c for c in channels if c != chosen and _stem(c) in _TIME_NAMES]
+    return [c for c in channels if c != chosen and column_stem(c) in TIME_NAMES]
 
 
 def describe(path: str | Path, column: str | None = None, sample_rate: float | None = None) -> FileSummary:
@@ -74,7 +74,7 @@ def describe(path: str | Path, column: str | None = None, sample_rate: float | N
 
     Raises InputError for a missing or unreadable file, or a ``column`` it does not have.
     """
-    from .io import TRACE_FORMAT, _normalise_units
+    from .io import TRACE_FORMAT, normalise_units
     from .readers import list_channels, read_trace, reader_for
 
     path = Path(path)
@@ -105,7 +105,7 @@ def describe(path: str | Path, column: str | None = None, sample_rate: float | N
     finite = values[np.isfinite(values)]
     if finite.size:
         summary.raw_min, summary.raw_max, summary.raw_mean = float(finite.min()), float(finite.max()), float(finite.mean())
-    summary.units = _normalise_units(raw.units)
+    summary.units = normalise_units(raw.units)
     summary.units_source = raw.source.get("units")
     summary.sample_rate, summary.rate_source = raw.sample_rate, raw.source.get("sample_rate")
     if sample_rate is not None:

@@ -428,7 +428,7 @@ def _convert_units(values: np.ndarray, units: str | None, config, file: Path) ->
     raise InputError(f"cannot convert deflection units {units!r}; set data.units", file=file, key="data.units")
 
 
-def _normalise_units(units: str | None) -> str | None:
+def normalise_units(units: str | None) -> str | None:
     if units is None:
         return None
     u = units.strip().replace("µ", "u").replace("μ", "u")
@@ -465,7 +465,7 @@ def load_trace(config) -> Trace:
 
     defects.report(defects.check_values(values), path)  # NaN/inf runs: where, and the longest clean part
 
-    units = _normalise_units(raw.units)
+    units = normalise_units(raw.units)
     if data.units is not None:
         if units is not None and units != data.units:
             overridden.append("data.units")

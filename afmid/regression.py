@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .kernels.sparse import SUBSET_RSS_MAX_ERROR, SUBSET_RSS_MIN_PIVOT, _subset_lstsq, stlsq_factor, subset_rss
+from .kernels.sparse import SUBSET_RSS_MAX_ERROR, SUBSET_RSS_MIN_PIVOT, subset_lstsq, stlsq_factor, subset_rss
 
 
 # --------------------------------------------------------------------------- factors
@@ -53,7 +53,7 @@ def combine(T_blocks: np.ndarray, multiplicity: np.ndarray | None = None) -> np.
 
 def subset_fit(T: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float]:
     """Least-squares coefficients on the columns in ``mask`` and the residual sum of squares."""
-    coef, rss = _subset_lstsq(np.ascontiguousarray(T), mask.astype(np.bool_))
+    coef, rss = subset_lstsq(np.ascontiguousarray(T), mask.astype(np.bool_))
     return coef, float(rss)
 
 

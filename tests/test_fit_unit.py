@@ -20,7 +20,7 @@ from afmid import expr, regression
 from afmid.config import ModelConfig
 from afmid.errors import ConfigError
 from afmid.kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy
-from afmid.kernels.sparse import _subset_lstsq, stlsq_factor, stlsq_factor_numpy, subset_rss, subset_rss_numpy
+from afmid.kernels.sparse import subset_lstsq, stlsq_factor, stlsq_factor_numpy, subset_rss, subset_rss_numpy
 from afmid.library import build_library, trajectory_variables
 from afmid.presets import PRESETS
 from afmid.physics import EFFECTS
@@ -225,7 +225,7 @@ def _realistic_problem(library, seed, periods=12, rel_noise=1e-3):
 
 
 def _degenerate_problems(rng):
-    """Badly scaled problems with the degeneracies the kernel hands to ``_subset_lstsq``."""
+    """Badly scaled problems with the degeneracies the kernel hands to ``subset_lstsq``."""
     A, y, c, protected = sparse_problem(rng, rows=300, p=10, support=(1, 4, 6), noise=1e-3)
     out = {"spread 1e+-12": (A, y, protected)}
     B = A.copy()
@@ -257,9 +257,9 @@ def test_subset_rss_matches_per_subset_fits_on_library_matrices(library, seed):
     assert norms.max() / norms.min() > 1e40, "SI library columns span many decades"
     rss, exact = _kernel_rss(T, protected)
     assert rss.shape == (1 << len(lib),)
-    ref = np.array([_subset_lstsq(T, mask)[1] for _, mask in _subset_masks(protected)])
+    ref = np.array([subset_lstsq(T, mask)[1] for _, mask in _subset_masks(protected)])
     np.testing.assert_allclose(rss, ref, rtol=1e-9, atol=0)
-    assert np.array_equal(rss[exact], ref[exact]), "subsets refitted by _subset_lstsq are bit for bit its result"
+    assert np.array_equal(rss[exact], ref[exact]), "subsets refitted by subset_lstsq are bit for bit its result"
     twin, exact_twin = subset_rss_numpy(T, protected)
     np.testing.assert_array_equal(exact, exact_twin)
     np.testing.assert_allclose(rss, twin, rtol=1e-9, atol=0)
@@ -285,7 +285,7 @@ def test_subset_rss_degenerate_subsets_are_those_of_subset_fit():
         T = _padded_factor(A, y)
         rss, exact = _kernel_rss(T, protected)
         masks = dict(_subset_masks(protected))
-        ref = np.array([_subset_lstsq(T, masks[sub])[1] for sub in range(rss.size)])
+        ref = np.array([subset_lstsq(T, masks[sub])[1] for sub in range(rss.size)])
         assert np.array_equal(rss[exact], ref[exact]), name
         np.testing.assert_allclose(rss[~exact], ref[~exact], rtol=1e-9, atol=0, err_msg=name)
         twin, exact_twin = subset_rss_numpy(T, protected)
@@ -296,7 +296,7 @@ def test_subset_rss_degenerate_subsets_are_those_of_subset_fit():
             # the SVD cut-off is not borderline here: NumPy's lstsq (the twin's fallback) agrees
             np.testing.assert_allclose(rss[exact], twin[exact], rtol=1e-6, atol=1e-12 * scale, err_msg=name)
         if name in ("duplicate column", "zero column", "noise-free", "fewer rows than columns"):
-            assert exact.any(), f"{name}: rank-deficient subsets go to _subset_lstsq"
+            assert exact.any(), f"{name}: rank-deficient subsets go to subset_lstsq"
         if name == "spread 1e+-12":
             assert not exact.any()
         if name == "duplicate column":  # both copies in: rank-deficient, refitted

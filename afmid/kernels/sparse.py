@@ -10,7 +10,7 @@ exact residual, without ever forming the ill-conditioned normal equations
 call (exhaustive search): a depth-first walk over the subsets that adds one column
 at a time to a Householder QR of the unit-norm columns (again no normal
 equations: unit-norm Gram matrices of the seed tables reach condition ~1e11-1e14),
-handing the ill-conditioned and rank-deficient subsets to :func:`_subset_lstsq`.
+handing the ill-conditioned and rank-deficient subsets to :func:`subset_lstsq`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from numba import njit
 
 
 @njit(cache=True)
-def _subset_lstsq(T, active):
+def subset_lstsq(T, active):
     q = T.shape[1]
     p = q - 1
     k = 0
@@ -63,7 +63,7 @@ def stlsq_factor(T, scale, threshold, protected, initial, max_iter):
     """
     p = T.shape[1] - 1
     active = initial.copy()
-    coef, rss = _subset_lstsq(T, active)
+    coef, rss = subset_lstsq(T, active)
     for _ in range(max_iter):
         changed = False
         for j in range(p):
@@ -72,7 +72,7 @@ def stlsq_factor(T, scale, threshold, protected, initial, max_iter):
                 changed = True
         if not changed:
             break
-        coef, rss = _subset_lstsq(T, active)
+        coef, rss = subset_lstsq(T, active)
     return active, coef, rss
 
 
@@ -103,7 +103,7 @@ def stlsq_factor_numpy(T, scale, threshold, protected, initial, max_iter):
 
 
 # --------------------------------------------------------------------------- every subset at once
-#: :func:`subset_rss` solves a subset by :func:`_subset_lstsq` (SVD, as one subset fit does) when the
+#: :func:`subset_rss` solves a subset by :func:`subset_lstsq` (SVD, as one subset fit does) when the
 #: estimated relative rounding error of its QR residual exceeds ``SUBSET_RSS_MAX_ERROR``, or when a pivot of
 #: its unit-norm triangular factor is below ``SUBSET_RSS_MIN_PIVOT`` (condition number >= 1e8: near
 #: rank-deficient, where the SVD cut-off of the single fit decides what the residual is).
@@ -148,10 +148,10 @@ def subset_rss(T, protected, max_error, min_pivot):
     ``T`` (m x q, usually the q x q factor of ``[A | y]``); the protected columns are in every subset.
     Returns ``(rss, exact)``, arrays of length ``2**n_free`` indexed by bitmask: bit ``i`` set = the
     ``i``-th free column (in column order) is active. ``exact[b]`` is True where subset ``b`` was solved
-    by :func:`_subset_lstsq` itself (the empty subset, near rank-deficient or ill-conditioned subsets,
+    by :func:`subset_lstsq` itself (the empty subset, near rank-deficient or ill-conditioned subsets,
     see ``SUBSET_RSS_MAX_ERROR``); elsewhere the residual comes from a Householder QR of the unit-norm
-    columns (as :func:`_subset_lstsq` scales them) grown column by column along a depth-first walk
-    over the subsets, one reflection per subset, and agrees with :func:`_subset_lstsq` to rounding.
+    columns (as :func:`subset_lstsq` scales them) grown column by column along a depth-first walk
+    over the subsets, one reflection per subset, and agrees with :func:`subset_lstsq` to rounding.
     """
     m, q = T.shape
     p = q - 1
@@ -242,7 +242,7 @@ def subset_rss(T, protected, max_error, min_pivot):
             for e in range(nf):
                 if (sub >> e) & 1:
                     mask[free[e]] = True
-            rss[sub] = _subset_lstsq(T, mask)[1]
+            rss[sub] = subset_lstsq(T, mask)[1]
             exact[sub] = True
         # ---- next subset: add the next free column after the last one, else backtrack
         while d >= 0 and nxt[d] >= nf:
@@ -297,7 +297,7 @@ def subset_rss_numpy(T, protected, max_error=SUBSET_RSS_MAX_ERROR, min_pivot=SUB
                 ok = bool(err <= max_error)
         if ok:
             rss[sub] = tail
-        else:  # the single subset fit (twin of _subset_lstsq: SVD, machine-precision cut-off)
+        else:  # the single subset fit (twin of subset_lstsq: SVD, machine-precision cut-off)
             mask = protected.copy()
             mask[cols] = True
             if not mask.any():

@@ -40,7 +40,7 @@ _BRACKETED_UNIT = re.compile(r"^(?P<base>.*?\S)\s*[\[(](?P<unit>[^\[\]()]+)[\])]
 _NUMBER_WITH_UNIT = re.compile(r"^\s*(?P<number>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(?P<unit>[A-Za-zµμ]*)\s*$")
 
 #: Names that mark a time axis; such channels are never picked as the default signal.
-_TIME_NAMES = frozenset({"t", "time", "times", "timestamp"})
+TIME_NAMES = frozenset({"t", "time", "times", "timestamp"})
 _DEFAULT_NAME = "deflection"
 _LISTED_NAMES = 20  # longer channel lists are cut in messages
 _LISTING_CHARS = 300  # and so are lists of long names
@@ -90,7 +90,7 @@ def split_units(name: str) -> tuple[str, str | None]:
     return name, None
 
 
-def _stem(name: str) -> str:
+def column_stem(name: str) -> str:
     """Lower-case last component of a channel name without units: '/AFM/Defl_nm' -> 'defl'."""
     base = split_units(name)[0]
     return re.split(r"[/.]", base)[-1].strip().lower()
@@ -154,7 +154,7 @@ def resolve_channel(
         lambda n: n == text,
         lambda n: n.lower() == text.lower(),
         lambda n: split_units(n)[0].lower() == text.lower(),
-        lambda n: _stem(n) == text.lower(),
+        lambda n: column_stem(n) == text.lower(),
     )
     for matches_tier in tiers:
         hits = [i for i, name in enumerate(names) if matches_tier(name)]
@@ -179,10 +179,10 @@ def default_channel(names: Sequence[str], *, file: Path, exclude: str | None = N
     channel) is never picked. Anything else is ambiguous.
     """
     pool = [i for i, name in enumerate(names) if name != exclude]
-    named = [i for i in pool if _stem(names[i]) == _DEFAULT_NAME]
+    named = [i for i in pool if column_stem(names[i]) == _DEFAULT_NAME]
     if len(named) == 1:
         return named[0]
-    signals = [i for i in pool if _stem(names[i]) not in _TIME_NAMES]
+    signals = [i for i in pool if column_stem(names[i]) not in TIME_NAMES]
     if len(signals) == 1:
         return signals[0]
     if not pool:
