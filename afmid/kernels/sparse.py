@@ -21,6 +21,8 @@ from numba import njit
 
 @njit(cache=True)
 def subset_lstsq(T, active):
+    """Least squares of the last column of ``T`` on its ``active`` columns (SVD, machine-precision cut-off):
+    (coefficients with zeros off the subset, residual sum of squares)."""
     q = T.shape[1]
     p = q - 1
     k = 0
