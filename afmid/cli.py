@@ -381,6 +381,16 @@ def main(argv: list[str] | None = None) -> int:
             interrupts.raise_if_pending()  # an interrupt that Python swallowed (a weakref callback) still counts
         except KeyboardInterrupt as exc:
             code = _interrupted(exc)
+        except Exception:
+            # A signal whose exception was swallowed where Python cannot propagate it (a C callback: LLVM
+            # handing numba the object code of a kernel it compiles) leaves that code half done, and the error
+            # that follows ("no compiled object yet") is the interruption's, not a bug to show as a traceback.
+            if interrupts.pending() is None:
+                raise
+            try:
+                interrupts.raise_if_pending()
+            except KeyboardInterrupt as exc:
+                code = _interrupted(exc)
     return code
 
 

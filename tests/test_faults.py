@@ -131,6 +131,33 @@ def test_an_interrupt_lost_in_a_weakref_callback_still_stops_the_write(tmp_path)
     assert list(tmp_path.iterdir()) == []
 
 
+def test_an_interrupt_swallowed_in_a_c_callback_ends_the_command_as_interrupted(monkeypatch, capsys):
+    """numba's compiler receives a kernel's object code from LLVM in a C callback; a SIGTERM there is swallowed
+    and the compile then fails ("no compiled object yet for <Library 'subset_rss'>"): seen as a traceback in the
+    corpus case fit-sigterm-during-write with a cold kernel cache. The command ends as terminated instead."""
+    import ctypes
+    import ctypes.util
+
+    import afmid.cli as cli
+
+    libc = ctypes.CDLL(ctypes.util.find_library("c"))
+    compare_type = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int))
+
+    def compare(a, b):
+        os.kill(os.getpid(), signal.SIGTERM)  # afmid's handler raises inside the C callback: swallowed there
+        return a[0] - b[0]
+
+    def work_broken_by_the_signal(argv):
+        values = (ctypes.c_int * 2)(2, 1)
+        libc.qsort(values, 2, ctypes.sizeof(ctypes.c_int), compare_type(compare))
+        raise RuntimeError("no compiled object yet")  # what the half-done work raises next
+
+    monkeypatch.setattr(cli, "_run", work_broken_by_the_signal)
+    assert cli.main(["version"]) == interrupts.EXIT_TERMINATED
+    assert "afmid: terminated" in capsys.readouterr().err
+    assert interrupts.pending() is None
+
+
 def test_signals_during_an_hdf5_write_wait_for_the_file_to_be_closed(tmp_path):
     """Neither Ctrl-C (default handler) nor SIGTERM (afmid's handler) lands inside the HDF5 library."""
     with pytest.raises(KeyboardInterrupt):
