@@ -22,6 +22,7 @@ import h5py
 import numpy as np
 import pytest
 
+from afmid.io import sha256_file
 from afmid.threads import SINGLE_THREAD_ENV
 
 REPO = Path(__file__).resolve().parents[1]
@@ -165,7 +166,7 @@ def test_local_map_fits_every_pixel_and_fails_the_nan_pixel_alone(workspace, loc
         assert h5["maps/E_star"].attrs["units"] == "Pa" and h5["maps/separation"].attrs["units"] == "m"
         terms = [t.decode() for t in h5["model/terms"][()]]
         assert h5.attrs["format"] == "afmid-map-result" and h5.attrs["afmid_version"]
-        assert h5.attrs["input_sha256"] == __import__("afmid.io").io.sha256_file(workspace / "map.h5")
+        assert h5.attrs["input_sha256"] == sha256_file(workspace / "map.h5")
         assert "dmt" in h5.attrs["config"] and h5.attrs["created"]
         assert (h5.attrs["n_ok"] + h5.attrs["n_suspect"], h5.attrs["n_failed"]) == (8, 1)
     # every selected-term bit names a term of the library
