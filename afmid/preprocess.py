@@ -289,14 +289,21 @@ class WeakWindows:
         first half of the test functions applied to block b plus the second half
         applied to block b + 1 (no copies of the blocks).
         """
-        half = self.psi_fine.shape[1] // 2
         n = min(fine.shape[0] - 1, self.n_windows - first)
-        rows, m = self.psi_fine.shape[0], fine.shape[2]
+        return self.integrate_fine_columns(np.ascontiguousarray(fine[: n + 1].transpose(1, 0, 2)), first)
+
+    def integrate_fine_columns(self, columns: np.ndarray, first: int = 0) -> np.ndarray:
+        """:meth:`integrate_fine` of columns already laid out sample-major: ``columns`` (L U, n + 1, m),
+        C-contiguous, holds blocks ``first`` .. ``first + n`` (``fine.transpose(1, 0, 2)``), giving windows
+        ``first`` .. ``first + n - 1`` (or up to the last window). The same bits as :meth:`integrate_fine`."""
+        half, n_blocks, m = columns.shape
+        n = min(n_blocks - 1, self.n_windows - first)
+        if n + 1 < n_blocks:
+            columns = np.ascontiguousarray(columns[:, : n + 1])
+        rows = self.psi_fine.shape[0]
         # One GEMM for both halves and all blocks: (2 rows, LU) @ (LU, (n + 1) m). A batched matmul over
         # blocks with few columns (m ~ 3-20 terms) runs ~10x slower.
-        halves = self.psi_halves
-        columns = np.ascontiguousarray(fine[: n + 1].transpose(1, 0, 2)).reshape(half, -1)
-        both = (halves @ columns).reshape(2, rows, n + 1, m)
+        both = (self.psi_halves @ columns.reshape(half, -1)).reshape(2, rows, n + 1, m)
         local = (both[0, :, :n] + both[1, :, 1:]).transpose(1, 0, 2)
         return rotate_to_global(local, self.start_times()[first : first + n], self.omega)
 
