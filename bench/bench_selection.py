@@ -19,8 +19,8 @@ from the raw trace to the coefficients.
   at 31 thresholds 1e-4 ... 10, the fit kept chosen per trace by BIC on PySINDy's own weak rows (no truth
   anywhere in the method). Test functions one period wide because the force is a pulse once a period:
   PySINDy's default subdomains (H_xt = record / 20, K = 100: 5 and 50 periods wide here) average it away,
-  and the laws it then fits match the weak rows but not the force (median law error 546 % at 50 periods,
-  265 % at 500, draws 2-11; one period wide: 2.6 % and 5.4 %; both 0/10 right). Two diagnostics use the
+  and the laws it then fits match the weak rows but not the force (median law error 545 % at 50 periods,
+  265 % at 500, draws 2-11, scripts/pysindy_study.py; one period wide: 3.5 % and 5.5 %; both 0/10 right). Two diagnostics use the
   truth, after the clock: whether any threshold of the path gives the right terms, and the law error of
   PySINDy's columns fitted by least squares on the true terms (its weak form apart from the selection).
 
