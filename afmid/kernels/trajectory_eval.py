@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit
 
 from .integrate import N_VARIABLES, contact_kinematics_at
-from .vm import BLOCK, STACK_SIZE, _run
+from .vm import BLOCK, STACK_SIZE, run_program
 
 
 @njit(cache=True, error_model="numpy")
@@ -49,7 +49,8 @@ def eval_rows(code, code_offsets, consts, const_offsets, x, xdot, t, separation,
                 variables[5, i] = vi
                 variables[6, i] = t[r, i0 + i]
             for j in range(n_programs):
-                _run(code, code_offsets[j], code_offsets[j + 1], consts, const_offsets[j], variables, 0, nb, stack)
+                run_program(code, code_offsets[j], code_offsets[j + 1], consts, const_offsets[j], variables, 0, nb,
+                            stack)
                 for i in range(nb):
                     value = stack[0, i]
                     out[r, i0 + i, j] = value
