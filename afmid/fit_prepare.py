@@ -285,8 +285,8 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
     model = dataclasses.replace(library, terms=[library.terms[j] for j in keep])
     total, count = 0.0, 0
     for _, x, v, t in (fine_chunks(prep) if keep.size else ()):
-        f_hi = model.evaluate(x.ravel() + eps, v.ravel(), t.ravel(), params) @ coef[keep]
-        f_lo = model.evaluate(x.ravel() - eps, v.ravel(), t.ravel(), params) @ coef[keep]
+        f_hi = _model_force(model, x + eps, v, t, params) @ coef[keep]
+        f_lo = _model_force(model, x - eps, v, t, params) @ coef[keep]
         total += float(np.sum(((f_hi - f_lo) / (2 * eps)) ** 2))
         count += f_hi.size
     stiffness_sq = total / max(count, 1)
@@ -294,6 +294,16 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
     return dataclasses.replace(prep, row_sigma=np.sqrt(variance))
 
 
+
+
+def _model_force(model: Library, x: np.ndarray, v: np.ndarray, t: np.ndarray, params: dict) -> np.ndarray:
+    """The model's columns (N, k) along fine-grid rows (n, L U): one pass without the variables array when the
+    model has no state gates (the same bits as ``model.evaluate`` on the raveled rows)."""
+    if model.states:
+        return model.evaluate(x.ravel(), v.ravel(), t.ravel(), params)
+    out = np.empty(x.shape + (len(model),))
+    model.evaluate_into(x, v, t, params, out)
+    return out.reshape(x.size, -1)
 
 
 def fine_chunks(prep: Prepared, overlap: int = 0):

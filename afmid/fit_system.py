@@ -59,6 +59,8 @@ def library_columns(prep: Prepared, library: Library, params: dict) -> np.ndarra
         theta = library.evaluate(xs, v, prep.t[prep.blocks.used], params).reshape(prep.blocks.n_blocks, prep.blocks.L, -1)
         check_finite(theta.reshape(-1, theta.shape[-1]), library, params)
         return theta
+    if not library.states:
+        return _plain_library_columns(prep, library, params)
     parts = []
     for b0, x, v, t in fine_chunks(prep, overlap=1):
         # Hysteresis states scanned once: the library columns and the switching cells both use them.
@@ -67,6 +69,25 @@ def library_columns(prep: Prepared, library: Library, params: dict) -> np.ndarra
         average_switching_cells(library, params, x, v, t, fine, states)
         check_finite(fine.reshape(-1, fine.shape[-1]), library, params)
         parts.append(prep.windows.integrate_fine(fine, b0))
+    return np.concatenate(parts, axis=0)
+
+
+def _plain_library_columns(prep: Prepared, library: Library, params: dict) -> np.ndarray:
+    """:func:`library_columns` of a library without state gates, the same bits in one pass per chunk: the
+    terms are written straight into the sample-major layout of the weak form's matrix product
+    (:meth:`afmid.library.Library.evaluate_into`), which also says whether any value is zero (only then can a
+    gate switch inside a cell) or not finite (only then are the columns checked one by one)."""
+    parts = []
+    p = len(library)
+    for b0, x, v, t in fine_chunks(prep, overlap=1):
+        columns = np.empty((x.shape[1], x.shape[0], p))  # (L U, blocks, p): sample-major
+        fine = columns.transpose(1, 0, 2)  # (blocks, L U, p) view
+        finite, any_zero = library.evaluate_into(x, v, t, params, fine)
+        if any_zero:
+            average_switching_cells(library, params, x, v, t, fine)
+        if not finite or any_zero:
+            check_finite(fine.reshape(-1, p), library, params)
+        parts.append(prep.windows.integrate_fine_columns(columns, b0))
     return np.concatenate(parts, axis=0)
 
 

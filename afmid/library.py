@@ -127,6 +127,22 @@ class Library:
         return out
 
 
+    def evaluate_into(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
+                      out: np.ndarray) -> tuple[bool, bool]:
+        """Library columns along trajectory rows (x, xdot, t: (rows, n), m, m/s, s) into ``out`` (rows, n, p), of
+        any strides (the weak form's layout, say), for a library without state gates; the same values as
+        :meth:`evaluate`, bit for bit, without its (7, N) array of variables. Returns (all finite, any value
+        exactly zero)."""
+        if self.states:
+            raise ValueError("evaluate_into: a library with state gates is evaluated by evaluate()")
+        from .kernels.trajectory_eval import eval_rows
+
+        program_set, _ = self.compile(params)
+        finite, any_zero = eval_rows(program_set.code, program_set.code_offsets, program_set.consts,
+                                     program_set.const_offsets, x, xdot, t, float(params["d"]),
+                                     float(params["a0"]), out)
+        return bool(finite), bool(any_zero)
+
     def states_along(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
                      backend: str = "numba") -> np.ndarray:
         """The state gates (n_states, N), 0 or 1, scanned along a trajectory."""

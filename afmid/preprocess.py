@@ -289,14 +289,21 @@ class WeakWindows:
         first half of the test functions applied to block b plus the second half
         applied to block b + 1 (no copies of the blocks).
         """
-        half = self.psi_fine.shape[1] // 2
         n = min(fine.shape[0] - 1, self.n_windows - first)
-        rows, m = self.psi_fine.shape[0], fine.shape[2]
+        return self.integrate_fine_columns(np.ascontiguousarray(fine[: n + 1].transpose(1, 0, 2)), first)
+
+    def integrate_fine_columns(self, columns: np.ndarray, first: int = 0) -> np.ndarray:
+        """:meth:`integrate_fine` of columns already laid out sample-major: ``columns`` (L U, n + 1, m),
+        C-contiguous, holds blocks ``first`` .. ``first + n`` (``fine.transpose(1, 0, 2)``), giving windows
+        ``first`` .. ``first + n - 1`` (or up to the last window). The same bits as :meth:`integrate_fine`."""
+        half, n_blocks, m = columns.shape
+        n = min(n_blocks - 1, self.n_windows - first)
+        if n + 1 < n_blocks:
+            columns = np.ascontiguousarray(columns[:, : n + 1])
+        rows = self.psi_fine.shape[0]
         # One GEMM for both halves and all blocks: (2 rows, LU) @ (LU, (n + 1) m). A batched matmul over
         # blocks with few columns (m ~ 3-20 terms) runs ~10x slower.
-        halves = self.psi_halves
-        columns = np.ascontiguousarray(fine[: n + 1].transpose(1, 0, 2)).reshape(half, -1)
-        both = (halves @ columns).reshape(2, rows, n + 1, m)
+        both = (self.psi_halves @ columns.reshape(half, -1)).reshape(2, rows, n + 1, m)
         local = (both[0, :, :n] + both[1, :, 1:]).transpose(1, 0, 2)
         return rotate_to_global(local, self.start_times()[first : first + n], self.omega)
 
@@ -306,27 +313,33 @@ def weak_windows(blocks: "HarmonicBlocks") -> WeakWindows:
     L, K, dt, w = blocks.L, blocks.K, blocks.dt, blocks.omega
     T_w = 2 * L * dt
 
-    def family(s: np.ndarray, weight: float):
+    def family(s: np.ndarray, weight: float, derivatives: bool = True):
+        # Rows: the window, then window x (cos, sin) of each harmonic, interleaved; the same element-wise
+        # arithmetic as one row at a time, on (K, samples) arrays at once.
         a = np.pi / T_w
         sn_, cs_ = np.sin(a * s), np.cos(a * s)
         win = sn_**4
-        dwin = 4 * a * sn_**3 * cs_
-        ddwin = 4 * a**2 * (3 * sn_**2 * cs_**2 - sn_**4)
         n = np.arange(1, K + 1)[:, None] * w
         c, sn = np.cos(n * s), np.sin(n * s)
-        psi, dpsi, ddpsi = [win], [dwin], [ddwin]
-        for k in range(K):
-            for phi, dphi, ddphi in ((c[k], -n[k] * sn[k], -n[k] ** 2 * c[k]), (sn[k], n[k] * c[k], -n[k] ** 2 * sn[k])):
-                psi.append(win * phi)
-                dpsi.append(dwin * phi + win * dphi)
-                ddpsi.append(ddwin * phi + 2 * dwin * dphi + win * ddphi)
-        return np.array(psi) * weight, np.array(dpsi) * weight, np.array(ddpsi) * weight
+        phi = np.empty((2 * K, s.size))
+        phi[0::2], phi[1::2] = c, sn
+        psi = np.concatenate([win[None], win * phi]) * weight
+        if not derivatives:
+            return psi, None, None
+        dwin = 4 * a * sn_**3 * cs_
+        ddwin = 4 * a**2 * (3 * sn_**2 * cs_**2 - sn_**4)
+        dphi, ddphi = np.empty_like(phi), np.empty_like(phi)
+        dphi[0::2], dphi[1::2] = -n * sn, n * c
+        ddphi[0::2], ddphi[1::2] = -n ** 2 * c, -n ** 2 * sn
+        dpsi = np.concatenate([dwin[None], dwin * phi + win * dphi]) * weight
+        ddpsi = np.concatenate([ddwin[None], ddwin * phi + 2 * dwin * dphi + win * ddphi]) * weight
+        return psi, dpsi, ddpsi
 
     s = np.arange(2 * L + 1) * dt
     psi, dpsi, ddpsi = family(s, dt)
     U = blocks.oversample
     s_fine = np.arange(2 * L * U) * (dt / U)
-    psi_fine, _, _ = family(s_fine, dt / U)
+    psi_fine, _, _ = family(s_fine, dt / U, derivatives=False)
     n_windows = blocks.n_blocks - 1
     return WeakWindows(w, dt, L, K, blocks.start, n_windows, blocks.t0, psi, dpsi, ddpsi, psi_fine)
 

@@ -13,6 +13,8 @@ User text is never given to eval, exec, compile or ast.parse.
 
 from __future__ import annotations
 
+import functools
+
 import difflib
 import math
 import re
@@ -380,6 +382,7 @@ class _Parser:
 MAX_TREE_DEPTH = 200
 
 
+@functools.lru_cache(maxsize=1024)  # nodes are frozen: a tree may be shared; every library build parses its terms
 def parse(text: str) -> Node:
     """Parse expression ``text`` into an AST; raises ExpressionError on bad syntax."""
     try:

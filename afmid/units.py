@@ -11,6 +11,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from fractions import Fraction
+from functools import lru_cache
 
 BASE_SYMBOLS = ("kg", "m", "s", "A", "K")
 
@@ -19,6 +20,7 @@ BASE_SYMBOLS = ("kg", "m", "s", "A", "K")
 _MAX_DENOMINATOR = 1000
 
 
+@lru_cache(maxsize=4096)  # a pure function of one float, called for every exponent of every Unit made
 def _clean(x: float) -> float:
     # "+ 0.0" turns -0.0 into 0.0.
     return float(Fraction(float(x)).limit_denominator(_MAX_DENOMINATOR)) + 0.0
@@ -132,6 +134,7 @@ def _format(dims: tuple[float, ...]) -> str:
 _TOKEN = re.compile(r"\s*(?:(?P<sym>[A-Za-z]+)|(?P<num>[+-]?(?:\d+\.?\d*|\.\d+))|(?P<op>\*\*|[*/^()]))")
 
 
+@lru_cache(maxsize=1024)  # Units are immutable; the same few strings are parsed for every library built
 def parse_unit(text: str) -> Unit:
     """Parse a unit string such as ``"N/m"``, ``"Pa*s"``, ``"Pa s"``, ``"m^-1"``, ``"m**-2"``.
 

@@ -52,9 +52,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from common import CONFIGS, best_of, cached_trace, machine, row  # noqa: E402  (sets one BLAS thread: before NumPy)
 import numpy as np  # noqa: E402
 
-from common import CONFIGS, best_of, cached_trace, machine, row  # noqa: E402
 
 CONFIG = CONFIGS / "lennard_jones.yaml"
 POWERS = [-1, -2, -3, -4, -5, -6, -7, -8, 1.5, 2]  # lj_table1, in its order

@@ -215,6 +215,11 @@ def _run(code, c0, c1, consts, k0, variables, i0, nb, stack):
             pc += 1
 
 
+#: The interpreter, for kernels elsewhere that run programs on their own blocks of samples
+#: (:mod:`afmid.kernels.trajectory_eval`): same signature as ``_run``.
+run_program = _run
+
+
 @njit(cache=True, error_model="numpy")
 def eval_point(code, c0, c1, consts, k0, k1, var):
     """Value of program code[c0:c1] with constants consts[k0:k1] at variable vector ``var``."""
