@@ -40,9 +40,13 @@ ROUTE_FULL, ROUTE_SHARED, ROUTE_RESELECTED, ROUTE_RESEARCHED, ROUTE_ANCHOR = ran
 #: Parametric draws from the coefficients' covariance behind each pixel's read-out intervals.
 COVARIANCE_DRAWS = 200
 #: Most residual evaluations of the short separation search before it gives way to the robust profile.
-MAX_SEARCH_EVALUATIONS = 24
+MAX_SEARCH_EVALUATIONS = 32
+#: A bracket wider than this many chi-square widths is halved before a parabola step is trusted.
+BRACKET_WIDTHS = 8.0
 #: Starts of the separation search remembered across pixels, and how far apart (m) two must be to count twice.
 MAX_STARTS = 3
+#: The pixel's separation is moved onto an evaluated point within this fraction of its sigma (no extra build).
+RESOLUTION = 0.1
 DISTINCT_OFFSET = 0.2e-9
 
 
@@ -99,6 +103,7 @@ class SharedSupportFit:
         self.physics, self.extra = profile_library(library, config)
         self.settings_for = lambda n_nuisance: SelectionSettings.for_library(config.fit, library, n_nuisance)
         self.support: np.ndarray | None = None  # over library + nuisance columns
+        self.coef: np.ndarray | None = None  # the last pixel's coefficients (library + nuisance), SI
         #: m, separation minus first contact: the last pixel's first, then those of other phases met before
         self.offsets: list[float] = []
         self.step: float = 0.05e-9  # m, the first bracket's half-width (the last pixel's sigma, bounded)
@@ -123,6 +128,7 @@ class SharedSupportFit:
         if anchor:  # the chunk's first pixel: the full search, no bootstrap
             fitted = fit_prepared(prep, self.library, config, uncertainty=False)
             self.support = np.asarray(fitted.selected, bool).copy()
+            self.coef = np.asarray(fitted.coef, float).copy()
             self.offsets = [fitted.system.params["d"] - touch]
             self.nonlinear = {k: fitted.system.params[k] for k in self.library.nonlinear}
         params = library_parameters(prep, config, self.library)
@@ -134,7 +140,7 @@ class SharedSupportFit:
 
     # ------------------------------------------------------------------ the cheap path
     def _fit_shared(self, prep, params: dict, touch: float) -> PixelResult:
-        from .fit import build_system, estimate_nonlinear
+        from .fit import estimate_nonlinear
         from .fit_prepare import with_regressor_noise
         from .uncertainty import model_limited
 
@@ -143,40 +149,39 @@ class SharedSupportFit:
         bounds = (touch - below, touch + above)
         counter = {"builds": 0}
         support = self.support
-        # The start: the offset from first contact of the last pixel or of another phase met in this chunk,
-        # whichever fits this pixel best (one library evaluation each).
-        tried = []
-        for offset in self.offsets:
-            start = min(max(touch + offset, bounds[0]), bounds[1])
-            system = self._build(prep, library, dict(params, d=start), counter)
-            coef0, rss = regression.subset_fit(regression.combine(system.T_blocks), support)
-            tried.append((rss if math.isfinite(rss) else math.inf, start, coef0))
-        _, start, coef0 = min(tried, key=lambda item: item[0])
-        prep = with_regressor_noise(prep, library, dict(params, d=start), coef0)
+        # Starts: the offset from first contact of the last pixel and of other phases met in this chunk (each
+        # one profile point; the search goes on from the lowest). The rows' weights include the regressors' own
+        # noise (afmid.fit_prepare.with_regressor_noise) computed with the last pixel's coefficients at the first
+        # start: the force law of a neighbour, as the single-trace fit uses its first-pass coefficients.
+        starts = [min(max(touch + offset, bounds[0]), bounds[1]) for offset in self.offsets]
+        prep = with_regressor_noise(prep, library, dict(params, d=starts[0]), self.coef)
         settings = self.settings_for(len(prep.nuisance_names))
         route = ROUTE_SHARED
-        found = self._search(prep, params, support, start, bounds, counter)
-        system = self._build(prep, library, dict(params, d=found.value), counter)
+        search = self._search(prep, params, support, starts, bounds, counter)
+        system = search.system_at_minimum() or self._build(prep, library, dict(params, d=search.found.value), counter)
         own = settings.select(system).best.mask
         if not np.array_equal(own, support):
             route, support = ROUTE_RESELECTED, own
-            found = self._search(prep, params, support, found.value, bounds, counter)
-            system = self._build(prep, library, dict(params, d=found.value), counter)
-        result = self._finish(prep, params, system, support, found, counter, route)
+            search = self._search(prep, params, support, [search.found.value], bounds, counter)
+            system = (search.system_at_minimum()
+                      or self._build(prep, library, dict(params, d=search.found.value), counter))
+        result, coef = self._finish(prep, params, system, support, search, counter, route)
         if model_limited(result.cv_error, result.cv_error_noise_floor):
             # Above the floor: the warm start may have found a wrong minimum. The single-trace coarse search.
             searched = dict(params)
             coarse = estimate_nonlinear(prep, library, config, searched, physics=(self.physics, self.extra))
             counter["builds"] += sum(len(e.grid) for e in coarse.values())
-            if abs(searched["d"] - found.value) > 3 * max(found.sigma, 1e-12):
-                again = self._search(prep, params, support, searched["d"], bounds, counter)
-                system = self._build(prep, library, dict(params, d=again.value), counter)
-                better = self._finish(prep, params, system, support, again, counter, ROUTE_RESEARCHED)
+            if abs(searched["d"] - search.found.value) > 3 * max(search.found.sigma, 1e-12):
+                again = self._search(prep, params, support, [searched["d"]], bounds, counter)
+                system = (again.system_at_minimum()
+                          or self._build(prep, library, dict(params, d=again.found.value), counter))
+                better, better_coef = self._finish(prep, params, system, support, again, counter, ROUTE_RESEARCHED)
                 if better.cv_error < result.cv_error:
-                    result, found = better, again
+                    result, coef, search = better, better_coef, again
             result.route = ROUTE_RESEARCHED if result.route != ROUTE_RESELECTED else result.route
         result.evaluations = counter["builds"]
-        self.support = support
+        self.support, self.coef = support, coef
+        found = search.found
         self.remember(found.value - touch)
         if math.isfinite(found.sigma) and found.sigma > 0:
             self.step = min(max(found.sigma, 0.01e-9), 0.2e-9)
@@ -194,15 +199,17 @@ class SharedSupportFit:
         counter["builds"] += 1
         return build_system(prep, library, params)
 
-    def _search(self, prep, params: dict, support: np.ndarray, start: float, bounds: tuple[float, float], counter):
+    def _search(self, prep, params: dict, support: np.ndarray, starts: list[float], bounds: tuple[float, float],
+                counter) -> "SeparationSearch":
         """The separation's minimum on the residual profile of the support (the profile library's columns when
-        the library is a preset, as :func:`afmid.fit.fit_prepared` does): :class:`SeparationFound`."""
+        the library is a preset, as :func:`afmid.fit.fit_prepared` does), from the lowest of ``starts``."""
         from .fit import build_system
         from .profile import GroupedProfile, robust_profile
 
         physics = self.physics
         mask = support if physics is self.library else None
         trial_params = dict(params, **self.extra)
+        systems = {}
 
         def factors_at(value: float):
             counter["builds"] += 1
@@ -210,25 +217,29 @@ class SharedSupportFit:
                 system = build_system(prep, physics, dict(trial_params, d=value))
             except AfmidError:
                 return None
+            if physics is self.library:
+                systems[float(value)] = system
             return system.T_blocks, system.n_rows
 
         profile = GroupedProfile(factors_at, mask)
         n_columns = len(physics) + len(prep.nuisance_names)
         k = int((np.ones(n_columns, bool) if mask is None else mask).sum())
+        start = min(starts, key=profile)
         found = parabolic_minimum(profile, start, self.step, *bounds, k)
         if found is None:  # no clean parabola near the start: the single-trace profile on the same points
             s2 = profile(start) / max(profile.n_rows - k, 1)
             res = robust_profile(profile, start, 0.3e-9, s2, *bounds, min_step=1e-14, jackknife=True)
-            return SeparationFound(res.value, res.sigma)
-        return found
+            found = SeparationFound(res.value, res.sigma)
+        return SeparationSearch(found, systems)
 
-    def _finish(self, prep, params, system, support, found, counter, route) -> PixelResult:
+    def _finish(self, prep, params, system, support, search, counter, route) -> tuple[PixelResult, np.ndarray]:
         from .fit import propagate_nonlinear, refuse_unusable
         from .fit_forces import force_cv_error, read_out, signal_rows
         from .fit_search import NonlinearEstimate
         from .uncertainty import finish
 
         config, library, trace = self.config, self.library, prep.trace
+        found = search.found
         params = dict(params, d=found.value)
         T = regression.combine(system.T_blocks)
         coef, rss = regression.subset_fit(T, support)
@@ -239,9 +250,11 @@ class SharedSupportFit:
         draws = covariance_draws(T, coef, support, rss, system.n_rows, COVARIANCE_DRAWS, rng)
         bagging = regression.Bagging(support.astype(float), draws, COVARIANCE_DRAWS)
         quantities = read_out(library, coef, bagging, params, support, trace)
-        nonlinear = {"d": NonlinearEstimate("d", found.value, found.sigma, "m", True)}
-        counter["builds"] += 2
-        propagate_nonlinear(quantities, nonlinear, prep, library, params, support, trace)
+        if not search.propagate(quantities, found, lambda c, d: read_out(library, c, None, dict(params, d=d), support,
+                                                                          trace), support):
+            nonlinear = {"d": NonlinearEstimate("d", found.value, found.sigma, "m", True)}
+            counter["builds"] += 2
+            propagate_nonlinear(quantities, nonlinear, prep, library, params, support, trace)
         for q in quantities.values():
             q["error_kind"] = "1 sigma (least-squares covariance)"
         warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
@@ -252,7 +265,60 @@ class SharedSupportFit:
         finish(quantities, warnings, prep, library, system, coef, support, params, trace, config, cv_error, floor,
                read_out, True)
         return PixelResult(quantities, found.value, found.sigma, cv_error, floor,
-                           np.asarray(support[:len(library)], bool), warnings, route)
+                           np.asarray(support[:len(library)], bool), warnings, route), coef
+
+
+@dataclass
+class SeparationSearch:
+    """A finished separation search: the minimum and the systems built on the way (d -> System; only when the
+    profile library is the fitted library, so that they serve the pixel's fit)."""
+
+    found: "SeparationFound"
+    systems: dict
+
+    def system_at_minimum(self):
+        """The system at the evaluated point nearest the minimum when it lies within :data:`RESOLUTION` sigma
+        (the minimum is then moved onto it: a step far below its error bar), else None (build one)."""
+        if not self.systems or not math.isfinite(self.found.sigma):
+            return None
+        nearest = min(self.systems, key=lambda v: abs(v - self.found.value))
+        if abs(nearest - self.found.value) > RESOLUTION * self.found.sigma:
+            return None
+        self.found.value = nearest
+        return self.systems[nearest]
+
+    def propagate(self, quantities: dict, found: "SeparationFound", read, support: np.ndarray) -> bool:
+        """Add d's sigma to the quantities' errors (in place) from their slope over the evaluated points within
+        3 sigma of the minimum (no library evaluation); ``read(coef, d)`` reads out. False when fewer than
+        three points are there (the caller refits at d +- sigma instead). Added in quadrature to the error and to
+        both halves of the 95 % interval, as afmid.fit.propagate_nonlinear does."""
+        sigma = found.sigma
+        if not (math.isfinite(sigma) and sigma > 0):
+            return True  # nothing to propagate
+        near = sorted(v for v in self.systems if abs(v - found.value) <= 3 * sigma)
+        if len(near) < 3:
+            return False
+        values = {k: [] for k in quantities}
+        for v in near:
+            coef, _ = regression.subset_fit(regression.combine(self.systems[v].T_blocks), support)
+            read_at = read(coef, v)
+            for k in quantities:
+                values[k].append(read_at.get(k, {}).get("value", math.nan))
+        for k, q in quantities.items():
+            y = np.asarray(values[k])
+            if not np.all(np.isfinite(y)):
+                continue
+            delta = abs(np.polyfit(np.asarray(near) - found.value, y, 1)[0]) * sigma
+            if delta > 0:
+                q["error"] = math.hypot(q["error"] if math.isfinite(q["error"]) else 0.0, delta)
+                half = 1.96 * delta
+                lo, hi = q["ci_low"], q["ci_high"]
+                if math.isfinite(lo) and math.isfinite(hi):
+                    q["ci_low"] = q["value"] - math.hypot(q["value"] - lo, half)
+                    q["ci_high"] = q["value"] + math.hypot(hi - q["value"], half)
+                else:
+                    q["ci_low"], q["ci_high"] = q["value"] - half, q["value"] + half
+        return True
 
 
 @dataclass
@@ -266,7 +332,8 @@ def parabolic_minimum(profile, start: float, step: float, lo: float, hi: float, 
     parabola steps, with its 1 sigma; None when it does not converge within :data:`MAX_SEARCH_EVALUATIONS`
     or the profile is not locally parabolic (the caller then runs the robust profile on the same points).
 
-    The bracket moves (doubling its step) while the lowest point is on its edge; then the parabola through the
+    The bracket moves (doubling its step) while the lowest point is on its edge, and is halved around the lowest
+    point while wider than :data:`BRACKET_WIDTHS` chi-square widths; then the parabola through the
     lowest point and its neighbours gives the vertex and the chi-square width sigma = sqrt(s2 / curvature); points
     are added at the vertex and at +-sigma until the vertex moves by less than a tenth of sigma, so the width is
     read where the chi-square rises by about one. sigma is the larger of that width and the spread of the vertex
@@ -289,11 +356,14 @@ def parabolic_minimum(profile, start: float, step: float, lo: float, hi: float, 
             profile(clip(x[i] - step if i == 0 else x[i] + step))
             continue
         vertex, curvature = _parabola(x[i - 1:i + 2], y[i - 1:i + 2])
-        if not curvature > 0:
-            return None
         s2 = y[i] / max(profile.n_rows - k, 1)
-        sigma = math.sqrt(s2 / curvature)
+        sigma = math.sqrt(s2 / curvature) if curvature > 0 else math.inf
         spacing = max(x[i] - x[i - 1], x[i + 1] - x[i])
+        if spacing > BRACKET_WIDTHS * sigma or not math.isfinite(sigma):
+            # Too wide a bracket to trust a parabola (after a long move): halve it around the lowest point.
+            for v in (0.5 * (x[i - 1] + x[i]), 0.5 * (x[i] + x[i + 1])):
+                profile(v)
+            continue
         wanted = [vertex] if spacing <= 3 * sigma else [vertex - sigma, vertex, vertex + sigma]
         new = [clip(v) for v in wanted if np.min(np.abs(x - v)) > 0.1 * sigma]
         if not new:

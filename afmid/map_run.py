@@ -29,15 +29,19 @@ MAP_RESULT_FORMAT = "afmid-map-result"
 SIDECAR_SUFFIX = ".afmid-map"
 #: Largest chunk (pixels) chosen by default: enough tasks to balance the workers, few enough to share the setup.
 MAX_DEFAULT_CHUNK = 64
+#: Smallest chunk chosen by default (unless the map is smaller): the shared pixel fit searches each chunk's first
+#: pixel in full (afmid.map_pixel), so a chunk of a few pixels would pay that search for most of its pixels.
+MIN_DEFAULT_CHUNK = 8
 #: What /maps/NAME_sigma is, per pixel-fit strategy.
 SIGMA_MEANING = {"full": "1 sigma (bootstrap standard deviation, separation's profile sigma propagated)",
                  "shared": "1 sigma (least-squares covariance of the support, separation's profile sigma propagated)"}
 
 
 def default_chunk(n_pixels: int) -> int:
-    """Pixels per task: about 32 tasks per map, 1 to :data:`MAX_DEFAULT_CHUNK` pixels each (independent of the
-    worker count, so that a re-run with another -j resumes)."""
-    return max(1, min(MAX_DEFAULT_CHUNK, math.ceil(n_pixels / 32)))
+    """Pixels per task: about 32 tasks per map, :data:`MIN_DEFAULT_CHUNK` (or the whole map when smaller) to
+    :data:`MAX_DEFAULT_CHUNK` pixels each (independent of the worker count, so that a re-run with another -j
+    resumes)."""
+    return max(1, min(n_pixels, max(MIN_DEFAULT_CHUNK, min(MAX_DEFAULT_CHUNK, math.ceil(n_pixels / 32)))))
 
 
 def sidecar_for(output: Path) -> Path:
