@@ -349,10 +349,14 @@ def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
 @click.option("--pixel-fit", type=click.Choice(["shared", "full"]), default="shared", show_default=True,
               help="shared: support and separation offset carried across pixels, a short separation search, "
                    "covariance error bars; full: every pixel as `afmid fit` (bootstrap, ~10x slower).")
+@click.option("--add", "add_effects", multiple=True, metavar="EFFECT", help="Add an effect to model.effects (repeatable).")
+@click.option("--remove", "remove_effects", multiple=True, metavar="EFFECT",
+              help="Remove an effect from model.effects (repeatable).")
 @OVERWRITE
 @SET
 def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, scheduler: str | None,
-                chunk: int | None, pixel_fit: str, overwrite: bool, overrides: tuple[str, ...]) -> None:
+                chunk: int | None, pixel_fit: str, add_effects: tuple[str, ...], remove_effects: tuple[str, ...],
+                overwrite: bool, overrides: tuple[str, ...]) -> None:
     """Fit every pixel of a force map with CONFIG and write maps of the parameters.
 
     Each pixel's trace is fitted with CONFIG's model (the separation estimated per pixel:
@@ -366,9 +370,11 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     """
     from .config import dump_config, load_config
     from .engine_dask import DaskEngine, scheduler_address
+    from .fit import apply_effect_changes
     from .map_run import run_map
 
     cfg = load_config(config, list(overrides))
+    apply_effect_changes(cfg, add_effects, remove_effects)
     engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
     counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite,
                      pixel_fit=pixel_fit)

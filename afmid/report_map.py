@@ -95,7 +95,7 @@ def make_map_report(path: Path, output: Path, overwrite: bool = False) -> str:
         (tmp / "report.html").write_text(_html(path, summary, figures, tmp), encoding="utf-8")
     counts = summary["pixels"]
     lines = [f"map {summary['rows']}x{summary['cols']}: {counts['ok']} ok, {counts['suspect']} suspect, "
-             f"{counts['failed']} failed"]
+             f"{counts['failed']} failed; {summary['model_limited']['pixels']} model-limited"]
     for name, p in summary["parameters"].items():
         lines.append(f"  {name}: median {p['median']:.4g} {p['unit']} (ok pixels; 16-84 % {p['p16']:.4g} .. "
                      f"{p['p84']:.4g}; median 1 sigma {p['median_sigma']:.2g})")
@@ -216,6 +216,14 @@ def _summary(path: Path, result: dict, names: list[str], status: np.ndarray, mes
            "pixels": {"ok": int(np.sum(status == 0)), "suspect": int(np.sum(status == 1)),
                       "failed": int(np.sum(status >= 2))},
            "parameters": {}, "failed": [], "suspect": []}
+    from .uncertainty import FLOOR_FACTOR
+
+    ratio = maps["cv_error"][0] / maps["cv_error_noise_floor"][0]
+    fitted = status < 2
+    limited = fitted & (ratio > FLOOR_FACTOR)
+    out["model_limited"] = {"pixels": int(limited.sum()), "fraction_of_fitted": float(limited.sum() / max(fitted.sum(), 1)),
+                            "rule": f"cv_error above {FLOOR_FACTOR} x its noise floor (an effect the model lacks, "
+                                    "or a poor fit): see map_error_over_floor.png; refit with afmid map --add EFFECT"}
     ok = status == 0
     for name in names:
         values, unit, _ = maps[name]
@@ -264,7 +272,9 @@ def _html(path: Path, summary: dict, figures: list[tuple[str, str]], folder: Pat
         "</head><body>"
         f"<h1>Force map: {html.escape(Path(path).name)}</h1>"
         f"<p>{summary['rows']} x {summary['cols']} pixels: {counts['ok']} ok, {counts['suspect']} suspect, "
-        f"{counts['failed']} failed. Pixel fit: {html.escape(summary['pixel_fit'])}.</p>"
+        f"{counts['failed']} failed. Pixel fit: {html.escape(summary['pixel_fit'])}. "
+        f"Model-limited (error above the noise floor): {summary['model_limited']['pixels']} pixels "
+        f"({100 * summary['model_limited']['fraction_of_fitted']:.0f} % of the fitted).</p>"
         "<table><tr><th>parameter</th><th>median (ok pixels)</th><th>16-84 %</th><th>median 1 sigma</th>"
         f"<th>unit</th><th>pixels</th></tr>{rows}</table>"
         f"{body}{''.join(listed)}</body></html>\n")

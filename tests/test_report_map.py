@@ -64,6 +64,7 @@ def test_map_report_summary_matches_the_result_file(report):
         status = h5["maps/status"][()]
         e_star = h5["maps/E_star"][()]
         e_sigma = h5["maps/E_star_sigma"][()]
+        over = h5["maps/cv_error"][()] > 1.3 * h5["maps/cv_error_noise_floor"][()]
         assert summary["pixels"] == {"ok": int(h5.attrs["n_ok"]), "suspect": int(h5.attrs["n_suspect"]),
                                      "failed": int(h5.attrs["n_failed"])}
     ok = status == 0
@@ -72,6 +73,7 @@ def test_map_report_summary_matches_the_result_file(report):
     np.testing.assert_allclose(e["median"], np.median(e_star[ok]) * 1e-6, rtol=1e-12)
     np.testing.assert_allclose(e["median_sigma"], np.median(e_sigma[ok]) * 1e-6, rtol=1e-12)
     assert "1 sigma" in e["sigma_kind"]
+    assert summary["model_limited"]["pixels"] == int(np.sum(over & (status < 2)))
     assert [(p["row"], p["col"]) for p in summary["failed"]] == [BAD_PIXEL]
     assert "NaN" in summary["failed"][0]["message"]
 
