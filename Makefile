@@ -12,11 +12,12 @@ BATCH_JOBS ?= 2
 # Test processes (pytest-xdist): the suite's tests are independent; 2 matches the CI machine's cores.
 TEST_JOBS ?= 2
 
-.PHONY: help venv demo test test-kernels batch bench clean
+.PHONY: help venv demo demo-map test test-kernels batch bench clean
 .DEFAULT_GOAL := help
 
 help:
 	@echo "make demo   - set up .venv, simulate a soft-polymer trace, fit it, write a report"
+	@echo "make demo-map - a force map with hidden viscoelasticity: map with [dmt], refit with --add viscoelastic, reports"
 	@echo "make test   - set up .venv with test extras and run the test suite"
 	@echo "make test-kernels - the numerically sensitive tests again under two other OpenBLAS kernels of this CPU"
 	@echo "make batch  - fit every config in configs/ (simulated first where it has no data) into $(RESULTS)/ (BATCH_JOBS=N workers)"
@@ -35,6 +36,18 @@ venv: $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m afmid.demo --output $(DEMO_DIR)
+
+# A force map whose soft domains hide viscoelasticity (configs/maps/blend_hidden_viscous.yaml): simulated, fitted
+# with [dmt] (the soft pixels come out model-limited), refitted with --add viscoelastic, both reported.
+DEMO_MAP_DIR ?= demo_map_output
+MAP_CONFIG = configs/maps/blend_hidden_viscous.yaml
+demo-map: $(STAMP)
+	mkdir -p $(DEMO_MAP_DIR)
+	$(AFMID) simulate $(MAP_CONFIG) -o $(DEMO_MAP_DIR)/hidden.h5 --overwrite
+	-$(AFMID) map $(MAP_CONFIG) --input $(DEMO_MAP_DIR)/hidden.h5 -o $(DEMO_MAP_DIR)/dmt.h5 -j 2 --overwrite
+	-$(AFMID) map $(MAP_CONFIG) --input $(DEMO_MAP_DIR)/hidden.h5 -o $(DEMO_MAP_DIR)/visco.h5 -j 2 --overwrite --add viscoelastic
+	$(AFMID) report $(DEMO_MAP_DIR)/dmt.h5 -o $(DEMO_MAP_DIR)/report_dmt --overwrite
+	$(AFMID) report $(DEMO_MAP_DIR)/visco.h5 -o $(DEMO_MAP_DIR)/report_visco --overwrite
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n $(TEST_JOBS)

@@ -262,14 +262,24 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
            allow_different_traces: bool) -> None:
     """Compare run files: where the model fails, which effect is missing, how the error falls.
 
+    Given one force-map result (afmid map), draws its maps instead: every parameter with its
+    1-sigma map and colour bar, histograms, topography, error over floor, the failed pixels.
+
     Writes OUTPUT/report.html (self-contained), OUTPUT/*.png, OUTPUT/summary.json and the
     marker OUTPUT/.afmid-report; a folder without it, or holding other files or an input, is
     never replaced (docs/file-formats.md).
     """
-    from .report import make_report
+    from .report_map import is_map_result
     from .tempfiles import disk_full_error, is_disk_full
 
     try:
+        if len(runs) == 1 and is_map_result(runs[0]):  # a force map's result (afmid map)
+            from .report_map import make_map_report
+
+            click.echo(make_map_report(runs[0], output, overwrite=overwrite))
+            return
+        from .report import make_report
+
         summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest,
                               progress=not _state["quiet"], allow_different_traces=allow_different_traces)
     except OSError as exc:  # the report's temporary folder is removed already
@@ -336,14 +346,21 @@ def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
               help="Use this dask scheduler's workers (default: $AFMID_SCHEDULER, else a local cluster).")
 @click.option("--chunk", type=click.IntRange(min=1), default=None, metavar="PIXELS",
               help="Pixels per task (default: about 32 tasks per map).")
+@click.option("--pixel-fit", type=click.Choice(["shared", "full"]), default="shared", show_default=True,
+              help="shared: support and separation offset carried across pixels, a short separation search, "
+                   "covariance error bars; full: every pixel as `afmid fit` (bootstrap, ~10x slower).")
+@click.option("--add", "add_effects", multiple=True, metavar="EFFECT", help="Add an effect to model.effects (repeatable).")
+@click.option("--remove", "remove_effects", multiple=True, metavar="EFFECT",
+              help="Remove an effect from model.effects (repeatable).")
 @OVERWRITE
 @SET
 def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, scheduler: str | None,
-                chunk: int | None, overwrite: bool, overrides: tuple[str, ...]) -> None:
+                chunk: int | None, pixel_fit: str, add_effects: tuple[str, ...], remove_effects: tuple[str, ...],
+                overwrite: bool, overrides: tuple[str, ...]) -> None:
     """Fit every pixel of a force map with CONFIG and write maps of the parameters.
 
-    Each pixel's trace is fitted as `afmid fit` would (the separation estimated per pixel:
-    the topography). RESULT.h5 holds /maps/NAME and /maps/NAME_sigma (1 sigma) per
+    Each pixel's trace is fitted with CONFIG's model (the separation estimated per pixel:
+    the topography); --pixel-fit says how (docs/maps.md). RESULT.h5 holds /maps/NAME and /maps/NAME_sigma (1 sigma) per
     parameter, the separation, the cv error and its noise floor, the selected terms (bit
     mask), and a status per pixel (0 ok, 1 suspect, 2 failed; reasons in /maps/message).
     Runs on dask.distributed: a local cluster of -j single-threaded processes, or the
@@ -353,11 +370,14 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     """
     from .config import dump_config, load_config
     from .engine_dask import DaskEngine, scheduler_address
+    from .fit import apply_effect_changes
     from .map_run import run_map
 
     cfg = load_config(config, list(overrides))
+    apply_effect_changes(cfg, add_effects, remove_effects)
     engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
-    counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite)
+    counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite,
+                     pixel_fit=pixel_fit)
     if counts["failed"]:  # the maps are written; the failed pixels are NaN there, flagged in /maps/status
         from .errors import AfmidError
 

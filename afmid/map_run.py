@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .map_pixel import ROUTES
 from .map_task import STATUS_FAILED, STATUS_NAMES, STATUS_OK, STATUS_SUSPECT, fit_chunk
 
 log = logging.getLogger(__name__)
@@ -28,12 +29,19 @@ MAP_RESULT_FORMAT = "afmid-map-result"
 SIDECAR_SUFFIX = ".afmid-map"
 #: Largest chunk (pixels) chosen by default: enough tasks to balance the workers, few enough to share the setup.
 MAX_DEFAULT_CHUNK = 64
+#: Smallest chunk chosen by default (unless the map is smaller): the shared pixel fit searches each chunk's first
+#: pixel in full (afmid.map_pixel), so a chunk of a few pixels would pay that search for most of its pixels.
+MIN_DEFAULT_CHUNK = 8
+#: What /maps/NAME_sigma is, per pixel-fit strategy.
+SIGMA_MEANING = {"full": "1 sigma (bootstrap standard deviation, separation's profile sigma propagated)",
+                 "shared": "1 sigma (least-squares covariance of the support, separation's profile sigma propagated)"}
 
 
 def default_chunk(n_pixels: int) -> int:
-    """Pixels per task: about 32 tasks per map, 1 to :data:`MAX_DEFAULT_CHUNK` pixels each (independent of the
-    worker count, so that a re-run with another -j resumes)."""
-    return max(1, min(MAX_DEFAULT_CHUNK, math.ceil(n_pixels / 32)))
+    """Pixels per task: about 32 tasks per map, :data:`MIN_DEFAULT_CHUNK` (or the whole map when smaller) to
+    :data:`MAX_DEFAULT_CHUNK` pixels each (independent of the worker count, so that a re-run with another -j
+    resumes)."""
+    return max(1, min(n_pixels, max(MIN_DEFAULT_CHUNK, min(MAX_DEFAULT_CHUNK, math.ceil(n_pixels / 32)))))
 
 
 def sidecar_for(output: Path) -> Path:
@@ -42,8 +50,11 @@ def sidecar_for(output: Path) -> Path:
 
 
 def run_map(config, config_text: str, input_path: Path, output: Path, engine, chunk: int | None = None,
-            overwrite: bool = False) -> dict:
-    """Fit the map ``input_path`` with ``config`` on ``engine`` and write ``output``; returns the pixel counts."""
+            overwrite: bool = False, pixel_fit: str | None = None) -> dict:
+    """Fit the map ``input_path`` with ``config`` on ``engine`` and write ``output``; returns the pixel counts.
+
+    ``pixel_fit``: the strategy of :data:`afmid.map_pixel.PIXEL_FITS` (None: the default, ``shared``)."""
+    from .map_pixel import DEFAULT_PIXEL_FIT
     from .io import check_output_path, sha256_file
     from .map_input import open_map
 
@@ -56,13 +67,15 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
     chunk = chunk or default_chunk(n)
     bounds = [(lo, min(n, lo + chunk)) for lo in range(0, n, chunk)]
     key = {"input_sha256": sha256_file(source.path), "config_sha256": hashlib.sha256(config_text.encode()).hexdigest(),
-           "shape": [source.rows, source.cols, source.samples], "chunk": chunk}
+           "shape": [source.rows, source.cols, source.samples], "chunk": chunk,
+           "pixel_fit": pixel_fit or DEFAULT_PIXEL_FIT}
     folder = _open_sidecar(sidecar_for(output), key)  # made when the first chunk is saved
     done = {i for i in range(len(bounds)) if (folder / _chunk_name(i)).is_file()}
     if done:
         log.info("resuming: %d of %d chunks already fitted (%s)", len(done), len(bounds), folder)
     tasks = [(i, {"input": str(source.path.resolve()), "config": config_text,
-                  "source": str(config.source) if config.source else None, "first": lo, "stop": hi})
+                  "source": str(config.source) if config.source else None, "first": lo, "stop": hi,
+                  "pixel_fit": key["pixel_fit"]})
              for i, (lo, hi) in enumerate(bounds) if i not in done]
     where = (f"the dask cluster at {engine.scheduler}" if getattr(engine, "scheduler", None)
              else f"{engine.workers_for(len(tasks)) if tasks else 0} local workers")
@@ -129,7 +142,7 @@ def _save_chunk(path: Path, result: dict) -> None:
     from .io import atomic_path
 
     arrays = {k: np.asarray(result[k]) for k in ("status", "separation", "separation_sigma", "cv_error",
-                                                 "cv_error_noise_floor", "selected")}
+                                                 "cv_error_noise_floor", "selected", "route", "evaluations")}
     arrays["message"] = np.array(result["message"], dtype=str)
     arrays["range"] = np.array([result["first"], result["stop"]])
     arrays["terms"] = np.array(result["terms"] or [""], dtype=str)
@@ -149,8 +162,8 @@ def _crashed_chunk(first: int, stop: int, why: str) -> dict:
     nan = np.full(n, np.nan)
     return {"first": first, "stop": stop, "status": np.full(n, STATUS_FAILED, np.int8), "message": [why] * n,
             "separation": nan, "separation_sigma": nan, "cv_error": nan, "cv_error_noise_floor": nan,
-            "selected": np.zeros(n, np.int64), "terms": [], "names": [], "units": [], "effects": [],
-            "values": None, "sigmas": None}
+            "selected": np.zeros(n, np.int64), "route": np.full(n, -1, np.int8), "evaluations": np.zeros(n, np.int32),
+            "terms": [], "names": [], "units": [], "effects": [], "values": None, "sigmas": None}
 
 
 def _load_chunks(folder: Path, n_chunks: int) -> list[dict]:
@@ -184,6 +197,8 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
     flat = {k: np.full(n, np.nan) for k in ("separation", "separation_sigma", "cv_error", "cv_error_noise_floor")}
     status = np.full(n, STATUS_FAILED, np.int8)
     selected = np.zeros(n, np.int64)
+    route = np.full(n, -1, np.int8)
+    evaluations = np.zeros(n, np.int32)
     message = np.full(n, "", dtype=object)
     values = {name: np.full(n, np.nan) for name in names}
     sigmas = {name: np.full(n, np.nan) for name in names}
@@ -193,6 +208,8 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
             flat[k][lo:hi] = c[k]
         status[lo:hi] = c["status"]
         selected[lo:hi] = c["selected"]
+        route[lo:hi] = c["route"]
+        evaluations[lo:hi] = c["evaluations"]
         message[lo:hi] = [str(m) for m in c["message"]]
         for k, name in enumerate(c["names"]):
             values[name][lo:hi] = c["values"][k]
@@ -201,13 +218,14 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
     with atomic_hdf5(output, MAP_RESULT_FORMAT, config_text, {str(source.path): key["input_sha256"]}) as h5:
         h5.attrs["rows"], h5.attrs["cols"], h5.attrs["samples"] = source.rows, source.cols, source.samples
         h5.attrs["chunk_pixels"] = key["chunk"]
+        h5.attrs["pixel_fit"] = key["pixel_fit"]
         for name, count in counts.items():
             h5.attrs[f"n_{name}"] = count
         maps = h5.create_group("maps")
         for name in names:
             write_dataset(maps, name, values[name].reshape(shape), units[name], effect=effects[name])
             write_dataset(maps, f"{name}_sigma", sigmas[name].reshape(shape), units[name],
-                          meaning="1 sigma (bootstrap standard deviation)")
+                          meaning=SIGMA_MEANING[key["pixel_fit"]])
         write_dataset(maps, "separation", flat["separation"].reshape(shape), "m",
                       meaning="rest tip-sample separation d estimated per pixel (topography: the sample is higher "
                               "where d is smaller)")
@@ -223,6 +241,10 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
                       meaning=", ".join(f"{code}: {name}" for code, name in enumerate(STATUS_NAMES)))
         write_dataset(maps, "message", message.astype(str).reshape(shape), "1",
                       meaning="why a pixel failed or is suspect (empty when ok)")
+        write_dataset(maps, "fit_route", route.reshape(shape), "1",
+                      meaning=", ".join(f"{code}: {name}" for code, name in enumerate(ROUTES)) + ", -1: not fitted")
+        write_dataset(maps, "evaluations", evaluations.reshape(shape), "1",
+                      meaning="library evaluations (regression systems built) the pixel's fit cost")
         model = h5.create_group("model")
         write_dataset(model, "terms", np.array(terms or [""]), "1")
         if source.x is not None:

@@ -1,9 +1,8 @@
 """One chunk of a force map, fitted in a worker: :func:`fit_chunk`.
 
 A task names the map file, the merged run config (YAML text) and a range of pixels. The worker reads the map's
-metadata and the chunk's traces once, builds the :class:`afmid.library.Library` once, and fits each pixel with
-:func:`afmid.fit.prepare` / :func:`afmid.fit.fit_prepared` (the separation is estimated per pixel: it is the
-topography). A pixel that cannot be fitted is marked failed with its one-line reason; it never stops the chunk.
+metadata and the chunk's traces once, builds the :class:`afmid.library.Library` once, and fits the pixels in order with the task's pixel-fit strategy
+(:mod:`afmid.map_pixel`; the separation is estimated per pixel: it is the topography). A pixel that cannot be fitted is marked failed with its one-line reason; it never stops the chunk.
 The result is plain arrays (one value per pixel), small enough to send back to the scheduler.
 """
 
@@ -41,9 +40,9 @@ def fit_chunk(task: dict) -> dict:
 
     from . import plausibility
     from .errors import AfmidError
-    from .fit import fit_prepared, prepare
     from .library import build_library
-    from .map_input import open_map, read_pixels
+    from .map_pixel import DEFAULT_PIXEL_FIT, PIXEL_FITS
+    from .map_input import open_map, pixel_trace, read_pixels
 
     started = time.perf_counter()
     logger = logging.getLogger("afmid")
@@ -62,16 +61,18 @@ def fit_chunk(task: dict) -> dict:
         "first": first, "stop": stop, "status": np.full(n, STATUS_FAILED, np.int8), "message": [""] * n,
         "separation": np.full(n, np.nan), "separation_sigma": np.full(n, np.nan), "cv_error": np.full(n, np.nan),
         "cv_error_noise_floor": np.full(n, np.nan), "selected": np.zeros(n, np.int64),
+        "route": np.full(n, -1, np.int8), "evaluations": np.zeros(n, np.int32),
         "terms": list(library.names), "names": [], "units": [], "effects": [], "values": None, "sigmas": None,
     }
     if len(library.names) > 63:
         raise ValueError("the selected-term bit mask holds at most 63 terms")
     per_pixel: list[dict | None] = [None] * n
+    strategy = PIXEL_FITS.get(task.get("pixel_fit") or DEFAULT_PIXEL_FIT)(config, library)
     for i in range(n):
         pixel = first + i
         logger.setLevel(logging.ERROR)
         try:
-            result = _fit_pixel(source, raw[i], config, library, pixel, prepare, fit_prepared)
+            result = strategy.fit(pixel_trace(source, raw[i], config, pixel), pixel)
         except AfmidError as exc:
             out["message"][i] = exc.message
             continue
@@ -81,13 +82,13 @@ def fit_chunk(task: dict) -> dict:
         finally:
             logger.setLevel(level)
         per_pixel[i] = result.quantities
-        d = result.system.params["d"]
-        est = result.nonlinear.get("d")
-        out["separation"][i] = d
-        out["separation_sigma"][i] = est.sigma if est is not None else np.nan
+        out["separation"][i] = result.separation
+        out["separation_sigma"][i] = result.separation_sigma
         out["cv_error"][i] = result.cv_error
         out["cv_error_noise_floor"][i] = result.cv_error_noise_floor
         out["selected"][i] = int(sum(1 << k for k, m in enumerate(result.selected[:len(library)]) if m))
+        out["route"][i] = result.route
+        out["evaluations"][i] = result.evaluations
         # Defects the checks only warned about (not those repaired or informational), and implausible read-outs.
         doubts = [w for w in result.warnings if w.startswith("warning")] + [f"implausible: {name}" for name in
                                                  plausibility.violations(
@@ -113,10 +114,3 @@ def fit_chunk(task: dict) -> dict:
     out["seconds"] = time.perf_counter() - started
     return out
 
-
-def _fit_pixel(source, raw, config, library, pixel, prepare, fit_prepared):
-    from .map_input import pixel_trace
-
-    trace = pixel_trace(source, raw, config, pixel)
-    prep = prepare(trace, config.fit)
-    return fit_prepared(prep, library, config, uncertainty=config.fit.bootstrap > 0)

@@ -62,6 +62,8 @@ CASES = [
          argv=("map", "run.yaml", "--input", "map.h5", "-o", "map.h5"), file="map.h5"),
     case("map-scheduler-not-an-address", files(), "--scheduler", "tcp://HOST:PORT", exit_code=2, category="config",
          argv=MAP + ("--scheduler", "localhost")),
+    case("map-add-unknown-effect", files(), "model.effects", "--add: unknown effect", exit_code=2, category="config",
+         argv=MAP + ("--add", "viscoelastik"), file="run.yaml"),
     case("simulate-map-domain-without-radius", files(config=SIM, map_file=None), "simulate.map", "radius",
          exit_code=2, category="config", argv=("simulate", "run.yaml", "-o", "sim.h5"), file="run.yaml"),
     case("simulate-map-at-a-setpoint", files(config=SIM_SETPOINT, map_file=None), "simulate.setpoint", exit_code=2,

@@ -4,7 +4,8 @@ pixel, and the map's parameters against the simulator's truth per phase.
 
 The map (tests/configs/map_small.yaml) is 3x3 pixels of short traces; pixel (2, 2) is spoiled with NaNs. Every
 run fits the same pixels by the same code path (one-thread BLAS in every worker), so the maps of different runs
-must be bit-identical. Map runs are child processes (``python -m afmid.cli``): dask's worker processes are spawned.
+must be bit-identical when they cut the map into the same chunks (the default pixel fit carries its start and
+support from pixel to pixel within a chunk: afmid.map_pixel). Map runs are child processes (``python -m afmid.cli``): dask's worker processes are spawned.
 """
 
 from __future__ import annotations
@@ -198,7 +199,7 @@ def test_a_map_through_a_scheduler_and_two_workers_equals_the_local_map(workspac
     assert "dask cluster at " + dask_cluster.address in done.stderr
     assert_identical(local_result, workspace / "remote.h5")
     # the environment variable names the scheduler too
-    done = afmid("map", str(CONFIG), "--input", "map.h5", "-o", "remote_env.h5", "--chunk", "3", cwd=workspace,
+    done = afmid("map", str(CONFIG), "--input", "map.h5", "-o", "remote_env.h5", "--chunk", "2", cwd=workspace,
                  env={"AFMID_SCHEDULER": dask_cluster.address})
     assert done.returncode == 1, done.stderr
     assert "dask cluster at " in done.stderr
@@ -208,14 +209,14 @@ def test_a_map_through_a_scheduler_and_two_workers_equals_the_local_map(workspac
 def test_a_worker_killed_mid_map_is_survived(workspace, local_result, dask_cluster):
     out = workspace / "killed.h5"
     proc = start_map("map", str(CONFIG), "--input", "map.h5", "-o", out.name, "--scheduler", dask_cluster.address,
-                     "--chunk", "1", cwd=workspace)
+                     "--chunk", "2", cwd=workspace)
     try:
         sidecar = workspace / "killed.h5.afmid-map"
         wait_for_chunks(sidecar, 1, proc)
         victim = dask_cluster.workers[0]
         victim.kill()  # SIGKILL: no goodbye to the scheduler
         victim.wait()
-        assert len(list(sidecar.glob("chunk_*.npz"))) < 9, "the map was over before the worker was killed"
+        assert len(list(sidecar.glob("chunk_*.npz"))) < 5, "the map was over before the worker was killed"
         _, err = proc.communicate(timeout=RUN_TIMEOUT)
     finally:
         if proc.poll() is None:
@@ -228,7 +229,7 @@ def test_a_worker_killed_mid_map_is_survived(workspace, local_result, dask_clust
 def test_an_interrupted_map_resumes_from_its_finished_chunks(workspace, local_result):
     out = workspace / "resumed.h5"
     sidecar = workspace / "resumed.h5.afmid-map"
-    args = ("map", str(CONFIG), "--input", "map.h5", "-o", out.name, "-j", "2", "--chunk", "1")
+    args = ("map", str(CONFIG), "--input", "map.h5", "-o", out.name, "-j", "2", "--chunk", "2")
     proc = start_map(*args, cwd=workspace)
     try:
         wait_for_chunks(sidecar, 2, proc)
@@ -244,7 +245,7 @@ def test_an_interrupted_map_resumes_from_its_finished_chunks(workspace, local_re
     assert len(saved) >= 2 and not list(workspace.glob(".afmid-tmp*"))
     done = afmid(*args, cwd=workspace)
     assert done.returncode == 1, done.stderr
-    assert f"resuming: {len(saved)} of 9 chunks already fitted" in done.stderr
+    assert f"resuming: {len(saved)} of 5 chunks already fitted" in done.stderr
     assert not sidecar.exists()
     assert_identical(local_result, out)
 
@@ -290,7 +291,7 @@ def test_scheduler_address_and_default_chunking():
     assert scheduler_address("tcp://127.0.0.1:8786") == "tcp://127.0.0.1:8786"
     with pytest.raises(ConfigError, match="--scheduler"):
         scheduler_address("127.0.0.1:8786")
-    assert [default_chunk(n) for n in (1, 16, 32, 33, 4096, 10**6)] == [1, 1, 1, 2, 64, 64]
+    assert [default_chunk(n) for n in (1, 5, 16, 32, 33, 512, 4096, 10**6)] == [1, 5, 8, 8, 8, 16, 64, 64]
 
 
 def test_a_npy_map_gives_the_pixels_of_the_hdf5_map(workspace, tmp_path):
