@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from afmid.config import ModelConfig
-from afmid.kernels.trajectory_eval import eval_rows_numpy
-from afmid.library import build_library
+from afmid import expr
+from afmid.library import build_library, trajectory_variables
 
 A0, RADIUS = 0.165e-9, 10e-9
 LIBRARIES = {
@@ -22,6 +22,19 @@ LIBRARIES = {
                                                          "exp(-z / a0) * xdot", "cos(w * t) * x"]),
     "dmt": ModelConfig(effects=["dmt"]),
 }
+
+
+def eval_rows_numpy(library, params, x: np.ndarray, xdot: np.ndarray, t: np.ndarray,
+                    out: np.ndarray) -> tuple[bool, bool]:
+    """The plain-NumPy twin of :func:`eval_rows` for ``library`` at ``params`` (d, a0 and its nonlinear
+    parameters): the variables as a (7, N) array (:func:`afmid.library.trajectory_variables`), then each term
+    by the NumPy evaluator of the term language."""
+    variables = trajectory_variables(x.ravel(), xdot.ravel(), t.ravel(), params["d"], params["a0"])
+    flat = np.column_stack([expr.evaluate_numpy(term.expression, variables, dict(params), ())
+                            for term in library.terms]) if library.terms else np.empty((x.size, 0))
+    out[...] = flat.reshape(out.shape)
+    with np.errstate(invalid="ignore", over="ignore"):  # inf - inf: not finite, as the kernel says
+        return bool(np.isfinite(flat.sum())), bool((flat == 0.0).any())
 
 
 def _trajectory(rows=5, n=700, seed=3):

@@ -9,9 +9,10 @@ same pass it notes whether every value is finite and whether any is exactly zero
 :func:`afmid.fit_system.average_switching_cells`), which were two more passes over the fine grid.
 
 For libraries without history gates (states) only: a gate's state is scanned along the whole trajectory
-first (:meth:`afmid.library.Library.evaluate`). The plain-NumPy twin is :func:`eval_rows_numpy` (the
-term language's NumPy evaluator; tests/test_trajectory_eval.py compares them to rounding, and the kernel with
-:meth:`afmid.library.Library.evaluate`'s VM bit for bit: the same VM on the same variables).
+first (:meth:`afmid.library.Library.evaluate`). Its plain-NumPy twin (the term language's NumPy evaluator) is
+``eval_rows_numpy`` in tests/test_trajectory_eval.py, which compares them to rounding, and the kernel with
+:meth:`afmid.library.Library.evaluate`'s VM bit for bit (the same VM on the same variables). The twin lives
+with the test: a kernel does not import the library that calls it.
 """
 
 from __future__ import annotations
@@ -60,19 +61,3 @@ def eval_rows(code, code_offsets, consts, const_offsets, x, xdot, t, separation,
     # A sum is finite only if every term is (an overflow of the sum alone is reported as not finite: the
     # caller then checks the values themselves).
     return np.isfinite(total), any_zero
-
-
-def eval_rows_numpy(library, params, x: np.ndarray, xdot: np.ndarray, t: np.ndarray,
-                    out: np.ndarray) -> tuple[bool, bool]:
-    """The plain-NumPy twin of :func:`eval_rows` for ``library`` at ``params`` (d, a0 and its nonlinear
-    parameters): the variables as a (7, N) array (:func:`afmid.library.trajectory_variables`), then each term
-    by the NumPy evaluator of the term language."""
-    from .. import expr
-    from ..library import trajectory_variables
-
-    variables = trajectory_variables(x.ravel(), xdot.ravel(), t.ravel(), params["d"], params["a0"])
-    flat = np.column_stack([expr.evaluate_numpy(term.expression, variables, dict(params), ())
-                            for term in library.terms]) if library.terms else np.empty((x.size, 0))
-    out[...] = flat.reshape(out.shape)
-    with np.errstate(invalid="ignore", over="ignore"):  # inf - inf: not finite, as the kernel says
-        return bool(np.isfinite(flat.sum())), bool((flat == 0.0).any())
