@@ -598,6 +598,8 @@ def terminal_summary(summary: dict, output: Path) -> str:
 def quantity_cell(q: dict) -> str:
     """A read-out in the parameter table: value ± 1-sigma error (stat / cal when a calibration uncertainty was
     declared) and unit, marked when the run is model-limited."""
+    if q.get("determined", True) is False:
+        return plausibility.not_determined_text(q, q["unit"])
     text = f"{q['value']:.4g}"
     if math.isfinite(q["error"]):
         text += f" ± {q['error']:.2g} (1σ"
