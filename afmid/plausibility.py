@@ -148,6 +148,11 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
     unit = str(q.get("unit") or (declared[2] if declared else ""))
     label = name.split(".")[-1]
     if q.get("determined", True) is False:  # its term was not selected: no value (afmid.undetermined)
+        # An effect that may be absent (0 in its range: a viscosity) is simply not seen: its interval is the
+        # result. A quantity the model needs (E* of a contact model: 0 is outside its range) is not identified.
+        declared = plausible_range(name, q.get("effect") or None)
+        if declared is not None and declared[0] <= 0.0 <= declared[1]:
+            return Verdict(True)
         from .undetermined import describe
 
         return Verdict(False, describe(name, q))
@@ -237,4 +242,4 @@ def not_determined_text(quantity: Mapping, unit: str) -> str:
 def warn(verdicts: Mapping[str, Verdict]) -> None:
     """One ``afmid: warning:`` line per implausible read-out."""
     for reason in violations(verdicts):
-        log.warning("%s" if NOT_DETERMINED in reason else "implausible read-out: %s", reason)
+        log.warning("implausible read-out: %s", reason)

@@ -43,6 +43,13 @@ def _read(read_out, library, coef, params, mask, trace, name: str) -> float:
     return float(read_out(library, coef, None, params, mask, trace).get(name, {}).get("value", math.nan))
 
 
+def _silent_columns(T: np.ndarray, columns: list[int]) -> list[int]:
+    """The ``columns`` that carry no signal on this trace (their whitened norm is zero to rounding: a contact
+    term where the model's tip never reaches the contact): forcing them in says nothing, not "0"."""
+    norms = np.linalg.norm(T[:, :-1], axis=0)  # the columns are in SI units: only an exact zero is scale-free
+    return [j for j in columns if not norms[j] > 0]
+
+
 def _interval(read_out, library, samples: np.ndarray, params, mask, trace, name: str) -> tuple[float, float, float]:
     """(1-sigma std, 2.5 %, 97.5 % percentile) of the read-out ``name`` over coefficient samples (NaN if < 3)."""
     values = np.array([_read(read_out, library, c, params, mask, trace, name) for c in samples], dtype=float)
@@ -84,14 +91,21 @@ def mark(quantities: dict, library, system, coef: np.ndarray, mask: np.ndarray, 
                          and abs(value_probe - value_now) <= 1e-9 * max(abs(value_now), abs(value_probe)))
             if needs:
                 std = lo = hi = math.nan
-                if n_boot > 0:
+                silent = _silent_columns(T, missing)
+                if n_boot > 0 and not silent:
                     rng = np.random.default_rng(seed)
                     samples = regression.resampled_coefficients(system.T_blocks, forced, n_boot, rng)
-                    std, lo, hi = _interval(read_out, library, samples, params, forced, trace, name)
+                    # The least squares drop a column below its pivot tolerance (coefficient exactly 0 in every
+                    # resample): silent too, not a tight interval around 0.
+                    silent = [j for j in missing if not np.any(samples[:, j] != 0)]
+                    if not silent:
+                        std, lo, hi = _interval(read_out, library, samples, params, forced, trace, name)
                 terms = [library.names[j] for j in missing]
                 q.update(value=math.nan, error=math.nan, ci_low=lo, ci_high=hi, determined=False,
                          interval_kind=FORCED_INTERVAL, forced_value=value_forced, forced_error=std,
                          inclusion=float(min(inclusion[j] for j in missing)), undetermined_terms=terms)
+                if silent:  # e.g. a contact term while the fitted separation keeps the tip off the sample
+                    q.update(forced_value=math.nan, silent_terms=[library.names[j] for j in silent])
                 q.pop("error_statistical", None)
                 q.pop("error_calibration", None)
                 continue
@@ -159,6 +173,8 @@ def describe(name: str, q: dict) -> str:
     terms = ", ".join(q.get("undetermined_terms", [])) or "its term"
     text = (f"{label}{NOT_DETERMINED}{terms} was not selected (inclusion probability "
             f"{q.get('inclusion', math.nan):.2f})")
+    if q.get("silent_terms"):
+        text += "; its column is zero on this trace (the fitted model never reaches where it acts), so no bound"
     lo, hi = q.get("ci_low", math.nan), q.get("ci_high", math.nan)
     if math.isfinite(lo) and math.isfinite(hi):
         text += f"; with it forced in, the 95 % interval is [{display(lo, unit)}, {display(hi, unit)}]"

@@ -93,7 +93,7 @@ def fit_entry(key: str, config, trace, truth: dict, result) -> dict:
     return {"case": key, "terms": result.selected_terms(),
             "inclusion": {name: round(float(p), 3) for name, p in zip(result.library.names, result.inclusion[:n])},
             "quantities": {name: quantity_entry(result.quantities[name]) for name in TRUTH if name in result.quantities},
-            "truth": {name: truth.get(name) for name in TRUTH},
+            "truth": {name: float(truth[name]) if truth.get(name) is not None else None for name in TRUTH},
             "force": force_error(result, trace), "cv_error": result.cv_error, "floor": result.cv_error_noise_floor,
             "d_error": float(result.system.params["d"]) - d_true,
             "d_sigma": float(result.nonlinear["d"].sigma) if "d" in result.nonlinear else math.nan,
@@ -119,6 +119,7 @@ def measure(key: str, config_name: str, overrides: list[str], expected, folder: 
 
 
 def _fmt_q(q: dict | None, truth) -> str:
+    truth = float(truth) if truth is not None else None
     if not q:
         return "—"
     if q.get("determined") is False:
@@ -131,6 +132,9 @@ def _fmt_q(q: dict | None, truth) -> str:
 
 def table(path: Path) -> str:
     rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    for r in rows:
+        r.setdefault("truth", {})
+        r["truth"] = {k: float(v) if v is not None else None for k, v in r["truth"].items()}
     out = ["| case | named (verdict) | terms (inclusion) | E* error ± 1 sigma | H error ± 1 sigma | force % | d error pm |",
            "|---|---|---|---|---|---|---|"]
     for r in rows:
