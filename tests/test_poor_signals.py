@@ -204,3 +204,61 @@ def test_liquid_intervals_cover_the_truth(tmp_path):
             inside[name] += bool(abs(z) < 2)
             seen.append(f"{seed} {name} z {z:+.2f}")
     assert min(inside.values()) >= 8, f"{inside}: " + "; ".join(seen)
+
+
+# --------------------------------------------------------------------------- "the data cannot decide"
+def _trial(effect, delta_bic, block_chi2, explains=True, implausible=()):
+    from afmid.diagnose import Trial
+
+    return Trial(effect, 0.3, 0.27, 0.0, delta_bic, 0.9, 1.15, True, {}, {}, list(implausible), 0.0,
+                 explains=explains, block_chi2=np.asarray(block_chi2, dtype=float))
+
+
+def test_vuong_tells_a_consistent_difference_from_a_noisy_one():
+    """Two candidates 14 BIC units apart over 49 periods: told apart when every period prefers the best by the
+    same amount (sd 0), not when the per-period differences scatter by 0.68 (sd of the sum 4.8: 3 sigma is
+    still apart, 2 sigma not; here 14 / (7 * 2) = 1 sigma)."""
+    from afmid import diagnose_decide as decide
+
+    rng = np.random.default_rng(5)
+    base = 40.0 + rng.normal(0.0, 1.0, 49)
+    best = _trial("capillary", -123.0, base)
+    steady = _trial("viscoelastic", -109.0, base + 14.0 / 49)
+    assert decide.separation_sigmas(best, steady) == math.inf and decide.rivals(best, [best, steady]) == []
+    scatter = rng.normal(0.0, 1.0, 49)
+    scatter = (scatter - scatter.mean()) / scatter.std(ddof=1) * 2.0 + 14.0 / 49
+    noisy = _trial("viscoelastic", -109.0, base + scatter)
+    assert decide.separation_sigmas(best, noisy) == pytest.approx(14.0 / (7 * 2.0), rel=1e-9)
+    assert decide.rivals(best, [best, noisy]) == [noisy]
+    # A rival that does not explain the residual, or has implausible values, is no rival.
+    assert decide.rivals(best, [_trial("x", -109.0, base + scatter, explains=False)]) == []
+    assert decide.rivals(best, [_trial("y", -109.0, base + scatter, implausible=["negative"])]) == []
+    text = decide.verdict(best, [noisy])
+    assert "cannot decide" in text and "`capillary`" in text and "`viscoelastic`" in text
+
+
+# --------------------------------------------------------------------------- a low-Q lever's phase noise
+def test_thermal_phase_noise_is_not_a_dropped_sample_but_six_samples_are(tmp_path):
+    """The soft lever in liquid (k 0.8 N/m, Q 4, A 5 nm) wanders by ~0.8 deg per two periods: a trace whose
+    phase kicked by 1.9 deg (a sample's worth at 200 samples per period) was refused as "samples repeated".
+    The thermal scale is known, so a step must stand 5 of it out (4 deg: 2.2 samples here). The price: three
+    dropped samples (5.4 deg, of which ~3.6 deg remain a step once the analysis refits the frequency) are no
+    longer caught on this lever (measured); six are. In air (k 40 N/m, Q 250) the thermal scale is negligible."""
+    from afmid import defects
+    from afmid.simulate import simulate
+    from afmid.config import apply_overrides, build_config, parse_override, read_yaml
+
+    settings = defects.Settings(sample_rate=200 * 25e3, resonance_frequency=25e3, quality_factor=4.0,
+                                spring_constant=0.8)
+    assert math.degrees(defects.thermal_phase_step(settings, 5e-9)) == pytest.approx(0.81, abs=0.01)
+    air = defects.Settings(sample_rate=200 * 300e3, resonance_frequency=300e3, quality_factor=250.0,
+                           spring_constant=40.0)
+    assert math.degrees(defects.thermal_phase_step(air, 10e-9)) < 0.02
+    raw = apply_overrides(read_yaml(CONFIGS / "liquid.yaml"),
+                          [parse_override(o) for o in ("sample.separation=5.5e-9", "simulate.seed=31",
+                                                       "simulate.periods=30")])
+    x = simulate(build_config(raw, source=tmp_path / "l.yaml", base_dir=tmp_path)).deflection
+    assert defects.check_jumps(defects.analyse_with(x, settings), settings) == []
+    dropped = np.delete(x, np.arange(2100, 2106))
+    found = defects.check_jumps(defects.analyse_with(dropped, settings), settings)
+    assert [f.name for f in found] == ["phase_jump"] and "dropped" in found[0].message
