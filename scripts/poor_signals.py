@@ -19,6 +19,7 @@ estimated samples / max |true force|), and the separation error.
     python scripts/poor_signals.py --out poor.jsonl [--only liquid]
     python scripts/poor_signals.py --coverage liquid-d4 --seeds 1-12 --out cov.jsonl   # fits only
     python scripts/poor_signals.py --table poor.jsonl
+    python scripts/poor_signals.py --compare before.jsonl after.jsonl
 
 Run from the repository root (PYTHONPATH=other/checkout measures another version with the same traces).
 """
@@ -160,16 +161,56 @@ def table(path: Path) -> str:
     return "\n".join(out)
 
 
+def compare(before: Path, after: Path) -> str:
+    """One markdown table: each case before and after (two runs of this script on two versions)."""
+    def load(path):
+        out = {}
+        for line in path.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                r["truth"] = {k: float(v) if v is not None else None for k, v in r.get("truth", {}).items()}
+                out[r["case"]] = r
+        return out
+
+    def named(r):
+        if "failed" in r:
+            return "refused: " + r["failed"].split(": ")[-1][:60]
+        verdict = r.get("verdict", "")
+        if r.get("named"):
+            return ", ".join(r["named"])
+        return "cannot decide" if "cannot decide" in verdict else "—"
+
+    def q(r, name):
+        return "—" if "failed" in r else _fmt_q(r["quantities"].get(name), r["truth"].get(name))
+
+    old, new = load(before), load(after)
+    out = ["| case | named: before / after | E* ± 1σ: before / after | H ± 1σ: before / after | incl. Hertz, vdW after | "
+           "force % | d error pm |", "|---|---|---|---|---|---|---|"]
+    for case, b in new.items():
+        a = old.get(case, {"failed": "not measured"})
+        incl = ("—" if "failed" in b else
+                f"{b['inclusion'].get('dmt.hertz', float('nan')):.2f}, {b['inclusion'].get('dmt.vdw', float('nan')):.2f}")
+        force = "—" if "failed" in b else f"{100 * b['force']:.2f}"
+        derr = "—" if "failed" in b else f"{1e12 * b['d_error']:+.0f}"
+        out.append(f"| {case} | {named(a)} / {named(b)} | {q(a, 'E_star')} / {q(b, 'E_star')} | "
+                   f"{q(a, 'hamaker')} / {q(b, 'hamaker')} | {incl} | {force} | {derr} |")
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path)
     parser.add_argument("--only")
     parser.add_argument("--table", type=Path)
+    parser.add_argument("--compare", type=Path, nargs=2, metavar=("BEFORE", "AFTER"))
     parser.add_argument("--coverage", help="a liquid separation name (d3, d4, d5, d5.5): fits only, over --seeds")
     parser.add_argument("--seeds", default="1-12")
     args = parser.parse_args(argv)
     if args.table:
         print(table(args.table))
+        return 0
+    if args.compare:
+        print(compare(*args.compare))
         return 0
     if args.coverage:
         lo, hi = map(int, args.seeds.split("-"))

@@ -158,7 +158,10 @@ EXPECT["dmt_viscoelastic", "poor", "known"] = Expect(  # seed 3: E* +12.2 %, adh
 EXPECT["dmt_exponential_damping", "poor", "known"] = Expect(  # seed 4: E* +44 %, adh. +51 %, gamma -10.6 %, force 12 %
     # 1.2 x seed 4 (2.9 / 3.2 sigma; seeds 1-3: +47, -5, +7 % / +52, -2, +12 %); gamma: 3 x 7.9 %
     contact=_C(E_star=0.535, adhesion_force=0.615, damping_coefficient=0.24),
-    sigma_max=_C(E_star=0.205, adhesion_force=0.21, damping_coefficient=0.12),
+    # Issue 13 part 4: the z^-2 tail is dropped here but selected in part of the period resamples (the data
+    # cannot decide): E* and the adhesion now carry that model uncertainty (measured 42.4 % / 52.8 %, before
+    # 13.6 % / 13.9 %, when the +44 % / +51 % errors stood 2.9-3.2 claimed sigmas out). Cap 1.5 x those.
+    sigma_max=_C(E_star=0.64, adhesion_force=0.79, damping_coefficient=0.12),
     force=0.145, may_drop=_TAIL)  # 1.2 x seed 4 (seeds 4.2-12.8 %)
 EXPECT["jkr", "poor", "known"] = Expect(  # seed 5: E* +30 %, adhesion +53 % (3.4 and 3.7 sigma), force 9.6 %
     contact=_C(E_star=0.365, adhesion_force=0.645),  # 1.2 x seed 5 (seeds 1-3: <= 6.2 %, <= 14.8 %)
