@@ -106,8 +106,8 @@ def mark(quantities: dict, library, system, coef: np.ndarray, mask: np.ndarray, 
                          inclusion=float(min(inclusion[j] for j in missing)), undetermined_terms=terms)
                 if silent:  # e.g. a contact term while the fitted separation keeps the tip off the sample
                     q.update(forced_value=math.nan, silent_terms=[library.names[j] for j in silent])
-                q.pop("error_statistical", None)
-                q.pop("error_calibration", None)
+                if "error_statistical" in q:  # no error bar at all: neither part exists
+                    q.update(error_statistical=math.nan, error_calibration=math.nan)
                 continue
     _widen_for_undecided_terms(quantities, library, T, mask, params, trace, inclusion, read_out, warnings)
 
@@ -156,6 +156,9 @@ def widen(q: dict, spread: float) -> None:
         return
     error = q["error"] if math.isfinite(q["error"]) else 0.0
     q["error"] = math.hypot(error, spread)
+    if "error_statistical" in q:  # the model uncertainty comes from the data: part of the statistical error
+        stat = q["error_statistical"] if math.isfinite(q["error_statistical"]) else 0.0
+        q["error_statistical"] = math.hypot(stat, spread)
     half = 1.96 * spread
     lo, hi, v = q["ci_low"], q["ci_high"], q["value"]
     if math.isfinite(lo) and math.isfinite(hi):
