@@ -402,12 +402,6 @@ def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
         return []
     groups = np.split(hits, np.flatnonzero(np.diff(hits) > 2) + 1)
     peaks = [int(g[np.argmax(np.abs(res[g]))]) for g in groups]
-    # A dropped or repeated sample shifts the phase for good; a kick of the thermal force (large on a soft,
-    # low-Q lever in liquid: a few degrees in one period) dies out within ~Q/pi periods. Only a step that
-    # persists (the phase levels a few blocks before and after differ by half of it) is a jump.
-    peaks = [p for p in peaks if _persists(phase, p, float(res[p]))]
-    if not peaks:
-        return []
     sizes = [float(res[p] / one) for p in peaks]
     sample = a.start + (first + peaks[0] + 1) * a.L + a.L // 2  # the middle of the period the jump falls in
     kind = "dropped" if sizes[0] > 0 else "repeated"
@@ -432,17 +426,6 @@ def thermal_phase_step(s: Settings | None, amplitude: float) -> float:
         return 0.0
     variance = ROOM_KT / (s.spring_constant * amplitude**2) * (1.0 - math.exp(-4.0 * math.pi / s.quality_factor))
     return math.sqrt(variance)
-
-
-def _persists(phase: np.ndarray, peak: int, step: float, span: int = 4) -> bool:
-    """Whether the phase step ``step`` found centred on block ``peak + 1`` holds: the median phase of up to
-    ``span`` blocks after it minus that of the blocks before it has the step's sign and half its size."""
-    before = phase[max(0, peak + 1 - span):peak + 1]
-    after = phase[peak + 2:peak + 2 + span]
-    if before.size == 0 or after.size == 0:
-        return True  # at the record's edge: no level to compare, keep the finding
-    level = float(np.median(after) - np.median(before))
-    return level * step > 0 and abs(level) >= 0.5 * abs(step)
 
 
 def check_steady(a: Analysis, s: Settings) -> list[Finding]:
