@@ -57,10 +57,13 @@ FIXED_COLUMNS = [  # (name, unit or None for text)
 #: for the item.
 TIME_COLUMNS = [("simulate_time", "s"), ("load_time", "s"), ("fit_time", "s"), ("write_time", "s"),
                 ("cpu_time", "s")]
-QUANTITY_FIELDS = ("value", "error", "ci_low", "ci_high")
+QUANTITY_FIELDS = ("value", "error", "ci_low", "ci_high", "determined")
 #: What the error and interval fields are (attributes of their datasets in summary.h5).
 FIELD_MEANINGS = {"error": {"error_kind": "1 sigma"}, "ci_low": {"interval": "95 %, lower end"},
-                  "ci_high": {"interval": "95 %, upper end"}}
+                  "ci_high": {"interval": "95 %, upper end"},
+                  "determined": {"meaning": "1: read out from selected terms; 0: its term was not selected, the "
+                                            "value is NaN and ci_low..ci_high is the 95 % interval with the term "
+                                            "forced in"}}
 
 
 @dataclass
@@ -137,7 +140,8 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
     quantities = _quantity_columns(rows)
     header = [_column_title(n, u) for n, u in FIXED_COLUMNS]
     for name, unit, _ in quantities:
-        header += [_column_title(name if f == "value" else f"{name}_{f}", unit) for f in QUANTITY_FIELDS]
+        header += [_column_title(name if f == "value" else f"{name}_{f}", None if f == "determined" else unit)
+                   for f in QUANTITY_FIELDS]
     header += [_column_title(n, u) for n, u in TIME_COLUMNS]
     buf = _io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
@@ -148,7 +152,7 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
         line = [_fmt(cells.get(n)) for n, _ in FIXED_COLUMNS]
         for name, unit, _ in quantities:
             q = _quantity(row, name, unit)
-            line += [_fmt(q[f]) if q else "" for f in QUANTITY_FIELDS]
+            line += [_fmt(q.get(f)) if q else "" for f in QUANTITY_FIELDS]
         line += [_fmt(cells.get(n)) for n, _ in TIME_COLUMNS]
         writer.writerow(line)
         table.append(cells)
@@ -174,8 +178,8 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
             found = [_quantity(r, name, unit) for r in rows]
             g.attrs["effect"] = ";".join(sorted({q["effect"] for q in found if q and q["effect"]}))
             for f in QUANTITY_FIELDS:
-                data = np.array([_float(q[f]) if q else math.nan for q in found], dtype=float)
-                write_dataset(g, f, data, unit, **FIELD_MEANINGS.get(f, {}))
+                data = np.array([_float(q.get(f)) if q else math.nan for q in found], dtype=float)
+                write_dataset(g, f, data, "1" if f == "determined" else unit, **FIELD_MEANINGS.get(f, {}))
 
 
 def _float(value) -> float:

@@ -71,6 +71,10 @@ DRIFT_SIGMA = 5.0
 TIME_JITTER = 1e-3
 #: A phase step counts as a jump above this many robust standard deviations and half a sample.
 JUMP_SIGMA = 8.0
+#: ... and above this many standard deviations of the thermal phase noise (a known scale, not estimated).
+THERMAL_JUMP_SIGMA = 5.0
+#: k_B T at room temperature, J (the lever's temperature is not in the run config).
+ROOM_KT = 1.380649e-23 * 300.0
 
 
 def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -235,7 +239,7 @@ def check_signal(x: np.ndarray, settings: Settings, analysis: Analysis | None = 
     findings += check_drive_frequency(analysis, settings)
     findings += check_sampling(analysis, settings)
     findings += check_onset(analysis, settings)
-    findings += check_jumps(analysis)
+    findings += check_jumps(analysis, settings)
     findings += check_steady(analysis, settings)
     findings += check_offset_and_drift(analysis, settings)
     findings += check_contact(analysis, settings)
@@ -372,8 +376,12 @@ def check_sampling(a: Analysis | None, s: Settings) -> list[Finding]:
     return findings
 
 
-def check_jumps(a: Analysis) -> list[Finding]:
-    """Phase steps between periods: dropped or repeated samples (or a re-locked drive). An error."""
+def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
+    """Phase steps between periods: dropped or repeated samples (or a re-locked drive). An error.
+
+    With the lever known (``s``: spring constant and Q), a step must also stand out of the thermal phase
+    noise (:func:`thermal_phase_step`): on a soft lever in liquid it is ~1 deg per period, a sample's worth.
+    """
     # Before the onset of a record that starts at rest the phase is that of noise: only the motion is read.
     onset = find_onset(a)
     first = 0 if onset is None else onset + 2  # from where a fit uses the record (afmid.onset.check_onset)
@@ -387,7 +395,8 @@ def check_jumps(a: Analysis) -> list[Finding]:
     res = d - median_filter(d, size=7, mode="nearest")
     mad = float(np.median(np.abs(res - np.median(res))))
     one = 2 * np.pi / a.spp  # phase of one sample
-    threshold = max(0.5 * one, JUMP_SIGMA * 1.4826 * mad)
+    threshold = max(0.5 * one, JUMP_SIGMA * 1.4826 * mad,
+                    THERMAL_JUMP_SIGMA * thermal_phase_step(s, float(np.median(a.block_amplitude))))
     hits = np.flatnonzero(np.abs(res) > threshold)
     if hits.size == 0:
         return []
@@ -403,6 +412,20 @@ def check_jumps(a: Analysis) -> list[Finding]:
         f"{f' and at {len(peaks) - 1} more places' if len(peaks) > 1 else ''}: "
         f"samples were {kind} (or the drive was re-locked); crop the trace to one side of the jump",
         "data.path", {"jumps": len(peaks), "first_sample": sample, "samples": sizes[0]})]
+
+
+def thermal_phase_step(s: Settings | None, amplitude: float) -> float:
+    """Standard deviation (rad) of the phase change across two periods that the thermal force alone makes.
+
+    The quadrature part of the thermal motion has variance kT / (2k) at room temperature and forgets itself in
+    the amplitude decay time (Q / pi periods); over two periods the phase x_perp / A then changes with variance
+    2 (kT / (2 k A^2)) (1 - exp(-2 pi * 2 / Q)). Negligible for a lever in air (Q 250, k 40 N/m: 0.01 deg);
+    ~0.8 deg for a soft lever in water (k 0.8 N/m, Q 4, A 5 nm). 0 when the lever is unknown.
+    """
+    if s is None or not s.spring_constant or not s.quality_factor or not amplitude > 0:
+        return 0.0
+    variance = ROOM_KT / (s.spring_constant * amplitude**2) * (1.0 - math.exp(-4.0 * math.pi / s.quality_factor))
+    return math.sqrt(variance)
 
 
 def check_steady(a: Analysis, s: Settings) -> list[Finding]:

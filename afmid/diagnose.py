@@ -36,7 +36,9 @@ import math
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
 
+from . import diagnose_decide as decide
 from . import instrument_signature, plausibility
 from .config import RunConfig
 from .errors import InputError
@@ -101,6 +103,7 @@ class Trial:
     evidence: str = ""
     reasons: list[str] = field(default_factory=list)  # why it was not accepted
     separation: float = math.nan  # the rest separation of the refit, m (re-profiled when the run estimated it)
+    block_chi2: np.ndarray | None = field(default=None, repr=False)  # per-block chi-square (afmid.diagnose_decide)
 
 
 @dataclass
@@ -252,7 +255,7 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         qty = {k: v for k, v in result.quantities.items() if v["effect"] == effect}
         trials.append(Trial(effect, result.cv_error, result.cv_error_noise_floor, bic_after, bic_after - base.bic,
                             chi2_after, limit_after, selected, qty, shape, _implausible(effect, qty, run),
-                            time.perf_counter() - t0, separation=separation))
+                            time.perf_counter() - t0, separation=separation, block_chi2=decide.block_chi2(result)))
     residual_significant = _significant(base.chi2, base.chi2_limit, base.error, base.floor)
     for t in trials:
         t.reasons = _rejections(t, base)
@@ -281,6 +284,8 @@ def _diagnose(run: RunData, progress: bool) -> dict:
     finding = (instrument_signature.undeclared(base_config, prepared, base_result, base.bic, trials, _fit_quick,
                                                BIC_EVIDENCE, BIC_DISTINCT)
                if missing and not (good and explained) else None)  # a residual no sample effect explains
+    # Rivals the per-period evidence does not tell apart from the best candidate: name none of them.
+    undecided = decide.rivals(good[0], trials) if good and not outside else []
     if outside:
         description += "; " + _outside_words(outside[0], good[0] if good else None)
         for t in good:
@@ -308,6 +313,11 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         "tried": [_trial_record(t) for t in trials],
         "seconds": time.perf_counter() - started,
     }
+    if undecided:
+        summary["undecided"] = [_trial_record(t) for t in [good[0]] + undecided]
+        summary["suggestions"] = []
+        summary["diagnosis"]["verdict"] = decide.verdict(good[0], undecided)
+        summary["diagnosis"]["explained_by_catalog"] = False
     return summary if finding is None else instrument_signature.name_instrument(summary, finding)
 
 

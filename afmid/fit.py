@@ -48,6 +48,7 @@ from .fit_selection import SelectionSettings
 from .drive_search import DriveSearch, settle_drive_frequency
 from .motion import fit_warning as motion_warning
 from .uncertainty import finish as finish_uncertainty
+from .undetermined import mark as mark_undetermined
 # Kept importable from afmid.fit, where they were defined before (bench/bench_fit.py uses term_penalties).
 from .fit_forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from .fit_selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
@@ -353,6 +354,10 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
     force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,
                                                     trace, config, cv_error, noise_floor, read_out, uncertainty)
+    # A read-out whose term was not selected is "not determined" (never 0 +- 0); terms the resamples select
+    # only sometimes widen the error bars they affect (afmid.undetermined).
+    mark_undetermined(quantities, library, system, coef, chosen, params, trace, inclusion,
+                      fit.bootstrap if uncertainty else 0, fit.seed, read_out, warnings)
     force_estimate, force_direct = per_sample_forces(prep, library, system, coef, rows)
     periods = period_curves(prep, library, system, coef, params, rows, fit.phase_points)
     bar.update(1)

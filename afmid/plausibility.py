@@ -48,6 +48,8 @@ from .physics import EFFECTS, quantity_range
 
 log = logging.getLogger("afmid")
 
+#: The words of a not-determined read-out's reason (afmid.undetermined.describe).
+NOT_DETERMINED = " is not determined: "
 #: An error this many times larger than |value| means the data do not determine the value.
 UNCONSTRAINED_RATIO = 1e3
 
@@ -145,6 +147,15 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
     declared = plausible_range(name, q.get("effect") or None)
     unit = str(q.get("unit") or (declared[2] if declared else ""))
     label = name.split(".")[-1]
+    if q.get("determined", True) is False:  # its term was not selected: no value (afmid.undetermined)
+        # An effect that may be absent (0 in its range: a viscosity) is simply not seen: its interval is the
+        # result. A quantity the model needs (E* of a contact model: 0 is outside its range) is not identified.
+        declared = plausible_range(name, q.get("effect") or None)
+        if declared is not None and declared[0] <= 0.0 <= declared[1]:
+            return Verdict(True)
+        from .undetermined import describe
+
+        return Verdict(False, describe(name, q))
     if math.isnan(value):
         return Verdict(False, f"{label} could not be read out (NaN): the fitted term has the sign opposite to "
                               "the effect's, or the read-out needs a value the run lacks, such as "
@@ -209,11 +220,22 @@ def flagged_value(name: str, quantity: Mapping) -> str:
     value, error = _field(quantity, "value"), _field(quantity, "error")
     declared = plausible_range(name, quantity.get("effect") or None)
     unit = str(quantity.get("unit") or (declared[2] if declared else ""))
+    if quantity.get("determined", True) is False:
+        return not_determined_text(quantity, unit)
     text = f"implausible: {display(value, unit)}"
     if math.isfinite(error):
         text += f" ± {display(error, unit)} (1σ)"
     if declared is not None:
         text += f" (plausible: {range_words(declared[0], declared[1], unit)})"
+    return text
+
+
+def not_determined_text(quantity: Mapping, unit: str) -> str:
+    """A not-determined read-out in a table: ``not determined (95 % with its term forced in: [a, b])``."""
+    lo, hi = _field(quantity, "ci_low"), _field(quantity, "ci_high")
+    text = "not determined"
+    if math.isfinite(lo) and math.isfinite(hi):
+        text += f" (95 % with its term forced in: [{display(lo, unit)}, {display(hi, unit)}])"
     return text
 
 

@@ -364,6 +364,10 @@ def _verdict_box(summary: dict) -> str:
                 "of the residual")
         body = f"<p>{_rich(top['evidence'])}</p><p>Residual: {_rich(diag.get('description', ''))}.</p>"
         cls = "unexplained"
+    elif summary.get("undecided"):  # afmid.diagnose_decide: several effects, not told apart by the data
+        head = "A missing effect, but the data cannot decide which"
+        body = f"<p>{_rich(diag.get('verdict', ''))}.</p>"
+        cls = "unexplained"
     elif summary.get("missing_effect"):
         head = "A significant residual that no catalog effect explains"
         body = (f"<p>{_rich(diag.get('description', ''))}.</p><p>No effect in the catalog lowers the BIC by "
@@ -598,6 +602,8 @@ def terminal_summary(summary: dict, output: Path) -> str:
 def quantity_cell(q: dict) -> str:
     """A read-out in the parameter table: value ± 1-sigma error (stat / cal when a calibration uncertainty was
     declared) and unit, marked when the run is model-limited."""
+    if q.get("determined", True) is False:
+        return plausibility.not_determined_text(q, q["unit"])
     text = f"{q['value']:.4g}"
     if math.isfinite(q["error"]):
         text += f" ± {q['error']:.2g} (1σ"

@@ -125,6 +125,7 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         verdicts = plausibility.check_plausibility(result.quantities)  # a value outside its range is flagged
         for name, q in result.quantities.items():
             parts = {k: q[k] for k in ("error_statistical", "error_calibration") if k in q}
+            parts.update(undetermined_attributes(q))
             write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
                           effect=q["effect"], description=q["doc"], model_limited=bool(q.get("model_limited", False)),
                           **ERROR_ATTRS, **parts, **plausibility.attributes(verdicts[name]))
@@ -299,6 +300,20 @@ def _required_attr(ds, name: str, path: Path):
                          key=f"{ds.name}@{name}") from None
 
 
+def undetermined_attributes(q: dict) -> dict:
+    """The attributes of ``/model/parameters/NAME`` that carry afmid.undetermined's marks."""
+    out = {"determined": bool(q.get("determined", True)), "interval_kind": q.get("interval_kind", "95 % bootstrap interval")}
+    for key in ("inclusion", "forced_value", "forced_error"):
+        if key in q:
+            out[key] = float(q[key])
+    if q.get("undecided"):
+        out["undecided"] = True
+    for key in ("undetermined_terms", "undecided_terms"):
+        if q.get(key):
+            out[key] = ";".join(q[key])
+    return out
+
+
 def _texts(ds) -> list[str]:
     """A string dataset as a list of ``str``."""
     return [text(v) for v in ds[...]]
@@ -320,6 +335,7 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
                "effect": text(_required_attr(ds, "effect", path)),
                **{k: float(ds.attrs[k]) for k in ("error_statistical", "error_calibration") if k in ds.attrs},
                "model_limited": bool(ds.attrs.get("model_limited", False)),
+               **read_undetermined(ds.attrs),
                **plausibility.attributes(read_verdict(name, ds))}
         for name, ds in m["parameters"].items()
     }
@@ -367,7 +383,26 @@ def read_verdict(name: str, dataset) -> plausibility.Verdict:
         return plausibility.Verdict(bool(attrs["plausible"]), text(attrs.get("plausibility", "")))
     quantity = {"value": float(dataset[()]), "unit": text(attrs.get("units", "")), "effect": text(attrs.get("effect", ""))}
     quantity.update({k: float(attrs[k]) for k in ("error", "ci_low", "ci_high") if k in attrs})
+    quantity.update(read_undetermined(attrs))
     return plausibility.judge(name, quantity)
+
+
+def read_undetermined(attrs) -> dict:
+    """The not-determined / undecided marks of ``/model/parameters/NAME`` (afmid.undetermined; older files:
+    determined, no marks)."""
+    out = {"determined": bool(attrs.get("determined", True))}
+    for key in ("interval_kind",):
+        if key in attrs:
+            out[key] = text(attrs[key])
+    for key in ("inclusion", "forced_value", "forced_error"):
+        if key in attrs:
+            out[key] = float(attrs[key])
+    if "undecided" in attrs:
+        out["undecided"] = bool(attrs["undecided"])
+    for key in ("undetermined_terms", "undecided_terms"):
+        if key in attrs:
+            out[key] = [t for t in text(attrs[key]).split(";") if t]
+    return out
 
 
 # --------------------------------------------------------------------------- a batch's view
@@ -414,6 +449,7 @@ def read_summary(path: Path) -> dict:
         implausible = []
         for name, ds in model["parameters"].items():
             quantities[name] = {
+                "determined": bool(ds.attrs.get("determined", True)),
                 "value": float(ds[()]),
                 "error": float(ds.attrs.get("error", np.nan)),
                 "ci_low": float(ds.attrs.get("ci_low", np.nan)),

@@ -158,7 +158,10 @@ EXPECT["dmt_viscoelastic", "poor", "known"] = Expect(  # seed 3: E* +12.2 %, adh
 EXPECT["dmt_exponential_damping", "poor", "known"] = Expect(  # seed 4: E* +44 %, adh. +51 %, gamma -10.6 %, force 12 %
     # 1.2 x seed 4 (2.9 / 3.2 sigma; seeds 1-3: +47, -5, +7 % / +52, -2, +12 %); gamma: 3 x 7.9 %
     contact=_C(E_star=0.535, adhesion_force=0.615, damping_coefficient=0.24),
-    sigma_max=_C(E_star=0.205, adhesion_force=0.21, damping_coefficient=0.12),
+    # Issue 13 part 4: the z^-2 tail is dropped here but selected in part of the period resamples (the data
+    # cannot decide): E* and the adhesion now carry that model uncertainty (measured 42.4 % / 52.8 %, before
+    # 13.6 % / 13.9 %, when the +44 % / +51 % errors stood 2.9-3.2 claimed sigmas out). Cap 1.5 x those.
+    sigma_max=_C(E_star=0.64, adhesion_force=0.79, damping_coefficient=0.12),
     force=0.145, may_drop=_TAIL)  # 1.2 x seed 4 (seeds 4.2-12.8 %)
 EXPECT["jkr", "poor", "known"] = Expect(  # seed 5: E* +30 %, adhesion +53 % (3.4 and 3.7 sigma), force 9.6 %
     contact=_C(E_star=0.365, adhesion_force=0.645),  # 1.2 x seed 5 (seeds 1-3: <= 6.2 %, <= 14.8 %)
@@ -336,7 +339,7 @@ def accuracy_fits(accuracy_traces):
                 quantities[name] = dict(
                     value=q["value"], truth=t, rel=(q["value"] - t) / abs(t) if t else math.nan,
                     error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
-                    inside=bool(q["ci_low"] <= t <= q["ci_high"]),
+                    inside=bool(q["ci_low"] <= t <= q["ci_high"]), determined=q.get("determined", True),
                 )
             force = trace.truth.force
             estimated = np.isfinite(result.force_estimate)
@@ -397,18 +400,36 @@ def test_contact_coefficient(accuracy_fits, model, instrument, separation, quant
     assert sigma <= cap, f"{quantity}: reported std {100 * sigma:.2f} % (at most {100 * cap:.1f} %); {out.describe()}"
 
 
+#: Absent effects whose interval with the term forced in (afmid.undetermined) misses 0: the forced term absorbs
+#: a systematic misfit (measured at the end of issue 13 part 4, not yet understood; the read-out says "not
+#: determined", the old test only checked that it read 0).
+FORCED_IN_BIASED = {
+    ("dmt", "poor", "viscosity"): "viscosity forced in on plain DMT, poor instrument, seed 1: 95 % interval "
+                                  "[-28.6, -4.0] Pa s (d known), [-34.0, -4.7] Pa s (d estimated) misses 0",
+}
+
+
 @pytest.mark.parametrize("model, instrument, separation", _params("others"))
 def test_other_coefficients_in_95_interval(accuracy_fits, model, instrument, separation):
-    """Every other quantity: the truth inside the reported 95 % interval; absent effects read out as zero."""
+    """Every other quantity: the truth inside the reported 95 % interval; a quantity whose term was not
+    selected (an absent effect, or a dropped tail) is read out as not determined, never as 0 +- 0, with the
+    truth (0 for an absent effect) inside its interval with the term forced in."""
     out = accuracy_fits(model, instrument, separation)
     expect = EXPECT[(model, instrument, separation)]
     for name, q in out.quantities.items():
         if name in expect.contact or DERIVED.get(name) in expect.contact:
             continue
-        if q["truth"] == 0:  # an effect of the table that the model lacks (e.g. viscosity of plain DMT)
+        if not q["determined"]:
+            assert math.isnan(q["value"]), f"{name}: not determined but valued {q['value']!r}; {out.describe()}"
+            if q["truth"] != 0:  # its term was dropped: allowed only where test_selected_terms allows it
+                assert TAIL in expect.may_drop, f"{name} not identified; {out.describe()}"
+            else:  # an effect of the table that the model lacks (e.g. viscosity of plain DMT)
+                if not q["inside"] and (model, instrument, name) in FORCED_IN_BIASED:
+                    pytest.xfail(FORCED_IN_BIASED[model, instrument, name])
+                assert q["inside"], (f"{name}: 0 outside [{q['ci_low']:.4g}, {q['ci_high']:.4g}] (forced in) for "
+                                     f"an absent effect; {out.describe()}")
+        elif q["truth"] == 0:
             assert q["value"] == 0, f"{name}: {q['value']!r} for an absent effect; {out.describe()}"
-        elif q["value"] == 0:  # its term was dropped: allowed only where test_selected_terms allows it
-            assert TAIL in expect.may_drop, f"{name} not identified; {out.describe()}"
         else:
             assert q["inside"], (f"{name}: truth {q['truth']:.4g} outside [{q['ci_low']:.4g}, {q['ci_high']:.4g}] "
                                  f"(value {q['value']:.4g}); {out.describe()}")
