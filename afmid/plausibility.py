@@ -48,7 +48,7 @@ from .physics import EFFECTS, quantity_range
 
 log = logging.getLogger("afmid")
 
-#: The words of a not-determined read-out's reason (afmid.undetermined.describe).
+#: The words of a not-determined read-out's reason (:func:`describe_not_determined`).
 NOT_DETERMINED = " is not determined: "
 #: An error this many times larger than |value| means the data do not determine the value.
 UNCONSTRAINED_RATIO = 1e3
@@ -153,9 +153,7 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
         declared = plausible_range(name, q.get("effect") or None)
         if declared is not None and declared[0] <= 0.0 <= declared[1]:
             return Verdict(True)
-        from .undetermined import describe
-
-        return Verdict(False, describe(name, q))
+        return Verdict(False, describe_not_determined(name, q))
     if math.isnan(value):
         return Verdict(False, f"{label} could not be read out (NaN): the fitted term has the sign opposite to "
                               "the effect's, or the read-out needs a value the run lacks, such as "
@@ -243,3 +241,18 @@ def warn(verdicts: Mapping[str, Verdict]) -> None:
     """One ``afmid: warning:`` line per implausible read-out."""
     for reason in violations(verdicts):
         log.warning("implausible read-out: %s", reason)
+
+
+def describe_not_determined(name: str, q: dict) -> str:
+    """One sentence for a not-determined read-out (console, report, plausibility reason)."""
+    label = name.split(".")[-1]
+    unit = q.get("unit", "")
+    terms = ", ".join(q.get("undetermined_terms", [])) or "its term"
+    text = (f"{label}{NOT_DETERMINED}{terms} was not selected (inclusion probability "
+            f"{q.get('inclusion', math.nan):.2f})")
+    if q.get("silent_terms"):
+        text += "; its column is zero on this trace (the fitted model never reaches where it acts), so no bound"
+    lo, hi = q.get("ci_low", math.nan), q.get("ci_high", math.nan)
+    if math.isfinite(lo) and math.isfinite(hi):
+        text += f"; with it forced in, the 95 % interval is [{display(lo, unit)}, {display(hi, unit)}]"
+    return text

@@ -165,20 +165,3 @@ def widen(q: dict, spread: float) -> None:
         q["ci_low"], q["ci_high"] = v - math.hypot(v - lo, half), v + math.hypot(hi - v, half)
     else:
         q["ci_low"], q["ci_high"] = v - half, v + half
-
-
-def describe(name: str, q: dict) -> str:
-    """One sentence for a not-determined read-out (console, report, plausibility reason)."""
-    from .plausibility import NOT_DETERMINED, display
-
-    label = name.split(".")[-1]
-    unit = q.get("unit", "")
-    terms = ", ".join(q.get("undetermined_terms", [])) or "its term"
-    text = (f"{label}{NOT_DETERMINED}{terms} was not selected (inclusion probability "
-            f"{q.get('inclusion', math.nan):.2f})")
-    if q.get("silent_terms"):
-        text += "; its column is zero on this trace (the fitted model never reaches where it acts), so no bound"
-    lo, hi = q.get("ci_low", math.nan), q.get("ci_high", math.nan)
-    if math.isfinite(lo) and math.isfinite(hi):
-        text += f"; with it forced in, the 95 % interval is [{display(lo, unit)}, {display(hi, unit)}]"
-    return text
