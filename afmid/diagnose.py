@@ -393,7 +393,11 @@ def _forward(run: RunData, prepared, good: list[Trial]) -> tuple[tuple[float, fl
                f"the BIC changes by only {gain:.0f}" if gain > -BIC_EVIDENCE else "the cross-validated error does not fall")
         verdicts[t.effect] = (f"added to {', '.join(k.effect for k in kept)} it no longer helps ({why}): it imitates "
                               "part of the same residual")
-    if _significant(*state) and len(good) > 2:
+    # Pairs cost refits only (a pair must still beat the forward choice by BIC_EVIDENCE): tried whenever the
+    # error stands above its noise floor at all, not only beyond FLOOR_FACTOR (a meniscus alone can bring a
+    # damping + hydration trace to 1.3-1.45x its floor).
+    chi2, limit, error_now, floor_now = state
+    if (chi2 > limit or (math.isfinite(floor_now) and error_now > floor_now)) and len(good) > 2:
         pool = good[:PAIR_CANDIDATES]
         best = None
         for i in range(len(pool)):

@@ -67,7 +67,10 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
     average stands 3 sigma above its noise:
     error^2 = sum |F_free - F_model|^2 / sum |F_free - mean(F_free)|^2
     (Parseval over harmonics, summed over folds). Returns the error, the error
-    of each fold, and the noise floor: the error a perfect model would show.
+    of each fold, and the noise floor: the error a perfect model would show,
+    i.e. the expected noise in that same sum: the held-out periods' noise plus
+    that of the model fitted on the other periods (docs/diagnosis.md, "The noise
+    floor and its threshold").
     """
     if prep.form == "strong":
         return _time_domain_cv_error(prep, system, mask, folds)
@@ -77,11 +80,15 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
     p = system.theta.shape[2]
     for test in regression.fold_slices(system.T_blocks.shape[0], folds):
         train = regression.training_blocks(system.T_blocks.shape[0], test)
-        coef, _ = regression.subset_fit(regression.combine(system.T_blocks[train]), mask)
+        trained = regression.combine(system.T_blocks[train])
+        coef, _ = regression.subset_fit(trained, mask)
         free = (prep.Y[test] - np.einsum("bkm,m->bk", prep.nuisance[test], coef[p:])).mean(axis=0)
         model = np.einsum("bkm,m->bk", system.theta[test], coef[:p]).mean(axis=0)
-        sigma = prep.row_sigma / math.sqrt(test.size)
-        keep = rows & (np.abs(free) > 3 * sigma)
+        # The error's noise: the held-out periods' own, plus the noise of the model fitted on the other periods.
+        columns = np.concatenate([system.theta[test].mean(axis=0), prep.nuisance[test].mean(axis=0)], axis=1)
+        held_out = prep.row_sigma / math.sqrt(test.size)
+        sigma = np.sqrt(held_out**2 + prediction_variance(trained, mask, columns))
+        keep = rows & (np.abs(free) > 3 * held_out)
         for n in np.unique(harmonics[keep]):  # cos and sin of a harmonic together
             keep[harmonics == n] = True
         h = harmonics[keep]
@@ -95,6 +102,25 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
     if den <= 0:
         return math.nan, np.asarray(per_fold), math.nan
     return math.sqrt(num / den), np.asarray(per_fold), math.sqrt(noise / den)
+
+
+def prediction_variance(trained: np.ndarray, mask: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """Variance of ``columns @ coef`` (one value per row of ``columns``, (rows, all columns)) when coef is the
+    least-squares fit on the ``mask`` columns of the whitened factor ``trained`` ([columns | y], unit noise).
+
+    Columns are scaled to unit norm and singular values below 1e-12 of the largest dropped, as the subset fit
+    does (SI columns differ by tens of orders of magnitude).
+    """
+    active = np.flatnonzero(mask)
+    if active.size == 0:
+        return np.zeros(columns.shape[0])
+    A = trained[:, active]
+    norms = np.linalg.norm(A, axis=0)
+    norms[norms == 0] = 1.0
+    _, s, vt = np.linalg.svd(A / norms, full_matrices=False)
+    keep = s > 1e-12 * s[0]
+    projected = ((columns[:, active] / norms) @ vt[keep].T) / s[keep]
+    return np.sum(projected**2, axis=1)
 
 
 def _time_domain_cv_error(prep: Prepared, system: System, mask: np.ndarray, folds: int):
