@@ -253,13 +253,9 @@ def _force_error(raw: dict) -> float:
 #: a 2-pole Butterworth at 10 f0 (three seeds), a 4-pole Bessel at 8 f0, and with a second mode (two seeds).
 DECLARED_CASES = [
     pytest.param(DETECTOR, 101, id="butterworth2-10f0-seed101"),
-    pytest.param(DETECTOR, 102, id="butterworth2-10f0-seed102", marks=pytest.mark.xfail(
-        reason="measured 1.01 %: the inverse filter multiplies the 1 pm detector noise by up to |1/G| = 36 at "
-        "harmonic 60, and the per-sample force is evaluated on those samples (issue 13: left)", strict=False)),
+    pytest.param(DETECTOR, 102, id="butterworth2-10f0-seed102"),
     pytest.param(DETECTOR, 103, id="butterworth2-10f0-seed103"),
-    pytest.param("data.detector={bandwidth: 2.4e6, filter: bessel, order: 4}", 104, id="bessel4-8f0-seed104",
-                 marks=pytest.mark.xfail(reason="measured 1.49 %: a 4-pole filter at 8 f0 amplifies the detector "
-                                         "noise more (|1/G| up to ~100 in-band); issue 13: left", strict=False)),
+    pytest.param("data.detector={bandwidth: 2.4e6, filter: bessel, order: 4}", 104, id="bessel4-8f0-seed104"),
     pytest.param(SECOND_MODE, 105, id="mode2-seed105"),
     pytest.param(SECOND_MODE, 106, id="mode2-seed106"),
 ]
