@@ -308,21 +308,7 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         "tried": [_trial_record(t) for t in trials],
         "seconds": time.perf_counter() - started,
     }
-    if finding is not None:
-        return instrument_signature.name_instrument(summary, finding)
-    lag = instrument_signature.lag_alongside(_named_config(run, good[0]), prepared, _fit_quick, BIC_EVIDENCE,
-                                             separation_estimated(run)) \
-        if good and explained else None
-    return summary if lag is None else instrument_signature.add_lag(summary, lag)
-
-
-def _named_config(run: RunData, trial: Trial) -> RunConfig:
-    """The run's config with ``trial``'s effect added, its shape and separation as the trial found them."""
-    config = refit_config(run, run.effects + [trial.effect])
-    config.model.parameters = {**config.model.parameters, **trial.shape}
-    if math.isfinite(trial.separation):
-        config.sample.separation = trial.separation
-    return config
+    return summary if finding is None else instrument_signature.name_instrument(summary, finding)
 
 
 
