@@ -363,3 +363,29 @@ def test_declared_instrument_clean_trace_d_unknown_no_false_alarm(tmp_path, over
     summary = _diagnose(tmp_path, "hidden_clean", overrides, [overrides[0], "sample.separation=null"])
     assert summary["suggestions"] == [], summary["diagnosis"]["verdict"]
     assert "instrument" not in summary["diagnosis"], summary["diagnosis"]["verdict"]
+
+
+def test_restoration_shrinks_buried_harmonics_and_keeps_strong_ones_and_their_phase():
+    """restore_trajectory: the across-period mean of each harmonic times S / (S + V), S = max(|mean|^2 - V, 0)
+    (cos and sin together), the deviations untouched. A harmonic 100 noise sigmas strong keeps its mean to
+    1e-4 (gain 1 - V/P) and its phase exactly; one below its noise goes to 0."""
+    from afmid.restoration import restore_trajectory
+
+    rng = np.random.default_rng(7)
+    B = 40
+    harmonics = np.array([0, 1, 1, 2, 2])
+    noise_var = np.full(5, 1e-2)
+    mean = np.array([3.0, 0.6, 0.8, 0.001, -0.002])  # harmonic 1: |mean| = 1 (~63 sigma of the mean); 2: buried
+    coef = mean + rng.standard_normal((B, 5)) * 0.1
+    restored = restore_trajectory(coef, noise_var, harmonics)
+    deviation = coef - coef.mean(axis=0)
+    assert np.allclose(restored - restored.mean(axis=0), deviation, atol=1e-12)
+    m, r = coef.mean(axis=0), restored.mean(axis=0)
+    V = 1e-2 / B
+    power = m[1] ** 2 + m[2] ** 2
+    assert r[1] / m[1] == pytest.approx((power - 2 * V) / power, rel=1e-12)
+    assert r[1] / m[1] == pytest.approx(r[2] / m[2], rel=1e-12)  # one gain for cos and sin: the phase kept
+    assert abs(r[1] / m[1] - 1) < 1e-3
+    if m[3] ** 2 + m[4] ** 2 <= 2 * V:
+        assert abs(r[3]) < 1e-15 and abs(r[4]) < 1e-15  # the deviations average to 0 up to rounding
+    assert r[0] / m[0] == pytest.approx(1 - V / m[0] ** 2, rel=1e-9)
