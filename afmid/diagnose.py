@@ -282,7 +282,7 @@ def _diagnose(run: RunData, progress: bool) -> dict:
     missing = bool(good) or residual_significant
     description = describe_residual(local, run)
     finding = (instrument_signature.undeclared(base_config, prepared, base_result, base.bic, trials, _fit_quick,
-                                               BIC_EVIDENCE, BIC_DISTINCT)
+                                               BIC_EVIDENCE, BIC_DISTINCT, separation_estimated(run))
                if missing and not (good and explained) else None)  # a residual no sample effect explains
     # Rivals the per-period evidence does not tell apart from the best candidate: name none of them.
     undecided = decide.rivals(good[0], trials) if good and not outside else []

@@ -183,7 +183,9 @@ def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np
     p = system.theta.shape[2]
     used = prep.blocks.used
     estimate = np.full(n, np.nan)
-    x_used, t_used = prep.x[used], prep.t[used]
+    # Behind a declared detector, the restored tip (the inverted samples carry the noise times |1/G|).
+    x_used = (prep.x if prep.x_restored is None else prep.x_restored)[used]
+    t_used = prep.t[used]
     L = prep.blocks.L
     # Hysteresis states are scanned along each evaluated piece: pieces of CHUNK_BLOCKS periods, as always;
     # without states, pieces of afmid.preprocess.CHUNK_BLOCKS (compiling the library costs ~3 ms a call).

@@ -16,7 +16,8 @@ import numpy as np
 
 from .baseline import BaselineColumns, remove_drift
 from .errors import AfmidError
-from .instrument import deflection_views
+from .instrument import crossfaded_series, deflection_views
+from .restoration import restore_trajectory
 from .io import Trace
 from .library import Library
 from .physics import BOLTZMANN
@@ -63,6 +64,9 @@ class Prepared:
     form: str = "weak"
     strong: tuple | None = None  # (x, xdot) on the used samples from the differentiator (strong form)
     motion: object = None  # afmid.motion.Motion: periodic, period doubling or non-periodic (None: not judged)
+    #: m, the tip restored for the per-sample forces behind a declared detector (afmid.restoration): the
+    #: smoothed, Wiener-shrunk trajectory instead of ``x``, whose inverted noise is multiplied by |1/G| (None: x)
+    x_restored: np.ndarray | None = None
 
 
 def prepare(trace: Trace, fit, instrument=None) -> Prepared:
@@ -188,9 +192,14 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
         X_traj, residual_var = X, 1.0
     else:
         X_s, post_var = ou_smooth(X[..., 0], noise_var, rho)
+        if views.amplifies_noise:  # a declared detector: the amplified noise kept out of the trajectory
+            X_s = restore_trajectory(X_s, noise_var, blocks.harmonics)
         X_traj = X_s[..., None]
         residual_var = float(np.mean(post_var.sum(axis=1) / noise_var.sum()))
+    if views.amplifies_noise:  # the trajectory's noise relative to the recorded samples' (noise_rms): amplified
+        residual_var *= float(noise_var.sum() / (blocks.noise_variance_factor() * noise_rms**2).sum())
     V_traj = blocks.derivative(X_traj, 1)
+    x_restored = crossfaded_series(blocks, X_traj, x.size) if views.amplifies_noise else None
     return Prepared(
         trace=trace, x=x, t=t, drive=drive, blocks=blocks, windows=windows, X=X[..., 0],
         Y=Y, nuisance=nuisance, nuisance_names=names, row_sigma=np.sqrt(base_variance),
@@ -199,7 +208,7 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
         trajectory_noise=noise_rms * math.sqrt(residual_var),
         xdot_used=blocks.synthesize(V_traj)[:, 0],  # chunk by chunk into one array
         X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X), removed=removed,
-        form=fit.form, strong=strong, motion=motion,
+        form=fit.form, strong=strong, motion=motion, x_restored=x_restored,
     )
 
 

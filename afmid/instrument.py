@@ -223,6 +223,11 @@ class DeflectionViews:
     #: fit computes it): the detector noise is measured before the inverse amplifies it
     residual_sum_squares: float | None = None
 
+    @property
+    def amplifies_noise(self) -> bool:
+        """True when a detector was undone: some harmonic's noise is multiplied by |1 / G| > 1."""
+        return self.tip_gain is not None and bool(np.any(np.abs(self.tip_gain) > 1.0))
+
     def noise_gain(self, harmonics: np.ndarray) -> np.ndarray | None:
         """|gain|^2 from the recorded samples to the equation's deflection, per row of harmonic number
         ``harmonics``: the factor on the detector noise variance of each row (None: ideal, 1 everywhere)."""

@@ -253,13 +253,9 @@ def _force_error(raw: dict) -> float:
 #: a 2-pole Butterworth at 10 f0 (three seeds), a 4-pole Bessel at 8 f0, and with a second mode (two seeds).
 DECLARED_CASES = [
     pytest.param(DETECTOR, 101, id="butterworth2-10f0-seed101"),
-    pytest.param(DETECTOR, 102, id="butterworth2-10f0-seed102", marks=pytest.mark.xfail(
-        reason="measured 1.01 %: the inverse filter multiplies the 1 pm detector noise by up to |1/G| = 36 at "
-        "harmonic 60, and the per-sample force is evaluated on those samples (issue 13: left)", strict=False)),
+    pytest.param(DETECTOR, 102, id="butterworth2-10f0-seed102"),
     pytest.param(DETECTOR, 103, id="butterworth2-10f0-seed103"),
-    pytest.param("data.detector={bandwidth: 2.4e6, filter: bessel, order: 4}", 104, id="bessel4-8f0-seed104",
-                 marks=pytest.mark.xfail(reason="measured 1.49 %: a 4-pole filter at 8 f0 amplifies the detector "
-                                         "noise more (|1/G| up to ~100 in-band); issue 13: left", strict=False)),
+    pytest.param("data.detector={bandwidth: 2.4e6, filter: bessel, order: 4}", 104, id="bessel4-8f0-seed104"),
     pytest.param(SECOND_MODE, 105, id="mode2-seed105"),
     pytest.param(SECOND_MODE, 106, id="mode2-seed106"),
 ]
@@ -305,10 +301,21 @@ UNDECLARED_CASES = [
 ]
 
 
+#: The same with the rest separation NOT given (the run's estimate is pulled ~5 nm by the undeclared mode: the
+#: diagnosis estimates it again with the candidate modes declared), both second-mode variants.
+UNDECLARED_CASES_D_UNKNOWN = [
+    pytest.param(*case.values, ["sample.separation=null"], id=case.id + "-d-unknown")
+    for case in UNDECLARED_CASES if "mode2" in case.id
+]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("name, sim_overrides, words, frequency", UNDECLARED_CASES)
-def test_undeclared_instrument_is_named_not_a_sample_effect(tmp_path, name, sim_overrides, words, frequency):
-    summary = _diagnose(tmp_path, name, sim_overrides, [])
+@pytest.mark.parametrize("name, sim_overrides, words, frequency, fit_overrides",
+                         [pytest.param(*case.values, [], id=case.id) for case in UNDECLARED_CASES]
+                         + UNDECLARED_CASES_D_UNKNOWN)
+def test_undeclared_instrument_is_named_not_a_sample_effect(tmp_path, name, sim_overrides, words, frequency,
+                                                            fit_overrides):
+    summary = _diagnose(tmp_path, name, sim_overrides, fit_overrides)
     verdict = summary["diagnosis"]["verdict"]
     assert verdict.startswith(f"instrument: {words}"), verdict
     assert summary["suggestions"] == [], verdict
@@ -340,3 +347,47 @@ def test_inspect_reports_a_second_mode(tmp_path):
         texts[label] = next(line for line in inspect_file(path).splitlines() if line.startswith("instrument:"))
     assert "a resonance near harmonic 6." in texts["mode"] and "higher eigenmode" in texts["mode"]
     assert texts["ideal"].startswith("instrument:") and "no resonance" in texts["ideal"]
+
+
+#: Clean traces with the instrument DECLARED and the separation NOT given (fixed before the runs): no effect
+#: and no instrument may be named (0 false alarms), a band-limited and a two-mode trace.
+DECLARED_CLEAN_D_UNKNOWN = [
+    pytest.param([DETECTOR, "simulate.seed=102"], id="butterworth2-10f0-seed102"),
+    pytest.param([SECOND_MODE, "simulate.seed=106"], id="mode2-seed106"),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("overrides", DECLARED_CLEAN_D_UNKNOWN)
+def test_declared_instrument_clean_trace_d_unknown_no_false_alarm(tmp_path, overrides):
+    summary = _diagnose(tmp_path, "hidden_clean", overrides, [overrides[0], "sample.separation=null"])
+    assert summary["suggestions"] == [], summary["diagnosis"]["verdict"]
+    assert "instrument" not in summary["diagnosis"], summary["diagnosis"]["verdict"]
+
+
+def test_restoration_shrinks_buried_harmonics_and_keeps_strong_ones_and_their_phase():
+    """restore_trajectory: the across-period mean of each harmonic times S / (S + V), S = max(|mean|^2 - V, 0)
+    (cos and sin together), the deviations untouched. A harmonic 100 noise sigmas strong keeps its mean to
+    1e-4 (gain 1 - V/P) and its phase exactly; one below its noise goes to 0."""
+    from afmid.restoration import restore_trajectory
+
+    rng = np.random.default_rng(7)
+    B = 40
+    harmonics = np.array([0, 1, 1, 2, 2])
+    noise_var = np.full(5, 1e-2)
+    mean = np.array([3.0, 0.6, 0.8, 0.001, -0.002])  # harmonic 1: |mean| = 1 (~63 sigma of the mean); 2: buried
+    noise = rng.standard_normal((B, 5)) * 0.1
+    noise[:, 3:] -= noise[:, 3:].mean(axis=0)  # harmonic 2's mean exactly the buried value (power 5e-6 < 2 V)
+    coef = mean + noise
+    restored = restore_trajectory(coef, noise_var, harmonics)
+    deviation = coef - coef.mean(axis=0)
+    assert np.allclose(restored - restored.mean(axis=0), deviation, atol=1e-12)
+    m, r = coef.mean(axis=0), restored.mean(axis=0)
+    V = 1e-2 / B
+    power = m[1] ** 2 + m[2] ** 2
+    assert r[1] / m[1] == pytest.approx((power - 2 * V) / power, rel=1e-12)
+    assert r[1] / m[1] == pytest.approx(r[2] / m[2], rel=1e-12)  # one gain for cos and sin: the phase kept
+    assert abs(r[1] / m[1] - 1) < 1e-3
+    assert m[3] ** 2 + m[4] ** 2 < 2 * V
+    assert abs(r[3]) < 1e-15 and abs(r[4]) < 1e-15  # the deviations average to 0 up to rounding
+    assert r[0] / m[0] == pytest.approx(1 - V / m[0] ** 2, rel=1e-9)
