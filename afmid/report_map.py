@@ -29,9 +29,12 @@ STATUS_COLOURS = ("#2ca02c", "#ff7f0e", "#d62728")
 
 
 def is_map_result(path: Path) -> bool:
-    """True when ``path`` is an HDF5 file written by ``afmid map``."""
+    """True when ``path`` is an HDF5 file written by ``afmid map``. Anything but a regular file (a FIFO would
+    block the open) is left to the run-file reader's checks and messages."""
     import h5py
 
+    if not Path(path).is_file():
+        return False
     try:
         with h5py.File(path, "r") as h5:
             return h5.attrs.get("format") == MAP_RESULT_FORMAT
