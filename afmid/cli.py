@@ -11,19 +11,19 @@ import logging
 import sys
 from pathlib import Path
 
-from .threads import limit_native_threads
+from afmid.threads import limit_native_threads
 
 # One BLAS / OpenMP / numba thread unless the user chose otherwise: before NumPy loads (afmid.threads says why).
 limit_native_threads()
 
 import click  # noqa: E402
 
-from . import __version__  # noqa: E402
+from afmid import __version__  # noqa: E402
 
 log = logging.getLogger("afmid")
 _state = {"verbose": 0, "quiet": False}
 
-# readable=False: click's own check would print a four-line usage error; afmid.files.check_input_file says it in one.
+# readable=False: click's own check would print a four-line usage error; afmid.io.files.check_input_file says it in one.
 CONFIG_ARG = click.argument("config", type=click.Path(path_type=Path, readable=False))
 OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the output if it exists.")
 SET = click.option(
@@ -91,9 +91,9 @@ def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, 
     Writes an afmid trace file with the ground truth (/truth/force, /truth/separation,
     /truth/velocity and the exact parameters). See `afmid effects --models`.
     """
-    from .config import MAX_SEED, dump_config, load_config
-    from .errors import ConfigError
-    from .io import check_output_path, write_trace_file
+    from afmid.config import MAX_SEED, dump_config, load_config
+    from afmid.errors import ConfigError
+    from afmid.io.trace import check_output_path, write_trace_file
 
     # Checked here rather than by click, whose usage error takes four lines.
     if seed is not None and not (seed.strip().isdecimal() and int(seed) <= MAX_SEED):
@@ -101,14 +101,14 @@ def simulate(config: Path, output: Path, overwrite: bool, overrides: tuple[str, 
     extra = list(overrides) + ([f"simulate.seed={int(seed)}"] if seed is not None else [])
     cfg = load_config(config, extra)
     check_output_path(output, overwrite, inputs={config: "the config"})
-    if cfg.simulate.map is not None:  # a force map over phases (afmid.map_simulate)
-        from .map_simulate import simulate_map, write_map_file
+    if cfg.simulate.map is not None:  # a force map over phases (afmid.maps.simulate)
+        from afmid.maps.simulate import simulate_map, write_map_file
 
         simulated = simulate_map(cfg, progress=not _state["quiet"])
         write_map_file(output, simulated, dump_config(cfg), overwrite=overwrite)
         log.info("wrote %s (map %dx%d, %d samples per pixel)", output, *simulated["deflection"].shape)
         return
-    from .simulate import simulate as run_simulation
+    from afmid.simulate.driver import simulate as run_simulation
 
     trace = run_simulation(cfg, progress=not _state["quiet"])
     write_trace_file(output, trace, dump_config(cfg), overwrite=overwrite)
@@ -138,24 +138,24 @@ def fit(
     model over the term library and writes coefficients, physical parameters, the
     per-sample and per-period forces and diagnostics to OUTPUT (HDF5).
     """
-    from .config import load_config
-    from .io import check_output_path
+    from afmid.config import load_config
+    from afmid.io.trace import check_output_path
 
     cfg = load_config(config, list(overrides))
     trace_path = None if cfg.data.path is None else cfg.resolve_path(cfg.data.path)
     check_output_path(output, overwrite, inputs={config: "the run config", trace_path: "the trace file, data.path"})
-    from .fit import apply_effect_changes, run_fit
-    from .runfile import write_run
+    from afmid.fit.pipeline import apply_effect_changes, run_fit
+    from afmid.runfile import write_run
 
     apply_effect_changes(cfg, add_effects, remove_effects)
     result = run_fit(cfg, progress=not _state["quiet"])
     write_run(output, result, cfg, overwrite=overwrite)
-    from .plausibility import check_plausibility, violations
+    from afmid.fit.plausibility import check_plausibility, violations
 
     implausible = violations(check_plausibility(result.quantities))
     flagged = f"; {len(implausible)} read-out(s) implausible, flagged in the file (see the warnings)" if implausible else ""
     log.info("wrote %s: %s%s", output, result.summary_line(), flagged)
-    from .uncertainty import quantity_lines
+    from afmid.fit.uncertainty import quantity_lines
 
     for line in quantity_lines(result.quantities):
         log.info("  %s", line)
@@ -188,7 +188,7 @@ def fit(
 @click.option("--force", is_flag=True, help="Simulate and fit everything again, even what is up to date.")
 @click.option("--worker", "worker", default=None, hidden=True,
               help="MODULE:FUNCTION (MODULE a name or a .py file) that each worker runs per item instead of "
-                   "afmid's own (afmid.batch_task.fit_task), e.g. a test's wrapper that injects a fault.")
+                   "afmid's own (afmid.batch.task.fit_task), e.g. a test's wrapper that injects a fault.")
 @click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
               help="Run the items on this dask cluster's workers (they must see the same paths).")
 def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, configs: tuple[str, ...],
@@ -215,12 +215,12 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     items alone exit 0: their run files are written and flagged), 130 if interrupted.
     One batch at a time per OUTPUT (lock file OUTPUT/.afmid-batch.lock).
     """
-    from .batch import BatchInterrupted, fit_task, load_worker, run_batch
-    from .errors import AfmidError
+    from afmid.batch.run import BatchInterrupted, fit_task, load_worker, run_batch
+    from afmid.errors import AfmidError
 
     engine = None
-    if scheduler is not None:  # the items on an existing dask cluster (afmid.engine_dask)
-        from .engine_dask import DaskEngine, scheduler_address
+    if scheduler is not None:  # the items on an existing dask cluster (afmid.batch.engine_dask)
+        from afmid.batch.engine_dask import DaskEngine, scheduler_address
 
         engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
         output = output.absolute()  # the workers run elsewhere: every path they get must be absolute
@@ -230,7 +230,7 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
                            worker=fit_task if worker is None else load_worker(worker), engine=engine)
     except BatchInterrupted as exc:
         click.echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
-        from .interrupts import Terminated
+        from afmid.interrupts import Terminated
 
         raise (Terminated() if exc.terminated else KeyboardInterrupt()) from None  # main() reports it: 143 / 130
     log.info("batch: %s", result.line())
@@ -241,7 +241,7 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
                     output / "summary.csv")
     failed = [r.item.name for r in result.rows if r.status == "failed"]
     if failed:
-        from .tempfiles import NO_SPACE_TEXT
+        from afmid.tempfiles import NO_SPACE_TEXT
 
         names = ", ".join(failed[:3]) + (", ..." if len(failed) > 3 else "")
         full = sum(NO_SPACE_TEXT in r.error for r in result.rows if r.status == "failed")
@@ -269,16 +269,16 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     marker OUTPUT/.afmid-report; a folder without it, or holding other files or an input, is
     never replaced (docs/file-formats.md).
     """
-    from .report_map import is_map_result
-    from .tempfiles import disk_full_error, is_disk_full
+    from afmid.report.maps import is_map_result
+    from afmid.tempfiles import disk_full_error, is_disk_full
 
     try:
         if len(runs) == 1 and is_map_result(runs[0]):  # a force map's result (afmid map)
-            from .report_map import make_map_report
+            from afmid.report.maps import make_map_report
 
             click.echo(make_map_report(runs[0], output, overwrite=overwrite))
             return
-        from .report import make_report
+        from afmid.report.page import make_report
 
         summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest,
                               progress=not _state["quiet"], allow_different_traces=allow_different_traces)
@@ -295,7 +295,7 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
 @click.argument("names", nargs=-1)
 def effects(models: bool, as_json: bool, names: tuple[str, ...]) -> None:
     """List the effect catalog: formula, parameters, units, fit terms, references."""
-    from .catalog import describe_effects
+    from afmid.physics.catalog import describe_effects
 
     click.echo(describe_effects(list(names), models=models, as_json=as_json))
 
@@ -307,14 +307,14 @@ def effects(models: bool, as_json: bool, names: tuple[str, ...]) -> None:
               help="Pre-fill from a trace file.")
 def init_config(output: Path | None, overwrite: bool, from_file: Path | None) -> None:
     """Write a commented template run config to edit."""
-    from .config import template_text
-    from .io import atomic_path, check_output_path
+    from afmid.config import template_text
+    from afmid.io.trace import atomic_path, check_output_path
 
     text = template_text()
     if output is not None:
         check_output_path(output, overwrite, inputs={from_file: "the trace file, --from"})
     if from_file is not None:
-        from .inspect import prefill_config
+        from afmid.io.inspect import prefill_config
 
         text = prefill_config(from_file, text, config_dir=output.parent if output is not None else None)
     if output is None:
@@ -331,7 +331,7 @@ def init_config(output: Path | None, overwrite: bool, from_file: Path | None) ->
 @click.option("--sample-rate", type=float, default=None, help="Hz, if the file does not say.")
 def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
     """Show what afmid sees in a data file: channels, length, rate, drive, noise."""
-    from .inspect import inspect_file
+    from afmid.io.inspect import inspect_file
 
     click.echo(inspect_file(file, column=column, sample_rate=sample_rate))
 
@@ -368,10 +368,10 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     (RESULT.h5.afmid-map/): after Ctrl-C, run the same command again to resume.
     Exit code 1 if any pixel failed.
     """
-    from .config import dump_config, load_config
-    from .engine_dask import DaskEngine, scheduler_address
-    from .fit import apply_effect_changes
-    from .map_run import run_map
+    from afmid.config import dump_config, load_config
+    from afmid.batch.engine_dask import DaskEngine, scheduler_address
+    from afmid.fit.pipeline import apply_effect_changes
+    from afmid.maps.run import run_map
 
     cfg = load_config(config, list(overrides))
     apply_effect_changes(cfg, add_effects, remove_effects)
@@ -379,7 +379,7 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite,
                      pixel_fit=pixel_fit)
     if counts["failed"]:  # the maps are written; the failed pixels are NaN there, flagged in /maps/status
-        from .errors import AfmidError
+        from afmid.errors import AfmidError
 
         raise AfmidError(f"{counts['failed']} of {sum(counts.values())} pixels failed; the maps are written, the "
                          "reasons are in /maps/message", file=output)
@@ -390,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
 
     Ctrl-C exits with 130 and SIGTERM with 143, each with one line; SIGTERM is raised as an exception like
     Ctrl-C so that temporary files are removed (afmid/interrupts.py)."""
-    from . import interrupts
+    import afmid.interrupts as interrupts
 
     # Run as the process's command (no argv given): once the command is over, the process only exits, and a
     # Ctrl-C or SIGTERM then is ignored (with the default handlers back, it would print a traceback or kill a
@@ -415,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _interrupted(exc: BaseException) -> int:
-    from .interrupts import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated, clear
+    from afmid.interrupts import EXIT_INTERRUPTED, EXIT_TERMINATED, Terminated, clear
 
     clear()
     if isinstance(exc, Terminated):
@@ -426,7 +426,7 @@ def _interrupted(exc: BaseException) -> int:
 
 
 def _run(argv: list[str] | None) -> int:
-    from .errors import AfmidError
+    from afmid.errors import AfmidError
 
     try:
         cli.main(args=argv, prog_name="afmid", standalone_mode=False)

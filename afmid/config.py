@@ -23,10 +23,10 @@ import yaml
 from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator,
                       model_validator)
 
-from .errors import ConfigError
-from .files import check_input_file
-from .map_config import MapSimulation
-from .registry import closest, unknown_name_message
+from afmid.errors import ConfigError
+from afmid.io.files import check_input_file
+from afmid.maps.config import MapSimulation
+from afmid.registry import closest, unknown_name_message
 
 
 
@@ -73,7 +73,7 @@ class StrictModel(BaseModel):
 
 # --------------------------------------------------------------------------- data
 class DetectorConfig(StrictModel):
-    """The detector / anti-alias low-pass between the deflection and the samples (afmid.instrument)."""
+    """The detector / anti-alias low-pass between the deflection and the samples (afmid.preprocess.instrument)."""
 
     bandwidth: _instrument_hz = Field(..., description="-3 dB frequency, Hz")
     filter: str = Field("butterworth", description="butterworth, bessel or first_order")
@@ -83,7 +83,7 @@ class DetectorConfig(StrictModel):
     @field_validator("filter")
     @classmethod
     def _known_filter(cls, name: str) -> str:
-        from .instrument import FILTERS
+        from afmid.preprocess.instrument import FILTERS
 
         if name not in FILTERS:
             raise ValueError(unknown_name_message("detector filter", name, FILTERS.names()))
@@ -91,7 +91,7 @@ class DetectorConfig(StrictModel):
 
     @model_validator(mode="after")
     def _order_fits_filter(self) -> "DetectorConfig":
-        from .instrument import FILTERS
+        from afmid.preprocess.instrument import FILTERS
 
         kind = FILTERS.get(self.filter)
         if self.order is not None and self.order > kind.max_order:
@@ -182,7 +182,7 @@ def instrument_value_problem(key: str, value: Any) -> str | None:
 
 
 class ModeConfig(StrictModel):
-    """A higher flexural mode of the lever, seen at the tip (afmid.instrument.Mode)."""
+    """A higher flexural mode of the lever, seen at the tip (afmid.preprocess.instrument.Mode)."""
 
     resonance_frequency: _instrument("cantilever.resonance_frequency") = Field(..., description="f_i, Hz")
     quality_factor: _instrument("cantilever.quality_factor") = Field(..., description="Q_i")
@@ -238,7 +238,7 @@ class ModelConfig(StrictModel):
     @field_validator("effects")
     @classmethod
     def _known_effects(cls, names: list[str]) -> list[str]:
-        from .physics import EFFECTS
+        from afmid.physics.effects import EFFECTS
 
         for name in names:
             if name not in EFFECTS:
@@ -291,7 +291,7 @@ class SimulateConfig(StrictModel):
     )
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
     seed: Seed = Field(0, description=f"random seed, 0 to {MAX_SEED}")
-    map: MapSimulation | None = Field(None, description="a force map over phases (afmid.map_config); afmid simulate "
+    map: MapSimulation | None = Field(None, description="a force map over phases (afmid.maps.config); afmid simulate "
                                       "then writes a map file")
 
     @field_validator("effects")
@@ -367,7 +367,7 @@ class FitConfig(StrictModel):
     @field_validator("differentiation")
     @classmethod
     def _known_differentiator(cls, name: str) -> str:
-        from .preprocess import DIFFERENTIATORS
+        from afmid.preprocess.periods import DIFFERENTIATORS
 
         if name not in DIFFERENTIATORS:
             raise ValueError(unknown_name_message("differentiator", name, DIFFERENTIATORS.names()))
@@ -376,7 +376,7 @@ class FitConfig(StrictModel):
     @field_validator("selection_scope")
     @classmethod
     def _known_selection_scope(cls, name: str) -> str:
-        from .selection_strategies import SELECTION_SCOPES
+        from afmid.fit.selection_strategies import SELECTION_SCOPES
 
         if name not in SELECTION_SCOPES:
             raise ValueError(unknown_name_message("selection scope", name, SELECTION_SCOPES.names()))
@@ -384,7 +384,7 @@ class FitConfig(StrictModel):
 
     @model_validator(mode="after")
     def _known_differentiation_options(self) -> "FitConfig":
-        from .preprocess import DIFFERENTIATORS
+        from afmid.preprocess.periods import DIFFERENTIATORS
 
         if self.differentiation in DIFFERENTIATORS:
             problem = DIFFERENTIATORS.get(self.differentiation).check_options(self.differentiation_options)
@@ -411,7 +411,7 @@ class RunConfig(StrictModel):
 
     @model_validator(mode="after")
     def _usable_terms(self) -> "RunConfig":
-        from .consistency import term_problem
+        from afmid.physics.consistency import term_problem
 
         for i, text in enumerate(self.model.terms):
             problem = term_problem(text, self.fit.baseline)

@@ -15,7 +15,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from .cli import main as afmid_main
+from afmid.cli import main as afmid_main
 
 TEMPLATE = Path(__file__).parent / "templates" / "demo_ldpe.yaml"
 

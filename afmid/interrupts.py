@@ -1,7 +1,7 @@
 """Ctrl-C and SIGTERM as exceptions that are never lost, so every output stays all-or-nothing.
 
 An interrupt must end a command with no output and no temporary file: the exception unwinds through
-:func:`afmid.io.atomic_path`, which removes its temporary file. Two things defeat that with Python's
+:func:`afmid.io.trace.atomic_path`, which removes its temporary file. Two things defeat that with Python's
 default handling, and this module deals with both:
 
 - Python raises the KeyboardInterrupt wherever the main thread happens to be. If that is a weakref
@@ -14,7 +14,7 @@ default handling, and this module deals with both:
   file. :func:`handled` turns it into :class:`Terminated`.
 
 While the HDF5 library writes a file, an exception raised in Python code it calls back into (the file
-object of :func:`afmid.io.atomic_hdf5`) or an abandoned half-flushed file can crash it; :func:`deferred`
+object of :func:`afmid.io.trace.atomic_hdf5`) or an abandoned half-flushed file can crash it; :func:`deferred`
 holds signals for such a section and delivers them right after it.
 """
 

@@ -12,7 +12,7 @@ import difflib
 from collections.abc import Callable, Iterator
 from typing import Generic, TypeVar
 
-from .errors import DefinitionError
+from afmid.errors import DefinitionError
 
 T = TypeVar("T")
 

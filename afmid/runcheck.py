@@ -15,8 +15,8 @@ from pathlib import Path
 
 import yaml
 
-from .errors import ConfigError, InputError
-from .io import FORMAT_VERSION, sha256_file
+from afmid.errors import ConfigError, InputError
+from afmid.io.trace import FORMAT_VERSION, sha256_file
 
 log = logging.getLogger(__name__)
 
@@ -28,7 +28,7 @@ ALLOW_DIFFERENT_TRACES = "--allow-different-traces"
 
 def check_version(attrs, path: Path) -> None:
     """InputError unless the file's ``format_version`` is one this afmid reads."""
-    from . import __version__
+    from afmid import __version__
 
     version = attrs.get("format_version")
     try:

@@ -27,17 +27,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import plausibility
-from .config import RunConfig, build_config, dump_config
-from .errors import ConfigError, InputError
-from .files import check_input_file
-from .fit_forces import PeriodCurves
-from .io import RUN_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
-from .uncertainty import ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR
-from .runcheck import RunReader, check_version, input_unchanged, stored_config
+import afmid.fit.plausibility as plausibility
+from afmid.config import RunConfig, build_config, dump_config
+from afmid.errors import ConfigError, InputError
+from afmid.io.files import check_input_file
+from afmid.fit.forces import PeriodCurves
+from afmid.io.trace import RUN_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
+from afmid.fit.uncertainty import ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR
+from afmid.runcheck import RunReader, check_version, input_unchanged, stored_config
 
-if TYPE_CHECKING:  # afmid.fit re-exports write_run: importing it here would be a cycle
-    from .fit import FitResult
+if TYPE_CHECKING:  # afmid.fit.pipeline re-exports write_run: importing it here would be a cycle
+    from afmid.fit.pipeline import FitResult
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
         write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
         found = getattr(result, "drive_search", None)
-        if found is not None:  # a transient record: the regression chose the drive frequency (afmid.drive_search)
+        if found is not None:  # a transient record: the regression chose the drive frequency (afmid.fit.drive_search)
             write_dataset(dg, "frequency_sigma", found.sigma, "Hz", meaning="1 sigma")
             write_dataset(dg, "response_frequency", found.response_frequency, "Hz",
                           meaning="spectral peak of the deflection, replaced by the searched drive frequency")
@@ -117,7 +117,7 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
             write_dataset(dg, "offset_force", float(nu[result.system.names.index("offset") - p]), "N")
         if "drift" in result.system.names:  # fit.detrend: linear
             write_dataset(dg, "baseline_drift", baseline_drift(result), "m/s",
-                          meaning="slope of the deflection baseline estimated with the force law (afmid.baseline)")
+                          meaning="slope of the deflection baseline estimated with the force law (afmid.preprocess.baseline)")
         if config.fit.cantilever == "free":
             write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
             write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
@@ -241,7 +241,7 @@ class RunData:
     n_rows: int = 0  # whitened equations behind bic / chi2_reduced (0 if the file does not say)
     harmonics: np.ndarray | None = None  # drive harmonic of each Fourier row (0, 1, 1, 2, 2, ...)
     signal_rows: np.ndarray | None = None  # rows used by the model-free force (above the noise)
-    model_limited: bool = False  # cv_error above its noise floor (afmid.uncertainty.model_limited)
+    model_limited: bool = False  # cv_error above its noise floor (afmid.fit.uncertainty.model_limited)
     force_calibration_uncertainty: float = 0.0  # relative 1 sigma of the force from the declared k / Q
 
     @property
@@ -301,7 +301,7 @@ def _required_attr(ds, name: str, path: Path):
 
 
 def undetermined_attributes(q: dict) -> dict:
-    """The attributes of ``/model/parameters/NAME`` that carry afmid.undetermined's marks."""
+    """The attributes of ``/model/parameters/NAME`` that carry afmid.fit.undetermined's marks."""
     out = {"determined": bool(q.get("determined", True)), "interval_kind": q.get("interval_kind", "95 % bootstrap interval")}
     for key in ("inclusion", "forced_value", "forced_error"):
         if key in q:
@@ -388,7 +388,7 @@ def read_verdict(name: str, dataset) -> plausibility.Verdict:
 
 
 def read_undetermined(attrs) -> dict:
-    """The not-determined / undecided marks of ``/model/parameters/NAME`` (afmid.undetermined; older files:
+    """The not-determined / undecided marks of ``/model/parameters/NAME`` (afmid.fit.undetermined; older files:
     determined, no marks)."""
     out = {"determined": bool(attrs.get("determined", True))}
     for key in ("interval_kind",):

@@ -1,4 +1,4 @@
-"""The temporary files behind :func:`afmid.io.atomic_path`: their names, stale ones, and a full disk.
+"""The temporary files behind :func:`afmid.io.trace.atomic_path`: their names, stale ones, and a full disk.
 
 - Names: ``.afmid-tmp-<output name>.<host>.<pid>.<random>``, so that a later run can tell whose file it
   is. A process killed outright (``kill -9``, a node failure, SIGTERM before afmid handled it) leaves its
@@ -22,7 +22,7 @@ import shutil
 import socket
 from pathlib import Path
 
-from .errors import OutputError
+from afmid.errors import OutputError
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ def remove_stale(folder: Path) -> list[Path]:
         try:
             if path.is_symlink():
                 continue
-            if path.is_dir():  # a report folder being made (afmid.report_folder)
+            if path.is_dir():  # a report folder being made (afmid.report.folder)
                 shutil.rmtree(path)
             elif path.is_file():
                 path.unlink()

@@ -42,7 +42,7 @@ def make_traces(n_distinct: int, copies: int) -> Path:
     import numpy as np
 
     from afmid.config import dump_config, load_config
-    from afmid.io import load_trace, write_trace_file
+    from afmid.io.trace import load_trace, write_trace_file
 
     folder = RESULTS / f"batch_{n_distinct * copies}"
     marker = folder / ".complete"

@@ -14,7 +14,7 @@ Two rows:
    the same target, the equation-of-motion residual
    ``Y = -(m x'' + c x' + k x) = F_ts - F_drive`` (N). afmid: library
    evaluation + per-period factorisation + exhaustive subset search scored by
-   BIC with CV (``afmid.regression.select``, what ``run_fit`` uses for <= 14
+   BIC with CV (``afmid.fit.regression.select``, what ``run_fit`` uses for <= 14
    terms). PySINDy: ``SINDy.fit(x, t, x_dot=Y, u=drive)`` with
    ``STLSQ(normalize_columns=True)`` (the columns span ~80 orders of magnitude;
    without normalisation STLSQ keeps nothing) at the threshold that is best
@@ -63,8 +63,8 @@ NOISE_OFF = ["simulate.noise.thermal=false", "simulate.noise.detector_rms=0"]
 
 def _setup(trace_path: Path):
     from afmid.config import load_config
-    from afmid.io import load_trace
-    from afmid.library import build_library
+    from afmid.io.trace import load_trace
+    from afmid.physics.library import build_library
 
     cfg = load_config(CONFIG, [f"data.path={trace_path}", "model.library=lj_table1"])
     trace = load_trace(cfg)
@@ -121,9 +121,9 @@ def _sindy(threshold: float, library, x, t, x_dot=None, u=None):
 
 
 def regression_only(quick: bool) -> dict:
-    from afmid import regression
-    from afmid.fit import term_penalties
-    from afmid.preprocess import differentiate
+    import afmid.fit.regression as regression
+    from afmid.fit.pipeline import term_penalties
+    from afmid.preprocess.periods import differentiate
 
     cfg, trace, library, true = _setup(cached_trace(CONFIG, NOISE_OFF, "lennard_jones_noise_free"))
     fs, f = trace.sample_rate, trace.drive_frequency
@@ -189,7 +189,7 @@ def regression_only(quick: bool) -> dict:
 def full_pipeline(quick: bool) -> dict:
     import pysindy as ps
 
-    from afmid.fit import run_fit
+    from afmid.fit.pipeline import run_fit
 
     cfg, trace, library, true = _setup(cached_trace(CONFIG, [], "lennard_jones"))
     F_true = trace.truth.force

@@ -48,7 +48,7 @@ def traces(sizes: list[int]) -> dict[int, Path]:
     import numpy as np
 
     from afmid.config import dump_config, load_config
-    from afmid.io import load_trace, write_trace_file
+    from afmid.io.trace import load_trace, write_trace_file
 
     base = cached_trace(CONFIG, [f"simulate.periods={PERIODS}"], f"dmt_{PERIODS}periods")
     cfg = load_config(CONFIG, [f"data.path={base}"])
@@ -79,7 +79,7 @@ FIT_CODE = """
 import json, resource, sys, time
 sys.path.insert(0, {root!r})
 from afmid.config import load_config
-from afmid.fit import run_fit
+from afmid.fit.pipeline import run_fit
 def cfg(path):
     return load_config({config!r}, ["data.path=" + path] + {fit!r})
 run_fit(cfg({warm!r}))  # JIT warm, imports
@@ -96,7 +96,7 @@ PROFILE_CODE = """
 import cProfile, pstats, sys, time
 sys.path.insert(0, {root!r})
 from afmid.config import load_config
-from afmid.fit import run_fit
+from afmid.fit.pipeline import run_fit
 def cfg(path):
     return load_config({config!r}, ["data.path=" + path] + {fit!r})
 run_fit(cfg({warm!r}))
@@ -113,7 +113,7 @@ print("{{}}")
 STAGES_CODE = """
 import functools, json, sys, time
 sys.path.insert(0, {root!r})
-import afmid.defects, afmid.fit as F, afmid.regression
+import afmid.io.defects, afmid.fit.pipeline as F, afmid.fit.regression
 from afmid.config import load_config
 def cfg(path):
     return load_config({config!r}, ["data.path=" + path] + {fit!r})
@@ -143,7 +143,7 @@ def wrap(module, name):
 for name in ("load_trace", "prepare", "estimate_drive", "ou_smooth", "estimate_nonlinear", "build_system",
              "with_regressor_noise", "force_cv_error", "per_sample_forces", "period_curves"):
     wrap(F, name)
-wrap(afmid.defects, "analyse_with")
+wrap(afmid.io.defects, "analyse_with")
 wrap(F.regression, "select")
 wrap(F.regression, "bag")
 reset()

@@ -80,7 +80,7 @@ def _law_error(powers_coef: np.ndarray, trace) -> float:
 
 def afmid_fit(path: Path, scope: str) -> dict:
     from afmid.config import load_config
-    from afmid.fit import run_fit
+    from afmid.fit.pipeline import run_fit
 
     cfg = load_config(CONFIG, TABLE + [f"data.path={path}", "fit.bootstrap=0", f"fit.selection_scope={scope}"])
     start, cpu = time.perf_counter(), time.process_time()
@@ -160,7 +160,7 @@ def bic(A: np.ndarray, y: np.ndarray, coef: np.ndarray) -> float:
 
 def _load(path: Path):
     from afmid.config import load_config
-    from afmid.io import load_trace
+    from afmid.io.trace import load_trace
 
     return load_trace(load_config(CONFIG, TABLE + [f"data.path={path}"]))
 

@@ -35,7 +35,7 @@ from scipy.integrate import solve_ivp
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from afmid.config import load_config  # noqa: E402
-from afmid.simulate import Integrator, compile_force_law, resolve_setup, settle  # noqa: E402
+from afmid.simulate.driver import Integrator, compile_force_law, resolve_setup, settle  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "dmt.yaml"
 STEPS_PER_PERIOD = 2000

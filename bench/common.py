@@ -50,8 +50,8 @@ def cached_trace(config: Path, overrides: list[str], name: str) -> Path:
     import h5py
 
     from afmid.config import dump_config, load_config
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.trace.h5"

@@ -6,7 +6,7 @@ exponential damping / capillary / hydration; a transient from rest, clean and wi
 flexural mode at 6.27 f0, undeclared and declared; 10 pm detector noise at 50 samples/period, clean and with
 hidden viscoelasticity; a soft lever in liquid at Q 4), each on three variants (seeds and parameters fixed
 before the results were seen). For each trace: simulate, fit with ``model.effects: [dmt]`` and
-``sample.separation`` absent, write the run file, diagnose (afmid.diagnose.suggest), and when a sample effect
+``sample.separation`` absent, write the run file, diagnose (afmid.diagnosis.diagnose.suggest), and when a sample effect
 is named, refit with it added (separation still estimated). Printed: what afmid says (the named effect or
 instrument and the verdict), the force error vs the simulator's truth (RMS over the estimated samples / the
 largest |true force|, % of the peak) and the cross-validated error over its noise floor, each for the [dmt]
@@ -153,11 +153,11 @@ def _raw(case: Case, with_instrument: bool) -> dict:
 
 
 def measure(case: Case, folder: Path) -> dict:
-    from afmid import diagnose
+    import afmid.diagnosis.diagnose as diagnose
     from afmid.config import build_config, dump_config
-    from afmid.fit import run_fit, write_run
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     key = f"{case.row}-{case.variant}".replace(" ", "_").replace("/", "")
     sim_config = build_config(_raw(case, True), source=folder / f"{key}.yaml", base_dir=folder)

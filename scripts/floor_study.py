@@ -69,7 +69,7 @@ def traces(quick: bool) -> list[tuple[str, dict]]:
 
 def floors(result) -> dict:
     """The predicted and the measured noise floor of ``result``'s cv error, from its own system."""
-    from afmid import regression
+    import afmid.fit.regression as regression
 
     prep, system, mask, rows = result.prep, result.system, result.selected, result.signal_rows
     harmonics = prep.blocks.harmonics
@@ -110,9 +110,9 @@ def floors(result) -> dict:
 
 def measure(name: str, raw: dict, folder: Path) -> dict:
     from afmid.config import build_config, dump_config
-    from afmid.fit import run_fit
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     folder = Path(tempfile.mkdtemp(dir=folder))
     sim_config = build_config(raw, source=folder / "sim.yaml", base_dir=folder)

@@ -3,7 +3,7 @@
 For each hidden-effect variant of tests/test_diagnose.py (VARIANTS, CLEAN: a DMT sample with one effect the
 model [dmt] lacks, 50 steady periods, thermal noise at 300 K, 1 pm detector noise), plus a 3 V electrostatic
 case at 200 and 50 samples per period: simulate, fit with ``model.effects: [dmt]`` and ``sample.separation``
-absent, write the run file, diagnose (afmid.diagnose.suggest), then refit with the named effect added
+absent, write the run file, diagnose (afmid.diagnosis.diagnose.suggest), then refit with the named effect added
 (separation still estimated). One JSON line per trace: what afmid names first, the verdict, the
 cross-validated error before / after / noise floor, the force error vs the simulator's truth (RMS over the
 estimated samples / peak) before and after adding the named effect, and the separation error.
@@ -55,11 +55,11 @@ def force_error(result, trace) -> float:
 
 
 def measure(effect: str, variant: str, overrides: list[str], folder: Path) -> dict:
-    from afmid import diagnose
+    import afmid.diagnosis.diagnose as diagnose
     from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
-    from afmid.fit import run_fit, write_run
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     raw = apply_overrides(read_yaml(ROOT / "tests" / "configs" / f"hidden_{effect}.yaml"),
                           [parse_override(o) for o in overrides])

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -56,11 +55,11 @@ def cases(only: str | None):
 def measure(name: str, overrides: list[str], seed: int, folder: Path, diagnose_too: bool) -> dict:
     import numpy as np
 
-    from afmid import diagnose
+    import afmid.diagnosis.diagnose as diagnose
     from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
-    from afmid.fit import run_fit, write_run
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     raw = apply_overrides(read_yaml(ROOT / "tests" / "configs" / "hidden_clean.yaml"),
                           [parse_override(o) for o in overrides + [f"simulate.seed={seed}"]])

@@ -11,7 +11,7 @@ Cases (fixed before any result was looked at):
   E* 50 MPa, H 1e-20 J, 5 pm detector) at d 3 / 4 / 5 / 5.5 nm (5 nm: indentation ~0.3 nm, barely touching;
   5.5 nm: the tip never reaches a0, no contact), seeds 1-3; model [dmt]. Expected: nothing named.
 
-For each case: fit with the error bars (bootstrap 50), write the run file, diagnose (afmid.diagnose.suggest).
+For each case: fit with the error bars (bootstrap 50), write the run file, diagnose (afmid.diagnosis.diagnose.suggest).
 One JSON line per case: named effects and verdict, selected terms and their inclusion probabilities, E* and H
 (value, 1 sigma, 95 % interval, whether determined), the force error vs the simulator's truth (RMS over the
 estimated samples / max |true force|), and the separation error.
@@ -65,8 +65,8 @@ def force_error(result, trace) -> float:
 
 def simulated(config_name: str, overrides: list[str], key: str, folder: Path):
     from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     raw = apply_overrides(read_yaml(ROOT / "tests" / "configs" / f"{config_name}.yaml"),
                           [parse_override(o) for o in overrides])
@@ -102,8 +102,8 @@ def fit_entry(key: str, config, trace, truth: dict, result) -> dict:
 
 
 def measure(key: str, config_name: str, overrides: list[str], expected, folder: Path, diagnose_too: bool) -> dict:
-    from afmid import diagnose
-    from afmid.fit import run_fit, write_run
+    import afmid.diagnosis.diagnose as diagnose
+    from afmid.fit.pipeline import run_fit, write_run
 
     trace, config, truth = simulated(config_name, overrides, key, folder)
     started = time.perf_counter()

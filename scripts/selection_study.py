@@ -62,7 +62,7 @@ def law_error(result, trace) -> float:
 
 
 def block_stats(result) -> dict:
-    from afmid import regression
+    import afmid.fit.regression as regression
 
     sysm = result.system
     Tb = sysm.T_blocks
@@ -90,9 +90,9 @@ def signed_residual(result) -> np.ndarray:
 
 def study(config_path, library, model_key, periods, seeds, extra, odds_list):
     from afmid.config import load_config
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
-    from afmid import regression
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
+    import afmid.fit.regression as regression
 
     rows = []
     for P in periods:
@@ -184,9 +184,9 @@ def dump_systems(config_path, library, periods, seeds, extra, out):
     import pickle
 
     from afmid.config import load_config
-    from afmid.fit import run_fit
-    from afmid.fit_selection import SelectionSettings
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.fit.selection import SelectionSettings
+    from afmid.simulate.driver import simulate
 
     items = []
     for P in periods:

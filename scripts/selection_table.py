@@ -30,8 +30,8 @@ def main() -> None:
     ap.add_argument("--cases", nargs="+", default=list(CASES))
     a = ap.parse_args()
     from afmid.config import load_config
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
 
     print("| case | periods | scope | right | median law error % | median wrong terms (max) | median fit s |")
     print("|---|---|---|---|---|---|---|")

@@ -33,8 +33,8 @@ PERIODS = 20
 
 def fit_one(config_path: str, effects: str, overrides: list[str], seed: int) -> dict:
     from afmid.config import load_config
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
 
     common = [f"simulate.seed={seed}", f"simulate.periods={PERIODS}", "fit.bootstrap=0", "data.path=null"] + overrides
     trace = simulate(load_config(ROOT / config_path, common))

@@ -13,14 +13,14 @@ import signal
 import time
 from pathlib import Path
 
-from afmid.batch import fit_task
+from afmid.batch.run import fit_task
 
 #: The item whose worker dies.
 DYING_ITEM = "n02"
 
 
 def fit_task_dying_on_one_item(task: dict) -> dict:
-    """:func:`afmid.batch.fit_task`, except that the worker running item ``DYING_ITEM`` SIGKILLs itself first."""
+    """:func:`afmid.batch.run.fit_task`, except that the worker running item ``DYING_ITEM`` SIGKILLs itself first."""
     if task["name"] == DYING_ITEM:
         os.kill(os.getpid(), signal.SIGKILL)
     return fit_task(task)
@@ -37,17 +37,17 @@ def _holding(seconds: float):
 
 
 def fit_task_holding_1500ms(task: dict) -> dict:
-    """:func:`afmid.batch.fit_task`, held 1.5 s in mid-item (see :func:`_holding`)."""
+    """:func:`afmid.batch.run.fit_task`, held 1.5 s in mid-item (see :func:`_holding`)."""
     return _holding(1.5)(task)
 
 
 def fit_task_holding_2s(task: dict) -> dict:
-    """:func:`afmid.batch.fit_task`, held 2 s in mid-item (see :func:`_holding`)."""
+    """:func:`afmid.batch.run.fit_task`, held 2 s in mid-item (see :func:`_holding`)."""
     return _holding(2.0)(task)
 
 
 def fit_task_holding_30s(task: dict) -> dict:
-    """:func:`afmid.batch.fit_task`, held 30 s in mid-item (see :func:`_holding`)."""
+    """:func:`afmid.batch.run.fit_task`, held 30 s in mid-item (see :func:`_holding`)."""
     return _holding(30.0)(task)
 
 
@@ -62,7 +62,7 @@ HOLD_30S = _worker_option(fit_task_holding_30s)
 
 
 class SerialEngine:
-    """An :class:`afmid.batch_engine.Engine` that runs every task in this process, one after the other (what a
+    """An :class:`afmid.batch.engine.Engine` that runs every task in this process, one after the other (what a
     replacement engine has to implement), recording the keys it ran."""
 
     def __init__(self):
@@ -72,7 +72,7 @@ class SerialEngine:
         return min(1, n_tasks)
 
     def run(self, worker, tasks, report, tick) -> None:
-        from afmid.batch_engine import Outcome
+        from afmid.batch.engine import Outcome
 
         for key, task in tasks:
             self.ran.append(key)

@@ -1,7 +1,7 @@
 """Shared fixtures: small synthetic inputs and a way to run the CLI in-process.
 
 Kept generic on purpose: a sinusoidal deflection written as a CSV, a run
-config written as YAML, an in-memory :class:`afmid.io.Trace` with ground
+config written as YAML, an in-memory :class:`afmid.io.trace.Trace` with ground
 truth, and ``run_cli`` which calls :func:`afmid.cli.main` and captures its
 output. Every CLI call reconfigures the ``afmid`` logger; the autouse fixture
 puts it back so tests do not depend on their order.
@@ -106,7 +106,7 @@ def write_config(tmp_path):
 @pytest.fixture
 def make_trace():
     """``make_trace(periods=10, with_truth=True)`` -> an in-memory Trace (SI) with a sinusoid and ground truth."""
-    from afmid.io import Cantilever, Trace, Truth
+    from afmid.io.trace import Cantilever, Trace, Truth
 
     def make(periods=10, with_truth=True):
         t, x_nm = sinusoid(periods)

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from afmid.errors import OutputError
-from afmid.io import atomic_hdf5, atomic_path
+from afmid.io.trace import atomic_hdf5, atomic_path
 
 
 @pytest.fixture
@@ -70,7 +70,7 @@ def test_missing_data_path(tmp_path, fit_cli, refused):
 
 @pytest.mark.parametrize("keep", [0.5, 0.01])
 def test_truncated_hdf5(tmp_path, fit_cli, refused, pinned_config, make_trace, keep):
-    from afmid.io import write_trace_file
+    from afmid.io.trace import write_trace_file
 
     full = write_trace_file(tmp_path / "full.h5", make_trace(periods=40), "")
     data = full.read_bytes()

@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 import pytest
 
-from afmid.batch import (RUN_SUFFIX, TRACE_SUFFIX, assign_names, batch_key, read_manifest, read_run_row, run_batch,
+from afmid.batch.run import (RUN_SUFFIX, TRACE_SUFFIX, assign_names, batch_key, read_manifest, read_run_row, run_batch,
                          trace_is_current, Entry)
 from afmid.errors import ConfigError, InputError
 
@@ -44,8 +44,8 @@ SINGLE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_T
 def traces(tmp_path_factory) -> Path:
     """Folder with n01..n05.h5: a 20-period DMT trace and noisy copies of it."""
     from afmid.config import dump_config, load_config
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     folder = tmp_path_factory.mktemp("traces")
     cfg = load_config(CONFIG, ["simulate.periods=20"])
@@ -261,14 +261,14 @@ def test_another_engine_runs_the_items(traces, tmp_path):
 def test_load_worker_finds_the_function_or_fails_naming_it():
     import batch_workers
 
-    from afmid.batch import fit_task, load_worker
+    from afmid.batch.run import fit_task, load_worker
 
-    assert load_worker("afmid.batch_task:fit_task") is fit_task
+    assert load_worker("afmid.batch.task:fit_task") is fit_task
     held = load_worker(f"{batch_workers.__file__}:fit_task_holding_2s")
     assert held is batch_workers.fit_task_holding_2s
     for spec, message in [("nosuch_module:f", "No module named 'nosuch_module'"), ("fit_task", "MODULE:FUNCTION"),
-                          ("afmid.batch_task:nofn", "no attribute 'nofn'"),
-                          ("afmid.batch_plan:RUN_SUFFIX", "not a function")]:
+                          ("afmid.batch.task:nofn", "no attribute 'nofn'"),
+                          ("afmid.batch.plan:RUN_SUFFIX", "not a function")]:
         with pytest.raises(ConfigError, match=message):
             load_worker(spec)
 
@@ -507,7 +507,7 @@ def test_interrupted_config_batch_leaves_whole_traces_and_resumes(tmp_path):
 
 
 def test_config_manifests_plans_and_usage_errors(traces, tmp_path):
-    from afmid.batch import plan
+    from afmid.batch.run import plan
 
     (tmp_path / "c").mkdir()
     (tmp_path / "c" / "a.yaml").write_text((ROOT / "configs" / "dmt.yaml").read_text())

@@ -1,6 +1,6 @@
 """The command line: help stays light, sub-commands answer, the effect catalog, and the fit command's plumbing.
 
-The fit itself is stubbed (``afmid.fit.run_fit`` / ``afmid.runfile.write_run``): these tests
+The fit itself is stubbed (``afmid.fit.pipeline.run_fit`` / ``afmid.runfile.write_run``): these tests
 check what the CLI passes on (layered config, --set, --add/--remove), how it
 reports warnings, interruptions and success, not the identification.
 """
@@ -17,7 +17,7 @@ import h5py
 import pytest
 import yaml
 
-from afmid.physics import EFFECTS, MODELS
+from afmid.physics.effects import EFFECTS, MODELS
 
 SUBCOMMANDS = ["simulate", "fit", "batch", "report", "effects", "init-config", "inspect"]
 
@@ -155,10 +155,10 @@ class _StubResult:
 @pytest.fixture
 def stub_fit(monkeypatch):
     """Replace the fit with: load the trace (the real loader), write a tiny run file atomically."""
-    import afmid.fit
+    import afmid.fit.pipeline
     import afmid.runfile
     from afmid.config import dump_config
-    from afmid.io import atomic_hdf5, check_output_path, load_trace
+    from afmid.io.trace import atomic_hdf5, check_output_path, load_trace
 
     seen: dict = {}
 
@@ -175,7 +175,7 @@ def stub_fit(monkeypatch):
             h5.attrs["stub"] = True
         return path
 
-    monkeypatch.setattr(afmid.fit, "run_fit", run_fit)
+    monkeypatch.setattr(afmid.fit.pipeline, "run_fit", run_fit)
     monkeypatch.setattr(afmid.runfile, "write_run", write_run)
     return seen
 

@@ -1,6 +1,6 @@
 """Run configs: schema, layering, error messages, the template, and how a config meets the data.
 
-Covers the foundation contract of afmid.config and afmid.io.load_trace:
+Covers the foundation contract of afmid.config and afmid.io.trace.load_trace:
 defaults < YAML < --set; paths relative to the config file; every error one
 line ``file: key.path: what was expected``; the pinned CSV form and afmid
 trace files loading to SI metres, positive toward the sample; the trace file
@@ -21,8 +21,8 @@ import yaml
 
 from afmid.config import RunConfig, build_config, dump_config, load_config, parse_override, read_yaml, template_text
 from afmid.errors import AfmidError, ConfigError, InputError
-from afmid.io import FORMAT_VERSION, TRACE_FORMAT, load_trace, write_trace_file
-from afmid.physics import EFFECTS
+from afmid.io.trace import FORMAT_VERSION, TRACE_FORMAT, load_trace, write_trace_file
+from afmid.physics.effects import EFFECTS
 
 ROOT = Path(__file__).resolve().parent.parent
 

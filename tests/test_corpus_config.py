@@ -27,7 +27,7 @@ def write_tapping_csv(folder: Path, name: str = "trace.csv") -> None:
     tip-sample force, and afmid refuses to fit it)."""
     if "trace" not in _TAPPING:
         from afmid.config import build_config
-        from afmid.simulate import simulate
+        from afmid.simulate.driver import simulate
 
         text = (Path(__file__).resolve().parents[1] / "configs" / "dmt.yaml").read_text()
         mapping = yaml.safe_load(text)

@@ -74,8 +74,8 @@ def command_case(id: str, command: tuple[str, ...], write, *fragments: str, targ
 
 
 def afmid_trace_file(path: Path) -> None:
-    """A valid afmid trace file (with /truth) as afmid.io.write_trace_file writes it."""
-    from afmid.io import Cantilever, Trace, Truth, write_trace_file
+    """A valid afmid trace file (with /truth) as afmid.io.trace.write_trace_file writes it."""
+    from afmid.io.trace import Cantilever, Trace, Truth, write_trace_file
 
     _, x_nm = sinusoid(30)  # > 4096 samples: stored compressed in chunks
     x = x_nm * 1e-9

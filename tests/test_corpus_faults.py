@@ -46,8 +46,8 @@ def trace_file_bytes() -> bytes:
     import tempfile
 
     from afmid.config import dump_config, load_config
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     cfg = load_config(ROOT / "configs" / "dmt.yaml", ["simulate.periods=20"])
     with tempfile.TemporaryDirectory() as folder:
@@ -62,7 +62,7 @@ def _run_bytes() -> bytes:
     import tempfile
 
     from afmid.config import build_config
-    from afmid.fit import run_fit, write_run
+    from afmid.fit.pipeline import run_fit, write_run
 
     with tempfile.TemporaryDirectory() as folder:
         (Path(folder) / "trace.h5").write_bytes(trace_file_bytes())

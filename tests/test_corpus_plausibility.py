@@ -36,7 +36,7 @@ def _trace_file_workspace(group: str, name: str, value: float):
     whose /group attribute ``name`` is ``value``."""
 
     def write(folder: Path) -> None:
-        from afmid.io import Cantilever, Trace, write_trace_file
+        from afmid.io.trace import Cantilever, Trace, write_trace_file
 
         t, x_nm = sinusoid(12)
         trace = Trace(deflection=x_nm * 1e-9, sample_rate=SAMPLE_RATE, cantilever=Cantilever(**CANTILEVER),

@@ -23,7 +23,7 @@ import h5py
 import pytest
 import yaml
 
-from afmid.io import sha256_file
+from afmid.io.trace import sha256_file
 from corpus import Case, check_case, corpus_params
 from test_corpus_config import base_config, write_trace_csv
 

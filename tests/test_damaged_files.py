@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from afmid.errors import InputError
-from afmid.readers import list_channels, read_trace
+from afmid.io.readers import list_channels, read_trace
 from test_readers import SIGNAL, write_afmid_trace, write_ibw5, write_mat73, write_tdms
 
 DAMAGES_PER_FILE = 60

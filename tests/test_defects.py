@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import yaml
 
-from afmid import defects
+import afmid.io.defects as defects
 from afmid.config import load_config
 from afmid.errors import InputError
-from afmid.io import load_trace
+from afmid.io.trace import load_trace
 
 pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
 
@@ -324,7 +324,7 @@ def test_the_cli_stops_with_one_line_naming_file_and_key(tmp_path, run_cli):
 def test_a_coarsely_quantized_trace_is_warned_about_and_a_fine_one_is_not():
     """An 8-bit-like recording (1 nm steps on a ~9 nm swing) is named with its step; a float trace or a 16-bit one
     (the same trace at 0.5 pm steps) is not."""
-    from afmid.resolution import MIN_LEVELS, check_quantization
+    from afmid.io.resolution import MIN_LEVELS, check_quantization
 
     t = np.arange(20_000) / 6e7
     x = 9.4e-9 * np.cos(2 * np.pi * 3e5 * t) + 1e-12 * np.random.default_rng(0).standard_normal(t.size)

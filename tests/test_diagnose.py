@@ -1,7 +1,7 @@
 """The diagnosis stage: decision rules, localisation, energy check and hidden-effect experiments.
 
-Unit tests (no fitting): the acceptance rules of :func:`afmid.diagnose.suggest`
-on hand-made trials, :func:`afmid.diagnose.localize` on synthetic run data
+Unit tests (no fitting): the acceptance rules of :func:`afmid.diagnosis.diagnose.suggest`
+on hand-made trials, :func:`afmid.diagnosis.diagnose.localize` on synthetic run data
 with a known residual, and the physical-plausibility checks.
 
 Hidden-effect experiments (``slow``): a DMT sample with an effect the
@@ -39,9 +39,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmid import diagnose
+import afmid.diagnosis.diagnose as diagnose
 from afmid.config import build_config, dump_config, read_yaml
-from afmid.diagnose import (BIC_EVIDENCE, ERROR_RATIO, FLOOR_FACTOR, RunData, Trial, _Base, _implausible, _rejections,
+from afmid.diagnosis.diagnose import (BIC_EVIDENCE, ERROR_RATIO, FLOOR_FACTOR, RunData, Trial, _Base, _implausible, _rejections,
                             _significant, band_limit, candidate_effects, energy_check, localize, refit_config)
 
 pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
@@ -340,10 +340,10 @@ def _record(entry: dict) -> None:
 @pytest.fixture(scope="session")
 def experiment(tmp_path_factory):
     """``experiment(key, sim_config, fit_raw=None, register=())`` -> (run, suggest summary, seconds), cached."""
-    from afmid.fit import write_run
-    from afmid.io import write_trace_file
-    from afmid.physics import EFFECTS
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import write_run
+    from afmid.io.trace import write_trace_file
+    from afmid.physics.effects import EFFECTS
+    from afmid.simulate.driver import simulate
 
     folder = tmp_path_factory.mktemp("hidden")
 
@@ -386,7 +386,7 @@ def _hidden_raw(effect: str, variant: str) -> dict:
 
 
 def _truth(run: RunData) -> dict:
-    from afmid.report import truth_quantities
+    from afmid.report.page import truth_quantities
 
     return truth_quantities(run)
 
@@ -460,8 +460,8 @@ def test_two_hidden_effects_are_both_named(experiment):
 
 
 def _outside_effect():
-    from afmid.effect_tags import Region
-    from afmid.physics import Effect, Parameter, Quantity, Term
+    from afmid.physics.effect_tags import Region
+    from afmid.physics.effects import Effect, Parameter, Quantity, Term
 
     return Effect(
         name="exponential_attraction",
@@ -517,8 +517,8 @@ def test_force_outside_the_catalog_is_not_claimed(experiment, variant):
                           "(floor 0.084), so it is reported as viscoelastic; a setpoint series would tell them apart",
                    strict=False)
 def test_adhesion_hysteresis_is_not_mistaken_for_viscoelasticity(experiment):
-    from afmid.effect_tags import Character, Region
-    from afmid.physics import Effect, Parameter, Quantity, Term
+    from afmid.physics.effect_tags import Character, Region
+    from afmid.physics.effects import Effect, Parameter, Quantity, Term
 
     effect = Effect(
         name="adhesion_hysteresis", title="Surface-energy hysteresis: extra adhesion while the contact unloads",
@@ -547,7 +547,7 @@ def test_energy_estimates_agree_for_a_dissipative_model(experiment, tmp_path):
     Tolerance: 15 % of the true dissipated energy and 1 % of the drive work per period (measured: model-free
     and balance agree to < 0.1 %, model vs model-free 1-10 %, model vs truth 1-3 %).
     """
-    from afmid.fit import write_run
+    from afmid.fit.pipeline import write_run
 
     run0, _, _ = experiment("viscoelastic-a", _hidden_raw("viscoelastic", "a"))
     config = refit_config(run0, ["dmt", "viscoelastic"])

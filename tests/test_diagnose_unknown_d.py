@@ -1,7 +1,7 @@
 """The diagnosis with the rest separation NOT given (the normal experimental case).
 
 The run estimates the separation with the wrong model ([dmt] on a trace with a hidden effect); the candidate
-refits re-search it (afmid.candidate_refit). A representative subset of scripts/hidden_effects_unknown_d.py
+refits re-search it (afmid.diagnosis.candidate_refit). A representative subset of scripts/hidden_effects_unknown_d.py
 (the full table is in docs/diagnosis.md, "Separation unknown"), cases fixed before they were run: the
 electrostatic variant "a" of tests/test_diagnose.py (before: no effect named), the `make demo` trace (LDPE-like,
 hidden viscoelasticity; before: "exponential_damping explains part") and a clean trace (variant "c").
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from afmid import diagnose
+import afmid.diagnosis.diagnose as diagnose
 from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
 
 pytestmark = [pytest.mark.numerics, pytest.mark.slow]
@@ -35,9 +35,9 @@ CASES = {
 
 
 def _diagnose_without_separation(tmp_path: Path, path: Path, overrides: list[str]):
-    from afmid.fit import run_fit, write_run
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     raw = apply_overrides(read_yaml(path), [parse_override(o) for o in overrides])
     raw.setdefault("fit", {})["bootstrap"] = 0

@@ -40,8 +40,8 @@ def _force_error(result, truth) -> float:
 
 @pytest.fixture(scope="module")
 def fits():
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
 
     out = {}
     for seed in SEEDS:

@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 from afmid.config import build_config, load_config, read_yaml, template_text
-from afmid.io import load_trace
+from afmid.io.trace import load_trace
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data"

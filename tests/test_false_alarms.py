@@ -68,10 +68,10 @@ CASES: dict[str, list[str] | dict | object] = {
 
 
 def _diagnose_without_separation(tmp_path: Path, case: list[str] | dict) -> tuple[dict, float, float]:
-    from afmid import diagnose
-    from afmid.fit import run_fit, write_run
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    import afmid.diagnosis.diagnose as diagnose
+    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     raw = (copy.deepcopy(case) if isinstance(case, dict)
            else apply_overrides(read_yaml(CLEAN), [parse_override(o) for o in case]))

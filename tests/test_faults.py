@@ -1,8 +1,8 @@
 """Faults: interrupts at any moment of a write, stale temporary files, orphaned batch workers, a full disk.
 
 The contract seen by the user (one line, exit code, nothing left) is in tests/test_corpus_faults.py; these
-tests look at the mechanisms: afmid/interrupts.py, afmid/tempfiles.py, afmid/orphans.py and atomic_path /
-atomic_hdf5 in afmid/io.py, with real signals, real processes and a real full file system (a small tmpfs,
+tests look at the mechanisms: afmid/interrupts.py, afmid/tempfiles.py, afmid/batch/orphans.py and atomic_path /
+atomic_hdf5 in afmid/io/trace.py, with real signals, real processes and a real full file system (a small tmpfs,
 root only).
 """
 
@@ -26,7 +26,7 @@ import yaml
 
 from afmid import interrupts, tempfiles
 from afmid.errors import OutputError
-from afmid.io import atomic_hdf5, atomic_path
+from afmid.io.trace import atomic_hdf5, atomic_path
 from test_corpus_faults import RUN_CONFIG, fill_disk, mounted_tmpfs, trace_file_bytes
 
 SIGNAL_CHILD = Path(__file__).resolve().parent / "signal_child"
@@ -77,7 +77,7 @@ def test_a_new_write_removes_only_temporary_files_of_dead_processes_of_this_host
 def test_a_report_folder_left_by_a_dead_process_is_removed_by_the_next_report_write(tmp_path):
     """A report is made in a temporary folder; after kill -9 the next report written beside it removes it (a live
     process's folder and a folder of the old-report form are kept)."""
-    from afmid.report_folder import report_folder
+    from afmid.report.folder import report_folder
 
     here = tempfiles.host_tag()
     dead = tmp_path / f".afmid-tmp-rep.{here}.{_dead_pid()}.k2j4h5l6"
@@ -282,7 +282,7 @@ def test_the_portable_fallback_watches_the_parent(tmp_path):
     script = (
         "import os, subprocess, sys, time\n"
         "child = subprocess.Popen([sys.executable, '-c', 'import os, signal, sys, time\\n"
-        "from afmid.orphans import exit_with_parent\\n"
+        "from afmid.batch.orphans import exit_with_parent\\n"
         "signal.signal(signal.SIGTERM, lambda *a: (open(sys.argv[1], \"w\").write(\"bye\"), os._exit(143)))\\n"
         "assert exit_with_parent(os.getppid(), use_prctl=False) == \"thread\"\\n"
         "open(sys.argv[1] + \".ready\", \"w\").close()\\n"
@@ -371,7 +371,7 @@ def test_text_output_on_a_full_disk(small_disk):
 
 
 def test_a_batch_item_that_does_not_fit_says_so_in_the_summary(small_disk, trace_bytes):
-    from afmid.batch import run_batch
+    from afmid.batch.run import run_batch
 
     (small_disk / "trace.h5").write_bytes(trace_bytes)
     (small_disk / "run.yaml").write_text(yaml.safe_dump(RUN_CONFIG))
@@ -396,7 +396,7 @@ class _EngineFillingTheDiskMidItem:
         return min(1, n_tasks)
 
     def run(self, worker, tasks, report, tick) -> None:
-        from afmid.batch_engine import Outcome
+        from afmid.batch.engine import Outcome
 
         for key, task in tasks:
             fill_disk(self.disk, 0)
@@ -407,8 +407,8 @@ class _EngineFillingTheDiskMidItem:
 
 
 def test_a_summary_update_on_a_momentarily_full_disk_does_not_stop_the_batch(small_disk, trace_bytes, caplog):
-    from afmid.batch import run_batch
-    from afmid.batch_task import fit_task
+    from afmid.batch.run import run_batch
+    from afmid.batch.task import fit_task
 
     (small_disk / "trace.h5").write_bytes(trace_bytes)
     (small_disk / "run.yaml").write_text(yaml.safe_dump(RUN_CONFIG))

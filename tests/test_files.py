@@ -1,4 +1,4 @@
-"""afmid.files: the checks every input file passes, the memory guard, and what a message may quote of a file."""
+"""afmid.io.files: the checks every input file passes, the memory guard, and what a message may quote of a file."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from afmid.errors import ConfigError, InputError, OutputError
-from afmid.files import (
+from afmid.io.files import (
     available_memory,
     check_input_file,
     check_output_target,
@@ -18,8 +18,8 @@ from afmid.files import (
     memory_shortfall,
     safe_excerpt,
 )
-from afmid.readers import read_trace
-from afmid.readers.base import check_array_size, listing
+from afmid.io.readers import read_trace
+from afmid.io.readers.base import check_array_size, listing
 
 
 def message_of(path, **kwargs) -> str:
@@ -175,7 +175,7 @@ def test_simulation_sized_before_integrating_names_the_key_too_large():
     import yaml
 
     from afmid.config import build_config
-    from afmid.simulate import check_memory, compile_force_law, output_grid, resolve_setup
+    from afmid.simulate.driver import check_memory, compile_force_law, output_grid, resolve_setup
 
     raw = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs" / "dmt.yaml").read_text())
     config = build_config(raw)

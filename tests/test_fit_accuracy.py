@@ -35,7 +35,7 @@ and the reason for each number. The rule:
   fix shows up as XPASS. Every case runs by default.
 
 Simulated traces are written once per session (``tmp_path_factory``) and read
-back through ``afmid.io.load_trace``, as the CLI does; each fit is shared by
+back through ``afmid.io.trace.load_trace``, as the CLI does; each fit is shared by
 all the tests of its case. 10 simulations and 20 fits, ~1 min on 2 cores:
 marked ``slow`` (``make test`` runs them).
 """
@@ -147,7 +147,7 @@ EXPECT["lennard_jones", "poor", "known"] = Expect(  # seed 2: sigma -1.45 %, H +
     contact=_C(sigma=REQ, hamaker=0.51),  # sigma: seed 3 -2.2 %; H: 1.2 x seed 2's 42 % (seed 1 drops z^-2)
     sigma_max=_C(sigma=0.01, hamaker=0.18),
     force=0.147, may_drop=_TAIL)  # 1.5 x median 9.8 % (seeds 5.6-10.4 %)
-# Selection constraint (afmid.effect_tags.TERM_ROLES): a contact-only viscous or adhesion term needs an elastic
+# Selection constraint (afmid.physics.effect_tags.TERM_ROLES): a contact-only viscous or adhesion term needs an elastic
 # contact law; without it the criterion took z^-2 + viscous (seeds 1, 3: E* and adhesion read 0, force 37 %).
 EXPECT["dmt_viscoelastic", "poor", "known"] = Expect(  # seed 3: E* +12.2 %, adh. +15.1 %, eta -4.1 %, force 6.6 %
     contact=_C(E_star=0.55, adhesion_force=0.46, viscosity=0.215),  # 3 x 18.3 %, 3 x 15.3 %, 3 x 7.2 %
@@ -239,9 +239,9 @@ def truth_quantities(trace, library_effects) -> dict[str, float]:
     Uses the same registry as the fit: each effect's term coefficients at the
     true parameters, read out by the effect's own read-out (effects of the
     library that the simulated model does not contain have zero coefficients).
-    Keys follow :func:`afmid.fit.read_out` (``effect.name`` when a name repeats).
+    Keys follow :func:`afmid.fit.pipeline.read_out` (``effect.name`` when a name repeats).
     """
-    from afmid.physics import EFFECTS
+    from afmid.physics.effects import EFFECTS
 
     params = dict(trace.truth.parameters)
     out: dict[str, float] = {}
@@ -290,8 +290,8 @@ class Outcome:
 def accuracy_traces(tmp_path_factory):
     """``get(model, instrument)`` -> path of the simulated trace file (simulated once per session)."""
     from afmid.config import dump_config, load_config
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     folder = tmp_path_factory.mktemp("accuracy_traces")
     cache: dict[tuple[str, str], Path] = {}
@@ -311,8 +311,8 @@ def accuracy_traces(tmp_path_factory):
 def accuracy_fits(accuracy_traces):
     """``get(model, instrument, separation)`` -> :class:`Outcome` (fitted once per session)."""
     from afmid.config import load_config
-    from afmid.fit import run_fit
-    from afmid.io import load_trace
+    from afmid.fit.pipeline import run_fit
+    from afmid.io.trace import load_trace
 
     cache: dict[tuple[str, str, str], Outcome] = {}
 
@@ -400,7 +400,7 @@ def test_contact_coefficient(accuracy_fits, model, instrument, separation, quant
     assert sigma <= cap, f"{quantity}: reported std {100 * sigma:.2f} % (at most {100 * cap:.1f} %); {out.describe()}"
 
 
-#: Absent effects whose interval with the term forced in (afmid.undetermined) misses 0: the forced term absorbs
+#: Absent effects whose interval with the term forced in (afmid.fit.undetermined) misses 0: the forced term absorbs
 #: a systematic misfit (measured at the end of issue 13 part 4, not yet understood; the read-out says "not
 #: determined", the old test only checked that it read 0).
 FORCED_IN_BIASED = {

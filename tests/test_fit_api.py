@@ -1,8 +1,8 @@
 """The fit's public API: prepare once, fit many libraries on the same preparation; selection settings as one object.
 
 The diagnosis refits one trace with many libraries (and force maps will fit
-many traces with one library): :func:`afmid.fit.run_fit` takes a prepared
-trace and :func:`afmid.fit.fit_prepared` fits a library to it. These tests
+many traces with one library): :func:`afmid.fit.pipeline.run_fit` takes a prepared
+trace and :func:`afmid.fit.pipeline.fit_prepared` fits a library to it. These tests
 check that a shared preparation gives the very numbers of a fit that
 prepares on its own, that the preparation is left as it was, and that the
 diagnosis reaches the fit through public functions only.
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmid import regression
+import afmid.fit.regression as regression
 
 CONFIG = Path(__file__).parent / "configs" / "hidden_viscoelastic.yaml"
 
@@ -27,7 +27,7 @@ CONFIG = Path(__file__).parent / "configs" / "hidden_viscoelastic.yaml"
 def simulated(tmp_path_factory):
     """(trace, config builder) for a short simulated trace of a viscoelastic polymer."""
     from afmid.config import build_config, read_yaml
-    from afmid.simulate import simulate
+    from afmid.simulate.driver import simulate
 
     folder = tmp_path_factory.mktemp("fit_api")
     raw = read_yaml(CONFIG)
@@ -51,8 +51,8 @@ def _arrays(prepared) -> dict:
 
 @pytest.mark.parametrize("uncertainty", [False, True])
 def test_fits_on_one_preparation_equal_fits_that_prepare_themselves(simulated, uncertainty):
-    from afmid.fit import fit_prepared, prepare, run_fit
-    from afmid.library import build_library
+    from afmid.fit.pipeline import fit_prepared, prepare, run_fit
+    from afmid.physics.library import build_library
 
     trace, config = simulated
     prepared = prepare(trace, config(["dmt"]).fit)
@@ -76,7 +76,7 @@ def test_fits_on_one_preparation_equal_fits_that_prepare_themselves(simulated, u
 
 
 def test_run_fit_refuses_a_preparation_of_another_trace(simulated):
-    from afmid.fit import prepare, run_fit
+    from afmid.fit.pipeline import prepare, run_fit
 
     trace, config = simulated
     cfg = config(["dmt"])
@@ -87,8 +87,8 @@ def test_run_fit_refuses_a_preparation_of_another_trace(simulated):
 
 def test_residual_of_a_system_is_the_selection_residual_of_all_columns(simulated):
     """residual_sum_squares(system) is the rss of the full support, as the selection sees it."""
-    from afmid.fit import build_system, library_parameters, prepare, residual_sum_squares
-    from afmid.library import build_library
+    from afmid.fit.pipeline import build_system, library_parameters, prepare, residual_sum_squares
+    from afmid.physics.library import build_library
 
     trace, config = simulated
     cfg = config(["dmt", "viscoelastic"])
@@ -108,9 +108,9 @@ def test_residual_of_a_system_is_the_selection_residual_of_all_columns(simulated
 
 def test_search_range_of_the_catalog_parameters():
     from afmid.config import ModelConfig
-    from afmid.fit_search import LENGTH_SEARCH_MAX, LOG_GRID_START, search_range
-    from afmid.library import build_library
-    from afmid.physics import EFFECTS
+    from afmid.fit.search import LENGTH_SEARCH_MAX, LOG_GRID_START, search_range
+    from afmid.physics.library import build_library
+    from afmid.physics.effects import EFFECTS
 
     checked = 0
     for effect in EFFECTS:
@@ -167,8 +167,8 @@ def test_lasso_path_holds_the_support_every_subset_search_picks(seed):
 
 def test_selection_settings_resolve_auto_and_select_as_regression_does():
     from afmid.config import FitConfig, ModelConfig
-    from afmid.fit_selection import EXHAUSTIVE_MAX_TERMS, SelectionSettings, term_penalties
-    from afmid.library import build_library
+    from afmid.fit.selection import EXHAUSTIVE_MAX_TERMS, SelectionSettings, term_penalties
+    from afmid.physics.library import build_library
 
     small = build_library(ModelConfig(effects=["dmt", "viscoelastic"]))
     large = build_library(ModelConfig(library="lj_table1", terms=[f"z^-{n}" for n in range(13, 18)]))
@@ -199,8 +199,8 @@ def test_selection_settings_resolve_auto_and_select_as_regression_does():
 
 
 # --------------------------------------------------------------------------- module boundaries
-@pytest.mark.parametrize("module", ["afmid.diagnose", "afmid.candidate_shapes", "afmid.fit", "afmid.fit_forces",
-                                    "afmid.fit_search", "afmid.fit_selection"])
+@pytest.mark.parametrize("module", ["afmid.diagnosis.diagnose", "afmid.diagnosis.candidate_shapes", "afmid.fit.pipeline", "afmid.fit.forces",
+                                    "afmid.fit.search", "afmid.fit.selection"])
 def test_the_fit_and_the_diagnosis_use_other_modules_public_names_only(module):
     """No import of another module's private names, no assignment to another module's attributes, no retry
     on TypeError (which hid real bugs as 'an afmid without the quick mode'). tests/test_architecture.py checks

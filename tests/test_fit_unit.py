@@ -1,7 +1,7 @@
 """Fast unit tests of the fit's pieces (no simulation, no full fit).
 
 Each numba kernel is checked against its plain-NumPy twin, the factor algebra
-of :mod:`afmid.regression` against ``np.linalg.lstsq`` on the stacked rows, the
+of :mod:`afmid.fit.regression` against ``np.linalg.lstsq`` on the stacked rows, the
 preprocessing (drive estimate, Fourier blocks, weak-form test functions)
 against signals whose answer is known in closed form, and the library builder
 against the presets, the effect catalog and custom terms.
@@ -16,16 +16,17 @@ import math
 import numpy as np
 import pytest
 
-from afmid import expr, regression
+import afmid.physics.expr as expr
+import afmid.fit.regression as regression
 from afmid.config import ModelConfig
 from afmid.errors import ConfigError
 from afmid.kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy
 from afmid.kernels.sparse import subset_lstsq, stlsq_factor, stlsq_factor_numpy, subset_rss, subset_rss_numpy
-from afmid.library import build_library, trajectory_variables
-from afmid.presets import PRESETS
-from afmid.physics import EFFECTS
-from afmid.preprocess import estimate_drive, harmonic_blocks, weak_windows
-from afmid.units import parse_unit
+from afmid.physics.library import build_library, trajectory_variables
+from afmid.physics.presets import PRESETS
+from afmid.physics.effects import EFFECTS
+from afmid.preprocess.periods import estimate_drive, harmonic_blocks, weak_windows
+from afmid.physics.units import parse_unit
 
 pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
 
@@ -672,7 +673,7 @@ def test_trajectory_variables_contact_conventions():
 # --------------------------------------------------------------------------- selection constraint
 def test_term_roles_of_the_catalog_and_the_seed_tables():
     """Roles are declared on the registry's terms and the tables' columns, checked, and become rule masks."""
-    from afmid.effect_tags import SELECTION_RULES, TERM_ROLES
+    from afmid.physics.effect_tags import SELECTION_RULES, TERM_ROLES
 
     roles = {f"{e.name}.{t.label}": t.roles for e in EFFECTS for t in e.terms}
     assert {r for rs in roles.values() for r in rs} <= set(TERM_ROLES)
@@ -724,7 +725,7 @@ def test_selection_rules_exclude_unphysical_supports(method):
 # --------------------------------------------------------------------------- long traces: chunked = whole
 def _long_trace(periods=40, seed=3, detune=2.3e-4):
     """A synthetic tapping deflection (Trace) with harmonics, detector noise and a slow thermal-like wander."""
-    from afmid.io import Cantilever, Trace
+    from afmid.io.trace import Cantilever, Trace
 
     rng = np.random.default_rng(seed)
     n = periods * SPP + 37  # partial periods at the ends
@@ -749,8 +750,8 @@ def _rounding_scales(trace, cfg):
     """Per Prepared field: max |change| when the deflection is perturbed at rounding level (see above)."""
     import dataclasses
 
-    import afmid.fit as fit_mod
-    from afmid.io import Trace
+    import afmid.fit.pipeline as fit_mod
+    from afmid.io.trace import Trace
 
     rng = np.random.default_rng(12345)
     nudged = Trace(**{**{f.name: getattr(trace, f.name) for f in dataclasses.fields(trace)},
@@ -800,8 +801,8 @@ def test_prepare_in_chunks_equals_one_piece(monkeypatch, form, cantilever, basel
     of each product, so chunking changes the last bits on some CPUs (measured on AVX-512: up to 1e-9 relative in
     fields formed by cancellation). The tolerances are derived from the arithmetic (see ROUNDING_PERTURBATION).
     """
-    import afmid.fit_prepare as fit_mod
-    import afmid.preprocess as pre
+    import afmid.fit.prepare as fit_mod
+    import afmid.preprocess.periods as pre
     from afmid.config import FitConfig
 
     trace = _long_trace()
@@ -827,13 +828,13 @@ def test_prepare_in_chunks_equals_one_piece(monkeypatch, form, cantilever, basel
 
 
 def test_pairwise_sum_rounds_like_numpy():
-    from afmid.fit_prepare import pairwise_sum
+    from afmid.fit.prepare import pairwise_sum
 
     rng = np.random.default_rng(0)
     for n in (1, 7, 129, 1000, 123_457):
         a = rng.standard_normal(n) ** 2 * 1e-20
         for leaf in (128, 256, 4096):
-            import afmid.fit_prepare as prepare_module
+            import afmid.fit.prepare as prepare_module
 
             old, prepare_module.PAIRWISE_LEAF = prepare_module.PAIRWISE_LEAF, leaf
             try:
@@ -849,7 +850,7 @@ def test_fine_grid_synthesis_as_one_product():
     X = blocks.project(trace.deflection)
     V = blocks.derivative(X, 1)
     x, v = blocks.synthesize_fine_rows(X[2:9, :, 0], V[2:9, :, 0], first=2)
-    from afmid.preprocess import rotate_to_global
+    from afmid.preprocess.periods import rotate_to_global
 
     for series, coef in ((x, X), (v, V)):
         ref = np.matmul(blocks.design_fine, rotate_to_global(coef[2:9], blocks.block_times()[2:9], -blocks.omega))
@@ -858,7 +859,7 @@ def test_fine_grid_synthesis_as_one_product():
 
 
 def test_ou_smooth_compiled_equals_numpy(monkeypatch):
-    import afmid.preprocess as pre
+    import afmid.preprocess.periods as pre
 
     rng = np.random.default_rng(1)
     coef = rng.standard_normal((300, 9)) * np.linspace(1, 1e-3, 9) + 0.2
@@ -877,10 +878,10 @@ def test_period_curves_are_evaluated_in_chunks_and_written_as_whole_arrays(monke
 
     import h5py
 
-    import afmid.fit as fit_mod
-    import afmid.fit_forces as forces
+    import afmid.fit.pipeline as fit_mod
+    import afmid.fit.forces as forces
     from afmid.config import FitConfig
-    from afmid.io import write_dataset
+    from afmid.io.trace import write_dataset
 
     trace = _long_trace(periods=30)
     prep = fit_mod.prepare(trace, FitConfig())

@@ -1,4 +1,4 @@
-"""The harmonic-analysis engine (afmid.harmonics), and the drive measured once: on loading, reused by the fit."""
+"""The harmonic-analysis engine (afmid.preprocess.harmonics), and the drive measured once: on loading, reused by the fit."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import yaml
 
-from afmid import harmonics
+import afmid.preprocess.harmonics as harmonics
 from afmid.config import load_config
-from afmid.fit import prepare
-from afmid.io import Cantilever, Trace, load_trace
-from afmid.preprocess import detrend
+from afmid.fit.pipeline import prepare
+from afmid.io.trace import Cantilever, Trace, load_trace
+from afmid.preprocess.periods import detrend
 
 pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
 

@@ -14,8 +14,8 @@ import pytest
 import yaml
 
 from afmid.config import build_config, load_config, template_text
-from afmid.inspect import describe, inspect_file, prefill_config
-from afmid.io import load_trace
+from afmid.io.inspect import describe, inspect_file, prefill_config
+from afmid.io.trace import load_trace
 
 pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
 
@@ -132,7 +132,7 @@ def test_prefill_keeps_the_template_and_fills_the_data_section(tmp_path):
 
 
 def test_prefill_from_an_afmid_trace_file_copies_the_calibration(tmp_path, make_trace):
-    from afmid.io import write_trace_file
+    from afmid.io.trace import write_trace_file
 
     path = write_trace_file(tmp_path / "t.h5", make_trace(), "{}")
     out = tmp_path / "configs"

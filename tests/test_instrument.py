@@ -23,7 +23,7 @@ import pytest
 
 from afmid.config import apply_overrides, build_config, parse_override, read_yaml
 from afmid.errors import ConfigError
-from afmid.instrument import FILTERS, IDEAL, Detector, Instrument, Mode, apply_per_harmonic
+from afmid.preprocess.instrument import FILTERS, IDEAL, Detector, Instrument, Mode, apply_per_harmonic
 
 CONFIGS = Path(__file__).parent / "configs"
 #: The issue's cases: a 2-pole Butterworth at 10 f0, a second mode of a rectangular lever (f2 = 6.27 f0,
@@ -89,8 +89,8 @@ def test_per_harmonic_gain_is_the_filter_on_the_series():
 
 def test_simulated_detector_output_is_the_tip_through_the_filter():
     """Recorded harmonics / tip harmonics = G(n f) at the harmonics that carry the motion (noise off)."""
-    from afmid.preprocess import harmonic_blocks
-    from afmid.simulate import simulate
+    from afmid.preprocess.periods import harmonic_blocks
+    from afmid.simulate.driver import simulate
 
     raw = _raw("hidden_clean", DETECTOR, "simulate.noise.thermal=false", "simulate.noise.detector_rms=0",
                "simulate.periods=10")
@@ -111,9 +111,9 @@ def test_simulated_detector_output_is_the_tip_through_the_filter():
 
 def _free_modes(quality_factor: float, periods: int, steps: int = 2000):
     """A two-mode lever far from the sample, undriven, mode 1 and mode 2 displaced: (integrator, segment, h)."""
-    from afmid.physics import build_force_law
-    from afmid.sim_instrument import MultiModeIntegrator
-    from afmid.sim_model import Oscillator, compile_force_law
+    from afmid.physics.effects import build_force_law
+    from afmid.simulate.instrument import MultiModeIntegrator
+    from afmid.simulate.model import Oscillator, compile_force_law
 
     law = build_force_law(("dmt",), {"E_star": 1e9, "hamaker": 1e-19}, {"R": 1e-8, "a0": 0.165e-9})
     osc = Oscillator(40.0, 300e3, quality_factor, 300e3, 0.0)
@@ -161,10 +161,10 @@ def test_undamped_two_mode_oscillation_conserves_energy():
 def test_one_mode_multimode_kernel_follows_the_single_mode_kernel():
     """The same contact trajectory from the multi-mode kernel with no higher mode and from the single-mode
     kernel (they evaluate the drive differently: cos per stage vs an angle-addition table, a few ulp)."""
-    from afmid.physics import build_force_law
-    from afmid.sim_instrument import MultiModeIntegrator
-    from afmid.sim_integrator import Integrator
-    from afmid.sim_model import Oscillator, compile_force_law, drive_force_for_amplitude
+    from afmid.physics.effects import build_force_law
+    from afmid.simulate.instrument import MultiModeIntegrator
+    from afmid.simulate.integrator import Integrator
+    from afmid.simulate.model import Oscillator, compile_force_law, drive_force_for_amplitude
 
     law = build_force_law(("dmt",), {"E_star": 2e9, "hamaker": 5e-20}, {"R": 1e-8, "a0": 0.165e-9})
     compiled = compile_force_law(law)
@@ -223,8 +223,8 @@ def test_detector_order_defaults():
 
 def test_no_instrument_declared_prepares_exactly_as_before():
     """IDEAL and None take the same path: the prepared rows are the same bits (nothing is transformed)."""
-    from afmid.fit import prepare
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import prepare
+    from afmid.simulate.driver import simulate
 
     config = build_config(_raw("hidden_clean", "simulate.periods=8"))
     trace = simulate(config)
@@ -236,8 +236,8 @@ def test_no_instrument_declared_prepares_exactly_as_before():
 
 # --------------------------------------------------------------------------- the fit, declared
 def _force_error(raw: dict) -> float:
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
 
     raw = apply_overrides(raw, [parse_override("fit.bootstrap=0")])
     config = build_config(raw)
@@ -270,11 +270,11 @@ def test_declared_instrument_fits_to_one_percent(instrument, seed):
 
 # --------------------------------------------------------------------------- the diagnosis, undeclared
 def _diagnose(tmp_path: Path, name: str, sim_overrides: list[str], fit_overrides: list[str]) -> dict:
-    from afmid import diagnose
+    import afmid.diagnosis.diagnose as diagnose
     from afmid.config import dump_config
-    from afmid.fit import run_fit, write_run
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     sim_config = build_config(_raw(name, *sim_overrides), source=tmp_path / "sim.yaml", base_dir=tmp_path)
     trace = simulate(sim_config)
@@ -335,9 +335,9 @@ def test_hidden_effect_is_named_with_the_detector_declared(tmp_path):
 
 def test_inspect_reports_a_second_mode(tmp_path):
     from afmid.config import dump_config
-    from afmid.inspect import inspect_file
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.io.inspect import inspect_file
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     texts = {}
     for label, extra in (("mode", [SECOND_MODE]), ("ideal", [])):
@@ -369,7 +369,7 @@ def test_restoration_shrinks_buried_harmonics_and_keeps_strong_ones_and_their_ph
     """restore_trajectory: the across-period mean of each harmonic times S / (S + V), S = max(|mean|^2 - V, 0)
     (cos and sin together), the deviations untouched. A harmonic 100 noise sigmas strong keeps its mean to
     1e-4 (gain 1 - V/P) and its phase exactly; one below its noise goes to 0."""
-    from afmid.restoration import restore_trajectory
+    from afmid.preprocess.restoration import restore_trajectory
 
     rng = np.random.default_rng(7)
     B = 40

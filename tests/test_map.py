@@ -5,7 +5,7 @@ pixel, and the map's parameters against the simulator's truth per phase.
 The map (tests/configs/map_small.yaml) is 3x3 pixels of short traces; pixel (2, 2) is spoiled with NaNs. Every
 run fits the same pixels by the same code path (one-thread BLAS in every worker), so the maps of different runs
 must be bit-identical when they cut the map into the same chunks (the default pixel fit carries its start and
-support from pixel to pixel within a chunk: afmid.map_pixel). Map runs are child processes (``python -m afmid.cli``): dask's worker processes are spawned.
+support from pixel to pixel within a chunk: afmid.maps.pixel_fit). Map runs are child processes (``python -m afmid.cli``): dask's worker processes are spawned.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import h5py
 import numpy as np
 import pytest
 
-from afmid.io import sha256_file
+from afmid.io.trace import sha256_file
 from afmid.threads import SINGLE_THREAD_ENV
 
 REPO = Path(__file__).resolve().parents[1]
@@ -276,7 +276,7 @@ def test_a_batch_runs_on_the_dask_cluster_as_on_the_local_pool(workspace, dask_c
 # --------------------------------------------------------------------------- pieces, in process
 def test_phases_are_drawn_as_round_domains_over_the_matrix():
     from afmid.config import load_config
-    from afmid.map_simulate import phase_map
+    from afmid.maps.simulate import phase_map
 
     spec = load_config(CONFIG).simulate.map
     # domain centre (0, 0), radius 25 nm, pixels 20 nm apart: (0,0), (0,1), (1,0) inside; (1,1) at 28 nm is not
@@ -284,9 +284,9 @@ def test_phases_are_drawn_as_round_domains_over_the_matrix():
 
 
 def test_scheduler_address_and_default_chunking():
-    from afmid.engine_dask import scheduler_address
+    from afmid.batch.engine_dask import scheduler_address
     from afmid.errors import ConfigError
-    from afmid.map_run import default_chunk
+    from afmid.maps.run import default_chunk
 
     assert scheduler_address("tcp://127.0.0.1:8786") == "tcp://127.0.0.1:8786"
     with pytest.raises(ConfigError, match="--scheduler"):
@@ -299,7 +299,7 @@ def test_a_npy_map_gives_the_pixels_of_the_hdf5_map(workspace, tmp_path):
     import yaml
 
     from afmid.config import dump_config, load_config
-    from afmid.map_task import fit_chunk
+    from afmid.maps.task import fit_chunk
 
     with h5py.File(workspace / "clean.h5", "r") as h5:
         np.save(tmp_path / "map.npy", h5["deflection"][()])
@@ -318,7 +318,7 @@ def test_a_npy_map_gives_the_pixels_of_the_hdf5_map(workspace, tmp_path):
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "maps").glob("*.yaml")), ids=lambda p: p.name)
 def test_shipped_map_configs_validate(path):
     from afmid.config import load_config
-    from afmid.map_simulate import phase_map
+    from afmid.maps.simulate import phase_map
 
     spec = load_config(path).simulate.map
     assert spec is not None and len(np.unique(phase_map(spec))) == len(spec.phases)  # every phase has pixels

@@ -1,4 +1,4 @@
-"""The pixel fits of ``afmid map`` (afmid.map_pixel), in-process (no dask): the default ``shared`` fit against the
+"""The pixel fits of ``afmid map`` (afmid.maps.pixel_fit), in-process (no dask): the default ``shared`` fit against the
 ``full`` fit (every pixel as ``afmid fit``) and against the simulator's truth per phase, its covariance intervals
 and separation search on their own, and a pixel that the shared support does not fit flagged suspect.
 
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import yaml
 
-from afmid.map_pixel import (ROUTE_ANCHOR, ROUTE_FULL, ROUTE_RESEARCHED, ROUTES, covariance_draws,
+from afmid.maps.pixel_fit import (ROUTE_ANCHOR, ROUTE_FULL, ROUTE_RESEARCHED, ROUTES, covariance_draws,
                              parabolic_minimum)
-from afmid.map_task import STATUS_SUSPECT, fit_chunk
+from afmid.maps.task import STATUS_SUSPECT, fit_chunk
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "tests" / "configs" / "map_small.yaml"
@@ -35,7 +35,7 @@ MAX_EVALUATIONS = 20
 
 def simulate_map(folder: Path, seed: int, changes: dict | None = None) -> tuple[Path, Path]:
     from afmid.config import build_config, dump_config
-    from afmid.map_simulate import simulate_map as simulate, write_map_file
+    from afmid.maps.simulate import simulate_map as simulate, write_map_file
 
     raw = yaml.safe_load(CONFIG.read_text())
     raw["simulate"]["seed"] = seed
@@ -125,7 +125,7 @@ def test_pixels_the_shared_support_does_not_fit_are_researched_and_flagged(tmp_p
     """A model without contact mechanics (lennard_jones) on the blend: the soft domain's pixels, indented deepest,
     stand above their noise floor; every such pixel is searched again and reported suspect (model-limited), and
     no pixel at its floor is called model-limited."""
-    from afmid.uncertainty import FLOOR_FACTOR
+    from afmid.fit.uncertainty import FLOOR_FACTOR
 
     config, path = simulate_map(tmp_path, SEEDS[0], {"model.effects": ["lennard_jones"]})
     out = fit_map(config, path, "shared")
@@ -165,7 +165,7 @@ class _Profile:
     """A GroupedProfile over a synthetic problem: y = 2 g(t; d0) + noise, one column g(t; d) = 1 / (1 + (t - d)^2)."""
 
     def __init__(self):
-        from afmid.profile import GroupedProfile
+        from afmid.fit.profile import GroupedProfile
 
         rng = np.random.default_rng(5)
         self.t = np.linspace(-5, 5, 2400).reshape(24, 100)
@@ -175,7 +175,7 @@ class _Profile:
         def factors_at(d):
             self.calls += 1
             g = 1 / (1 + (self.t - d) ** 2)
-            from afmid.regression import factor_blocks
+            from afmid.fit.regression import factor_blocks
 
             return factor_blocks(g[..., None], self.y), self.t.size
 
@@ -183,7 +183,7 @@ class _Profile:
 
 
 def test_parabolic_minimum_agrees_with_the_robust_profile():
-    from afmid.profile import robust_profile
+    from afmid.fit.profile import robust_profile
 
     fast = _Profile()
     found = parabolic_minimum(fast.profile, 0.25, 0.01, -2.0, 2.0, 1)

@@ -13,7 +13,7 @@ are dropped and 100 kept:
 - d = 5 nm and 15 nm, H = 1e-19 J: periodic (the controls on the same lever), besides the stiff-lever
   clean traces of the diagnosis tests and noise-free traces.
 
-Three seeds each; the thresholds of afmid.motion were set before these tests were written (on seeds 1-2 of
+Three seeds each; the thresholds of afmid.preprocess.motion were set before these tests were written (on seeds 1-2 of
 the same regimes, see its docstring for the one change: the thermal bound).
 """
 
@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from afmid.config import load_config
-from afmid.motion import NON_PERIODIC, PERIOD_DOUBLING, PERIODIC, classify
+from afmid.preprocess.motion import NON_PERIODIC, PERIOD_DOUBLING, PERIODIC, classify
 
 CONFIGS = Path(__file__).parent / "configs"
 SKIP, KEEP, SPP = 200, 100, 100
@@ -44,7 +44,7 @@ SEEDS = (1, 2, 3)
 
 
 def _soft_trace(regime: str, seed: int, extra=()):
-    from afmid.simulate import simulate
+    from afmid.simulate.driver import simulate
 
     overrides = SOFT + REGIMES[regime][0] + [f"simulate.seed={seed}", *extra]
     config = load_config(CONFIGS / "hidden_clean.yaml", overrides)
@@ -58,7 +58,7 @@ def _soft_trace(regime: str, seed: int, extra=()):
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("regime", REGIMES)
 def test_fit_detects_the_motion_and_the_smoother_adapts(regime, seed):
-    from afmid.fit import prepare
+    from afmid.fit.pipeline import prepare
 
     config, trace = _soft_trace(regime, seed)
     prep = prepare(trace, config.fit)
@@ -76,7 +76,7 @@ def test_fit_detects_the_motion_and_the_smoother_adapts(regime, seed):
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("regime", ["doubling-strong", "chaos"])
 def test_non_periodic_fit_warns(regime, seed):
-    from afmid.fit import run_fit
+    from afmid.fit.pipeline import run_fit
 
     config, trace = _soft_trace(regime, seed)
     result = run_fit(config, trace=trace, uncertainty=False)
@@ -87,8 +87,8 @@ def test_non_periodic_fit_warns(regime, seed):
                                      ["sample.separation=8.0e-9", "simulate.seed=63"],
                                      ["simulate.noise.thermal=false", "simulate.noise.detector_rms=0"]])
 def test_clean_stiff_lever_traces_are_periodic(variant):
-    from afmid.fit import prepare
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import prepare
+    from afmid.simulate.driver import simulate
 
     config = load_config(CONFIGS / "hidden_clean.yaml", variant)
     prep = prepare(simulate(config), config.fit)
@@ -100,7 +100,7 @@ def test_clean_stiff_lever_traces_are_periodic(variant):
                                            ("periodic-far", "motion:       periodic")])
 def test_inspect_reports_the_motion(tmp_path, run_cli, regime, words):
     from afmid.config import dump_config
-    from afmid.io import write_trace_file
+    from afmid.io.trace import write_trace_file
 
     config, trace = _soft_trace(regime, 1)
     path = tmp_path / "trace.h5"

@@ -31,10 +31,10 @@ CASES = {
 
 
 def _diagnose(folder: Path, key: str):
-    from afmid import diagnose
-    from afmid.io import write_trace_file
+    import afmid.diagnosis.diagnose as diagnose
+    from afmid.io.trace import write_trace_file
     from afmid.runfile import write_run
-    from afmid.simulate import simulate
+    from afmid.simulate.driver import simulate
 
     raw = apply_overrides(read_yaml(CLEAN), [parse_override(o) for o in NOISE_FREE + CASES[key]])
     config = build_config(raw, source=folder / f"{key}.yaml", base_dir=folder)
@@ -62,12 +62,12 @@ def test_noise_free_clean_trace_raises_no_alarm(tmp_path, key):
 
 
 def test_below_the_floor_nothing_is_significant_and_every_candidate_is_rejected():
-    from afmid.diagnose import _Base, _rejections, _significant
+    from afmid.diagnosis.diagnose import _Base, _rejections, _significant
 
     assert not _significant(50.0, 1.1, 0.0008, 0.03)  # a chi-square on numerical residue, error below floor
     assert _significant(50.0, 1.1, 0.031, 0.03)  # just above the floor: the chi-square still counts
     base = _Base(0.000841, 0.03, 0.0, 50.0, 1.1, 1000)
-    from afmid.diagnose import Trial
+    from afmid.diagnosis.diagnose import Trial
 
     trial = Trial("capillary", 0.000822, 0.03, -500.0, -500.0, 1.0, 1.1, True, {}, {}, [], 0.1)
     assert any("noise floor" in r for r in _rejections(trial, base))

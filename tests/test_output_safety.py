@@ -1,6 +1,6 @@
 """Data loss must never happen (issue 11): inputs as outputs, report folders, one batch per folder.
 
-- :func:`afmid.io.refuse_input_as_output` sees through symbolic and hard links and relative spellings;
+- :func:`afmid.io.trace.refuse_input_as_output` sees through symbolic and hard links and relative spellings;
 - ``afmid report --overwrite`` replaces a report folder afmid wrote (marker ``.afmid-report``) and only that,
   by swapping in a complete new folder: an interrupted report, or one whose folder gained a foreign file
   meanwhile, leaves the old report as it was and no temporary folder; an unwritable place is one line;
@@ -26,7 +26,7 @@ import pytest
 import yaml
 
 from afmid.errors import OutputError
-from afmid.io import refuse_input_as_output
+from afmid.io.trace import refuse_input_as_output
 from test_corpus_config import base_config, write_tapping_csv
 
 AFMID = [sys.executable, "-m", "afmid.cli"]
@@ -79,7 +79,7 @@ def run_path(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def made_report(run_path, tmp_path_factory) -> Path:
     """A report folder afmid wrote (kept pristine: tests copy it)."""
-    from afmid.report import make_report
+    from afmid.report.page import make_report
 
     out = tmp_path_factory.mktemp("safety-report") / "rep"
     make_report([run_path], out, suggest_effects=False)
@@ -133,8 +133,8 @@ def test_report_through_a_symlink_replaces_the_folder_it_points_to(made_report, 
 
 def test_an_interrupted_report_leaves_the_old_one_and_no_temporary_folder(made_report, run_path, tmp_path,
                                                                           monkeypatch):
-    import afmid.report
-    from afmid.report import make_report
+    import afmid.report.page
+    from afmid.report.page import make_report
 
     out = tmp_path / "rep"
     before = _copy_report(made_report, out)
@@ -142,7 +142,7 @@ def test_an_interrupted_report_leaves_the_old_one_and_no_temporary_folder(made_r
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(afmid.report, "fig_periods", interrupted)
+    monkeypatch.setattr(afmid.report.page, "fig_periods", interrupted)
     with pytest.raises(KeyboardInterrupt):
         make_report([run_path], out, overwrite=True, suggest_effects=False)
     assert _contents(out) == before
@@ -154,7 +154,7 @@ def test_ctrl_c_during_the_swap_still_leaves_one_whole_report(made_report, run_p
     interrupt arrives; never neither report."""
     import shutil
 
-    from afmid.report import make_report
+    from afmid.report.page import make_report
 
     out = tmp_path / "rep"
     _copy_report(made_report, out)
@@ -178,18 +178,18 @@ def test_ctrl_c_during_the_swap_still_leaves_one_whole_report(made_report, run_p
 
 
 def test_a_file_put_in_the_folder_while_the_report_is_made_is_kept(made_report, run_path, tmp_path, monkeypatch):
-    import afmid.report
-    from afmid.report import make_report
+    import afmid.report.page
+    from afmid.report.page import make_report
 
     out = tmp_path / "rep"
     before = _copy_report(made_report, out)
-    draw_periods = afmid.report.fig_periods
+    draw_periods = afmid.report.page.fig_periods
 
     def user_saves_a_file_meanwhile(*args, **kwargs):
         (out / "notes.txt").write_text("written by the user while the report ran")
         return draw_periods(*args, **kwargs)
 
-    monkeypatch.setattr(afmid.report, "fig_periods", user_saves_a_file_meanwhile)
+    monkeypatch.setattr(afmid.report.page, "fig_periods", user_saves_a_file_meanwhile)
     with pytest.raises(OutputError, match=r"did not write \(notes.txt\)"):
         make_report([run_path], out, overwrite=True, suggest_effects=False)
     assert _contents(out) == {**before, "notes.txt": b"written by the user while the report ran"}
@@ -268,12 +268,12 @@ def test_a_second_batch_on_the_same_folder_fails_at_once_naming_the_first(tmp_pa
 
 
 def test_a_lock_left_by_a_killed_process_does_not_block(tmp_path):
-    from afmid.batch import run_batch
+    from afmid.batch.run import run_batch
 
     out = tmp_path / "out"
     out.mkdir()
     holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time\nfrom pathlib import Path\nfrom afmid.folder_lock import folder_lock\n"
+        "import sys, time\nfrom pathlib import Path\nfrom afmid.batch.folder_lock import folder_lock\n"
         "with folder_lock(Path(sys.argv[1])):\n    print('held', flush=True)\n    time.sleep(600)\n"), str(out)],
         stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "held"
@@ -299,7 +299,7 @@ def test_a_leftover_lock_file_with_a_dead_pid_does_not_block(tmp_path):
 
 def _run_failing_batch(tmp_path: Path, out: Path) -> None:
     """A batch whose one trace is missing: it plans, takes the lock, writes the summary, no worker needed."""
-    from afmid.batch import run_batch
+    from afmid.batch.run import run_batch
 
     (tmp_path / "run.yaml").write_text(yaml.safe_dump(base_config(), sort_keys=False))
     (tmp_path / "list.csv").write_text("path\nmissing.csv\n")

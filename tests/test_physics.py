@@ -1,4 +1,4 @@
-"""Registration checks of the physics registry (afmid.physics): units, region, character, roles."""
+"""Registration checks of the physics registry (afmid.physics.effects): units, region, character, roles."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import json
 
 import pytest
 
-from afmid.effect_tags import Character, Region, Role
+from afmid.physics.effect_tags import Character, Region, Role
 from afmid.errors import DefinitionError
-from afmid.physics import EFFECTS, Effect, Parameter, Quantity, Term, coefficient_unit
-from afmid.units import parse_unit
+from afmid.physics.effects import EFFECTS, Effect, Parameter, Quantity, Term, coefficient_unit
+from afmid.physics.units import parse_unit
 
 
 def test_every_declared_coefficient_unit_matches_its_term():

@@ -13,8 +13,8 @@ import pytest
 import yaml
 
 from afmid.errors import DefinitionError
-from afmid.physics import EFFECTS, Effect, Parameter, Quantity, Term, quantity_range
-from afmid.plausibility import check_plausibility, display, flagged_value, judge, plausible_range
+from afmid.physics.effects import EFFECTS, Effect, Parameter, Quantity, Term, quantity_range
+from afmid.fit.plausibility import check_plausibility, display, flagged_value, judge, plausible_range
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -202,8 +202,8 @@ def test_report_marks_implausible_values(workspace, run_cli):
 
 def test_run_files_without_verdicts_are_judged_when_read(workspace, run_cli):
     """A run file from before the check (no plausible attribute) still shows its implausible values flagged."""
-    from afmid.batch import read_run_row
-    from afmid.diagnose import load_run
+    from afmid.batch.run import read_run_row
+    from afmid.diagnosis.diagnose import load_run
 
     old = workspace / "old.h5"
     assert run_cli("-q", "fit", workspace / "run.yaml", "-o", old, "--overwrite",

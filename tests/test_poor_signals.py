@@ -34,8 +34,8 @@ def _simulate_and_config(tmp_path: Path, name: str, overrides: list[str], key: s
     import copy
 
     from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     raw = apply_overrides(read_yaml(CONFIGS / f"{name}.yaml"), [parse_override(o) for o in overrides])
     sim_config = build_config(raw, source=tmp_path / f"{key}.yaml", base_dir=tmp_path)
@@ -72,11 +72,12 @@ def test_an_effect_whose_term_is_not_selected_reads_out_as_not_determined(tmp_pa
     """Liquid, d 3 nm (in contact), fitted with [dmt, viscoelastic] while the sample has no viscosity: the
     viscous term is not selected and the viscosity is "not determined" everywhere it is shown (never 0 +- 0),
     with a 95 % interval from the fit with the term forced in that holds the truth 0; E* stays a number."""
-    from afmid import diagnose, plausibility
-    from afmid.fit import run_fit, write_run
-    from afmid.report import quantity_cell
+    import afmid.diagnosis.diagnose as diagnose
+    import afmid.fit.plausibility as plausibility
+    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.report.page import quantity_cell
     from afmid.runfile import read_summary
-    from afmid.uncertainty import quantity_lines
+    from afmid.fit.uncertainty import quantity_lines
 
     trace, config, truth = _simulate_and_config(
         tmp_path, "liquid", ["sample.separation=3.0e-9", f"simulate.seed={seed}", "simulate.periods=30",
@@ -114,7 +115,7 @@ def test_an_effect_whose_term_is_not_selected_reads_out_as_not_determined(tmp_pa
 def test_a_needed_quantity_that_is_not_determined_is_flagged_not_identified():
     """E* of a contact model (0 outside its range) without its Hertz term: flagged, with the reason and the
     interval with the term forced in, in the report's table as "not determined", never as a number."""
-    from afmid import plausibility
+    import afmid.fit.plausibility as plausibility
 
     q = {"value": math.nan, "error": math.nan, "ci_low": -1.0e8, "ci_high": 1.1e8, "unit": "Pa", "effect": "dmt",
          "determined": False, "inclusion": 0.1, "undetermined_terms": ["dmt.hertz"]}
@@ -127,7 +128,7 @@ def test_a_needed_quantity_that_is_not_determined_is_flagged_not_identified():
 
 
 def test_the_batch_summary_has_a_determined_column():
-    from afmid.batch_summary import QUANTITY_FIELDS
+    from afmid.batch.summary import QUANTITY_FIELDS
 
     assert "determined" in QUANTITY_FIELDS
 
@@ -143,8 +144,8 @@ LIQUID_CASES = [  # (separation, seed): full contact, weak contact, barely touch
 def test_liquid_readouts_are_numbers_or_not_determined_and_nothing_is_named(tmp_path, d, seed):
     """Every read-out is a number with an error or "not determined"; the diagnosis names no effect (the
     trace is plain DMT); where the tip touches, E* within 3 sigma of the truth."""
-    from afmid import diagnose
-    from afmid.fit import run_fit, write_run
+    import afmid.diagnosis.diagnose as diagnose
+    from afmid.fit.pipeline import run_fit, write_run
 
     trace, config, truth = _simulate_and_config(
         tmp_path, "liquid", [f"sample.separation={d}", f"simulate.seed={seed}", "simulate.periods=30",
@@ -170,8 +171,8 @@ POOR_CLEAN = {  # tests/test_diagnose.py's CLEAN variants at the poor instrument
 @pytest.mark.slow
 @pytest.mark.parametrize("variant", list(POOR_CLEAN))
 def test_poor_instrument_clean_trace_names_nothing_and_reads_out_honestly(tmp_path, variant):
-    from afmid import diagnose
-    from afmid.fit import run_fit, write_run
+    import afmid.diagnosis.diagnose as diagnose
+    from afmid.fit.pipeline import run_fit, write_run
 
     trace, config, truth = _simulate_and_config(tmp_path, "hidden_clean", POOR + POOR_CLEAN[variant] +
                                                 ["fit.bootstrap=20"], f"poor{variant}")
@@ -189,7 +190,7 @@ COVERAGE_SEEDS = list(range(201, 211))
 @pytest.mark.slow
 def test_liquid_intervals_cover_the_truth(tmp_path):
     """d 4 nm (weak contact, E* sigma ~10 %): |value - truth| < 2 sigma for E* and H in >= 8 of 10 seeds."""
-    from afmid.fit import run_fit
+    from afmid.fit.pipeline import run_fit
 
     inside = {"E_star": 0, "hamaker": 0}
     seen = []
@@ -208,7 +209,7 @@ def test_liquid_intervals_cover_the_truth(tmp_path):
 
 # --------------------------------------------------------------------------- "the data cannot decide"
 def _trial(effect, delta_bic, block_chi2, explains=True, implausible=()):
-    from afmid.diagnose import Trial
+    from afmid.diagnosis.diagnose import Trial
 
     return Trial(effect, 0.3, 0.27, 0.0, delta_bic, 0.9, 1.15, True, {}, {}, list(implausible), 0.0,
                  explains=explains, block_chi2=np.asarray(block_chi2, dtype=float))
@@ -218,7 +219,7 @@ def test_vuong_tells_a_consistent_difference_from_a_noisy_one():
     """Two candidates 14 BIC units apart over 49 periods: told apart when every period prefers the best by the
     same amount (sd 0), not when the per-period differences scatter by 0.68 (sd of the sum 4.8: 3 sigma is
     still apart, 2 sigma not; here 14 / (7 * 2) = 1 sigma)."""
-    from afmid import diagnose_decide as decide
+    import afmid.diagnosis.decide as decide
 
     rng = np.random.default_rng(5)
     base = 40.0 + rng.normal(0.0, 1.0, 49)
@@ -244,8 +245,8 @@ def test_thermal_phase_noise_is_not_a_dropped_sample_but_six_samples_are(tmp_pat
     The thermal scale is known, so a step must stand 5 of it out (4 deg: 2.2 samples here). The price: three
     dropped samples (5.4 deg, of which ~3.6 deg remain a step once the analysis refits the frequency) are no
     longer caught on this lever (measured); six are. In air (k 40 N/m, Q 250) the thermal scale is negligible."""
-    from afmid import defects
-    from afmid.simulate import simulate
+    import afmid.io.defects as defects
+    from afmid.simulate.driver import simulate
     from afmid.config import apply_overrides, build_config, parse_override, read_yaml
 
     settings = defects.Settings(sample_rate=200 * 25e3, resonance_frequency=25e3, quality_factor=4.0,

@@ -1,13 +1,13 @@
-"""The library presets registry (afmid.presets): typed terms, checked at registration."""
+"""The library presets registry (afmid.physics.presets): typed terms, checked at registration."""
 
 from __future__ import annotations
 
 import pytest
 
-from afmid.effect_tags import Role
+from afmid.physics.effect_tags import Role
 from afmid.errors import DefinitionError
-from afmid.physics import EFFECTS
-from afmid.presets import PRESETS, Preset, PresetTerm, origin_term
+from afmid.physics.effects import EFFECTS
+from afmid.physics.presets import PRESETS, Preset, PresetTerm, origin_term
 
 
 def test_every_preset_term_names_a_declared_effect_term_of_the_same_units():

@@ -1,4 +1,4 @@
-"""The robust profile of a nonlinear parameter (afmid.profile) and the coverage of the separation's sigma.
+"""The robust profile of a nonlinear parameter (afmid.fit.profile) and the coverage of the separation's sigma.
 
 Unit tests: the minimum of a V-shaped profile (a kink, where a parabola through many points misplaces its
 vertex), the chi-square interval of a parabolic profile, and the block jackknife on a synthetic nonlinear
@@ -17,7 +17,7 @@ import math
 import numpy as np
 import pytest
 
-from afmid.profile import GroupedProfile, chi2_interval, local_minimum, robust_profile
+from afmid.fit.profile import GroupedProfile, chi2_interval, local_minimum, robust_profile
 
 pytestmark = pytest.mark.numerics
 
@@ -142,8 +142,8 @@ def test_separation_sigma_covers_the_truth():
     from pathlib import Path
 
     from afmid.config import load_config
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
 
     root = Path(__file__).resolve().parent.parent
     rows = []

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from afmid.errors import InputError
-from afmid.readers import READERS, RawTrace, list_channels, read_trace, reader_for
+from afmid.io.readers import READERS, RawTrace, list_channels, read_trace, reader_for
 
 N = 400
 RATE = 2e6  # Hz
@@ -182,7 +182,7 @@ def test_reader_for_unknown_suffix_and_format(tmp_path):
 
 def test_importing_readers_does_not_import_optional_or_heavy_packages():
     code = (
-        "import sys, afmid.readers; "
+        "import sys, afmid.io.readers; "
         "print(sorted(m for m in ('h5py', 'scipy', 'igor2', 'nptdms') if m in sys.modules))"
     )
     root = Path(__file__).resolve().parents[1]
@@ -433,7 +433,7 @@ def test_missing_file_and_folder(tmp_path):
 
 
 def test_os_errors_become_input_errors(tmp_path, monkeypatch):
-    from afmid.readers import csv as csv_reader
+    from afmid.io.readers import csv as csv_reader
 
     def denied(path):
         raise PermissionError(13, "Permission denied", str(path))

@@ -28,10 +28,10 @@ PINNED_SUGGESTION_KEYS = {"effect", "error_after", "evidence"}
 def runs(tmp_path_factory):
     """(run1 path, run2 path) fitted from one simulated trace."""
     from afmid.config import build_config, dump_config, read_yaml
-    from afmid.diagnose import _fit_quick
-    from afmid.fit import write_run
-    from afmid.io import write_trace_file
-    from afmid.simulate import simulate
+    from afmid.diagnosis.diagnose import _fit_quick
+    from afmid.fit.pipeline import write_run
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
 
     folder = tmp_path_factory.mktemp("report")
     raw = read_yaml(CONFIG)
@@ -52,7 +52,7 @@ def runs(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def pair_report(runs, tmp_path_factory):
-    from afmid.report import make_report
+    from afmid.report.page import make_report
 
     out = tmp_path_factory.mktemp("out") / "report"
     text = make_report(list(runs), out)
@@ -61,7 +61,7 @@ def pair_report(runs, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def single_report(runs, tmp_path_factory):
-    from afmid.report import make_report
+    from afmid.report.page import make_report
 
     out = tmp_path_factory.mktemp("out1") / "report"
     make_report([runs[0]], out)
@@ -133,7 +133,7 @@ def test_single_run_names_the_missing_effect(single_report):
 @pytest.mark.slow
 def test_refuses_a_non_empty_folder(pair_report, runs):
     from afmid.errors import OutputError
-    from afmid.report import make_report
+    from afmid.report.page import make_report
 
     out, _ = pair_report
     with pytest.raises(OutputError):

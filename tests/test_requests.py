@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from afmid import oscillation
+import afmid.io.oscillation as oscillation
 from afmid.config import RunConfig, build_config, dump_config
 from afmid.errors import ConfigError, InputError
 from conftest import DRIVE_FREQUENCY, SAMPLE_RATE
@@ -84,7 +84,7 @@ def test_a_batch_marks_a_trace_of_noise_failed(tmp_path, run_cli):
 
 # --------------------------------------------------------------------------- effects and presets
 def test_adding_an_effect_already_present_warns_and_changes_nothing(caplog):
-    from afmid.fit import apply_effect_changes
+    from afmid.fit.pipeline import apply_effect_changes
 
     config = build_config(base_config(**{"model.effects": ["dmt", "viscoelastic"]}))
     with caplog.at_level(logging.WARNING, logger="afmid"):
@@ -106,9 +106,9 @@ def test_a_preset_with_an_explicitly_empty_effects_list_is_no_contradiction():
 
 
 def test_non_finite_coefficients_are_refused():
-    from afmid.fit import refuse_unusable
-    from afmid.io import Trace, Cantilever
-    from afmid.library import build_library
+    from afmid.fit.pipeline import refuse_unusable
+    from afmid.io.trace import Trace, Cantilever
+    from afmid.physics.library import build_library
 
     config = build_config(base_config())
     library = build_library(config.model)
@@ -147,13 +147,13 @@ def run_with_own_trace(tmp_path):
 
 
 def test_the_truth_of_an_unchanged_trace_is_read(run_with_own_trace):
-    from afmid.diagnose import load_run
+    from afmid.diagnosis.diagnose import load_run
 
     assert load_run(run_with_own_trace).truth is not None
 
 
 def test_the_truth_of_a_changed_trace_is_ignored_with_a_warning(run_with_own_trace, caplog):
-    from afmid.diagnose import load_run
+    from afmid.diagnosis.diagnose import load_run
 
     with h5py.File(run_with_own_trace.with_name("trace.h5"), "r+") as h5:
         h5["truth/force"][0] += 1e-9  # the trace file changed after the fit
@@ -187,7 +187,7 @@ def test_runs_of_the_same_trace_need_no_flag(tmp_path, run_cli):
 
 
 def test_no_effects_are_suggested_from_a_changed_trace(run_with_own_trace, caplog):
-    from afmid.diagnose import load_run, suggest
+    from afmid.diagnosis.diagnose import load_run, suggest
 
     run = load_run(run_with_own_trace)
     with h5py.File(run_with_own_trace.with_name("trace.h5"), "r+") as h5:

@@ -96,13 +96,13 @@ def test_parameter_attributes_are_documented_and_hold_the_plausibility_verdict(r
 
 # --------------------------------------------------------------------------- afmid.runfile: the one reader and writer
 def test_the_old_import_paths_name_the_one_reader_and_writer():
-    import afmid.diagnose
-    import afmid.fit
+    import afmid.diagnosis.diagnose
+    import afmid.fit.pipeline
     import afmid.runfile
 
-    assert afmid.fit.write_run is afmid.runfile.write_run
-    assert afmid.diagnose.load_run is afmid.runfile.load_run
-    assert afmid.diagnose.RunData is afmid.runfile.RunData
+    assert afmid.fit.pipeline.write_run is afmid.runfile.write_run
+    assert afmid.diagnosis.diagnose.load_run is afmid.runfile.load_run
+    assert afmid.diagnosis.diagnose.RunData is afmid.runfile.RunData
 
 
 def test_text_decodes_what_h5py_returns_for_strings():

@@ -64,8 +64,8 @@ def law_error(result, trace) -> float:
 def selection_outcomes():
     """``get(case, periods, seed)`` -> (selected terms, law error), simulated and fitted once per session."""
     from afmid.config import load_config
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
 
     cache: dict[tuple, tuple[set, float]] = {}
 

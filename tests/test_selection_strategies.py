@@ -1,4 +1,4 @@
-"""The selection scopes (afmid.selection_strategies) on small synthetic problems.
+"""The selection scopes (afmid.fit.selection_strategies) on small synthetic problems.
 
 The mechanism of issue 17 in miniature: a misfit that is the same in every block (systematic) and that a
 distractor column can absorb. Its gain grows with the number of blocks, the whole-record BIC's penalty only
@@ -13,9 +13,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from afmid import regression
-from afmid.fit_selection import SelectionSettings
-from afmid.selection_strategies import SELECTION_SCOPES, PeriodVote, RecordSelection, period_groups
+import afmid.fit.regression as regression
+from afmid.fit.selection import SelectionSettings
+from afmid.fit.selection_strategies import SELECTION_SCOPES, PeriodVote, RecordSelection, period_groups
 
 ROWS = 20  # whitened rows per block
 NAMES = ["true_a", "true_b", "absorber", "noise_term", "drive"]

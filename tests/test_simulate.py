@@ -15,9 +15,9 @@ from scipy.integrate import solve_ivp
 
 from afmid.config import build_config
 from afmid.errors import AfmidError, ConfigError
-from afmid.io import write_trace_file
-from afmid.physics import BOLTZMANN, EFFECTS, EPSILON_0, MODELS, ForceLaw, StateGate, build_force_law
-from afmid.simulate import (
+from afmid.io.trace import write_trace_file
+from afmid.physics.effects import BOLTZMANN, EFFECTS, EPSILON_0, MODELS, ForceLaw, StateGate, build_force_law
+from afmid.simulate.driver import (
     Integrator,
     NondimensionalForm,
     Oscillator,
@@ -359,7 +359,7 @@ def _evaluate(module, law, compiled, x, v, t, dyn, gates):
 
 def test_generated_law_is_the_vm_law_bit_for_bit():
     """Every effect, every model and a law using every opcode: generated code == VM == NumPy twin."""
-    from afmid.expr import evaluate_numpy
+    from afmid.physics.expr import evaluate_numpy
     from afmid.kernels import integrate as vm_kernel
 
     d = 20e-9
@@ -382,7 +382,7 @@ def test_generated_law_is_the_vm_law_bit_for_bit():
         ok = np.isfinite(numpy_force) & finite
         np.testing.assert_allclose(ours[0][ok], numpy_force[ok], rtol=1e-12, atol=0, err_msg=name)
         np.testing.assert_array_equal(np.isfinite(ours[0][finite]), np.isfinite(numpy_force[finite]), err_msg=name)
-        from afmid.simulate import program_variables
+        from afmid.simulate.driver import program_variables
 
         variables = program_variables(x[finite], v[finite], t[finite], d, dyn[6], gates[finite])
         for j, p in enumerate(compiled.switching):
@@ -458,7 +458,7 @@ def test_generated_modules_are_files_written_once(tmp_path, monkeypatch):
 
 def test_integrator_falls_back_to_the_vm_kernel(monkeypatch):
     from afmid.kernels import lawgen
-    from afmid.simulate import CompiledForceLaw
+    from afmid.simulate.driver import CompiledForceLaw
 
     def fail(self):
         raise lawgen.GenerationError("no place to write")

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from afmid.config import ModelConfig
-from afmid import expr
-from afmid.library import build_library, trajectory_variables
+import afmid.physics.expr as expr
+from afmid.physics.library import build_library, trajectory_variables
 
 A0, RADIUS = 0.165e-9, 10e-9
 LIBRARIES = {
@@ -27,7 +27,7 @@ LIBRARIES = {
 def eval_rows_numpy(library, params, x: np.ndarray, xdot: np.ndarray, t: np.ndarray,
                     out: np.ndarray) -> tuple[bool, bool]:
     """The plain-NumPy twin of :func:`eval_rows` for ``library`` at ``params`` (d, a0 and its nonlinear
-    parameters): the variables as a (7, N) array (:func:`afmid.library.trajectory_variables`), then each term
+    parameters): the variables as a (7, N) array (:func:`afmid.physics.library.trajectory_variables`), then each term
     by the NumPy evaluator of the term language."""
     variables = trajectory_variables(x.ravel(), xdot.ravel(), t.ravel(), params["d"], params["a0"])
     flat = np.column_stack([expr.evaluate_numpy(term.expression, variables, dict(params), ())
@@ -99,10 +99,10 @@ def test_weak_form_columns_through_the_kernel_equal_the_evaluate_then_transpose_
     from pathlib import Path
 
     from afmid.config import load_config
-    from afmid.fit import library_parameters, prepare
-    from afmid.fit_prepare import fine_chunks
-    from afmid.fit_system import average_switching_cells, library_columns
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import library_parameters, prepare
+    from afmid.fit.prepare import fine_chunks
+    from afmid.fit.system import average_switching_cells, library_columns
+    from afmid.simulate.driver import simulate
 
     config = Path(__file__).resolve().parents[1] / "configs" / "lennard_jones.yaml"
     overrides = ["simulate.periods=8", f"model.effects={effects}".replace("'", "")]

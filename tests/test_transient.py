@@ -3,7 +3,7 @@
 The fit's weak form needs no periodicity, but its drive columns cos(w t),
 sin(w t) need the drive frequency, and the spectral peak of a transient's
 deflection is off the drive by 1e-4 to 1e-2 (the free response rings at its
-own frequency): before :mod:`afmid.drive_search`, the force error on such
+own frequency): before :mod:`afmid.fit.drive_search`, the force error on such
 records was 0.8-3.4 % of the peak with the separation off by up to 0.4 nm. The
 cases below were fixed before any of them was run (parameters and seeds unlike
 those the search was developed on); the tolerances are the issue's targets.
@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from afmid.config import build_config
-from afmid.drive_search import MARGIN_VALLEYS, search_window, with_drive_frequency
+from afmid.fit.drive_search import MARGIN_VALLEYS, search_window, with_drive_frequency
 
 pytestmark = pytest.mark.slow
 
@@ -57,8 +57,8 @@ CASES = {
 @pytest.fixture(scope="module")
 def transient_fits(tmp_path_factory):
     """``get(case)`` -> (trace, fit result) with the separation searched (fitted once per module)."""
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
 
     folder = tmp_path_factory.mktemp("transient")
     cache = {}
@@ -119,9 +119,9 @@ def test_the_run_file_says_where_the_drive_frequency_came_from(transient_fits, t
 
 def test_a_steady_record_keeps_the_spectral_peak(tmp_path):
     """auto searches only records whose amplitude changes: a steady trace is fitted exactly as before."""
-    from afmid.fit import run_fit
-    from afmid.harmonics import estimate_drive
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.preprocess.harmonics import estimate_drive
+    from afmid.simulate.driver import simulate
 
     raw = _raw(250, 10e-9, 8.5e-9, 300e3, 30, 200, "rest", 3)
     raw["simulate"]["mode"] = "steady"
@@ -137,8 +137,8 @@ def test_a_steady_record_keeps_the_spectral_peak(tmp_path):
 
 
 def test_new_drive_columns_at_the_same_frequency_are_the_prepared_ones(tmp_path):
-    from afmid.fit import prepare
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import prepare
+    from afmid.simulate.driver import simulate
 
     raw = _raw(250, 10e-9, 6.5e-9, 300e3, 40, 200, "rest", 5)
     config = build_config(raw, base_dir=tmp_path)
@@ -174,9 +174,9 @@ def quiet_start(tmp_path_factory):
     rest (detector noise only), then the drive switches on and the tip taps into the sample (simulated from rest)."""
     import yaml
 
-    from afmid.io import write_trace_file
-    from afmid.onset import crop
-    from afmid.simulate import simulate
+    from afmid.io.trace import write_trace_file
+    from afmid.io.onset import crop
+    from afmid.simulate.driver import simulate
 
     folder = tmp_path_factory.mktemp("quiet_start")
     raw = _raw(250, 10e-9, 6.5e-9, 300e3, 150, 200, "rest", 21)
@@ -200,8 +200,8 @@ def quiet_start(tmp_path_factory):
 
 
 def test_a_record_that_starts_at_rest_is_fitted_from_the_onset(quiet_start):
-    from afmid.fit import run_fit
-    from afmid.io import load_trace
+    from afmid.fit.pipeline import run_fit
+    from afmid.io.trace import load_trace
 
     folder, raw, n_rest = quiet_start
     config = build_config(raw, base_dir=folder)
@@ -221,7 +221,7 @@ def test_a_record_that_starts_at_rest_is_fitted_from_the_onset(quiet_start):
 
 def test_a_dropped_sample_after_the_onset_is_still_an_error(quiet_start):
     from afmid.errors import InputError
-    from afmid.io import load_trace
+    from afmid.io.trace import load_trace
 
     folder, raw, _ = quiet_start
     with pytest.raises(InputError, match=r"phase jumps by .* samples were dropped") as info:
@@ -231,7 +231,7 @@ def test_a_dropped_sample_after_the_onset_is_still_an_error(quiet_start):
 
 def test_data_start_and_stop_choose_the_part_fitted(quiet_start):
     from afmid.errors import ConfigError
-    from afmid.io import load_trace
+    from afmid.io.trace import load_trace
 
     folder, raw, n_rest = quiet_start
     rate = 300e3 * 200

@@ -41,8 +41,8 @@ def _quick(config_name: str, extra=()):
 @pytest.fixture(scope="module")
 def calibration_draws():
     """(trace, fit with the nominal calibration and its declared uncertainty, fit with the true calibration)."""
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
 
     rng = np.random.default_rng(2026)
     nominal = _quick("dmt_viscoelastic.yaml", [f"cantilever.spring_constant_uncertainty={K_SIGMA}",
@@ -112,14 +112,14 @@ def test_force_calibration_share_matches_the_force_shift(calibration_draws):
 
 
 def test_no_declared_calibration_leaves_the_error_bars_alone():
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
 
     config = _quick("dmt.yaml")
     trace = simulate(config)
     result = run_fit(config, trace=trace)
     for q in result.quantities.values():
-        if not q["determined"]:  # its term was not selected (afmid.undetermined): no error bar at all
+        if not q["determined"]:  # its term was not selected (afmid.fit.undetermined): no error bar at all
             assert math.isnan(q["error"]) and math.isnan(q["error_statistical"])
             continue
         assert q["error_calibration"] == 0.0
@@ -130,8 +130,8 @@ def test_no_declared_calibration_leaves_the_error_bars_alone():
 def test_spring_constant_share_is_the_relative_uncertainty_of_linear_read_outs():
     """E*, Hamaker and the adhesion are linear in the force coefficients, which scale with k: their
     calibration share is exactly k's relative uncertainty (Q's share of these conservative terms is small)."""
-    from afmid.fit import run_fit
-    from afmid.simulate import simulate
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
 
     config = _quick("dmt.yaml", ["cantilever.spring_constant_uncertainty=0.07"])
     result = run_fit(config, trace=simulate(config))
@@ -155,9 +155,9 @@ CLEAN_VARIANTS = {"a": [], "b": ["simulate.parameters.E_star=3.0e9", "simulate.p
 
 
 def _fit_file(name: str, overrides: list[str], tmp_path):
-    from afmid.fit import run_fit
+    from afmid.fit.pipeline import run_fit
     from afmid.runfile import load_run, write_run
-    from afmid.simulate import simulate
+    from afmid.simulate.driver import simulate
 
     config = load_config(HIDDEN / name, ["fit.bootstrap=20", *overrides])
     result = run_fit(config, trace=simulate(config))
@@ -192,8 +192,8 @@ def test_the_right_model_is_not_model_limited(tmp_path, variant):
 
 
 def test_model_limited_report_and_console_lines():
-    from afmid.report import quantity_cell
-    from afmid.uncertainty import quantity_lines
+    from afmid.report.page import quantity_cell
+    from afmid.fit.uncertainty import quantity_lines
 
     q = {"value": 2.2e-19, "error": 6.5e-22, "error_statistical": 6.5e-22, "error_calibration": 0.0,
          "ci_low": 2.19e-19, "ci_high": 2.21e-19, "unit": "J", "model_limited": True}

@@ -1,10 +1,10 @@
-"""Tests for the SI dimension system in afmid.units."""
+"""Tests for the SI dimension system in afmid.physics.units."""
 
 import re
 
 import pytest
 
-from afmid.units import DIMENSIONLESS, SYMBOLS, Unit, as_unit, parse_unit
+from afmid.physics.units import DIMENSIONLESS, SYMBOLS, Unit, as_unit, parse_unit
 
 pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .integrate import next_gate_state_at
+from afmid.kernels.integrate import next_gate_state_at
 
 
 @njit(cache=True)

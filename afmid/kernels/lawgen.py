@@ -5,7 +5,7 @@ interpreting its VM programs (:mod:`afmid.kernels.vm`) at every RK4 stage: one
 interpreter call per program and point costs ~50-150 ns, most of an RK4 step.
 This module translates the same programs -- the force law's terms, switching
 functions and gate conditions, compiled from the effect registry by
-:func:`afmid.simulate.compile_force_law` -- opcode by opcode into Python source
+:func:`afmid.simulate.driver.compile_force_law` -- opcode by opcode into Python source
 for the four ``law_*`` functions of the integration algorithm, appends them to a
 verbatim copy of the algorithm section of :mod:`afmid.kernels.integrate`, and
 lets numba compile the result. Nothing about the physics is written here: the
@@ -48,17 +48,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import expr
+import afmid.physics.expr as expr
 
 #: Bump when the translation changes in a way the generated text would not show.
 GENERATOR_VERSION = 1
 _ALGORITHM_BEGIN = "# >>> algorithm"
 _ALGORITHM_END = "# <<< algorithm"
-#: The program variable slots (afmid.expr.VARIABLES) as locals of the generated functions
+#: The program variable slots (afmid.physics.expr.VARIABLES) as locals of the generated functions
 #: (xdot is the parameter v), computed as afmid.kernels.integrate.fill_variables does.
 _SLOT_NAMES = ("z", "zdot", "delta", "deltadot", "x", "v", "t")
 if expr.VARIABLES != ("z", "zdot", "delta", "deltadot", "x", "xdot", "t"):  # pragma: no cover
-    raise ImportError("afmid.expr.VARIABLES changed: update afmid.kernels.lawgen._variables and fill_variables")
+    raise ImportError("afmid.physics.expr.VARIABLES changed: update afmid.kernels.lawgen._variables and fill_variables")
 
 _lock = threading.Lock()
 _loaded: dict[str, object] = {}  # text hash -> module

@@ -23,8 +23,18 @@ import math
 import numpy as np
 from numba import njit
 
-from .integrate import (EVENT_TOLERANCE, MAX_EVENTS_PER_STEP, MAX_ROOT_ITERATIONS, NOT_FINITE, OK, law_conditions,
-                        law_force, law_full, law_work, next_gate_state_at)
+from afmid.kernels.integrate import (
+    EVENT_TOLERANCE,
+    MAX_EVENTS_PER_STEP,
+    MAX_ROOT_ITERATIONS,
+    NOT_FINITE,
+    OK,
+    law_conditions,
+    law_force,
+    law_full,
+    law_work,
+    next_gate_state_at,
+)
 
 _jit = njit(cache=True, error_model="numpy")
 

@@ -2,16 +2,16 @@
 
 :func:`eval_rows` is :func:`afmid.kernels.vm.eval_set` with the term-language variables (z, zdot, delta,
 deltadot, x, xdot, t) formed per block of samples inside the kernel, instead of a (7, N) array formed first by
-:func:`afmid.library.trajectory_variables` and read back; and it writes into ``out`` of any strides, so the
-weak form's integration (:meth:`afmid.preprocess.WeakWindows.integrate_fine_columns`) gets its columns in the
+:func:`afmid.physics.library.trajectory_variables` and read back; and it writes into ``out`` of any strides, so the
+weak form's integration (:meth:`afmid.preprocess.periods.WeakWindows.integrate_fine_columns`) gets its columns in the
 layout of its one matrix product without a transposed copy of the fine grid (~90 MB at 500 periods). In the
 same pass it notes whether every value is finite and whether any is exactly zero (the switching-cell check of
-:func:`afmid.fit_system.average_switching_cells`), which were two more passes over the fine grid.
+:func:`afmid.fit.system.average_switching_cells`), which were two more passes over the fine grid.
 
 For libraries without history gates (states) only: a gate's state is scanned along the whole trajectory
-first (:meth:`afmid.library.Library.evaluate`). Its plain-NumPy twin (the term language's NumPy evaluator) is
+first (:meth:`afmid.physics.library.Library.evaluate`). Its plain-NumPy twin (the term language's NumPy evaluator) is
 ``eval_rows_numpy`` in tests/test_trajectory_eval.py, which compares them to rounding, and the kernel with
-:meth:`afmid.library.Library.evaluate`'s VM bit for bit (the same VM on the same variables). The twin lives
+:meth:`afmid.physics.library.Library.evaluate`'s VM bit for bit (the same VM on the same variables). The twin lives
 with the test: a kernel does not import the library that calls it.
 """
 
@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .integrate import N_VARIABLES, contact_kinematics_at
-from .vm import BLOCK, STACK_SIZE, run_program
+from afmid.kernels.integrate import N_VARIABLES, contact_kinematics_at
+from afmid.kernels.vm import BLOCK, STACK_SIZE, run_program
 
 
 @njit(cache=True, error_model="numpy")

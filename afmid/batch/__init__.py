@@ -1,0 +1,1 @@
+"""Many items: plan, execution engines (local pool, dask.distributed) and the summary."""

@@ -1,0 +1,395 @@
+"""Recognising an undeclared instrument in a fit's residual: a detector low-pass or a second eigenmode.
+
+A detector low-pass G (not declared in ``data.detector``) leaves, at drive harmonics n >= 2, a model-free
+force G_n F_n instead of F_n: the residual against the model force M_n ~ F_n is (G_n - 1) M_n, a phase lag
+growing with n (-i sqrt(2) n f / f_c for a 2-pole Butterworth) and a roll-off (-n^2 (f / f_c)^2). A second
+flexural mode (not declared in ``cantilever.higher_modes``) adds H_2 / H_1 (n) M_n: a resonance at the harmonic
+f_2 / f. :func:`screen` fits both shapes to the per-harmonic residual of the fit (weighted by its noise, the
+scale fitted by least squares, f_2 on a grid); only when one explains most of a significant residual are
+candidate instruments refitted (:func:`check`): a short search over the bandwidth or f_2 by refits with the
+candidate declared (minimising the cross-validated error), kept when it lowers the BIC by ``bic_evidence`` and
+brings the cross-validated error to the noise level or removes 80 % of its excess over it. The diagnosis
+(:mod:`afmid.diagnosis.diagnose`, only when no sample effect explains the data) then names the instrument instead of a
+sample effect.
+
+The refits assume, for the mode, the modal stiffness fitted by the screen and Q_2 = :data:`MODE_Q_RATIO` Q_1
+(Q_2 matters only within f_2 / Q_2 of the resonance); for the detector a 2-pole Butterworth or a first-order
+low-pass, whichever fits better. What is reported is the frequency (and the family); the user declares the
+instrument from its calibration.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from afmid.preprocess.instrument import Detector, Instrument, Mode
+
+log = logging.getLogger(__name__)
+
+#: The screen fires when a shape removes at least this much chi-square (whitened units) ...
+SCREEN_CHI2 = 25.0
+#: ... and this fraction of the residual chi-square above its expectation.
+SCREEN_FRACTION = 0.3
+#: Q_2 / Q_1 assumed by the refits of a second-mode candidate.
+MODE_Q_RATIO = 3.0
+#: Refits per golden-section search (over log bandwidth or f_2).
+SEARCH_REFITS = 7
+#: ... or leave at most this fraction of the error in excess of the floor (the candidate's f_2, k_2 come from a
+#: short search: near a harmonic a few % off leave part of a large residual).
+EXCESS_LEFT = 0.2
+#: A candidate that leaves at most this fraction of the excess error is named when it beats every tried sample
+#: effect (a sample effect may be missing as well: the verdict says a residual remains).
+MOST_LEFT = 0.5
+#: Refits of the final joint (f_2, k_2) polish of a second-mode candidate (Nelder-Mead).
+POLISH_REFITS = 20
+#: The refitted candidate must bring the cross-validated error within this factor of its noise floor.
+EXPLAINS_FACTOR = 1.3
+
+
+@dataclass
+class Screen:
+    """The residual shapes' fits: chi-square removed and the parameters they suggest."""
+
+    chi2: float  # residual chi-square over harmonics 2..K (whitened)
+    dof: int
+    detector_chi2: float  # chi-square removed by the low-pass shape
+    detector_bandwidth: float  # Hz, from its phase-lag coefficient (2-pole Butterworth)
+    mode_chi2: float  # chi-square removed by the best second-mode shape
+    mode_frequency: float  # Hz
+    mode_stiffness: float  # N/m
+
+    def fires(self, removed: float) -> bool:
+        excess = max(self.chi2 - self.dof, 0.0)
+        return removed >= SCREEN_CHI2 and removed >= SCREEN_FRACTION * excess
+
+
+@dataclass
+class Finding:
+    kind: str  # "second_eigenmode" or "detector_bandwidth"
+    instrument: Instrument  # the candidate that explains the residual
+    frequency: float  # Hz: f_2 or the bandwidth
+    delta_bic: float
+    error_after: float
+    noise_floor_after: float
+    explains: bool = True  # the error falls to the noise level (else: most of its excess removed)
+
+    @property
+    def text(self) -> str:
+        more = "" if self.explains else "; a residual remains: declare it and diagnose again"
+        return self._text() + more
+
+    def _text(self) -> str:
+        if self.kind == "second_eigenmode":
+            return (f"instrument: second eigenmode near {_hz(self.frequency)} (not a sample effect; declare "
+                    "cantilever.higher_modes from the lever's calibration)")
+        det = self.instrument.detector
+        shape = "2-pole" if det.order == 2 else f"{det.order}-pole"
+        return (f"instrument: detector bandwidth near {_hz(self.frequency)} (a {shape} low-pass lags and "
+                "attenuates the harmonics; not a sample effect; declare data.detector)")
+
+    def record(self) -> dict:
+        return {"kind": self.kind, "frequency": self.frequency, "instrument": self.instrument.describe(),
+                "delta_bic": self.delta_bic, "error_after": self.error_after,
+                "noise_floor_after": self.noise_floor_after, "text": self.text}
+
+
+def _hz(f: float) -> str:
+    return f"{f / 1e6:.2g} MHz" if f >= 1e6 else f"{f / 1e3:.3g} kHz"
+
+
+def harmonic_residual(result) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(harmonics n, residual R_n, model M_n, sigma_n) of a FitResult, complex per harmonic n >= 1.
+
+    R is the window mean of the weak-form model-free force minus the model force, M the model's, sigma the
+    noise of a window mean (the rows' predicted noise / sqrt(windows)); a harmonic's cos and sin rows form
+    a - i b.
+    """
+    prep, system, coef = result.prep, result.system, result.coef
+    p = system.theta.shape[2]
+    free = (prep.Y - np.einsum("wkm,m->wk", prep.nuisance, coef[p:])).mean(axis=0)
+    model = np.einsum("wkm,m->wk", system.theta, coef[:p]).mean(axis=0)
+    sigma = prep.row_sigma / math.sqrt(prep.Y.shape[0])
+    K = (free.size - 1) // 2
+    n = np.arange(1, K + 1)
+
+    def pairs(v):
+        return v[1::2] - 1j * v[2::2]
+
+    return n, pairs(free - model), pairs(model), 0.5 * (sigma[1::2] + sigma[2::2])
+
+
+def _removed(R: np.ndarray, basis: list[np.ndarray], sigma: np.ndarray) -> tuple[float, np.ndarray]:
+    """Chi-square removed from R by the best real combination of complex ``basis`` vectors (weighted)."""
+    A = np.stack([np.concatenate([b.real, b.imag]) / np.concatenate([sigma, sigma]) for b in basis], axis=1)
+    y = np.concatenate([R.real, R.imag]) / np.concatenate([sigma, sigma])
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    return float(y @ y - np.sum((y - A @ coef) ** 2)), coef
+
+
+def screen(result, cantilever, drive_frequency: float) -> Screen:
+    """Fit the low-pass and the second-mode shapes to the residual of ``result`` (harmonics 2..K)."""
+    n, R, M, sigma = harmonic_residual(result)
+    keep = n >= 2
+    n, R, M, sigma = n[keep], R[keep], M[keep], np.maximum(sigma[keep], 1e-300)
+    chi2 = float(np.sum(np.abs(R) ** 2 / sigma**2))  # real and imaginary parts
+    det_removed, (a, _b) = _removed(R, [-1j * n * M, -(n**2) * M], sigma)
+    # 2-pole Butterworth: G - 1 ~ -i sqrt(2) n f / f_c - n^2 (f / f_c)^2.
+    bandwidth = math.sqrt(2.0) * drive_frequency / a if a > 0 else math.inf
+    f0, k1, Q1 = cantilever.resonance_frequency, cantilever.spring_constant, cantilever.quality_factor
+    r = n * drive_frequency / f0
+    h1_inverse = 1.0 - r**2 + 1j * r / Q1  # k1 / H_1 ... divided by k1
+    best = (0.0, math.nan, math.nan)
+    for ratio in np.arange(2.2, n[-1] + 0.5, 0.02):  # f_2 / f
+        f2 = ratio * drive_frequency
+        q = n / ratio
+        shape = h1_inverse / (1.0 - q**2 + 1j * q / (MODE_Q_RATIO * Q1))  # (H_2 / H_1) * k2 / k1
+        removed, (scale,) = _removed(R, [shape * M], sigma)
+        if scale > 0 and removed > best[0]:
+            best = (removed, f2, k1 / scale)
+    return Screen(chi2, int(2 * n.size), det_removed, bandwidth, best[0], best[1], best[2])
+
+
+def _golden(objective, lo: float, hi: float, evaluations: int) -> tuple[float, float]:
+    """Minimum of ``objective`` on [lo, hi] by golden-section search with ``evaluations`` calls."""
+    g = (math.sqrt(5.0) - 1.0) / 2.0
+    a, b = lo, hi
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = objective(c), objective(d)
+    for _ in range(max(evaluations - 2, 0)):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = objective(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = objective(d)
+    return (c, fc) if fc < fd else (d, fd)
+
+
+def _best_seen(cache: dict, part: str) -> Instrument:
+    """The refitted instrument with the lowest cross-validated error among those whose ``part`` was searched."""
+    searched = [(float(r.cv_error), i) for i, r in cache.items()
+                if r is not None and getattr(i, part) and (part != "higher_modes" or len(i.higher_modes) > 0)]
+    return min(searched, key=lambda item: item[0])[1]
+
+
+def check(base_result, cantilever, drive_frequency: float, declared: Instrument, refit, base_bic: float,
+          bic_evidence: float, searched: list | None = None) -> Finding | None:
+    """An undeclared instrument that explains the residual of ``base_result``, or None.
+
+    ``refit(instrument)`` -> FitResult of the same model on the trace prepared with ``instrument`` declared;
+    ``declared`` is what the config declares already (its parts are not searched again). ``searched`` (a list)
+    receives the best candidate instrument of each kind the screen let through, named or not.
+    """
+    s = screen(base_result, cantilever, drive_frequency)
+    log.debug("instrument screen: %s", s)
+    candidates = []
+    cache: dict = {}
+
+    def fitted(instrument: Instrument):
+        key = instrument
+        if key not in cache:
+            try:
+                cache[key] = refit(instrument)
+            except Exception as exc:  # a candidate that cannot be fitted is no candidate
+                log.debug("instrument refit with %s failed: %s", instrument.describe(), exc)
+                cache[key] = None
+        return cache[key]
+
+    def bic(instrument: Instrument) -> float:
+        """The search's objective: the cross-validated force error (not the BIC: each candidate reweights the
+        rows by its own noise gains, so BICs of different candidates are not comparable within a search)."""
+        result = fitted(instrument)
+        return math.inf if result is None or not math.isfinite(result.cv_error) else float(result.cv_error)
+
+    top = drive_frequency * (base_result.prep.blocks.K + 0.5)
+    if declared.detector is None and s.fires(s.detector_chi2):
+        # The fit absorbs much of a lag into a wrong force law, so the screen's bandwidth is no guide: search
+        # from 1.5 f to the highest harmonic (a 2-pole Butterworth, the usual anti-alias filter).
+        def make(log_bw):
+            return Instrument(Detector(float(10**log_bw), "butterworth", 2), declared.higher_modes)
+        _golden(lambda v: bic(make(v)), math.log10(1.5 * drive_frequency), math.log10(top), SEARCH_REFITS + 2)
+        best_detector = _best_seen(cache, "detector")
+        candidates.append(("detector_bandwidth", best_detector, best_detector.detector.bandwidth))
+    if s.fires(s.mode_chi2) and math.isfinite(s.mode_frequency):
+        f0, k1 = cantilever.resonance_frequency, cantilever.spring_constant
+
+        def make_mode(f2, k2):
+            mode = Mode(float(f2), MODE_Q_RATIO * cantilever.quality_factor, float(k2))
+            return Instrument(declared.detector, declared.higher_modes + (mode,))
+        # f_2 first with the stiffness of equal modal masses (k_2 = k_1 (f_2 / f_1)^2, a uniform lever), then
+        # the stiffness: the screen's stiffness comes from a biased model force.
+        # The BIC is sharp near a harmonic (H_2 there moves by ~25 % per 1 % of f_2): the best refit seen (the
+        # screen's estimate and three searches) is kept, not the last search's end point.
+        span = 0.5 * drive_frequency
+        if math.isfinite(s.mode_stiffness):
+            bic(make_mode(s.mode_frequency, s.mode_stiffness))  # the screen's own estimate
+        _golden(lambda f: bic(make_mode(f, k1 * (f / f0) ** 2)), s.mode_frequency - span, s.mode_frequency + span,
+                SEARCH_REFITS)
+        mode = _best_seen(cache, "higher_modes").higher_modes[-1]
+        k_guess = math.log10(mode.spring_constant)
+        _golden(lambda v: bic(make_mode(mode.resonance_frequency, 10**v)), k_guess - 0.5, k_guess + 0.5,
+                SEARCH_REFITS)
+        mode = _best_seen(cache, "higher_modes").higher_modes[-1]
+        _golden(lambda f: bic(make_mode(f, mode.spring_constant)), mode.resonance_frequency - 0.05 * drive_frequency,
+                mode.resonance_frequency + 0.05 * drive_frequency, SEARCH_REFITS - 2)
+        # Then both together from the best seen (the valley runs along k_2 (1 - (n / r_2)^2) = const).
+        from scipy.optimize import minimize
+
+        mode = _best_seen(cache, "higher_modes").higher_modes[-1]
+        start = np.array([mode.resonance_frequency / drive_frequency, math.log10(mode.spring_constant)])
+        minimize(lambda p: bic(make_mode(p[0] * drive_frequency, 10 ** p[1])), start, method="Nelder-Mead",
+                 options={"maxfev": POLISH_REFITS, "initial_simplex": [start, start + [0.02, 0], start + [0, 0.03]]})
+        best_mode = _best_seen(cache, "higher_modes")
+        candidates.append(("second_eigenmode", best_mode, best_mode.higher_modes[-1].resonance_frequency))
+    if searched is not None:
+        searched.extend(instrument for _, instrument, _ in candidates)
+    best = None
+    for kind, instrument, frequency in candidates:
+        result = fitted(instrument)
+        if result is None:
+            continue
+        delta = float(result.selection.best.bic) + 2.0 * math.log(max(result.system.n_rows, 2)) - base_bic
+        floor = result.cv_error_noise_floor
+        excess_before = math.sqrt(max(base_result.cv_error**2 - floor**2, 0.0))
+        excess_after = math.sqrt(max(result.cv_error**2 - floor**2, 0.0))
+        explains = result.cv_error <= EXPLAINS_FACTOR * floor or excess_after <= EXCESS_LEFT * excess_before
+        most = excess_after <= MOST_LEFT * excess_before
+        log.debug("instrument candidate %s: ΔBIC %.0f, error %.3g (floor %.3g)", instrument.describe(), delta,
+                 result.cv_error, result.cv_error_noise_floor)
+        if delta <= -bic_evidence and (explains or most) and (best is None or delta < best.delta_bic):
+            best = Finding(kind, instrument, frequency, delta, result.cv_error, result.cv_error_noise_floor, explains)
+    return best
+
+
+def undeclared(config, prepared, base_result, base_bic: float, trials: list, fit_quick, bic_evidence: float,
+               bic_distinct: float, separation_free: bool = False) -> Finding | None:
+    """The diagnosis's hook: an undeclared detector or eigenmode that explains the residual of ``base_result``
+    (the fit of ``config`` on ``prepared``), or None.
+
+    ``trials`` are the diagnosis's candidate effects (``delta_bic``, ``significant``). A candidate instrument
+    that brings the error to the noise level must beat every accepted effect by ``bic_distinct``; one that only
+    removes most of the excess error (a sample effect may be missing too) must beat every tried effect by it.
+    ``fit_quick(config, prepared)`` refits without error bars.
+
+    ``separation_free``: the run estimated the rest separation (``config`` holds its estimate). That estimate
+    belongs to the run's model without the instrument, and an undeclared instrument pulls it far (a second
+    mode at 6.27 f moved it by 5 nm, to the edge of the search): refitted at it, no candidate explains the
+    residual. So when the first search names nothing that explains, the separation is estimated again with
+    each kind's best candidate declared (the fit's own profile over its whole range, :func:`reprofiled`) and
+    the search runs again at that separation.
+    """
+    from afmid.preprocess.instrument import from_config
+
+    def search(trial_config, searched=None):
+        return check(base_result, prepared.trace.cantilever, prepared.drive.frequency, from_config(config),
+                     _refit(trial_config, prepared, fit_quick), base_bic, bic_evidence, searched)
+
+    searched: list = []
+    finding = search(config, searched)
+    if separation_free and (finding is None or not finding.explains):
+        separation = reprofiled(config, prepared, _variants(searched, prepared.drive.frequency), fit_quick)
+        if separation is not None:
+            trial_config = copy.deepcopy(config)
+            trial_config.sample.separation = separation
+            again = search(trial_config)
+            log.debug("instrument search again at d = %.4g nm: %s", 1e9 * separation, again)
+            if again is not None and (finding is None or again.delta_bic < finding.delta_bic):
+                finding = again
+    if finding is None:
+        return None
+    rivals = [t.delta_bic for t in trials if t.significant or not finding.explains]
+    return finding if finding.delta_bic < min(rivals, default=math.inf) - bic_distinct else None
+
+
+def _refit(config, prepared, fit_quick):
+    """refit(instrument): ``config``'s fit on the trace prepared with ``instrument`` declared."""
+    from afmid.fit.pipeline import prepare
+
+    def refit(instrument: Instrument):
+        return fit_quick(config, prepare(prepared.trace, config.fit, instrument))
+
+    return refit
+
+
+#: The second pass (separation re-estimated) tries second modes at the first search's f_2 and this far on
+#: either side, in units of the drive frequency: at the wrong separation the search may end on the wrong side
+#: of a harmonic (measured: 5.8 f found for a mode at 6.27 f), where the response differs most.
+REPROFILE_MODE_OFFSETS = (-0.4, -0.2, 0.0, 0.2, 0.4)
+
+
+def _variants(searched: list, drive_frequency: float) -> list:
+    """The instruments the separation is re-estimated with: each searched candidate, a second mode also at
+    f_2 + REPROFILE_MODE_OFFSETS f (the stiffness of equal modal masses scaled with f_2^2)."""
+    out = []
+    for instrument in searched:
+        if not instrument.higher_modes:
+            out.append(instrument)
+            continue
+        mode = instrument.higher_modes[-1]
+        for offset in REPROFILE_MODE_OFFSETS:
+            f2 = mode.resonance_frequency + offset * drive_frequency
+            moved = Mode(f2, mode.quality_factor, mode.spring_constant * (f2 / mode.resonance_frequency) ** 2)
+            out.append(Instrument(instrument.detector, instrument.higher_modes[:-1] + (moved,)))
+    return out
+
+
+def reprofiled(config, prepared, instruments: list, fit_quick) -> float | None:
+    """The rest separation (m) the fit estimates (its own search over its whole range, ``sample.separation``
+    absent) with the one of ``instruments`` declared whose fit has the lowest cross-validated error; None when
+    no such fit succeeds."""
+    free = copy.deepcopy(config)
+    free.sample.separation = None
+    refit = _refit(free, prepared, fit_quick)
+    best = (math.inf, None)
+    for instrument in instruments:
+        try:
+            result = refit(instrument)
+        except Exception as exc:  # a candidate that cannot be fitted gives no separation
+            log.debug("separation with %s not estimated: %s", instrument.describe(), exc)
+            continue
+        estimate = result.nonlinear.get("d")
+        log.debug("separation with %s: %s (error %.3g)", instrument.describe(), estimate and estimate.value,
+                  result.cv_error)
+        if estimate is not None and math.isfinite(estimate.value) and result.cv_error < best[0]:
+            best = (float(result.cv_error), float(estimate.value))
+    return best[1]
+
+
+def name_instrument(summary: dict, finding: Finding) -> dict:
+    """The diagnosis ``summary`` (afmid.diagnosis.diagnose.suggest) with the instrument named instead of sample effects:
+    the verdict is the finding's text, no effect is suggested (the candidates stay in ``tried``)."""
+    diagnosis = dict(summary["diagnosis"])
+    diagnosis.update(verdict=f"{finding.text} ({'ΔBIC'} {finding.delta_bic:.0f}, error -> {finding.error_after:.3g}, "
+                             f"floor {finding.noise_floor_after:.3g})",
+                     instrument=finding.record(), explained_by_catalog=False,
+                     error_after=finding.error_after, delta_bic_after=finding.delta_bic)
+    return {**summary, "missing_effect": True, "diagnosis": diagnosis, "suggestions": []}
+
+
+#: ``afmid inspect``: a bump in the harmonic amplitudes counts as a resonance when, at two neighbouring
+#: harmonics n, n+1, the products of their ratios to the geometric mean of the harmonics two away exceed this.
+#: (Measured: a second mode at 6.27 f gives 44-54; the lobes of plain contact spectra stay below 9.)
+RESONANCE_BUMP = 20.0
+
+
+def harmonic_resonance(amplitudes: np.ndarray, above_noise: list[int]) -> float | None:
+    """Where the harmonic amplitudes (index = harmonic number) show a resonance bump, in units of the drive
+    frequency, or None: a higher eigenmode between two harmonics amplifies both (no fit needed)."""
+    A = np.asarray(amplitudes, dtype=float)
+    ok = set(above_noise)
+    best = (0.0, None)
+    for n in range(3, A.size - 3):
+        if not {n - 2, n - 1, n, n + 1, n + 2, n + 3} <= ok:
+            continue
+        ratio = [A[k] / math.sqrt(A[k - 2] * A[k + 2]) for k in (n, n + 1)]
+        product = ratio[0] * ratio[1]
+        if product > best[0]:
+            best = (product, n + ratio[1] / (ratio[0] + ratio[1]))
+    return best[1] if best[0] >= RESONANCE_BUMP else None

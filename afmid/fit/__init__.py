@@ -1,0 +1,1 @@
+"""The fit: prepare a trace, build the regression system, select the law, profile, read out."""

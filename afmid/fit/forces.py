@@ -1,0 +1,348 @@
+"""What a fit says about the force: the error metric, the read-out of physical quantities, and the forces
+per input sample and per period.
+
+Everything here works on a finished fit (a prepared trace, its system, the
+chosen coefficients); :func:`afmid.fit.pipeline.fit_prepared` calls these in turn.
+Forces in N, positive repulsive.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+import afmid.fit.regression as regression
+from afmid.io.trace import Trace, create_dataset, write_dataset
+from afmid.physics.library import Library
+from afmid.physics.effects import EFFECTS
+
+if TYPE_CHECKING:  # annotations only: afmid.fit.pipeline imports this module
+    from afmid.fit.pipeline import Prepared, System
+
+#: A harmonic counts as signal in the error metric when its mean exceeds this many noise sigmas per block.
+SIGNAL_SNR = 1.0
+#: Blocks (periods) per chunk when the fine grid is evaluated: bounds memory for long traces.
+CHUNK_BLOCKS = 256
+
+
+# --------------------------------------------------------------------------- error metric
+def direct_force_coefficients(prep: Prepared, system: System, coef: np.ndarray, blocks: slice = slice(None)
+                               ) -> np.ndarray:
+    """Model-free force F_ts per period (B, 2K+1): -(m x'' + c x' + k x) plus the fitted drive (``blocks``: of those)."""
+    p = system.theta.shape[2]
+    Y = prep.Y_block[blocks]
+    if "stiffness" in prep.nuisance_names:  # free cantilever: the identified k, c replace the calibrated ones
+        Y = -(prep.trace.cantilever.mass * prep.blocks.derivative(prep.X[blocks, :, None], 2))[..., 0]
+    return Y - np.einsum("bkm,m->bk", prep.nuisance_block[blocks], coef[p:])
+
+
+def signal_rows(prep: Prepared, system: System, coef: np.ndarray) -> np.ndarray:
+    """Rows whose mean model-free force stands above the per-block noise."""
+    F = direct_force_coefficients(prep, system, coef)
+    mean = np.abs(F.mean(axis=0))
+    rows = mean > SIGNAL_SNR * prep.block_sigma
+    harmonics = prep.blocks.harmonics
+    # Keep cos/sin of a harmonic together.
+    for n in np.unique(harmonics[rows]):
+        rows[harmonics == n] = True
+    return rows
+
+
+def _power(F: np.ndarray, harmonics: np.ndarray) -> np.ndarray:
+    """Mean-square value of series with coefficients F (..., 2K+1) (Parseval)."""
+    w = np.where(harmonics == 0, 1.0, 0.5)
+    return np.sum(w * F**2, axis=-1)
+
+
+def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.ndarray, folds: int):
+    """Normalised cross-validated force error over held-out periods (0 = perfect, 1 = a constant force).
+
+    For each fold of contiguous periods the model is refitted on the other
+    periods. On the held-out periods, averaged like the paper averages periods,
+    the model force is compared with the model-free force
+    F_ts = drive - (m x'' + c x' + k x) on the drive harmonics where that
+    average stands 3 sigma above its noise:
+    error^2 = sum |F_free - F_model|^2 / sum |F_free - mean(F_free)|^2
+    (Parseval over harmonics, summed over folds). Returns the error, the error
+    of each fold, and the noise floor: the error a perfect model would show,
+    i.e. the expected noise in that same sum: the held-out periods' noise plus
+    that of the model fitted on the other periods (docs/diagnosis.md, "The noise
+    floor and its threshold").
+    """
+    if prep.form == "strong":
+        return _time_domain_cv_error(prep, system, mask, folds)
+    harmonics = prep.blocks.harmonics
+    num = den = noise = 0.0
+    per_fold = []
+    p = system.theta.shape[2]
+    for test in regression.fold_slices(system.T_blocks.shape[0], folds):
+        train = regression.training_blocks(system.T_blocks.shape[0], test)
+        trained = regression.combine(system.T_blocks[train])
+        coef, _ = regression.subset_fit(trained, mask)
+        free = (prep.Y[test] - np.einsum("bkm,m->bk", prep.nuisance[test], coef[p:])).mean(axis=0)
+        model = np.einsum("bkm,m->bk", system.theta[test], coef[:p]).mean(axis=0)
+        # The error's noise: the held-out periods' own, plus the noise of the model fitted on the other periods.
+        columns = np.concatenate([system.theta[test].mean(axis=0), prep.nuisance[test].mean(axis=0)], axis=1)
+        held_out = prep.row_sigma / math.sqrt(test.size)
+        sigma = np.sqrt(held_out**2 + prediction_variance(trained, mask, columns))
+        keep = rows & (np.abs(free) > 3 * held_out)
+        for n in np.unique(harmonics[keep]):  # cos and sin of a harmonic together
+            keep[harmonics == n] = True
+        h = harmonics[keep]
+        n_f = _power((free - model)[keep], h)
+        ac = np.where(h == 0, 0.0, free[keep])
+        d_f = _power(ac, h)
+        per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
+        num += n_f
+        den += d_f
+        noise += _power(sigma[keep], h)
+    if den <= 0:
+        return math.nan, np.asarray(per_fold), math.nan
+    return math.sqrt(num / den), np.asarray(per_fold), math.sqrt(noise / den)
+
+
+def prediction_variance(trained: np.ndarray, mask: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """Variance of ``columns @ coef`` (one value per row of ``columns``, (rows, all columns)) when coef is the
+    least-squares fit on the ``mask`` columns of the whitened factor ``trained`` ([columns | y], unit noise).
+
+    Columns are scaled to unit norm and singular values below 1e-12 of the largest dropped, as the subset fit
+    does (SI columns differ by tens of orders of magnitude).
+    """
+    active = np.flatnonzero(mask)
+    if active.size == 0:
+        return np.zeros(columns.shape[0])
+    A = trained[:, active]
+    norms = np.linalg.norm(A, axis=0)
+    norms[norms == 0] = 1.0
+    _, s, vt = np.linalg.svd(A / norms, full_matrices=False)
+    keep = s > 1e-12 * s[0]
+    projected = ((columns[:, active] / norms) @ vt[keep].T) / s[keep]
+    return np.sum(projected**2, axis=1)
+
+
+def _time_domain_cv_error(prep: Prepared, system: System, mask: np.ndarray, folds: int):
+    """The strong form's error: per-sample force on held-out periods (no noise floor is predicted)."""
+    p = system.theta.shape[2]
+    num = den = 0.0
+    per_fold = []
+    for test in regression.fold_slices(system.T_blocks.shape[0], folds):
+        train = regression.training_blocks(system.T_blocks.shape[0], test, gap=0)
+        coef, _ = regression.subset_fit(regression.combine(system.T_blocks[train]), mask)
+        free = prep.Y[test] - np.einsum("bkm,m->bk", prep.nuisance[test], coef[p:])
+        model = np.einsum("bkm,m->bk", system.theta[test], coef[:p])
+        n_f, d_f = float(np.sum((free - model) ** 2)), float(np.sum((free - free.mean()) ** 2))
+        per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
+        num += n_f
+        den += d_f
+    return (math.sqrt(num / den) if den > 0 else math.nan), np.asarray(per_fold), math.nan
+
+
+# --------------------------------------------------------------------------- read-out
+def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) -> dict[str, dict]:
+    """Physical quantities of each effect from its terms' coefficients, with bootstrap intervals."""
+    out: dict[str, dict] = {}
+    ctx = dict(params)
+    if "R" not in ctx:
+        ctx["R"] = math.nan
+    for effect_name in library.effects:
+        effect = EFFECTS.get(effect_name)
+        index = {t.label: j for j, t in enumerate(library.terms) if t.effect == effect_name}
+        if not index:
+            continue
+
+        def quantities(c):
+            values = {label: (c[j] if mask[j] else 0.0) for label, j in index.items()}
+            values.update({t.label: 0.0 for t in effect.terms if t.label not in values})
+            with np.errstate(all="ignore"):
+                try:
+                    return effect.readout(values, ctx)
+                except (ZeroDivisionError, ValueError):
+                    return {q.name: math.nan for q in effect.quantities}
+
+        central = quantities(coef)
+        samples = [quantities(c) for c in bagging.coef_samples] if bagging is not None else []
+        for q in effect.quantities:
+            value = float(central.get(q.name, math.nan))
+            arr = np.array([s.get(q.name, math.nan) for s in samples], dtype=float)
+            arr = arr[np.isfinite(arr)]
+            err = float(arr.std(ddof=1)) if arr.size > 2 else math.nan
+            lo, hi = (np.percentile(arr, [2.5, 97.5]) if arr.size > 2 else (math.nan, math.nan))
+            key = q.name if q.name not in out else f"{effect_name}.{q.name}"
+            out[key] = {"value": value, "error": err, "ci_low": float(lo), "ci_high": float(hi), "unit": q.unit,
+                        "effect": effect_name, "doc": q.doc}
+    return out
+
+
+# --------------------------------------------------------------------------- forces
+def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np.ndarray, rows: np.ndarray):
+    """Model force on every used sample and the band-limited model-free force (N; NaN elsewhere)."""
+    n = prep.x.size
+    p = system.theta.shape[2]
+    used = prep.blocks.used
+    estimate = np.full(n, np.nan)
+    # Behind a declared detector, the restored tip (the inverted samples carry the noise times |1/G|).
+    x_used = (prep.x if prep.x_restored is None else prep.x_restored)[used]
+    t_used = prep.t[used]
+    L = prep.blocks.L
+    # Hysteresis states are scanned along each evaluated piece: pieces of CHUNK_BLOCKS periods, as always;
+    # without states, pieces of afmid.preprocess.periods.CHUNK_BLOCKS (compiling the library costs ~3 ms a call).
+    step = CHUNK_BLOCKS * L if library.states else prep.blocks.chunks()[0][1] * L
+    for i in range(0, x_used.size, step):
+        sl = slice(i, i + step)
+        cols = library.evaluate(x_used[sl], prep.xdot_used[sl], t_used[sl], system.params)
+        estimate[used.start + i: used.start + i + cols.shape[0]] = cols @ coef[:p]
+    direct = np.full(n, np.nan)
+    for b0, b1 in prep.blocks.chunks():
+        F = direct_force_coefficients(prep, system, coef, slice(b0, b1)) * rows[None, :]
+        direct[used.start + b0 * L:used.start + b1 * L] = prep.blocks.synthesize_blocks(F[..., None], b0)[:, 0]
+    return estimate, direct
+
+
+#: Periods per chunk in :func:`period_curves` and when its curves are evaluated (bounds the temporaries). A
+#: multiple of 8, and every evaluation starts at a multiple of it: the BLAS products then round the same way
+#: whenever a curve is evaluated (the summaries, the mapping, the run file agree to the bit).
+PERIOD_CHUNK = 2048
+
+
+def period_curves(prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int
+                  ) -> "PeriodCurves":
+    """Per-period curves on a common phase grid and per-period summaries (SI), chunk by chunk of periods.
+
+    Returns a read-only mapping name -> array (:class:`PeriodCurves`): the summaries are computed here, the
+    curves (periods x phase points each) when asked for or written.
+    """
+    curves = PeriodCurves(prep, library, system, coef, params, rows, n_phase)
+    B = prep.blocks.n_blocks
+    period = 2 * np.pi / prep.drive.omega
+    dt = period / n_phase
+    d, a0 = params["d"], params["a0"]
+    held = {name: np.empty(B) for name in PeriodCurves.SUMMARIES}
+    # Hysteresis gates are scanned along the evaluated points: in one piece, as the states need (and kept).
+    step = B if library.states else PERIOD_CHUNK
+    for b0 in range(0, B, step):
+        b1 = min(b0 + step, B)
+        x, v, f_direct = (curves.curve(name, b0, b1) for name in ("deflection", "velocity", "force_direct"))
+        f = curves.model_force(x, v, b0, b1)
+        if library.states:
+            held["force_model"] = f
+        z = d - x
+        zdot = -v
+        contact = z <= a0
+        out = {
+            "peak_force": f.max(axis=1),
+            "adhesion_force": np.maximum(-f.min(axis=1), 0.0),
+            "max_indentation": np.maximum(a0 - z, 0.0).max(axis=1),
+            "contact_time": contact.mean(axis=1) * period,
+            # energy taken from the tip per period: -closed integral of F dz
+            "dissipated_energy": -np.sum(f * zdot, axis=1) * dt,
+            "dissipated_energy_direct": -np.sum(f_direct * zdot, axis=1) * dt,
+            # (1/T) integral of (force toward the sample) * x dt
+            "virial": -np.mean(f * x, axis=1),
+            "virial_direct": -np.mean(f_direct * x, axis=1),
+            "period_error": np.sqrt(np.mean((f_direct - f) ** 2, axis=1)),
+        }
+        for name, value in out.items():
+            held[name][b0:b1] = value
+    held["amplitude"] = np.hypot(prep.X[:, 1], prep.X[:, 2])
+    curves.held.update(held)
+    return curves
+
+
+class PeriodCurves(Mapping):
+    """The outputs of :func:`period_curves`: a read-only mapping name -> array, in the run file's order.
+
+    The per-period summaries are held. The curves on the phase grid
+    (deflection, velocity, acceleration, separation, the model and model-free
+    forces: (periods, phase points) each, 0.1 GB apiece at 5e4 periods) are
+    evaluated from the coefficients the fit keeps anyway when asked for, and
+    chunk by chunk when written (:meth:`write`): the values are the same
+    either way. (With hysteresis states the model force is held: its gates are
+    scanned through all periods at once.)
+    """
+
+    NAMES = ("phase", "period_start_time", "deflection", "velocity", "acceleration", "separation", "force_model",
+             "force_direct", "peak_force", "adhesion_force", "max_indentation", "contact_time", "dissipated_energy",
+             "dissipated_energy_direct", "virial", "virial_direct", "amplitude", "period_error")
+    CURVES = ("deflection", "velocity", "acceleration", "separation", "force_model", "force_direct")
+    SUMMARIES = ("peak_force", "adhesion_force", "max_indentation", "contact_time", "dissipated_energy",
+                 "dissipated_energy_direct", "virial", "virial_direct", "period_error")
+
+    def __init__(self, prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int):
+        self.prep, self.library, self.system = prep, library, system
+        self.coef, self.params, self.rows = coef, params, rows
+        self.phase = 2 * np.pi * np.arange(n_phase) / n_phase
+        # The series are evaluated at drive phase w t = phase (mod 2 pi): the period that starts in each block.
+        self.cycles = np.floor(prep.blocks.block_times() * prep.drive.omega / (2 * np.pi))
+        start = (2 * np.pi * self.cycles + self.phase[0]) / prep.drive.omega  # = times(...)[:, 0]
+        self.held = {"phase": self.phase, "period_start_time": start}
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(periods, phase points) of the curves."""
+        return self.prep.blocks.n_blocks, self.phase.size
+
+    def times(self, first: int, stop: int | None) -> np.ndarray:
+        """Times (s) of the phase grid of periods ``first`` .. ``stop - 1``."""
+        return (2 * np.pi * self.cycles[first:stop, None] + self.phase[None, :]) / self.prep.drive.omega
+
+    def model_force(self, x: np.ndarray, v: np.ndarray, first: int, stop: int) -> np.ndarray:
+        """The model force (N) on the phase grid of periods ``first`` .. ``stop - 1`` at deflection x, velocity v."""
+        cols = self.library.evaluate(x.ravel(), v.ravel(), self.times(first, stop).ravel(), self.params)
+        return (cols @ self.coef[:self.system.theta.shape[2]]).reshape(x.shape)
+
+    def curve(self, name: str, first: int, stop: int) -> np.ndarray:
+        """One of :attr:`CURVES` for periods ``first`` .. ``stop - 1``: (stop - first, phase points)."""
+        blocks, X = self.prep.blocks, self.prep.X[first:stop, :, None]
+        if name == "force_direct":
+            F = direct_force_coefficients(self.prep, self.system, self.coef, slice(first, stop)) * self.rows[None, :]
+            return blocks.evaluate(F[..., None], self.phase)[..., 0]
+        if name == "separation":
+            return self.params["d"] - self.curve("deflection", first, stop)
+        if name == "force_model":
+            return self.model_force(self.curve("deflection", first, stop), self.curve("velocity", first, stop),
+                                    first, stop)
+        order = ("deflection", "velocity", "acceleration").index(name)
+        return blocks.evaluate(blocks.derivative(X, order) if order else X, self.phase)[..., 0]
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name in self.held:
+            return self.held[name]
+        if name not in self.CURVES:
+            raise KeyError(name)
+        out = np.empty(self.shape)
+        for b0, values in self.pieces(name):
+            out[b0:b0 + values.shape[0]] = values
+        return out
+
+    def pieces(self, name: str):
+        """(first period, values) of a curve, :data:`PERIOD_CHUNK` periods at a time."""
+        for b0 in range(0, self.shape[0], PERIOD_CHUNK):
+            yield b0, self.curve(name, b0, min(b0 + PERIOD_CHUNK, self.shape[0]))
+
+    def __iter__(self):
+        return iter(self.NAMES)
+
+    def __len__(self) -> int:
+        return len(self.NAMES)
+
+    def write(self, group, units: dict[str, str]) -> None:
+        """Write every array into ``group`` as :func:`write_dataset` would, the curves chunk by chunk."""
+        for name in self.NAMES:
+            if name in self.held:
+                write_dataset(group, name, self.held[name], units[name])
+                continue
+            ds = create_dataset(group, name, self.shape, np.float64, units[name])
+            rows = ds.chunks[0] if ds.chunks else self.shape[0]
+            # Written in whole HDF5 chunks (each compressed once); the rows past the last whole one wait for
+            # the next piece.
+            pending, first = np.empty((0, self.shape[1])), 0
+            for b0, values in self.pieces(name):
+                pending = np.concatenate([pending, values]) if pending.size else values
+                stop = b0 + values.shape[0]
+                cut = stop if stop == self.shape[0] else first + (stop - first) // rows * rows
+                if cut > first:
+                    ds[first:cut] = pending[:cut - first]
+                    pending, first = pending[cut - first:], cut

@@ -1,0 +1,463 @@
+"""The fit stage: from a deflection trace to a sparse, physically named force law.
+
+Pipeline (each step a plain function; the CLI only wires them):
+load (:func:`afmid.io.trace.load_trace`) -> :func:`prepare` (drive frequency, blocks of
+one period, Fourier coefficients, noise level, the model-free force) ->
+:func:`build_system` (library columns projected like the data, whitened, factored)
+-> :func:`afmid.fit.regression.select` (sparsity path + BIC / CV) -> nonlinear
+parameters (separation, decay lengths) by an outer search -> bagging for error
+bars -> physical read-out -> per-sample and per-period forces -> :func:`afmid.runfile.write_run`.
+
+:func:`run_fit` is load + :func:`prepare` + :func:`fit_prepared`. Fits of many
+libraries or parameter sets on one trace (the diagnosis, force maps) prepare
+it once and pass it (``run_fit(config, prepared=...)`` or :func:`fit_prepared`);
+:func:`build_system`, :func:`residual_sum_squares` and :func:`library_parameters`
+serve searches of their own on a prepared trace. The pieces live beside this
+module: :mod:`afmid.fit.selection` (selection settings), :mod:`afmid.fit.search`
+(1-D searches and search ranges of the nonlinear parameters),
+:mod:`afmid.fit.forces` (error metric, read-out, forces).
+
+Equation (SI, x toward the sample, F_ts repulsive positive):
+    m x'' + (m w0 / Q) x' + k x = -F_ts + F_drive,   m = k / w0^2
+so  Y := -(m x'' + (m w0/Q) x' + k x) = F_ts - F_drive = Theta c - (a cos wt + b sin wt).
+In the harmonic form every column is projected on the drive harmonics of each
+block (least squares), derivatives act exactly on the Fourier series, and the
+rows are weighted by the predicted noise of Y (detector noise amplified by the
+cantilever's transfer function plus thermal force noise).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from afmid.config import RunConfig
+from afmid.errors import AfmidError, ConfigError, InputError
+from afmid.preprocess.instrument import from_config as instrument_from_config
+from afmid.io.trace import Trace, load_trace
+from afmid.physics.library import Library, build_library
+import afmid.fit.regression as regression
+from afmid.fit.forces import force_cv_error, per_sample_forces, period_curves, read_out, signal_rows
+from afmid.fit.search import NonlinearEstimate, search_1d, search_range
+from afmid.fit.profile import GroupedProfile, ProfileResult, robust_profile
+from afmid.fit.selection import SelectionSettings
+from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
+from afmid.preprocess.motion import fit_warning as motion_warning
+from afmid.fit.uncertainty import finish as finish_uncertainty
+from afmid.fit.undetermined import mark as mark_undetermined
+# Kept importable from afmid.fit.pipeline, where they were defined before (bench/bench_fit.py uses term_penalties).
+from afmid.fit.forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
+from afmid.fit.selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
+# The run-file writer lives in afmid.runfile; `from afmid.fit.pipeline import write_run` keeps working.
+from afmid.runfile import PERIOD_UNITS, write_run  # noqa: F401
+
+log = logging.getLogger(__name__)
+
+# The preparation and the regression system live in afmid.fit.prepare and afmid.fit.system; the names
+# below stay importable from afmid.fit.pipeline.
+from afmid.fit.prepare import (  # noqa: E402,F401
+    FINE_POINTS_PER_PERIOD,
+    Prepared,
+    pairwise_sum,
+    prepare,
+    smooth_across_blocks,
+    smoothing_variance_factor,
+    with_regressor_noise,
+)
+from afmid.fit.system import System, build_system, library_columns, residual_sum_squares  # noqa: E402,F401
+
+
+# --------------------------------------------------------------------------- nonlinear search
+def profile_parameter(prep: "Prepared", library: Library, params: dict, name: str, bounds: tuple[float, float],
+                      mask: np.ndarray | None, jackknife: bool = True) -> ProfileResult:
+    """Profile the weighted residual over one nonlinear parameter (the others held): :class:`ProfileResult`.
+
+    ``mask`` selects the columns (None: all). The minimum, its chi-square
+    interval and the block jackknife of the minimum (``jackknife``: the
+    honest sigma; off for quick refits) are :func:`afmid.fit.profile.robust_profile`'s.
+    """
+    def factors_at(value: float):
+        try:
+            system = build_system(prep, library, dict(params, **{name: value}))
+        except AfmidError:
+            return None
+        return system.T_blocks, system.n_rows
+
+    grouped = GroupedProfile(factors_at, mask)
+    rss = grouped(params[name])
+    n_columns = len(library) + len(prep.nuisance_names)
+    m = np.ones(n_columns, dtype=bool) if mask is None else mask
+    s2 = rss / max(grouped.n_rows - int(m.sum()), 1)
+    half = 0.3e-9 if name == "d" else max(0.3 * abs(params[name]), 1e-3 * (bounds[1] - bounds[0]))
+    min_step = 1e-14 if name == "d" else 1e-4 * half
+    return robust_profile(grouped, params[name], half, s2, *bounds, min_step=min_step, jackknife=jackknife)
+
+
+def profile_library(library: Library, config: RunConfig) -> tuple[Library, dict[str, float]]:
+    """The library whose residual profiles the rest separation and decay lengths, and the parameters it adds.
+
+    These are parameters of the physical model, so they are profiled with it.
+    A preset's distractors (z^-3 beside z^-2, delta^2 beside delta^1.5) absorb
+    a misplaced contact point and leave the preset's residual flat in d; and
+    its split columns (tail out of contact, a free adhesion constant in
+    contact) lose the continuity of the DMT force at contact, which is what
+    pins the contact point. So a preset is profiled with the catalog effects it
+    stands for (``dmt`` ties the tail and the adhesion), then selected among
+    its own terms at that separation. A library built from effects (plus any
+    custom terms) is its own profile library. Nonlinear parameters of the
+    profile library that the run's library lacks (e.g. a JKR neck length) stay
+    at their defaults (returned as the second value).
+    """
+    if config.model.library is None:
+        return library, {}
+    from afmid.config import ModelConfig
+
+    physics = build_library(ModelConfig(effects=list(library.effects)), config.source)
+    extra = {k: v for k, v in physics.nonlinear.items() if k not in library.nonlinear}
+    return physics, extra
+
+
+# --------------------------------------------------------------------------- result
+@dataclass
+class FitResult:
+    config: RunConfig
+    prep: Prepared
+    library: Library
+    system: System
+    selection: regression.Selection
+    coef: np.ndarray  # all columns (library + nuisance), SI
+    coef_std: np.ndarray
+    ci_low: np.ndarray
+    ci_high: np.ndarray
+    inclusion: np.ndarray
+    bagging: regression.Bagging | None
+    nonlinear: dict[str, NonlinearEstimate]
+    quantities: dict[str, dict]  # name -> {value, error, ci_low, ci_high, unit, effect}
+    cv_error: float
+    cv_error_folds: np.ndarray
+    cv_error_noise_floor: float  # the error a perfect model would show at this noise
+    signal_rows: np.ndarray  # bool (2K+1): rows counted in the error metric
+    force_estimate: np.ndarray  # N per input sample (NaN where not estimated)
+    force_direct: np.ndarray  # N per input sample, model-free (band-limited)
+    periods: dict[str, np.ndarray]
+    warnings: list[str] = field(default_factory=list)
+    drive_search: DriveSearch | None = None  # the drive frequency searched by the regression (transient records)
+    force_calibration_uncertainty: float = 0.0  # relative, 1 sigma: the force's share of the k / Q calibration
+    model_limited: bool = False  # cv_error above its noise floor: parameters biased beyond their error bars
+
+    @property
+    def selected(self) -> np.ndarray:
+        return self.selection.best.mask
+
+    @property
+    def n_library(self) -> int:
+        return len(self.library)
+
+    def selected_terms(self) -> list[str]:
+        return [n for n, m in zip(self.library.names, self.selected[: self.n_library]) if m]
+
+    def summary_line(self) -> str:
+        terms = ", ".join(self.selected_terms()) or "none"
+        return f"cv_error {self.cv_error:.4f}; terms: {terms}"
+
+
+def library_parameters(prep: Prepared, config: RunConfig, library: Library) -> dict:
+    """The parameters the library's columns are evaluated with, before the outer search (SI).
+
+    The sample's a0, the measured drive frequency ``w`` (rad/s), the tip radius
+    ``R`` when the cantilever has one, and the library's nonlinear parameters at
+    their defaults or fixed values. The rest separation ``d`` is not included:
+    the outer search (or ``sample.separation``) sets it.
+    """
+    params = {"a0": config.sample.a0, "w": prep.drive.omega}
+    if prep.trace.cantilever.tip_radius is not None:
+        params["R"] = prep.trace.cantilever.tip_radius
+    params.update(library.nonlinear)
+    return params
+
+
+def first_contact(prep: Prepared, a0: float) -> float:
+    """Separation at which the lowest turning point just touches (z_min = a0), m."""
+    x_max = float(np.max(prep.blocks.synthesize(prep.X[..., None])[:, 0]))
+    return x_max + a0
+
+
+def estimate_nonlinear(prep, library, config, params, progress=None, physics=None) -> dict[str, NonlinearEstimate]:
+    """Coarse outer search over the rest separation and the library's decay lengths.
+
+    The objective is the residual of the profile library (:func:`profile_library`: the run's catalog
+    effects, all their terms; ``physics`` = its (library, extra parameters) when already built);
+    :func:`run_fit` then refines each on its profile.
+    """
+    fit = config.fit
+    estimates: dict[str, NonlinearEstimate] = {}
+    to_search: list[tuple[str, float, float, bool, str]] = []
+    zero_allowed: set[str] = set()
+    if config.sample.separation is None:
+        d_touch = first_contact(prep, config.sample.a0)
+        below, above = fit.separation_window
+        to_search.append(("d", d_touch - below, d_touch + above, False, "m"))
+    else:
+        params["d"] = config.sample.separation
+    if fit.estimate_nonlinear:
+        for name in library.nonlinear:
+            if name in config.model.parameters:
+                continue
+            span = search_range(library, name)
+            to_search.append((name, span.low, span.high, True, span.unit))
+            if span.zero_allowed:
+                zero_allowed.add(name)
+    if "d" not in params:
+        params["d"] = to_search[0][1] + 0.5 * (to_search[0][2] - to_search[0][1])
+    physics, extra = physics or profile_library(library, config)
+    for round_ in range(2 if len(to_search) > 1 else 1):
+        for name, lo, hi, log_scale, unit in to_search:
+            def objective(value, name=name):
+                trial = dict(params, **extra, **{name: value})
+                try:
+                    return residual_sum_squares(build_system(prep, physics, trial), None)
+                except AfmidError:
+                    return math.inf
+            n_grid = 25 if round_ == 0 else 11
+            if round_ > 0:  # narrow around the current value
+                cur = params[name]
+                span = (hi - lo) / 8 if not log_scale else None
+                if span:
+                    lo_r, hi_r = max(lo, cur - span), min(hi, cur + span)
+                else:
+                    lo_r, hi_r = (max(lo, cur / 2), min(hi, cur * 2)) if cur > 0 else (lo, min(hi, 4 * lo))
+            else:
+                lo_r, hi_r = lo, hi
+            best, grid, values = search_1d(objective, lo_r, hi_r, n_grid, log_scale)
+            if name in zero_allowed and objective(0.0) <= min(objective(best), float(np.min(values))):
+                best = 0.0
+            params[name] = best
+            estimates[name] = NonlinearEstimate(name, best, math.nan, unit, True, grid, values,
+                                                (0.0 if name in zero_allowed else lo, hi))
+            if progress:
+                progress.update(1)
+    return estimates
+
+
+def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = None, uncertainty: bool = True,
+            prepared: Prepared | None = None) -> FitResult:
+    """Fit the trace named by ``config`` (or ``trace``) and return everything the run file holds.
+
+    ``uncertainty=False`` skips the error bars (bootstrap, profile widths of the
+    nonlinear parameters and their propagation): for quick comparative refits.
+    ``prepared`` is :func:`prepare` of the trace with ``config.fit`` done once
+    and shared by fits of other libraries or parameters on the same trace (it
+    is never modified); its trace is the one fitted.
+    """
+    if prepared is not None:
+        if trace is not None and trace is not prepared.trace:
+            raise ValueError("run_fit: `trace` is not the trace `prepared` was made from")
+        trace = prepared.trace
+    elif trace is None:
+        trace = load_trace(config)
+    library = build_library(config.model, config.source)
+    if len(library) == 0:
+        raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source, key="model")
+    prep = prepared if prepared is not None else prepare(trace, config.fit, instrument_from_config(config))
+    return fit_prepared(prep, library, config, progress=progress, uncertainty=uncertainty)
+
+
+def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: bool = False,
+                 uncertainty: bool = True) -> FitResult:
+    """Fit ``library`` to a prepared trace (:func:`prepare` with ``config.fit``): the fit after the preparation.
+
+    ``config`` gives the sample (a0, a fixed separation), fixed model parameters
+    and the fit settings; ``config.model`` is not read (``library`` is fitted).
+    ``prep`` is not modified, so one preparation serves fits of many libraries
+    and parameter sets. ``uncertainty`` as in :func:`run_fit`.
+    """
+    from tqdm import tqdm
+
+    fit = config.fit
+    trace = prep.trace
+    # Defects were detected and reported when the trace was loaded (afmid.io.defects); keep them with the run.
+    warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
+    if prep.motion is not None and prep.motion.non_periodic:
+        warnings.append(motion_warning(prep.motion, prep.noise_rms))
+    params = library_parameters(prep, config, library)
+    bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
+    physics, extra = profile_library(library, config)
+    nonlinear = estimate_nonlinear(prep, library, config, params, physics=(physics, extra))
+
+    def factors_at(p: Prepared):  # the profile library's columns at the current parameters, held
+        trial = dict(params, **extra)
+        theta = library_columns(p, physics, trial)
+        return lambda q: build_system(q, physics, trial, theta=theta).T_blocks
+
+    def estimate_again(p: Prepared) -> None:
+        nonlinear.update(estimate_nonlinear(p, library, config, params, physics=(physics, extra)))
+
+    prep, drive_search = settle_drive_frequency(prep, fit.drive_frequency, fit.seed, factors_at,
+                                                estimate_again if nonlinear else None)
+    bar.update(1)
+    settings = SelectionSettings.for_library(fit, library, len(prep.nuisance_names))
+    system = build_system(prep, library, params)
+    selection = settings.select(system)
+    chosen = selection.best.mask
+    # Second pass: weights that include the regressors' own noise, then select again.
+    coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), chosen)
+    prep = with_regressor_noise(prep, library, params, coef0)
+    system = build_system(prep, library, params, theta=system.theta)  # same columns, new row weights
+    selection = settings.select(system)
+    chosen = selection.best.mask
+    # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the
+    # profile's width is their uncertainty (propagated into the read-out below).
+    if nonlinear:
+        def profile(name, est, mask):
+            # A preset is profiled with all the terms of its catalog effects.
+            return profile_parameter(prep, physics, dict(params, **extra), name, est.bounds,
+                                     mask if physics is library else None, jackknife=uncertainty)
+
+        profiled = {}
+        for name, est in nonlinear.items():
+            found = profile(name, est, chosen)
+            params[name] = found.value
+            profiled[name] = found.sigma
+        support = chosen
+        system = build_system(prep, library, params)
+        selection = settings.select(system)
+        chosen = selection.best.mask
+        for name, est in nonlinear.items():
+            est.value = params[name]
+            if uncertainty:
+                # The profile of the final support (the first one's when the support did not change).
+                same = np.array_equal(chosen, support) or physics is not library
+                est.sigma = profiled[name] if same else profile(name, est, chosen).sigma
+    bar.update(1)
+    T = regression.combine(system.T_blocks)
+    coef, _ = regression.subset_fit(T, chosen)
+    bagging = None
+    coef_std = np.zeros_like(coef)
+    ci_low, ci_high = coef.copy(), coef.copy()
+    inclusion = chosen.astype(float)
+    for name, est in nonlinear.items():
+        est.value = params[name]
+    if fit.bootstrap > 0 and uncertainty:
+        rng = np.random.default_rng(fit.seed)
+        bagging = settings.bag(system, chosen, fit.bootstrap, rng)
+        coef_std = bagging.coef_samples.std(axis=0, ddof=1)
+        ci_low, ci_high = np.percentile(bagging.coef_samples, [2.5, 97.5], axis=0)
+        inclusion = bagging.inclusion
+    bar.update(1)
+    rows = signal_rows(prep, system, coef)
+    cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, rows, fit.folds)
+    try:
+        refuse_unusable(trace, library, coef[:len(library)], cv_error)
+    except AfmidError:
+        bar.close()  # the error line must not land on the progress bar's line
+        raise
+    quantities = read_out(library, coef, bagging, params, chosen, trace)
+    if uncertainty:
+        propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
+    force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,
+                                                    trace, config, cv_error, noise_floor, read_out, uncertainty)
+    # A read-out whose term was not selected is "not determined" (never 0 +- 0); terms the resamples select
+    # only sometimes widen the error bars they affect (afmid.fit.undetermined).
+    mark_undetermined(quantities, library, system, coef, chosen, params, trace, inclusion,
+                      fit.bootstrap if uncertainty else 0, fit.seed, read_out, warnings)
+    force_estimate, force_direct = per_sample_forces(prep, library, system, coef, rows)
+    periods = period_curves(prep, library, system, coef, params, rows, fit.phase_points)
+    bar.update(1)
+    bar.close()
+    for name, est in nonlinear.items():
+        log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
+    return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
+                     nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_direct, periods,
+                     warnings, drive_search, force_calibration, limited)
+
+
+def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:
+    """Stop (InputError, nothing written) when the fit has no result afmid can stand behind.
+
+    A NaN error metric means no drive harmonic of the model-free force stood out of the noise on the
+    held-out periods: there was no tip-sample force to identify, and the coefficients only describe noise.
+    """
+    bad = [name for name, c in zip(library.names, coef) if not math.isfinite(c)]
+    if bad:
+        raise InputError(f"the fit's coefficients are not finite for {', '.join(bad)}: the library columns are "
+                         "degenerate on this trace; nothing was written", file=trace.path, key="model")
+    if not math.isfinite(cv_error):
+        raise InputError("the fit has no usable result: its cross-validated error is NaN because no harmonic of "
+                         "the model-free tip-sample force stands above the noise (the tip does not reach the sample, "
+                         "or this is not a tapping trace); nothing was written", file=trace.path, key="data.path")
+
+
+def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params, mask, trace) -> None:
+    """Add the uncertainty of estimated nonlinear parameters (separation, decay lengths) to the quantities.
+
+    The bootstrap holds them fixed; refitting at +-1 sigma of each and reading
+    out again gives the sensitivity, added in quadrature to the error and to
+    both halves of the 95 % interval (in place).
+    """
+    extra = {k: 0.0 for k in quantities}
+    for name, est in nonlinear.items():
+        if not math.isfinite(est.sigma) or est.sigma <= 0:
+            continue
+        shifted = []
+        for sign in (1, -1):
+            trial = dict(params, **{name: params[name] + sign * est.sigma})
+            try:
+                system = build_system(prep, library, trial)
+            except AfmidError:
+                break
+            coef, _ = regression.subset_fit(regression.combine(system.T_blocks), mask)
+            shifted.append(read_out(library, coef, None, trial, mask, trace))
+        if len(shifted) == 2:
+            for k in quantities:
+                delta = 0.5 * (shifted[0].get(k, {}).get("value", math.nan) - shifted[1].get(k, {}).get("value", math.nan))
+                if math.isfinite(delta):
+                    extra[k] += delta**2
+    for k, q in quantities.items():
+        if extra[k] > 0:
+            q["error"] = math.sqrt((q["error"] if math.isfinite(q["error"]) else 0.0) ** 2 + extra[k])
+            half = 1.96 * math.sqrt(extra[k])
+            lo, hi = q["ci_low"], q["ci_high"]
+            if math.isfinite(lo) and math.isfinite(hi):
+                q["ci_low"] = q["value"] - math.hypot(q["value"] - lo, half)
+                q["ci_high"] = q["value"] + math.hypot(hi - q["value"], half)
+            else:
+                q["ci_low"], q["ci_high"] = q["value"] - half, q["value"] + half
+
+
+# --------------------------------------------------------------------------- effects from the CLI
+def apply_effect_changes(config: RunConfig, add: tuple[str, ...] | list[str], remove: tuple[str, ...] | list[str]) -> None:
+    """``--add`` / ``--remove`` effects on the loaded config (validated like the YAML)."""
+    if not add and not remove:
+        return
+    if config.model.library is not None:
+        raise ConfigError("--add/--remove change model.effects, but this config uses model.library",
+                          file=config.source, key="model.library")
+    both = sorted(set(add) & set(remove))
+    if both:
+        raise ConfigError(f"--add {both[0]} and --remove {both[0]} contradict each other; give one of them",
+                          key="--add")
+    effects = list(config.model.effects)
+    for name in remove:
+        if name not in effects:
+            raise ConfigError(f"--remove {name}: not in model.effects {effects}", file=config.source, key="model.effects")
+        effects.remove(name)
+    for name in add:
+        if name in effects:
+            log.warning("%s: --add %s: already in model.effects %s; nothing to add", config.source, name, effects)
+        else:
+            effects.append(name)
+    try:
+        config.model.effects = effects
+    except Exception as exc:  # pydantic ValidationError from the effects validator
+        from pydantic import ValidationError
+
+        from afmid.config import validation_error
+
+        if isinstance(exc, ValidationError):
+            err = validation_error(exc, config.source)
+            raise ConfigError(err.message.replace("unknown effect", "--add: unknown effect"), file=config.source,
+                              key="model.effects") from None
+        raise

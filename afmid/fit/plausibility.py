@@ -1,0 +1,258 @@
+"""Plausibility of the fit's physical read-outs (E*, Hamaker constant, viscosity, ...).
+
+Every quantity an effect reports has a declared plausible range in the
+registry (:func:`afmid.physics.effects.quantity_range`: the parameter's valid range, or
+the quantity's own ``low``/``high``); the range also fixes its sign. After a
+fit each read-out is judged against it, and a value afmid cannot stand behind
+is flagged, never written or shown as a plain result:
+
+- **outside the range** (a negative viscosity, E* = 1e13 Pa from a wrong
+  detector scale): implausible. The reason says whether the sign is wrong, and
+  where the 95 % interval lies (entirely outside too, or reaching into the
+  range: then the value is compatible with the range only at the edge of its
+  noise, still not a result to report as is);
+- **exactly 0 where the range excludes 0**: the term behind it was not
+  selected, so the data did not identify the quantity (E* of a fit without
+  contact): implausible, "not identified";
+- **inside the range but its whole 95 % interval outside** (a skewed
+  bootstrap): implausible;
+- **inside the range with an interval straddling a bound**: fine (a
+  viscosity of 3 +- 5 Pa s is a small viscosity, not a negative one);
+- **not finite**: NaN means the read-out could not be computed (the fitted term
+  has the sign opposite to the effect's, or a value it needs, e.g. the tip
+  radius, is missing), inf is outside every range: implausible;
+- **unconstrained**: a non-zero value whose bootstrap error is more than
+  :data:`UNCONSTRAINED_RATIO` times its size, or infinite: the data do not
+  determine it (a number with no significant digit), implausible. A value of
+  0 with an error is a term selected in some bootstrap samples only: its error
+  is an upper limit and stays fine;
+- no error (no bootstrap, NaN) is no verdict on its own.
+
+Where the verdicts go (:func:`afmid.runfile.write_run`): attributes ``plausible``
+(bool) and ``plausibility`` (the reason, one sentence, empty when plausible)
+on ``/model/parameters/NAME``, ``n_implausible`` and ``implausible`` (the
+reasons) on ``/diagnostics``, one ``afmid: warning:`` line per violation; the
+report marks the value, and the batch summary gives the item the status
+``suspect``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from afmid.physics.effect_tags import Character
+from afmid.physics.effects import EFFECTS, quantity_range
+
+log = logging.getLogger("afmid")
+
+#: The words of a not-determined read-out's reason (:func:`describe_not_determined`).
+NOT_DETERMINED = " is not determined: "
+#: An error this many times larger than |value| means the data do not determine the value.
+UNCONSTRAINED_RATIO = 1e3
+
+#: Units shown with an SI prefix (nm, nN, MPa, kPa s); the others in plain scientific notation.
+_PREFIXED_UNITS = {"m", "N", "Pa", "Pa*s", "V", "Hz", "s"}
+_PREFIXES = {-18: "a", -15: "f", -12: "p", -9: "n", -6: "µ", -3: "m", 0: "", 3: "k", 6: "M", 9: "G", 12: "T"}
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Whether a read-out can be physical; ``reason`` (one sentence) says why not, empty when it can.
+
+    ``finding`` is the reason without the advice on what to check in the run's calibration (for a
+    context where the value comes from a trial model, not from the user's settings).
+    """
+
+    plausible: bool
+    reason: str = ""
+    finding: str = ""
+
+    def __post_init__(self):
+        if not self.finding:
+            object.__setattr__(self, "finding", self.reason)
+
+
+def _short(x: float) -> str:
+    """A number as a person writes a bound: 0, 1e5, 1e-22, 0.05, 5."""
+    if x == 0 or 1e-3 <= abs(x) < 1e4:
+        return f"{x:g}"
+    mantissa, exponent = f"{x:.3e}".split("e")
+    return f"{mantissa.rstrip('0').rstrip('.')}e{int(exponent)}"
+
+
+def unit_words(unit: str) -> str:
+    """A unit as written in prose: ``Pa*s`` -> ``Pa s``."""
+    return unit.replace("*", " ")
+
+
+def display(value: float, unit: str) -> str:
+    """A value in the unit a scientist reads (24 kPa s, 3.2 nN, 1.5 GPa, 1e-19 J), 3 significant digits."""
+    if not math.isfinite(value):
+        return f"{value} {unit_words(unit)}"
+    if value == 0:
+        return f"0 {unit_words(unit)}"
+    if unit in _PREFIXED_UNITS:
+        power = 3 * math.floor(math.log10(abs(value)) / 3)
+        power = min(max(power, min(_PREFIXES)), max(_PREFIXES))
+        mantissa = value / 10.0**power
+        if float(f"{abs(mantissa):.3g}") >= 1000 and power + 3 in _PREFIXES:  # 999.97 nN reads 1 µN
+            power += 3
+            mantissa = value / 10.0**power
+        return f"{mantissa:.3g} {_PREFIXES[power]}{unit_words(unit)}"
+    return f"{value:.3g} {unit_words(unit)}"
+
+
+def range_words(low: float, high: float, unit: str) -> str:
+    """``[0, 1e5] Pa s``: the declared range in SI, as the registry and `afmid effects` state it."""
+    return f"[{_short(low)}, {_short(high)}] {unit_words(unit)}"
+
+
+def _declaring_effect(name: str, effect: str | None):
+    base = name.split(".")[-1]
+    if effect is None and "." in name:
+        effect = name.split(".")[0]
+    effects = [EFFECTS.get(effect)] if effect and effect in EFFECTS else list(EFFECTS)
+    for eff in effects:
+        for q in eff.quantities:
+            if q.name == base:
+                return eff, q
+    return None, None
+
+
+def plausible_range(name: str, effect: str | None = None) -> tuple[float, float, str] | None:
+    """(low, high, unit) declared for a reported quantity (``name`` or ``effect.name``), None if undeclared."""
+    eff, q = _declaring_effect(name, effect)
+    if q is None:
+        return None
+    low, high = quantity_range(eff, q)
+    return low, high, q.unit
+
+
+def _field(q, key: str) -> float:
+    try:
+        return float(q.get(key, math.nan))
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def judge(name: str, quantity: Mapping | float) -> Verdict:
+    """The verdict on one read-out: ``quantity`` is a value (SI) or a mapping with ``value`` and optionally
+    ``error``, ``ci_low``, ``ci_high`` (95 % interval), ``unit`` and ``effect`` (as the fit's quantities)."""
+    q = quantity if isinstance(quantity, Mapping) else {"value": quantity}
+    value, error = _field(q, "value"), _field(q, "error")
+    ci_low, ci_high = _field(q, "ci_low"), _field(q, "ci_high")
+    declared = plausible_range(name, q.get("effect") or None)
+    unit = str(q.get("unit") or (declared[2] if declared else ""))
+    label = name.split(".")[-1]
+    if q.get("determined", True) is False:  # its term was not selected: no value (afmid.fit.undetermined)
+        # An effect that may be absent (0 in its range: a viscosity) is simply not seen: its interval is the
+        # result. A quantity the model needs (E* of a contact model: 0 is outside its range) is not identified.
+        declared = plausible_range(name, q.get("effect") or None)
+        if declared is not None and declared[0] <= 0.0 <= declared[1]:
+            return Verdict(True)
+        return Verdict(False, describe_not_determined(name, q))
+    if math.isnan(value):
+        return Verdict(False, f"{label} could not be read out (NaN): the fitted term has the sign opposite to "
+                              "the effect's, or the read-out needs a value the run lacks, such as "
+                              "cantilever.tip_radius",
+                       f"{label} could not be read out (NaN: the fitted term has the sign opposite to the effect's)")
+    shown = f"{label} = {display(value, unit)}"
+    has_interval = math.isfinite(ci_low) and math.isfinite(ci_high)
+    interval = f"[{display(ci_low, unit)}, {display(ci_high, unit)}]" if has_interval else ""
+    if declared is not None:
+        low, high, _ = declared
+        allowed = range_words(low, high, unit)
+        if not (low <= value <= high):
+            if value == 0:
+                return Verdict(False, f"{shown}: not identified (its term was not selected), while a physical "
+                                      f"{label} lies in {allowed}")
+            if value < 0 <= low:
+                what = f"{shown} has the wrong sign: a physical {label} lies in {allowed}"
+                eff, _ = _declaring_effect(name, q.get("effect") or None)
+                if eff is not None and eff.character is Character.DISSIPATIVE:  # the sample cannot give energy back
+                    hint = ("is the lever's own damping overestimated (cantilever.quality_factor too low), or the "
+                            "deflection's sign convention wrong (data.positive)?")
+                else:
+                    hint = "is the deflection's sign convention right (data.positive)?"
+            else:
+                what = f"{shown} is outside the plausible range: a physical {label} lies in {allowed}"
+                hint = ("are the units and calibration right (data.units, data.invols or data.scale, "
+                        "cantilever.spring_constant, cantilever.tip_radius)?")
+            if has_interval:
+                if ci_high < low or ci_low > high:
+                    what += f", and its 95 % interval {interval} is outside it too"
+                else:
+                    what += f", and only its 95 % interval {interval} reaches into it"
+            return Verdict(False, f"{what}; {hint}", what)
+        if has_interval and (ci_high < low or ci_low > high):
+            return Verdict(False, f"{shown} lies in {allowed}, but its whole 95 % interval {interval} lies outside")
+    if math.isinf(error) or (value != 0 and math.isfinite(error) and error > UNCONSTRAINED_RATIO * abs(value)):
+        return Verdict(False, f"{shown} ± {display(error, unit)} (1σ) is unconstrained: its error is more than "
+                              f"{UNCONSTRAINED_RATIO:g} times the value, the data do not determine it")
+    return Verdict(True, "")
+
+
+def check_plausibility(quantities: Mapping[str, Mapping | float]) -> dict[str, Verdict]:
+    """Verdicts on the fit's read-outs, by name (``FitResult.quantities`` or ``{name: value}`` in SI)."""
+    return {name: judge(name, q) for name, q in quantities.items()}
+
+
+def violations(verdicts: Mapping[str, Verdict]) -> list[str]:
+    """The reasons of the implausible verdicts, in order."""
+    return [v.reason for v in verdicts.values() if not v.plausible]
+
+
+def attributes(verdict: Verdict) -> dict:
+    """The attributes of a ``/model/parameters/NAME`` dataset that hold the verdict."""
+    return {"plausible": bool(verdict.plausible), "plausibility": verdict.reason}
+
+
+def flagged_value(name: str, quantity: Mapping) -> str:
+    """How a table shows an implausible read-out: never as a plain number.
+
+    ``implausible: -24 kPa s ± 3 kPa s (1σ) (plausible: [0, 1e5] Pa s)``.
+    """
+    value, error = _field(quantity, "value"), _field(quantity, "error")
+    declared = plausible_range(name, quantity.get("effect") or None)
+    unit = str(quantity.get("unit") or (declared[2] if declared else ""))
+    if quantity.get("determined", True) is False:
+        return not_determined_text(quantity, unit)
+    text = f"implausible: {display(value, unit)}"
+    if math.isfinite(error):
+        text += f" ± {display(error, unit)} (1σ)"
+    if declared is not None:
+        text += f" (plausible: {range_words(declared[0], declared[1], unit)})"
+    return text
+
+
+def not_determined_text(quantity: Mapping, unit: str) -> str:
+    """A not-determined read-out in a table: ``not determined (95 % with its term forced in: [a, b])``."""
+    lo, hi = _field(quantity, "ci_low"), _field(quantity, "ci_high")
+    text = "not determined"
+    if math.isfinite(lo) and math.isfinite(hi):
+        text += f" (95 % with its term forced in: [{display(lo, unit)}, {display(hi, unit)}])"
+    return text
+
+
+def warn(verdicts: Mapping[str, Verdict]) -> None:
+    """One ``afmid: warning:`` line per implausible read-out."""
+    for reason in violations(verdicts):
+        log.warning("implausible read-out: %s", reason)
+
+
+def describe_not_determined(name: str, q: dict) -> str:
+    """One sentence for a not-determined read-out (console, report, plausibility reason)."""
+    label = name.split(".")[-1]
+    unit = q.get("unit", "")
+    terms = ", ".join(q.get("undetermined_terms", [])) or "its term"
+    text = (f"{label}{NOT_DETERMINED}{terms} was not selected (inclusion probability "
+            f"{q.get('inclusion', math.nan):.2f})")
+    if q.get("silent_terms"):
+        text += "; its column is zero on this trace (the fitted model never reaches where it acts), so no bound"
+    lo, hi = q.get("ci_low", math.nan), q.get("ci_high", math.nan)
+    if math.isfinite(lo) and math.isfinite(hi):
+        text += f"; with it forced in, the 95 % interval is [{display(lo, unit)}, {display(hi, unit)}]"
+    return text

@@ -1,0 +1,347 @@
+"""The fit's preparation of a trace: everything about the data that the library does not change.
+
+:func:`prepare` measures (or takes) the drive, cuts the record into periods (per-period Fourier blocks), forms
+the weak-form rows and the drive / baseline nuisance columns, estimates the noise of every row, and
+reconstructs the trajectory the library is evaluated on (smoothed across periods). The result, a
+:class:`Prepared`, is shared by every fit of the same trace (:func:`afmid.fit.pipeline.fit_prepared`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from afmid.preprocess.baseline import BaselineColumns, remove_drift
+from afmid.errors import AfmidError
+from afmid.preprocess.instrument import crossfaded_series, deflection_views
+from afmid.preprocess.restoration import restore_trajectory
+from afmid.io.trace import Trace
+from afmid.physics.library import Library
+from afmid.physics.effects import BOLTZMANN
+from afmid.preprocess.periods import (
+    HarmonicBlocks,
+    WeakWindows,
+    detrend,
+    differentiate,
+    estimate_drive,
+    harmonic_blocks,
+    ou_smooth,
+    steadiness,
+    weak_windows,
+)
+from afmid.preprocess.motion import classify as classify_motion
+from afmid.fit.forces import CHUNK_BLOCKS
+
+log = logging.getLogger(__name__)
+
+
+#: Library terms are evaluated on a grid of at least this many points per drive period (see harmonic_blocks).
+FINE_POINTS_PER_PERIOD = 2048
+
+
+# --------------------------------------------------------------------------- preparation
+@dataclass
+class Prepared:
+    """Everything about the data that does not depend on the library or its parameters."""
+
+    trace: Trace
+    x: np.ndarray  # m, deflection after detrending (all samples)
+    t: np.ndarray  # s
+    drive: object  # DriveEstimate
+    blocks: HarmonicBlocks  # per-period Fourier fits (trajectory, outputs)
+    windows: WeakWindows  # weak-form test functions (regression rows)
+    X: np.ndarray  # (B, 2K+1) m, deflection coefficients per period
+    Y: np.ndarray  # (W, 2K+1) N s, weak-form left side per window and test function
+    nuisance: np.ndarray  # (W, 2K+1, n_nu) drive (and offset / cantilever) columns, weak form
+    nuisance_names: list[str]
+    row_sigma: np.ndarray  # (2K+1,) N s, predicted noise of each weak-form row
+    base_variance: np.ndarray  # (2K+1,) the equation's own noise (thermal force + detector)
+    psi_sq: np.ndarray  # (2K+1,) s^2, sum of squared test-function weights (for regressor noise)
+    Y_block: np.ndarray  # (B, 2K+1) N, -(m x'' + c x' + k x) per period (outputs)
+    nuisance_block: np.ndarray  # (B, 2K+1, n_nu) per-period drive columns (outputs)
+    block_sigma: np.ndarray  # (2K+1,) N, noise of Y_block per period
+    trajectory_noise: float  # m, rms noise of the trajectory the library is evaluated on
+    xdot_used: np.ndarray  # m/s, velocity on the used samples (band-limited)
+    X_traj: np.ndarray  # (B, 2K+1) m, smoothed trajectory coefficients (the library's input)
+    V_traj: np.ndarray  # (B, 2K+1) m/s, its velocity
+    noise_rms: float  # m, detector noise estimated from the block fits
+    steadiness: float
+    removed: dict  # detrend info
+    form: str = "weak"
+    strong: tuple | None = None  # (x, xdot) on the used samples from the differentiator (strong form)
+    motion: object = None  # afmid.preprocess.motion.Motion: periodic, period doubling or non-periodic (None: not judged)
+    #: m, the tip restored for the per-sample forces behind a declared detector (afmid.preprocess.restoration): the
+    #: smoothed, Wiener-shrunk trajectory instead of ``x``, whose inverted noise is multiplied by |1/G| (None: x)
+    x_restored: np.ndarray | None = None
+
+
+def prepare(trace: Trace, fit, instrument=None) -> Prepared:
+    """Everything about the data that the library does not change: drive, blocks, weak-form rows, noise.
+
+    ``instrument`` (:class:`afmid.preprocess.instrument.Instrument`, None: ideal) is undone per harmonic first
+    (:func:`afmid.preprocess.instrument.deflection_views`): the library sees the tip, the equation its single-mode twin.
+
+    Per-sample work runs chunk by chunk (:data:`afmid.preprocess.periods.CHUNK_BLOCKS` periods): the only arrays as
+    long as the trace are the deflection, its times and the velocity kept for the per-sample forces.
+    """
+    t = trace.times
+    x, removed = detrend(trace.deflection, t, fit.detrend)
+    if trace.time is not None:
+        steps = np.diff(t)
+        if np.max(np.abs(steps - steps.mean())) > 1e-3 * steps.mean():
+            raise AfmidError("the time column is not uniformly sampled (gaps or jitter); resample or crop it first",
+                             file=trace.path, key="data.time_column")
+    drive = trace.drive_for(fit.detrend) or estimate_drive(x, t, trace.drive_frequency)  # measured on loading
+    spp = trace.sample_rate / drive.frequency
+    oversample = fit.oversample or max(1, int(math.ceil(FINE_POINTS_PER_PERIOD / spp)))
+    blocks = harmonic_blocks(x.size, trace.sample_rate, drive.frequency, t0=float(t[0]),
+                             periods_per_block=fit.periods_per_block, max_harmonic=fit.max_harmonic,
+                             oversample=oversample)
+    if fit.detrend == "linear":  # the trajectory without the drift; the regression's columns take the rest
+        x, removed["drift"] = remove_drift(x, t, blocks)
+    views = deflection_views(x, blocks, instrument, trace.cantilever)
+    x, x_equation = views.tip, views.equation
+    windows = weak_windows(blocks)
+    cl = trace.cantilever
+    k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
+    m, c = k / w0**2, k / (Q * w0)
+    fixed = fit.cantilever == "fixed"
+
+    columns = BaselineColumns(drive.omega, float(t[0]), float(t[-1]), fit.baseline == "free", fit.detrend == "linear")
+    names = columns.names
+    n_drive = len(names)
+    weak = fit.form == "weak"
+    # Rows of the weak form: -integral of (m psi'' - c psi' + k psi) x = integral of psi (F_ts - F_drive);
+    # with a free cantilever k x + c x' move to the right-hand side with free coefficients.
+    operator = m * windows.ddpsi + ((k * windows.psi - c * windows.dpsi) if fixed else 0.0)
+    rows = blocks.n_coef
+    # One pass over the samples, chunk by chunk: per-period Fourier coefficients of the deflection and the
+    # drive columns, and the weak-form integrals of the windows starting in the chunk (they reach one period
+    # into the next chunk). The drive columns and the rotations to global phase are made once per chunk.
+    X = np.empty((blocks.n_blocks, rows, 1))
+    nuisance_block = np.empty((blocks.n_blocks, rows, n_drive))
+    W = windows.n_windows
+    if weak:
+        Y = np.empty((W, rows))
+        nuisance = np.empty((W, rows, n_drive + (0 if fixed else 2)))
+        minus_dpsi = -windows.dpsi
+    for b0, b1 in blocks.chunks():
+        lo = blocks.start + b0 * blocks.L
+        n_block = (b1 - b0) * blocks.L
+        hi = lo + n_block + (blocks.L + 1 if weak else 0)
+        xs, cols = x[lo:hi, None], columns(t[lo:hi])
+        xe = xs if x_equation is x else x_equation[lo:hi, None]
+        turn = blocks.rotation(b0, b1)
+        X[b0:b1] = blocks.project_blocks(xs[:n_block], b0, turn)
+        nuisance_block[b0:b1] = blocks.project_blocks(cols[:n_block], b0, turn)
+        w1 = min(b1, W)
+        if weak and w1 > b0:
+            Y[b0:w1] = -windows.integrate_samples(operator, xe, b0, w1 - b0, turn)[..., 0]
+            nuisance[b0:w1, :, :n_drive] = windows.integrate_samples(windows.psi, cols, b0, w1 - b0, turn)
+            if not fixed:
+                nuisance[b0:w1, :, n_drive:n_drive + 1] = windows.integrate_samples(windows.psi, xs, b0, w1 - b0, turn)
+                nuisance[b0:w1, :, n_drive + 1:] = windows.integrate_samples(minus_dpsi, xs, b0, w1 - b0, turn)
+    del xs, xe, cols
+    _release_free_memory()
+
+    # The trajectory, the outputs and the noise level.
+    V = blocks.derivative(X, 1)
+    X_eq = views.equation_coefficients(X)
+    Y_block = -(m * blocks.derivative(X_eq, 2) + c * blocks.derivative(X_eq, 1) + k * X_eq)[..., 0]
+    used = blocks.used
+    n_used = blocks.n_blocks * blocks.L
+    dof = max(n_used - blocks.n_blocks * blocks.n_coef, 1)
+    rss = views.residual_sum_squares if views.tip_gain is not None else _fit_residual_sum_squares(x, blocks, X)
+    noise_rms = float(math.sqrt(rss / dof))
+    noise_rms = max(noise_rms, 1e-9 * drive.amplitude)  # noise-free input: keep weights finite
+    if not fixed:
+        nuisance_block = np.concatenate([nuisance_block, X, V], axis=2)
+        names += ["stiffness", "damping"]
+    thermal = 2 * BOLTZMANN * fit.temperature * c / blocks.dt if fit.thermal_noise else 0.0
+    strong = None
+    if weak:
+        # Predicted noise per row: detector noise through the operator, thermal force noise through psi.
+        psi_sq = _pair_mean(np.sum(windows.psi**2, axis=1))
+        detector_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1))
+        if views.tip_gain is not None:  # the declared instrument's inverse amplifies the noise per harmonic
+            detector_variance = detector_variance * views.noise_gain(blocks.harmonics)
+        base_variance = detector_variance + thermal * psi_sq
+    else:
+        # Rows: the equation at every used sample, derivatives from a registered differentiator.
+        xs, v, a = differentiate(x, trace.sample_rate, drive.frequency, fit.differentiation,
+                                 fit.differentiation_options)
+        shape = (blocks.n_blocks, blocks.L)
+        Y = -(m * a + ((c * v + k * xs) if fixed else 0.0))[used].reshape(shape)
+        cols = [columns(t)] + ([] if fixed else [xs[:, None], v[:, None]])
+        nuisance = np.column_stack(cols)[used].reshape(shape + (-1,))
+        psi_sq = np.zeros(blocks.L)
+        base_variance = np.full(blocks.L, float(np.var(Y - Y.mean(axis=0))))  # uniform weights
+        strong = (xs[used], v[used])
+    n = blocks.harmonics * drive.omega
+    H2 = (1 - (n / w0) ** 2) ** 2 + (n / (Q * w0)) ** 2
+    if views.tip_gain is not None:
+        H2 = H2 * views.noise_gain(blocks.harmonics)
+    block_sigma = np.sqrt(blocks.noise_variance_factor() * (thermal + k**2 * H2 * noise_rms**2))
+
+    # The library is evaluated on a trajectory smoothed across periods: detector noise is independent from
+    # period to period while the real motion wanders slowly (thermal correlation time Q / pi periods), and
+    # noise in the regressors biases stiff terms low (errors in variables).
+    rho = math.exp(-math.pi * blocks.L * blocks.dt * drive.frequency / Q)
+    noise_var = blocks.noise_variance_factor() * noise_rms**2
+    if views.tip_gain is not None:  # an undone detector amplifies the noise of each harmonic by |1 / G|
+        noise_var = noise_var * np.abs(views.tip_gain[blocks.harmonics]) ** 2
+    motion = classify_motion(X[..., 0], noise_var, BOLTZMANN * fit.temperature / k if fit.thermal_noise else 0.0)
+    if fit.smooth_periods is not None:
+        X_traj = smooth_across_blocks(X, fit.smooth_periods)
+        residual_var = smoothing_variance_factor(blocks.n_blocks, fit.smooth_periods)
+    elif motion is not None and motion.non_periodic:  # no one orbit to smooth towards: each period as it is
+        X_traj, residual_var = X, 1.0
+    else:
+        X_s, post_var = ou_smooth(X[..., 0], noise_var, rho)
+        if views.amplifies_noise:  # a declared detector: the amplified noise kept out of the trajectory
+            X_s = restore_trajectory(X_s, noise_var, blocks.harmonics)
+        X_traj = X_s[..., None]
+        residual_var = float(np.mean(post_var.sum(axis=1) / noise_var.sum()))
+    if views.amplifies_noise:  # the trajectory's noise relative to the recorded samples' (noise_rms): amplified
+        residual_var *= float(noise_var.sum() / (blocks.noise_variance_factor() * noise_rms**2).sum())
+    V_traj = blocks.derivative(X_traj, 1)
+    x_restored = crossfaded_series(blocks, X_traj, x.size) if views.amplifies_noise else None
+    return Prepared(
+        trace=trace, x=x, t=t, drive=drive, blocks=blocks, windows=windows, X=X[..., 0],
+        Y=Y, nuisance=nuisance, nuisance_names=names, row_sigma=np.sqrt(base_variance),
+        base_variance=base_variance, psi_sq=psi_sq,
+        Y_block=Y_block, nuisance_block=nuisance_block, block_sigma=block_sigma,
+        trajectory_noise=noise_rms * math.sqrt(residual_var),
+        xdot_used=blocks.synthesize(V_traj)[:, 0],  # chunk by chunk into one array
+        X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X), removed=removed,
+        form=fit.form, strong=strong, motion=motion, x_restored=x_restored,
+    )
+
+
+def _release_free_memory() -> None:
+    """Hand the heap pages freed by a chunked pass back to the OS (glibc keeps freed chunk-sized temporaries
+    resident: ~0.2 GB after a pass over a 1e7-sample trace). A no-op elsewhere."""
+    global _MALLOC_TRIM
+    if _MALLOC_TRIM is None:
+        _MALLOC_TRIM = False
+        try:
+            import ctypes
+            import sys
+
+            if sys.platform.startswith("linux"):
+                _MALLOC_TRIM = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):
+            pass
+    if _MALLOC_TRIM:
+        _MALLOC_TRIM(0)
+
+
+_MALLOC_TRIM = None
+
+
+#: Largest piece np.sum is applied to in :func:`pairwise_sum` (samples).
+PAIRWISE_LEAF = 1 << 17
+
+
+def pairwise_sum(values, n: int, first: int = 0) -> float:
+    """The sum of ``values(lo, hi)`` (a float64 array for elements lo .. hi - 1) over 0 .. n - 1, rounded
+    exactly as ``np.sum`` over all n at once: NumPy sums pairwise, halving the range (at multiples of 8)
+    down to 128 elements, so pieces of that same tree summed by np.sum give the same bits, without the
+    array of n ever existing."""
+    if n <= max(PAIRWISE_LEAF, 128):  # NumPy's own blocks (128) are not split
+        return np.sum(values(first, first + n))
+    half = n // 2
+    half -= half % 8
+    return pairwise_sum(values, half, first) + pairwise_sum(values, n - half, first + half)
+
+
+def _fit_residual_sum_squares(x: np.ndarray, blocks: HarmonicBlocks, X: np.ndarray) -> float:
+    """sum((x - series)^2) over the used samples, chunk by chunk (same bits as over the whole residual)."""
+    L, start = blocks.L, blocks.start
+
+    def squares(lo: int, hi: int) -> np.ndarray:
+        b0 = lo // L // 8 * 8  # whole BLAS panels: the chunk's synthesis rounds like the whole trace's
+        b1 = min(-(-hi // L), blocks.n_blocks)
+        series = blocks.synthesize_blocks(X[b0:b1], b0)[lo - b0 * L:hi - b0 * L, 0]
+        return (x[start + lo:start + hi] - series) ** 2
+
+    return float(pairwise_sum(squares, blocks.n_blocks * L))
+
+
+def _pair_mean(v: np.ndarray) -> np.ndarray:
+    """Average the cos and sin rows of each harmonic (the rotation to global phase mixes them)."""
+    out = v.copy()
+    out[1::2] = out[2::2] = 0.5 * (v[1::2] + v[2::2])
+    return out
+
+
+def smoothing_variance_factor(n_blocks: int, window: int) -> float:
+    """Noise variance left after :func:`smooth_across_blocks` (1 = no smoothing)."""
+    impulse = np.zeros((n_blocks, 1))
+    impulse[n_blocks // 2] = 1.0
+    return float(np.sum(smooth_across_blocks(impulse, window) ** 2))
+
+
+def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: np.ndarray) -> Prepared:
+    """Row noise including the noise that the library columns inherit from the trajectory.
+
+    The force law is evaluated on a reconstructed trajectory with rms error
+    sigma_traj; the model force then errs by about k_ts(t) * sigma_traj, where
+    k_ts = dF/dx is the local tip-sample stiffness. Near resonance this dwarfs
+    the equation's own noise on the first harmonics (k/Q is small), so without
+    it those rows would get weights they do not deserve and bias the contact
+    terms (errors in variables).
+    """
+    import dataclasses
+
+    eps = max(prep.trajectory_noise, 1e-15)
+    p = len(library)
+    keep = np.flatnonzero(coef[:p] != 0)  # only the terms of the model enter its stiffness
+    model = dataclasses.replace(library, terms=[library.terms[j] for j in keep])
+    total, count = 0.0, 0
+    for _, x, v, t in (fine_chunks(prep) if keep.size else ()):
+        f_hi = _model_force(model, x + eps, v, t, params) @ coef[keep]
+        f_lo = _model_force(model, x - eps, v, t, params) @ coef[keep]
+        total += float(np.sum(((f_hi - f_lo) / (2 * eps)) ** 2))
+        count += f_hi.size
+    stiffness_sq = total / max(count, 1)
+    variance = prep.base_variance + prep.psi_sq * stiffness_sq * prep.trajectory_noise**2
+    return dataclasses.replace(prep, row_sigma=np.sqrt(variance))
+
+
+
+
+def _model_force(model: Library, x: np.ndarray, v: np.ndarray, t: np.ndarray, params: dict) -> np.ndarray:
+    """The model's columns (N, k) along fine-grid rows (n, L U): one pass without the variables array when the
+    model has no state gates (the same bits as ``model.evaluate`` on the raveled rows)."""
+    if model.states:
+        return model.evaluate(x.ravel(), v.ravel(), t.ravel(), params)
+    out = np.empty(x.shape + (len(model),))
+    model.evaluate_into(x, v, t, params, out)
+    return out.reshape(x.size, -1)
+
+
+def fine_chunks(prep: Prepared, overlap: int = 0):
+    """Yield (first block, x, xdot, t) on the fine grid, (n, L U) each, chunk by chunk.
+
+    ``overlap`` extra blocks are included at the end of each chunk (windows need the next block).
+    """
+    B = prep.blocks.n_blocks
+    for b0 in range(0, B - overlap if overlap else B, CHUNK_BLOCKS):
+        b1 = min(b0 + CHUNK_BLOCKS + overlap, B)
+        x, v = prep.blocks.synthesize_fine_rows(prep.X_traj[b0:b1], prep.V_traj[b0:b1], first=b0)
+        yield b0, x, v, prep.blocks.fine_times(b0, b1)
+    _release_free_memory()
+
+
+def smooth_across_blocks(coef: np.ndarray, window: int) -> np.ndarray:
+    """Savitzky-Golay (quadratic) smoothing of each Fourier coefficient over ``window`` consecutive blocks."""
+    from scipy.signal import savgol_filter
+
+    window = min(window, coef.shape[0] - (1 - coef.shape[0] % 2))
+    if window < 5:
+        return coef
+    return savgol_filter(coef, window, 2, axis=0, mode="interp")

@@ -1,0 +1,151 @@
+"""Where a fit's sparse support is decided: on the whole record at once, or by a majority vote of period groups.
+
+Both strategies are objects with the protocol ``select(settings, system) -> Selection`` and
+``bag(settings, system, chosen, n_boot, rng) -> Bagging`` (``settings`` is the fit's
+:class:`afmid.fit.selection.SelectionSettings`: method, criterion, penalties, rules). They are declared in
+:data:`SELECTION_SCOPES` and chosen by ``fit.selection_scope``.
+
+Why a vote (docs/accuracy.md, "Selection as the record grows"): the weak-form rows of a tapping trace carry a
+systematic misfit that does not average out over periods (the thermal motion seen through the stiff
+short-range terms, through the per-period trajectory reconstruction). A term of the library that absorbs part
+of it lowers the residual in proportion to the record's length, while BIC's penalty grows only like log(n):
+on the whole record, every such distractor is eventually selected (Lennard-Jones, table I: right support in
+6/10 draws at 50 periods, 0/10 at 500). Within a group of a fixed number of periods the misfit's gain stays
+below the penalty (and the distractor prior), and a real term of the force law stays above it; so the
+majority of the groups' own selections converges on the distractors as the groups multiply. The physical
+(catalog) terms, which carry no such prior and may be too weak to be seen in one group, are then chosen
+on the whole record, and the coefficients are fitted on it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import afmid.fit.regression as regression
+from afmid.registry import Registry
+
+
+@dataclass(frozen=True)
+class RecordSelection:
+    """The support chosen by the criterion on all periods at once (afmid before issue 17)."""
+
+    name: str = "record"
+    title: str = "one selection on the whole record (BIC / AICc / CV over all periods)"
+    references: tuple[str, ...] = ("Schwarz, Ann. Stat. 6, 461 (1978)",)
+
+    def configured(self, fit) -> RecordSelection:
+        return self
+
+    def select(self, settings, system) -> regression.Selection:
+        return regression.select(system.T_blocks, system.protected, settings.method, settings.criterion,
+                                 settings.thresholds, n_rows=system.n_rows, folds=settings.folds,
+                                 penalty=settings.penalty, rules=settings.rules)
+
+    def bag(self, settings, system, chosen: np.ndarray, n_boot: int, rng: np.random.Generator) -> regression.Bagging:
+        """Bootstrap over periods; each resample re-selects on the whole resampled record."""
+        return regression.bag(system.T_blocks, system.protected, chosen, system.names, settings.method,
+                              settings.criterion, settings.thresholds, n_boot, rng, system.n_rows, settings.penalty,
+                              settings.rules)
+
+
+def period_groups(n_blocks: int, group_blocks: int) -> list[np.ndarray]:
+    """Contiguous groups of about ``group_blocks`` blocks each (at least one group; the remainder spread)."""
+    n_groups = max(1, n_blocks // max(group_blocks, 1))
+    return [g for g in np.array_split(np.arange(n_blocks), n_groups) if g.size]
+
+
+@dataclass(frozen=True)
+class PeriodVote:
+    """The support held by the majority of the selections made on groups of ``periods`` periods each.
+
+    Each group selects with the fit's criterion on its own rows (BIC with ``n`` the group's rows); a
+    distractor (a term of no catalog effect) is kept when clearly more than half of the groups chose it and
+    dropped when clearly fewer did ("clearly": by more than one binomial standard error 0.5 / sqrt(groups));
+    the other distractors and every physical (catalog) term are then chosen by the criterion on the whole
+    record, among the supports the rules allow. Records shorter than two
+    groups are decided by the whole record's criterion alone. The candidates, criteria and CV errors kept for
+    the diagnostics are those of the whole record (the voted support among them).
+    """
+
+    periods: int = 10
+    name: str = "vote"
+    title: str = "majority vote of the selections on groups of fit.vote_periods periods (default)"
+    references: tuple[str, ...] = ("Meinshausen & Buehlmann, J. R. Stat. Soc. B 72, 417 (2010) (stability "
+                                   "selection; here over contiguous period groups of fixed length)",)
+
+    def configured(self, fit) -> PeriodVote:
+        return PeriodVote(periods=fit.vote_periods)
+
+    def _groups(self, settings, system) -> list[np.ndarray]:
+        windows = max(1, round(self.periods / max(settings.periods_per_block, 1)))
+        return period_groups(system.T_blocks.shape[0], windows)
+
+    def _picks(self, settings, system, groups) -> np.ndarray:
+        key = regression.resample_key(settings.criterion)
+        n_blocks = system.T_blocks.shape[0]
+        return np.array([
+            regression.pick_support(regression.combine(system.T_blocks[g]), system.protected, settings.method, key,
+                                    settings.thresholds, max(int(system.n_rows * g.size / n_blocks), 1),
+                                    settings.penalty, settings.rules)
+            for g in groups])
+
+    def _vote(self, settings, system, T: np.ndarray, picks: np.ndarray) -> np.ndarray:
+        # A majority overrules the whole record's criterion only when it is clear: more than one binomial
+        # standard error of a fair vote (0.5 / sqrt(groups)) away from one half. With 4-5 groups (50 periods)
+        # only near-unanimous votes count; as the groups multiply, any majority does.
+        # Only the distractors (terms of no catalog effect, settings.penalty > 0) are put to the vote: the
+        # physical terms are chosen by the record's criterion given the voted distractors, so a weak real term
+        # (a van der Waals tail at the poor instrument) keeps the power of the whole record.
+        votes = np.where(np.asarray(settings.penalty) > 0, picks.mean(axis=0), 0.5)
+        return regression.vote_support(T, system.protected, votes, settings.method,
+                                       regression.resample_key(settings.criterion), settings.thresholds,
+                                       system.n_rows, settings.penalty, settings.rules, extra=list(picks),
+                                       undecided=0.5 / np.sqrt(len(picks)))
+
+    def select(self, settings, system) -> regression.Selection:
+        record = RecordSelection().select(settings, system)
+        groups = self._groups(settings, system)
+        if len(groups) < 2:
+            return record
+        picks = self._picks(settings, system, groups)
+        mask = self._vote(settings, system, regression.combine(system.T_blocks), picks)
+        cands = list(record.candidates)
+        index = next((i for i, c in enumerate(cands) if np.array_equal(c.mask, mask)), None)
+        if index is None:
+            cands.append(regression.scored_candidate(system.T_blocks, system.protected, mask, system.n_rows,
+                                                     settings.penalty, settings.folds))
+            index = len(cands) - 1
+        return regression.Selection(cands, index, record.criterion, votes=picks.mean(axis=0))
+
+    def bag(self, settings, system, chosen: np.ndarray, n_boot: int, rng: np.random.Generator) -> regression.Bagging:
+        """Coefficients: the ``chosen`` support refitted on resamples of the periods; inclusion: the vote
+        repeated on resamples of the groups' own selections (the groups are the units of the vote), the
+        record's criterion on a resample of the periods."""
+        coef_samples = regression.resampled_coefficients(system.T_blocks, chosen, n_boot, rng)
+        groups = self._groups(settings, system)
+        if len(groups) < 2:
+            record = RecordSelection().bag(settings, system, chosen, n_boot, rng)
+            return regression.Bagging(record.inclusion, coef_samples, n_boot, record.supports)
+        picks = self._picks(settings, system, groups)
+        counts = np.zeros(picks.shape[1])
+        supports: dict[tuple, int] = {}
+        n_blocks = system.T_blocks.shape[0]
+        for _ in range(n_boot):
+            drawn = rng.integers(0, len(groups), len(groups))
+            # The record the physical terms are chosen on is resampled too (blocks drawn with replacement, as
+            # the record's own bootstrap): their inclusion is then a real frequency, not the whole record's one
+            # verdict repeated (issue 13 part 4: a Hertz term the data barely support shows it).
+            multiplicity = rng.multinomial(n_blocks, np.full(n_blocks, 1.0 / n_blocks)).astype(float)
+            T = regression.combine(system.T_blocks, multiplicity)
+            mask = self._vote(settings, system, T, picks[drawn])
+            counts += mask
+            support = tuple(n for n, m, prot in zip(system.names, mask, system.protected) if m and not prot)
+            supports[support] = supports.get(support, 0) + 1
+        return regression.Bagging(counts / n_boot, coef_samples, n_boot, supports)
+
+
+SELECTION_SCOPES: Registry = Registry("selection scope")
+SELECTION_SCOPES.register(PeriodVote())
+SELECTION_SCOPES.register(RecordSelection())

@@ -1,0 +1,602 @@
+"""Defects of measured traces: detection, a one-line explanation, and what to do.
+
+Real deflection traces have problems that simulated ones do not. Each check
+here is a plain function that returns :class:`Finding` objects (name,
+severity, one-line message, the config key it is about, the numbers behind
+it). They are run by :func:`afmid.io.trace.load_trace` / :func:`afmid.io.trace.check_trace`
+(errors stop the run as an :class:`~afmid.errors.InputError` naming the file
+and key; warnings are logged) and listed by ``afmid inspect``.
+
+Severities:
+
+- ``error``: the trace cannot be fitted as it is; the message says what to do.
+- ``warning``: the fit can run but its result is doubtful, or a setting is recommended.
+- ``repaired``: a harmless defect that the run's settings already remove
+  (an offset with ``fit.baseline: free``, a drift with ``fit.detrend: linear``,
+  a drive frequency off the nominal one: the fit uses the measured one).
+
+Offset and drift are never changed silently: the data are passed on as they
+are, and the message recommends the ``fit.detrend`` / ``fit.baseline`` setting
+that removes the defect. Once that setting is in the config the finding is
+reported as ``repaired`` (the fit does the removal).
+
+The signal checks work in samples, not seconds, so they also run on files
+without a sample rate (``afmid inspect``). They share one analysis
+(:func:`afmid.io.trace_analysis.analyse`, on the engine the fit uses too,
+:mod:`afmid.preprocess.harmonics`): per-period amplitude, phase and mean, the harmonics
+with their noise, and the model-free force shape. For a loaded trace it runs at
+the drive frequency as the fit measures it, measured here once and carried on
+the trace (:func:`check_loaded`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from afmid.errors import InputError
+from afmid.io.findings import SEVERITIES, Finding, frequency, length, yaml_number  # noqa: F401 (re-exported)
+from afmid.preprocess.harmonics import (  # the engine the fit uses too
+    DRIVE_SEARCH,
+    MIN_SAMPLES_PER_PERIOD,
+    MeasuredDrive,
+    amplitude_change,
+    estimate_drive,
+    measure_frequency,
+    strongest_peak,
+)
+from afmid.io.oscillation import check_drive_line
+from afmid.io.onset import check_onset, find_onset
+from afmid.preprocess.periods import detrend
+from afmid.io.resolution import check_quantization
+from afmid.io.trace_analysis import MAX_HARMONIC, MIN_ANALYSABLE_SPP, Analysis, analyse
+
+log = logging.getLogger(__name__)
+
+#: Samples per drive period each time-domain differentiator needs (others: MIN_SAMPLES_PER_PERIOD).
+#: central: finite differences amplify noise unless sampled far above the drive (its registry note);
+#: savgol: the default window (spp / 10, odd, >= 5) must exceed the polynomial order 4 by 3 to smooth.
+DIFFERENTIATOR_MIN_SPP = {"central": 500.0, "savgol": 60.0}
+#: Below this relative difference the measured and nominal drive frequencies agree.
+DRIVE_TOLERANCE = 1e-3
+#: Relative amplitude change over the trace (afmid.preprocess.harmonics.amplitude_change, as the fit's steadiness)
+#: above which it is not in steady state.
+STEADINESS_LIMIT = 0.02
+#: An offset is reported when the mean deflection exceeds both this fraction of the amplitude ...
+OFFSET_FRACTION = 0.02
+#: ... and this multiple of the interaction force range / k (the largest mean a tip-sample force explains).
+OFFSET_FORCE_MULTIPLE = 3.0
+#: A drift is reported when it exceeds this fraction of the amplitude over the trace and is significant.
+DRIFT_FRACTION = 2e-3
+DRIFT_SIGMA = 5.0
+#: Time steps may jitter by this fraction of the mean step (as afmid.fit.pipeline requires).
+TIME_JITTER = 1e-3
+#: A phase step counts as a jump above this many robust standard deviations and half a sample.
+JUMP_SIGMA = 8.0
+#: ... and above this many standard deviations of the thermal phase noise (a known scale, not estimated).
+THERMAL_JUMP_SIGMA = 5.0
+#: k_B T at room temperature, J (the lever's temperature is not in the run config).
+ROOM_KT = 1.380649e-23 * 300.0
+
+
+def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start indices and lengths of the runs of True in ``mask``."""
+    padded = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    edges = np.flatnonzero(np.diff(padded))
+    starts, ends = edges[0::2], edges[1::2]
+    return starts, ends - starts
+
+
+def longest_clean(mask_bad: np.ndarray) -> tuple[int, int]:
+    """(start, length) of the longest stretch without a bad sample."""
+    starts, lengths = _runs(~mask_bad)
+    if lengths.size == 0:
+        return 0, 0
+    i = int(np.argmax(lengths))
+    return int(starts[i]), int(lengths[i])
+
+
+# --------------------------------------------------------------------------- samples and time
+def check_values(values: np.ndarray, spp: float | None = None) -> list[Finding]:
+    """NaN/inf samples (runs of them: dropouts, overflow). An error: the trace must be cropped."""
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return []
+    starts, lengths = _runs(bad)
+    first = int(starts[0])
+    clean_start, clean_len = longest_clean(bad)
+    longest = int(np.argmax(lengths))
+    periods = f", {clean_len / spp:.1f} periods" if spp else ""
+    message = (
+        f"{int(bad.sum())} NaN/inf samples in the deflection (first at sample {first}) in {len(starts)} "
+        f"run{'s' if len(starts) > 1 else ''} (longest {int(lengths[longest])} samples from sample "
+        f"{int(starts[longest])}); crop the trace to a clean part (the longest is samples "
+        f"{clean_start}-{clean_start + clean_len - 1}{periods}) before fitting"
+    )
+    numbers = {"n_bad": int(bad.sum()), "first": first, "runs": len(starts), "longest_run": int(lengths[longest]),
+               "clean_start": clean_start, "clean_length": clean_len}
+    return [Finding("nan", "error", message, "data.column", numbers)]
+
+
+def check_time(time: np.ndarray) -> list[Finding]:
+    """Gaps (dropped samples), short steps (duplicated samples) and jitter in a time column.
+
+    Every problem is an error: the fit needs uniformly spaced samples.
+    """
+    key = "data.time_column"
+    if not np.all(np.isfinite(time)):
+        return [Finding("time_nan", "error", "the time column has NaN/inf values", key)]
+    steps = np.diff(time)
+    if steps.size == 0:
+        return []
+    if np.any(steps <= 0):
+        first = int(np.argmax(steps <= 0)) + 1
+        return [Finding("time_order", "error",
+                        f"time is not strictly increasing (sample {first}); duplicated or reordered samples", key,
+                        {"first": first})]
+    step = float(np.median(steps))
+    long_ = steps > 1.5 * step
+    short = steps < 0.5 * step
+    findings = []
+    # Regular parts: split between the samples around each irregular step.
+    breaks = np.flatnonzero(long_ | short)
+    starts = np.concatenate([[0], breaks + 1])
+    ends = np.concatenate([breaks + 1, [time.size]])
+    best = int(np.argmax(ends - starts))
+    clean_start, clean_len = int(starts[best]), int(ends[best] - starts[best])
+    crop = f"crop the trace to a regular part (the longest is samples {clean_start}-{clean_start + clean_len - 1})"
+    if long_.any():
+        first = int(np.argmax(long_))
+        largest = float(steps.max() / step)
+        findings.append(Finding(
+            "time_gaps", "error",
+            f"the time column has {int(long_.sum())} gap{'s' if long_.sum() > 1 else ''} (the largest "
+            f"{largest:.3g} sampling steps, the first after sample {first} at t = {time[first]:.6g} s): samples "
+            f"were dropped; {crop} or resample it onto a uniform grid",
+            key, {"n_gaps": int(long_.sum()), "first": first, "largest_steps": largest, "step": step,
+                  "clean_start": clean_start, "clean_length": clean_len}))
+    if short.any():
+        first = int(np.argmax(short))
+        findings.append(Finding(
+            "time_duplicates", "error",
+            f"the time column has {int(short.sum())} step{'s' if short.sum() > 1 else ''} shorter than half the "
+            f"sampling step (the first after sample {first}): duplicated or inserted samples; remove them or {crop}",
+            key, {"n_short": int(short.sum()), "first": first, "step": step,
+                  "clean_start": clean_start, "clean_length": clean_len}))
+    if findings:
+        return findings
+    mean = float((time[-1] - time[0]) / steps.size)
+    jitter = float(np.max(np.abs(steps - mean)) / mean)
+    if jitter > TIME_JITTER:
+        findings.append(Finding(
+            "time_jitter", "error",
+            f"the time steps vary by up to {100 * jitter:.2g} % of the step (rounded time values or an irregular "
+            f"clock), the fit needs them uniform to {100 * TIME_JITTER:.1g} %: remove data.time_column and give "
+            f"data.sample_rate ({1 / mean:.6g} Hz on average)",
+            key, {"jitter": jitter, "mean_rate": 1 / mean}))
+    return findings
+
+
+# --------------------------------------------------------------------------- signal checks
+@dataclass
+class Settings:
+    """What the checks need to know about the run (all optional: ``afmid inspect`` has no config)."""
+
+    units: str | None = "m"  # units of the samples ('m' for a loaded trace)
+    sample_rate: float | None = None  # Hz
+    nominal_frequency: float | None = None  # Hz (drive.frequency or the trace file's)
+    resonance_frequency: float | None = None  # Hz
+    quality_factor: float | None = None
+    spring_constant: float | None = None  # N/m
+    detrend: str = "none"  # fit.detrend
+    baseline: str = "zero"  # fit.baseline
+    differentiation: str | None = None  # fit.differentiation when the fit differentiates (fit.form: strong)
+    positive: str | None = None  # data.positive of the run (None: not chosen yet)
+
+
+def settings_for(trace, config) -> Settings:
+    """Settings for a loaded :class:`afmid.io.trace.Trace` and its run config."""
+    fit = config.fit
+    return Settings(
+        units="m",
+        sample_rate=trace.sample_rate,
+        nominal_frequency=trace.drive_frequency,
+        resonance_frequency=trace.cantilever.resonance_frequency,
+        quality_factor=trace.cantilever.quality_factor,
+        spring_constant=trace.cantilever.spring_constant,
+        detrend=fit.detrend,
+        baseline=fit.baseline,
+        differentiation=fit.differentiation if getattr(fit, "form", None) == "strong" else None,
+        positive=config.data.positive,
+    )
+
+
+def analyse_with(x: np.ndarray, settings: Settings, cycles_per_sample: float | None = None) -> Analysis | None:
+    """:func:`analyse` with the resonance ratio and Q from ``settings`` (when known).
+
+    ``cycles_per_sample``: the oscillation frequency when already measured (else the strongest one).
+    """
+    f = measure_frequency(x) if cycles_per_sample is None else cycles_per_sample
+    if f is None:
+        return None
+    r = None
+    if settings.sample_rate and settings.resonance_frequency:
+        r = f * settings.sample_rate / settings.resonance_frequency
+    return analyse(x, r, settings.quality_factor, cycles_per_sample=f)
+
+
+def check_signal(x: np.ndarray, settings: Settings, analysis: Analysis | None = None) -> list[Finding]:
+    """Every check on the samples themselves (not NaN, not the time column), in order of importance."""
+    x = np.asarray(x, dtype=np.float64)
+    if analysis is None:
+        analysis = analyse_with(x, settings)
+
+    findings: list[Finding] = []
+    findings += check_clipping(x, analysis, settings)
+    findings += check_quantization(x)
+    if analysis is None:
+        findings += _unanalysable(x, settings)
+        findings += check_sampling(None, settings)
+        return check_drive_line(x, settings) + findings
+    findings += check_drive_frequency(analysis, settings)
+    findings += check_sampling(analysis, settings)
+    findings += check_onset(analysis, settings)
+    findings += check_jumps(analysis, settings)
+    findings += check_steady(analysis, settings)
+    findings += check_offset_and_drift(analysis, settings)
+    findings += check_contact(analysis, settings)
+    strongest = analysis.cycles_per_sample * settings.sample_rate if settings.sample_rate else None
+    return check_drive_line(x, settings, strongest) + findings  # the first error is the one reported
+
+
+def _unanalysable(x: np.ndarray, settings: Settings) -> list[Finding]:
+    f = measure_frequency(x)
+    if f is None:
+        if np.ptp(x) == 0:
+            return [Finding("no_oscillation", "error",
+                            "the deflection is constant: no oscillation to analyse (wrong channel? check data.column)",
+                            "data.column")]
+        return [Finding("no_oscillation", "warning",
+                        "no oscillation found (fewer than 3 cycles in the trace?); the checks were skipped",
+                        "data.column")]
+    spp = 1.0 / f
+    if spp < MIN_ANALYSABLE_SPP:
+        return [Finding("undersampled", "warning",
+                        f"the strongest oscillation has only {spp:.2f} samples per period: the signal is far "
+                        "undersampled or this is not a deflection channel (check data.column); the checks were skipped",
+                        "data.column", {"samples_per_period": spp})]
+    return [Finding("too_short", "warning",
+                    f"only {x.size / spp:.2f} periods of the oscillation: too short for the checks",
+                    "data.path", {"periods": x.size / spp})]
+
+
+def check_clipping(x: np.ndarray, analysis: Analysis | None, settings: Settings) -> list[Finding]:
+    """Flat tops or bottoms at the extreme values: the detector or the ADC saturated. An error.
+
+    Noise makes consecutive samples of a real peak differ; a run of identical
+    extreme samples longer than quantisation explains (the samples within one
+    ADC step of a sinusoid's peak) means the signal was cut off.
+    """
+    if x.size < 8:
+        return []
+    hi, lo = float(x.max()), float(x.min())
+    span = hi - lo
+    if span <= 0:
+        return []
+    values = np.unique(x[: min(x.size, 200_000)])
+    steps = np.diff(values)
+    q = float(steps[steps > 0].min()) if np.any(steps > 0) else span
+    quantised = q > 1e-6 * span
+    spp = analysis.spp if analysis is not None else None
+    amplitude = analysis.amplitude if analysis is not None and analysis.amplitude > 0 else span / 2
+    natural = 1.0
+    if quantised and spp:
+        natural += spp / math.pi * math.sqrt(2 * min(q / amplitude, 1.0))
+    minimum = max(4, int(math.ceil(2 * natural)) + 2)
+    findings = []
+    tol = 1e-9 * span
+    for side, level, mask in (("maximum", hi, x >= hi - tol), ("minimum", lo, x <= lo + tol)):
+        starts, lengths = _runs(mask)
+        if lengths.size == 0 or lengths.max() < minimum:
+            continue
+        long_runs = int(np.sum(lengths >= minimum))
+        count = int(lengths[lengths >= 2].sum())
+        where = "tops" if side == "maximum" else "bottoms"
+        findings.append(Finding(
+            "clipping", "error",
+            f"the deflection is clipped: flat {where} at the {side} {length(level, settings.units)} "
+            f"({long_runs} run{'s' if long_runs > 1 else ''} of up to {int(lengths.max())} identical samples, "
+            f"{count} samples in all, the first at sample {int(starts[np.argmax(lengths >= minimum)])}): the detector "
+            "or the ADC saturated; record again with a lower gain or amplitude, or crop to unclipped periods",
+            "data.column",
+            {"level": level, "longest_run": int(lengths.max()), "runs": long_runs, "samples": count,
+             "first": int(starts[np.argmax(lengths >= minimum)])}))
+    return findings
+
+
+def check_drive_frequency(a: Analysis, s: Settings) -> list[Finding]:
+    """The measured oscillation against the nominal drive frequency.
+
+    Outside the fit's search band (+-5 %) it is an error; a smaller
+    difference is 'repaired' (the fit uses the measured value).
+    """
+    if not (s.sample_rate and s.nominal_frequency):
+        return []
+    measured = a.cycles_per_sample * s.sample_rate
+    rel = measured / s.nominal_frequency - 1.0
+    numbers = {"measured": measured, "nominal": s.nominal_frequency, "relative": rel}
+    if abs(rel) > DRIVE_SEARCH:
+        return [Finding(
+            "drive_frequency", "error",
+            f"the deflection oscillates at {frequency(measured)}, {100 * rel:+.1f} % from the nominal drive "
+            f"frequency {frequency(s.nominal_frequency)}; the fit searches only within {100 * DRIVE_SEARCH:.0f} % "
+            f"of it: set drive.frequency: {yaml_number(float(f'{measured:.6g}'))} (or check data.sample_rate)",
+            "drive.frequency", numbers)]
+    if abs(rel) > DRIVE_TOLERANCE:
+        return [Finding(
+            "drive_frequency", "repaired",
+            f"the drive frequency measured from the data, {frequency(measured)}, differs from the nominal "
+            f"{frequency(s.nominal_frequency)} by {100 * rel:+.2f} %; the fit uses the measured value",
+            "drive.frequency", numbers)]
+    return []
+
+
+def check_sampling(a: Analysis | None, s: Settings) -> list[Finding]:
+    """Too few samples per period for the differentiation, or harmonics cut off at Nyquist (aliasing)."""
+    findings = []
+    # The nominal samples per period when known (the rate and drive the user gave), else the measured one.
+    spp = s.sample_rate / s.nominal_frequency if s.sample_rate and s.nominal_frequency else None
+    if a is not None and (spp is None or abs(a.spp / spp - 1) > DRIVE_SEARCH):
+        spp = a.spp
+    if spp is None:
+        return []
+    method = s.differentiation
+    need = DIFFERENTIATOR_MIN_SPP.get(method or "", MIN_SAMPLES_PER_PERIOD)
+    rate = f" (at least {frequency(need / spp * s.sample_rate)})" if s.sample_rate else ""
+    if method and need > MIN_SAMPLES_PER_PERIOD and spp < need:
+        findings.append(Finding(
+            "sampling", "error",
+            f"{method} differentiation needs at least {need:g} samples per drive period, the trace has "
+            f"{spp:.1f}: use fit.form: weak (no derivatives of the data) or fit.differentiation: spectral, or record at a "
+            f"higher rate{rate}",
+            "fit.differentiation", {"samples_per_period": spp, "needed": need}))
+    elif spp < MIN_SAMPLES_PER_PERIOD:
+        findings.append(Finding(
+            "sampling", "warning",
+            f"only {spp:.1f} samples per drive period (< {MIN_SAMPLES_PER_PERIOD}): the sample rate is too low to "
+            "resolve the motion well",
+            "data.sample_rate", {"samples_per_period": spp, "needed": MIN_SAMPLES_PER_PERIOD}))
+    if a is not None and a.K < MAX_HARMONIC and a.K >= 3 and a.above_noise and max(a.above_noise) >= a.K - 1:
+        wanted = max(2.0 * spp, MIN_SAMPLES_PER_PERIOD)
+        rate = f", at least {frequency(wanted / spp * s.sample_rate)}" if s.sample_rate else ""
+        findings.append(Finding(
+            "aliasing", "warning",
+            f"harmonics up to the highest one the sampling resolves (n = {a.K} at {spp:.1f} samples per period) "
+            f"stand above the noise: higher harmonics fold back (aliasing) and bias the force; record at "
+            f"{wanted / spp:.2g} x the sample rate or more{rate}",
+            "data.sample_rate", {"samples_per_period": spp, "highest_harmonic": a.K}))
+    return findings
+
+
+def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
+    """Phase steps between periods: dropped or repeated samples (or a re-locked drive). An error.
+
+    With the lever known (``s``: spring constant and Q), a step must also stand out of the thermal phase
+    noise (:func:`thermal_phase_step`): on a soft lever in liquid it is ~1 deg per period, a sample's worth.
+    """
+    # Before the onset of a record that starts at rest the phase is that of noise: only the motion is read.
+    onset = find_onset(a)
+    first = 0 if onset is None else onset + 2  # from where a fit uses the record (afmid.io.onset.check_onset)
+    B = a.n_blocks - first
+    if B < 9:
+        return []
+    from scipy.ndimage import median_filter
+
+    phase = a.block_phase[first:]
+    d = phase[2:] - phase[:-2]  # phase change across two blocks, centred on blocks 1..B-2
+    res = d - median_filter(d, size=7, mode="nearest")
+    mad = float(np.median(np.abs(res - np.median(res))))
+    one = 2 * np.pi / a.spp  # phase of one sample
+    threshold = max(0.5 * one, JUMP_SIGMA * 1.4826 * mad,
+                    THERMAL_JUMP_SIGMA * thermal_phase_step(s, float(np.median(a.block_amplitude))))
+    hits = np.flatnonzero(np.abs(res) > threshold)
+    if hits.size == 0:
+        return []
+    groups = np.split(hits, np.flatnonzero(np.diff(hits) > 2) + 1)
+    peaks = [int(g[np.argmax(np.abs(res[g]))]) for g in groups]
+    sizes = [float(res[p] / one) for p in peaks]
+    sample = a.start + (first + peaks[0] + 1) * a.L + a.L // 2  # the middle of the period the jump falls in
+    kind = "dropped" if sizes[0] > 0 else "repeated"
+    return [Finding(
+        "phase_jump", "error",
+        f"the oscillation phase jumps by {np.degrees(res[peaks[0]]):+.3g} deg ({sizes[0]:+.2g} samples) near "
+        f"sample {sample} (period {sample / a.spp:.0f} of {a.periods:.0f})"
+        f"{f' and at {len(peaks) - 1} more places' if len(peaks) > 1 else ''}: "
+        f"samples were {kind} (or the drive was re-locked); crop the trace to one side of the jump",
+        "data.path", {"jumps": len(peaks), "first_sample": sample, "samples": sizes[0]})]
+
+
+def thermal_phase_step(s: Settings | None, amplitude: float) -> float:
+    """Standard deviation (rad) of the phase change across two periods that the thermal force alone makes.
+
+    The quadrature part of the thermal motion has variance kT / (2k) at room temperature and forgets itself in
+    the amplitude decay time (Q / pi periods); over two periods the phase x_perp / A then changes with variance
+    2 (kT / (2 k A^2)) (1 - exp(-2 pi * 2 / Q)). Negligible for a lever in air (Q 250, k 40 N/m: 0.01 deg);
+    ~0.8 deg for a soft lever in water (k 0.8 N/m, Q 4, A 5 nm). 0 when the lever is unknown.
+    """
+    if s is None or not s.spring_constant or not s.quality_factor or not amplitude > 0:
+        return 0.0
+    variance = ROOM_KT / (s.spring_constant * amplitude**2) * (1.0 - math.exp(-4.0 * math.pi / s.quality_factor))
+    return math.sqrt(variance)
+
+
+def check_steady(a: Analysis, s: Settings) -> list[Finding]:
+    """Amplitude still changing (a transient): a warning; the fit searches the drive frequency (afmid.fit.drive_search)."""
+    amp = a.block_amplitude
+    B = amp.size
+    if B < 3 or amp.mean() <= 0:
+        return []
+    change = amplitude_change(amp)
+    if change <= STEADINESS_LIMIT:
+        return []
+    final = float(np.median(amp[-max(3, B // 5):]))
+    outside = np.flatnonzero(np.abs(amp - final) > 0.01 * final)
+    settled = int(outside[-1]) + 1 if outside.size else 0
+    if settled <= B - 3:
+        advice = (f"crop the first {settled} periods (the amplitude stays within 1 % of its final value from "
+                  f"period {settled} on)")
+    else:
+        advice = "record after the amplitude has settled"
+    return [Finding(
+        "not_steady", "warning",
+        f"the oscillation amplitude changes by {100 * change:.1f} % over the trace (from "
+        f"{length(amp[0], s.units)} to {length(amp[-1], s.units)}): not in steady state; the fit takes the drive "
+        f"frequency from the regression (fit.drive_frequency: auto), but per-period results mix different states: "
+        f"{advice}",
+        "data.path", {"change": change, "settled_period": settled, "first": float(amp[0]), "last": float(amp[-1])})]
+
+
+def check_offset_and_drift(a: Analysis, s: Settings) -> list[Finding]:
+    """A mean deflection beyond what tip-sample forces explain, and a slow linear drift of it.
+
+    Never changed here: the message recommends the setting that removes it,
+    and with that setting in the config the finding is 'repaired'.
+    """
+    findings = []
+    B = a.n_blocks
+    t = np.arange(B, dtype=float)
+    means = a.block_mean
+    drift = 0.0
+    steady = not check_steady(a, s)
+    if B >= 5 and steady:
+        slope, intercept = np.polyfit(t, means, 1)
+        resid = means - (slope * t + intercept)
+        se = float(np.sqrt(np.sum(resid**2) / (B - 2) / np.sum((t - t.mean()) ** 2)))
+        drift = float(slope * B)
+        significant = abs(slope) > DRIFT_SIGMA * se if se > 0 else slope != 0
+        if significant and abs(drift) > DRIFT_FRACTION * a.amplitude:
+            numbers = {"drift": drift, "per_period": float(slope), "amplitude": a.amplitude}
+            what = (f"the mean deflection drifts by {length(drift, s.units)} over the trace "
+                    f"({100 * abs(drift) / a.amplitude:.2g} % of the amplitude; detector or thermal drift)")
+            if s.detrend == "linear":
+                findings.append(Finding("drift", "repaired", f"{what}; fit.detrend: linear removes it",
+                                        "fit.detrend", numbers))
+            else:
+                findings.append(Finding(
+                    "drift", "warning",
+                    f"{what}: the fit would read it as a slowly changing force; set fit.detrend: linear "
+                    "(the fit then estimates the drift with the force law)", "fit.detrend", numbers))
+    offset = a.mean
+    limit = max(OFFSET_FRACTION * a.amplitude, OFFSET_FORCE_MULTIPLE * a.force_range)
+    if abs(offset) > limit and a.amplitude > 0:
+        numbers = {"offset": offset, "amplitude": a.amplitude, "limit": limit}
+        what = (f"the mean deflection is {length(offset, s.units)} ({100 * abs(offset) / a.amplitude:.2g} % of the "
+                "amplitude), more than tip-sample forces explain: the detector zero is off")
+        if s.baseline == "free":
+            findings.append(Finding("offset", "repaired", f"{what}; fit.baseline: free absorbs it", "fit.baseline",
+                                    numbers))
+        elif s.detrend == "offset":  # (linear estimates a drift about the record's centre, no offset)
+            findings.append(Finding("offset", "repaired", f"{what}; fit.detrend: {s.detrend} removes it "
+                                    "(fit.baseline: free would keep the mean force)", "fit.detrend", numbers))
+        else:
+            findings.append(Finding(
+                "offset", "warning",
+                f"{what}; set fit.baseline: free (or data.offset to the free-oscillation mean, in file units)",
+                "fit.baseline", numbers))
+    return findings
+
+
+def check_contact(a: Analysis, s: Settings) -> list[Finding]:
+    """No tip-sample force at all, or an attractive one only (the tip never touches): warnings.
+
+    Needs at least :data:`MIN_SAMPLES_PER_PERIOD` samples per period to see the harmonics.
+    """
+    if a.spp < MIN_SAMPLES_PER_PERIOD:
+        return []
+    if a.contact == "none":
+        return [Finding(
+            "no_interaction", "warning",
+            f"no tip-sample force detected: no harmonic of the oscillation stands above the noise "
+            f"({length(a.noise_rms, s.units)} rms), so the tip oscillates freely and does not reach the sample (or "
+            "its force is below the noise); nothing can be identified: approach the sample, or check data.path and "
+            "data.column",
+            "data.path", {"noise_rms": a.noise_rms})]
+    numbers = {"harmonics": len(a.above_noise), "force_range_over_k": a.force_range}
+    if a.contact == "attractive":
+        return [Finding(
+            "no_contact", "warning",
+            "the tip never touches the sample: the force is most attractive at the closest approach (attractive "
+            "regime); only the long-range part can be identified, contact terms (dmt, jkr, viscoelastic) are not "
+            "constrained by these data",
+            "model.effects", numbers)]
+    if a.flipped:
+        if s.positive is None:
+            fix = "the file's deflection is probably positive away from the sample; set data.positive: away_from_sample"
+        else:
+            other = "away_from_sample" if s.positive == "toward_sample" else "toward_sample"
+            fix = f"with data.positive: {s.positive} the deflection has the wrong sign; set data.positive: {other}"
+        return [Finding(
+            "sign", "warning", f"the tip-sample interaction happens at the most negative deflection: {fix}",
+            "data.positive", numbers)]
+    return []
+
+
+# --------------------------------------------------------------------------- loaded traces
+def check_loaded(trace, config) -> tuple[list[Finding], MeasuredDrive | None]:
+    """The signal checks for a loaded trace (SI, positive toward the sample) with its config, and its drive.
+
+    The drive is measured once, here, as the fit measures it
+    (:func:`afmid.preprocess.harmonics.estimate_drive` of the deflection detrended with
+    fit.detrend, searched within :data:`DRIVE_SEARCH` of the nominal frequency),
+    when the strongest oscillation lies in that band; the checks then analyse
+    the trace at that frequency and the fit reuses it (:meth:`afmid.io.trace.Trace.drive_for`).
+    Otherwise (no oscillation, or one far from the nominal drive: an error for the
+    fit) the checks use the strongest oscillation and the drive is None.
+    """
+    settings = settings_for(trace, config)
+    x = np.asarray(trace.deflection, dtype=np.float64)
+    peak = strongest_peak(x)
+    drive = None
+    if peak is not None and abs(peak.cycles_per_sample * trace.sample_rate / trace.drive_frequency - 1) <= DRIVE_SEARCH:
+        drive = measure_drive(trace, config.fit.detrend)
+    if drive is not None:
+        f = drive.estimate.frequency / trace.sample_rate
+    else:
+        f = None if peak is None else peak.refine()
+    analysis = None if f is None else analyse_with(x, settings, f)
+    return check_signal(x, settings, analysis), drive
+
+
+def measure_drive(trace, detrend_mode: str) -> MeasuredDrive | None:
+    """The fit's drive measurement of a loaded trace (deflection detrended with ``detrend_mode``), None if none.
+
+    The same samples, times and estimator as :func:`afmid.fit.pipeline.prepare`, so the
+    fit can use the result in place of measuring again.
+    """
+    t = trace.times
+    x, _ = detrend(trace.deflection, t, detrend_mode)
+    try:
+        estimate = estimate_drive(x, t, trace.drive_frequency)
+    except InputError:  # no oscillation in the band: the checks say why, the fit measures (and fails) itself
+        return None
+    return MeasuredDrive(estimate, detrend_mode, trace.deflection, trace.sample_rate, trace.time)
+
+
+def report(findings: list[Finding], file, logger: logging.Logger | None = None) -> None:
+    """Raise the first error as an InputError naming ``file`` and its key; else log the others.
+
+    Warnings are logged as warnings, 'repaired' findings as information, each
+    prefixed with the file.
+    """
+    logger = logger or log
+    for finding in findings:
+        if finding.severity == "error":
+            raise InputError(finding.message, file=file, key=finding.key)
+    for finding in findings:
+        if finding.severity == "warning":
+            logger.warning("%s: %s", file, finding.message)
+        else:
+            logger.info("%s: %s", file, finding.message)

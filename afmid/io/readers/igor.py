@@ -1,0 +1,145 @@
+"""Igor Pro binary waves (``.ibw``), read with the optional package igor2.
+
+- A 1-D wave is one channel (``channel`` is ignored; the channel is the wave name).
+- A 2-D wave has one channel per column, chosen by its dimension label (as
+  Asylum Research force curves label them: 'Raw', 'Defl', 'ZSnsr') or by
+  0-based index; a column can also serve as the time channel.
+- Sample rate: from the x scaling (``sfA``, ``hsA`` before version 5) when the
+  x units are a time unit, or unset with a step other than Igor's default 1.
+- Units: the wave's data units (extended units if present). The wave note is
+  kept in ``metadata['note']``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from afmid.errors import InputError
+from afmid.io.files import memory_shortfall
+from afmid.io.readers.base import (
+    TIME_UNITS,
+    RawTrace,
+    Reader,
+    as_samples,
+    choose_channels,
+    missing_package,
+    no_time_channel,
+    not_readable,
+    settle_rate,
+    time_axis,
+)
+
+_IGOR_DEFAULT_STEP = 1.0  # x scaling of a wave nobody scaled
+
+
+def _text(raw: Any) -> str:
+    """Igor strings are bytes, or arrays of single bytes; Igor 7+ writes UTF-8, older versions Latin-1."""
+    if isinstance(raw, np.ndarray):
+        raw = b"".join(raw.ravel().tolist())
+    data = bytes(raw or b"").split(b"\0", 1)[0]
+    try:
+        return data.decode("utf-8").strip()
+    except UnicodeDecodeError:
+        return data.decode("latin-1").strip()
+
+
+def _load(path: Path) -> dict:
+    try:
+        from igor2 import binarywave
+    except ImportError:
+        raise missing_package("igor2", ".ibw", path) from None
+    problem = memory_shortfall(2 * path.stat().st_size)  # igor2 reads the whole file, then copies the wave
+    if problem:
+        raise InputError(f"reading this {path.stat().st_size:.3g}-byte wave {problem}", file=path, key="data.path")
+    try:
+        return binarywave.load(str(path))
+    except Exception as exc:  # igor2 signals a damaged file with asserts, struct and value errors
+        raise not_readable("Igor binary wave", path, exc) from None
+
+
+def _wave(path: Path) -> tuple[np.ndarray, dict, list[str]]:
+    """(data, header fields, column names) of the wave in ``path``."""
+    loaded = _load(path)
+    wave = loaded["wave"]
+    header = wave["wave_header"]
+    data = np.asarray(wave["wData"])
+    if loaded["version"] >= 5:
+        step, start = float(header["sfA"][0]), float(header["sfB"][0])
+        # Units longer than 3 characters are stored in the optional extended fields;
+        # igor2 lists extended dimension units only for the dimensions that have them.
+        has_extended_x = wave["bin_header"]["dimEUnitsSize"][0] > 0
+        data_units = _text(wave.get("data_units")) or _text(header["dataUnits"])
+        x_units = _text(wave["dimension_units"][0]) if has_extended_x else _text(header["dimUnits"][0])
+    else:
+        step, start = float(header["hsA"]), float(header["hsB"])
+        data_units, x_units = _text(header["dataUnits"]), _text(header["xUnits"])
+    info = {
+        "wave_name": _text(header["bname"]),
+        "version": int(loaded["version"]),
+        "x_step": step,
+        "x_start": start,
+        "x_units": x_units,
+        "data_units": data_units,
+        "note": _text(wave.get("note")),
+    }
+    if data.ndim == 2:
+        # Dimension labels: the first names the dimension, then one per column.
+        labels = [_text(label) for label in (wave.get("labels") or [[], []])[1][1:]]
+        names = labels if len(labels) == data.shape[1] and all(labels) else [str(i) for i in range(data.shape[1])]
+    else:
+        names = [info["wave_name"] or "0"]
+    return data, info, names
+
+
+def list_channels(path: Path) -> list[str]:
+    """Column labels (or indices) of a 2-D wave; the wave name for a 1-D wave."""
+    return _wave(path)[2]
+
+
+def read(path: Path, channel: str | int | None = None, time_channel: str | int | None = None) -> RawTrace:
+    """Read the wave or one of its columns (file units), optionally a time column (s)."""
+    data, info, names = _wave(path)
+    time = t_name = None
+    if data.ndim == 2:
+        index, t_index = choose_channels(names, channel, time_channel, file=path, positional=True)
+        values = as_samples(data[:, index], file=path, channel=names[index])
+        source = {"values": f"file:column {names[index]!r}"}
+        if t_index is not None:
+            t_name = names[t_index]
+            time = time_axis(data[:, t_index], None, file=path, channel=t_name)
+            source["time"] = f"file:column {t_name!r} (taken as s)"
+    else:
+        if time_channel is not None:
+            raise no_time_channel(path, "a 1-D wave has one channel; its time axis is the x scaling")
+        index = 0
+        values = as_samples(data, file=path, channel=names[0])
+        source = {"values": "file:wave data"}
+
+    units = info["data_units"] or None
+    if units:
+        source["units"] = "file:wave data units"
+    step, x_units = info["x_step"], info["x_units"]
+    stated = None
+    if x_units in TIME_UNITS and step > 0:
+        stated = 1.0 / (step * TIME_UNITS[x_units]), f"file:x scaling ({step:g} {x_units})"
+    elif not x_units and step > 0 and step != _IGOR_DEFAULT_STEP:
+        stated = 1.0 / step, f"file:x scaling ({step:g}, no units, taken as s)"
+    sample_rate = settle_rate(stated, time, t_name, source)
+    return RawTrace(values, time, sample_rate, units, names[index], names, info, source)
+
+
+READER = Reader(
+    name="ibw",
+    title="Igor Pro binary wave (.ibw)",
+    suffixes=(".ibw",),
+    read=read,
+    list_channels=list_channels,
+    extra="formats",
+    references=(
+        "WaveMetrics, Technical Note 003: Igor Binary Format, https://www.wavemetrics.com",
+        "igor2 (maintained fork of igor), https://github.com/AFM-analysis/igor2",
+    ),
+)

@@ -1,0 +1,427 @@
+"""How ``afmid map`` fits its pixels: strategies with one protocol, in the registry :data:`PIXEL_FITS`.
+
+A strategy is made once per chunk (``PixelFit(config, library)``) and fits the chunk's pixels in order
+(``fit(trace, pixel) -> PixelResult``); it may carry what it learnt from one pixel to the next.
+
+- ``full``: every pixel fitted exactly as ``afmid fit`` fits a trace (:func:`afmid.fit.pipeline.fit_prepared`: the coarse
+  separation search, the profile, three selections, the bootstrap of ``fit.bootstrap``). About 90 evaluations of
+  the library columns per pixel.
+- ``shared`` (the default): the support and the offset of the separation from first contact are learnt on the
+  chunk's first pixel by the full search (no bootstrap) and carried from pixel to pixel (neighbours in a row-major
+  chunk: the topography and the phases are smooth). Each pixel then needs only a short 1-D search of its separation
+  started from ``first contact + carried offset`` (a few library evaluations: a bracket and parabola steps on the
+  residual profile, the profile's chi-square width and its block jackknife for sigma), one selection at the found
+  separation (no library evaluation: when it picks another support, the separation is searched again with it),
+  and error bars from the least-squares covariance of the chosen support (sampled through the read-out so that
+  E* etc. get the same kind of interval as the bootstrap gives) with the separation's sigma propagated. A pixel
+  whose error stays above its noise floor is searched again over the whole separation window (the single-trace
+  coarse search) before it is reported, so a wrong warm start cannot pass as a model-limited pixel; it stays
+  flagged suspect (model-limited) when the error is still above the floor. Records that need the drive-frequency
+  search (transients) are fitted by ``full``.
+
+Each result names its route (:data:`ROUTES`) so the map shows where the cheap path was left.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import afmid.fit.regression as regression
+from afmid.errors import AfmidError
+from afmid.registry import Registry
+
+#: How a pixel was fitted (stored per pixel in /maps/fit_route; names in its ``meaning`` attribute).
+ROUTES = ("full", "shared", "shared, support re-selected", "shared, separation re-searched",
+          "shared, the chunk's anchor (full search first)")
+ROUTE_FULL, ROUTE_SHARED, ROUTE_RESELECTED, ROUTE_RESEARCHED, ROUTE_ANCHOR = range(5)
+#: Parametric draws from the coefficients' covariance behind each pixel's read-out intervals.
+COVARIANCE_DRAWS = 200
+#: Most residual evaluations of the short separation search before it gives way to the robust profile.
+MAX_SEARCH_EVALUATIONS = 32
+#: A bracket wider than this many chi-square widths is halved before a parabola step is trusted.
+BRACKET_WIDTHS = 8.0
+#: Starts of the separation search remembered across pixels, and how far apart (m) two must be to count twice.
+MAX_STARTS = 3
+#: The pixel's separation is moved onto an evaluated point within this fraction of its sigma (no extra build).
+RESOLUTION = 0.1
+DISTINCT_OFFSET = 0.2e-9
+
+
+@dataclass
+class PixelResult:
+    """What the map keeps of one pixel's fit (SI)."""
+
+    quantities: dict  # name -> {value, error (1 sigma), ci_low, ci_high, unit, effect, ...} as afmid.fit.pipeline's
+    separation: float  # m
+    separation_sigma: float  # m, 1 sigma
+    cv_error: float
+    cv_error_noise_floor: float
+    selected: np.ndarray  # bool over the library's terms
+    warnings: list[str] = field(default_factory=list)
+    route: int = ROUTE_FULL
+    evaluations: int = 0  # library evaluations (system builds) this pixel cost; 0 when not counted
+
+
+class FullPixelFit:
+    """Every pixel as ``afmid fit`` fits a trace (:func:`afmid.fit.pipeline.fit_prepared`, bootstrap per the config)."""
+
+    name = "full"
+    title = "every pixel as `afmid fit` fits a trace (coarse search, profile, bootstrap)"
+    references = ("docs/maps.md",)
+
+    def __init__(self, config, library):
+        self.config, self.library = config, library
+
+    def fit(self, trace, pixel: int) -> PixelResult:
+        from afmid.fit.pipeline import fit_prepared, prepare
+        from afmid.preprocess.instrument import from_config
+
+        prep = prepare(trace, self.config.fit, from_config(self.config))
+        result = fit_prepared(prep, self.library, self.config, uncertainty=self.config.fit.bootstrap > 0)
+        est = result.nonlinear.get("d")
+        return PixelResult(result.quantities, result.system.params["d"], est.sigma if est is not None else math.nan,
+                           result.cv_error, result.cv_error_noise_floor,
+                           np.asarray(result.selected[:len(self.library)], bool), list(result.warnings), ROUTE_FULL)
+
+
+class SharedSupportFit:
+    """The support and the separation's offset from first contact carried across pixels; see the module doc."""
+
+    name = "shared"
+    title = "support and separation offset carried across pixels: a short separation search, covariance errors"
+    references = ("docs/maps.md",)
+
+    def __init__(self, config, library):
+        from afmid.fit.pipeline import profile_library
+        from afmid.fit.selection import SelectionSettings
+
+        self.config, self.library = config, library
+        self.full = FullPixelFit(config, library)
+        self.physics, self.extra = profile_library(library, config)
+        self.settings_for = lambda n_nuisance: SelectionSettings.for_library(config.fit, library, n_nuisance)
+        self.support: np.ndarray | None = None  # over library + nuisance columns
+        self.coef: np.ndarray | None = None  # the last pixel's coefficients (library + nuisance), SI
+        #: m, separation minus first contact: the last pixel's first, then those of other phases met before
+        self.offsets: list[float] = []
+        self.step: float = 0.05e-9  # m, the first bracket's half-width (the last pixel's sigma, bounded)
+        self.nonlinear: dict[str, float] = {}  # the library's other nonlinear parameters (from the anchor)
+
+    # ------------------------------------------------------------------ protocol
+    def fit(self, trace, pixel: int) -> PixelResult:
+        from afmid.fit.drive_search import is_transient
+        from afmid.fit.pipeline import fit_prepared, first_contact, library_parameters, prepare
+        from afmid.preprocess.instrument import from_config
+
+        config = self.config
+        prep = prepare(trace, config.fit, from_config(config))
+        if config.fit.drive_frequency == "search" or (config.fit.drive_frequency == "auto" and is_transient(prep)):
+            return self.full.fit(trace, pixel)
+        if config.fit.drive_frequency == "nominal":
+            from afmid.fit.drive_search import with_drive_frequency
+
+            prep = with_drive_frequency(prep, prep.drive.nominal)
+        touch = first_contact(prep, config.sample.a0)
+        anchor = not self.offsets
+        if anchor:  # the chunk's first pixel: the full search, no bootstrap
+            fitted = fit_prepared(prep, self.library, config, uncertainty=False)
+            self.support = np.asarray(fitted.selected, bool).copy()
+            self.coef = np.asarray(fitted.coef, float).copy()
+            self.offsets = [fitted.system.params["d"] - touch]
+            self.nonlinear = {k: fitted.system.params[k] for k in self.library.nonlinear}
+        params = library_parameters(prep, config, self.library)
+        params.update(self.nonlinear)
+        result = self._fit_shared(prep, params, touch)
+        if anchor:
+            result.route, result.evaluations = ROUTE_ANCHOR, 0  # the full search's evaluations are not counted
+        return result
+
+    # ------------------------------------------------------------------ the cheap path
+    def _fit_shared(self, prep, params: dict, touch: float) -> PixelResult:
+        from afmid.fit.pipeline import estimate_nonlinear
+        from afmid.fit.prepare import with_regressor_noise
+        from afmid.fit.uncertainty import model_limited
+
+        config, library = self.config, self.library
+        below, above = config.fit.separation_window
+        bounds = (touch - below, touch + above)
+        counter = {"builds": 0}
+        support = self.support
+        # Starts: the offset from first contact of the last pixel and of other phases met in this chunk (each
+        # one profile point; the search goes on from the lowest). The rows' weights include the regressors' own
+        # noise (afmid.fit.prepare.with_regressor_noise) computed with the last pixel's coefficients at the first
+        # start: the force law of a neighbour, as the single-trace fit uses its first-pass coefficients.
+        starts = [min(max(touch + offset, bounds[0]), bounds[1]) for offset in self.offsets]
+        prep = with_regressor_noise(prep, library, dict(params, d=starts[0]), self.coef)
+        settings = self.settings_for(len(prep.nuisance_names))
+        route = ROUTE_SHARED
+        search = self._search(prep, params, support, starts, bounds, counter)
+        system = search.system_at_minimum() or self._build(prep, library, dict(params, d=search.found.value), counter)
+        own = settings.select(system).best.mask
+        if not np.array_equal(own, support):
+            route, support = ROUTE_RESELECTED, own
+            search = self._search(prep, params, support, [search.found.value], bounds, counter)
+            system = (search.system_at_minimum()
+                      or self._build(prep, library, dict(params, d=search.found.value), counter))
+        result, coef = self._finish(prep, params, system, support, search, counter, route)
+        if model_limited(result.cv_error, result.cv_error_noise_floor):
+            # Above the floor: the warm start may have found a wrong minimum. The single-trace coarse search.
+            searched = dict(params)
+            coarse = estimate_nonlinear(prep, library, config, searched, physics=(self.physics, self.extra))
+            counter["builds"] += sum(len(e.grid) for e in coarse.values())
+            if abs(searched["d"] - search.found.value) > 3 * max(search.found.sigma, 1e-12):
+                again = self._search(prep, params, support, [searched["d"]], bounds, counter)
+                system = (again.system_at_minimum()
+                          or self._build(prep, library, dict(params, d=again.found.value), counter))
+                better, better_coef = self._finish(prep, params, system, support, again, counter, ROUTE_RESEARCHED)
+                if better.cv_error < result.cv_error:
+                    result, coef, search = better, better_coef, again
+            result.route = ROUTE_RESEARCHED if result.route != ROUTE_RESELECTED else result.route
+        result.evaluations = counter["builds"]
+        self.support, self.coef = support, coef
+        found = search.found
+        self.remember(found.value - touch)
+        if math.isfinite(found.sigma) and found.sigma > 0:
+            self.step = min(max(found.sigma, 0.01e-9), 0.2e-9)
+        return result
+
+    def remember(self, offset: float) -> None:
+        """Put ``offset`` first among the starts; keep up to :data:`MAX_STARTS` that differ by more than
+        :data:`DISTINCT_OFFSET` (a pixel of another phase starts from its own phase's offset)."""
+        kept = [o for o in self.offsets if abs(o - offset) > DISTINCT_OFFSET]
+        self.offsets = [offset] + kept[:MAX_STARTS - 1]
+
+    def _build(self, prep, library, params, counter):
+        from afmid.fit.pipeline import build_system
+
+        counter["builds"] += 1
+        return build_system(prep, library, params)
+
+    def _search(self, prep, params: dict, support: np.ndarray, starts: list[float], bounds: tuple[float, float],
+                counter) -> "SeparationSearch":
+        """The separation's minimum on the residual profile of the support (the profile library's columns when
+        the library is a preset, as :func:`afmid.fit.pipeline.fit_prepared` does), from the lowest of ``starts``."""
+        from afmid.fit.pipeline import build_system
+        from afmid.fit.profile import GroupedProfile, robust_profile
+
+        physics = self.physics
+        mask = support if physics is self.library else None
+        trial_params = dict(params, **self.extra)
+        systems = {}
+
+        def factors_at(value: float):
+            counter["builds"] += 1
+            try:
+                system = build_system(prep, physics, dict(trial_params, d=value))
+            except AfmidError:
+                return None
+            if physics is self.library:
+                systems[float(value)] = system
+            return system.T_blocks, system.n_rows
+
+        profile = GroupedProfile(factors_at, mask)
+        n_columns = len(physics) + len(prep.nuisance_names)
+        k = int((np.ones(n_columns, bool) if mask is None else mask).sum())
+        start = min(starts, key=profile)
+        found = parabolic_minimum(profile, start, self.step, *bounds, k)
+        if found is None:  # no clean parabola near the start: the single-trace profile on the same points
+            s2 = profile(start) / max(profile.n_rows - k, 1)
+            res = robust_profile(profile, start, 0.3e-9, s2, *bounds, min_step=1e-14, jackknife=True)
+            found = SeparationFound(res.value, res.sigma)
+        return SeparationSearch(found, systems)
+
+    def _finish(self, prep, params, system, support, search, counter, route) -> tuple[PixelResult, np.ndarray]:
+        from afmid.fit.pipeline import propagate_nonlinear, refuse_unusable
+        from afmid.fit.forces import force_cv_error, read_out, signal_rows
+        from afmid.fit.search import NonlinearEstimate
+        from afmid.fit.uncertainty import finish
+
+        config, library, trace = self.config, self.library, prep.trace
+        found = search.found
+        params = dict(params, d=found.value)
+        T = regression.combine(system.T_blocks)
+        coef, rss = regression.subset_fit(T, support)
+        rows = signal_rows(prep, system, coef)
+        cv_error, _, floor = force_cv_error(prep, system, support, rows, config.fit.folds)
+        refuse_unusable(trace, library, coef[:len(library)], cv_error)
+        rng = np.random.default_rng([config.fit.seed, 14])
+        draws = covariance_draws(T, coef, support, rss, system.n_rows, COVARIANCE_DRAWS, rng)
+        bagging = regression.Bagging(support.astype(float), draws, COVARIANCE_DRAWS)
+        quantities = read_out(library, coef, bagging, params, support, trace)
+        if not search.propagate(quantities, found, lambda c, d: read_out(library, c, None, dict(params, d=d), support,
+                                                                          trace), support):
+            nonlinear = {"d": NonlinearEstimate("d", found.value, found.sigma, "m", True)}
+            counter["builds"] += 2
+            propagate_nonlinear(quantities, nonlinear, prep, library, params, support, trace)
+        for q in quantities.values():
+            q["error_kind"] = "1 sigma (least-squares covariance)"
+        warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
+        if prep.motion is not None and prep.motion.non_periodic:
+            from afmid.preprocess.motion import fit_warning
+
+            warnings.append(fit_warning(prep.motion, prep.noise_rms))
+        finish(quantities, warnings, prep, library, system, coef, support, params, trace, config, cv_error, floor,
+               read_out, True)
+        return PixelResult(quantities, found.value, found.sigma, cv_error, floor,
+                           np.asarray(support[:len(library)], bool), warnings, route), coef
+
+
+@dataclass
+class SeparationSearch:
+    """A finished separation search: the minimum and the systems built on the way (d -> System; only when the
+    profile library is the fitted library, so that they serve the pixel's fit)."""
+
+    found: "SeparationFound"
+    systems: dict
+
+    def system_at_minimum(self):
+        """The system at the evaluated point nearest the minimum when it lies within :data:`RESOLUTION` sigma
+        (the minimum is then moved onto it: a step far below its error bar), else None (build one)."""
+        if not self.systems or not math.isfinite(self.found.sigma):
+            return None
+        nearest = min(self.systems, key=lambda v: abs(v - self.found.value))
+        if abs(nearest - self.found.value) > RESOLUTION * self.found.sigma:
+            return None
+        self.found.value = nearest
+        return self.systems[nearest]
+
+    def propagate(self, quantities: dict, found: "SeparationFound", read, support: np.ndarray) -> bool:
+        """Add d's sigma to the quantities' errors (in place) from their slope over the evaluated points within
+        3 sigma of the minimum (no library evaluation); ``read(coef, d)`` reads out. False when fewer than
+        three points are there (the caller refits at d +- sigma instead). Added in quadrature to the error and to
+        both halves of the 95 % interval, as afmid.fit.pipeline.propagate_nonlinear does."""
+        sigma = found.sigma
+        if not (math.isfinite(sigma) and sigma > 0):
+            return True  # nothing to propagate
+        near = sorted(v for v in self.systems if abs(v - found.value) <= 3 * sigma)
+        if len(near) < 3:
+            return False
+        values = {k: [] for k in quantities}
+        for v in near:
+            coef, _ = regression.subset_fit(regression.combine(self.systems[v].T_blocks), support)
+            read_at = read(coef, v)
+            for k in quantities:
+                values[k].append(read_at.get(k, {}).get("value", math.nan))
+        for k, q in quantities.items():
+            y = np.asarray(values[k])
+            if not np.all(np.isfinite(y)):
+                continue
+            delta = abs(np.polyfit(np.asarray(near) - found.value, y, 1)[0]) * sigma
+            if delta > 0:
+                q["error"] = math.hypot(q["error"] if math.isfinite(q["error"]) else 0.0, delta)
+                half = 1.96 * delta
+                lo, hi = q["ci_low"], q["ci_high"]
+                if math.isfinite(lo) and math.isfinite(hi):
+                    q["ci_low"] = q["value"] - math.hypot(q["value"] - lo, half)
+                    q["ci_high"] = q["value"] + math.hypot(hi - q["value"], half)
+                else:
+                    q["ci_low"], q["ci_high"] = q["value"] - half, q["value"] + half
+        return True
+
+
+@dataclass
+class SeparationFound:
+    value: float  # m
+    sigma: float  # m, 1 sigma: max(chi-square width, block jackknife); NaN when undetermined
+
+
+def parabolic_minimum(profile, start: float, step: float, lo: float, hi: float, k: int) -> SeparationFound | None:
+    """The minimum of ``profile`` (an :class:`afmid.fit.profile.GroupedProfile`) by a bracket around ``start`` and
+    parabola steps, with its 1 sigma; None when it does not converge within :data:`MAX_SEARCH_EVALUATIONS`
+    or the profile is not locally parabolic (the caller then runs the robust profile on the same points).
+
+    The bracket moves (doubling its step) while the lowest point is on its edge, and is halved around the lowest
+    point while wider than :data:`BRACKET_WIDTHS` chi-square widths; then the parabola through the
+    lowest point and its neighbours gives the vertex and the chi-square width sigma = sqrt(s2 / curvature); points
+    are added at the vertex and at +-sigma until the vertex moves by less than a tenth of sigma, so the width is
+    read where the chi-square rises by about one. sigma is the larger of that width and the spread of the vertex
+    over the block jackknife (leave-one-group-out profiles from the same factors, no library evaluation).
+    """
+    def clip(v):
+        return min(max(v, lo), hi)
+
+    for v in (clip(start - step), clip(start), clip(start + step)):
+        profile(v)
+    for _ in range(MAX_SEARCH_EVALUATIONS):
+        x, y = profile.points()
+        if not np.all(np.isfinite(y)) or x.size >= MAX_SEARCH_EVALUATIONS:
+            return None
+        i = int(np.argmin(y))
+        if i == 0 or i == x.size - 1:  # on the edge: move outwards
+            if (i == 0 and x[0] <= lo) or (i == x.size - 1 and x[-1] >= hi):
+                return None  # the minimum is on the search window's bound
+            step *= 2
+            profile(clip(x[i] - step if i == 0 else x[i] + step))
+            continue
+        vertex, curvature = _parabola(x[i - 1:i + 2], y[i - 1:i + 2])
+        s2 = y[i] / max(profile.n_rows - k, 1)
+        sigma = math.sqrt(s2 / curvature) if curvature > 0 else math.inf
+        spacing = max(x[i] - x[i - 1], x[i + 1] - x[i])
+        if spacing > BRACKET_WIDTHS * sigma or not math.isfinite(sigma):
+            # Too wide a bracket to trust a parabola (after a long move): halve it around the lowest point.
+            for v in (0.5 * (x[i - 1] + x[i]), 0.5 * (x[i] + x[i + 1])):
+                profile(v)
+            continue
+        wanted = [vertex] if spacing <= 3 * sigma else [vertex - sigma, vertex, vertex + sigma]
+        new = [clip(v) for v in wanted if np.min(np.abs(x - v)) > 0.1 * sigma]
+        if not new:
+            jk = _jackknife_spread(profile, x[i - 1:i + 2])
+            return SeparationFound(float(vertex), max(sigma, jk) if math.isfinite(jk) else sigma)
+        for v in new:
+            profile(v)
+    return None
+
+
+def _parabola(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Vertex and curvature a of y = a (x - vertex)^2 + c through three points (x relative to the middle)."""
+    u = x - x[1]
+    a, b, _ = np.linalg.solve(np.vander(u, 3), y)
+    if a <= 0:
+        return float(x[1]), float(a)
+    return float(x[1] - b / (2 * a)), float(a)
+
+
+def _jackknife_spread(profile, points: np.ndarray) -> float:
+    """1 sigma of the parabola vertex over the leave-one-group-out profiles at ``points`` (NaN without groups)."""
+    G = profile.jackknife_groups()
+    if G < 2:
+        return math.nan
+    vertices = []
+    for g in range(G):
+        y = np.array([profile.leave_out(v, g) for v in points])
+        if not np.all(np.isfinite(y)):
+            return math.nan
+        v, a = _parabola(points, y)
+        if not a > 0:
+            return math.nan
+        vertices.append(v)
+    vertices = np.asarray(vertices)
+    return float(math.sqrt((G - 1) / G * np.sum((vertices - vertices.mean()) ** 2)))
+
+
+def covariance_draws(T: np.ndarray, coef: np.ndarray, support: np.ndarray, rss: float, n_rows: int, n: int,
+                     rng: np.random.Generator) -> np.ndarray:
+    """``n`` coefficient vectors drawn from the least-squares covariance s2 (A_S^T A_S)^-1 of the support (zero
+    elsewhere), s2 = rss / (rows - k); ``T`` is the combined triangular factor of [A | y] (so A^T A = T_A^T T_A).
+    Columns are scaled to unit norm first: SI columns span tens of orders of magnitude."""
+    index = np.flatnonzero(support)
+    A = T[:, index]
+    norms = np.linalg.norm(A, axis=0)
+    norms[norms == 0] = 1.0
+    gram = (A / norms).T @ (A / norms)
+    s2 = rss / max(n_rows - index.size, 1)
+    w, V = np.linalg.eigh(gram)
+    w = np.where(w > w.max() * 1e-14, w, np.inf)  # a direction the data do not determine gets no spread here
+    root = V / np.sqrt(w)  # cov_scaled = root @ root.T / s2^-1
+    draws = np.tile(coef, (n, 1))
+    draws[:, index] += (rng.standard_normal((n, index.size)) @ root.T) * math.sqrt(s2) / norms
+    return draws
+
+
+PIXEL_FITS: Registry = Registry("pixel fit")
+PIXEL_FITS.register(SharedSupportFit)
+PIXEL_FITS.register(FullPixelFit)
+#: The strategy ``afmid map`` uses unless ``--pixel-fit`` names another.
+DEFAULT_PIXEL_FIT = SharedSupportFit.name

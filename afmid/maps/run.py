@@ -1,0 +1,259 @@
+"""``afmid map``: fit every pixel of a force map on an engine and write the maps (layout in docs/file-formats.md).
+
+The map is cut into chunks of pixels (row-major ranges), one engine task each (:func:`afmid.maps.task.fit_chunk`).
+Each finished chunk is saved as it arrives, atomically, in a sidecar folder beside the output
+(``RESULT.h5.afmid-map/``, with a ``key.json`` naming the input's SHA-256, the merged config and the chunking);
+a re-run of the same command with the same input and config skips the finished chunks (a Ctrl-C, a killed
+client or a lost cluster leave a resumable state, never a half-written ``RESULT.h5``). When every chunk is in,
+the result file is written atomically with its provenance and the sidecar removed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from afmid.errors import InputError
+from afmid.maps.pixel_fit import ROUTES
+from afmid.maps.task import STATUS_FAILED, STATUS_NAMES, STATUS_OK, STATUS_SUSPECT, fit_chunk
+
+log = logging.getLogger(__name__)
+
+MAP_RESULT_FORMAT = "afmid-map-result"
+SIDECAR_SUFFIX = ".afmid-map"
+#: Largest chunk (pixels) chosen by default: enough tasks to balance the workers, few enough to share the setup.
+MAX_DEFAULT_CHUNK = 64
+#: Smallest chunk chosen by default (unless the map is smaller): the shared pixel fit searches each chunk's first
+#: pixel in full (afmid.maps.pixel_fit), so a chunk of a few pixels would pay that search for most of its pixels.
+MIN_DEFAULT_CHUNK = 8
+#: What /maps/NAME_sigma is, per pixel-fit strategy.
+SIGMA_MEANING = {"full": "1 sigma (bootstrap standard deviation, separation's profile sigma propagated)",
+                 "shared": "1 sigma (least-squares covariance of the support, separation's profile sigma propagated)"}
+
+
+def default_chunk(n_pixels: int) -> int:
+    """Pixels per task: about 32 tasks per map, :data:`MIN_DEFAULT_CHUNK` (or the whole map when smaller) to
+    :data:`MAX_DEFAULT_CHUNK` pixels each (independent of the worker count, so that a re-run with another -j
+    resumes)."""
+    return max(1, min(n_pixels, max(MIN_DEFAULT_CHUNK, min(MAX_DEFAULT_CHUNK, math.ceil(n_pixels / 32)))))
+
+
+def sidecar_for(output: Path) -> Path:
+    """The folder of finished chunks of an unfinished ``afmid map`` to ``output``."""
+    return output.with_name(output.name + SIDECAR_SUFFIX)
+
+
+def run_map(config, config_text: str, input_path: Path, output: Path, engine, chunk: int | None = None,
+            overwrite: bool = False, pixel_fit: str | None = None) -> dict:
+    """Fit the map ``input_path`` with ``config`` on ``engine`` and write ``output``; returns the pixel counts.
+
+    ``pixel_fit``: the strategy of :data:`afmid.maps.pixel_fit.PIXEL_FITS` (None: the default, ``shared``)."""
+    from afmid.maps.pixel_fit import DEFAULT_PIXEL_FIT
+    from afmid.io.trace import check_output_path, sha256_file
+    from afmid.maps.input_file import open_map
+
+    source = open_map(input_path, config)
+    output = check_output_path(output, overwrite, inputs={config.source: "the config", input_path: "the map"})
+    if config.sample.separation is not None:
+        log.warning("sample.separation (%.4g m) is not used: the separation is estimated per pixel (topography)",
+                    config.sample.separation)
+    n = source.n_pixels
+    chunk = chunk or default_chunk(n)
+    bounds = [(lo, min(n, lo + chunk)) for lo in range(0, n, chunk)]
+    key = {"input_sha256": sha256_file(source.path), "config_sha256": hashlib.sha256(config_text.encode()).hexdigest(),
+           "shape": [source.rows, source.cols, source.samples], "chunk": chunk,
+           "pixel_fit": pixel_fit or DEFAULT_PIXEL_FIT}
+    folder = _open_sidecar(sidecar_for(output), key)  # made when the first chunk is saved
+    done = {i for i in range(len(bounds)) if (folder / _chunk_name(i)).is_file()}
+    if done:
+        log.info("resuming: %d of %d chunks already fitted (%s)", len(done), len(bounds), folder)
+    tasks = [(i, {"input": str(source.path.resolve()), "config": config_text,
+                  "source": str(config.source) if config.source else None, "first": lo, "stop": hi,
+                  "pixel_fit": key["pixel_fit"]})
+             for i, (lo, hi) in enumerate(bounds) if i not in done]
+    where = (f"the dask cluster at {engine.scheduler}" if getattr(engine, "scheduler", None)
+             else f"{engine.workers_for(len(tasks)) if tasks else 0} local workers")
+    log.info("map %dx%d (%d samples per pixel): %d chunks of %d pixels to fit on %s", source.rows, source.cols,
+             source.samples, len(tasks), chunk, where)
+    progress = {"done": len(done)}
+
+    def report(outcome) -> None:
+        lo, hi = bounds[outcome.key]
+        if outcome.result is None and not outcome.crashed:
+            return  # stopped before it finished: fitted again on the next run
+        result = outcome.result if outcome.result is not None else _crashed_chunk(lo, hi, outcome.crashed)
+        _make_sidecar(folder, key)
+        _save_chunk(folder / _chunk_name(outcome.key), result)
+        progress["done"] += 1
+        failed = int(np.count_nonzero(np.asarray(result["status"]) == STATUS_FAILED))
+        log.info("chunk %d/%d: pixels %d-%d fitted (%d failed)", progress["done"], len(bounds), lo, hi - 1, failed)
+
+    try:
+        engine.run(fit_chunk, tasks, report, lambda: None)
+    except KeyboardInterrupt:
+        log.warning("interrupted: %d of %d chunks are saved in %s; run the same command again to resume",
+                    progress["done"], len(bounds), folder)
+        raise
+    counts = write_map_result(output, source, config, config_text, folder, len(bounds), key)
+    shutil.rmtree(folder, ignore_errors=True)
+    return counts
+
+
+def _chunk_name(index: int) -> str:
+    return f"chunk_{index:06d}.npz"
+
+
+def _open_sidecar(folder: Path, key: dict) -> Path:
+    """The sidecar folder for ``key``; one left by a run with another input, config or chunking is removed (the
+    map starts anew). Nothing is created here: :func:`_make_sidecar` makes it when the first chunk is saved, so a
+    run that fails before any chunk leaves nothing."""
+    if folder.is_dir():
+        try:
+            old = json.loads((folder / "key.json").read_text())
+        except (OSError, ValueError):
+            old = None
+        if old == key:
+            return folder
+        log.warning("%s holds chunks of another input, config or chunking: starting the map anew", folder)
+        shutil.rmtree(folder)
+    return folder
+
+
+def _make_sidecar(folder: Path, key: dict) -> None:
+    """Create the sidecar folder with its key (once)."""
+    from afmid.io.trace import atomic_path
+
+    key_file = folder / "key.json"
+    if key_file.is_file():
+        return
+    folder.mkdir(exist_ok=True)
+    with atomic_path(key_file) as tmp:
+        tmp.write_text(json.dumps(key))
+
+
+def _save_chunk(path: Path, result: dict) -> None:
+    """One finished chunk, written atomically (a Ctrl-C leaves it whole or absent)."""
+    from afmid.io.trace import atomic_path
+
+    arrays = {k: np.asarray(result[k]) for k in ("status", "separation", "separation_sigma", "cv_error",
+                                                 "cv_error_noise_floor", "selected", "route", "evaluations")}
+    arrays["message"] = np.array(result["message"], dtype=str)
+    arrays["range"] = np.array([result["first"], result["stop"]])
+    arrays["terms"] = np.array(result["terms"] or [""], dtype=str)
+    arrays["names"] = np.array(result["names"] or [""], dtype=str)
+    arrays["units"] = np.array(result["units"] or [""], dtype=str)
+    arrays["effects"] = np.array(result["effects"] or [""], dtype=str)
+    n = result["stop"] - result["first"]
+    arrays["values"] = np.asarray(result["values"]) if result["values"] is not None else np.zeros((0, n))
+    arrays["sigmas"] = np.asarray(result["sigmas"]) if result["sigmas"] is not None else np.zeros((0, n))
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+
+def _crashed_chunk(first: int, stop: int, why: str) -> dict:
+    n = stop - first
+    nan = np.full(n, np.nan)
+    return {"first": first, "stop": stop, "status": np.full(n, STATUS_FAILED, np.int8), "message": [why] * n,
+            "separation": nan, "separation_sigma": nan, "cv_error": nan, "cv_error_noise_floor": nan,
+            "selected": np.zeros(n, np.int64), "route": np.full(n, -1, np.int8), "evaluations": np.zeros(n, np.int32),
+            "terms": [], "names": [], "units": [], "effects": [], "values": None, "sigmas": None}
+
+
+def _load_chunks(folder: Path, n_chunks: int) -> list[dict]:
+    chunks = []
+    for i in range(n_chunks):
+        with np.load(folder / _chunk_name(i), allow_pickle=False) as z:
+            chunk = {k: z[k] for k in z.files}
+        for k in ("terms", "names", "units", "effects"):
+            chunk[k] = [str(v) for v in chunk[k] if str(v)]
+        chunks.append(chunk)
+    return chunks
+
+
+def write_map_result(output: Path, source, config, config_text: str, folder: Path, n_chunks: int, key: dict) -> dict:
+    """Assemble the saved chunks into ``output`` (atomically, with provenance); returns the pixel counts."""
+    from afmid.io.trace import atomic_hdf5, write_dataset
+
+    chunks = _load_chunks(folder, n_chunks)
+    shape = (source.rows, source.cols)
+    n = source.n_pixels
+    terms = next((c["terms"] for c in chunks if c["terms"]), [])
+    if any(c["terms"] and c["terms"] != terms for c in chunks):
+        raise InputError("chunks of this map were fitted with different libraries; remove the sidecar folder",
+                         file=folder)
+    names, units, effects = [], {}, {}
+    for c in chunks:
+        for name, unit, effect in zip(c["names"], c["units"], c["effects"]):
+            if name not in units:
+                names.append(name)
+                units[name], effects[name] = unit, effect
+    flat = {k: np.full(n, np.nan) for k in ("separation", "separation_sigma", "cv_error", "cv_error_noise_floor")}
+    status = np.full(n, STATUS_FAILED, np.int8)
+    selected = np.zeros(n, np.int64)
+    route = np.full(n, -1, np.int8)
+    evaluations = np.zeros(n, np.int32)
+    message = np.full(n, "", dtype=object)
+    values = {name: np.full(n, np.nan) for name in names}
+    sigmas = {name: np.full(n, np.nan) for name in names}
+    for c in chunks:
+        lo, hi = (int(v) for v in c["range"])
+        for k in flat:
+            flat[k][lo:hi] = c[k]
+        status[lo:hi] = c["status"]
+        selected[lo:hi] = c["selected"]
+        route[lo:hi] = c["route"]
+        evaluations[lo:hi] = c["evaluations"]
+        message[lo:hi] = [str(m) for m in c["message"]]
+        for k, name in enumerate(c["names"]):
+            values[name][lo:hi] = c["values"][k]
+            sigmas[name][lo:hi] = c["sigmas"][k]
+    counts = {name: int(np.count_nonzero(status == code)) for code, name in enumerate(STATUS_NAMES)}
+    with atomic_hdf5(output, MAP_RESULT_FORMAT, config_text, {str(source.path): key["input_sha256"]}) as h5:
+        h5.attrs["rows"], h5.attrs["cols"], h5.attrs["samples"] = source.rows, source.cols, source.samples
+        h5.attrs["chunk_pixels"] = key["chunk"]
+        h5.attrs["pixel_fit"] = key["pixel_fit"]
+        for name, count in counts.items():
+            h5.attrs[f"n_{name}"] = count
+        maps = h5.create_group("maps")
+        for name in names:
+            write_dataset(maps, name, values[name].reshape(shape), units[name], effect=effects[name])
+            write_dataset(maps, f"{name}_sigma", sigmas[name].reshape(shape), units[name],
+                          meaning=SIGMA_MEANING[key["pixel_fit"]])
+        write_dataset(maps, "separation", flat["separation"].reshape(shape), "m",
+                      meaning="rest tip-sample separation d estimated per pixel (topography: the sample is higher "
+                              "where d is smaller)")
+        write_dataset(maps, "separation_sigma", flat["separation_sigma"].reshape(shape), "m",
+                      meaning="1 sigma (profile width)")
+        write_dataset(maps, "cv_error", flat["cv_error"].reshape(shape), "1",
+                      definition="normalised cross-validated force error")
+        write_dataset(maps, "cv_error_noise_floor", flat["cv_error_noise_floor"].reshape(shape), "1",
+                      definition="expected cv_error of a perfect model at the estimated noise")
+        write_dataset(maps, "selected", selected.reshape(shape), "1",
+                      meaning="bit k set: /model/terms[k] selected at this pixel")
+        write_dataset(maps, "status", status.reshape(shape), "1",
+                      meaning=", ".join(f"{code}: {name}" for code, name in enumerate(STATUS_NAMES)))
+        write_dataset(maps, "message", message.astype(str).reshape(shape), "1",
+                      meaning="why a pixel failed or is suspect (empty when ok)")
+        write_dataset(maps, "fit_route", route.reshape(shape), "1",
+                      meaning=", ".join(f"{code}: {name}" for code, name in enumerate(ROUTES)) + ", -1: not fitted")
+        write_dataset(maps, "evaluations", evaluations.reshape(shape), "1",
+                      meaning="library evaluations (regression systems built) the pixel's fit cost")
+        model = h5.create_group("model")
+        write_dataset(model, "terms", np.array(terms or [""]), "1")
+        if source.x is not None:
+            write_dataset(h5, "x", source.x, "m")
+        if source.y is not None:
+            write_dataset(h5, "y", source.y, "m")
+    log.info("wrote %s: %d pixels ok, %d suspect, %d failed", output, counts["ok"], counts["suspect"],
+             counts["failed"])
+    return counts
+
+
+__all__ = ["run_map", "write_map_result", "default_chunk", "sidecar_for", "STATUS_OK", "STATUS_SUSPECT"]

@@ -1,0 +1,116 @@
+"""One chunk of a force map, fitted in a worker: :func:`fit_chunk`.
+
+A task names the map file, the merged run config (YAML text) and a range of pixels. The worker reads the map's
+metadata and the chunk's traces once, builds the :class:`afmid.physics.library.Library` once, and fits the pixels in order with the task's pixel-fit strategy
+(:mod:`afmid.maps.pixel_fit`; the separation is estimated per pixel: it is the topography). A pixel that cannot be fitted is marked failed with its one-line reason; it never stops the chunk.
+The result is plain arrays (one value per pixel), small enough to send back to the scheduler.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+#: Status codes of a pixel, stored in /maps/status (names in its ``meaning`` attribute).
+STATUS_OK, STATUS_SUSPECT, STATUS_FAILED = 0, 1, 2
+STATUS_NAMES = ("ok", "suspect", "failed")
+
+
+def map_config(config_text: str, source: str | None):
+    """The run config of every pixel: the map's merged config with the separation left to the fit."""
+    import yaml
+
+    from afmid.config import build_config
+
+    config = build_config(yaml.safe_load(config_text), source=Path(source) if source else None)
+    config.sample.separation = None  # estimated per pixel (the topography)
+    return config
+
+
+def fit_chunk(task: dict) -> dict:
+    """Fit pixels ``task['first']`` to ``task['stop']`` of ``task['input']``; see the module docstring.
+
+    Returns ``{"first", "stop", "status", "message", "separation", "separation_sigma", "cv_error",
+    "cv_error_noise_floor", "selected" (bit mask per pixel), "terms", "names", "units", "values", "sigmas",
+    "seconds"}`` (values/sigmas: (n_quantities, n_pixels), SI, sigma = 1 sigma bootstrap).
+    """
+    import time
+
+    import afmid.fit.plausibility as plausibility
+    from afmid.errors import AfmidError
+    from afmid.physics.library import build_library
+    from afmid.maps.pixel_fit import DEFAULT_PIXEL_FIT, PIXEL_FITS
+    from afmid.maps.input_file import open_map, pixel_trace, read_pixels
+
+    started = time.perf_counter()
+    logger = logging.getLogger("afmid")
+    level = logger.level
+    logger.setLevel(logging.ERROR)  # per-pixel warnings go into the status map, not the worker's log
+    try:
+        config = map_config(task["config"], task.get("source"))
+        source = open_map(task["input"], config)
+        library = build_library(config.model, config.source)
+        first, stop = int(task["first"]), int(task["stop"])
+        raw = read_pixels(source, first, stop)
+    finally:
+        logger.setLevel(level)
+    n = stop - first
+    out = {
+        "first": first, "stop": stop, "status": np.full(n, STATUS_FAILED, np.int8), "message": [""] * n,
+        "separation": np.full(n, np.nan), "separation_sigma": np.full(n, np.nan), "cv_error": np.full(n, np.nan),
+        "cv_error_noise_floor": np.full(n, np.nan), "selected": np.zeros(n, np.int64),
+        "route": np.full(n, -1, np.int8), "evaluations": np.zeros(n, np.int32),
+        "terms": list(library.names), "names": [], "units": [], "effects": [], "values": None, "sigmas": None,
+    }
+    if len(library.names) > 63:
+        raise ValueError("the selected-term bit mask holds at most 63 terms")
+    per_pixel: list[dict | None] = [None] * n
+    strategy = PIXEL_FITS.get(task.get("pixel_fit") or DEFAULT_PIXEL_FIT)(config, library)
+    for i in range(n):
+        pixel = first + i
+        logger.setLevel(logging.ERROR)
+        try:
+            result = strategy.fit(pixel_trace(source, raw[i], config, pixel), pixel)
+        except AfmidError as exc:
+            out["message"][i] = exc.message
+            continue
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError, ArithmeticError) as exc:
+            out["message"][i] = f"the fit failed: {type(exc).__name__}: {exc}"
+            continue
+        finally:
+            logger.setLevel(level)
+        per_pixel[i] = result.quantities
+        out["separation"][i] = result.separation
+        out["separation_sigma"][i] = result.separation_sigma
+        out["cv_error"][i] = result.cv_error
+        out["cv_error_noise_floor"][i] = result.cv_error_noise_floor
+        out["selected"][i] = int(sum(1 << k for k, m in enumerate(result.selected[:len(library)]) if m))
+        out["route"][i] = result.route
+        out["evaluations"][i] = result.evaluations
+        # Defects the checks only warned about (not those repaired or informational), and implausible read-outs.
+        doubts = [w for w in result.warnings if w.startswith("warning")] + [f"implausible: {name}" for name in
+                                                 plausibility.violations(
+                                                     plausibility.check_plausibility(result.quantities))]
+        out["status"][i] = STATUS_SUSPECT if doubts else STATUS_OK
+        out["message"][i] = "; ".join(doubts)
+    names: list[str] = []
+    for q in per_pixel:
+        for name, item in (q or {}).items():
+            if name not in names:
+                names.append(name)
+                out["units"].append(item["unit"])
+                out["effects"].append(item.get("effect") or "")
+    out["names"] = names
+    values = np.full((len(names), n), np.nan)
+    sigmas = np.full((len(names), n), np.nan)
+    for i, q in enumerate(per_pixel):
+        for k, name in enumerate(names):
+            if q and name in q:
+                values[k, i] = q[name]["value"]
+                sigmas[k, i] = q[name]["error"]
+    out["values"], out["sigmas"] = values, sigmas
+    out["seconds"] = time.perf_counter() - started
+    return out
+

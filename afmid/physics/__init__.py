@@ -1,0 +1,1 @@
+"""Physics: the effect registry, the term language, units, presets and the fit library."""

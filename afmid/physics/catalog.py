@@ -1,0 +1,82 @@
+"""Text and JSON views of the physics registry (``afmid effects``)."""
+
+from __future__ import annotations
+
+import json
+
+from afmid.fit.plausibility import range_words
+from afmid.physics.effect_tags import TERM_ROLES
+from afmid.physics.effects import EFFECTS, MODELS, coefficient_unit, quantity_range, term_unit
+from afmid.registry import unknown_name_message
+from afmid.errors import ConfigError
+
+
+def effect_record(name: str) -> dict:
+    effect = EFFECTS.get(name)
+    return {
+        "name": effect.name,
+        "title": effect.title,
+        "formula": effect.formula,
+        "character": effect.character,
+        "region": effect.region,
+        "parameters": [
+            {"name": p.name, "unit": p.unit, "default": p.default, "range": [p.low, p.high], "doc": p.doc,
+             "nonlinear": p.nonlinear}
+            for p in effect.parameters
+        ],
+        "terms": [
+            {"label": t.label, "expression": t.expression, "term_unit": str(term_unit(effect, t)),
+             "coefficient_unit": str(coefficient_unit(effect, t)), "roles": list(t.roles)}
+            for t in effect.terms
+        ],
+        "states": [{"name": s.name, "on": s.on, "off": s.off} for s in effect.states],
+        "quantities": [
+            {"name": q.name, "unit": q.unit, "doc": q.doc, "plausible_range": list(quantity_range(effect, q))}
+            for q in effect.quantities
+        ],
+        "references": list(effect.references),
+    }
+
+
+def model_record(name: str) -> dict:
+    model = MODELS.get(name)
+    return {"name": model.name, "title": model.title, "effects": list(model.effects),
+            "references": list(model.references)}
+
+
+def describe_effects(names: list[str], models: bool = False, as_json: bool = False) -> str:
+    registry = MODELS if models else EFFECTS
+    for name in names:
+        if name not in registry:
+            raise ConfigError(unknown_name_message("model" if models else "effect", name, registry.names()))
+    selected = names or registry.names()
+    records = [model_record(n) if models else effect_record(n) for n in selected]
+    if as_json:
+        return json.dumps(records, indent=2)
+    lines: list[str] = []
+    for r in records:
+        lines.append(f"{r['name']}: {r['title']}")
+        if models:
+            lines.append(f"  effects: {', '.join(r['effects'])}")
+        else:
+            lines.append(f"  force (repulsive +): {r['formula']}")
+            lines.append(f"  character: {r['character']}; acts: {r['region']}")
+            for p in r["parameters"]:
+                flag = " [nonlinear, searched by the fit]" if p["nonlinear"] else ""
+                lines.append(
+                    f"  param {p['name']} [{p['unit']}] default {p['default']:g}, "
+                    f"range [{p['range'][0]:g}, {p['range'][1]:g}]: {p['doc']}{flag}"
+                )
+            for t in r["terms"]:
+                role = "".join(f"; {TERM_ROLES[r]}" for r in t["roles"])
+                lines.append(f"  term  {t['label']}: {t['expression']}  (coefficient in {t['coefficient_unit']}{role})")
+            for s in r["states"]:
+                lines.append(f"  state {s['name']}: on when {s['on']}, off when {s['off']}")
+            for q in r["quantities"]:
+                low, high = q["plausible_range"]
+                plausible = range_words(low, high, q["unit"])
+                lines.append(f"  yields {q['name']} [{q['unit']}]: {q['doc']} (plausible: {plausible})")
+        for ref in r["references"]:
+            lines.append(f"  ref: {ref}")
+        lines.append("")
+    return "\n".join(lines).rstrip() + "\n"

@@ -1,0 +1,640 @@
+"""The physics registry: tip-sample force effects and the models built from them.
+
+One source of truth for the simulator and the fit. An :class:`Effect` is a force
+contribution written as a sum of *terms* in afmid's term language
+(:mod:`afmid.physics.expr`), each multiplied by a coefficient that follows from the
+effect's physical parameters. The simulator evaluates ``sum(coefficient * term)``;
+the fit uses the same terms as library columns and turns fitted coefficients
+back into physical quantities with the effect's ``readout``.
+
+Conventions (pinned, see README): forces are on the tip, in newtons, positive =
+repulsive (pushing the tip away from the sample). ``z`` is the tip-sample
+separation, ``delta = max(a0 - z, 0)`` the indentation, ``zdot = dz/dt``,
+``deltadot = -zdot`` in contact and 0 outside.
+
+Adding an effect = one ``EFFECTS.register(Effect(...))`` declaration plus its
+tests. Registration checks units (each term's declared coefficient unit x the
+units of its expression = N), ranges, the region, character and term roles
+(members of the enumerations in :mod:`afmid.physics.effect_tags`), and that the readout
+inverts the coefficients at the default parameters.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import afmid.physics.expr as expr
+from afmid.physics.effect_tags import Character, Region, Role, check_member, check_roles
+from afmid.errors import DefinitionError
+from afmid.registry import Registry
+from afmid.physics.units import Unit, parse_unit
+
+EPSILON_0 = 8.8541878128e-12  # F/m, vacuum permittivity
+BOLTZMANN = 1.380649e-23  # J/K
+
+#: Context quantities every effect may use (set from the cantilever/sample config).
+CONTEXT_UNITS: dict[str, str] = {"R": "m", "a0": "m"}
+NEWTON = parse_unit("N")
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A physical parameter of an effect, in SI units."""
+
+    name: str
+    unit: str
+    default: float
+    low: float  # valid range, inclusive
+    high: float
+    doc: str
+    nonlinear: bool = False  # appears inside a term (searched by the fit, not linear in F)
+
+
+@dataclass(frozen=True)
+class Term:
+    """One force term: ``coefficient(params) * expression``.
+
+    ``label`` names the term within its effect (keys of the readout's input).
+    ``coefficient`` maps the effect's parameters (plus context R, a0) to the SI
+    coefficient, so that ``coefficient * expression`` is a force in newtons;
+    ``coefficient_unit`` states its SI units, and registration checks that they
+    times the expression's units are newtons.
+    """
+
+    label: str
+    expression: str
+    coefficient: Callable[[Mapping[str, float]], float]
+    doc: str = ""
+    roles: tuple[Role, ...] = ()  # what the term is to the selection rules (afmid.physics.effect_tags.SELECTION_RULES)
+    coefficient_unit: str = ""  # SI units of the coefficient, e.g. "J*m" for H R / 6 (required: checked at registration)
+
+
+@dataclass(frozen=True)
+class Quantity:
+    """A physical quantity the fit reports for an effect.
+
+    ``low``/``high`` (inclusive, SI, in ``unit``) are the values a physical sample
+    can have; they also fix the sign (``low >= 0``: a positive number). A quantity
+    that is one of its effect's parameters takes the parameter's range and leaves
+    them None. Read-outs outside the range are flagged (:mod:`afmid.fit.plausibility`).
+    """
+
+    name: str
+    unit: str
+    doc: str
+    low: float | None = None
+    high: float | None = None
+
+
+@dataclass(frozen=True)
+class StateGate:
+    """A history-dependent boolean state used in terms as ``[name]``.
+
+    It switches on when ``on`` becomes true and stays on until ``off`` becomes
+    true (conditions in the term language), e.g. a water meniscus that forms at
+    contact and ruptures only at a set separation on retraction.
+    """
+
+    name: str
+    on: str
+    off: str
+
+
+@dataclass(frozen=True)
+class Effect:
+    name: str
+    title: str
+    formula: str  # human-readable force law, repulsive positive
+    parameters: tuple[Parameter, ...]
+    terms: tuple[Term, ...]
+    quantities: tuple[Quantity, ...]
+    readout: Callable[[Mapping[str, float], Mapping[str, float]], dict[str, float]]
+    references: tuple[str, ...]
+    states: tuple[StateGate, ...] = ()
+    character: Character = Character.CONSERVATIVE  # guides the diagnosis
+    region: Region = Region.CONTACT  # where it acts
+    notes: str = ""
+    # Terms a library may fit under this effect's name, for its read-out, that the effect itself does not add
+    # (neither to the simulated force nor to an effects library): e.g. DMT ties its adhesion to the tail, but
+    # the seed tables fit the adhesion as a term of its own. Checked like ``terms``; presets may name them.
+    readout_only_terms: tuple[Term, ...] = ()
+
+    def parameter(self, name: str) -> Parameter:
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise KeyError(name)
+
+    def defaults(self) -> dict[str, float]:
+        return {p.name: p.default for p in self.parameters}
+
+    @property
+    def nonlinear_parameters(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.parameters if p.nonlinear)
+
+
+@dataclass(frozen=True)
+class Model:
+    """A named combination of effects used by the simulator (the seed's models)."""
+
+    name: str
+    title: str
+    effects: tuple[str, ...]
+    references: tuple[str, ...]
+    equation: str = ""
+    defaults: Mapping[str, float] = field(default_factory=dict)
+    derived_defaults: Callable[[Mapping[str, float]], dict[str, float]] | None = None
+
+
+# A realistic default context for checks: a 10 nm tip, a0 = 0.165 nm.
+CHECK_CONTEXT = {"R": 10e-9, "a0": 0.165e-9}
+
+
+def _param_units(effect: Effect) -> dict[str, Unit]:
+    units = {name: parse_unit(u) for name, u in CONTEXT_UNITS.items()}
+    units.update({p.name: parse_unit(p.unit) for p in effect.parameters})
+    return units
+
+
+def _validate_term(effect: Effect, term: Term, units: Mapping[str, Unit], values: Mapping[str, float]) -> None:
+    """A term's roles are known, its expression names only declared values, its coefficient is finite at the
+    defaults and in its declared units, and coefficient x term is a force (N)."""
+    state_names = tuple(s.name for s in effect.states)
+    check_roles(term.roles, f"term {term.label}")
+    undeclared = expr.free_names(term.expression) - set(state_names) - set(units)
+    if undeclared:
+        raise DefinitionError(f"term {term.label}: undeclared names {sorted(undeclared)}")
+    if not math.isfinite(term.coefficient(values)):
+        raise DefinitionError(f"term {term.label}: coefficient not finite at defaults")
+    if not term.coefficient_unit:
+        raise DefinitionError(f"term {term.label}: declare coefficient_unit (SI units of the coefficient)")
+    expression_unit = expr.expression_units(term.expression, units, states=state_names)
+    force = parse_unit(term.coefficient_unit) * expression_unit
+    if force != NEWTON:
+        raise DefinitionError(f"term {term.label}: coefficient ({term.coefficient_unit}) x term ({expression_unit}) "
+                              f"is {force}, not N; the coefficient should be in {NEWTON / expression_unit}")
+
+
+def _validate_effect(effect: Effect) -> None:
+    if not effect.terms:
+        raise DefinitionError("an effect needs at least one term")
+    check_member(Character, effect.character, "character")
+    check_member(Region, effect.region, "region")
+    labels = [t.label for t in effect.terms + effect.readout_only_terms]
+    if len(set(labels)) != len(labels):
+        raise DefinitionError(f"term labels repeat: {labels}")
+    for p in effect.parameters:
+        if not (p.low <= p.default <= p.high):
+            raise DefinitionError(f"default of {p.name} ({p.default}) outside [{p.low}, {p.high}]")
+        parse_unit(p.unit)
+    state_names = tuple(s.name for s in effect.states)
+    units = _param_units(effect)
+    values = {**CHECK_CONTEXT, **effect.defaults()}
+    for term in effect.terms + effect.readout_only_terms:
+        _validate_term(effect, term, units, values)
+    for gate in effect.states:
+        for cond in (gate.on, gate.off):
+            expr.expression_units(f"[{cond}]", units, states=state_names)
+    # The readout must invert the coefficients at the defaults.
+    coefficients = {t.label: t.coefficient(values) for t in effect.terms}
+    recovered = effect.readout(coefficients, values)
+    for q in effect.quantities:
+        _validate_quantity_range(effect, q)
+        if q.name not in recovered:
+            raise DefinitionError(f"readout does not give quantity {q.name}")
+        if q.name in values and values[q.name] != 0:
+            rel = abs(recovered[q.name] - values[q.name]) / abs(values[q.name])
+            if rel > 1e-9:
+                raise DefinitionError(f"readout of {q.name} does not invert its coefficient ({rel:.1e})")
+    # A read-out-only term stands for part of the effect's force: fitted at the value the effect implies,
+    # it must not change what the readout reports.
+    if effect.readout_only_terms:
+        with_extra = effect.readout({**coefficients, **{t.label: t.coefficient(values)
+                                                         for t in effect.readout_only_terms}}, values)
+        for name, value in recovered.items():
+            if not math.isclose(with_extra.get(name, math.nan), value, rel_tol=1e-9):
+                raise DefinitionError(f"readout of {name} changes with the read-out-only terms at the defaults "
+                                      f"({value!r} -> {with_extra.get(name)!r})")
+
+
+def quantity_range(effect: Effect, quantity: Quantity) -> tuple[float, float]:
+    """The plausible range [low, high] (SI, inclusive) of a quantity: its own, or its parameter's."""
+    if quantity.low is not None and quantity.high is not None:
+        return quantity.low, quantity.high
+    parameter = effect.parameter(quantity.name)
+    return parameter.low, parameter.high
+
+
+def _validate_quantity_range(effect: Effect, q: Quantity) -> None:
+    """Every reported quantity has a plausible range, in known units, one per name across the catalog."""
+    unit = parse_unit(q.unit)
+    is_parameter = q.name in {p.name for p in effect.parameters}
+    if is_parameter:
+        if q.low is not None or q.high is not None:
+            raise DefinitionError(f"quantity {q.name} is a parameter: it takes the parameter's range, declare none")
+        if parse_unit(effect.parameter(q.name).unit) != unit:
+            raise DefinitionError(f"quantity {q.name} is in {q.unit}, its parameter in {effect.parameter(q.name).unit}")
+    elif q.low is None or q.high is None:
+        raise DefinitionError(f"quantity {q.name} needs a plausible range (low, high)")
+    low, high = quantity_range(effect, q)
+    if not (math.isfinite(low) and math.isfinite(high) and low < high):
+        raise DefinitionError(f"quantity {q.name}: plausible range [{low}, {high}] needs finite low < high")
+    for other in EFFECTS:  # one name, one meaning: the same unit and range wherever it is reported
+        for o in other.quantities:
+            if o.name == q.name and (parse_unit(o.unit) != unit or quantity_range(other, o) != (low, high)):
+                raise DefinitionError(f"quantity {q.name}: unit or range differs from effect {other.name}'s "
+                                      f"({o.unit} [{quantity_range(other, o)}])")
+
+
+def _validate_model(model: Model) -> None:
+    for name in model.effects:
+        if name not in EFFECTS:
+            raise DefinitionError(f"unknown effect {name!r}")
+
+
+EFFECTS: Registry[Effect] = Registry("effect", _validate_effect)
+MODELS: Registry[Model] = Registry("model", _validate_model)
+
+
+def term_unit(effect: Effect, term: Term) -> Unit:
+    """SI units of a term's expression."""
+    return expr.expression_units(term.expression, _param_units(effect), states=tuple(s.name for s in effect.states))
+
+
+def coefficient_unit(effect: Effect, term: Term) -> Unit:
+    """SI units of a term's coefficient (newtons divided by the term's units)."""
+    return NEWTON / term_unit(effect, term)
+
+
+# =========================================================================== effects
+_HAMAKER = Parameter("hamaker", "J", 1.0e-19, 1e-22, 1e-17, "Hamaker constant H (tip-sample)")
+_E_STAR = Parameter("E_star", "Pa", 1.0e9, 1e2, 1e12,
+                    "reduced (effective) Young's modulus E* (100 Pa: the softest cells and hydrogels; 1e12 Pa: diamond)")
+
+
+def _dmt_like_readout(adhesion_per_energy: float):
+    """Read-out shared by DMT and JKR.
+
+    The adhesion comes from its own term when the library has one (JKR, the
+    seed tables' bridging term); in the DMT effect it is the van der Waals
+    force at contact, H R / (6 a0^2), tied to the tail.
+    """
+
+    def readout(c: Mapping[str, float], ctx: Mapping[str, float]) -> dict[str, float]:
+        R = ctx["R"]
+        if "adhesion" in c:
+            adhesion = -c["adhesion"]
+        else:
+            adhesion = -c["vdw"] / ctx["a0"] ** 2
+        return {
+            "hamaker": -6.0 * c["vdw"] / R,
+            "E_star": 3.0 * c["hertz"] / (4.0 * math.sqrt(R)),
+            "adhesion_force": adhesion,
+            "surface_energy": adhesion / (adhesion_per_energy * math.pi * R),
+        }
+
+    return readout
+
+
+#: The adhesion force on an AFM tip: up to ~1 uN for sharp tips, ~10-100 uN for 10 um colloidal probes.
+_ADHESION_FORCE_MAX = 1e-4  # N
+#: gamma, as the JKR parameter (adhesion energy per area; water 0.072, metals up to a few J/m^2).
+_SURFACE_ENERGY_RANGE = (1e-4, 5.0)  # J/m^2
+
+_CONTACT_QUANTITIES = (
+    Quantity("hamaker", "J", "Hamaker constant from the van der Waals tail"),
+    Quantity("E_star", "Pa", "reduced Young's modulus from the Hertz term"),
+    Quantity("adhesion_force", "N", "adhesion force in contact (positive number)", 0.0, _ADHESION_FORCE_MAX),
+)
+
+EFFECTS.register(
+    Effect(
+        name="dmt",
+        title="Derjaguin-Muller-Toporov contact with van der Waals attraction",
+        formula="F = -H R / (6 z^2) for z > a0;  4/3 E* sqrt(R) delta^1.5 - H R / (6 a0^2) for z <= a0",
+        parameters=(_HAMAKER, _E_STAR),
+        terms=(
+            # One term for the tail and the DMT adhesion: the force is continuous at contact, which
+            # ties the adhesion to the Hamaker constant and makes the contact point identifiable.
+            Term("vdw", "max(z, a0)^-2", lambda p: -p["hamaker"] * p["R"] / 6.0,
+                 "van der Waals sphere-plane, saturating at contact (DMT adhesion H R / 6 a0^2)",
+                 coefficient_unit="J*m"),
+            Term("hertz", "[z <= a0] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"]), "Hertz",
+                 roles=(Role.ELASTIC_CONTACT,), coefficient_unit="Pa*m^0.5"),
+        ),
+        # The seed tables (library presets) fit the in-contact adhesion as a term of its own ("bridging",
+        # C3 / a0^2 of seed eq. 1); its coefficient is the adhesion force, read out instead of H R / (6 a0^2).
+        readout_only_terms=(
+            Term("adhesion", "[z <= a0]", lambda p: -p["hamaker"] * p["R"] / (6.0 * p["a0"] ** 2),
+                 "constant adhesion in contact, -H R / (6 a0^2) in DMT (fitted on its own by the seed tables)",
+                 roles=(Role.CONTACT_ONLY, Role.CONTACT_ADHESION), coefficient_unit="N"),
+        ),
+        quantities=_CONTACT_QUANTITIES
+        + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 4 pi R gamma", *_SURFACE_ENERGY_RANGE),),
+        readout=_dmt_like_readout(4.0),
+        references=(
+            "Derjaguin, Muller, Toporov, J. Colloid Interface Sci. 53, 314 (1975)",
+            "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 1",
+        ),
+        region=Region.CONTACT,
+    )
+)
+
+
+def _lj_readout(c: Mapping[str, float], ctx: Mapping[str, float]) -> dict[str, float]:
+    hamaker = -6.0 * c["attraction"] / ctx["R"]
+    ratio = 180.0 * c["repulsion"] / (hamaker * ctx["R"]) if hamaker > 0 else float("nan")
+    return {"hamaker": hamaker, "sigma": ratio ** (1.0 / 6.0) if ratio > 0 else float("nan")}
+
+
+EFFECTS.register(
+    Effect(
+        name="lennard_jones",
+        title="Lennard-Jones sphere-plane interaction (smooth, no contact mechanics)",
+        formula="F = -H R / (6 z^2) + H R sigma^6 / (180 z^8)",
+        parameters=(
+            _HAMAKER,
+            Parameter("sigma", "m", 0.30e-9, 0.05e-9, 2e-9, "LJ length; force minimum at sigma / 30^(1/6)"),
+        ),
+        terms=(
+            Term("attraction", "z^-2", lambda p: -p["hamaker"] * p["R"] / 6.0, coefficient_unit="J*m"),
+            Term("repulsion", "z^-8", lambda p: p["hamaker"] * p["R"] * p["sigma"] ** 6 / 180.0,
+                 coefficient_unit="J*m^7"),
+        ),
+        quantities=(
+            Quantity("hamaker", "J", "Hamaker constant"),
+            Quantity("sigma", "m", "Lennard-Jones length"),
+        ),
+        readout=_lj_readout,
+        references=(
+            "Rutzel, Lee, Raman, Proc. R. Soc. A 459, 1925 (2003)",
+            "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 2",
+        ),
+        region=Region.NEAR,
+    )
+)
+
+EFFECTS.register(
+    Effect(
+        name="jkr",
+        title="JKR-like contact: Hertz with a larger adhesion 3 pi R gamma, optional pull-off hysteresis",
+        formula=(
+            "F = -H R / (6 z^2) out of contact;  4/3 E* sqrt(R) delta^1.5 - 3 pi R gamma in contact; "
+            "contact forms at z = a0 and breaks at z = a0 + neck_length"
+        ),
+        parameters=(
+            _HAMAKER,
+            _E_STAR,
+            Parameter("surface_energy", "J/m^2", 0.05, *_SURFACE_ENERGY_RANGE, "gamma; adhesion F_a = 3 pi R gamma"),
+            Parameter(
+                "neck_length", "m", 0.0, 0.0, 20e-9, "extra separation at which the neck breaks (0: no hysteresis)", True
+            ),
+        ),
+        terms=(
+            Term("vdw", "[not jkr_contact] * z^-2", lambda p: -p["hamaker"] * p["R"] / 6.0,
+                 roles=(Role.ATTRACTIVE_TAIL,), coefficient_unit="J*m"),
+            Term("hertz", "[jkr_contact] * delta^1.5", lambda p: 4.0 / 3.0 * p["E_star"] * math.sqrt(p["R"]),
+                 roles=(Role.ELASTIC_CONTACT,), coefficient_unit="Pa*m^0.5"),
+            Term("adhesion", "[jkr_contact]", lambda p: -3.0 * math.pi * p["R"] * p["surface_energy"],
+                 roles=(Role.CONTACT_ONLY, Role.CONTACT_ADHESION), coefficient_unit="N"),
+        ),
+        quantities=_CONTACT_QUANTITIES
+        + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 3 pi R gamma"),),
+        readout=_dmt_like_readout(3.0),
+        states=(StateGate("jkr_contact", on="z <= a0", off="z > a0 + neck_length"),),
+        references=(
+            "Johnson, Kendall, Roberts, Proc. R. Soc. A 324, 301 (1971)",
+            "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 5",
+        ),
+        character=Character.HYSTERETIC,
+        region=Region.CONTACT,
+    )
+)
+
+EFFECTS.register(
+    Effect(
+        name="viscoelastic",
+        title="Kelvin-Voigt viscoelastic damping in contact",
+        formula="F = eta sqrt(R delta) d(delta)/dt  for z <= a0",
+        parameters=(Parameter("viscosity", "Pa*s", 100.0, 0.0, 1e5, "sample viscosity eta"),),
+        terms=(Term("kelvin_voigt", "delta^0.5 * deltadot", lambda p: p["viscosity"] * math.sqrt(p["R"]),
+                    roles=(Role.CONTACT_ONLY,), coefficient_unit="Pa*s*m^0.5"),),
+        quantities=(Quantity("viscosity", "Pa*s", "sample viscosity eta"),),
+        readout=lambda c, ctx: {"viscosity": c["kelvin_voigt"] / math.sqrt(ctx["R"])},
+        references=(
+            "Garcia, San Paulo, Phys. Rev. B 60, 4961 (1999)",
+            "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 3",
+        ),
+        character=Character.DISSIPATIVE,
+        region=Region.CONTACT,
+    )
+)
+
+EFFECTS.register(
+    Effect(
+        name="exponential_damping",
+        title="Gotsmann-type surface damping decaying exponentially with separation",
+        formula="F = -gamma0 exp(-z / lambda) dz/dt",
+        parameters=(
+            Parameter("damping_coefficient", "kg/s", 2e-6, 0.0, 1e-2, "gamma0, damping at z = 0"),
+            Parameter("damping_length", "m", 1.0e-9, 0.05e-9, 50e-9, "decay length lambda", True),
+        ),
+        terms=(Term("surface_damping", "exp(-z / damping_length) * zdot", lambda p: -p["damping_coefficient"],
+                    coefficient_unit="kg/s"),),
+        quantities=(Quantity("damping_coefficient", "kg/s", "gamma0"),),
+        readout=lambda c, ctx: {"damping_coefficient": -c["surface_damping"]},
+        references=(
+            "Gotsmann, Seidel, Anczykowski, Fuchs, Phys. Rev. B 60, 11051 (1999)",
+            "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 4",
+        ),
+        character=Character.DISSIPATIVE,
+        region=Region.NEAR,
+    )
+)
+
+EFFECTS.register(
+    Effect(
+        name="electrostatic",
+        title="Electrostatic sphere-plane attraction (tip-sample potential difference V)",
+        formula="F = -pi eps0 R V^2 / z  (z clipped at a0)",
+        parameters=(Parameter("voltage", "V", 1.0, 0.0, 100.0, "tip-sample potential difference"),),
+        terms=(Term("coulomb", "max(z, a0)^-1", lambda p: -math.pi * EPSILON_0 * p["R"] * p["voltage"] ** 2,
+                    coefficient_unit="J"),),
+        quantities=(Quantity("voltage", "V", "magnitude of the tip-sample potential difference"),),
+        readout=lambda c, ctx: {
+            "voltage": math.sqrt(-c["coulomb"] / (math.pi * EPSILON_0 * ctx["R"])) if c["coulomb"] < 0 else float("nan")
+        },
+        references=("Hudlet, Saint Jean, Guthmann, Berger, Eur. Phys. J. B 2, 5 (1998)",),
+        region=Region.LONG_RANGE,
+    )
+)
+
+EFFECTS.register(
+    Effect(
+        name="capillary",
+        title="Capillary water meniscus: forms at contact, ruptures on retraction",
+        formula="F = -4 pi R gamma_w cos(theta) while the meniscus exists (formed at z <= a0, broken at z > a0 + d_rupture)",
+        parameters=(
+            Parameter("surface_tension", "N/m", 0.072, 0.0, 1.0, "liquid surface tension gamma_w"),
+            Parameter("contact_angle", "rad", 0.5, 0.0, math.pi / 2 - 1e-6, "liquid contact angle theta"),
+            Parameter("rupture_distance", "m", 1.0e-9, 0.0, 50e-9, "extra separation at which it ruptures", True),
+        ),
+        terms=(
+            Term(
+                "meniscus",
+                "[meniscus]",
+                lambda p: -4.0 * math.pi * p["R"] * p["surface_tension"] * math.cos(p["contact_angle"]),
+                coefficient_unit="N",
+            ),
+        ),
+        quantities=(Quantity("capillary_force", "N", "meniscus force (positive number)", 0.0, _ADHESION_FORCE_MAX),),
+        readout=lambda c, ctx: {"capillary_force": -c["meniscus"]},
+        states=(StateGate("meniscus", on="z <= a0", off="z > a0 + rupture_distance"),),
+        references=("Zitzler, Herminghaus, Mugele, Phys. Rev. B 66, 155436 (2002)",),
+        character=Character.HYSTERETIC,
+        region=Region.NEAR,
+    )
+)
+
+EFFECTS.register(
+    Effect(
+        name="hydration",
+        title="Short-range exponential (hydration/solvation) repulsion",
+        formula="F = F_h exp(-(z - a0) / lambda_h)",
+        parameters=(
+            Parameter("hydration_force", "N", 1.0e-9, 0.0, 1e-6, "repulsion at z = a0"),
+            Parameter("hydration_length", "m", 0.3e-9, 0.02e-9, 10e-9, "decay length lambda_h", True),
+        ),
+        terms=(
+            Term(
+                "hydration",
+                "exp(-z / hydration_length)",
+                lambda p: p["hydration_force"] * math.exp(p["a0"] / p["hydration_length"]),
+                coefficient_unit="N",
+            ),
+        ),
+        quantities=(Quantity("hydration_force", "N", "repulsion at z = a0"),),
+        readout=lambda c, ctx: {"hydration_force": c["hydration"] * math.exp(-ctx["a0"] / ctx["hydration_length"])},
+        references=("Israelachvili, Intermolecular and Surface Forces, 3rd ed., ch. 15 (2011)",),
+        region=Region.NEAR,
+    )
+)
+
+EFFECTS.register(
+    Effect(
+        name="squeeze_film",
+        title="Squeeze-film (Reynolds) damping of the fluid between tip and sample",
+        formula="F = -6 pi eta_f R^2 (dz/dt) / z  (z clipped at a0)",
+        parameters=(Parameter("fluid_viscosity", "Pa*s", 1.8e-5, 0.0, 10.0, "viscosity of the medium eta_f"),),
+        terms=(
+            Term("squeeze", "zdot * max(z, a0)^-1", lambda p: -6.0 * math.pi * p["fluid_viscosity"] * p["R"] ** 2,
+                 coefficient_unit="Pa*s*m^2"),
+        ),
+        quantities=(Quantity("fluid_viscosity", "Pa*s", "viscosity of the medium"),),
+        readout=lambda c, ctx: {"fluid_viscosity": -c["squeeze"] / (6.0 * math.pi * ctx["R"] ** 2)},
+        references=("Reynolds lubrication, sphere-plane: Chan, Horn, J. Chem. Phys. 83, 5311 (1985)",),
+        character=Character.DISSIPATIVE,
+        region=Region.NEAR,
+    )
+)
+
+
+# =========================================================================== models
+def _jkr_neck_length(p: Mapping[str, float]) -> dict[str, float]:
+    """JKR pull-off under displacement control: delta_c = -3 a_c^2 / R with a_c^3 = pi gamma R^2 / (4 E*)."""
+    a_c = (math.pi * p["surface_energy"] * p["R"] ** 2 / (4.0 * p["E_star"])) ** (1.0 / 3.0)
+    return {"neck_length": 3.0 * a_c**2 / p["R"]}
+
+
+_SEED = "Chandrashekar et al., Nanoscale Adv. (2022), supplement"
+MODELS.register(Model("dmt", "DMT (seed eq. 1)", ("dmt",), (_SEED + " eq. 1",)))
+MODELS.register(Model("lennard_jones", "Lennard-Jones (seed eq. 2)", ("lennard_jones",), (_SEED + " eq. 2",)))
+MODELS.register(
+    Model("dmt_viscoelastic", "DMT + Kelvin-Voigt viscoelasticity (seed eq. 3)", ("dmt", "viscoelastic"), (_SEED + " eq. 3",))
+)
+MODELS.register(
+    Model(
+        "dmt_exponential_damping",
+        "DMT + exponential surface damping (seed eq. 4)",
+        ("dmt", "exponential_damping"),
+        (_SEED + " eq. 4",),
+    )
+)
+MODELS.register(Model("jkr", "JKR adhesion, no hysteresis (seed eq. 5)", ("jkr",), (_SEED + " eq. 5",)))
+MODELS.register(
+    Model(
+        "jkr_hysteretic",
+        "JKR with pull-off hysteresis: the neck breaks at the JKR pull-off point",
+        ("jkr",),
+        ("Johnson, Kendall, Roberts, Proc. R. Soc. A 324, 301 (1971)",),
+        derived_defaults=_jkr_neck_length,
+    )
+)
+
+
+# =========================================================================== composition
+@dataclass(frozen=True)
+class ForceLaw:
+    """A concrete force law: effects with parameter values, ready to evaluate.
+
+    ``terms`` are (effect name, term label, expression, coefficient) in SI; the
+    force on the tip (repulsive positive) is ``sum(coefficient * expression)``.
+    """
+
+    effects: tuple[str, ...]
+    parameters: Mapping[str, float]  # all effect parameters plus context R, a0
+    terms: tuple[tuple[str, str, str, float], ...]
+    states: tuple[StateGate, ...]
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.states)
+
+
+def effect_parameter_names(effect_names: tuple[str, ...] | list[str]) -> dict[str, Parameter]:
+    """All parameters of the given effects (shared names such as hamaker merged)."""
+    out: dict[str, Parameter] = {}
+    for name in effect_names:
+        for p in EFFECTS.get(name).parameters:
+            out.setdefault(p.name, p)
+    return out
+
+
+def build_force_law(
+    effect_names: tuple[str, ...] | list[str],
+    parameters: Mapping[str, float],
+    context: Mapping[str, float],
+    derived_defaults: Callable[[Mapping[str, float]], dict[str, float]] | None = None,
+) -> ForceLaw:
+    """Combine effects with parameter values (defaults filled in; unknown names are errors).
+
+    Raises ValueError with a readable message for unknown or out-of-range parameters.
+    """
+    declared = effect_parameter_names(effect_names)
+    unknown = set(parameters) - set(declared)
+    if unknown:
+        allowed = ", ".join(sorted(declared))
+        from afmid.registry import closest
+
+        hints = [f"{u!r} (did you mean {closest(u, list(declared))!r}?)" if closest(u, list(declared)) else repr(u)
+                 for u in sorted(unknown)]
+        raise ValueError(f"unknown parameter(s) {', '.join(hints)} for effects {list(effect_names)}; allowed: {allowed}")
+    values = {name: p.default for name, p in declared.items()}
+    values.update(context)
+    if derived_defaults is not None:
+        values.update({k: v for k, v in derived_defaults({**values, **parameters}).items() if k not in parameters})
+    values.update(parameters)
+    for name, p in declared.items():
+        v = values[name]
+        if not (p.low <= v <= p.high):
+            raise ValueError(f"parameter {name} = {v!r} outside its valid range [{p.low}, {p.high}] {p.unit}")
+    terms = []
+    states: list[StateGate] = []
+    for name in effect_names:
+        effect = EFFECTS.get(name)
+        states.extend(s for s in effect.states if s not in states)
+        for term in effect.terms:
+            terms.append((name, term.label, term.expression, float(term.coefficient(values))))
+    return ForceLaw(tuple(effect_names), values, tuple(terms), tuple(states))

@@ -1,0 +1,300 @@
+"""The library of candidate force terms.
+
+A :class:`Library` is an ordered list of :class:`LibraryTerm` (expressions in the
+term language of :mod:`afmid.physics.expr`), built from the effect catalog
+(``model.effects``), from a preset (the seed's tables I-IV in :mod:`afmid.physics.presets`, ``model.library``),
+and from custom terms in the config (``model.terms``). Each term knows its SI
+units and, where it comes from an effect, which effect coefficient it is, so
+fitted coefficients can be read out as physical quantities.
+
+Columns are evaluated by the numba VM over the measured trajectory; history
+gates (meniscus, JKR neck) are scanned along the trajectory first.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import afmid.physics.expr as expr
+from afmid.errors import ConfigError
+from afmid.physics.kinematics import contact_kinematics, next_gate_state
+from afmid.physics.effect_tags import SELECTION_RULES, Role
+from afmid.physics.effects import CONTEXT_UNITS, EFFECTS, StateGate, coefficient_unit, effect_parameter_names, term_unit
+from afmid.physics.presets import PRESETS
+from afmid.registry import unknown_name_message
+from afmid.physics.units import parse_unit
+
+NEWTON = parse_unit("N")
+
+
+@dataclass(frozen=True)
+class LibraryTerm:
+    name: str  # display name
+    expression: str
+    unit: str  # SI units of the term
+    coefficient_unit: str  # SI units of its coefficient (N / unit)
+    effect: str | None = None  # effect whose coefficient this is (for the read-out)
+    label: str | None = None  # term label within that effect
+    doc: str = ""
+    roles: tuple[Role, ...] = ()  # what the term is to the selection rules (afmid.physics.effect_tags)
+
+
+@dataclass
+class Library:
+    """Candidate terms plus what evaluating them needs (states, nonlinear parameters)."""
+
+    terms: list[LibraryTerm]
+    states: tuple[StateGate, ...] = ()
+    effects: tuple[str, ...] = ()  # effects whose read-out applies
+    nonlinear: dict[str, float] = field(default_factory=dict)  # default values, SI
+    source: str = ""
+
+    @property
+    def names(self) -> list[str]:
+        return [t.name for t in self.terms]
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.states)
+
+    def __len__(self) -> int:
+        return len(self.terms)
+
+    def selection_rules(self, n_extra: int = 0) -> list[tuple[list[np.ndarray], np.ndarray]]:
+        """afmid.physics.effect_tags.SELECTION_RULES as column masks, padded with ``n_extra`` unconstrained columns:
+        (one mask per role of ``if_all``, the mask of ``then_any``). A rule is left out when the library
+        has no term of some ``if_all`` role (it cannot apply) or none of ``then_any`` (it could not be met)."""
+        def having(roles) -> np.ndarray:
+            return np.array([bool(set(t.roles) & set(roles)) for t in self.terms] + [False] * n_extra)
+
+        rules = []
+        for rule in SELECTION_RULES:
+            conditions = [having((role,)) for role in rule.if_all]
+            then = having(rule.then_any)
+            if all(c.any() for c in conditions) and then.any():
+                rules.append((conditions, then))
+        return rules
+
+    def compile(self, params: Mapping[str, float]):
+        """A :class:`afmid.physics.expr.ProgramSet` of the terms and the state-gate conditions (cached per parameter set:
+        the fit evaluates the same library at the same parameters many times)."""
+        key = (tuple(t.expression for t in self.terms), tuple(sorted(params.items())))
+        cache = self.__dict__.setdefault("_compiled", {})
+        if key not in cache:
+            if len(cache) > 64:
+                cache.clear()
+            cache[key] = self._compile(params)
+        return cache[key]
+
+    def _compile(self, params: Mapping[str, float]):
+        states = self.state_names
+        programs = [expr.compile_expression(t.expression, dict(params), states) for t in self.terms]
+        gates = []
+        for gate in self.states:
+            gates.append((
+                expr.compile_expression(f"[{gate.on}]", dict(params), states),
+                expr.compile_expression(f"[{gate.off}]", dict(params), states),
+            ))
+        return expr.ProgramSet(programs), gates
+
+    def evaluate(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
+                 backend: str = "numba", state_values: np.ndarray | None = None) -> np.ndarray:
+        """Library columns (N, p) along a trajectory. ``params`` holds d (separation), a0, R and nonlinear ones.
+
+        The state gates (hysteresis) are scanned along the trajectory, unless
+        ``state_values`` (n_states, N) gives them (for points that are not one
+        time series, e.g. sub-samples of many short intervals).
+        """
+        variables = trajectory_variables(x, xdot, t, params["d"], params["a0"], len(self.states))
+        program_set, gates = self.compile(params)
+        if self.states:
+            if state_values is not None:
+                variables[len(expr.VARIABLES):] = state_values
+            else:
+                _fill_states(variables, gates, backend)
+        out = np.empty((x.size, len(self.terms)))
+        if backend == "numba":
+            from afmid.kernels.vm import eval_set
+
+            eval_set(program_set.code, program_set.code_offsets, program_set.consts, program_set.const_offsets,
+                     variables, out)
+        else:
+            for j, term in enumerate(self.terms):
+                out[:, j] = expr.evaluate_numpy(term.expression, variables, dict(params), self.state_names)
+        return out
+
+
+    def evaluate_into(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
+                      out: np.ndarray) -> tuple[bool, bool]:
+        """Library columns along trajectory rows (x, xdot, t: (rows, n), m, m/s, s) into ``out`` (rows, n, p), of
+        any strides (the weak form's layout, say), for a library without state gates; the same values as
+        :meth:`evaluate`, bit for bit, without its (7, N) array of variables. Returns (all finite, any value
+        exactly zero)."""
+        if self.states:
+            raise ValueError("evaluate_into: a library with state gates is evaluated by evaluate()")
+        from afmid.kernels.trajectory_eval import eval_rows
+
+        program_set, _ = self.compile(params)
+        finite, any_zero = eval_rows(program_set.code, program_set.code_offsets, program_set.consts,
+                                     program_set.const_offsets, x, xdot, t, float(params["d"]),
+                                     float(params["a0"]), out)
+        return bool(finite), bool(any_zero)
+
+    def states_along(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
+                     backend: str = "numba") -> np.ndarray:
+        """The state gates (n_states, N), 0 or 1, scanned along a trajectory."""
+        variables = trajectory_variables(x, xdot, t, params["d"], params["a0"], len(self.states))
+        if self.states:
+            _fill_states(variables, self.compile(params)[1], backend)
+        return variables[len(expr.VARIABLES):]
+
+    def states_from(self, initial: np.ndarray, x: np.ndarray, xdot: np.ndarray, t: np.ndarray,
+                    params: Mapping[str, float]) -> np.ndarray:
+        """State gates (n_states, m * S) along m short trajectories (m, S) in time order, each from its ``initial`` state
+        (n_states, m). Vectorised over the trajectories: for sub-samples of many short intervals."""
+        m, S = x.shape
+        variables = trajectory_variables(x.ravel(), xdot.ravel(), t.ravel(), params["d"], params["a0"], len(self.states))
+        out = np.empty((len(self.states), m, S))
+        for k, (on_prog, off_prog) in enumerate(self.compile(params)[1]):
+            on = expr.evaluate_numpy(on_prog, variables).reshape(m, S) != 0
+            off = expr.evaluate_numpy(off_prog, variables).reshape(m, S) != 0
+            state = initial[k].astype(float)
+            for j in range(S):
+                state = next_gate_state(state, on[:, j], off[:, j])
+                out[k, :, j] = state
+        return out.reshape(len(self.states), -1)
+
+
+def trajectory_variables(x, xdot, t, d: float, a0: float, n_states: int = 0) -> np.ndarray:
+    """The term-language variables (z, zdot, delta, deltadot, x, xdot, t, states...) along a trajectory."""
+    n = x.size
+    v = np.zeros((len(expr.VARIABLES) + n_states, n))
+    v[0], v[1], v[2], v[3] = contact_kinematics(x, xdot, d, a0)
+    v[4] = x
+    v[5] = xdot
+    v[6] = t
+    return v
+
+
+def _fill_states(variables: np.ndarray, gates, backend: str) -> None:
+    from afmid.kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy
+
+    base = len(expr.VARIABLES)
+    for k, (on_prog, off_prog) in enumerate(gates):
+        on = expr.evaluate_numpy(on_prog, variables)
+        off = expr.evaluate_numpy(off_prog, variables)
+        if backend == "numba":
+            out = np.empty_like(on)
+            scan_hysteresis(on, off, float(on[0] != 0), out)
+        else:
+            out = scan_hysteresis_numpy(on, off, float(on[0] != 0))
+        variables[base + k] = out
+
+
+def _units_context(extra_units: Mapping[str, str]) -> dict:
+    units = {k: parse_unit(v) for k, v in CONTEXT_UNITS.items()}
+    units["w"] = parse_unit("1/s")
+    units.update({k: parse_unit(v) for k, v in extra_units.items()})
+    return units
+
+
+def _check_custom_term_names(texts, param_units: Mapping[str, str], nonlinear: Mapping[str, float], states,
+                             source) -> None:
+    """A custom term may name only values known when it is evaluated: the context (R, a0, w), the nonlinear
+    parameters and the state gates. An effect's linear parameter (E_star, hamaker, ...) is what the fit
+    determines from the coefficients; inside a term it has no value (and would make the term's scale unknown)."""
+    known = set(CONTEXT_UNITS) | {"w"} | set(nonlinear) | {s.name for s in states}
+    for i, text in enumerate(texts):
+        unknown = sorted(expr.free_names(text) - known)
+        if not unknown:
+            continue
+        name = unknown[0]
+        what = ("a parameter the fit determines from the coefficients, with no value inside a term"
+                if name in param_units else "not a value a term can use")
+        allowed = ", ".join(sorted(known)) or "none"
+        raise ConfigError(f"{name!r} is {what}; a custom term may use the variables and {allowed} "
+                          f"(in term {text!r})", file=source, key=f"model.terms[{i}]")
+
+
+def build_library(model_config, source=None) -> Library:
+    """The library a run config asks for (``model.library`` preset or ``model.effects``, plus ``model.terms``)."""
+
+    terms: list[LibraryTerm] = []
+    states: list[StateGate] = []
+    nonlinear: dict[str, float] = {}
+    param_units: dict[str, str] = {}
+    if model_config.library is not None:
+        if model_config.library not in PRESETS:
+            raise ConfigError(unknown_name_message("library preset", model_config.library, PRESETS.names()),
+                              file=source, key="model.library")
+        preset = PRESETS.get(model_config.library)
+        effects = preset.effects
+    else:
+        preset = None
+        effects = tuple(model_config.effects)
+    for name in effects:
+        eff = EFFECTS.get(name)
+        states.extend(s for s in eff.states if s not in states)
+        for p in eff.parameters:
+            param_units[p.name] = p.unit
+            if p.nonlinear:
+                nonlinear[p.name] = p.default
+    if preset is not None:
+        units = _units_context(param_units)
+        for term in preset.terms:
+            unit = expr.expression_units(term.expression, units, tuple(s.name for s in states))
+            terms.append(LibraryTerm(term.name, term.expression, str(unit), str(NEWTON / unit), term.effect,
+                                     term.label, roles=term.roles))
+    else:
+        for name in effects:
+            eff = EFFECTS.get(name)
+            for term in eff.terms:
+                terms.append(LibraryTerm(
+                    f"{name}.{term.label}", term.expression, str(term_unit(eff, term)),
+                    str(coefficient_unit(eff, term)), name, term.label, term.doc, term.roles,
+                ))
+    units = _units_context(param_units)
+    for i, text in enumerate(model_config.terms):
+        key = f"model.terms[{i}]"
+        try:
+            unit = expr.expression_units(text, units, tuple(s.name for s in states))
+        except expr.ExpressionError as exc:
+            where = f" at column {exc.pos + 1}" if exc.pos is not None else ""
+            raise ConfigError(f"{exc.reason}{where} in term {text!r}", file=source, key=key) from None
+        except ValueError as exc:
+            raise ConfigError(f"{exc}", file=source, key=key) from None
+        terms.append(LibraryTerm(text, text, str(unit), str(NEWTON / unit)))
+    # One column per distinct expression: effects may share a term.
+    seen: dict[str, LibraryTerm] = {}
+    for term in terms:
+        seen.setdefault(" ".join(term.expression.split()), term)
+    # Only nonlinear parameters that some term or state gate actually uses are searched.
+    used = set()
+    for term in terms:
+        used |= expr.free_names(term.expression)
+    for gate in states:
+        used |= expr.free_names(f"[{gate.on}] * [{gate.off}]")
+    states = [g for g in states if any(f"[{g.name}]" in t.expression.replace(" ", "") or
+                                       f"not{g.name}" in t.expression.replace(" ", "") for t in terms)]
+    used = set()
+    for term in terms:
+        used |= expr.free_names(term.expression)
+    for gate in states:
+        used |= expr.free_names(f"[{gate.on}] * [{gate.off}]")
+    nonlinear = {k: v for k, v in nonlinear.items() if k in used}
+    for name, value in model_config.parameters.items():
+        if name not in nonlinear:
+            allowed = ", ".join(sorted(nonlinear)) or "none for these effects"
+            raise ConfigError(f"{name!r} is not a nonlinear parameter of the library; allowed: {allowed}",
+                              file=source, key=f"model.parameters.{name}")
+        declared = effect_parameter_names(effects)[name]  # a fixed value must be one the physics allows
+        if not declared.low <= value <= declared.high:
+            raise ConfigError(f"must be in [{declared.low:g}, {declared.high:g}] {declared.unit} ({declared.doc}), "
+                              f"got {value:g}", file=source, key=f"model.parameters.{name}")
+        nonlinear[name] = value
+    _check_custom_term_names(model_config.terms, param_units, nonlinear, states, source)
+    return Library(list(seen.values()), tuple(states), tuple(effects), nonlinear,
+                   model_config.library or "effects")

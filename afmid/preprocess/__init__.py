@@ -1,0 +1,1 @@
+"""Preprocessing: periods and harmonics, the declared instrument undone, drift and motion."""

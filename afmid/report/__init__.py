@@ -1,0 +1,1 @@
+"""The report: HTML pages, figures and summary.json from run files."""

@@ -1,0 +1,283 @@
+"""``afmid report RESULT.h5 -o DIR`` for a force-map result (``format: afmid-map-result``).
+
+Writes into a report folder (:mod:`afmid.report.folder`: new, or an earlier afmid report with ``--overwrite``):
+one image per parameter map and its 1-sigma map (colour bar with units: nm, MPa, Pa s, nN, zJ), the topography
+(from the separation), the error relative to its noise floor, the pixel status and how each pixel was fitted,
+a histogram per parameter (ok and suspect pixels apart), ``summary.json`` (per parameter: median, spread and
+pixel counts; the failed and suspect pixels with their messages) and a self-contained ``report.html``.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from afmid.errors import InputError
+
+MAP_RESULT_FORMAT = "afmid-map-result"
+#: SI unit -> (factor to the displayed unit, displayed unit).
+DISPLAY = {"m": (1e9, "nm"), "Pa": (1e-6, "MPa"), "N": (1e9, "nN"), "J": (1e21, "zJ"), "Pa s": (1.0, "Pa s"),
+           "Pa*s": (1.0, "Pa s"), "J/m^2": (1e3, "mJ/m^2"), "N/m": (1.0, "N/m"), "1": (1.0, "")}
+#: Pixels listed by name in the HTML (all of them are in summary.json).
+MAX_LISTED = 50
+STATUS_COLOURS = ("#2ca02c", "#ff7f0e", "#d62728")
+
+
+def is_map_result(path: Path) -> bool:
+    """True when ``path`` is an HDF5 file written by ``afmid map``. Anything but a regular file (a FIFO would
+    block the open) is left to the run-file reader's checks and messages."""
+    import h5py
+
+    if not Path(path).is_file():
+        return False
+    try:
+        with h5py.File(path, "r") as h5:
+            return h5.attrs.get("format") == MAP_RESULT_FORMAT
+    except OSError:
+        return False
+
+
+def display(unit: str) -> tuple[float, str]:
+    """(factor, displayed unit) for an SI unit; SI itself when not listed."""
+    return DISPLAY.get(unit, (1.0, unit))
+
+
+def read_map_result(path: Path) -> dict:
+    import h5py
+
+    with h5py.File(path, "r") as h5:
+        if h5.attrs.get("format") != MAP_RESULT_FORMAT:
+            raise InputError(f"not a map result (format {h5.attrs.get('format')!r})", file=path, key="format")
+        maps = {name: (ds[()], str(ds.attrs.get("units", "")), str(ds.attrs.get("meaning", "")))
+                for name, ds in h5["maps"].items()}
+        attrs = {k: h5.attrs[k] for k in h5.attrs}
+        pixel_size = None
+        if "x" in h5 and h5["x"].size > 1:
+            x = np.asarray(h5["x"][()]).ravel()
+            pixel_size = float(abs(x[1] - x[0]))
+    return {"maps": maps, "attrs": attrs, "pixel_size": pixel_size}
+
+
+def parameter_names(maps: dict) -> list[str]:
+    """The physical parameters of the map (those with a ``_sigma`` map), in file order."""
+    return [name for name in maps if f"{name}_sigma" in maps and name != "separation"]
+
+
+def make_map_report(path: Path, output: Path, overwrite: bool = False) -> str:
+    """Write the report folder of the map result ``path``; returns the terminal summary."""
+    from afmid.report.folder import report_folder
+
+    result = read_map_result(path)
+    maps = result["maps"]
+    status = maps["status"][0].astype(int)
+    message = np.vectorize(lambda m: m.decode() if isinstance(m, bytes) else str(m))(maps["message"][0])
+    names = parameter_names(maps)
+    with report_folder(Path(output), overwrite, {path: "the map result"}) as tmp:
+        figures = []
+        extent = _extent(status.shape, result["pixel_size"])
+        for name in names:
+            values, unit, _ = maps[name]
+            sigma = maps[f"{name}_sigma"][0]
+            figures.append(_map_figure(tmp, name, values, sigma, unit, status, extent))
+            figures.append(_histogram(tmp, name, values, unit, status))
+        sep, _, _ = maps["separation"]
+        height = np.nanmax(sep) - sep  # the sample is higher where the rest separation is smaller
+        figures.append(_map_figure(tmp, "topography", height, None, "m", status, extent,
+                                   label="height (from the separation)"))
+        ratio = maps["cv_error"][0] / maps["cv_error_noise_floor"][0]
+        figures.append(_map_figure(tmp, "error_over_floor", ratio, None, "1", status, extent,
+                                   label="cv error / noise floor (1: at the floor)"))
+        figures.append(_status_figure(tmp, status, maps.get("fit_route"), extent))
+        summary = _summary(path, result, names, status, message)
+        (tmp / "summary.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+        (tmp / "report.html").write_text(_html(path, summary, figures, tmp), encoding="utf-8")
+    counts = summary["pixels"]
+    lines = [f"map {summary['rows']}x{summary['cols']}: {counts['ok']} ok, {counts['suspect']} suspect, "
+             f"{counts['failed']} failed; {summary['model_limited']['pixels']} model-limited"]
+    for name, p in summary["parameters"].items():
+        lines.append(f"  {name}: median {p['median']:.4g} {p['unit']} (ok pixels; 16-84 % {p['p16']:.4g} .. "
+                     f"{p['p84']:.4g}; median 1 sigma {p['median_sigma']:.2g})")
+    lines.append(f"wrote {Path(output) / 'report.html'}")
+    return "\n".join(lines)
+
+
+def _extent(shape: tuple[int, int], pixel_size: float | None):
+    if pixel_size is None:
+        return None, "pixel"
+    rows, cols = shape
+    scale = pixel_size * 1e9
+    return (-0.5 * scale, (cols - 0.5) * scale, (rows - 0.5) * scale, -0.5 * scale), "nm"
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _map_figure(folder: Path, name: str, values: np.ndarray, sigma: np.ndarray | None, unit: str,
+                status: np.ndarray, extent, label: str | None = None) -> tuple[str, str]:
+    plt = _plt()
+    factor, shown = display(unit)
+    panels = [(values, label or name)] + ([(sigma, f"{name} 1 sigma")] if sigma is not None else [])
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.8), squeeze=False)
+    box, axis_unit = extent
+    for ax, (data, title) in zip(axes[0], panels):
+        shown_data = np.where(status < 2, data * factor, np.nan)
+        image = ax.imshow(shown_data, extent=box, cmap="viridis", interpolation="nearest")
+        bar = fig.colorbar(image, ax=ax)
+        bar.set_label(f"{title} [{shown}]" if shown else title)
+        ax.set_title(title)
+        ax.set_xlabel(f"x [{axis_unit}]")
+        ax.set_ylabel(f"y [{axis_unit}]")
+        failed = np.argwhere(status >= 2)
+        if failed.size:
+            _mark(ax, failed, box, status.shape, "x", "red")
+        suspect = np.argwhere(status == 1)
+        if suspect.size:
+            _mark(ax, suspect, box, status.shape, "o", "orange")
+    fig.tight_layout()
+    file = f"map_{name}.png"
+    fig.savefig(folder / file, dpi=90)
+    plt.close(fig)
+    caption = f"{label or name} [{shown}]" + (" and its 1-sigma map" if sigma is not None else "")
+    return file, caption + "; failed pixels blank with a red x, suspect pixels ringed orange"
+
+
+def _mark(ax, pixels: np.ndarray, box, shape: tuple[int, int], marker: str, colour: str) -> None:
+    """Markers at the centres of ``pixels`` ((row, col) pairs) on an image drawn with ``extent=box``."""
+    rows, cols = pixels[:, 0], pixels[:, 1]
+    if box is None:
+        xs, ys = cols, rows
+    else:
+        sx, sy = (box[1] - box[0]) / shape[1], (box[2] - box[3]) / shape[0]
+        xs, ys = box[0] + (cols + 0.5) * sx, box[3] + (rows + 0.5) * sy
+    ax.scatter(xs, ys, marker=marker, facecolors="none" if marker == "o" else colour, edgecolors=colour, s=40)
+
+
+def _histogram(folder: Path, name: str, values: np.ndarray, unit: str, status: np.ndarray) -> tuple[str, str]:
+    plt = _plt()
+    factor, shown = display(unit)
+    fig, ax = plt.subplots(figsize=(4.6, 3.4))
+    groups = [(values[status == 0] * factor, "ok", STATUS_COLOURS[0]),
+              (values[status == 1] * factor, "suspect", STATUS_COLOURS[1])]
+    finite = np.concatenate([g[np.isfinite(g)] for g, _, _ in groups])
+    bins = np.histogram_bin_edges(finite, bins=30) if finite.size else 10
+    for data, label, colour in groups:
+        data = data[np.isfinite(data)]
+        if data.size:
+            ax.hist(data, bins=bins, alpha=0.7, label=f"{label} ({data.size})", color=colour)
+    ax.set_xlabel(f"{name} [{shown}]" if shown else name)
+    ax.set_ylabel("pixels")
+    ax.legend()
+    fig.tight_layout()
+    file = f"hist_{name}.png"
+    fig.savefig(folder / file, dpi=90)
+    plt.close(fig)
+    return file, f"histogram of {name} over the pixels (ok and suspect apart; failed pixels have no value)"
+
+
+def _status_figure(folder: Path, status: np.ndarray, route, extent) -> tuple[str, str]:
+    plt = _plt()
+    from matplotlib.colors import ListedColormap
+
+    from afmid.maps.pixel_fit import ROUTES
+    from afmid.maps.task import STATUS_NAMES
+
+    panels = [(status, ListedColormap(STATUS_COLOURS), STATUS_NAMES, "status")]
+    if route is not None:
+        panels.append((route[0], plt.get_cmap("tab10", len(ROUTES)), ROUTES, "how the pixel was fitted"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.8), squeeze=False)
+    box, axis_unit = extent
+    for ax, (data, cmap, names, title) in zip(axes[0], panels):
+        image = ax.imshow(np.where(data >= 0, data, np.nan), extent=box, cmap=cmap, vmin=-0.5,
+                          vmax=len(names) - 0.5, interpolation="nearest")
+        bar = fig.colorbar(image, ax=ax, ticks=range(len(names)))
+        bar.ax.set_yticklabels(names, fontsize=7)
+        ax.set_title(title)
+        ax.set_xlabel(f"x [{axis_unit}]")
+        ax.set_ylabel(f"y [{axis_unit}]")
+    fig.tight_layout()
+    fig.savefig(folder / "map_status.png", dpi=90)
+    plt.close(fig)
+    return "map_status.png", "status per pixel (ok / suspect / failed) and how each pixel was fitted"
+
+
+def _summary(path: Path, result: dict, names: list[str], status: np.ndarray, message: np.ndarray) -> dict:
+    maps = result["maps"]
+    rows, cols = status.shape
+    out = {"map_result": str(path), "rows": rows, "cols": cols,
+           "pixel_fit": str(result["attrs"].get("pixel_fit", "")),
+           "pixels": {"ok": int(np.sum(status == 0)), "suspect": int(np.sum(status == 1)),
+                      "failed": int(np.sum(status >= 2))},
+           "parameters": {}, "failed": [], "suspect": []}
+    from afmid.fit.uncertainty import FLOOR_FACTOR
+
+    ratio = maps["cv_error"][0] / maps["cv_error_noise_floor"][0]
+    fitted = status < 2
+    limited = fitted & (ratio > FLOOR_FACTOR)
+    out["model_limited"] = {"pixels": int(limited.sum()), "fraction_of_fitted": float(limited.sum() / max(fitted.sum(), 1)),
+                            "rule": f"cv_error above {FLOOR_FACTOR} x its noise floor (an effect the model lacks, "
+                                    "or a poor fit): see map_error_over_floor.png; refit with afmid map --add EFFECT"}
+    ok = status == 0
+    for name in names:
+        values, unit, _ = maps[name]
+        sigma = maps[f"{name}_sigma"][0]
+        factor, shown = display(unit)
+        v = values[ok & np.isfinite(values)]
+        s = sigma[ok & np.isfinite(sigma)]
+        nan = math.nan
+        out["parameters"][name] = {
+            "unit": shown or unit, "factor_from_SI": factor, "n_ok": int(v.size),
+            "median": float(np.median(v) * factor) if v.size else nan,
+            "p16": float(np.percentile(v, 16) * factor) if v.size else nan,
+            "p84": float(np.percentile(v, 84) * factor) if v.size else nan,
+            "median_sigma": float(np.median(s) * factor) if s.size else nan,
+            "sigma_kind": maps[f"{name}_sigma"][2]}
+    for code, key in ((2, "failed"), (1, "suspect")):
+        for r, c in np.argwhere(status == code if code == 1 else status >= code):
+            out[key].append({"row": int(r), "col": int(c), "message": str(message[r, c])})
+    return out
+
+
+def _html(path: Path, summary: dict, figures: list[tuple[str, str]], folder: Path) -> str:
+    def img(file: str, caption: str) -> str:
+        data = base64.b64encode((folder / file).read_bytes()).decode()
+        return (f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(caption)}">'
+                f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+
+    counts = summary["pixels"]
+    rows = "".join(
+        f"<tr><td>{html.escape(name)}</td><td>{p['median']:.4g}</td><td>{p['p16']:.4g} .. {p['p84']:.4g}</td>"
+        f"<td>{p['median_sigma']:.2g}</td><td>{html.escape(p['unit'])}</td><td>{p['n_ok']}</td></tr>"
+        for name, p in summary["parameters"].items())
+    listed = []
+    for key in ("failed", "suspect"):
+        items = summary[key]
+        if items:
+            lis = "".join(f"<li>pixel (row {i['row']}, col {i['col']}): {html.escape(i['message'])}</li>"
+                          for i in items[:MAX_LISTED])
+            more = f"<p>... and {len(items) - MAX_LISTED} more (summary.json)</p>" if len(items) > MAX_LISTED else ""
+            listed.append(f"<h2>{key.capitalize()} pixels ({len(items)})</h2><ul>{lis}</ul>{more}")
+    body = "".join(img(f, c) for f, c in figures)
+    return (
+        "<!doctype html>\n<html><head><meta charset=\"utf-8\"><title>afmid map report</title>"
+        "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}figure{display:inline-block;margin:8px}"
+        "img{max-width:100%}table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:3px 8px}</style>"
+        "</head><body>"
+        f"<h1>Force map: {html.escape(Path(path).name)}</h1>"
+        f"<p>{summary['rows']} x {summary['cols']} pixels: {counts['ok']} ok, {counts['suspect']} suspect, "
+        f"{counts['failed']} failed. Pixel fit: {html.escape(summary['pixel_fit'])}. "
+        f"Model-limited (error above the noise floor): {summary['model_limited']['pixels']} pixels "
+        f"({100 * summary['model_limited']['fraction_of_fitted']:.0f} % of the fitted).</p>"
+        "<table><tr><th>parameter</th><th>median (ok pixels)</th><th>16-84 %</th><th>median 1 sigma</th>"
+        f"<th>unit</th><th>pixels</th></tr>{rows}</table>"
+        f"{body}{''.join(listed)}</body></html>\n")

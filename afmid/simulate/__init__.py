@@ -1,0 +1,1 @@
+"""The simulator: traces with ground truth from force models, noise and the instrument."""

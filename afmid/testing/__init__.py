@@ -1,0 +1,1 @@
+"""Reference implementations used by the tests only (not by the pipeline)."""
