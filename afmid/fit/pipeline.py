@@ -46,7 +46,7 @@ from afmid.fit.profile import GroupedProfile, ProfileResult, robust_profile
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
 from afmid.preprocess.motion import fit_warning as motion_warning
-from afmid.fit.uncertainty import finish as finish_uncertainty
+from afmid.fit.uncertainty import finish as finish_uncertainty, widen_interval
 from afmid.fit.undetermined import mark as mark_undetermined
 # Kept importable from afmid.fit.pipeline, where they were defined before (bench/bench_fit.py uses term_penalties).
 from afmid.fit.forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
@@ -416,15 +416,7 @@ def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params
                 if math.isfinite(delta):
                     extra[k] += delta**2
     for k, q in quantities.items():
-        if extra[k] > 0:
-            q["error"] = math.sqrt((q["error"] if math.isfinite(q["error"]) else 0.0) ** 2 + extra[k])
-            half = 1.96 * math.sqrt(extra[k])
-            lo, hi = q["ci_low"], q["ci_high"]
-            if math.isfinite(lo) and math.isfinite(hi):
-                q["ci_low"] = q["value"] - math.hypot(q["value"] - lo, half)
-                q["ci_high"] = q["value"] + math.hypot(hi - q["value"], half)
-            else:
-                q["ci_low"], q["ci_high"] = q["value"] - half, q["value"] + half
+        widen_interval(q, math.sqrt(extra[k]))
 
 
 # --------------------------------------------------------------------------- effects from the CLI

@@ -183,14 +183,7 @@ def propagate_calibration(quantities: dict, prep, library, system, coef: np.ndar
             continue
         cal = math.sqrt(variance[k])
         q["error_calibration"] = cal
-        q["error"] = math.hypot(q["error"] if math.isfinite(q["error"]) else 0.0, cal)
-        half = 1.96 * cal
-        lo, hi = q["ci_low"], q["ci_high"]
-        if math.isfinite(lo) and math.isfinite(hi):
-            q["ci_low"] = q["value"] - math.hypot(q["value"] - lo, half)
-            q["ci_high"] = q["value"] + math.hypot(hi - q["value"], half)
-        else:
-            q["ci_low"], q["ci_high"] = q["value"] - half, q["value"] + half
+        widen_interval(q, cal)
     return math.sqrt(force_variance)
 
 
@@ -243,3 +236,19 @@ def _forced_interval(q: dict, unit: str) -> str:
     if not (math.isfinite(lo) and math.isfinite(hi)):
         return ""
     return f"; 95 % interval with the term forced in [{lo:.4g}, {hi:.4g}] {unit}"
+
+
+def widen_interval(q: dict, sigma: float) -> None:
+    """Add an independent 1-sigma error component ``sigma`` (the quantity's unit) to read-out ``q`` in place:
+    in quadrature to its 1-sigma ``error`` and, as 1.96 sigma, to each side of its 95 % interval (an interval
+    that is not finite becomes value +- 1.96 sigma). Used for every component added after the fit's own error
+    (calibration, the separation's sigma, the spread between models)."""
+    if not math.isfinite(sigma) or sigma <= 0:
+        return
+    q["error"] = math.hypot(q["error"] if math.isfinite(q["error"]) else 0.0, sigma)
+    half = 1.96 * sigma
+    lo, hi, value = q["ci_low"], q["ci_high"], q["value"]
+    if math.isfinite(lo) and math.isfinite(hi):
+        q["ci_low"], q["ci_high"] = value - math.hypot(value - lo, half), value + math.hypot(hi - value, half)
+    else:
+        q["ci_low"], q["ci_high"] = value - half, value + half

@@ -26,6 +26,7 @@ import math
 import numpy as np
 
 import afmid.fit.regression as regression
+from afmid.fit.uncertainty import widen_interval
 
 #: A selected term that a resample of the periods re-selects at least this often counts as decided by the data.
 DECIDED = 0.9
@@ -154,14 +155,7 @@ def widen(q: dict, spread: float) -> None:
     """Add a 1-sigma model-uncertainty ``spread`` in quadrature to the error and the 95 % interval (in place)."""
     if not math.isfinite(spread) or spread <= 0:
         return
-    error = q["error"] if math.isfinite(q["error"]) else 0.0
-    q["error"] = math.hypot(error, spread)
     if "error_statistical" in q:  # the model uncertainty comes from the data: part of the statistical error
         stat = q["error_statistical"] if math.isfinite(q["error_statistical"]) else 0.0
         q["error_statistical"] = math.hypot(stat, spread)
-    half = 1.96 * spread
-    lo, hi, v = q["ci_low"], q["ci_high"], q["value"]
-    if math.isfinite(lo) and math.isfinite(hi):
-        q["ci_low"], q["ci_high"] = v - math.hypot(v - lo, half), v + math.hypot(hi - v, half)
-    else:
-        q["ci_low"], q["ci_high"] = v - half, v + half
+    widen_interval(q, spread)

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import afmid.fit.regression as regression
+from afmid.fit.uncertainty import widen_interval
 from afmid.errors import AfmidError
 from afmid.registry import Registry
 
@@ -308,16 +309,7 @@ class SeparationSearch:
             y = np.asarray(values[k])
             if not np.all(np.isfinite(y)):
                 continue
-            delta = abs(np.polyfit(np.asarray(near) - found.value, y, 1)[0]) * sigma
-            if delta > 0:
-                q["error"] = math.hypot(q["error"] if math.isfinite(q["error"]) else 0.0, delta)
-                half = 1.96 * delta
-                lo, hi = q["ci_low"], q["ci_high"]
-                if math.isfinite(lo) and math.isfinite(hi):
-                    q["ci_low"] = q["value"] - math.hypot(q["value"] - lo, half)
-                    q["ci_high"] = q["value"] + math.hypot(hi - q["value"], half)
-                else:
-                    q["ci_low"], q["ci_high"] = q["value"] - half, q["value"] + half
+            widen_interval(q, abs(np.polyfit(np.asarray(near) - found.value, y, 1)[0]) * sigma)
         return True
 
 
