@@ -53,6 +53,7 @@ from afmid.io.onset import check_onset, find_onset
 from afmid.preprocess.periods import detrend
 from afmid.io.resolution import check_quantization
 from afmid.io.trace_analysis import MAX_HARMONIC, MIN_ANALYSABLE_SPP, Analysis, analyse
+from afmid.physics.effects import BOLTZMANN
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +79,6 @@ TIME_JITTER = 1e-3
 JUMP_SIGMA = 8.0
 #: ... and above this many standard deviations of the thermal phase noise (a known scale, not estimated).
 THERMAL_JUMP_SIGMA = 5.0
-#: k_B T at room temperature, J (the lever's temperature is not in the run config).
-ROOM_KT = 1.380649e-23 * 300.0
 
 
 def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -195,6 +194,7 @@ class Settings:
     baseline: str = "zero"  # fit.baseline
     differentiation: str | None = None  # fit.differentiation when the fit differentiates (fit.form: strong)
     positive: str | None = None  # data.positive of the run (None: not chosen yet)
+    temperature: float = 300.0  # K, the lever's (fit.temperature; room temperature without a config)
 
 
 def settings_for(trace, config) -> Settings:
@@ -211,6 +211,7 @@ def settings_for(trace, config) -> Settings:
         baseline=fit.baseline,
         differentiation=fit.differentiation if getattr(fit, "form", None) == "strong" else None,
         positive=config.data.positive,
+        temperature=fit.temperature,
     )
 
 
@@ -422,14 +423,14 @@ def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
 def thermal_phase_step(s: Settings | None, amplitude: float) -> float:
     """Standard deviation (rad) of the phase change across two periods that the thermal force alone makes.
 
-    The quadrature part of the thermal motion has variance kT / (2k) at room temperature and forgets itself in
+    The quadrature part of the thermal motion has variance kT / (2k) (T: ``s.temperature``) and forgets itself in
     the amplitude decay time (Q / pi periods); over two periods the phase x_perp / A then changes with variance
     2 (kT / (2 k A^2)) (1 - exp(-2 pi * 2 / Q)). Negligible for a lever in air (Q 250, k 40 N/m: 0.01 deg);
     ~0.8 deg for a soft lever in water (k 0.8 N/m, Q 4, A 5 nm). 0 when the lever is unknown.
     """
     if s is None or not s.spring_constant or not s.quality_factor or not amplitude > 0:
         return 0.0
-    variance = ROOM_KT / (s.spring_constant * amplitude**2) * (1.0 - math.exp(-4.0 * math.pi / s.quality_factor))
+    variance = BOLTZMANN * s.temperature / (s.spring_constant * amplitude**2) * (1.0 - math.exp(-4.0 * math.pi / s.quality_factor))
     return math.sqrt(variance)
 
 
