@@ -179,7 +179,10 @@ def measure(case: Case, folder: Path) -> dict:
     instrument = diagnosis.get("instrument")
     entry = {"row": case.row, "variant": case.variant, "expected": case.expected, "named": named,
              "instrument": instrument.get("kind") if isinstance(instrument, dict) else None,
-             "verdict": diagnosis["verdict"], "error": result.cv_error, "floor": result.cv_error_noise_floor,
+             "verdict": diagnosis["verdict"], "compared": summary.get("compared_with_best"),
+             "tried": [{k: t[k] for k in ("effect", "delta_bic", "significant", "explains_residual")}
+                       for t in summary["tried"]],
+             "error": result.cv_error, "floor": result.cv_error_noise_floor,
              "force": force_error(result, trace)}
     if named:
         after_config = copy.deepcopy(config)

@@ -105,6 +105,7 @@ class Trial:
     reasons: list[str] = field(default_factory=list)  # why it was not accepted
     separation: float = math.nan  # the rest separation of the refit, m (re-profiled when the run estimated it)
     block_chi2: np.ndarray | None = field(default=None, repr=False)  # per-block chi-square (afmid.diagnosis.decide)
+    n_parameters: int = 0  # selected terms + estimated nonlinear parameters of the refit (afmid.diagnosis.decide)
 
 
 @dataclass
@@ -256,7 +257,8 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         qty = {k: v for k, v in result.quantities.items() if v["effect"] == effect}
         trials.append(Trial(effect, result.cv_error, result.cv_error_noise_floor, bic_after, bic_after - base.bic,
                             chi2_after, limit_after, selected, qty, shape, _implausible(effect, qty, run),
-                            time.perf_counter() - t0, separation=separation, block_chi2=decide.block_chi2(result)))
+                            time.perf_counter() - t0, separation=separation, block_chi2=decide.block_chi2(result),
+                            n_parameters=int(result.selection.best.mask.sum()) + len(shape)))
     residual_significant = _significant(base.chi2, base.chi2_limit, base.error, base.floor)
     for t in trials:
         t.reasons = _rejections(t, base)
@@ -314,6 +316,10 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         "tried": [_trial_record(t) for t in trials],
         "seconds": time.perf_counter() - started,
     }
+    if good:
+        summary["compared_with_best"] = {"best": good[0].effect, "rivals": decide.comparisons(good[0], trials)}
+    if good and explained and not undecided and not outside:
+        summary["diagnosis"]["verdict"] += decide.parsimony_note(good[0], trials)
     if undecided:
         summary["undecided"] = [_trial_record(t) for t in [good[0]] + undecided]
         summary["suggestions"] = []
