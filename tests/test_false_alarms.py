@@ -17,7 +17,6 @@ from pathlib import Path
 import pytest
 
 from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
-from afmid.errors import InputError
 
 pytestmark = [pytest.mark.numerics, pytest.mark.slow]
 
@@ -56,13 +55,7 @@ CASES: dict[str, list[str] | dict | object] = {
     "noise-free-b": _steady(1.0e9, 8.0e-20, 9.0e-9, 40, 200, 507, *NOISE_FREE),
     "transient-from-rest": _transient(250, 10e-9, 6.5e-9, 300e3, 120, 100, "rest", 511),
     "transient-from-rest-detuned": _transient(120, 15e-9, 9e-9, 299.4e3, 80, 100, "rest", 512),
-    "transient-from-free": pytest.param(
-        _transient(250, 10e-9, 4.5e-9, 300e3, 100, 200, "free", 513), marks=pytest.mark.xfail(
-            strict=True, raises=InputError,
-            reason="refused on loading: 'the oscillation phase jumps by +4.43 deg (+2.4 samples) near sample 12885 "
-                   "(period 65 of 101): samples were dropped'; the phase of a transient from free oscillation swings "
-                   "smoothly by up to 14 deg per period as the beat passes (periods 57-72) and defects.check_jumps "
-                   "reads the peak of the swing as a step (also seed 403 in scripts/floor_study.py)")),
+    "transient-from-free": _transient(250, 10e-9, 4.5e-9, 300e3, 100, 200, "free", 513),
     "transient-from-rest-50spp": _transient(400, 8e-9, 5e-9, 300.6e3, 150, 50, "rest", 514),
 }
 

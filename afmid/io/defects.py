@@ -394,12 +394,9 @@ def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
     B = a.n_blocks - first
     if B < 9:
         return []
-    from scipy.ndimage import median_filter
-
-    phase = a.block_phase[first:]
-    d = phase[2:] - phase[:-2]  # phase change across two blocks, centred on blocks 1..B-2
-    res = d - median_filter(d, size=7, mode="nearest")
-    mad = float(np.median(np.abs(res - np.median(res))))
+    trend, path = rotation_residuals(a.block_amplitude[first:], a.block_phase[first:])
+    res = np.where(np.abs(path) < np.abs(trend), path, trend)  # what neither model of smooth motion explains
+    mad = float(np.median(np.abs(trend - np.median(trend))))
     one = 2 * np.pi / a.spp  # phase of one sample
     threshold = max(0.5 * one, JUMP_SIGMA * 1.4826 * mad,
                     THERMAL_JUMP_SIGMA * thermal_phase_step(s, float(np.median(a.block_amplitude))))
@@ -418,6 +415,46 @@ def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
         f"{f' and at {len(peaks) - 1} more places' if len(peaks) > 1 else ''}: "
         f"samples were {kind} (or the drive was re-locked); crop the trace to one side of the jump",
         "data.path", {"jumps": len(peaks), "first_sample": sample, "samples": sizes[0]})]
+
+
+#: Offsets (blocks) of the neighbours that predict a two-block change; -1..1 are left out, since samples
+#: dropped inside block m change the two-block differences centred on m-1, m and m+1.
+_NEIGHBOURS = np.array([-5, -4, -3, -2, 2, 3, 4, 5])
+
+
+def rotation_residuals(amplitude: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How much each block's oscillation turns beyond what smooth motion explains (rad at the median amplitude),
+    for the two-block changes centred on blocks 1..B-2, by two models of smooth motion.
+
+    Dropped or repeated samples turn the oscillation's complex amplitude c = A exp(i phase) by their phase, at
+    whatever amplitude; smooth motion does not step. Returned:
+
+    - ``trend``: the two-block phase change weighted by the block's amplitude over the median one (an arc)
+      minus its running median of 7. A phase ramp or a change of regime (the tip starting or ceasing to touch:
+      a kink) leaves nothing; for a steady record it is the phase change minus the local trend.
+    - ``path``: the two-block change of c minus a quadratic through its neighbours at offsets 2..5 on both sides
+      (which a step leaves untouched), its part perpendicular to c over the median amplitude. A transient from
+      free oscillation carries c past the origin on a smooth path (the phase alone swings by up to 180 deg
+      in a few periods) and leaves nothing here. Within 5 blocks of either end it is ``trend``.
+
+    A step stands out of both; smooth motion out of at most one.
+    """
+    from scipy.ndimage import median_filter
+
+    typical = max(float(np.median(amplitude)), 1e-300)
+    arc = (phase[2:] - phase[:-2]) * amplitude[1:-1] / typical
+    trend = arc - median_filter(arc, size=7, mode="nearest")
+    path = trend.copy()
+    c = amplitude * np.exp(1j * phase)
+    change, centre = c[2:] - c[:-2], c[1:-1]
+    inner = np.arange(_NEIGHBOURS.max(), change.size - _NEIGHBOURS.max())
+    if inner.size:
+        design = np.vander(_NEIGHBOURS.astype(float), 3)  # quadratic in the offset
+        predict_at_zero = np.linalg.pinv(design)[-1]  # weights of the neighbours for the fit's value at 0
+        expected = change[inner[:, None] + _NEIGHBOURS] @ predict_at_zero
+        turned = (change[inner] - expected) * np.conj(centre[inner]) / np.maximum(np.abs(centre[inner]), 1e-300)
+        path[inner] = turned.imag / typical
+    return trend, path
 
 
 def thermal_phase_step(s: Settings | None, amplitude: float) -> float:
