@@ -184,9 +184,11 @@ def measure(case: Case, folder: Path) -> dict:
                        for t in summary["tried"]],
              "error": result.cv_error, "floor": result.cv_error_noise_floor,
              "force": force_error(result, trace)}
-    if named:
+    entry["undecided"] = [t["effect"] for t in summary.get("undecided", [])]
+    refit = named or entry["undecided"][:1]  # undecided: the force error with the candidate ranked first
+    if refit:
         after_config = copy.deepcopy(config)
-        after_config.model.effects = list(config.model.effects) + named
+        after_config.model.effects = list(config.model.effects) + refit
         after = run_fit(after_config, uncertainty=False)
         entry.update(error_after=after.cv_error, floor_after=after.cv_error_noise_floor,
                      force_after=force_error(after, trace))
@@ -194,8 +196,19 @@ def measure(case: Case, folder: Path) -> dict:
     return entry
 
 
+def _undecided(r: dict) -> list[str]:
+    """The candidates the data cannot tell apart, ranked by BIC (from the comparisons for older lines)."""
+    if "undecided" in r:
+        return r["undecided"]
+    if not r["verdict"].startswith("missing effect, but the data cannot decide") or not r.get("compared"):
+        return []
+    return [r["compared"]["best"]] + [c["effect"] for c in r["compared"]["rivals"] if not c["told_apart"]]
+
+
 def _says(r: dict) -> str:
     verdict = r["verdict"]
+    if _undecided(r):
+        return "cannot decide: " + ", ".join(_undecided(r))
     if r["instrument"]:
         return verdict.split(" (")[0]
     if r["named"]:
@@ -214,6 +227,11 @@ def _right(r: dict) -> bool:
     return bool(r["named"]) and r["named"][0] == r["expected"]
 
 
+def _first_undecided(r: dict) -> bool:
+    """The data cannot decide, and the true effect ranks first among the candidates."""
+    return r["expected"] not in (None, "instrument") and _undecided(r)[:1] == [r["expected"]]
+
+
 def table(rows: list[dict]) -> str:
     out = ["| trace (separation not given) | variant | afmid says | right? | force error % of peak: [dmt] -> "
            "with the named effect | cv error / floor: [dmt] -> with it |", "|---|---|---|---|---|---|"]
@@ -224,11 +242,13 @@ def table(rows: list[dict]) -> str:
         force = f"{100 * r['force']:.2f}" + (f" -> {100 * r['force_after']:.2f}" if "force_after" in r else "")
         ratio = f"{r['error'] / r['floor']:.2f}" + (
             f" -> {r['error_after'] / r['floor_after']:.2f}" if "error_after" in r else "")
-        out.append(f"| {r['row']} | {r['variant']} | {_says(r)} | {'yes' if _right(r) else 'NO'} | {force} | {ratio} |")
+        right = "yes" if _right(r) else "first, undecided" if _first_undecided(r) else "NO"
+        out.append(f"| {r['row']} | {r['variant']} | {_says(r)} | {right} | {force} | {ratio} |")
     ok = [r for r in rows if "failed" not in r]
     hidden = [r for r in ok if r["expected"] not in (None, "instrument")]
     clean = [r for r in ok if r["expected"] is None]
-    out.append(f"\nhidden effects named first: {sum(map(_right, hidden))}/{len(hidden)}; clean traces without alarm: "
+    out.append(f"\nhidden effects named first: {sum(map(_right, hidden))}/{len(hidden)} (and ranked first where the data "
+               f"cannot decide: {sum(map(_first_undecided, hidden))}); clean traces without alarm: "
                f"{sum(map(_right, clean))}/{len(clean)}; undeclared instruments named: "
                f"{sum(_right(r) for r in ok if r['expected'] == 'instrument')}/"
                f"{sum(r['expected'] == 'instrument' for r in ok)}; failed: {len(rows) - len(ok)}")

@@ -137,7 +137,7 @@ def verdict(best, others: list) -> str:
     gaps = "; ".join(f"`{t.effect}`: {_words(compare(best, t))}, {compare(best, t).extra_parameters:+d} parameters"
                      for t in others)
     names = ", ".join(f"`{t.effect}`" for t in [best] + others)
-    return (f"missing effect, but the data cannot decide which: {names} each explain the residual "
+    return (f"missing effect, but the data cannot decide which: {names} (ranked by BIC) each explain the residual "
             f"(error {best.error_after:.3g} vs noise floor {best.noise_floor_after:.3g}); their fits differ by less "
             f"than {VUONG_SIGMAS:g} standard deviations of the per-period evidence and none is simpler ({gaps}); "
             "record more periods, with less detector noise or at a higher sample rate, or fix the separation")
