@@ -287,8 +287,9 @@ def _diagnose(run: RunData, progress: bool) -> dict:
     finding = (instrument_signature.undeclared(base_config, prepared, base_result, base.bic, trials, _fit_quick,
                                                BIC_EVIDENCE, BIC_DISTINCT, separation_estimated(run))
                if missing and not (good and explained) else None)  # a residual no sample effect explains
-    # Rivals the per-period evidence does not tell apart from the best candidate: name none of them.
-    undecided = decide.rivals(good[0], trials) if good and not outside else []
+    # Rivals the per-period evidence does not tell apart from the best candidate: name none of them. Only for a
+    # single accepted effect: a set of effects was chosen over each single one by the BIC of their joint refit.
+    undecided = decide.rivals(good[0], trials) if len(good) == 1 and not outside else []
     if outside:
         description += "; " + _outside_words(outside[0], good[0] if good else None)
         for t in good:
@@ -318,7 +319,7 @@ def _diagnose(run: RunData, progress: bool) -> dict:
     }
     if good:
         summary["compared_with_best"] = {"best": good[0].effect, "rivals": decide.comparisons(good[0], trials)}
-    if good and explained and not undecided and not outside:
+    if len(good) == 1 and explained and not undecided and not outside:
         summary["diagnosis"]["verdict"] += decide.parsimony_note(good[0], trials)
     if undecided:
         summary["undecided"] = [_trial_record(t) for t in [good[0]] + undecided]
