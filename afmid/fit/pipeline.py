@@ -48,6 +48,7 @@ from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
 from afmid.preprocess.motion import fit_warning as motion_warning
 from afmid.fit.uncertainty import finish as finish_uncertainty, widen_interval
 from afmid.fit.undetermined import mark as mark_undetermined
+from afmid.fit.separation_share import NOT_COMPUTED as SHARE_NOT_COMPUTED, SeparationShare, separation_share
 # Kept importable from afmid.fit.pipeline, where they were defined before (bench/bench_fit.py uses term_penalties).
 from afmid.fit.forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from afmid.fit.selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
@@ -147,6 +148,12 @@ class FitResult:
     drive_search: DriveSearch | None = None  # the drive frequency searched by the regression (transient records)
     force_calibration_uncertainty: float = 0.0  # relative, 1 sigma: the force's share of the k / Q calibration
     model_limited: bool = False  # cv_error above its noise floor: parameters biased beyond their error bars
+    #: the estimated separation's share of the force's uncertainty (relative to the peak, 1 sigma; NaN: d given)
+    separation_share: SeparationShare = SHARE_NOT_COMPUTED
+
+    @property
+    def force_separation_uncertainty(self) -> float:
+        return self.separation_share.relative
 
     @property
     def selected(self) -> np.ndarray:
@@ -364,6 +371,12 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     mark_undetermined(quantities, library, system, coef, chosen, params, trace, inclusion,
                       fit.bootstrap if uncertainty else 0, fit.seed, read_out, warnings)
     force_estimate, force_direct = per_sample_forces(prep, library, system, coef, rows)
+    share = SHARE_NOT_COMPUTED
+    if uncertainty and "d" in nonlinear and config.sample.separation is None:
+        # the force curve along the separation's valley (afmid.fit.separation_share): often the largest part
+        share = separation_share(prep, library, params, chosen, nonlinear["d"].sigma, force_estimate)
+        if share.warning():
+            warnings.append("warning: " + share.warning())
     periods = period_curves(prep, library, system, coef, params, rows, fit.phase_points)
     bar.update(1)
     bar.close()
@@ -371,7 +384,7 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_direct, periods,
-                     warnings, drive_search, force_calibration, limited)
+                     warnings, drive_search, force_calibration, limited, share)
 
 
 def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:
