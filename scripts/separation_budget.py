@@ -53,9 +53,9 @@ def raw_config(kind: str, seed: int) -> dict:
 def _raw_config(kind: str, seed: int) -> dict:
     from afmid.config import apply_overrides, parse_override, read_yaml
 
-    if kind.startswith("poor") or kind.startswith("detector"):
+    if kind.startswith(("poor", "detector", "ideal")):
         point = kind.split("-")[1] if "-" in kind else "a"
-        extra = NOISY if kind.startswith("poor") else DETECTOR
+        extra = {"poor": NOISY, "detector": DETECTOR, "ideal": []}[kind.split("-")[0]]
         return apply_overrides(read_yaml(ROOT / "tests" / "configs" / "hidden_clean.yaml"),
                                [parse_override(o) for o in POOR_POINTS[point] + extra + [f"simulate.seed={seed}"]])
     if kind.startswith("liquid"):

@@ -374,7 +374,8 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     share = SHARE_NOT_COMPUTED
     if uncertainty and "d" in nonlinear and config.sample.separation is None:
         # the force curve along the separation's valley (afmid.fit.separation_share): often the largest part
-        share = separation_share(prep, library, params, chosen, nonlinear["d"].sigma, force_estimate)
+        share = separation_share(prep, library, params, lambda system: settings.select(system).best.mask,
+                                 nonlinear["d"].sigma, force_estimate)
         if share.warning():
             warnings.append("warning: " + share.warning())
     periods = period_curves(prep, library, system, coef, params, rows, fit.phase_points)

@@ -11,8 +11,8 @@ the whole record while its force curve differs by 12.5 % of the peak; docs/accur
 unknown").
 
 The share is the RMS over the estimated samples of half the difference of the model force refitted at
-d + sigma and at d - sigma (the same support, the other nonlinear parameters held), divided by the largest
-|force|: a relative 1 sigma, like the calibration share. The separation's sigma falls as 1 / sqrt(periods)
+d + sigma and at d - sigma (the support selected again there, the other nonlinear parameters held), divided
+by the largest |force|: a relative 1 sigma, like the calibration share. The separation's sigma falls as 1 / sqrt(periods)
 (the profile's chi-square curvature grows with the number of periods), and so, to first order, does the
 share: ``periods_for`` says how long a record would bring it to a target.
 """
@@ -68,12 +68,14 @@ class SeparationShare:
 NOT_COMPUTED = SeparationShare(math.nan, math.nan, 0)
 
 
-def separation_share(prep, library, params: dict, mask: np.ndarray, sigma: float,
+def separation_share(prep, library, params: dict, select, sigma: float,
                      force_estimate: np.ndarray) -> SeparationShare:
     """The force's share of the separation's uncertainty ``sigma`` (m, 1 sigma) around ``params["d"]``.
 
-    ``mask`` is the fit's support, ``force_estimate`` its per-sample force (N; NaN where not estimated), whose
-    largest |value| is the peak the share is relative to.
+    ``select`` maps the system at d +- sigma to the support fitted there (the fit's own selection: near the
+    contact point a term's column can vanish on one side, e.g. a contact term once the tip no longer
+    touches, and another support then explains the data); ``force_estimate`` is the fit's per-sample force
+    (N; NaN where not estimated), whose largest |value| is the peak the share is relative to.
     """
     if not (math.isfinite(sigma) and sigma > 0):
         return NOT_COMPUTED
@@ -88,7 +90,7 @@ def separation_share(prep, library, params: dict, mask: np.ndarray, sigma: float
             system = build_system(prep, library, trial)
         except AfmidError:  # e.g. the library cannot be evaluated there
             return NOT_COMPUTED
-        coef, _ = regression.subset_fit(regression.combine(system.T_blocks), mask)
+        coef, _ = regression.subset_fit(regression.combine(system.T_blocks), select(system))
         forces.append(model_force_samples(prep, library, system, coef))
     half = 0.5 * (forces[0] - forces[1])[used]
     if not np.isfinite(half).all():
