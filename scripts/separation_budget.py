@@ -115,6 +115,7 @@ def measure(kind: str, seed: int) -> dict:
     return {
         "case": kind, "seed": seed, "d_error_pm": 1e12 * (est.value - d_true), "d_sigma_pm": 1e12 * est.sigma,
         "force_error": force_error(result.force_estimate, truth),
+        "separation_share": result.separation_share.relative,
         "force_error_d_given": force_error(given.force_estimate, truth),
         "law_true_x_true": law_error(x_true, d_true),
         "law_true_x_raw": law_error(x_raw, d_true),
