@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmid.fit.separation_share import NOT_COMPUTED, WARN_FRACTION, SeparationShare
+from afmid.fit.separation_share import NOT_COMPUTED, WARN_FRACTION, SeparationShare, is_separation_limited
 
 pytestmark = pytest.mark.numerics
 
@@ -52,6 +52,9 @@ def test_periods_for_a_target_scale_as_the_square_of_the_share():
     text = share.warning()
     assert text.startswith("separation-limited:") and "+-0.3 nm" in text and "5 % of its peak" in text
     assert "about 1,250 periods (now 50)" in text
+    # recognised with and without the fit's "warning: " (a map pixel is not made suspect by it)
+    assert is_separation_limited(text) and is_separation_limited("warning: " + text)
+    assert not is_separation_limited("warning: model-limited: the cross-validated error 0.3 stands above ...")
 
 
 def test_below_the_threshold_or_not_computed_there_is_no_warning():

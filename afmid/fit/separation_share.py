@@ -33,9 +33,12 @@ from afmid.fit.system import build_system
 #: known no better than this, whatever its statistical error bars say).
 WARN_FRACTION = 0.01
 
+#: How the warning starts (a map pixel is not made suspect by it: its read-outs' error bars already carry the
+#: separation's sigma; the share is about the force curve).
+WARNING_START = "separation-limited:"
 #: Warning text (numbers filled in).
 SEPARATION_LIMITED_TEXT = (
-    "separation-limited: the rest separation is estimated to +-{sigma_nm:.3g} nm (1 sigma), and within it the "
+    WARNING_START + " the rest separation is estimated to +-{sigma_nm:.3g} nm (1 sigma), and within it the "
     "force curve moves by {share:.2g} % of its peak (1 sigma): the record cannot tell a deeper indentation of a "
     "softer sample from the fitted one; give sample.separation if it is known, or record about {periods} periods "
     "(now {now}) to bring this share to {target:.2g} %")
@@ -66,6 +69,11 @@ class SeparationShare:
 
 
 NOT_COMPUTED = SeparationShare(math.nan, math.nan, 0)
+
+
+def is_separation_limited(warning: str) -> bool:
+    """True for the warning line :meth:`SeparationShare.warning` gives (with or without its "warning: ")."""
+    return warning.removeprefix("warning: ").startswith(WARNING_START)
 
 
 def separation_share(prep, library, params: dict, select, sigma: float,
