@@ -15,7 +15,8 @@ tolerances fixed before the results were looked at):
   weights and read-out re-run) move the force curve by the share within a factor 1.5 (poor instrument and
   the liquid lever of scripts/experiment_table.py);
 - a separation given: nothing computed, no warning; the ideal instrument on a 150-period record: share
-  < 1 %, no warning (the share at 50 periods was measured 1.1 %; 1.1 / sqrt(3) = 0.64 %).
+  < 1 %, no warning (the share at 50 periods was measured 1.1 %; 1.1 / sqrt(3) = 0.64 %);
+- the separation is profiled with whole effects (afmid.fit.pipeline.whole_effects).
 """
 
 from __future__ import annotations
@@ -137,3 +138,19 @@ def test_given_separation_and_a_long_ideal_record_raise_no_warning(tmp_path):
     given = _refit(raw, trace, raw["sample"]["separation"])
     assert math.isnan(given.force_separation_uncertainty)
     assert not any("separation-limited" in w for w in given.warnings)
+
+
+def test_the_separation_is_profiled_with_whole_effects():
+    """A term the selection dropped stays in the profile when its effect has another selected term (DMT's tail
+    beside Hertz); an effect with no selected term stays out; the nuisance columns are as given."""
+    from afmid.config import ModelConfig
+    from afmid.fit.pipeline import whole_effects
+    from afmid.physics.library import build_library
+
+    library = build_library(ModelConfig(effects=["dmt", "viscoelastic", "capillary"]), None)
+    assert library.names == ["dmt.vdw", "dmt.hertz", "viscoelastic.kelvin_voigt", "capillary.meniscus"]
+    mask = np.array([False, True, True, False, True, False])  # hertz, Kelvin-Voigt; drive cos in, drive sin out
+    assert whole_effects(library, mask).tolist() == [True, True, True, False, True, False]
+    assert mask.tolist() == [False, True, True, False, True, False]  # not modified
+    nothing = np.zeros(6, dtype=bool)
+    assert whole_effects(library, nothing).tolist() == nothing.tolist()
