@@ -162,6 +162,9 @@ def fit(
     force_calibration = getattr(result, "force_calibration_uncertainty", 0.0)  # absent on older result objects
     if force_calibration > 0:
         log.info("  force: calibration share %.2g %% (1 sigma, relative)", 100 * force_calibration)
+    force_separation = getattr(result, "force_separation_uncertainty", float("nan"))
+    if force_separation == force_separation:  # not NaN: the separation was estimated
+        log.info("  force: separation share %.2g %% of the peak (1 sigma, RMS over the samples)", 100 * force_separation)
     # The fit's own warnings (model-limited, non-periodic motion); the trace's findings were logged on loading.
     prep = getattr(result, "prep", None)
     loaded = {f"{f.severity}: {f.message}" for f in getattr(getattr(prep, "trace", None), "findings", [])}

@@ -21,6 +21,7 @@ stored; every reader here turns it into ``str`` with :func:`text`.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -137,10 +138,14 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(m, "separation", result.system.params["d"], "m", estimated=fixed_d is None,
                       error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0, error_kind=ERROR_LABEL)
         fg = h5.create_group("force")
+        separation_share = float(getattr(result, "force_separation_uncertainty", math.nan))
         write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive",
                       calibration_relative_uncertainty=result.force_calibration_uncertainty, error_kind=ERROR_LABEL,
+                      separation_relative_uncertainty=separation_share,
                       meaning="model force; calibration_relative_uncertainty: its relative 1-sigma share of the "
-                              "declared k and Q uncertainties")
+                              "declared k and Q uncertainties; separation_relative_uncertainty: the RMS of its "
+                              "1-sigma change with the estimated rest separation, relative to the peak |force| "
+                              "(NaN: the separation was given)")
         write_dataset(fg, "direct", result.force_direct, "N", positive="repulsive",
                       meaning="model-free force from the equation of motion, band-limited to signal harmonics")
         write_dataset(fg, "time", result.prep.t, "s")
@@ -243,6 +248,7 @@ class RunData:
     signal_rows: np.ndarray | None = None  # rows used by the model-free force (above the noise)
     model_limited: bool = False  # cv_error above its noise floor (afmid.fit.uncertainty.model_limited)
     force_calibration_uncertainty: float = 0.0  # relative 1 sigma of the force from the declared k / Q
+    force_separation_uncertainty: float = math.nan  # RMS 1 sigma of the force from the estimated d, / peak
 
     @property
     def n_terms(self) -> int:
@@ -373,6 +379,8 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         signal_rows=d["signal_rows"][...].astype(bool) if "signal_rows" in d else None,
         model_limited=bool(d["model_limited"][()]) if "model_limited" in d else False,
         force_calibration_uncertainty=float(h5["force"]["estimate"].attrs.get("calibration_relative_uncertainty", 0.0)),
+        force_separation_uncertainty=float(h5["force"]["estimate"].attrs.get("separation_relative_uncertainty",
+                                                                             math.nan)),
     )
 
 

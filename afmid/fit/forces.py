@@ -180,6 +180,20 @@ def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) 
 def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np.ndarray, rows: np.ndarray):
     """Model force on every used sample and the band-limited model-free force (N; NaN elsewhere)."""
     n = prep.x.size
+    estimate = model_force_samples(prep, library, system, coef)
+    L = prep.blocks.L
+    used = prep.blocks.used
+    direct = np.full(n, np.nan)
+    for b0, b1 in prep.blocks.chunks():
+        F = direct_force_coefficients(prep, system, coef, slice(b0, b1)) * rows[None, :]
+        direct[used.start + b0 * L:used.start + b1 * L] = prep.blocks.synthesize_blocks(F[..., None], b0)[:, 0]
+    return estimate, direct
+
+
+def model_force_samples(prep: Prepared, library: Library, system: System, coef: np.ndarray) -> np.ndarray:
+    """The model force (N) with coefficients ``coef`` on every used sample (NaN elsewhere), at the parameters
+    of ``system``."""
+    n = prep.x.size
     p = system.theta.shape[2]
     used = prep.blocks.used
     estimate = np.full(n, np.nan)
@@ -194,11 +208,7 @@ def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np
         sl = slice(i, i + step)
         cols = library.evaluate(x_used[sl], prep.xdot_used[sl], t_used[sl], system.params)
         estimate[used.start + i: used.start + i + cols.shape[0]] = cols @ coef[:p]
-    direct = np.full(n, np.nan)
-    for b0, b1 in prep.blocks.chunks():
-        F = direct_force_coefficients(prep, system, coef, slice(b0, b1)) * rows[None, :]
-        direct[used.start + b0 * L:used.start + b1 * L] = prep.blocks.synthesize_blocks(F[..., None], b0)[:, 0]
-    return estimate, direct
+    return estimate
 
 
 #: Periods per chunk in :func:`period_curves` and when its curves are evaluated (bounds the temporaries). A

@@ -39,6 +39,7 @@ def fit_chunk(task: dict) -> dict:
     import time
 
     import afmid.fit.plausibility as plausibility
+    from afmid.fit.separation_share import is_separation_limited
     from afmid.errors import AfmidError
     from afmid.physics.library import build_library
     from afmid.maps.pixel_fit import DEFAULT_PIXEL_FIT, PIXEL_FITS
@@ -90,9 +91,11 @@ def fit_chunk(task: dict) -> dict:
         out["route"][i] = result.route
         out["evaluations"][i] = result.evaluations
         # Defects the checks only warned about (not those repaired or informational), and implausible read-outs.
-        doubts = [w for w in result.warnings if w.startswith("warning")] + [f"implausible: {name}" for name in
-                                                 plausibility.violations(
-                                                     plausibility.check_plausibility(result.quantities))]
+        # Not the separation share's warning: it concerns the force curve, and the read-outs' error bars already
+        # carry the separation's sigma.
+        doubts = [w for w in result.warnings if w.startswith("warning") and not is_separation_limited(w)]
+        doubts += [f"implausible: {name}"
+                   for name in plausibility.violations(plausibility.check_plausibility(result.quantities))]
         out["status"][i] = STATUS_SUSPECT if doubts else STATUS_OK
         out["message"][i] = "; ".join(doubts)
     names: list[str] = []
