@@ -265,7 +265,8 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     Given one force-map result (afmid map), draws its maps instead: every parameter with its
     1-sigma map and colour bar, histograms, topography, error over floor, the failed pixels.
 
-    Writes OUTPUT/report.html (self-contained), OUTPUT/*.png, OUTPUT/summary.json and the
+    Writes OUTPUT/report.html (self-contained), OUTPUT/*.png with an SVG of each figure beside
+    it (OUTPUT/*.svg, linked under the figure), OUTPUT/summary.json and the
     marker OUTPUT/.afmid-report; a folder without it, or holding other files or an input, is
     never replaced (docs/file-formats.md).
     """
