@@ -268,7 +268,8 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     Given one force-map result (afmid map), draws its maps instead: every parameter with its
     1-sigma map and colour bar, histograms, topography, error over floor, the failed pixels.
 
-    Writes OUTPUT/report.html (self-contained), OUTPUT/*.png, OUTPUT/summary.json and the
+    Writes OUTPUT/report.html (self-contained), OUTPUT/*.png with an SVG of each figure beside
+    it (OUTPUT/*.svg, linked under the figure), OUTPUT/summary.json and the
     marker OUTPUT/.afmid-report; a folder without it, or holding other files or an input, is
     never replaced (docs/file-formats.md).
     """
@@ -290,6 +291,30 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
             raise disk_full_error(exc, output) from None
         raise
     click.echo(summary)
+
+
+@cli.command()
+@click.argument("run", type=click.Path(path_type=Path, readable=False))
+@click.option("--what", required=True, type=click.Choice(["force-curves", "parameters", "periods"]),
+              help="force-curves: F(z) per period, approach / retract; parameters: value, 1 sigma, 95 % interval; "
+                   "periods: one row per period.")
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="CSV file to write.")
+@OVERWRITE
+def export(run: Path, what: str, output: Path, overwrite: bool) -> None:
+    """Write a table of the run file RUN as CSV for other tools (SI, the unit at the end of each column name).
+
+    \b
+      afmid export run1.h5 --what force-curves -o curves.csv  # period, branch, separation_m, force_N, ...
+      afmid export run1.h5 --what parameters -o params.csv    # name, value, sigma_1, ci95_low, ci95_high, ...
+      afmid export run1.h5 --what periods -o periods.csv      # period, peak_force_N, dissipated_energy_J, ...
+
+    force_N is the identified model's force, force_model_free_N the force from the equation of
+    motion on the harmonics above the noise (docs/file-formats.md, "CSV exports").
+    """
+    from afmid.report.export import export_run
+
+    rows = export_run(run, what, output, overwrite=overwrite)
+    log.info("wrote %s (%s, %d rows)", output, what, rows)
 
 
 @cli.command()

@@ -176,3 +176,29 @@ def temp_leftovers():
         return sorted(p.name for p in folder.iterdir() if p.name.startswith(".afmid-tmp-"))
 
     return leftovers
+
+
+def _check_svg_beside_every_png(out: Path) -> None:
+    """Every figure of a report folder is also an SVG (same stem) that parses as XML with an <svg> root, is
+    listed in the folder's marker and is linked from the page (issue 15, pinned)."""
+    import xml.etree.ElementTree as ElementTree
+
+    from afmid.report.folder import read_marker
+
+    pngs = sorted(out.glob("*.png"))
+    svgs = sorted(out.glob("*.svg"))
+    assert pngs and [p.stem for p in svgs] == [p.stem for p in pngs]
+    listed = read_marker(out)["files"]
+    page = (out / "report.html").read_text(encoding="utf-8")
+    for svg in svgs:
+        root = ElementTree.parse(svg).getroot()
+        assert root.tag == "{http://www.w3.org/2000/svg}svg", (svg.name, root.tag)
+        assert float(root.get("width").removesuffix("pt")) > 0 and float(root.get("height").removesuffix("pt")) > 0
+        assert svg.name in listed
+        assert f'href="{svg.name}"' in page
+
+
+@pytest.fixture
+def check_report_svgs():
+    """The check that a report folder has an SVG beside every PNG (afmid report, run and map reports)."""
+    return _check_svg_beside_every_png

@@ -5,7 +5,8 @@ thermal noise and 1 pm detector noise) is fitted first with DMT alone, then
 with the viscoelastic effect added. Checked: the pinned outputs
 (DIR/report.html, DIR/*.png, DIR/summary.json with the pinned keys), runs in
 the order given, the error falling from run1 to run2, a self-contained HTML
-page (every image embedded, no external src/href), the verdicts (run1
+page (every image embedded, no external src/href; the only links are to the
+figures' SVG files beside it), every figure also as an SVG that parses (issue 15), the verdicts (run1
 diagnosed alone: viscoelastic missing; the pair: nothing missing), and a
 refused non-empty output folder.
 """
@@ -113,7 +114,8 @@ def test_html_is_self_contained(pair_report):
     assert page.startswith("<!doctype html>") and page.rstrip().endswith("</html>")
     sources = re.findall(r"""\bsrc\s*=\s*["']([^"']*)""", page, flags=re.I)
     assert sources and all(s.startswith("data:image/png;base64,") for s in sources)
-    assert not re.search(r"""\bhref\s*=""", page, flags=re.I)
+    links = re.findall(r"""\bhref\s*=\s*["']([^"']*)""", page, flags=re.I)
+    assert links and all(re.fullmatch(r"[\w.-]+\.svg", link) for link in links)  # only the SVGs beside the page
     assert not re.search(r"""url\(\s*["']?(https?:|//)""", page, flags=re.I)
     assert not re.search(r"<(script|link|iframe)\b", page, flags=re.I)
     assert len(sources) == len(list(out.glob("*.png")))  # every figure embedded
@@ -138,3 +140,9 @@ def test_refuses_a_non_empty_folder(pair_report, runs):
     out, _ = pair_report
     with pytest.raises(OutputError):
         make_report(list(runs), out, suggest_effects=False)
+
+
+@pytest.mark.slow
+def test_every_figure_is_also_an_svg(pair_report, single_report, check_report_svgs):
+    check_report_svgs(pair_report[0])
+    check_report_svgs(single_report)

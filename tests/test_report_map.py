@@ -79,7 +79,7 @@ def test_map_report_summary_matches_the_result_file(report):
 
 
 @pytest.mark.slow
-def test_map_report_page_is_self_contained_and_names_units_and_failed_pixels(report):
+def test_map_report_page_is_self_contained_and_names_units_and_failed_pixels(report, check_report_svgs):
     ws, _ = report
     out = ws / "rep"
     page = (out / "report.html").read_text(encoding="utf-8")
@@ -88,6 +88,9 @@ def test_map_report_page_is_self_contained_and_names_units_and_failed_pixels(rep
     assert sources and all(s.startswith("data:image/png;base64,") for s in sources)
     assert len(sources) == len(list(out.glob("*.png")))
     assert not re.search(r"<(script|link|iframe)\b", page, flags=re.I)
+    links = re.findall(r"""\bhref\s*=\s*["']([^"']*)""", page, flags=re.I)
+    assert links and all(re.fullmatch(r"[\w.-]+\.svg", link) for link in links)  # only the SVGs beside the page
+    check_report_svgs(out)
     assert "E_star [MPa]" in page and "[nm]" in page and "[zJ]" in page
     assert f"pixel (row {BAD_PIXEL[0]}, col {BAD_PIXEL[1]})" in page and "NaN" in page
 

@@ -9,7 +9,6 @@ pixel counts; the failed and suspect pixels with their messages) and a self-cont
 
 from __future__ import annotations
 
-import base64
 import html
 import json
 import math
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from afmid.errors import InputError
+from afmid.report.figures import figure_html, save_figure
 
 MAP_RESULT_FORMAT = "afmid-map-result"
 #: SI unit -> (factor to the displayed unit, displayed unit).
@@ -145,9 +145,7 @@ def _map_figure(folder: Path, name: str, values: np.ndarray, sigma: np.ndarray |
         if suspect.size:
             _mark(ax, suspect, box, status.shape, "o", "orange")
     fig.tight_layout()
-    file = f"map_{name}.png"
-    fig.savefig(folder / file, dpi=90)
-    plt.close(fig)
+    file = save_figure(fig, folder, f"map_{name}", dpi=90)
     caption = f"{label or name} [{shown}]" + (" and its 1-sigma map" if sigma is not None else "")
     return file, caption + "; failed pixels blank with a red x, suspect pixels ringed orange"
 
@@ -179,9 +177,7 @@ def _histogram(folder: Path, name: str, values: np.ndarray, unit: str, status: n
     ax.set_ylabel("pixels")
     ax.legend()
     fig.tight_layout()
-    file = f"hist_{name}.png"
-    fig.savefig(folder / file, dpi=90)
-    plt.close(fig)
+    file = save_figure(fig, folder, f"hist_{name}", dpi=90)
     return file, f"histogram of {name} over the pixels (ok and suspect apart; failed pixels have no value)"
 
 
@@ -206,9 +202,7 @@ def _status_figure(folder: Path, status: np.ndarray, route, extent) -> tuple[str
         ax.set_xlabel(f"x [{axis_unit}]")
         ax.set_ylabel(f"y [{axis_unit}]")
     fig.tight_layout()
-    fig.savefig(folder / "map_status.png", dpi=90)
-    plt.close(fig)
-    return "map_status.png", "status per pixel (ok / suspect / failed) and how each pixel was fitted"
+    return save_figure(fig, folder, "map_status", dpi=90), "status per pixel (ok / suspect / failed) and how each pixel was fitted"
 
 
 def _summary(path: Path, result: dict, names: list[str], status: np.ndarray, message: np.ndarray) -> dict:
@@ -249,11 +243,6 @@ def _summary(path: Path, result: dict, names: list[str], status: np.ndarray, mes
 
 
 def _html(path: Path, summary: dict, figures: list[tuple[str, str]], folder: Path) -> str:
-    def img(file: str, caption: str) -> str:
-        data = base64.b64encode((folder / file).read_bytes()).decode()
-        return (f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(caption)}">'
-                f"<figcaption>{html.escape(caption)}</figcaption></figure>")
-
     counts = summary["pixels"]
     rows = "".join(
         f"<tr><td>{html.escape(name)}</td><td>{p['median']:.4g}</td><td>{p['p16']:.4g} .. {p['p84']:.4g}</td>"
@@ -267,7 +256,7 @@ def _html(path: Path, summary: dict, figures: list[tuple[str, str]], folder: Pat
                           for i in items[:MAX_LISTED])
             more = f"<p>... and {len(items) - MAX_LISTED} more (summary.json)</p>" if len(items) > MAX_LISTED else ""
             listed.append(f"<h2>{key.capitalize()} pixels ({len(items)})</h2><ul>{lis}</ul>{more}")
-    body = "".join(img(f, c) for f, c in figures)
+    body = "".join(figure_html(folder, f, c) for f, c in figures)
     return (
         "<!doctype html>\n<html><head><meta charset=\"utf-8\"><title>afmid map report</title>"
         "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}figure{display:inline-block;margin:8px}"

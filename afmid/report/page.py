@@ -2,7 +2,8 @@
 
 The last run is diagnosed (:mod:`afmid.diagnosis.diagnose`); all runs are compared by
 their cross-validated error and physical parameters. Outputs (pinned):
-``DIR/report.html`` (figures embedded, opens offline), ``DIR/*.png`` and
+``DIR/report.html`` (figures embedded, opens offline), ``DIR/*.png`` with an SVG of each
+beside it (``DIR/*.svg``, linked under each figure: :mod:`afmid.report.figures`),
 ``DIR/summary.json``, and the marker ``DIR/.afmid-report``. The folder is written
 under a temporary name and swapped in when complete; ``--overwrite`` replaces
 only a report folder afmid wrote (:mod:`afmid.report.folder`).
@@ -10,7 +11,6 @@ only a report folder afmid wrote (:mod:`afmid.report.folder`).
 
 from __future__ import annotations
 
-import base64
 import html
 import json
 import logging
@@ -25,6 +25,7 @@ import afmid.fit.plausibility as plausibility
 from afmid.diagnosis.diagnose import BIC_EVIDENCE, band_limit, describe_residual, energy_check, localize, suggest
 from afmid.io.trace import now_iso
 from afmid.physics.effects import EFFECTS
+from afmid.report.figures import figure_html, save_figure
 from afmid.report.folder import report_folder
 from afmid.runcheck import check_same_traces
 from afmid.runfile import RunData, load_run
@@ -88,12 +89,7 @@ APPROACH, RETRACTION, MODEL, TRUTH = "C0", "C3", "C1", "0.25"
 
 
 def _save(fig, folder: Path, name: str) -> str:
-    path = folder / f"{name}.png"
-    fig.savefig(path)
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
-    return path.name
+    return save_figure(fig, folder, name)
 
 
 def _contact_line(ax, a0: float) -> None:
@@ -169,7 +165,7 @@ def fig_force_separation(run: RunData, folder: Path) -> str:
             moving = truth.velocity > 0 if approach else truth.velocity <= 0  # dz/dt = -dx/dt: approach has dx/dt > 0
             step = max(1, truth.force.size // 20000)
             ax.plot(truth.separation[moving][::step] * NM, truth.force[moving][::step] * NN, ",", color=TRUTH,
-                    alpha=0.5)
+                    alpha=0.5, rasterized=True)  # thousands of points: an image inside the SVG
             ax.plot([], [], ".", color=TRUTH, ms=2, label="true force (simulation)")
         _contact_line(ax, run.config.sample.a0)
         ax.set(xlabel="separation z (nm)", title=title)
@@ -313,8 +309,7 @@ def fig_suggestions(summary: dict, folder: Path) -> str | None:
 
 # --------------------------------------------------------------------------- html
 def _img(folder: Path, name: str, caption: str) -> str:
-    data = base64.b64encode((folder / name).read_bytes()).decode()
-    return f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(caption)}"><figcaption>{html.escape(caption)}</figcaption></figure>'
+    return figure_html(folder, name, caption)
 
 
 def _rich(text: str) -> str:
