@@ -30,7 +30,7 @@ from afmid.batch.run import (RUN_SUFFIX, TRACE_SUFFIX, assign_names, batch_key, 
 from afmid.errors import ConfigError, InputError
 from repo_paths import REPO_ROOT
 
-pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 
 ROOT = REPO_ROOT
 CONFIG = ROOT / "configs" / "dmt.yaml"
@@ -114,6 +114,7 @@ def _afmid_alone(command: str, config: Path, output: Path, *overrides: str) -> N
 
 
 # --------------------------------------------------------------------------- results
+@pytest.mark.blas_sensitive  # the same bits demanded from worker processes and from in-process runs
 def test_parallel_batch_equals_single_runs_bit_for_bit(traces, tmp_path):
     inputs = _copy(traces, tmp_path / "in", ["n01.h5", "n02.h5", "n03.h5"])
     out = tmp_path / "out"

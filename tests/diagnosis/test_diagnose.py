@@ -45,7 +45,8 @@ from afmid.diagnosis.diagnose import (BIC_EVIDENCE, ERROR_RATIO, FLOOR_FACTOR, R
                             _significant, band_limit, candidate_effects, energy_check, localize, refit_config)
 from repo_paths import TEST_CONFIGS
 
-pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+# floating-point results compared; blas_sensitive: make test-kernels runs these again (BLAS/LAPACK on the path)
+pytestmark = [pytest.mark.numerics, pytest.mark.blas_sensitive]
 
 CONFIGS = TEST_CONFIGS
 FULL = os.environ.get("AFMID_HIDDEN_FULL", "") not in ("", "0")

@@ -51,7 +51,8 @@ import numpy as np
 import pytest
 from repo_paths import TEST_CONFIGS
 
-pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+# floating-point results compared; blas_sensitive: make test-kernels runs these again (BLAS/LAPACK on the path)
+pytestmark = [pytest.mark.numerics, pytest.mark.blas_sensitive]
 
 CONFIGS = TEST_CONFIGS
 MODELS = ("dmt", "lennard_jones", "dmt_viscoelastic", "dmt_exponential_damping", "jkr")

@@ -28,7 +28,8 @@ from afmid.physics.effects import EFFECTS
 from afmid.preprocess.periods import estimate_drive, harmonic_blocks, weak_windows
 from afmid.physics.units import parse_unit
 
-pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+# floating-point results compared; blas_sensitive: make test-kernels runs these again (BLAS/LAPACK on the path)
+pytestmark = [pytest.mark.numerics, pytest.mark.blas_sensitive]
 
 F_DRIVE = 300e3  # Hz
 SPP = 200  # samples per period

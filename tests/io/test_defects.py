@@ -21,7 +21,8 @@ from afmid.config import load_config
 from afmid.errors import InputError
 from afmid.io.trace import load_trace
 
-pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+# floating-point results compared; blas_sensitive: make test-kernels runs these again (BLAS/LAPACK on the path)
+pytestmark = [pytest.mark.numerics, pytest.mark.blas_sensitive]
 
 K = 40.0  # N/m
 F0 = 3.0e5  # Hz

@@ -17,7 +17,8 @@ from afmid.config import build_config, load_config, template_text
 from afmid.io.inspect import describe, inspect_file, prefill_config
 from afmid.io.trace import load_trace
 
-pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+# floating-point results compared; blas_sensitive: make test-kernels runs these again (BLAS/LAPACK on the path)
+pytestmark = [pytest.mark.numerics, pytest.mark.blas_sensitive]
 
 RATE = 3e7  # Hz
 SPP = 100

@@ -32,7 +32,7 @@ from afmid.physics.expr import (
 from afmid.kernels.vm import evaluate_numba
 from afmid.physics.units import parse_unit
 
-pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 
 PARAMS = {"a0": 0.3, "R": 2.0, "lam": 0.7, "n": 1.5, "c0": 0.0}
 PARAM_UNITS = {"a0": "m", "R": "m", "lam": "m", "n": "1", "c0": "m"}

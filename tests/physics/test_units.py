@@ -6,7 +6,7 @@ import pytest
 
 from afmid.physics.units import DIMENSIONLESS, SYMBOLS, Unit, as_unit, parse_unit
 
-pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 
 KG, M, S, A = (parse_unit(s) for s in ("kg", "m", "s", "A"))
 

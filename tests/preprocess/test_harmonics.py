@@ -14,7 +14,8 @@ from afmid.fit.pipeline import prepare
 from afmid.io.trace import Cantilever, Trace, load_trace
 from afmid.preprocess.periods import detrend
 
-pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+# floating-point results compared; blas_sensitive: make test-kernels runs these again (BLAS/LAPACK on the path)
+pytestmark = [pytest.mark.numerics, pytest.mark.blas_sensitive]
 
 F_DRIVE = 300e3  # Hz
 SPP = 200  # samples per period

@@ -30,7 +30,7 @@ from afmid.simulate.driver import (
     simulate,
 )
 
-pytestmark = pytest.mark.numerics  # floating-point results compared: make test-kernels runs these again
+pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 
 K, F0_HZ, R, A0_CONTACT = 40.0, 300e3, 10e-9, 0.165e-9
 A_FREE = 10e-9  # m, free amplitude of the test runs
