@@ -19,7 +19,7 @@ help:
 	@echo "make demo   - set up .venv, simulate a soft-polymer trace, fit it, write a report"
 	@echo "make demo-map - a force map with hidden viscoelasticity: map with [dmt], refit with --add viscoelastic, reports"
 	@echo "make test   - set up .venv with test extras and run the test suite"
-	@echo "make test-kernels - the numerically sensitive tests again under two other OpenBLAS kernels of this CPU"
+	@echo "make test-kernels - the BLAS-sensitive tests again under two other OpenBLAS kernels of this CPU"
 	@echo "make batch  - fit every config in configs/ (simulated first where it has no data) into $(RESULTS)/ (BATCH_JOBS=N workers)"
 	@echo "make bench  - benchmarks in one table (afmid vs SciPy / PySINDy, scaling, start-up, batch);"
 	@echo "              BENCH_ARGS=--quick for a smoke run"
@@ -52,14 +52,25 @@ demo-map: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -n $(TEST_JOBS)
 
-# The tests marked `numerics` again under other OpenBLAS kernels (OPENBLAS_CORETYPE) that this CPU runs correctly
-# (scripts/blas_kernels.py picks and checks them): a test that holds on one CPU family only fails here.
+# The tests marked `blas_sensitive` again under other OpenBLAS kernels (OPENBLAS_CORETYPE) that this CPU runs
+# correctly (scripts/blas_kernels.py picks and checks them): a test that holds on one CPU family only fails here.
+# OPENBLAS_CORETYPE changes only what BLAS/LAPACK computes, so the re-run keeps the tests whose results depend on
+# it at the rounding level: two computations demanded to agree to rounding or bit for bit (kernels vs NumPy twins
+# of the sparse regression, chunked vs whole, worker vs in-process runs), selection ties and thresholds on near-equal
+# criteria, regression/profile/selection accuracy and the harmonic analysis behind the defect checks and the
+# diagnosis. Left to `make test` (the native kernel only), the other `numerics` tests: the simulator, expression VM
+# and units (no BLAS call on their path: a simulated trace is bit-identical under Nehalem and the native kernel) and
+# the slow end-to-end runs (false alarms and hidden effects with the separation unknown, poor signals, drift,
+# calibration coverage, batch bookkeeping). Measured: `afmid fit` (separation estimated) on tests/configs dmt,
+# lennard_jones and hidden_viscoelastic under SandyBridge and Nehalem vs the native kernel selects the same terms and
+# effects, with forces, coefficients and BIC within 1e-6 of their largest value (mostly 1e-12-1e-9): far below the
+# percent margins of those tests' decisions, which go through the same regression and selection the kept tests check.
 test-kernels: $(STAMP)
 	@kernels="$$($(PY) scripts/blas_kernels.py 2)"; \
 	if [ -z "$$kernels" ]; then echo "test-kernels: NumPy does not use OpenBLAS here, or no other kernel runs on this CPU"; fi; \
 	for kernel in $$kernels; do \
-		echo "== numerically sensitive tests with OPENBLAS_CORETYPE=$$kernel"; \
-		OPENBLAS_CORETYPE=$$kernel $(PY) -m pytest -q -p no:cacheprovider -n $(TEST_JOBS) -m numerics || exit 1; \
+		echo "== BLAS-sensitive tests with OPENBLAS_CORETYPE=$$kernel"; \
+		OPENBLAS_CORETYPE=$$kernel $(PY) -m pytest -q -p no:cacheprovider -n $(TEST_JOBS) -m blas_sensitive || exit 1; \
 	done
 
 # Every config in configs/ with its own cantilever and model, in BATCH_JOBS worker processes:

@@ -1,6 +1,6 @@
 """Run files: the one writer (:func:`write_run`) and the readers of what ``afmid fit`` stores.
 
-The layout is documented in docs/file-formats.md (tests/test_run_file.py checks
+The layout is documented in docs/file-formats.md (tests/cli/test_run_file.py checks
 it against a written file). Readers:
 
 - :func:`load_run`: the whole run as a :class:`RunData`, for the diagnosis and

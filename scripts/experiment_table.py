@@ -31,7 +31,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+# The tests package (tests.diagnosis.test_diagnose holds the variants) and its helpers (tests/support).
+sys.path.insert(0, str(ROOT / "tests" / "support"))
+sys.path.insert(0, str(ROOT))
 
 DETECTOR = "data.detector={bandwidth: 3.0e6, filter: butterworth, order: 2}"  # 2-pole low-pass at 10 f0
 SECOND_MODE = "cantilever.higher_modes=[{resonance_frequency: 1.881e6, quality_factor: 750, spring_constant: 1572}]"
@@ -39,7 +41,7 @@ NOISY = ["simulate.noise.detector_rms=1.0e-11", "simulate.samples_per_period=50"
 
 
 def _transient(Q, A0, d, drive, periods, spp, start, seed, effects=(), **parameters) -> dict:
-    """A record of the transient into tapping (tests/test_transient.py's shape)."""
+    """A record of the transient into tapping (tests/preprocess/test_transient.py's shape)."""
     return {
         "cantilever": {"spring_constant": 40.0, "resonance_frequency": 300e3, "quality_factor": Q, "tip_radius": 10e-9},
         "drive": {"frequency": drive, "free_amplitude": A0},
@@ -82,13 +84,13 @@ class Case:
 
 
 def _hidden(effect: str) -> dict[str, list[str]]:
-    from test_diagnose import VARIANTS
+    from tests.diagnosis.test_diagnose import VARIANTS
 
     return {v: VARIANTS[effect][v] for v in ("a", "b", "c")}
 
 
 def cases() -> list[Case]:
-    from test_diagnose import CLEAN
+    from tests.diagnosis.test_diagnose import CLEAN
 
     out: list[Case] = []
     volts = {"a": ["simulate.seed=35"],

@@ -1,6 +1,6 @@
 """Hidden-effect hit rate with the rest separation NOT given (the normal experimental case).
 
-For each hidden-effect variant of tests/test_diagnose.py (VARIANTS, CLEAN: a DMT sample with one effect the
+For each hidden-effect variant of tests/diagnosis/test_diagnose.py (VARIANTS, CLEAN: a DMT sample with one effect the
 model [dmt] lacks, 50 steady periods, thermal noise at 300 K, 1 pm detector noise), plus a 3 V electrostatic
 case at 200 and 50 samples per period: simulate, fit with ``model.effects: [dmt]`` and ``sample.separation``
 absent, write the run file, diagnose (afmid.diagnosis.diagnose.suggest), then refit with the named effect added
@@ -27,7 +27,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+# The tests package (tests.diagnosis.test_diagnose holds the variants) and its helpers (tests/support).
+sys.path.insert(0, str(ROOT / "tests" / "support"))
+sys.path.insert(0, str(ROOT))
 
 #: Extra cases (effect, variant name, overrides of tests/configs/hidden_<effect>.yaml).
 EXTRA = [
@@ -37,7 +39,7 @@ EXTRA = [
 
 
 def cases(only: str | None):
-    from test_diagnose import CLEAN, VARIANTS
+    from tests.diagnosis.test_diagnose import CLEAN, VARIANTS
 
     out = [(effect, variant, overrides) for effect, table in VARIANTS.items() for variant, overrides in table.items()]
     out += EXTRA

@@ -3,7 +3,7 @@ lever in liquid (Q 4), with the rest separation NOT given.
 
 Cases (fixed before any result was looked at):
 
-- ``poor-clean-{a,b,c}``: tests/configs/hidden_clean.yaml with the CLEAN variants of tests/test_diagnose.py,
+- ``poor-clean-{a,b,c}``: tests/configs/hidden_clean.yaml with the CLEAN variants of tests/diagnosis/test_diagnose.py,
   detector 10 pm rms, 50 samples per period; model [dmt]. Expected: nothing named.
 - ``poor-visco-{a,b,c}``: tests/configs/hidden_viscoelastic.yaml with its VARIANTS, same instrument; model
   [dmt]. Expected: "viscoelastic" named or nothing named (the data cannot decide); never another effect.
@@ -36,7 +36,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+# The tests package (tests.diagnosis.test_diagnose holds the variants) and its helpers (tests/support).
+sys.path.insert(0, str(ROOT / "tests" / "support"))
+sys.path.insert(0, str(ROOT))
 
 POOR = ["simulate.noise.detector_rms=1.0e-11", "simulate.samples_per_period=50", "fit.bootstrap=50"]
 LIQUID_SEPARATIONS = {"d3": 3.0e-9, "d4": 4.0e-9, "d5": 5.0e-9, "d5.5": 5.5e-9}
@@ -44,7 +46,7 @@ TRUTH = {"E_star": "E_star", "hamaker": "hamaker"}
 
 
 def cases(only: str | None):
-    from test_diagnose import CLEAN, VARIANTS
+    from tests.diagnosis.test_diagnose import CLEAN, VARIANTS
 
     out = [(f"poor-clean-{v}", "hidden_clean", POOR + o, None) for v, o in CLEAN.items()]
     out += [(f"poor-visco-{v}", "hidden_viscoelastic", POOR + o, "viscoelastic")

@@ -1,4 +1,4 @@
-"""Before/after table of issue 17 over the cases of tests/test_selection_consistency.py (seeds 101-110):
+"""Before/after table of issue 17 over the cases of tests/fit/test_selection_consistency.py (seeds 101-110):
 right support and median law error at 50 and 500 periods, for fit.selection_scope vote and record.
 
 Run: python scripts/selection_table.py [--scopes vote record] [--periods 50 500] [--cases ...]
@@ -16,11 +16,11 @@ for _k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_k, "1")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "support"))
 
 import numpy as np  # noqa: E402
 
-from test_selection_consistency import CASES, SEEDS, law_error  # noqa: E402
+from tests.fit.test_selection_consistency import CASES, SEEDS, law_error  # noqa: E402
 
 
 def main() -> None:

@@ -2,7 +2,7 @@
 
 Simulates short steady traces at several operating points and seeds, fits each with the true model and
 ``sample.separation`` absent (estimated), and prints one row per fit plus the coverage per operating point.
-The operating points and seeds are fixed here (chosen before looking at the results); tests/test_profile.py
+The operating points and seeds are fixed here (chosen before looking at the results); tests/fit/test_profile.py
 runs a subset. Run from the repository root (PYTHONPATH=other/checkout to measure another version):
 
     python scripts/separation_coverage.py [--seeds 1,2,3,4] [--json out.jsonl]

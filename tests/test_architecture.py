@@ -1,4 +1,5 @@
-"""The package's shape holds: no import cycles, no other module's privates, no monkeypatching, small files.
+"""The package's shape holds: no import cycles, no other module's privates, no monkeypatching, small files; and
+the tests mirror it (tests/<package>/ for afmid/<package>/, tests/cli/ for the top-level modules).
 
 Read from the source with :mod:`ast` (nothing is imported), so a violation is named by file and line.
 """
@@ -11,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "afmid"
+TESTS = Path(__file__).resolve().parent
+PACKAGE = TESTS.parent / "afmid"
 MAX_LINES = 700
 
 
@@ -131,3 +133,20 @@ def test_no_module_assigns_attributes_of_another_module():
 def test_no_module_is_longer_than_the_limit(name):
     lines = MODULES[name].read_text().count("\n")
     assert lines <= MAX_LINES, f"{MODULES[name].relative_to(PACKAGE.parent)} has {lines} lines"
+
+
+def test_the_tests_mirror_the_packages():
+    """Every test module is in a folder named after a package of afmid (cli: the top-level modules), with an
+    ``__init__.py`` (the folders are packages, so equal basenames cannot collide); only this file is at the top."""
+    packages = {path.parent.name for path in PACKAGE.glob("*/__init__.py")} | {"cli"}
+    offences = []
+    for path in sorted(TESTS.rglob("test_*.py")):
+        folder = path.parent.relative_to(TESTS)
+        if folder == Path("."):
+            if path.name != Path(__file__).name:
+                offences.append(f"{path.name} is at the top of tests/")
+        elif len(folder.parts) != 1 or folder.name not in packages:
+            offences.append(f"tests/{folder}/{path.name}: tests/{folder} is not named after a package of afmid")
+        elif not (path.parent / "__init__.py").exists():
+            offences.append(f"tests/{folder} has no __init__.py")
+    assert offences == []

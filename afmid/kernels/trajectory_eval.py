@@ -10,7 +10,7 @@ same pass it notes whether every value is finite and whether any is exactly zero
 
 For libraries without history gates (states) only: a gate's state is scanned along the whole trajectory
 first (:meth:`afmid.physics.library.Library.evaluate`). Its plain-NumPy twin (the term language's NumPy evaluator) is
-``eval_rows_numpy`` in tests/test_trajectory_eval.py, which compares them to rounding, and the kernel with
+``eval_rows_numpy`` in tests/kernels/test_trajectory_eval.py, which compares them to rounding, and the kernel with
 :meth:`afmid.physics.library.Library.evaluate`'s VM bit for bit (the same VM on the same variables). The twin lives
 with the test: a kernel does not import the library that calls it.
 """

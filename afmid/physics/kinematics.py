@@ -11,7 +11,7 @@ while it is off, and off where its ``off`` condition holds while it is on.
 
 The compiled kernels use numba twins of both
 (:func:`afmid.kernels.integrate.contact_kinematics_at`,
-:func:`afmid.kernels.integrate.next_gate_state_at`); tests/test_kinematics.py
+:func:`afmid.kernels.integrate.next_gate_state_at`); tests/physics/test_kinematics.py
 holds them equal bit for bit. No numba here: the fit's and the CLI's start-up
 import this module.
 """

@@ -1,5 +1,5 @@
 """Imported at start-up by a child ``python -m afmid.cli`` whose PYTHONPATH holds this folder (the fault corpus,
-tests/test_corpus_faults.py): sends the process a real signal at a chosen moment of its run.
+tests/cli/test_corpus_faults.py): sends the process a real signal at a chosen moment of its run.
 
 Environment (read once, then removed, so that processes it starts, e.g. batch workers, do not act too):
 

@@ -1,0 +1,255 @@
+"""Plausibility of the physical read-outs: the registry's ranges, the checker, and where the verdicts go
+(run file, terminal, report, batch summary)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import h5py
+import pytest
+import yaml
+
+from afmid.errors import DefinitionError
+from afmid.physics.effects import EFFECTS, Effect, Parameter, Quantity, Term, quantity_range
+from afmid.fit.plausibility import check_plausibility, display, flagged_value, judge, plausible_range
+from repo_paths import REPO_ROOT
+
+ROOT = REPO_ROOT
+
+
+# --------------------------------------------------------------------------- the registry
+def test_every_reported_quantity_has_a_range_and_parameters_reuse_theirs():
+    for effect in EFFECTS:
+        names = {p.name for p in effect.parameters}
+        for q in effect.quantities:
+            low, high = quantity_range(effect, q)
+            assert math.isfinite(low) and math.isfinite(high) and low < high, (effect.name, q.name)
+            if q.name in names:
+                p = effect.parameter(q.name)
+                assert (low, high) == (p.low, p.high), (effect.name, q.name)
+            assert plausible_range(q.name, effect.name) == (low, high, q.unit)
+
+
+def _effect(name: str, *quantities: Quantity) -> Effect:
+    return Effect(
+        name=name, title="a test effect", formula="F = -k_t z",
+        parameters=(Parameter("test_stiffness", "N/m", 1.0, 0.0, 10.0, "stiffness"),),
+        terms=(Term("spring", "z", lambda p: -p["test_stiffness"], coefficient_unit="N/m"),),
+        quantities=quantities,
+        readout=lambda c, ctx: {"test_stiffness": -c["spring"], "test_force": 1e-9, "hamaker": 1e-19},
+        references=("none",),
+    )
+
+
+@pytest.mark.parametrize("quantity, message", [
+    (Quantity("test_force", "N", "a force"), "needs a plausible range"),
+    (Quantity("test_force", "N", "a force", 1e-6, 1e-9), "low < high"),
+    (Quantity("test_force", "N", "a force", 0.0, math.inf), "low < high"),
+    (Quantity("test_stiffness", "N/m", "k", 0.0, 5.0), "takes the parameter's range"),
+    (Quantity("test_stiffness", "Pa", "k"), "its parameter in N/m"),
+    (Quantity("test_force", "furlong", "a force", 0.0, 1.0), "furlong"),
+    (Quantity("hamaker", "J", "H", 0.0, 1.0), "differs from effect"),
+], ids=["no-range", "inverted", "infinite", "parameter-with-own-range", "parameter-unit", "unknown-unit",
+        "name-with-another-range"])
+def test_registration_refuses_a_quantity_without_a_sound_range(quantity, message):
+    n = len(EFFECTS)
+    with pytest.raises(DefinitionError, match=message):
+        EFFECTS.register(_effect("test_plausibility_effect", Quantity("test_stiffness", "N/m", "k"), quantity))
+    assert len(EFFECTS) == n and "test_plausibility_effect" not in EFFECTS
+
+
+# --------------------------------------------------------------------------- the checker
+@pytest.mark.parametrize("name, quantity, plausible, fragments", [
+    ("viscosity", {"value": -24000.0, "error": 3000.0, "ci_low": -30000.0, "ci_high": -18000.0, "unit": "Pa*s"},
+     False, ("viscosity = -24 kPa s", "wrong sign", "[0, 1e5] Pa s", "is outside it too", "quality_factor")),
+    ("E_star", 1e13, False, ("E_star = 10 TPa", "outside the plausible range", "[100, 1e12] Pa", "data.units")),
+    ("hamaker", {"value": -2e-20, "unit": "J"}, False, ("hamaker = -2e-20 J", "wrong sign", "data.positive")),
+    ("adhesion_force", {"value": -1e-9, "ci_low": -3e-9, "ci_high": 1e-9},
+     False, ("-1 nN", "only its 95 % interval [-3 nN, 1 nN] reaches into it")),
+    ("viscosity", {"value": 3.0, "error": 5.0, "ci_low": -7.0, "ci_high": 13.0}, True, ()),
+    ("E_star", {"value": 2e5, "ci_low": 5e4, "ci_high": 4e5}, True, ()),
+    ("E_star", {"value": 2e9, "ci_low": 2e12, "ci_high": 3e12}, False, ("whole 95 % interval", "lies outside")),
+    ("E_star", 0.0, False, ("E_star = 0 Pa", "not identified")),
+    ("viscosity", {"value": 0.0, "error": 5.0, "ci_low": 0.0, "ci_high": 12.0}, True, ()),
+    ("sigma", math.nan, False, ("could not be read out",)),
+    ("fluid_viscosity", math.inf, False, ("inf",)),
+    ("voltage", {"value": 2.0, "error": 5e3}, False, ("2 V ± 5 kV", "unconstrained")),
+    ("voltage", {"value": 2.0, "error": math.inf}, False, ("unconstrained",)),
+    ("voltage", {"value": 2.0, "error": math.nan}, True, ()),
+    ("jkr.hamaker", {"value": 5e-20, "effect": "jkr"}, True, ()),
+    ("jkr.hamaker", {"value": 5e-16, "effect": "jkr"}, False, ("hamaker = 5e-16 J",)),
+    ("not_a_catalog_quantity", 1e30, True, ()),
+], ids=["negative-viscosity", "huge-modulus", "negative-hamaker", "interval-reaches-in", "straddles-zero",
+        "straddles-low-bound", "interval-outside", "not-identified", "zero-with-upper-limit", "nan", "inf",
+        "unconstrained", "infinite-error", "no-error", "prefixed-name", "prefixed-name-outside", "undeclared"])
+def test_check_plausibility(name, quantity, plausible, fragments):
+    verdict = check_plausibility({name: quantity})[name]
+    assert verdict.plausible is plausible, verdict.reason
+    assert (verdict.reason == "") is plausible
+    for fragment in fragments:
+        assert fragment in verdict.reason, verdict.reason
+    if not plausible:
+        assert "\n" not in verdict.reason and verdict.reason.count(". ") == 0  # one sentence
+
+
+def test_the_range_bounds_themselves_are_plausible():
+    for effect in EFFECTS:
+        for q in effect.quantities:
+            for bound in quantity_range(effect, q):
+                if bound != 0:  # 0 is a value the data did not identify only where the range excludes it
+                    assert judge(q.name, {"value": bound, "effect": effect.name}).plausible, (q.name, bound)
+
+
+@pytest.mark.parametrize("value, unit, text", [
+    (3.2e-9, "N", "3.2 nN"), (1.5e9, "Pa", "1.5 GPa"), (-24000.0, "Pa*s", "-24 kPa s"), (1e-19, "J", "1e-19 J"),
+    (9.9999e-7, "N", "1 µN"), (0.0, "m", "0 m"), (0.3e-9, "m", "300 pm"), (0.024, "J/m^2", "0.024 J/m^2"),
+])
+def test_display_units(value, unit, text):
+    assert display(value, unit) == text
+
+
+def test_flagged_value_is_never_a_plain_number():
+    text = flagged_value("viscosity", {"value": -24000.0, "error": 3000.0, "unit": "Pa*s", "effect": "viscoelastic"})
+    assert text == "implausible: -24 kPa s ± 3 kPa s (1σ) (plausible: [0, 1e5] Pa s)"
+
+
+# --------------------------------------------------------------------------- after a fit
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    """A short simulated DMT trace (a glassy polymer: no viscosity) and a config fitting it with DMT +
+    viscoelastic; with the right calibration every read-out is plausible."""
+    from afmid.cli import main
+
+    folder = tmp_path_factory.mktemp("plausibility")
+    text = (ROOT / "configs" / "dmt.yaml").read_text().replace("periods: 50 ", "periods: 12 ")
+    (folder / "sim.yaml").write_text(text)
+    assert main(["-q", "simulate", str(folder / "sim.yaml"), "-o", str(folder / "trace.h5")]) == 0
+    raw = yaml.safe_load(text)
+    raw.pop("simulate")
+    raw["data"] = {"path": "trace.h5"}
+    raw["fit"] = {"bootstrap": 10}
+    raw["model"] = {"effects": ["dmt", "viscoelastic"]}
+    (folder / "run.yaml").write_text(yaml.safe_dump(raw))
+    return folder
+
+
+def _parameters(path: Path) -> dict:
+    with h5py.File(path, "r") as h5:
+        params = {n: {"value": float(d[()]), "plausible": bool(d.attrs["plausible"]),
+                      "plausibility": str(d.attrs["plausibility"])} for n, d in h5["model/parameters"].items()}
+        diagnostics = h5["diagnostics"].attrs
+        return params, int(diagnostics["n_implausible"]), list(diagnostics.get("implausible", []))
+
+
+def test_a_trace_in_metres_read_as_nm_is_refused_not_flagged(workspace, run_cli):
+    """A deflection of 1e-17 m: no force stands above the noise, so there is no result to flag (refused, exit 1)."""
+    out = workspace / "run-units.h5"
+    code, _, err = run_cli("-q", "fit", workspace / "run.yaml", "-o", out, "--set", "data.units=nm")
+    assert code == 1 and "the fit has no usable result" in err and not out.exists()
+
+
+@pytest.mark.parametrize("overrides, flagged, fragment", [
+    ((), set(), None),
+    # a quality factor 100x too low: the lever's own damping is overestimated, the sample seems to give energy back
+    (("cantilever.quality_factor=2.5",), {"viscosity"}, "wrong sign"),
+    # a spring constant 1000x too high: every force, and E*, 1000x too large
+    (("cantilever.spring_constant=40000",), {"E_star", "hamaker", "surface_energy"}, "outside the plausible range"),
+], ids=["plausible", "wrong-quality-factor", "wrong-spring-constant"])
+def test_fit_flags_implausible_read_outs(workspace, run_cli, overrides, flagged, fragment):
+    name = "run-" + "-".join(o.split("=")[0] for o in overrides) + ".h5"
+    args = [a for o in overrides for a in ("--set", o)]
+    code, _, err = run_cli("-q", "fit", workspace / "run.yaml", "-o", workspace / name, "--overwrite", *args)
+    assert code == 0, err
+    params, count, reasons = _parameters(workspace / name)
+    implausible = {n for n, p in params.items() if not p["plausible"]}
+    assert flagged <= implausible and implausible <= flagged | {"adhesion_force"}, params
+    assert count == len(implausible) == len(reasons)
+    warnings = [line for line in err.splitlines() if line.startswith("afmid: warning: implausible read-out: ")]
+    assert len(warnings) == len(implausible)
+    for n in implausible:
+        reason = params[n]["plausibility"]
+        assert reason.startswith(f"{n} ") and "[" in reason and fragment in reason
+        assert any(reason in line for line in warnings)
+    for n in set(params) - implausible:
+        assert params[n]["plausibility"] == ""
+
+
+def test_report_marks_implausible_values(workspace, run_cli):
+    good, bad = workspace / "good.h5", workspace / "bad.h5"
+    assert run_cli("-q", "fit", workspace / "run.yaml", "-o", good, "--overwrite")[0] == 0
+    assert run_cli("-q", "fit", workspace / "run.yaml", "-o", bad, "--overwrite",
+                   "--set", "cantilever.quality_factor=2.5")[0] == 0
+    code, out, err = run_cli("report", good, bad, "-o", workspace / "report", "--no-suggest", "--overwrite")
+    assert code == 0, err
+    assert "implausible read-outs in bad.h5: viscosity" in out
+    assert "implausible read-outs in good.h5" not in out
+    page = (workspace / "report" / "report.html").read_text(encoding="utf-8")
+    table = page[page.index("<h2>Physical parameters</h2>"):page.index("<h2>The last run")]
+    row = next(r for r in table.split("<tr>") if r.startswith("<td>viscosity</td>"))
+    cells = row.split("<td>")[2:]
+    bad_value = _parameters(bad)[0]["viscosity"]["value"]
+    assert not cells[0].startswith("implausible") and cells[1].startswith("implausible: ")
+    assert "(plausible: [0, 1e5] Pa s)" in cells[1] and f"{bad_value:.4g} Pa*s" not in cells[1]
+    assert "Implausible read-outs" in table and "bad.h5: viscosity = " in table
+    summary = json.loads((workspace / "report" / "summary.json").read_text())
+    good_run, bad_run = summary["runs"]
+    assert all(p["plausible"] for p in good_run["parameters"].values())
+    assert bad_run["parameters"]["viscosity"]["plausible"] is False
+    assert "[0, 1e5] Pa s" in bad_run["parameters"]["viscosity"]["plausibility"]
+
+
+def test_run_files_without_verdicts_are_judged_when_read(workspace, run_cli):
+    """A run file from before the check (no plausible attribute) still shows its implausible values flagged."""
+    from afmid.batch.run import read_run_row
+    from afmid.diagnosis.diagnose import load_run
+
+    old = workspace / "old.h5"
+    assert run_cli("-q", "fit", workspace / "run.yaml", "-o", old, "--overwrite",
+                   "--set", "cantilever.quality_factor=2.5")[0] == 0
+    with h5py.File(old, "r+") as h5:
+        for ds in h5["model/parameters"].values():
+            del ds.attrs["plausible"], ds.attrs["plausibility"]
+    assert load_run(old).quantities["viscosity"]["plausible"] is False
+    assert load_run(old).quantities["E_star"]["plausible"] is True
+    assert any(r.startswith("viscosity = ") for r in read_run_row(old)["implausible"])
+
+
+def test_batch_lists_an_implausible_item_as_suspect(workspace, run_cli):
+    (workspace / "list.yaml").write_text(yaml.safe_dump([
+        {"path": "trace.h5", "name": "right"},
+        {"path": "trace.h5", "name": "wrong_q", "set": {"cantilever.quality_factor": 2.5}},
+    ]))
+    out = workspace / "batch"
+    code, _, err = run_cli("-q", "batch", workspace / "run.yaml", "--manifest", workspace / "list.yaml",
+                           "-o", out, "-j", "1")
+    assert code == 0, err  # suspect items are results, flagged: the batch exits 0 unless an item failed
+    assert "afmid: warning: 1 of 2 traces suspect (wrong_q)" in err
+    assert "afmid: warning: wrong_q: implausible read-out: viscosity = " in err
+    with open(out / "summary.csv", newline="") as f:
+        rows = {r["name"]: r for r in csv.DictReader(f)}
+    assert rows["right"]["status"] == "ok" and rows["right"]["error"] == ""
+    assert rows["wrong_q"]["status"] == "suspect"
+    assert rows["wrong_q"]["error"].startswith("implausible read-outs: viscosity = ")
+    assert rows["wrong_q"]["run_file"] == "wrong_q.run.h5" and float(rows["wrong_q"]["viscosity [Pa*s]"]) < 0
+    with h5py.File(out / "summary.h5", "r") as h5:
+        assert (h5.attrs["n_ok"], h5.attrs["n_suspect"], h5.attrs["n_failed"]) == (1, 1, 0)
+    # resumed: the up-to-date suspect item stays suspect, the other is skipped
+    code, _, err = run_cli("-q", "batch", workspace / "run.yaml", "--manifest", workspace / "list.yaml",
+                           "-o", out, "-j", "1")
+    assert code == 0, err
+    with open(out / "summary.csv", newline="") as f:
+        assert [r["status"] for r in csv.DictReader(f)] == ["skipped", "suspect"]
+
+
+def test_effects_lists_the_plausible_ranges(run_cli):
+    code, out, _ = run_cli("effects", "viscoelastic", "dmt")
+    assert code == 0
+    assert "yields viscosity [Pa*s]: sample viscosity eta (plausible: [0, 1e5] Pa s)" in out
+    assert "yields adhesion_force [N]: adhesion force in contact (positive number) (plausible: [0, 1e-4] N)" in out
+    code, out, _ = run_cli("effects", "--json", "jkr")
+    (record,) = json.loads(out)
+    ranges = {q["name"]: q["plausible_range"] for q in record["quantities"]}
+    assert ranges["E_star"] == [1e2, 1e12] and ranges["surface_energy"] == [1e-4, 5.0]

@@ -1,0 +1,149 @@
+"""``afmid report`` outputs on a small simulated pair: run1 [dmt] -> run2 [dmt, viscoelastic].
+
+A glassy polymer with Kelvin-Voigt damping (eta = 150 Pa s; 30 steady periods,
+thermal noise and 1 pm detector noise) is fitted first with DMT alone, then
+with the viscoelastic effect added. Checked: the pinned outputs
+(DIR/report.html, DIR/*.png, DIR/summary.json with the pinned keys), runs in
+the order given, the error falling from run1 to run2, a self-contained HTML
+page (every image embedded, no external src/href; the only links are to the
+figures' SVG files beside it), every figure also as an SVG that parses (issue 15), the verdicts (run1
+diagnosed alone: viscoelastic missing; the pair: nothing missing), and a
+refused non-empty output folder.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+from repo_paths import TEST_CONFIGS
+
+CONFIG = TEST_CONFIGS / "hidden_viscoelastic.yaml"
+PINNED_RUN_KEYS = {"run", "effects", "error", "n_terms"}
+PINNED_DIAGNOSIS_KEYS = {"region", "character", "explained_by_catalog"}
+PINNED_SUGGESTION_KEYS = {"effect", "error_after", "evidence"}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """(run1 path, run2 path) fitted from one simulated trace."""
+    from afmid.config import build_config, dump_config, read_yaml
+    from afmid.diagnosis.diagnose import _fit_quick
+    from afmid.fit.pipeline import write_run
+    from afmid.io.trace import write_trace_file
+    from afmid.simulate.driver import simulate
+
+    folder = tmp_path_factory.mktemp("report")
+    raw = read_yaml(CONFIG)
+    raw["simulate"]["periods"] = 30
+    trace_path = folder / "trace.h5"
+    sim = build_config(raw, source=CONFIG, base_dir=folder)
+    write_trace_file(trace_path, simulate(sim), dump_config(sim))
+    paths = []
+    for name, effects in (("run1.h5", ["dmt"]), ("run2.h5", ["dmt", "viscoelastic"])):
+        raw_fit = read_yaml(CONFIG)
+        raw_fit["data"] = {"path": str(trace_path)}
+        raw_fit["model"]["effects"] = effects
+        config = build_config(raw_fit, source=CONFIG, base_dir=folder)
+        write_run(folder / name, _fit_quick(config, None), config)
+        paths.append(folder / name)
+    return tuple(paths)
+
+
+@pytest.fixture(scope="module")
+def pair_report(runs, tmp_path_factory):
+    from afmid.report.page import make_report
+
+    out = tmp_path_factory.mktemp("out") / "report"
+    text = make_report(list(runs), out)
+    return out, text
+
+
+@pytest.fixture(scope="module")
+def single_report(runs, tmp_path_factory):
+    from afmid.report.page import make_report
+
+    out = tmp_path_factory.mktemp("out1") / "report"
+    make_report([runs[0]], out)
+    return out
+
+
+@pytest.mark.slow
+def test_pinned_files_exist(pair_report):
+    out, text = pair_report
+    assert (out / "report.html").is_file() and (out / "summary.json").is_file()
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    for name in ("force_separation.png", "residual.png", "error_by_run.png", "suggestions.png"):
+        assert name in pngs
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(".afmid-tmp-")]
+    assert "report.html" in text
+
+
+@pytest.mark.slow
+def test_summary_has_the_pinned_keys_and_runs_in_order(pair_report, runs):
+    out, _ = pair_report
+    summary = json.loads((out / "summary.json").read_text())
+    assert {"runs", "missing_effect", "diagnosis", "suggestions"} <= set(summary)
+    assert [Path(r["run"]).name for r in summary["runs"]] == ["run1.h5", "run2.h5"]
+    for r in summary["runs"]:
+        assert PINNED_RUN_KEYS <= set(r)
+    assert summary["runs"][0]["effects"] == ["dmt"]
+    assert summary["runs"][1]["effects"] == ["dmt", "viscoelastic"]
+    assert isinstance(summary["missing_effect"], bool)
+    assert PINNED_DIAGNOSIS_KEYS <= set(summary["diagnosis"])
+    for s in summary["suggestions"]:
+        assert PINNED_SUGGESTION_KEYS <= set(s)
+    # the complete model: nothing missing, no false alarm
+    assert summary["missing_effect"] is False and summary["suggestions"] == []
+    assert summary["diagnosis"]["explained_by_catalog"] is True
+
+
+@pytest.mark.slow
+def test_error_falls_when_the_effect_is_added(pair_report):
+    out, _ = pair_report
+    r1, r2 = json.loads((out / "summary.json").read_text())["runs"]
+    assert r2["error"] < 0.6 * r1["error"]
+    assert r2["n_terms"] == r1["n_terms"] + 1
+
+
+@pytest.mark.slow
+def test_html_is_self_contained(pair_report):
+    out, _ = pair_report
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert page.startswith("<!doctype html>") and page.rstrip().endswith("</html>")
+    sources = re.findall(r"""\bsrc\s*=\s*["']([^"']*)""", page, flags=re.I)
+    assert sources and all(s.startswith("data:image/png;base64,") for s in sources)
+    links = re.findall(r"""\bhref\s*=\s*["']([^"']*)""", page, flags=re.I)
+    assert links and all(re.fullmatch(r"[\w.-]+\.svg", link) for link in links)  # only the SVGs beside the page
+    assert not re.search(r"""url\(\s*["']?(https?:|//)""", page, flags=re.I)
+    assert not re.search(r"<(script|link|iframe)\b", page, flags=re.I)
+    assert len(sources) == len(list(out.glob("*.png")))  # every figure embedded
+
+
+@pytest.mark.slow
+def test_single_run_names_the_missing_effect(single_report):
+    summary = json.loads((single_report / "summary.json").read_text())
+    assert summary["missing_effect"] is True
+    assert summary["suggestions"][0]["effect"] == "viscoelastic"
+    assert summary["diagnosis"]["region"] == "contact"
+    assert summary["diagnosis"]["character"] == "dissipative"
+    page = (single_report / "report.html").read_text(encoding="utf-8")
+    assert "Missing effect: <code>viscoelastic</code>" in page
+
+
+@pytest.mark.slow
+def test_refuses_a_non_empty_folder(pair_report, runs):
+    from afmid.errors import OutputError
+    from afmid.report.page import make_report
+
+    out, _ = pair_report
+    with pytest.raises(OutputError):
+        make_report(list(runs), out, suggest_effects=False)
+
+
+@pytest.mark.slow
+def test_every_figure_is_also_an_svg(pair_report, single_report, check_report_svgs):
+    check_report_svgs(pair_report[0])
+    check_report_svgs(single_report)

@@ -1,0 +1,80 @@
+"""Batch worker entry points that inject faults or delays, for the batch tests.
+
+A module of its own, importable by name in the spawned workers, so the faults live in the tests, not in afmid:
+in-process tests pass them as ``run_batch(worker=...)`` (pytest puts tests/support on the path, and spawned processes
+inherit it); ``afmid batch`` subprocesses name them with the hidden option ``--worker`` (:data:`HOLD_1500MS`
+etc., a path to this file and a function name).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+from afmid.batch.run import fit_task
+
+#: The item whose worker dies.
+DYING_ITEM = "n02"
+
+
+def fit_task_dying_on_one_item(task: dict) -> dict:
+    """:func:`afmid.batch.run.fit_task`, except that the worker running item ``DYING_ITEM`` SIGKILLs itself first."""
+    if task["name"] == DYING_ITEM:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return fit_task(task)
+
+
+def _holding(seconds: float):
+    """A worker that holds every item ``seconds`` in mid-item: a simulated trace under its temporary name (before
+    it is renamed into place), else before the fit. Makes interrupting a batch mid-item deterministic."""
+
+    def worker(task: dict) -> dict:
+        return fit_task(task, pause=lambda: time.sleep(seconds))
+
+    return worker
+
+
+def fit_task_holding_1500ms(task: dict) -> dict:
+    """:func:`afmid.batch.run.fit_task`, held 1.5 s in mid-item (see :func:`_holding`)."""
+    return _holding(1.5)(task)
+
+
+def fit_task_holding_2s(task: dict) -> dict:
+    """:func:`afmid.batch.run.fit_task`, held 2 s in mid-item (see :func:`_holding`)."""
+    return _holding(2.0)(task)
+
+
+def fit_task_holding_30s(task: dict) -> dict:
+    """:func:`afmid.batch.run.fit_task`, held 30 s in mid-item (see :func:`_holding`)."""
+    return _holding(30.0)(task)
+
+
+def _worker_option(function) -> list[str]:
+    return ["--worker", f"{Path(__file__).resolve()}:{function.__name__}"]
+
+
+#: ``afmid batch`` arguments that make its workers hold every item 1.5 s, 2 s or 30 s.
+HOLD_1500MS = _worker_option(fit_task_holding_1500ms)
+HOLD_2S = _worker_option(fit_task_holding_2s)
+HOLD_30S = _worker_option(fit_task_holding_30s)
+
+
+class SerialEngine:
+    """An :class:`afmid.batch.engine.Engine` that runs every task in this process, one after the other (what a
+    replacement engine has to implement), recording the keys it ran."""
+
+    def __init__(self):
+        self.ran: list[int] = []
+
+    def workers_for(self, n_tasks: int) -> int:
+        return min(1, n_tasks)
+
+    def run(self, worker, tasks, report, tick) -> None:
+        from afmid.batch.engine import Outcome
+
+        for key, task in tasks:
+            self.ran.append(key)
+            report(Outcome(key, worker(task)))
+            tick()
