@@ -85,8 +85,8 @@ TIP_SHAPES.register(TipShape(
      "Rico, Roca-Cusachs, Gavara, Farre, Rotger, Navajas, Phys. Rev. E 72, 021914 (2005): F = 0.7453 E tan(alpha) "
      "delta^2 / (1 - nu^2)"),
     needs_half_angle=True,
-    notes="alpha is the angle between a face and the axis; the 1/sqrt(2) = 0.7071 prefactor some software uses "
-          "is an approximation 5 % lower"))
+    notes="alpha is the angle between a face and the axis; with the 1/sqrt(2) = 0.7071 prefactor also in use "
+          "(a cone of equal face angle, approximately) E* reads 5 % higher"))
 TIP_SHAPES.register(TipShape(
     "flat_punch", "Flat-ended cylinder (punch) of radius R: Boussinesq",
     "F = 2 E* R delta", "delta", lambda R, _a: 2.0 * R, "2 R", "Pa*m", "E* = c / (2 R)",
