@@ -319,13 +319,14 @@ def export(run: Path, what: str, output: Path, overwrite: bool) -> None:
 
 @cli.command()
 @click.option("--models", is_flag=True, help="List the simulator's models (combinations of effects).")
+@click.option("--tips", is_flag=True, help="List the tip shapes (cantilever.tip_shape) and their contact laws.")
 @click.option("--json", "as_json", is_flag=True, help="Machine-readable output.")
 @click.argument("names", nargs=-1)
-def effects(models: bool, as_json: bool, names: tuple[str, ...]) -> None:
-    """List the effect catalog: formula, parameters, units, fit terms, references."""
-    from afmid.physics.catalog import describe_effects
+def effects(models: bool, tips: bool, as_json: bool, names: tuple[str, ...]) -> None:
+    """List the effect catalog: formula, parameters, units, fit terms, references; and the tip shapes."""
+    from afmid.physics.catalog import describe_effects, describe_tips
 
-    click.echo(describe_effects(list(names), models=models, as_json=as_json))
+    click.echo(describe_tips(as_json) if tips else describe_effects(list(names), models=models, as_json=as_json))
 
 
 @cli.command("init-config")

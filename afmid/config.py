@@ -194,6 +194,8 @@ class CantileverConfig(StrictModel):
     resonance_frequency: _instrument("cantilever.resonance_frequency") | None = Field(None, description="f0, Hz")
     quality_factor: _instrument("cantilever.quality_factor") | None = Field(None, description="Q")
     tip_radius: _instrument("cantilever.tip_radius") | None = Field(None, description="R, m")
+    tip_shape: str = Field("sphere", description="sphere | cone | pyramid | flat_punch (`afmid effects --tips`)")
+    tip_half_angle: FiniteFloat | None = Field(None, description="half-opening angle of a cone or pyramid, rad")
     spring_constant_uncertainty: RelativeUncertainty | None = Field(
         None, description="relative 1-sigma uncertainty of k (0.1 = 10 %), propagated into every read-out")
     quality_factor_uncertainty: RelativeUncertainty | None = Field(
@@ -201,6 +203,13 @@ class CantileverConfig(StrictModel):
     higher_modes: list[ModeConfig] = Field(
         default_factory=list, description="higher flexural modes [{resonance_frequency, quality_factor, "
         "spring_constant}]; the tip is the sum of the modes")
+
+    @model_validator(mode="after")
+    def _known_tip(self) -> "CantileverConfig":
+        from afmid.physics.tips import check_tip
+
+        check_tip(self.tip_shape, self.tip_half_angle)
+        return self
 
     @model_validator(mode="after")
     def _modes_above_first(self) -> "CantileverConfig":

@@ -6,7 +6,7 @@ trajectories afmid has (the recorded samples, the smoothed trajectory) at the tr
 much of the error is the trajectory estimate itself, how much the separation, how much the fitted law.
 
 Cases (fixed before any result was looked at): the poor instrument (tests/configs/hidden_clean.yaml with the
-CLEAN variants of tests/test_diagnose.py, 10 pm detector noise, 50 samples/period; seeds 201-209 on variant a),
+CLEAN variants of tests/diagnosis/test_diagnose.py, 10 pm detector noise, 50 samples/period; seeds 201-209 on variant a),
 the declared detector (2-pole Butterworth at 10 f0, 1 pm) and the liquid lever (scripts/experiment_table.py's
 ``_liquid``).
 
@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "support"))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 NOISY = ["simulate.noise.detector_rms=1.0e-11", "simulate.samples_per_period=50"]

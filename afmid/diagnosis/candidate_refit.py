@@ -60,9 +60,10 @@ def search_separation(prepared, config: RunConfig, centre: float, window: float 
     from afmid.errors import AfmidError
     from afmid.fit.pipeline import build_system, library_parameters, residual_sum_squares
     from afmid.physics.library import build_library
+    from afmid.physics.tips import tip_geometry
     from afmid.fit.profile import local_minimum
 
-    library = build_library(config.model, config.source)
+    library = build_library(config.model, config.source, tip_geometry(config.cantilever))
     params = library_parameters(prepared, config, library)
     values: dict[float, float] = {}
 

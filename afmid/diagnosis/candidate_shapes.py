@@ -49,9 +49,10 @@ class ShapeSearch:
         from afmid.fit.pipeline import build_system, library_parameters, residual_sum_squares
         from afmid.fit.search import search_range
         from afmid.physics.library import build_library
+        from afmid.physics.tips import tip_geometry
 
         prep = self.prep
-        library = build_library(config.model, config.source)
+        library = build_library(config.model, config.source, tip_geometry(config.cantilever))
         params = library_parameters(prep, config, library)
         params["d"] = config.sample.separation
         own = [t for t in library.terms if t.effect == effect]

@@ -18,6 +18,7 @@ import afmid.fit.regression as regression
 from afmid.io.trace import Trace, create_dataset, write_dataset
 from afmid.physics.library import Library
 from afmid.physics.effects import EFFECTS
+from afmid.physics.tips import shaped_effect
 
 if TYPE_CHECKING:  # annotations only: afmid.fit.pipeline imports this module
     from afmid.fit.pipeline import Prepared, System
@@ -148,7 +149,7 @@ def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) 
     if "R" not in ctx:
         ctx["R"] = math.nan
     for effect_name in library.effects:
-        effect = EFFECTS.get(effect_name)
+        effect = shaped_effect(EFFECTS.get(effect_name), library.tip)  # E* read out with the tip's contact law
         index = {t.label: j for j, t in enumerate(library.terms) if t.effect == effect_name}
         if not index:
             continue

@@ -39,6 +39,7 @@ from afmid.errors import AfmidError, ConfigError, InputError
 from afmid.preprocess.instrument import from_config as instrument_from_config
 from afmid.io.trace import Trace, load_trace
 from afmid.physics.library import Library, build_library
+from afmid.physics.tips import tip_geometry
 import afmid.fit.regression as regression
 from afmid.fit.forces import force_cv_error, per_sample_forces, period_curves, read_out, signal_rows
 from afmid.fit.search import NonlinearEstimate, search_1d, search_range
@@ -135,7 +136,7 @@ def profile_library(library: Library, config: RunConfig) -> tuple[Library, dict[
         return library, {}
     from afmid.config import ModelConfig
 
-    physics = build_library(ModelConfig(effects=list(library.effects)), config.source)
+    physics = build_library(ModelConfig(effects=list(library.effects)), config.source, library.tip)
     extra = {k: v for k, v in physics.nonlinear.items() if k not in library.nonlinear}
     return physics, extra
 
@@ -284,7 +285,7 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
         trace = prepared.trace
     elif trace is None:
         trace = load_trace(config)
-    library = build_library(config.model, config.source)
+    library = build_library(config.model, config.source, tip_geometry(config.cantilever))
     if len(library) == 0:
         raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source, key="model")
     prep = prepared if prepared is not None else prepare(trace, config.fit, instrument_from_config(config))

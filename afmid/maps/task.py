@@ -42,6 +42,7 @@ def fit_chunk(task: dict) -> dict:
     from afmid.fit.separation_share import is_separation_limited
     from afmid.errors import AfmidError
     from afmid.physics.library import build_library
+    from afmid.physics.tips import tip_geometry
     from afmid.maps.pixel_fit import DEFAULT_PIXEL_FIT, PIXEL_FITS
     from afmid.maps.input_file import open_map, pixel_trace, read_pixels
 
@@ -52,7 +53,7 @@ def fit_chunk(task: dict) -> dict:
     try:
         config = map_config(task["config"], task.get("source"))
         source = open_map(task["input"], config)
-        library = build_library(config.model, config.source)
+        library = build_library(config.model, config.source, tip_geometry(config.cantilever))
         first, stop = int(task["first"]), int(task["stop"])
         raw = read_pixels(source, first, stop)
     finally:

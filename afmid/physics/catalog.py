@@ -7,6 +7,7 @@ import json
 from afmid.fit.plausibility import range_words
 from afmid.physics.effect_tags import TERM_ROLES
 from afmid.physics.effects import EFFECTS, MODELS, coefficient_unit, quantity_range, term_unit
+from afmid.physics.tips import TIP_SHAPES
 from afmid.registry import unknown_name_message
 from afmid.errors import ConfigError
 
@@ -44,6 +45,35 @@ def model_record(name: str) -> dict:
             "references": list(model.references)}
 
 
+def tip_record(name: str) -> dict:
+    shape = TIP_SHAPES.get(name)
+    return {"name": shape.name, "title": shape.title, "contact_law": shape.contact_law,
+            "term": f"[z <= a0] * {shape.power_text}", "coefficient": f"E* {shape.factor_text}",
+            "coefficient_unit": shape.coefficient_unit, "readout": shape.readout,
+            "needs_half_angle": shape.needs_half_angle, "notes": shape.notes, "references": list(shape.references)}
+
+
+def describe_tips(as_json: bool = False) -> str:
+    """The tip shapes (``cantilever.tip_shape``): contact law, the read-out of E*, references."""
+    records = [tip_record(n) for n in TIP_SHAPES.names()]
+    if as_json:
+        return json.dumps(records, indent=2)
+    lines = ["Tip shapes (cantilever.tip_shape; cantilever.tip_half_angle in rad for cone and pyramid): the elastic "
+             "term of dmt and jkr follows the shape's contact law (repulsive +, delta = a0 - z)", ""]
+    for r in records:
+        angle = " [needs cantilever.tip_half_angle]" if r["needs_half_angle"] else ""
+        lines.append(f"{r['name']}: {r['title']}{angle}")
+        lines.append(f"  force (repulsive +): {r['contact_law']}")
+        lines.append(f"  term  {r['term']}  (coefficient {r['coefficient']}, in {r['coefficient_unit']}); "
+                     f"read-out {r['readout']}")
+        if r["notes"]:
+            lines.append(f"  note: {r['notes']}")
+        for ref in r["references"]:
+            lines.append(f"  ref: {ref}")
+        lines.append("")
+    return "\n".join(lines).rstrip() + "\n"
+
+
 def describe_effects(names: list[str], models: bool = False, as_json: bool = False) -> str:
     registry = MODELS if models else EFFECTS
     for name in names:
@@ -79,4 +109,6 @@ def describe_effects(names: list[str], models: bool = False, as_json: bool = Fal
         for ref in r["references"]:
             lines.append(f"  ref: {ref}")
         lines.append("")
+    if not names and not models:  # the whole catalog: the tip shapes the contact effects follow, too
+        lines.append(describe_tips())
     return "\n".join(lines).rstrip() + "\n"

@@ -24,6 +24,7 @@ from afmid.physics.kinematics import contact_kinematics, next_gate_state
 from afmid.physics.effect_tags import SELECTION_RULES, Role
 from afmid.physics.effects import CONTEXT_UNITS, EFFECTS, StateGate, coefficient_unit, effect_parameter_names, term_unit
 from afmid.physics.presets import PRESETS
+from afmid.physics.tips import SPHERE, SPHERE_POWER, TipGeometry, shaped_effect
 from afmid.registry import unknown_name_message
 from afmid.physics.units import parse_unit
 
@@ -51,6 +52,7 @@ class Library:
     effects: tuple[str, ...] = ()  # effects whose read-out applies
     nonlinear: dict[str, float] = field(default_factory=dict)  # default values, SI
     source: str = ""
+    tip: TipGeometry = SPHERE  # the elastic terms follow its contact law; so does the read-out of E*
 
     @property
     def names(self) -> list[str]:
@@ -219,8 +221,9 @@ def _check_custom_term_names(texts, param_units: Mapping[str, str], nonlinear: M
                           f"(in term {text!r})", file=source, key=f"model.terms[{i}]")
 
 
-def build_library(model_config, source=None) -> Library:
-    """The library a run config asks for (``model.library`` preset or ``model.effects``, plus ``model.terms``)."""
+def build_library(model_config, source=None, tip: TipGeometry = SPHERE) -> Library:
+    """The library a run config asks for (``model.library`` preset or ``model.effects``, plus ``model.terms``),
+    its elastic contact terms following the ``tip``'s contact law (``cantilever.tip_shape``)."""
 
     terms: list[LibraryTerm] = []
     states: list[StateGate] = []
@@ -244,13 +247,17 @@ def build_library(model_config, source=None) -> Library:
                 nonlinear[p.name] = p.default
     if preset is not None:
         units = _units_context(param_units)
+        power = tip.declaration.power_text
         for term in preset.terms:
-            unit = expr.expression_units(term.expression, units, tuple(s.name for s in states))
-            terms.append(LibraryTerm(term.name, term.expression, str(unit), str(NEWTON / unit), term.effect,
+            name, expression = term.name, term.expression
+            if Role.ELASTIC_CONTACT in term.roles and power != SPHERE_POWER:  # the seed tables' Hertz column
+                name, expression = name.replace(SPHERE_POWER, power), expression.replace(SPHERE_POWER, power)
+            unit = expr.expression_units(expression, units, tuple(s.name for s in states))
+            terms.append(LibraryTerm(name, expression, str(unit), str(NEWTON / unit), term.effect,
                                      term.label, roles=term.roles))
     else:
         for name in effects:
-            eff = EFFECTS.get(name)
+            eff = shaped_effect(EFFECTS.get(name), tip)
             for term in eff.terms:
                 terms.append(LibraryTerm(
                     f"{name}.{term.label}", term.expression, str(term_unit(eff, term)),
@@ -297,4 +304,4 @@ def build_library(model_config, source=None) -> Library:
         nonlinear[name] = value
     _check_custom_term_names(model_config.terms, param_units, nonlinear, states, source)
     return Library(list(seen.values()), tuple(states), tuple(effects), nonlinear,
-                   model_config.library or "effects")
+                   model_config.library or "effects", tip)

@@ -25,6 +25,7 @@ import afmid.fit.plausibility as plausibility
 from afmid.diagnosis.diagnose import BIC_EVIDENCE, band_limit, describe_residual, energy_check, localize, suggest
 from afmid.io.trace import now_iso
 from afmid.physics.effects import EFFECTS
+from afmid.physics.tips import effect_for, tip_geometry
 from afmid.report.figures import figure_html, save_figure
 from afmid.report.folder import report_folder
 from afmid.runcheck import check_same_traces
@@ -57,7 +58,8 @@ def truth_coefficients(run: RunData) -> dict[str, float]:
     for name in run.terms:
         effect, _, label = name.partition(".")
         if effect in run.truth.effects and effect in EFFECTS:
-            term = next((t for t in EFFECTS.get(effect).terms if t.label == label), None)
+            term = next((t for t in effect_for(effect, tip_geometry(run.config.cantilever)).terms
+                         if t.label == label), None)
             out[name] = float(term.coefficient(params)) if term else math.nan
         else:
             out[name] = 0.0
@@ -73,7 +75,7 @@ def truth_quantities(run: RunData) -> dict[str, float]:
     for effect_name in run.truth.effects:
         if effect_name not in EFFECTS:  # simulated with an effect this afmid does not know
             continue
-        effect = EFFECTS.get(effect_name)
+        effect = effect_for(effect_name, tip_geometry(run.config.cantilever))  # the tip the trace was simulated with
         try:
             coefs = {t.label: t.coefficient(params) for t in effect.terms}
             with np.errstate(all="ignore"):

@@ -27,6 +27,7 @@ from afmid.config import RunConfig
 from afmid.errors import ConfigError
 from afmid.physics.kinematics import contact_kinematics
 from afmid.physics.effects import CONTEXT_UNITS, MODELS, ForceLaw, build_force_law, effect_parameter_names
+from afmid.physics.tips import tip_geometry
 from afmid.registry import unknown_name_message
 
 _DELTA_RE = re.compile(r"\bdelta(dot)?\b")
@@ -206,7 +207,8 @@ def resolve_setup(config: RunConfig) -> Setup:
     effects = (*model.effects, *sim.effects)
     context = {"R": R, "a0": float(config.sample.a0)}
     try:
-        law = build_force_law(effects, {**model.defaults, **sim.parameters}, context, model.derived_defaults)
+        law = build_force_law(effects, {**model.defaults, **sim.parameters}, context, model.derived_defaults,
+                              tip_geometry(config.cantilever))
     except ValueError as exc:
         raise ConfigError(str(exc), file=config.source, key="simulate.parameters") from None
     return Setup(oscillator, law, model.name, oscillator.free_response()[0], d, context["a0"], R)

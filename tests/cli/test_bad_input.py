@@ -166,7 +166,7 @@ def test_unknown_key_with_did_you_mean_and_allowed_keys(fit_cli, refused, pinned
     cfg_path, out, code, err = fit_cli(cfg)
     refused(code, err, out, 2, cfg_path, "cantilever.qualty_factor",
             "unknown key (did you mean 'quality_factor'?); "
-            "allowed keys: spring_constant, resonance_frequency, quality_factor, tip_radius, "
+            "allowed keys: spring_constant, resonance_frequency, quality_factor, tip_radius, tip_shape, tip_half_angle, "
             "spring_constant_uncertainty, quality_factor_uncertainty, higher_modes")
 
 

@@ -208,7 +208,8 @@ def test_wrong_types(raw, key, expected):
     "raw, key, hint, allowed",
     [
         ({"cantilever": {"qualty_factor": 3}}, "cantilever.qualty_factor", "quality_factor",
-         "spring_constant, resonance_frequency, quality_factor, tip_radius, spring_constant_uncertainty, "
+         "spring_constant, resonance_frequency, quality_factor, tip_radius, tip_shape, tip_half_angle, "
+         "spring_constant_uncertainty, "
          "quality_factor_uncertainty, higher_modes"),
         ({"datum": {}}, "datum", "data", "data, cantilever, drive, sample, model, fit, simulate"),
         ({"simulate": {"noise": {"temprature": 300}}}, "simulate.noise.temprature", "temperature",
