@@ -82,33 +82,31 @@ def compare(best, rival) -> Comparison | None:
                       int(rival.n_parameters) - int(best.n_parameters))
 
 
-def rivals(best, trials: list) -> list:
-    """The other candidates that explain the residual (no significant misfit left, plausible values) and that
-    the per-block evidence does not tell apart from ``best`` (see the module's rule)."""
-    out = []
-    for t in trials:
-        if t is best or t.effect == best.effect or not t.explains or t.implausible:
-            continue
-        c = compare(best, t)
-        if c is not None and not c.told_apart:
-            out.append(t)
-    return out
-
-
-def comparisons(best, trials: list) -> list[dict]:
-    """The best candidate against every other candidate that explains the residual with plausible values:
-    effect, fit_difference (chi-square of the rival minus the best's), fit_sd, fit_sigmas, extra_parameters,
-    by_fit, by_parsimony, told_apart (for the record and the tables of scripts/experiment_table.py)."""
+def contenders(best, trials: list) -> list[tuple]:
+    """(trial, :class:`Comparison`) for every other candidate that explains the residual (no significant misfit
+    left) with plausible values and has per-block values to compare with ``best``'s."""
     out = []
     for t in trials:
         if t is best or t.effect == best.effect or not t.explains or t.implausible:
             continue
         c = compare(best, t)
         if c is not None:
-            out.append({"effect": t.effect, "fit_difference": c.fit_difference, "fit_sd": c.fit_sd,
-                        "fit_sigmas": c.fit_sigmas, "extra_parameters": c.extra_parameters, "by_fit": c.by_fit,
-                        "by_parsimony": c.by_parsimony, "told_apart": c.told_apart})
+            out.append((t, c))
     return out
+
+
+def rivals(best, trials: list) -> list:
+    """The contenders that the per-block evidence does not tell apart from ``best`` (see the module's rule)."""
+    return [t for t, c in contenders(best, trials) if not c.told_apart]
+
+
+def comparisons(best, trials: list) -> list[dict]:
+    """``best`` against every contender: effect, fit_difference (chi-square of the rival minus the best's),
+    fit_sd, fit_sigmas, extra_parameters, by_fit, by_parsimony, told_apart (for the record and the tables of
+    scripts/experiment_table.py)."""
+    return [{"effect": t.effect, "fit_difference": c.fit_difference, "fit_sd": c.fit_sd, "fit_sigmas": c.fit_sigmas,
+             "extra_parameters": c.extra_parameters, "by_fit": c.by_fit, "by_parsimony": c.by_parsimony,
+             "told_apart": c.told_apart} for t, c in contenders(best, trials)]
 
 
 def _words(c: Comparison) -> str:
@@ -121,11 +119,8 @@ def parsimony_note(best, trials: list) -> str:
     """A clause for the verdict naming the rivals that explain the residual as well as ``best`` and are set
     aside only because they need more parameters ("" when there are none)."""
     notes = []
-    for t in trials:
-        if t is best or t.effect == best.effect or not t.explains or t.implausible:
-            continue
-        c = compare(best, t)
-        if c is not None and c.by_parsimony and not c.by_fit:
+    for t, c in contenders(best, trials):
+        if c.by_parsimony and not c.by_fit:
             more = f"{c.extra_parameters} more parameter" + ("s" if c.extra_parameters > 1 else "")
             notes.append(f"`{t.effect}` fits as well ({_words(c)}) with {more}")
     if not notes:
@@ -138,6 +133,7 @@ def verdict(best, others: list) -> str:
                      for t in others)
     names = ", ".join(f"`{t.effect}`" for t in [best] + others)
     return (f"missing effect, but the data cannot decide which: {names} (ranked by BIC) each explain the residual "
-            f"(error {best.error_after:.3g} vs noise floor {best.noise_floor_after:.3g}); their fits differ by less "
-            f"than {VUONG_SIGMAS:g} standard deviations of the per-period evidence and none is simpler ({gaps}); "
-            "record more periods, with less detector noise or at a higher sample rate, or fix the separation")
+            f"(error {best.error_after:.3g} vs noise floor {best.noise_floor_after:.3g}); none is told apart by a "
+            f"better fit ({VUONG_SIGMAS:g} standard deviations of the per-period evidence) or by needing fewer "
+            f"parameters ({gaps}); record more periods, with less detector noise or at a higher sample rate, or fix "
+            "the separation")
