@@ -14,14 +14,12 @@ audit: its [dmt] error is 0.0907 against a floor of 0.0694, 1.31x, just above th
 
 from __future__ import annotations
 
-import copy
-from pathlib import Path
 
 import pytest
 
-import afmid.diagnosis.diagnose as diagnose
-from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
+from afmid.config import apply_overrides, parse_override, read_yaml
 from repo_paths import REPO_ROOT
+from unknown_separation import diagnose_without_separation
 
 pytestmark = [pytest.mark.numerics, pytest.mark.slow]
 
@@ -35,30 +33,11 @@ CASES = {
 }
 
 
-def _diagnose_without_separation(tmp_path: Path, path: Path, overrides: list[str]):
-    from afmid.fit.pipeline import run_fit, write_run
-    from afmid.io.trace import write_trace_file
-    from afmid.simulate.driver import simulate
-
-    raw = apply_overrides(read_yaml(path), [parse_override(o) for o in overrides])
-    raw.setdefault("fit", {})["bootstrap"] = 0
-    sim_config = build_config(raw, source=tmp_path / "sim.yaml", base_dir=tmp_path)
-    trace = simulate(sim_config)
-    write_trace_file(tmp_path / "trace.h5", trace, dump_config(sim_config))
-    fit_raw = copy.deepcopy(raw)
-    fit_raw["data"] = {"path": str(tmp_path / "trace.h5")}
-    fit_raw["simulate"]["parameters"] = {}
-    fit_raw["sample"]["separation"] = None
-    config = build_config(fit_raw, source=tmp_path / "fit.yaml", base_dir=tmp_path)
-    result = run_fit(config, uncertainty=False)
-    write_run(tmp_path / "run.h5", result, config)
-    return diagnose.suggest(diagnose.load_run(tmp_path / "run.h5"))
-
-
 @pytest.mark.parametrize("case", CASES)
 def test_hidden_effect_is_named_with_the_separation_unknown(tmp_path, case):
     path, overrides, effect = CASES[case]
-    summary = _diagnose_without_separation(tmp_path, path, overrides)
+    raw = apply_overrides(read_yaml(path), [parse_override(o) for o in overrides])
+    summary, _ = diagnose_without_separation(tmp_path, raw)
     verdict = summary["diagnosis"]["verdict"]
     if effect is None:
         assert summary["suggestions"] == [], verdict

@@ -11,13 +11,12 @@ transients from rest and from free oscillation; all chosen before the first run.
 
 from __future__ import annotations
 
-import copy
-from pathlib import Path
 
 import pytest
 
-from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
+from afmid.config import apply_overrides, parse_override, read_yaml
 from repo_paths import REPO_ROOT
+from unknown_separation import diagnose_without_separation
 
 pytestmark = [pytest.mark.numerics, pytest.mark.slow]
 
@@ -61,30 +60,11 @@ CASES: dict[str, list[str] | dict | object] = {
 }
 
 
-def _diagnose_without_separation(tmp_path: Path, case: list[str] | dict) -> tuple[dict, float, float]:
-    import afmid.diagnosis.diagnose as diagnose
-    from afmid.fit.pipeline import run_fit, write_run
-    from afmid.io.trace import write_trace_file
-    from afmid.simulate.driver import simulate
-
-    raw = (copy.deepcopy(case) if isinstance(case, dict)
-           else apply_overrides(read_yaml(CLEAN), [parse_override(o) for o in case]))
-    raw.setdefault("fit", {})["bootstrap"] = 0
-    sim_config = build_config(raw, source=tmp_path / "sim.yaml", base_dir=tmp_path)
-    write_trace_file(tmp_path / "trace.h5", simulate(sim_config), dump_config(sim_config))
-    fit_raw = copy.deepcopy(raw)
-    fit_raw["data"] = {"path": str(tmp_path / "trace.h5")}
-    fit_raw["simulate"]["parameters"] = {}
-    fit_raw["sample"]["separation"] = None
-    config = build_config(fit_raw, source=tmp_path / "fit.yaml", base_dir=tmp_path)
-    result = run_fit(config, uncertainty=False)
-    write_run(tmp_path / "run.h5", result, config)
-    return diagnose.suggest(diagnose.load_run(tmp_path / "run.h5")), result.cv_error, result.cv_error_noise_floor
-
-
 @pytest.mark.parametrize("case", list(CASES.values()), ids=list(CASES))
 def test_a_clean_trace_raises_no_alarm_with_the_separation_unknown(tmp_path, case):
-    summary, error, floor = _diagnose_without_separation(tmp_path, case)
+    raw = case if isinstance(case, dict) else apply_overrides(read_yaml(CLEAN), [parse_override(o) for o in case])
+    summary, result = diagnose_without_separation(tmp_path, raw)
+    error, floor = result.cv_error, result.cv_error_noise_floor
     diagnosis = summary["diagnosis"]
     where = f"{diagnosis['verdict']} (error {error:.4g}, floor {floor:.4g}, x{error / floor:.2f})"
     assert summary["suggestions"] == [], where

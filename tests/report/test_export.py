@@ -16,7 +16,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from repo_paths import REPO_ROOT
+from short_runs import short_dmt_viscoelastic_config
 
 from afmid.cli import main
 from corpus import Case, check_case, corpus_params
@@ -26,10 +26,7 @@ from corpus import Case, check_case, corpus_params
 def run_file(tmp_path_factory) -> Path:
     """A short dmt + viscoelastic run (12 periods, 10 bootstrap draws), fitted by the command line."""
     folder = tmp_path_factory.mktemp("export")
-    config = folder / "short.yaml"
-    text = (REPO_ROOT / "configs" / "dmt_viscoelastic.yaml").read_text()
-    assert "periods: 50 " in text
-    config.write_text(text.replace("periods: 50 ", "periods: 12 ") + "\ndata: {path: trace.h5}\nfit: {bootstrap: 10}\n")
+    config = short_dmt_viscoelastic_config(folder)
     assert main(["-q", "simulate", str(config), "-o", str(folder / "trace.h5")]) == 0
     assert main(["-q", "fit", str(config), "-o", str(folder / "run.h5")]) == 0
     return folder / "run.h5"

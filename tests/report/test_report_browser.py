@@ -28,9 +28,8 @@ import numpy as np
 import pytest
 
 from afmid.cli import main
-from repo_paths import REPO_ROOT
+from short_runs import short_dmt_viscoelastic_config
 
-REPO = REPO_ROOT
 BROWSER_TIMEOUT_S = 180
 #: Offline: no name resolves and every request goes to a closed port (the discard port on this machine).
 OFFLINE = ("--proxy-server=127.0.0.1:9", "--proxy-bypass-list=<-loopback>", "--host-resolver-rules=MAP * ~NOTFOUND")
@@ -118,10 +117,7 @@ def console_lines(stderr: str) -> list[str]:
 @pytest.fixture(scope="module")
 def report(tmp_path_factory, browser) -> Path:
     folder = tmp_path_factory.mktemp("browser")
-    config = folder / "short.yaml"
-    text = (REPO / "configs" / "dmt_viscoelastic.yaml").read_text()
-    assert "periods: 50 " in text
-    config.write_text(text.replace("periods: 50 ", "periods: 12 ") + "\ndata: {path: trace.h5}\nfit: {bootstrap: 10}\n")
+    config = short_dmt_viscoelastic_config(folder)
     assert main(["-q", "simulate", str(config), "-o", str(folder / "trace.h5")]) == 0
     assert main(["-q", "fit", str(config), "--remove", "viscoelastic", "-o", str(folder / "run1.h5")]) == 0
     assert main(["-q", "fit", str(config), "-o", str(folder / "run2.h5")]) == 0
