@@ -37,8 +37,9 @@ class SearchRange:
 def search_range(library: Library, name: str) -> SearchRange:
     """The search range of the nonlinear parameter ``name`` of one of ``library``'s effects."""
     p = next(p for e in library.effects for p in EFFECTS.get(e).parameters if p.name == name)
-    low = max(p.low, 1e-12) if p.low > 0 else LOG_GRID_START
-    return SearchRange(name, low, min(p.high, LENGTH_SEARCH_MAX), p.unit, p.low == 0)
+    low, high = p.search if p.search is not None else (p.low, p.high)  # a declared search range, else the valid one
+    first = max(low, 1e-12) if low > 0 else LOG_GRID_START
+    return SearchRange(name, first, min(high, LENGTH_SEARCH_MAX), p.unit, low == 0)
 
 
 @dataclass
