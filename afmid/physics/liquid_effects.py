@@ -44,8 +44,8 @@ DOUBLE_LAYER = Effect(
                   "sigma_t sigma_s, product of the tip's and the sample's surface charge densities (> 0 like "
                   "charges: repulsive; 1e-4 = two surfaces of 0.01 C/m^2, one charge per 16 nm^2)"),
         Parameter("debye_length", "m", 3.0e-9, 0.1e-9, 100e-9,
-                  "lambda_D, Debye screening length (0.1 nm: ~9 M; 100 nm: ~10 uM); searched over [1, 20] nm "
-                  "unless fixed by sample.ionic_strength or model.parameters", True,
+                  "lambda_D, Debye screening length (0.1 nm: ~9 M; 100 nm: ~10 uM); fixed by sample.ionic_strength "
+                  "or model.parameters.debye_length when given", True,
                   search=(DEBYE_SEARCH_MIN, 20e-9)),
     ),
     terms=(

@@ -120,9 +120,11 @@ def test_search_range_of_the_catalog_parameters():
             if not p.nonlinear:
                 continue
             span = search_range(library, p.name)
-            assert span.zero_allowed == (p.low == 0)
-            assert span.low == (max(p.low, 1e-12) if p.low > 0 else LOG_GRID_START)
-            assert span.high == min(p.high, LENGTH_SEARCH_MAX) and 0 < span.low < span.high
+            low, high = p.search or (p.low, p.high)  # a declared search range (hydration, double layer) or the valid one
+            assert p.low <= low < high <= p.high
+            assert span.zero_allowed == (low == 0)
+            assert span.low == (max(low, 1e-12) if low > 0 else LOG_GRID_START)
+            assert span.high == min(high, LENGTH_SEARCH_MAX) and 0 < span.low < span.high
             assert span.unit == p.unit
             checked += 1
     assert checked >= 2  # decay lengths and distances of the catalog
