@@ -234,7 +234,7 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
         for name in library.nonlinear:
             if name in config.model.parameters:
                 continue
-            span = search_range(library, name)
+            span = search_range(library, name, config.sample.medium)
             to_search.append((name, span.low, span.high, True, span.unit))
             if span.zero_allowed:
                 zero_allowed.add(name)

@@ -22,7 +22,8 @@ def effect_record(name: str) -> dict:
         "region": effect.region,
         "parameters": [
             {"name": p.name, "unit": p.unit, "default": p.default, "range": [p.low, p.high], "doc": p.doc,
-             "nonlinear": p.nonlinear, "searched": list(p.search or (p.low, p.high)) if p.nonlinear else None}
+             "nonlinear": p.nonlinear, "searched": {m: list(p.search_span(m)) for m in effect.media} if p.nonlinear
+             else None}
             for p in effect.parameters
         ],
         "terms": [
@@ -103,8 +104,10 @@ def describe_effects(names: list[str], models: bool = False, as_json: bool = Fal
                          "(sample.medium)")
             for p in r["parameters"]:
                 flag = " [nonlinear, searched by the fit]" if p["nonlinear"] else ""
-                if p["nonlinear"] and p["searched"] != p["range"]:
-                    flag = f" [nonlinear, searched over {_span_words(*p['searched'], p['unit'])} unless fixed]"
+                narrower = {m: span for m, span in (p["searched"] or {}).items() if span != p["range"]}
+                if narrower:
+                    where = "; ".join(f"in {m} over {_span_words(*span, p['unit'])}" for m, span in narrower.items())
+                    flag = f" [nonlinear, searched by the fit: {where}]"
                 lines.append(
                     f"  param {p['name']} [{p['unit']}] default {p['default']:g}, "
                     f"range [{p['range'][0]:g}, {p['range'][1]:g}]: {p['doc']}{flag}"

@@ -39,10 +39,15 @@ class Parameter:
     high: float
     doc: str
     nonlinear: bool = False  # appears inside a term (searched by the fit, not linear in F)
-    # Where the fit and the diagnosis search a nonlinear parameter that is not fixed (low, high; None: the valid
-    # range). Narrower than the valid range where a wider search would take the effect for another one of the
-    # same shape (the double layer's Debye length against the hydration length).
-    search: tuple[float, float] | None = None
+    # Where the fit and the diagnosis search a nonlinear parameter that is not fixed, per medium: (medium, low,
+    # high) entries; a medium without one searches the valid range. Narrower than the valid range where a wider
+    # search would take the effect for another one of the same shape (in liquid: the double layer's Debye length
+    # against the hydration length).
+    search: tuple[tuple[str, float, float], ...] = ()
+
+    def search_span(self, medium: str = "air") -> tuple[float, float]:
+        """(low, high) searched in ``medium`` (SI)."""
+        return next(((low, high) for m, low, high in self.search if m == medium), (self.low, self.high))
 
 
 @dataclass(frozen=True)
@@ -188,8 +193,10 @@ def validate_effect(effect: Effect) -> None:
     for p in effect.parameters:
         if not (p.low <= p.default <= p.high):
             raise DefinitionError(f"default of {p.name} ({p.default}) outside [{p.low}, {p.high}]")
-        if p.search is not None and not (p.nonlinear and p.low <= p.search[0] < p.search[1] <= p.high):
-            raise DefinitionError(f"search range of {p.name} {p.search} must lie in [{p.low}, {p.high}] (nonlinear only)")
+        for medium, low, high in p.search:
+            if medium not in MEDIA or not (p.nonlinear and p.low <= low < high <= p.high):
+                raise DefinitionError(f"search range of {p.name} in {medium} [{low}, {high}] must lie in "
+                                      f"[{p.low}, {p.high}], a medium of {MEDIA}, nonlinear parameters only")
         parse_unit(p.unit)
     state_names = tuple(s.name for s in effect.states)
     units = _param_units(effect)

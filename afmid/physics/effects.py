@@ -270,9 +270,11 @@ EFFECTS.register(
     )
 )
 
-#: Hydration (solvation) lengths are searched up to here, m: measured hydration forces decay over 0.2-1.1 nm
-#: (Israelachvili ch. 15); a longer exponential repulsion in an electrolyte is the double layer
-#: (afmid.physics.liquid_effects.DEBYE_SEARCH_MIN: the searches overlap over [1, 1.5] nm).
+#: In liquid, hydration (solvation) lengths are searched up to here, m: measured hydration forces decay over
+#: 0.2-1.1 nm (Israelachvili ch. 15); a longer exponential repulsion in an electrolyte is the double layer
+#: (afmid.physics.liquid_effects.DEBYE_SEARCH_MIN: the searches overlap over [1, 1.5] nm). In air there is no
+#: double layer to take it for, and the search keeps the valid range (an outside-catalog exponential is
+#: recognised by the hydration shape's impossible sign there, afmid.diagnosis.diagnose).
 HYDRATION_SEARCH_MAX = 1.5e-9
 
 EFFECTS.register(
@@ -282,9 +284,9 @@ EFFECTS.register(
         formula="F = F_h exp(-(z - a0) / lambda_h)",
         parameters=(
             Parameter("hydration_force", "N", 1.0e-9, 0.0, 1e-6, "repulsion at z = a0"),
-            Parameter("hydration_length", "m", 0.3e-9, 0.02e-9, 10e-9, "decay length lambda_h (searched up to "
-                      "1.5 nm: beyond, an exponential repulsion is a double layer)", True,
-                      search=(0.02e-9, HYDRATION_SEARCH_MAX)),
+            Parameter("hydration_length", "m", 0.3e-9, 0.02e-9, 10e-9, "decay length lambda_h (in liquid searched "
+                      "up to 1.5 nm: a longer exponential repulsion there is the double layer)", True,
+                      search=(("liquid", 0.02e-9, HYDRATION_SEARCH_MAX),)),
         ),
         terms=(
             Term(

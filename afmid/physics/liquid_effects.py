@@ -46,7 +46,7 @@ DOUBLE_LAYER = Effect(
         Parameter("debye_length", "m", 3.0e-9, 0.1e-9, 100e-9,
                   "lambda_D, Debye screening length (0.1 nm: ~9 M; 100 nm: ~10 uM); fixed by sample.ionic_strength "
                   "or model.parameters.debye_length when given", True,
-                  search=(DEBYE_SEARCH_MIN, 20e-9)),
+                  search=(("liquid", DEBYE_SEARCH_MIN, 20e-9),)),
     ),
     terms=(
         Term("double_layer", "exp(-max(z, a0) / debye_length)", _double_layer_coefficient,

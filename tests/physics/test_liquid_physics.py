@@ -64,7 +64,22 @@ def test_double_layer_term_is_butts_formula():
     out = effect.readout({label: coefficient}, law.parameters)
     assert out["double_layer_force"] == pytest.approx(expected[-2], rel=1e-12)
     assert out["surface_charge_product"] == pytest.approx(product, rel=1e-12)
-    assert effect.media == ("liquid",) and effect.parameter("debye_length").search[0] == 1.0e-9
+    assert effect.media == ("liquid",)
+
+
+def test_hydration_and_double_layer_are_searched_apart_in_liquid():
+    """In liquid the hydration length is searched over [0.02, 1.5] nm and the Debye length over [1, 20] nm: the
+    two exponentials are told apart by their lengths (overlap [1, 1.5] nm); in air hydration keeps its range."""
+    from afmid.config import ModelConfig
+    from afmid.fit.search import search_range
+    from afmid.physics.library import build_library
+
+    library = build_library(ModelConfig(effects=["hydration", "double_layer"]))
+    hydration_air, hydration_liquid = (search_range(library, "hydration_length", m) for m in ("air", "liquid"))
+    debye = search_range(library, "debye_length", "liquid")
+    assert (hydration_liquid.low, hydration_liquid.high) == (0.02e-9, 1.5e-9)
+    assert (hydration_air.low, hydration_air.high) == (0.02e-9, 10e-9)
+    assert (debye.low, debye.high) == (1.0e-9, 20e-9)
 
 
 def test_debye_length_of_an_ionic_strength():
@@ -184,7 +199,7 @@ def test_afmid_effects_lists_the_double_layer(run_cli):
     assert code == 0
     for words in ("double_layer: Electrical double-layer force", "exp(-max(z, a0) / lambda_D)",
                   "yields double_layer_force [N]", "yields surface_charge_product [C^2/m^4]",
-                  "ref: Butt, Biophys. J. 60, 1438 (1991)", "Israelachvili", "media: liquid", "searched over [1, 20] nm"):
+                  "ref: Butt, Biophys. J. 60, 1438 (1991)", "Israelachvili", "media: liquid", "in liquid over [1, 20] nm"):
         assert words in text, words
     code, out, _ = run_cli("effects", "--json")
     record = next(r for r in json.loads(out) if r["name"] == "double_layer")
