@@ -378,3 +378,24 @@ def test_hydration_in_liquid_is_not_named_double_layer(diagnosed, variant):
     _record("hydration_in_liquid", variant, verdict=verdict, tried={t["effect"]: t["delta_bic"] for t in summary["tried"]})
     named = [s["effect"] for s in summary["suggestions"]]
     assert "double_layer" not in named[:1], verdict
+
+
+def test_report_resimulates_a_run_with_a_fixed_debye_length(tmp_path):
+    """A Debye length fixed by sample.ionic_strength is no searched parameter of the run, but the report's
+    re-simulation of the identified model needs it (it failed with "unknown name 'debye_length'")."""
+    from afmid.diagnosis.diagnose import load_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.io.trace import write_trace_file
+    from afmid.runfile import write_run
+    from afmid.simulate.driver import resimulate_run, simulate
+
+    overrides = ["simulate.periods=12", "sample.ionic_strength=0.01", "fit.bootstrap=0",
+                 "simulate.parameters={E_star: 50.0e6, hamaker: 1.0e-20, surface_charge_product: 5.0e-4}"]
+    sim = load_config(CONFIGS / "liquid_double_layer.yaml", overrides)
+    trace_path = write_trace_file(tmp_path / "t.h5", simulate(sim), dump_config(sim))
+    config = load_config(CONFIGS / "liquid_double_layer.yaml", overrides + [f"data.path={trace_path}"])
+    write_run(tmp_path / "run.h5", run_fit(config, uncertainty=False), config)
+    run = load_run(tmp_path / "run.h5")
+    assert "debye_length" not in run.nonlinear and run.config.model.parameters["debye_length"] > 0
+    motion = resimulate_run(run, steps_per_period=400)
+    assert np.all(np.isfinite(motion["force"]))
