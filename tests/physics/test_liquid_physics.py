@@ -26,6 +26,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,28 @@ def test_double_layer_term_is_butts_formula():
     assert out["double_layer_force"] == pytest.approx(expected[-2], rel=1e-12)
     assert out["surface_charge_product"] == pytest.approx(product, rel=1e-12)
     assert effect.media == ("liquid",)
+
+
+@pytest.mark.parametrize("change, words", [
+    ({"media": ("water",)}, "media ('water',) must be some of"),
+    ({"media": ()}, "media () must be some of"),
+    ({"debye_length": {"search": (("liquid", 0.05e-9, 20e-9),)}}, "search range of debye_length in liquid"),
+    ({"debye_length": {"search": (("vacuum", 1e-9, 20e-9),)}}, "search range of debye_length in vacuum"),
+    ({"surface_charge_product": {"search": (("liquid", 0.0, 0.01),)}}, "nonlinear parameters only"),
+])
+def test_media_and_search_ranges_are_checked_on_registration(change, words):
+    """A declaration names known media, and a search range lies inside the valid range of a nonlinear parameter."""
+    from dataclasses import replace
+
+    from afmid.errors import DefinitionError
+    from afmid.physics.effect_types import validate_effect
+    from afmid.physics.liquid_effects import DOUBLE_LAYER
+
+    validate_effect(DOUBLE_LAYER)
+    parameters = tuple(replace(p, **change.get(p.name, {})) for p in DOUBLE_LAYER.parameters)
+    effect = replace(DOUBLE_LAYER, parameters=parameters, **{k: v for k, v in change.items() if k == "media"})
+    with pytest.raises(DefinitionError, match=re.escape(words)):
+        validate_effect(effect)
 
 
 def test_hydration_and_double_layer_are_searched_apart_in_liquid():
