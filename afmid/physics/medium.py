@@ -111,6 +111,13 @@ def check_config(config) -> None:
                              "remove it or set sample.medium")
     if sample.ionic_strength is not None and medium != "liquid":
         raise ValueError(f"sample.ionic_strength: an electrolyte needs sample.medium: liquid (got {medium})")
+    if sample.ionic_strength is not None:
+        length, valid = debye_length(sample.ionic_strength, sample_temperature(sample)), \
+            EFFECTS.get("double_layer").parameter("debye_length")
+        if not valid.low <= length <= valid.high:
+            raise ValueError(f"sample.ionic_strength: {sample.ionic_strength:g} mol/L gives a Debye length of "
+                             f"{length * 1e9:.3g} nm, outside the double layer's valid [{valid.low * 1e9:g}, "
+                             f"{valid.high * 1e9:g}] nm")
     fixed = fixed_parameters(sample, config.model.effects)
     given = config.model.parameters.get("debye_length")
     if fixed and given is not None and not math.isclose(given, fixed["debye_length"], rel_tol=1e-6):

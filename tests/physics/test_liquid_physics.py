@@ -164,6 +164,8 @@ def yaml_round_trip(config) -> dict:
     ({"sample.medium": "air", "model.effects": ["dmt"], "simulate.effects": [], "sample.ionic_strength": 0.1},
      "sample.ionic_strength", "needs sample.medium: liquid"),
     ({"sample.ionic_strength": -0.1}, "sample.ionic_strength", "must be > 0"),
+    ({"sample.ionic_strength": 20.0}, "sample.ionic_strength", "gives a Debye length of 0.0679 nm, outside"),
+    ({"sample.ionic_strength": 1e-6}, "sample.ionic_strength", "gives a Debye length of 304 nm, outside"),
     ({"sample.ionic_strength": 0.01, "model.parameters": {"debye_length": 5e-9}}, "sample.ionic_strength",
      "give one of them"),
 ])
