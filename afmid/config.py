@@ -234,6 +234,9 @@ class SampleConfig(StrictModel):
         None, description="d, rest tip-sample separation, m; estimated by the fit if absent"
     )
     a0: PositiveFloat = Field(0.165e-9, description="intermolecular distance, m")
+    medium: Literal["air", "liquid"] = Field("air", description="which effects exist (afmid.physics.medium)")
+    ionic_strength: PositiveFloat | None = Field(None, description="mol/L, 1:1 electrolyte: fixes the Debye length")
+    temperature: PositiveFloat | None = Field(None, description="K, for the Debye length; default 298.15")
 
 
 class ModelConfig(StrictModel):
@@ -426,6 +429,13 @@ class RunConfig(StrictModel):
             problem = term_problem(text, self.fit.baseline)
             if problem:
                 raise ValueError(f"model.terms[{i}]: {problem}")
+        return self
+
+    @model_validator(mode="after")
+    def _effects_fit_the_medium(self) -> "RunConfig":
+        from afmid.physics.medium import check_config
+
+        check_config(self)  # capillary only in air, double_layer only in liquid; Debye length from ionic strength
         return self
 
     @model_validator(mode="after")

@@ -72,7 +72,7 @@ class ShapeSearch:
         found: dict[str, float] = {}
         for _round in range(2 if len(names) > 1 else 1):
             for name in names:
-                span = search_range(library, name)  # the fit's own range (its log grid: 0 is not tried)
+                span = search_range(library, name, config.sample.medium)  # the fit's own range (its log grid: 0 is not tried)
                 lo, hi = span.low, span.high
 
                 def objective(log_value, name=name):

@@ -48,6 +48,7 @@ from afmid.diagnosis.candidate_refit import refit_candidate, search_separation, 
 from afmid.diagnosis.candidate_shapes import ShapeSearch
 # Where the residual sits: afmid.diagnosis.localize (importable from here as before).
 from afmid.diagnosis.localize import NEAR_RANGE, band_limit, energy_check, localize  # noqa: F401
+import afmid.physics.medium as medium
 from afmid.physics.effects import EFFECTS
 # A cross-validated error within FLOOR_FACTOR of its noise floor counts as the noise level (one constant with
 # the fit's model-limited mark).
@@ -120,9 +121,11 @@ class _Base:
     n_rows: int
 
 
-def candidate_effects(current: list[str]) -> list[str]:
+def candidate_effects(current: list[str], medium: str = "air") -> list[str]:
+    """The catalog effects to try: those not in the model that exist in the sample's ``medium``."""
     has_base = any(e in BASE_MODELS for e in current)
-    return [e.name for e in EFFECTS if e.name not in current and not (has_base and e.name in BASE_MODELS)]
+    return [e.name for e in EFFECTS if e.name not in current and not (has_base and e.name in BASE_MODELS)
+            and medium in e.media]
 
 
 def refit_config(run: RunData, effects: list[str]) -> RunConfig:
@@ -143,7 +146,7 @@ def refit_config(run: RunData, effects: list[str]) -> RunConfig:
     for name, est in run.nonlinear.items():
         if name != "d" and name not in fixed and math.isfinite(est["value"]):
             fixed[name] = est["value"]
-    config.model.parameters = fixed
+    config.model.parameters = {**fixed, **medium.fixed_parameters(config.sample, effects)}  # a Debye length of I
     return config
 
 
@@ -239,7 +242,8 @@ def _diagnose(run: RunData, progress: bool) -> dict:
                     "comparing with the refit", run.path.name, base.error, run.cv_error)
     shapes = ShapeSearch(prepared)
     trials: list[Trial] = []
-    for effect in tqdm(candidate_effects(run.effects), desc="trying effects", disable=not progress, leave=False):
+    candidates = candidate_effects(run.effects, run.config.sample.medium)
+    for effect in tqdm(candidates, desc="trying effects", disable=not progress, leave=False):
         t0 = time.perf_counter()
         config = refit_config(run, run.effects + [effect])
         shape_names = [p.name for p in EFFECTS.get(effect).parameters

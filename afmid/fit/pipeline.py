@@ -39,6 +39,7 @@ from afmid.errors import AfmidError, ConfigError, InputError
 from afmid.preprocess.instrument import from_config as instrument_from_config
 from afmid.io.trace import Trace, load_trace
 from afmid.physics.library import Library, build_library
+from afmid.physics.medium import relative_permittivity
 from afmid.physics.tips import tip_geometry
 import afmid.fit.regression as regression
 from afmid.fit.forces import force_cv_error, per_sample_forces, period_curves, read_out, signal_rows
@@ -194,12 +195,12 @@ class FitResult:
 def library_parameters(prep: Prepared, config: RunConfig, library: Library) -> dict:
     """The parameters the library's columns are evaluated with, before the outer search (SI).
 
-    The sample's a0, the measured drive frequency ``w`` (rad/s), the tip radius
+    The sample's a0 and medium's permittivity ``eps_r``, the measured drive frequency ``w`` (rad/s), the tip radius
     ``R`` when the cantilever has one, and the library's nonlinear parameters at
     their defaults or fixed values. The rest separation ``d`` is not included:
     the outer search (or ``sample.separation``) sets it.
     """
-    params = {"a0": config.sample.a0, "w": prep.drive.omega}
+    params = {"a0": config.sample.a0, "w": prep.drive.omega, "eps_r": relative_permittivity(config.sample)}
     if prep.trace.cantilever.tip_radius is not None:
         params["R"] = prep.trace.cantilever.tip_radius
     params.update(library.nonlinear)
@@ -233,7 +234,7 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
         for name in library.nonlinear:
             if name in config.model.parameters:
                 continue
-            span = search_range(library, name)
+            span = search_range(library, name, config.sample.medium)
             to_search.append((name, span.low, span.high, True, span.unit))
             if span.zero_allowed:
                 zero_allowed.add(name)

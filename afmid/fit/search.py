@@ -34,11 +34,13 @@ class SearchRange:
     zero_allowed: bool  # the parameter may be 0 (tried on its own, off the log grid)
 
 
-def search_range(library: Library, name: str) -> SearchRange:
-    """The search range of the nonlinear parameter ``name`` of one of ``library``'s effects."""
+def search_range(library: Library, name: str, medium: str = "air") -> SearchRange:
+    """The search range of the nonlinear parameter ``name`` of one of ``library``'s effects in the sample's
+    ``medium`` (the declared one there, else the valid range)."""
     p = next(p for e in library.effects for p in EFFECTS.get(e).parameters if p.name == name)
-    low = max(p.low, 1e-12) if p.low > 0 else LOG_GRID_START
-    return SearchRange(name, low, min(p.high, LENGTH_SEARCH_MAX), p.unit, p.low == 0)
+    low, high = p.search_span(medium)
+    first = max(low, 1e-12) if low > 0 else LOG_GRID_START
+    return SearchRange(name, first, min(high, LENGTH_SEARCH_MAX), p.unit, low == 0)
 
 
 @dataclass

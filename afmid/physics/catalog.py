@@ -22,7 +22,8 @@ def effect_record(name: str) -> dict:
         "region": effect.region,
         "parameters": [
             {"name": p.name, "unit": p.unit, "default": p.default, "range": [p.low, p.high], "doc": p.doc,
-             "nonlinear": p.nonlinear}
+             "nonlinear": p.nonlinear, "searched": {m: list(p.search_span(m)) for m in effect.media} if p.nonlinear
+             else None}
             for p in effect.parameters
         ],
         "terms": [
@@ -36,7 +37,16 @@ def effect_record(name: str) -> dict:
             for q in effect.quantities
         ],
         "references": list(effect.references),
+        "media": list(effect.media),
+        "notes": effect.notes,
     }
+
+
+def _span_words(low: float, high: float, unit: str) -> str:
+    """A search range in words: lengths in nm ("[1, 20] nm"), anything else in SI."""
+    if unit == "m":
+        return f"[{low * 1e9:g}, {high * 1e9:g}] nm"
+    return f"[{low:g}, {high:g}] {unit}"
 
 
 def model_record(name: str) -> dict:
@@ -90,9 +100,14 @@ def describe_effects(names: list[str], models: bool = False, as_json: bool = Fal
             lines.append(f"  effects: {', '.join(r['effects'])}")
         else:
             lines.append(f"  force (repulsive +): {r['formula']}")
-            lines.append(f"  character: {r['character']}; acts: {r['region']}")
+            lines.append(f"  character: {r['character']}; acts: {r['region']}; media: {', '.join(r['media'])} "
+                         "(sample.medium)")
             for p in r["parameters"]:
                 flag = " [nonlinear, searched by the fit]" if p["nonlinear"] else ""
+                narrower = {m: span for m, span in (p["searched"] or {}).items() if span != p["range"]}
+                if narrower:
+                    where = "; ".join(f"in {m} over {_span_words(*span, p['unit'])}" for m, span in narrower.items())
+                    flag = f" [nonlinear, searched by the fit: {where}]"
                 lines.append(
                     f"  param {p['name']} [{p['unit']}] default {p['default']:g}, "
                     f"range [{p['range'][0]:g}, {p['range'][1]:g}]: {p['doc']}{flag}"
@@ -106,6 +121,8 @@ def describe_effects(names: list[str], models: bool = False, as_json: bool = Fal
                 low, high = q["plausible_range"]
                 plausible = range_words(low, high, q["unit"])
                 lines.append(f"  yields {q['name']} [{q['unit']}]: {q['doc']} (plausible: {plausible})")
+            if r["notes"]:
+                lines.append(f"  note: {r['notes']}")
         for ref in r["references"]:
             lines.append(f"  ref: {ref}")
         lines.append("")

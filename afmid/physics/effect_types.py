@@ -20,8 +20,11 @@ from afmid.physics.units import Unit, parse_unit
 EPSILON_0 = 8.8541878128e-12  # F/m, vacuum permittivity
 BOLTZMANN = 1.380649e-23  # J/K
 
-#: Context quantities every effect may use (set from the cantilever/sample config).
-CONTEXT_UNITS: dict[str, str] = {"R": "m", "a0": "m"}
+#: Context quantities every effect may use (set from the cantilever/sample config): the tip radius, the
+#: intermolecular distance and the relative permittivity of the medium (``afmid.physics.medium``).
+CONTEXT_UNITS: dict[str, str] = {"R": "m", "a0": "m", "eps_r": "1"}
+#: The media a sample can be imaged in (``sample.medium``); an effect declares where it is offered.
+MEDIA: tuple[str, ...] = ("air", "liquid")
 NEWTON = parse_unit("N")
 
 
@@ -36,6 +39,15 @@ class Parameter:
     high: float
     doc: str
     nonlinear: bool = False  # appears inside a term (searched by the fit, not linear in F)
+    # Where the fit and the diagnosis search a nonlinear parameter that is not fixed, per medium: (medium, low,
+    # high) entries; a medium without one searches the valid range. Narrower than the valid range where a wider
+    # search would take the effect for another one of the same shape (in liquid: the double layer's Debye length
+    # against the hydration length).
+    search: tuple[tuple[str, float, float], ...] = ()
+
+    def search_span(self, medium: str = "air") -> tuple[float, float]:
+        """(low, high) searched in ``medium`` (SI)."""
+        return next(((low, high) for m, low, high in self.search if m == medium), (self.low, self.high))
 
 
 @dataclass(frozen=True)
@@ -106,6 +118,9 @@ class Effect:
     # (neither to the simulated force nor to an effects library): e.g. DMT ties its adhesion to the tail, but
     # the seed tables fit the adhesion as a term of its own. Checked like ``terms``; presets may name them.
     readout_only_terms: tuple[Term, ...] = ()
+    # The media (``sample.medium``) the effect exists in: a capillary meniscus only in air, a double layer only
+    # in an electrolyte. Elsewhere the diagnosis does not try it and a config that lists it is refused.
+    media: tuple[str, ...] = MEDIA
 
     def parameter(self, name: str) -> Parameter:
         for p in self.parameters:
@@ -134,8 +149,8 @@ class Model:
     derived_defaults: Callable[[Mapping[str, float]], dict[str, float]] | None = None
 
 
-# A realistic default context for checks: a 10 nm tip, a0 = 0.165 nm.
-CHECK_CONTEXT = {"R": 10e-9, "a0": 0.165e-9}
+# A realistic default context for checks: a 10 nm tip, a0 = 0.165 nm, water.
+CHECK_CONTEXT = {"R": 10e-9, "a0": 0.165e-9, "eps_r": 78.4}
 
 
 def _param_units(effect: Effect) -> dict[str, Unit]:
@@ -173,9 +188,15 @@ def validate_effect(effect: Effect) -> None:
     labels = [t.label for t in effect.terms + effect.readout_only_terms]
     if len(set(labels)) != len(labels):
         raise DefinitionError(f"term labels repeat: {labels}")
+    if not effect.media or set(effect.media) - set(MEDIA):
+        raise DefinitionError(f"media {effect.media} must be some of {MEDIA}")
     for p in effect.parameters:
         if not (p.low <= p.default <= p.high):
             raise DefinitionError(f"default of {p.name} ({p.default}) outside [{p.low}, {p.high}]")
+        for medium, low, high in p.search:
+            if medium not in MEDIA or not (p.nonlinear and p.low <= low < high <= p.high):
+                raise DefinitionError(f"search range of {p.name} in {medium} [{low}, {high}] must lie in "
+                                      f"[{p.low}, {p.high}], a medium of {MEDIA}, nonlinear parameters only")
         parse_unit(p.unit)
     state_names = tuple(s.name for s in effect.states)
     units = _param_units(effect)

@@ -26,6 +26,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from afmid.physics.contact_effects import CONTACT_DAMPING
+from afmid.physics.liquid_effects import DOUBLE_LAYER
 from afmid.physics.effect_types import (BOLTZMANN, CHECK_CONTEXT, CONTEXT_UNITS, EFFECTS, EPSILON_0, MODELS, NEWTON,
                                         Effect, Model, Parameter, Quantity, StateGate, Term, coefficient_unit,
                                         quantity_range, term_unit)
@@ -237,6 +238,7 @@ EFFECTS.register(
         },
         references=("Hudlet, Saint Jean, Guthmann, Berger, Eur. Phys. J. B 2, 5 (1998)",),
         region=Region.LONG_RANGE,
+        media=("air",),  # an electrolyte screens a static bias within a few Debye lengths: see double_layer
     )
 )
 
@@ -264,8 +266,16 @@ EFFECTS.register(
         references=("Zitzler, Herminghaus, Mugele, Phys. Rev. B 66, 155436 (2002)",),
         character=Character.HYSTERETIC,
         region=Region.NEAR,
+        media=("air",),  # under liquid there is no meniscus to form
     )
 )
+
+#: In liquid, hydration (solvation) lengths are searched up to here, m: measured hydration forces decay over
+#: 0.2-1.1 nm (Israelachvili ch. 15); a longer exponential repulsion in an electrolyte is the double layer
+#: (afmid.physics.liquid_effects.DEBYE_SEARCH_MIN: the searches overlap over [1, 1.5] nm). In air there is no
+#: double layer to take it for, and the search keeps the valid range (an outside-catalog exponential is
+#: recognised by the hydration shape's impossible sign there, afmid.diagnosis.diagnose).
+HYDRATION_SEARCH_MAX = 1.5e-9
 
 EFFECTS.register(
     Effect(
@@ -274,7 +284,9 @@ EFFECTS.register(
         formula="F = F_h exp(-(z - a0) / lambda_h)",
         parameters=(
             Parameter("hydration_force", "N", 1.0e-9, 0.0, 1e-6, "repulsion at z = a0"),
-            Parameter("hydration_length", "m", 0.3e-9, 0.02e-9, 10e-9, "decay length lambda_h", True),
+            Parameter("hydration_length", "m", 0.3e-9, 0.02e-9, 10e-9, "decay length lambda_h (in liquid searched "
+                      "up to 1.5 nm: a longer exponential repulsion there is the double layer)", True,
+                      search=(("liquid", 0.02e-9, HYDRATION_SEARCH_MAX),)),
         ),
         terms=(
             Term(
@@ -311,6 +323,7 @@ EFFECTS.register(
 
 
 EFFECTS.register(CONTACT_DAMPING)
+EFFECTS.register(DOUBLE_LAYER)
 
 
 # =========================================================================== models

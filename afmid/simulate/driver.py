@@ -435,6 +435,7 @@ def resimulate_run(run, steps_per_period: int = 2000) -> dict:
     oscillator = Oscillator(cl["spring_constant"], cl["resonance_frequency"], cl["quality_factor"],
                             run.drive["frequency"], force_amplitude)
     params = {"a0": run.config.sample.a0, "R": cl.get("tip_radius", math.nan)}
+    params.update(run.config.model.parameters)  # fixed nonlinear parameters (e.g. a Debye length of sample.ionic_strength)
     params.update({k: v["value"] for k, v in run.nonlinear.items() if k != "d"})
     terms = tuple(("fit", name, expression, float(c))
                   for name, expression, c, s in zip(run.terms, run.expressions, run.coefficients, run.selected) if s)

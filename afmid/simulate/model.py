@@ -26,6 +26,7 @@ import afmid.physics.expr as expr
 from afmid.config import RunConfig
 from afmid.errors import ConfigError
 from afmid.physics.kinematics import contact_kinematics
+import afmid.physics.medium as medium
 from afmid.physics.effects import CONTEXT_UNITS, MODELS, ForceLaw, build_force_law, effect_parameter_names
 from afmid.physics.tips import tip_geometry
 from afmid.registry import unknown_name_message
@@ -205,9 +206,10 @@ def resolve_setup(config: RunConfig) -> Setup:
             key="simulate.effects",
         )
     effects = (*model.effects, *sim.effects)
-    context = {"R": R, "a0": float(config.sample.a0)}
+    context = {"R": R, "a0": float(config.sample.a0), "eps_r": medium.relative_permittivity(config.sample)}
+    implied = medium.simulator_defaults(config.sample, effects)  # the Debye length of sample.ionic_strength, ...
     try:
-        law = build_force_law(effects, {**model.defaults, **sim.parameters}, context, model.derived_defaults,
+        law = build_force_law(effects, {**model.defaults, **implied, **sim.parameters}, context, model.derived_defaults,
                               tip_geometry(config.cantilever))
     except ValueError as exc:
         raise ConfigError(str(exc), file=config.source, key="simulate.parameters") from None

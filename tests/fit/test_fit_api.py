@@ -119,10 +119,14 @@ def test_search_range_of_the_catalog_parameters():
         for p in effect.parameters:
             if not p.nonlinear:
                 continue
-            span = search_range(library, p.name)
-            assert span.zero_allowed == (p.low == 0)
-            assert span.low == (max(p.low, 1e-12) if p.low > 0 else LOG_GRID_START)
-            assert span.high == min(p.high, LENGTH_SEARCH_MAX) and 0 < span.low < span.high
+            medium = effect.media[-1]  # liquid where an effect exists there: hydration's and the double layer's
+            span = search_range(library, p.name, medium)  # declared search ranges are for liquid
+            low, high = p.search_span(medium)
+            assert p.low <= low < high <= p.high
+            assert (low, high) == ((p.low, p.high) if medium == "air" or not p.search else p.search[0][1:])
+            assert span.zero_allowed == (low == 0)
+            assert span.low == (max(low, 1e-12) if low > 0 else LOG_GRID_START)
+            assert span.high == min(high, LENGTH_SEARCH_MAX) and 0 < span.low < span.high
             assert span.unit == p.unit
             checked += 1
     assert checked >= 2  # decay lengths and distances of the catalog

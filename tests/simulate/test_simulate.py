@@ -328,12 +328,12 @@ def _all_opcode_law():
 
 
 def _laws_under_test():
-    laws = {f"effect {name}": compile_force_law(build_force_law([name], {}, {"R": R, "a0": A0_CONTACT}))
-            for name in EFFECTS.names()}
+    context = {"R": R, "a0": A0_CONTACT, "eps_r": 78.3}  # every context quantity (CONTEXT_UNITS): water's eps_r
+    laws = {f"effect {name}": compile_force_law(build_force_law([name], {}, context)) for name in EFFECTS.names()}
     for name in MODELS.names():
         model = MODELS.get(name)
         laws[f"model {name}"] = compile_force_law(
-            build_force_law(model.effects, dict(model.defaults), {"R": R, "a0": A0_CONTACT}, model.derived_defaults))
+            build_force_law(model.effects, dict(model.defaults), context, model.derived_defaults))
     laws["all opcodes"] = _all_opcode_law()
     return laws
 
