@@ -28,8 +28,10 @@ from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import effect_for, tip_geometry
 from afmid.report.figures import figure_html
 from afmid.report.folder import report_folder
-from afmid.report.plots import (fig_coefficients, fig_error_runs, fig_force_separation, fig_force_time,
-                                fig_periods, fig_phase_portraits, fig_residual, fig_suggestions)
+from afmid.report.observables import summarize as summarize_observables
+from afmid.report.plots import (bandwidth_text, fig_coefficients, fig_error_runs, fig_force_separation,
+                                fig_force_time, fig_observables, fig_periods, fig_phase_portraits, fig_residual,
+                                fig_suggestions)
 from afmid.runcheck import check_same_traces
 from afmid.runfile import RunData, load_run
 from afmid.fit.uncertainty import ERROR_LABEL
@@ -208,8 +210,27 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                       "Force vs separation, approach (left) and retraction (right) drawn separately: the model-free "
                       "force averaged over periods (band: ±2σ of that average), the model on the same harmonics and "
                       "at full bandwidth" + (", and the true force of the simulation" if last.truth is not None else "")))
-    parts.append(_img(folder, figures["force_time"], "Force vs time over three periods: model-free vs model"))
-    parts.append(_img(folder, figures["phase_portraits"], "Phase portraits: measured periods vs the identified model re-simulated"))
+    parts.append(_img(folder, figures["force_time"],
+                      "Force vs time over three consecutive steady periods: the model-free force and the identified "
+                      f"model on the same bandwidth ({bandwidth_text(last)}; solid), the model at full bandwidth "
+                      "(dashed)" + (", the simulation's true force (grey)" if last.truth is not None else "")
+                      + ". At matched bandwidth a perfect model lies on the model-free force, ringing included: the "
+                        "ringing is the finite bandwidth, not noise"))
+    parts.append(_img(folder, figures["phase_portraits"],
+                      "Phase portraits as in the paper's figures S1.1-S1.8: (a) the measured periods (transient ones "
+                      "apart, when the record has them) and the identified model re-simulated with the fitted drive; "
+                      "(b) zoom on the turn at the sample, where the tip-sample force bends the orbit; (c) the "
+                      "model's deflection minus the measured steady orbit over the drive phase, against the "
+                      "measured period-to-period spread (±2σ): a model that misses an effect stands outside the band"))
+    parts.append(_img(folder, figures["observables"],
+                      "Tapping-mode observables per period, measured (dots) and as the identified model predicts "
+                      "(dashed; the model re-simulated)" + (", truth grey" if last.truth is not None else "") + ": "
+                      "(a) amplitude A/A0 and (b) phase φ − φ0 of the deflection's first harmonic vs the free "
+                      "oscillation (A0, φ0: the cantilever model k, f0, Q driven by the drive); (c) power dissipated "
+                      "in the sample, π A (F0 sin φ − c ω A) f (Cleveland et al. 1998), and (d) the virial "
+                      "((k − m ω²) A² − F0 A cos φ)/2 (San Paulo and Garcia 2001). (c) and (d) depend on the drive "
+                      "F0, which afmid fits together with the force law unless a calibrated drive is given, and on "
+                      "k, f0, Q; summary.json has them ('observables')"))
     parts.append(_img(folder, figures["coefficients"], "Coefficients with bootstrap standard errors, 1 σ (truth when simulated)"))
     parts.append("<h2>Where the model fails</h2>")
     parts.append(f"<p>{_rich(diag.get('description', '') or describe_residual(local, last))}.</p>")
@@ -305,8 +326,11 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
             summary.update(suggest(last, progress=progress))
         summary["energy"] = energy
         summary["afmid_version"] = __version__
+        resim = resimulate(last)
+        summary["observables"] = summarize_observables(last, resim)
         figures = {
-            "phase_portraits": fig_phase_portraits(last, tmp, resimulate(last)),
+            "phase_portraits": fig_phase_portraits(last, tmp, resim),
+            "observables": fig_observables(last, tmp, resim),
             "force_time": fig_force_time(last, tmp),
             "force_separation": fig_force_separation(last, tmp),
             "coefficients": fig_coefficients(last, tmp, truth_coefficients(last)),
