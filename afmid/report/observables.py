@@ -124,11 +124,38 @@ def run_lever(run, force_amplitude: float | None = None, drive_phase: float | No
                       math.atan2(drive["sin"], drive["cos"]) if drive_phase is None else drive_phase)
 
 
+def first_harmonic_per_period(time: np.ndarray, deflection: np.ndarray, starts: np.ndarray, frequency: float
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """Amplitude (m) and phase (rad) of x = A cos(w t - phi_x) + offset fitted by least squares to the samples
+    (``time`` s, ``deflection`` m) of each period [start, start + 1/f) (``starts`` s): a lock-in over one period,
+    exact for any number of samples per period up to the leakage of the higher harmonics (order 1/samples)."""
+    t = np.asarray(time, dtype=float)
+    x = np.asarray(deflection, dtype=float)
+    period = 1.0 / frequency
+    dt = float(t[1] - t[0])
+    first = np.searchsorted(t, np.asarray(starts) - dt / 2)
+    stop = np.searchsorted(t, np.asarray(starts) + period - dt / 2)
+    theta = 2.0 * math.pi * frequency * t
+    c, s = np.cos(theta), np.sin(theta)
+    sums = {}
+    for name, values in (("1", np.ones_like(t)), ("c", c), ("s", s), ("cc", c * c), ("ss", s * s), ("cs", c * s),
+                         ("x", x), ("xc", x * c), ("xs", x * s)):
+        cumulative = np.r_[0.0, np.cumsum(values)]
+        sums[name] = cumulative[stop] - cumulative[first]
+    normal = np.stack([np.stack([sums["1"], sums["c"], sums["s"]], -1), np.stack([sums["c"], sums["cc"], sums["cs"]], -1),
+                       np.stack([sums["s"], sums["cs"], sums["ss"]], -1)], -2)
+    rhs = np.stack([sums["x"], sums["xc"], sums["xs"]], -1)[..., None]
+    coef = np.linalg.solve(normal, rhs)[..., 0]
+    return np.hypot(coef[:, 1], coef[:, 2]), np.arctan2(coef[:, 2], coef[:, 1])
+
+
 def measured_observables(run, lever: Cantilever | None = None) -> dict[str, np.ndarray]:
-    """Per period observables of a run from its deflection curves (``/periods/deflection`` on the drive-phase
-    grid ``/periods/phase``), with the run's fitted drive unless ``lever`` is given."""
+    """Per period observables of a run from its recorded deflection (``/force/deflection`` at ``/force/time``)
+    over the run's periods (``/periods/period_start_time``), with the run's fitted drive unless ``lever`` is
+    given. (Not from the smoothed per-period Fourier curves of ``/periods``: those are the fit's trajectory.)"""
     lever = run_lever(run) if lever is None else lever
-    amplitude, phase_x = first_harmonic(run.periods["deflection"], run.periods["phase"])
+    amplitude, phase_x = first_harmonic_per_period(run.force["time"], run.force["deflection"],
+                                                   run.periods["period_start_time"], lever.drive_frequency)
     return tapping_observables(amplitude, _wrap(phase_x - lever.drive_phase), lever)
 
 

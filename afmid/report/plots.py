@@ -246,6 +246,16 @@ def fig_coefficients(run: RunData, folder: Path, truth: dict[str, float]) -> str
     return _save(fig, folder, "coefficients")
 
 
+def compared_harmonics(local: dict) -> np.ndarray:
+    """The drive harmonics on the residual's harmonic axis: 0 up to the highest one the comparison keeps
+    (``max_signal_harmonic``; else the highest with a residual), never past the spectrum."""
+    spectrum = np.asarray(local["by_harmonic"], dtype=float)
+    present = np.flatnonzero(spectrum > 0)
+    limit = local.get("max_signal_harmonic")
+    top = int(limit) if limit else (int(present[-1]) if present.size else 0)
+    return np.arange(min(top, spectrum.size - 1) + 1)
+
+
 def fig_residual(local: dict, folder: Path, a0: float | None = None) -> str:
     """Systematic residual vs separation by direction, by region and direction, by harmonic (the axis runs over
     the harmonics the comparison keeps)."""
@@ -280,11 +290,9 @@ def fig_residual(local: dict, folder: Path, a0: float | None = None) -> str:
     axes[1].set(ylabel="residual rms (nN)", title="(b) by region, share")
     axes[1].legend(fontsize=6.5)
     spectrum = np.asarray(local["by_harmonic"], dtype=float)
-    present = np.flatnonzero(spectrum > 0)
-    top = int(limit) if limit else (int(present[-1]) if present.size else 0)
-    top = min(top, spectrum.size - 1)
-    harmonics = np.arange(top + 1)
-    axes[2].bar(harmonics, spectrum[:top + 1] * NN, 0.7, color="C2")
+    harmonics = compared_harmonics(local)
+    top = int(harmonics[-1])
+    axes[2].bar(harmonics, spectrum[harmonics] * NN, 0.7, color="C2")
     axes[2].set_xlim(-0.6, top + 0.6)
     from matplotlib.ticker import MaxNLocator
 
