@@ -14,6 +14,7 @@ import numpy as np
 from afmid.diagnosis.diagnose import BIC_EVIDENCE, band_limit
 from afmid.report import observables
 from afmid.report.figures import FULL_WIDTH, log_axis, pyplot, save_figure
+from afmid.report.quantity_text import display_unit, format_delta_bic
 from afmid.runfile import RunData
 
 NN = 1e9  # N -> nN for display
@@ -333,11 +334,12 @@ def fig_observables(run: RunData, folder: Path, resim: dict | None) -> str:
     measured = observables.measured_observables(run, lever)
     model = observables.model_observables(resim, lever) if resim is not None else {}
     truth = _truth_observables(run)
-    eV = 1.602176634e-19
+    power_scale, power_unit = display_unit("W")
+    energy_scale, energy_unit = display_unit("J")
     panels = (("amplitude_ratio", 1.0, "A / A0 (1)", "(a) amplitude vs the free oscillation"),
               ("phase_shift", 180 / math.pi, "φ − φ0 (degrees, lag +)", "(b) phase vs the free oscillation"),
-              ("dissipated_power", 1e12, "dissipated power (pW)", "(c) power dissipated in the sample"),
-              ("virial", 1 / eV, "virial (eV)", "(d) virial of the tip-sample force"))
+              ("dissipated_power", power_scale, f"dissipated power ({power_unit})", "(c) power dissipated in the sample"),
+              ("virial", energy_scale, f"virial ({energy_unit})", "(d) virial of the tip-sample force"))
     fig, axes = plt.subplots(2, 2, figsize=(FULL_WIDTH, 4.0), sharex=True)
     axes = axes.ravel()
     k = np.arange(measured["amplitude"].size)
@@ -425,7 +427,7 @@ def fig_suggestions(summary: dict, folder: Path) -> str | None:
     evidence = np.array([-t["delta_bic"] if t["delta_bic"] is not None else 0.0 for t in tried][::-1])
     axes[0].barh(pos, evidence, left=0.0, color=colours, height=0.7)
     for y, value in zip(pos, evidence):
-        axes[0].text(value, y, f" {_evidence_text(value)} " if value >= 0 else f" {_evidence_text(value)} ",
+        axes[0].text(value, y, f" {format_delta_bic(value)} ",
                      va="center", ha="left" if value >= 0 else "right", fontsize=6.5)
     axes[0].axvline(0, color="k", lw=0.7)
     axes[0].axvline(BIC_EVIDENCE, color="k", lw=0.8, ls="--")
@@ -448,8 +450,3 @@ def fig_suggestions(summary: dict, folder: Path) -> str | None:
     axes[1].set(xlabel="cross-validated error after adding it", title="error with the candidate added")
     axes[1].legend(fontsize=6.5, loc="upper right")
     return _save(fig, folder, "suggestions")
-
-
-def _evidence_text(value: float) -> str:
-    """−ΔBIC as a label on its bar (the same number the axis shows)."""
-    return "0" if abs(value) < 0.5 else f"{value:.0f}"
