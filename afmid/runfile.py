@@ -249,6 +249,7 @@ class RunData:
     model_limited: bool = False  # cv_error above its noise floor (afmid.fit.uncertainty.model_limited)
     force_calibration_uncertainty: float = 0.0  # relative 1 sigma of the force from the declared k / Q
     force_separation_uncertainty: float = math.nan  # RMS 1 sigma of the force from the estimated d, / peak
+    cv_error_folds: np.ndarray | None = None  # the cross-validated error of each fold (cv_error is their mean)
 
     @property
     def n_terms(self) -> int:
@@ -365,6 +366,7 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         separation=float(m["separation"][()]),
         cv_error=float(d["cv_error"][()]),
         cv_error_noise_floor=float(d["cv_error_noise_floor"][()]),
+        cv_error_folds=np.asarray(d["cv_error_folds"][...], dtype=float) if "cv_error_folds" in d else None,
         bic=float(d["bic"][()]),
         chi2_reduced=float(d["chi2_reduced"][()]),
         drive={k: float(v[()]) for k, v in m["drive"].items()},

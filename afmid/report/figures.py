@@ -5,6 +5,10 @@ Every figure a report writes is saved twice with the same stem (pinned, issue 15
 linked under the figure as "SVG". The SVG carries no creation date, so the same figure gives the same file.
 Point clouds that would make an SVG heavy are drawn with ``rasterized=True`` by their figure (the rest of the
 figure stays vector).
+
+One publication style for every report figure (:data:`PAPER_STYLE`, set by :func:`pyplot`): 8-pt text, axis
+labels with units (nm, nN, µs), no top/right spines, a constrained layout, PNGs at :data:`FIGURE_DPI`; log axes
+through :func:`log_axis`, whose tick labels do not overlap.
 """
 
 from __future__ import annotations
@@ -16,15 +20,70 @@ from pathlib import Path
 #: The formats every report figure is written in, the first embedded in the page.
 FIGURE_FORMATS = ("png", "svg")
 
+#: Resolution of the PNGs (the SVG beside each is vector).
+FIGURE_DPI = 200
+
+#: Width (inches) of a figure that spans the page / a two-column paper's full width.
+FULL_WIDTH = 7.0
+
+#: The one style of the report's figures (matplotlib rcParams).
+PAPER_STYLE = {
+    "figure.dpi": 100, "savefig.dpi": FIGURE_DPI, "figure.constrained_layout.use": True,
+    "font.size": 8, "axes.titlesize": 8.5, "axes.labelsize": 8, "xtick.labelsize": 7, "ytick.labelsize": 7,
+    "legend.fontsize": 7, "legend.frameon": False, "axes.titleweight": "normal",
+    "axes.spines.top": False, "axes.spines.right": False, "axes.grid": True, "grid.alpha": 0.25,
+    "grid.linewidth": 0.5, "axes.linewidth": 0.7, "lines.linewidth": 1.2, "lines.markersize": 3,
+    "xtick.major.width": 0.7, "ytick.major.width": 0.7, "xtick.direction": "out", "ytick.direction": "out",
+    "svg.hashsalt": "afmid",  # the SVG's element ids do not change from run to run
+    "svg.fonttype": "none",  # text stays text in the SVG (editable in a paper)
+}
+
+
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend with :data:`PAPER_STYLE` applied."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plt.rcParams.update(PAPER_STYLE)
+    return plt
+
+
+def plain_number(value: float, _pos=None) -> str:
+    """A tick label without exponent or trailing zeros: 0.05, 0.1, 2, 300, 1e+04 only beyond 1e4."""
+    if value == 0:
+        return "0"
+    if 1e-3 <= abs(value) < 1e5:
+        return f"{value:.4g}"
+    return f"{value:.0e}".replace("e+0", "e").replace("e-0", "e-")
+
+
+def log_axis(ax, which: str = "y") -> None:
+    """Put ``ax``'s ``which`` axis ("x" or "y") on a log scale with plain-number labels at the decades and, on a
+    range under two decades, at 2x and 5x the decade only (all the minor ticks labelled would overlap)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    axis = ax.yaxis if which == "y" else ax.xaxis
+    (ax.set_yscale if which == "y" else ax.set_xscale)("log")
+    axis.set_major_locator(LogLocator(base=10))
+    axis.set_major_formatter(FuncFormatter(plain_number))
+    low, high = (ax.get_ylim() if which == "y" else ax.get_xlim())
+    if low > 0 and high / low < 100:
+        axis.set_minor_locator(LogLocator(base=10, subs=(2.0, 5.0)))
+        axis.set_minor_formatter(FuncFormatter(plain_number))
+    else:
+        axis.set_minor_formatter(NullFormatter())
+
 
 def save_figure(fig, folder: Path, stem: str, dpi: float | None = None) -> str:
-    """Write ``fig`` as ``folder/STEM.png`` (at ``dpi``, default the figure's) and ``folder/STEM.svg``, close
-    it and return the PNG's file name."""
+    """Write ``fig`` as ``folder/STEM.png`` (at ``dpi``, default :data:`FIGURE_DPI`) and ``folder/STEM.svg``,
+    close it and return the PNG's file name."""
     import matplotlib.pyplot as plt
 
     folder = Path(folder)
     try:
-        fig.savefig(folder / f"{stem}.png", **({} if dpi is None else {"dpi": dpi}))
+        fig.savefig(folder / f"{stem}.png", dpi=FIGURE_DPI if dpi is None else dpi)
         fig.savefig(folder / f"{stem}.svg", format="svg", metadata={"Date": None})
     finally:
         plt.close(fig)

@@ -153,3 +153,61 @@ def test_refuses_a_non_empty_folder(pair_report, runs):
 def test_every_figure_is_also_an_svg(pair_report, single_report, check_report_svgs):
     check_report_svgs(pair_report[0])
     check_report_svgs(single_report)
+
+
+REPORT_FIGURES = {"force_separation", "force_time", "phase_portraits", "observables", "coefficients", "residual",
+                  "periods", "error_by_run", "suggestions"}
+
+
+@pytest.mark.slow
+def test_every_figure_is_written_as_png_at_200_dpi_and_svg(pair_report):
+    """Each figure of the pair's report: the PNG at the publication resolution and its SVG beside it."""
+    from PIL import Image
+
+    from afmid.report.figures import FIGURE_DPI
+
+    out, _ = pair_report
+    written = {p.stem for p in out.glob("*.png")}
+    assert written == REPORT_FIGURES
+    for stem in written:
+        with Image.open(out / f"{stem}.png") as png:
+            assert png.info["dpi"] == pytest.approx((FIGURE_DPI, FIGURE_DPI), abs=0.5), stem
+        assert (out / f"{stem}.svg").stat().st_size > 0, stem
+
+
+@pytest.mark.slow
+def test_summary_has_the_tapping_mode_observables(pair_report):
+    """summary.json 'observables': each measured (mean, sd over periods) and predicted by the identified model,
+    with its unit and what it depends on; A/A0 of a tapping lever below 1, the sample dissipating energy."""
+    out, _ = pair_report
+    obs = json.loads((out / "summary.json").read_text())["observables"]
+    units = {"amplitude_ratio": "1", "phase_shift": "rad", "dissipated_energy": "J", "dissipated_power": "W",
+             "virial": "J"}
+    for name, unit in units.items():
+        entry = obs[name]
+        assert entry["unit"] == unit and entry["depends_on"]
+        assert entry["measured_mean"] is not None and entry["measured_sd"] is not None and entry["model"] is not None
+    assert 0.5 < obs["amplitude_ratio"]["measured_mean"] < 1.0
+    assert obs["dissipated_energy"]["measured_mean"] > 0 and obs["dissipated_energy"]["model"] > 0
+    assert obs["free_oscillation"]["amplitude"] > 0
+
+
+def test_the_residual_harmonic_axis_runs_over_the_compared_harmonics():
+    """7 compared harmonics and a spectrum of 31: the axis holds 0-7, not 0-30; without the limit, up to the last
+    harmonic with a residual; never past the spectrum."""
+    import numpy as np
+
+    from afmid.report.plots import compared_harmonics
+
+    spectrum = np.zeros(31)
+    spectrum[:8] = 1.0
+    assert list(compared_harmonics({"by_harmonic": spectrum, "max_signal_harmonic": 7})) == list(range(8))
+    spectrum[5:] = 0.0
+    assert list(compared_harmonics({"by_harmonic": spectrum, "max_signal_harmonic": None})) == list(range(5))
+    assert list(compared_harmonics({"by_harmonic": np.ones(4), "max_signal_harmonic": 9})) == list(range(4))
+
+
+def test_log_axis_labels_are_plain_numbers():
+    from afmid.report.figures import plain_number
+
+    assert [plain_number(v) for v in (0.05, 0.1, 0.2, 1.0, 300.0, 1e6)] == ["0.05", "0.1", "0.2", "1", "300", "1e6"]
