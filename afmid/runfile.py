@@ -249,6 +249,7 @@ class RunData:
     model_limited: bool = False  # cv_error above its noise floor (afmid.fit.uncertainty.model_limited)
     force_calibration_uncertainty: float = 0.0  # relative 1 sigma of the force from the declared k / Q
     force_separation_uncertainty: float = math.nan  # RMS 1 sigma of the force from the estimated d, / peak
+    cv_error_folds: np.ndarray | None = None  # the cv error of each held-out fold (its spread: the error's scatter)
 
     @property
     def n_terms(self) -> int:
@@ -378,6 +379,7 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         harmonics=d["harmonics"][...].astype(int) if "harmonics" in d else None,
         signal_rows=d["signal_rows"][...].astype(bool) if "signal_rows" in d else None,
         model_limited=bool(d["model_limited"][()]) if "model_limited" in d else False,
+        cv_error_folds=np.atleast_1d(d["cv_error_folds"][...]).astype(float) if "cv_error_folds" in d else None,
         force_calibration_uncertainty=float(h5["force"]["estimate"].attrs.get("calibration_relative_uncertainty", 0.0)),
         force_separation_uncertainty=float(h5["force"]["estimate"].attrs.get("separation_relative_uncertainty",
                                                                              math.nan)),
