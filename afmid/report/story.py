@@ -21,7 +21,7 @@ import numpy as np
 
 from afmid.diagnosis.diagnose import describe_residual, localize, suggest
 from afmid.fit.uncertainty import ERROR_LABEL, FLOOR_FACTOR
-from afmid.report.quantity_text import format_delta_bic
+from afmid.report.quantity_text import format_delta_bic, format_measurement, format_value
 from afmid.runfile import RunData
 
 #: Keys of a suggestion kept in each run's diagnosis (summary.json ``runs[*].diagnosis.suggestions``).
@@ -36,21 +36,13 @@ def fold_spread(run: RunData) -> tuple[float, int]:
     return (float(np.std(folds, ddof=1)) if folds.size > 1 else math.nan), int(folds.size)
 
 
-def _g(value: float | None, digits: int = 2) -> str:
-    if value is None or not math.isfinite(value):
-        return "–"
-    return f"{value:.{digits}g}" if abs(value) < 1e-3 or abs(value) >= 1e3 else f"{value:.{max(digits, 1)}g}"
-
-
 def error_text(error: float, sd: float, k: int) -> str:
-    """'0.043 ± 0.004 (sd over 5 folds)': the pooled cv error with the spread of its folds."""
+    """'0.043 ± 0.004 (sd over 5 folds)': the pooled cv error with the spread of its folds (PDG rounding)."""
     if error is None or not math.isfinite(error):
         return "–"
-    if not math.isfinite(sd):
-        return f"{error:.3g}"
-    # As many decimals as the spread's first significant digit needs (two when it starts with 1).
-    decimals = max(0, -int(math.floor(math.log10(sd))) + (1 if f"{sd:.1e}".startswith("1") else 0)) if sd > 0 else 3
-    return f"{error:.{decimals}f} ± {sd:.{decimals}f} (sd over {k} folds)"
+    if not (math.isfinite(sd) and sd > 0):
+        return format_value(error, "1")
+    return format_measurement(error, sd, "1", kind=f"sd over {k} folds")
 
 
 def _ratio_words(error: float, floor: float) -> str:
@@ -151,7 +143,7 @@ def _suggestion_words(diagnosis: dict) -> str:
         names = " + ".join(f"`{s['effect']}`" for s in sugg)
         top = sugg[0]
         return (f"suggested: add {names} (ΔBIC {format_delta_bic(top['delta_bic'])}, error after "
-                f"{_g(top['error_after'], 3)})")
+                f"{format_value(top['error_after'], '1')})")
     if diagnosis["undecided"]:
         return "a missing effect, but the data cannot decide between " + ", ".join(
             f"`{e}`" for e in diagnosis["undecided"])
@@ -185,7 +177,7 @@ def _change(prev: RunData, run: RunData) -> str:
     if not (math.isfinite(before) and math.isfinite(after)):
         return "the errors cannot be compared:"
     verb = "fell" if after < before else "rose" if after > before else "stayed"
-    return f"the error {verb} from {_g(before, 3)} to"
+    return f"the error {verb} from {format_value(before, '1')} to"
 
 
 def loop_steps(runs: list[RunData], diagnoses: list[dict]) -> list[dict]:
