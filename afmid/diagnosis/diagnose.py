@@ -50,6 +50,8 @@ from afmid.diagnosis.candidate_shapes import ShapeSearch
 from afmid.diagnosis.localize import NEAR_RANGE, band_limit, energy_check, localize  # noqa: F401
 import afmid.physics.medium as medium
 from afmid.physics.effects import EFFECTS
+# BIC differences as a person reads them (no -0, no 7e-13): the one formatter of afmid's numbers.
+from afmid.report.quantity_text import format_delta_bic
 # A cross-validated error within FLOOR_FACTOR of its noise floor counts as the noise level (one constant with
 # the fit's model-limited mark).
 from afmid.fit.uncertainty import FLOOR_FACTOR, at_noise_floor
@@ -402,7 +404,7 @@ def _forward(run: RunData, prepared, good: list[Trial]) -> tuple[tuple[float, fl
             bic, error, state = fitted.bic, fitted.error, fitted.state
             continue
         why = ("its terms are not selected" if not fitted.selected[t.effect] else
-               f"the BIC changes by only {gain:.0f}" if gain > -BIC_EVIDENCE else "the cross-validated error does not fall")
+               f"the BIC changes by only {format_delta_bic(gain)}" if gain > -BIC_EVIDENCE else "the cross-validated error does not fall")
         verdicts[t.effect] = (f"added to {', '.join(k.effect for k in kept)} it no longer helps ({why}): it imitates "
                               "part of the same residual")
     # Pairs cost refits only (a pair must still beat the forward choice by BIC_EVIDENCE): tried whenever the
@@ -472,7 +474,7 @@ def _rejections(t: Trial, base: _Base) -> list[str]:
     if not t.effect_terms_selected:
         reasons.append("its terms were not selected")
     if t.delta_bic > -BIC_EVIDENCE:
-        reasons.append(f"ΔBIC {t.delta_bic:.0f} is not below -{BIC_EVIDENCE:g}")
+        reasons.append(f"ΔBIC {format_delta_bic(t.delta_bic)} is not below -{BIC_EVIDENCE:g}")
     if not t.error_after < base.error:
         reasons.append("the cross-validated error does not fall")
     elif base.error > FLOOR_FACTOR * base.floor:
@@ -569,7 +571,7 @@ def _evidence(t: Trial, local: dict, base: _Base, trials: list[Trial]) -> str:
     text += f"changes the cross-validated error from {base.error:.3g} to {t.error_after:.3g} (noise floor {base.floor:.3g}"
     if before > 0 and base.error > FLOOR_FACTOR * base.floor:
         text += f"; {100 * (1 - (after / before) ** 2):.0f} % of the error variance above the noise removed"
-    text += f") and the BIC by {t.delta_bic:.0f} ({_strength(t.delta_bic)}); reduced chi-square {base.chi2:.3g} -> {t.chi2_after:.3g}"
+    text += f") and the BIC by {format_delta_bic(t.delta_bic)} ({_strength(t.delta_bic)}); reduced chi-square {base.chi2:.3g} -> {t.chi2_after:.3g}"
     parts = [f"{k} = {_value_words(v['value'], v['unit'])}" for k, v in t.quantities.items()]
     parts += [f"{k} = {_value_words(v, 'm')}" for k, v in t.shape.items()]
     if parts:
@@ -579,18 +581,18 @@ def _evidence(t: Trial, local: dict, base: _Base, trials: list[Trial]) -> str:
                  and o.delta_bic - t.delta_bic < BIC_DISTINCT]
         rivals = [o for o in close if not o.implausible]
         if rivals:
-            text += ("; the data barely tell it from " + ", ".join(f"`{o.effect}` (ΔBIC {o.delta_bic:.0f})" for o in rivals))
+            text += ("; the data barely tell it from " + ", ".join(f"`{o.effect}` (ΔBIC {format_delta_bic(o.delta_bic)})" for o in rivals))
         else:
             runner = min((o for o in trials if o is not t and not o.implausible and o.effect_terms_selected
                           and o.delta_bic <= -BIC_EVIDENCE and o.delta_bic >= t.delta_bic),
                          key=lambda o: o.delta_bic, default=None)
             if runner is not None:
                 gap = runner.delta_bic - t.delta_bic
-                text += (f"; next best `{runner.effect}` (ΔBIC {runner.delta_bic:.0f}): {_strength(-gap)} for "
+                text += (f"; next best `{runner.effect}` (ΔBIC {format_delta_bic(runner.delta_bic)}): {_strength(-gap)} for "
                          f"`{t.effect}` over it")
         for o in close:
             if o.implausible and o.delta_bic - t.delta_bic > -BIC_EVIDENCE:
-                text += f"; `{o.effect}` fits about as well (ΔBIC {o.delta_bic:.0f}) but is ruled out: {o.implausible[0]}"
+                text += f"; `{o.effect}` fits about as well (ΔBIC {format_delta_bic(o.delta_bic)}) but is ruled out: {o.implausible[0]}"
         if not t.explains:
             text += "; a significant residual remains after adding it: it explains only part of the misfit"
     elif t.reasons:
@@ -613,7 +615,7 @@ def _outside_words(t: Trial, top: Trial | None) -> str:
     eff = EFFECTS.get(t.effect)
     shape = ", ".join(f"{k} = {v * 1e9:.3g} nm" for k, v in t.shape.items())
     text = (f"the data prefer the shape of `{t.effect}` ({eff.formula}{'; ' + shape if shape else ''}) with values "
-            f"no physical {t.effect} can have ({t.implausible[0]}; ΔBIC {t.delta_bic:.0f}")
+            f"no physical {t.effect} can have ({t.implausible[0]}; ΔBIC {format_delta_bic(t.delta_bic)}")
     text += f", {top.delta_bic - t.delta_bic:.0f} better than `{top.effect}`)" if top else ")"
     return text + ": a force outside the catalog"
 
@@ -621,7 +623,7 @@ def _outside_words(t: Trial, top: Trial | None) -> str:
 def _verdict(good: list[Trial], significant: bool, explained: bool, base: _Base, outside: list[Trial],
              error_after: float = math.nan, delta_bic: float = math.nan) -> str:
     names = " + ".join(t.effect for t in good)
-    change = f"error {base.error:.3g} -> {error_after:.3g}, ΔBIC {delta_bic:.0f}"
+    change = f"error {base.error:.3g} -> {error_after:.3g}, ΔBIC {format_delta_bic(delta_bic)}"
     if good and explained:
         what = "missing effect" if len(good) == 1 else "missing effects"
         return f"{what}: {names} ({change})"

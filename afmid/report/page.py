@@ -32,9 +32,10 @@ from afmid.report.observables import summarize as summarize_observables
 from afmid.report.plots import (bandwidth_text, fig_coefficients, fig_error_runs, fig_force_separation,
                                 fig_force_time, fig_observables, fig_periods, fig_phase_portraits, fig_residual,
                                 fig_suggestions)
+from afmid.report.quantity_text import format_delta_bic, format_measurement, format_value
+from afmid.report.story import diagnose_runs, error_text, fold_spread, loop_html, loop_lines, loop_steps, run_entry
 from afmid.runcheck import check_same_traces
 from afmid.runfile import RunData, load_run
-from afmid.fit.uncertainty import ERROR_LABEL
 
 log = logging.getLogger(__name__)
 NN = 1e9  # N -> nN for display
@@ -94,10 +95,12 @@ def _table(header: list[str], rows: list[list]) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
-def _fmt(v: float, unit: str = "") -> str:
+def _fmt(v: float, unit: str = "", digits: int = 3) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
-    return f"{v:.4g}{(' ' + unit) if unit else ''}"
+    text = f"{v:.{digits}g}"
+    text = text.lstrip("-") if float(text) == 0 else text  # a rounded zero has no sign
+    return text + (f" {unit}" if unit else "")
 
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1150px;margin:2em auto;color:#222;line-height:1.45}
@@ -110,7 +113,8 @@ th{background:#f3f3f3}figure{margin:1em 0}img{max-width:100%}figcaption{font-siz
 code{background:#f3f3f3;padding:0 .2em}"""
 
 
-def _verdict_box(summary: dict) -> str:
+def _verdict_box(summary: dict, last_name: str | None = None) -> str:
+    """The verdict on the (last) run; ``last_name`` given when the page compares several runs."""
     diag = summary.get("diagnosis") or {}
     sugg = summary.get("suggestions") or []
     if "missing_effect" not in summary or not diag:
@@ -144,6 +148,8 @@ def _verdict_box(summary: dict) -> str:
         head = "No effect is missing: the model explains the data to the noise level"
         body = "<p>No catalog effect improves the fit with strong evidence; see 'Effects tried'.</p>"
         cls = ""
+    if last_name:
+        head = f"The last run, {html.escape(last_name)}: {head[0].lower()}{head[1:]}"
     return f"<div class='verdict {cls}'><h2>{head}</h2>{body}<p>{html.escape(facts)}</p></div>"
 
 
@@ -155,20 +161,25 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
              "The model-free force is F = drive − (m x'' + c x' + k x), limited to the drive harmonics that stand "
              "above the noise; the model is compared with it on the same harmonics.</p>"]
     diag = summary.get("diagnosis", {})
-    parts.append(_verdict_box(summary))
+    if summary.get("loop"):  # several runs: the loop first, then the verdict on the last run
+        parts.append(loop_html(summary["loop"], _rich))
+    parts.append(_verdict_box(summary, last.path.name if len(runs) > 1 else None))
     parts.extend(f"<p><b>Note:</b> {html.escape(note)}</p>" for note in summary.get("notes", []))
     parts.append("<h2>Runs</h2>")
-    rows = [[r.path.name, ", ".join(r.effects) or "(library)", _fmt(r.cv_error), _fmt(r.cv_error_noise_floor),
-             "yes" if r.model_limited else "no", r.n_terms, _fmt(r.chi2_reduced), ", ".join(r.selected_terms)]
-            for r in runs]
-    parts.append(_table(["run", "effects", "cv error", "noise floor", "model-limited", "terms", "χ²_red",
-                         "selected terms"], rows))
+    rows = [[r.path.name, ", ".join(r.effects) or "(library)", error_text(r.cv_error, *fold_spread(r)),
+             _fmt(r.cv_error_noise_floor, digits=3), "yes" if r.model_limited else "no", r.n_terms,
+             _fmt(r.chi2_reduced, digits=3), ", ".join(r.selected_terms), e["diagnosis"]["verdict"]]
+            for r, e in zip(runs, summary["runs"])]
+    parts.append(_table(["run", "effects", "cv error ± sd over folds", "noise floor", "model-limited", "terms",
+                         "χ²_red", "selected terms", "diagnosis of this run"], rows))
     if "error_by_run" in figures:
         parts.append(_img(folder, figures["error_by_run"], "Cross-validated error of each run, in the order given, "
                                                            "with the error a perfect model would show (noise floor)"))
     parts.append("<h2>Physical parameters</h2>")
     names = sorted({k for r in runs for k in r.quantities}) + sorted(
         {k for r in runs for k in r.nonlinear if k != "d"} - {k for r in runs for k in r.quantities})
+    units = {p.name: p.unit for e in EFFECTS for p in e.parameters}
+    units.update({k: q.get("unit", "") for r in runs for k, q in {**r.nonlinear, **r.quantities}.items()})
     rows = []
     for n in names:
         row = [n]
@@ -180,11 +191,12 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
             elif q:
                 row.append(quantity_cell(q))
             elif fixed is not None:
-                row.append(f"{fixed:.4g} (fixed)")
+                row.append(f"{format_value(fixed, units.get(n, ''), 4)} (fixed)")
             else:
                 row.append("–")
         if truth_q:
-            row.append(_fmt(truth_q.get(n, math.nan)))
+            truth = truth_q.get(n, math.nan)
+            row.append(format_value(truth, units.get(n, ""), 4) if math.isfinite(truth) else "–")
         rows.append(row)
     parts.append(_table(["quantity"] + [r.path.name for r in runs] + (["truth"] if truth_q else []), rows))
     parts.append("<p>Errors are 1 σ: the bootstrap over periods (and the nonlinear parameters' profiles), plus, "
@@ -266,10 +278,12 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                      "a lower cross-validated error and physically possible parameter values; ranked by BIC.</p>")
         if "suggestions" in figures:
             parts.append(_img(folder, figures["suggestions"], "Candidates: BIC decrease (green = accepted) and error after adding each"))
-        rows = [[t["effect"], _fmt(t["error_after"]), _fmt(t["delta_bic"]), "yes" if t["significant"] else "no",
-                 ", ".join(f"{k} = {v['value']:.3g} {v['unit']}" for k, v in t["parameters"].items()
-                           if v["value"] is not None and math.isfinite(v["value"]))
-                 + "".join(f", {k} = {v:.3g} m" for k, v in t.get("nonlinear", {}).items()),
+        rows = [[t["effect"], _fmt(t["error_after"], digits=3),
+                 format_delta_bic(t["delta_bic"]) if t["delta_bic"] is not None else "–",
+                 "yes" if t["significant"] else "no",
+                 ", ".join([f"{k} = {format_value(v['value'], v['unit'])}" for k, v in t["parameters"].items()
+                            if v["value"] is not None and math.isfinite(v["value"])]
+                           + [f"{k} = {format_value(v, 'm')}" for k, v in t.get("nonlinear", {}).items()]),
                  t["evidence"]] for t in summary["tried"]]
         parts.append(_table(["effect", "error after", "ΔBIC", "accepted", "fitted", "evidence"], rows))
     parts.append("</body></html>")
@@ -306,24 +320,15 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
         last = runs[-1]
         local = localize(last)
         energy = energy_check(last)
-        summary = {
-            "runs": [{"run": str(p), "effects": r.effects, "error": r.cv_error, "noise_floor": r.cv_error_noise_floor,
-                      "n_terms": r.n_terms,
-                      "terms": r.selected_terms, "chi2_reduced": r.chi2_reduced,
-                      "model_limited": r.model_limited,
-                      "parameters": {k: {"value": v["value"], "error": v["error"], "error_kind": ERROR_LABEL,
-                                         "error_statistical": v.get("error_statistical", v["error"]),
-                                         "error_calibration": v.get("error_calibration", 0.0),
-                                         "model_limited": v.get("model_limited", False), "unit": v["unit"],
-                                         "plausible": v.get("plausible", True),
-                                         "plausibility": v.get("plausibility", "")}
-                                     for k, v in r.quantities.items()}}
-                     for p, r in zip(paths, runs)],
-        }
+        result = suggest(last, progress=progress) if suggest_effects else None
+        diagnoses = diagnose_runs(runs, result, local, suggest_effects, progress)
+        summary = {"runs": [run_entry(p, r, d) for p, r, d in zip(paths, runs, diagnoses)]}
+        if len(runs) > 1:
+            summary["loop"] = loop_steps(runs, diagnoses)
         if notes:
             summary["notes"] = notes
-        if suggest_effects:
-            summary.update(suggest(last, progress=progress))
+        if result is not None:
+            summary.update(result)
         summary["energy"] = energy
         summary["afmid_version"] = __version__
         resim = resimulate(last)
@@ -366,40 +371,60 @@ def _jsonable(obj):
 
 
 def terminal_summary(summary: dict, output: Path) -> str:
-    lines = [f"{'run':<28} {'effects':<34} {'error':>8} {'terms':>5}"]
+    """The lines ``afmid report`` prints: the runs (error ± sd over folds, noise floor), the loop when there are
+    several runs, the verdict on the last run and its physical parameters in display units (1σ)."""
+    lines = [f"{'run':<24} {'effects':<30} {'cv error ± sd over folds':>24} {'floor':>7} {'terms':>5}"]
     for r in summary["runs"]:
-        lines.append(f"{Path(r['run']).name:<28} {', '.join(r['effects']):<34} {r['error']:>8.4f} {r['n_terms']:>5}")
+        d = r.get("diagnosis") or {}
+        error = error_text(r["error"], r.get("error_fold_sd", math.nan), d.get("error_folds", 0))
+        error = error.replace("(sd over ", "(")
+        lines.append(f"{Path(r['run']).name:<24} {', '.join(r['effects']):<30} {error:>24} "
+                     f"{_fmt(r.get('noise_floor'), digits=3):>7} {r['n_terms']:>5}")
     for r in summary["runs"]:
         implausible = [k for k, v in r["parameters"].items() if not v.get("plausible", True)]
         if implausible:
             lines.append(f"implausible read-outs in {Path(r['run']).name}: {', '.join(implausible)} (not results; "
                          "reasons in the report)")
+    if summary.get("loop"):
+        lines.append("the loop:")
+        lines.extend(f"  {line}" for line in loop_lines(summary["loop"]))
+    last = Path(summary["runs"][-1]["run"]).name if len(summary["runs"]) > 1 else None
     diag = summary.get("diagnosis") or {}
     if "missing_effect" in summary and diag:
-        lines.append(diag.get("verdict") or ("missing effect" if summary["missing_effect"] else "no effect is missing"))
+        verdict = diag.get("verdict") or ("missing effect" if summary["missing_effect"] else "no effect is missing")
+        lines.append(f"last run ({last}): {verdict}" if last else verdict)
         if summary.get("suggestions"):
             lines.append(f"  {summary['suggestions'][0]['evidence']}")
         elif summary["missing_effect"]:
             lines.append(f"  residual: {diag.get('description', '')}")
     elif summary.get("note"):
         lines.append(summary["note"])
+    parameters = summary["runs"][-1]["parameters"]
+    if parameters:
+        lines.append(f"parameters of {Path(summary['runs'][-1]['run']).name} (± 1σ):")
+        lines.extend(f"  {name} = {parameter_text(q, name)}" for name, q in parameters.items())
     lines.extend(f"note: {note}" for note in summary.get("notes", []))
     lines.append(f"report: {output / 'report.html'}")
     return "\n".join(lines)
 
 
 def quantity_cell(q: dict) -> str:
-    """A read-out in the parameter table: value ± 1-sigma error (stat / cal when a calibration uncertainty was
-    declared) and unit, marked when the run is model-limited."""
+    """A read-out in the parameter table, in display units: ``303.2 ± 2.6 MPa (1σ)`` (PDG rounding; the 1σ
+    split into stat / cal when a calibration uncertainty was declared), marked when the run is model-limited."""
     if q.get("determined", True) is False:
         return plausibility.not_determined_text(q, q["unit"])
-    text = f"{q['value']:.4g}"
-    if math.isfinite(q["error"]):
-        text += f" ± {q['error']:.2g} (1σ"
-        if q.get("error_calibration", 0.0) > 0:
-            text += f"; stat {q.get('error_statistical', math.nan):.2g} / cal {q['error_calibration']:.2g}"
-        text += ")"
-    text += f" {q['unit']}"
+    kind = "1σ"
+    if q.get("error_calibration", 0.0) > 0 and math.isfinite(q["error"]):
+        kind += (f"; stat {format_value(q.get('error_statistical', math.nan), q['unit'], 2)} / "
+                 f"cal {format_value(q['error_calibration'], q['unit'], 2)}")
+    text = format_measurement(q["value"], q["error"], q["unit"], kind=kind)
     if q.get("model_limited"):
         text += " [model-limited]"
     return text
+
+
+def parameter_text(q: dict, name: str = "") -> str:
+    """A read-out as the terminal prints it: :func:`quantity_cell`, or the flag of an implausible value."""
+    if not q.get("plausible", True):
+        return plausibility.flagged_value(name, q)
+    return quantity_cell(q)

@@ -211,3 +211,111 @@ def test_log_axis_labels_are_plain_numbers():
     from afmid.report.figures import plain_number
 
     assert [plain_number(v) for v in (0.05, 0.1, 0.2, 1.0, 300.0, 1e6)] == ["0.05", "0.1", "0.2", "1", "300", "1e6"]
+
+# --------------------------------------------------------------------------- issue 15: the loop, per-run diagnosis
+PINNED_RUN_DIAGNOSIS_KEYS = {"verdict", "region", "character", "suggestions"}
+RUN_SUGGESTION_KEYS = {"effect", "delta_bic", "error_after", "evidence"}
+
+
+def _page_text(out: Path) -> str:
+    """The page's visible text (tags dropped, entities decoded)."""
+    import html as html_module
+
+    page = (out / "report.html").read_text(encoding="utf-8")
+    page = re.sub(r"<style>.*?</style>", "", page, flags=re.S)
+    return html_module.unescape(re.sub(r"<[^>]+>", "", page))
+
+
+@pytest.mark.slow
+def test_each_run_keeps_its_own_diagnosis(pair_report, single_report):
+    out, _ = pair_report
+    summary = json.loads((out / "summary.json").read_text())
+    run1, run2 = (r["diagnosis"] for r in summary["runs"])
+    for d in (run1, run2):
+        assert PINNED_RUN_DIAGNOSIS_KEYS <= set(d)
+        for s in d["suggestions"]:
+            assert RUN_SUGGESTION_KEYS <= set(s)
+    # run1 [dmt], diagnosed on its own: viscoelastic missing, in contact, dissipative
+    assert run1["region"] == "contact" and run1["character"] == "dissipative"
+    assert run1["suggestions"][0]["effect"] == "viscoelastic"
+    assert run1["suggestions"][0]["delta_bic"] < -10
+    assert run1["suggestions"][0]["error_after"] < summary["runs"][0]["error"]
+    assert "viscoelastic" in run1["verdict"]
+    # run2 = run1 + viscoelastic: nothing missing; the top-level keys stay those of the last run
+    assert run2["suggestions"] == [] and run2["verdict"].startswith("no effect is missing")
+    assert run2["verdict"] == summary["diagnosis"]["verdict"]
+    assert run2["region"] == summary["diagnosis"]["region"]
+    # the same run diagnosed alone gives the same diagnosis
+    alone = json.loads((single_report / "summary.json").read_text())["runs"][0]["diagnosis"]
+    assert alone["verdict"] == run1["verdict"] and alone["suggestions"] == run1["suggestions"]
+    # the error's spread over its folds is given beside it
+    for r in summary["runs"]:
+        assert r["error_fold_sd"] > 0 and r["error_spread_kind"] == "sd over 5 folds"
+
+
+@pytest.mark.slow
+def test_the_page_tells_the_loop_in_order(pair_report):
+    out, terminal = pair_report
+    text = _page_text(out)
+    loop = json.loads((out / "summary.json").read_text())["loop"]
+    assert [s["relation"] for s in loop] == ["first", "follow_up"]
+    marks = ["The loop, run by run", "run1.h5 [dmt]: error", "model-limited", "it fails mostly in contact",
+             "suggested: add viscoelastic (ΔBIC", "run2.h5 = run1.h5 + viscoelastic: the suggestion followed",
+             "the error fell from", "at the noise level", "what is left: no effect is missing",
+             "The last run, run2.h5: no effect is missing", "Runs"]
+    positions = [text.find(m) for m in marks]
+    assert all(p >= 0 for p in positions), [m for m, p in zip(marks, positions) if p < 0]
+    assert positions == sorted(positions)
+    assert "the loop:" in terminal and "1. run1.h5 [dmt]" in terminal and "2. run2.h5 = run1.h5 + viscoelastic" in terminal
+
+
+@pytest.mark.slow
+def test_numbers_are_in_display_units_without_negative_zero(pair_report):
+    """(The fixture's runs are fitted without error bars: the labelled ± is checked on quantity_cell below.)"""
+    out, terminal = pair_report
+    text = _page_text(out)
+    assert re.search(r"E_star\s*\d+(\.\d+)? MPa", text) and re.search(r"hamaker\s*\d+(\.\d+)? zJ", text)
+    assert not re.search(r"(?<![\w.])-0(\.0+)?(?![\w.])", text)  # no negative zero
+    assert not re.search(r"ΔBIC -?\d\.\d+e-\d+", text)
+    assert re.search(r"E_star = \d+(\.\d+)? MPa", terminal)
+
+
+def test_quantity_cell_labels_the_error_in_display_units():
+    from afmid.report.page import quantity_cell
+
+    q = {"value": 3.032e8, "error": 2.6e6, "unit": "Pa", "error_statistical": 2.6e6, "error_calibration": 0.0}
+    assert quantity_cell(q) == "303.2 ± 2.6 MPa (1σ)"
+    cal = dict(q, error=5.0e6, error_statistical=2.6e6, error_calibration=4.3e6, model_limited=True)
+    assert quantity_cell(cal) == "303 ± 5 MPa (1σ; stat 2.6 MPa / cal 4.3 MPa) [model-limited]"
+
+
+def test_loop_tells_a_run_that_was_not_a_suggestion_as_what_it_is():
+    from types import SimpleNamespace
+
+    from afmid.report.story import loop_steps
+
+    def run(name, effects, error):
+        return SimpleNamespace(path=Path(name), effects=effects, cv_error=error, cv_error_noise_floor=0.05,
+                               model_limited=error > 0.0725)
+
+    def diagnosis(suggested=(), undecided=()):
+        return {"verdict": "v", "region": "contact", "character": "dissipative", "missing_effect": bool(suggested),
+                "error_fold_sd": 0.01, "error_folds": 5, "undecided": list(undecided),
+                "suggestions": [{"effect": e, "delta_bic": -50.0, "error_after": 0.06, "evidence": ""}
+                                for e in suggested]}
+
+    runs = [run("a.h5", ["dmt"], 0.4), run("b.h5", ["dmt", "capillary"], 0.3), run("c.h5", ["jkr"], 0.2),
+            run("d.h5", ["jkr"], 0.2)]
+    steps = loop_steps(runs, [diagnosis(["viscoelastic"]), diagnosis(), diagnosis(), diagnosis()])
+    assert [s["relation"] for s in steps] == ["first", "added_unsuggested", "different_model", "same_model"]
+    assert "not what the diagnosis of a.h5 suggested" in steps[1]["text"]
+    assert "without `dmt`, `capillary`, with `jkr`" in steps[2]["text"] and "the error fell from 0.300 to" in steps[2]["text"]
+    assert steps[3]["text"].startswith("d.h5 has the same effects as c.h5")
+
+
+def test_error_text_gives_the_spread_over_folds():
+    from afmid.report.story import error_text
+
+    assert error_text(0.0433, 0.0041, 5) == "0.043 ± 0.004 (sd over 5 folds)"  # PDG: 41 -> one digit
+    assert error_text(0.447, 0.0123, 5) == "0.447 ± 0.012 (sd over 5 folds)"  # 123 -> two digits
+    assert error_text(0.0433, float("nan"), 1) == "0.0433"

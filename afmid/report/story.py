@@ -1,0 +1,213 @@
+"""The runs of a report told as the loop: each run diagnosed on its own, and how one run followed another.
+
+``afmid report run1.h5 run2.h5`` compares runs; a comparison that diagnosed only the last run lost where
+run1 failed and what was suggested. Here every run gets its own diagnosis (:func:`diagnose_runs`: the
+public :func:`afmid.diagnosis.diagnose.suggest` per run, the last run's result reused) and the runs are
+read in order as the loop (:func:`loop_steps`): run1 failed here (region, character, error vs its noise
+floor) -> suggestion (effect, ΔBIC) -> run2 = run1 + effect -> error fell from x to y (floor z) -> what is
+left. A run that was not the follow-up of a suggestion is told as what it is.
+
+Errors are the normalised cross-validated force error (1 = no better than a constant force), shown with
+the standard deviation of the per-fold errors (``cv_error_folds``).
+"""
+
+from __future__ import annotations
+
+import html
+import math
+from pathlib import Path
+
+import numpy as np
+
+from afmid.diagnosis.diagnose import describe_residual, localize, suggest
+from afmid.fit.uncertainty import ERROR_LABEL, FLOOR_FACTOR
+from afmid.report.quantity_text import format_delta_bic, format_measurement, format_value
+from afmid.runfile import RunData
+
+#: Keys of a suggestion kept in each run's diagnosis (summary.json ``runs[*].diagnosis.suggestions``).
+SUGGESTION_KEYS = ("effect", "delta_bic", "error_after", "noise_floor_after", "evidence")
+
+
+# --------------------------------------------------------------------------- the error and its spread
+def fold_spread(run: RunData) -> tuple[float, int]:
+    """(standard deviation of the per-fold cv errors, number of folds); (nan, k) with fewer than two folds."""
+    folds = np.asarray(run.cv_error_folds if run.cv_error_folds is not None else [], dtype=float)
+    folds = folds[np.isfinite(folds)]
+    return (float(np.std(folds, ddof=1)) if folds.size > 1 else math.nan), int(folds.size)
+
+
+def error_text(error: float, sd: float, k: int) -> str:
+    """'0.043 ± 0.004 (sd over 5 folds)': the pooled cv error with the spread of its folds (PDG rounding)."""
+    if error is None or not math.isfinite(error):
+        return "–"
+    if not (math.isfinite(sd) and sd > 0):
+        return format_value(error, "1")
+    return format_measurement(error, sd, "1", kind=f"sd over {k} folds")
+
+
+def _ratio_words(error: float, floor: float) -> str:
+    if not (math.isfinite(error) and math.isfinite(floor) and floor > 0):
+        return "no noise floor"
+    ratio = error / floor
+    where = "at the noise level" if ratio <= FLOOR_FACTOR else "model-limited"
+    return f"{ratio:.2g}x its noise floor {floor:.3g}: {where}"
+
+
+# --------------------------------------------------------------------------- per-run diagnosis
+def run_diagnosis(run: RunData, result: dict | None, local: dict | None = None) -> dict:
+    """The ``diagnosis`` object of one run in summary.json: verdict, region, character, suggestions, ...
+
+    ``result`` is :func:`afmid.diagnosis.diagnose.suggest`'s answer for this run (None: not diagnosed, e.g.
+    ``--no-suggest``; where and how the residual sits is still given).
+    """
+    local = local if local is not None else localize(run)
+    diag = (result or {}).get("diagnosis") or {}
+    sd, k = fold_spread(run)
+    if result is None:
+        verdict = "not diagnosed: suggestions were not requested (--no-suggest)"
+    else:
+        verdict = diag.get("verdict") or result.get("note") or "not diagnosed"
+    return {
+        "verdict": verdict,
+        "region": diag.get("region", local["region"]),
+        "character": diag.get("character", local["character"]),
+        "description": diag.get("description") or describe_residual(local, run),
+        "missing_effect": (result or {}).get("missing_effect"),
+        "explained_by_catalog": diag.get("explained_by_catalog"),
+        "error": run.cv_error,
+        "error_fold_sd": sd,
+        "error_folds": k,
+        "error_spread_kind": f"sd over {k} folds",
+        "noise_floor": run.cv_error_noise_floor,
+        "model_limited": run.model_limited,
+        "suggestions": [{key: s.get(key) for key in SUGGESTION_KEYS} for s in (result or {}).get("suggestions", [])],
+        "undecided": [t["effect"] for t in (result or {}).get("undecided", [])],
+        "error_after": diag.get("error_after"),
+        "delta_bic_after": diag.get("delta_bic_after"),
+    }
+
+
+def diagnose_runs(runs: list[RunData], last_result: dict | None, last_local: dict, suggest_effects: bool,
+                  progress: bool = False) -> list[dict]:
+    """Each run's own diagnosis, in order. The last run's ``suggest`` result and localisation are reused; a
+    run file given twice is diagnosed once; the refits of each :func:`suggest` try only the effects that run
+    lacks."""
+    done: dict[Path, dict] = {runs[-1].path.resolve(): run_diagnosis(runs[-1], last_result, last_local)}
+    out = []
+    for run in runs:
+        key = run.path.resolve()
+        if key not in done:
+            done[key] = run_diagnosis(run, suggest(run, progress=progress) if suggest_effects else None)
+        out.append(done[key])
+    return out
+
+
+def run_entry(path: Path, run: RunData, diagnosis: dict) -> dict:
+    """One entry of summary.json's ``runs``."""
+    return {"run": str(path), "effects": run.effects, "error": run.cv_error,
+            "error_fold_sd": diagnosis["error_fold_sd"], "error_spread_kind": diagnosis["error_spread_kind"],
+            "noise_floor": run.cv_error_noise_floor, "n_terms": run.n_terms, "terms": run.selected_terms,
+            "chi2_reduced": run.chi2_reduced, "model_limited": run.model_limited,
+            "parameters": {k: {"value": v["value"], "error": v["error"], "error_kind": ERROR_LABEL,
+                               "error_statistical": v.get("error_statistical", v["error"]),
+                               "error_calibration": v.get("error_calibration", 0.0),
+                               "ci_low": v.get("ci_low"), "ci_high": v.get("ci_high"), "interval": "95 %",
+                               "model_limited": v.get("model_limited", False), "unit": v["unit"],
+                               "determined": v.get("determined", True), "effect": v.get("effect", ""),
+                               "plausible": v.get("plausible", True), "plausibility": v.get("plausibility", "")}
+                           for k, v in run.quantities.items()},
+            "diagnosis": diagnosis}
+
+
+# --------------------------------------------------------------------------- the loop
+_REGIONS = {"contact": "in contact", "near": "near the surface", "far": "far from the surface"}
+_CHARACTERS = {"conservative": "conservative (the same on approach and retraction)",
+               "dissipative": "dissipative (it reverses with the direction of motion)",
+               "mixed": "partly conservative, partly direction-dependent", "none": "not distinguishable from noise"}
+
+
+def _state(run: RunData, diagnosis: dict) -> str:
+    error = error_text(run.cv_error, diagnosis["error_fold_sd"], diagnosis["error_folds"])
+    return f"{error}, {_ratio_words(run.cv_error, run.cv_error_noise_floor)}"
+
+
+def _failure(diagnosis: dict) -> str:
+    region = _REGIONS.get(diagnosis["region"], diagnosis["region"])
+    character = _CHARACTERS.get(diagnosis["character"], diagnosis["character"])
+    return f"it fails mostly {region}: the residual is {character}"
+
+
+def _suggestion_words(diagnosis: dict) -> str:
+    sugg = diagnosis["suggestions"]
+    if sugg:
+        names = " + ".join(f"`{s['effect']}`" for s in sugg)
+        top = sugg[0]
+        return (f"suggested: add {names} (ΔBIC {format_delta_bic(top['delta_bic'])}, error after "
+                f"{format_value(top['error_after'], '1')})")
+    if diagnosis["undecided"]:
+        return "a missing effect, but the data cannot decide between " + ", ".join(
+            f"`{e}`" for e in diagnosis["undecided"])
+    return diagnosis["verdict"]
+
+
+def _relation(prev: RunData, prev_diag: dict, run: RunData) -> tuple[str, str]:
+    """(kind, words): how ``run``'s model relates to the previous run's."""
+    added = [e for e in run.effects if e not in prev.effects]
+    removed = [e for e in prev.effects if e not in run.effects]
+    suggested = {s["effect"] for s in prev_diag["suggestions"]}
+    a, p = run.path.name, prev.path.name
+    if not added and not removed:
+        return "same_model", f"{a} has the same effects as {p} ({', '.join(run.effects) or 'a preset library'})"
+    if added and not removed and set(added) <= suggested:
+        return "follow_up", f"{a} = {p} + {' + '.join(f'`{e}`' for e in added)}: the suggestion followed"
+    if added and not removed:
+        undecided = set(prev_diag["undecided"])
+        why = (" (one of the effects the data could not tell apart)" if set(added) <= undecided else
+               f" — not what the diagnosis of {p} suggested")
+        return "added_unsuggested", f"{a} = {p} + {' + '.join(f'`{e}`' for e in added)}{why}"
+    words = f"{a} is a different model: [{', '.join(run.effects)}]"
+    if removed:
+        words += f" (without {', '.join(f'`{e}`' for e in removed)}"
+        words += f", with {', '.join(f'`{e}`' for e in added)})" if added else ")"
+    return "different_model", words
+
+
+def _change(prev: RunData, run: RunData) -> str:
+    before, after = prev.cv_error, run.cv_error
+    if not (math.isfinite(before) and math.isfinite(after)):
+        return "the errors cannot be compared:"
+    verb = "fell" if after < before else "rose" if after > before else "stayed"
+    return f"the error {verb} from {format_value(before, '1')} to"
+
+
+def loop_steps(runs: list[RunData], diagnoses: list[dict]) -> list[dict]:
+    """The runs read in order: one step per run (what it is, how it fared, what its diagnosis said)."""
+    steps = []
+    for i, (run, diagnosis) in enumerate(zip(runs, diagnoses)):
+        name = f"{run.path.name} [{', '.join(run.effects) or 'preset library'}]"
+        limited = run.model_limited or bool(diagnosis.get("missing_effect"))
+        if i == 0:
+            kind, how = "first", f"{name}: error {_state(run, diagnosis)}"
+        else:
+            kind, how = _relation(runs[i - 1], diagnoses[i - 1], run)
+            how = f"{how}; {_change(runs[i - 1], run)} {_state(run, diagnosis)}"
+        parts = [how]
+        if limited:
+            parts.append(_failure(diagnosis))
+        said = _suggestion_words(diagnosis)
+        parts.append(("what is left: " + said) if i == len(runs) - 1 else said)
+        steps.append({"run": str(run.path), "relation": kind, "text": "; ".join(parts) + "."})
+    return steps
+
+
+def loop_html(steps: list[dict], rich) -> str:
+    """The loop section of the page (``rich``: the page's escaper that turns `name` into code)."""
+    items = "".join(f"<li>{rich(s['text'])}</li>" for s in steps)
+    return ("<h2>The loop, run by run</h2><p>Each run is diagnosed on its own (the refits try the effects it "
+            "lacks); the error is the cross-validated force error ± the standard deviation of its folds.</p>"
+            f"<ol class='loop'>{items}</ol>")
+
+
+def loop_lines(steps: list[dict]) -> list[str]:
+    """The loop for the terminal: one line per run."""
+    return [f"{i + 1}. " + html.unescape(s["text"]).replace("`", "") for i, s in enumerate(steps)]
