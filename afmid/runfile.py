@@ -50,6 +50,10 @@ PERIOD_UNITS = {
     "virial_direct": "J", "amplitude": "m", "period_error": "N",
 }
 
+#: ``/model/drive`` attribute ``source``: whence the drive force the inverted force is computed with.
+DRIVE_FITTED = "fitted (two nuisance columns of the regression: depends on the force model)"
+DRIVE_CALIBRATED = "calibrated (drive.force_amplitude, drive.phase: given, not fitted)"
+
 
 def text(value, errors: str = "strict") -> str:
     """An HDF5 string as ``str``.
@@ -99,10 +103,19 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         m.attrs["library"] = result.library.source
         dg = m.create_group("drive")
         nu = result.coef[p:]
-        write_dataset(dg, "force_amplitude", float(np.hypot(nu[0], nu[1])), "N")
+        declared = result.prep.declared_drive
         # F_drive = cos * cos(w t) + sin * sin(w t) in the trace's time base (the fit's columns are -F_drive)
-        write_dataset(dg, "cos", float(-nu[0]), "N")
-        write_dataset(dg, "sin", float(-nu[1]), "N")
+        drive_cos, drive_sin = (declared.cos, declared.sin) if declared is not None else (-nu[0], -nu[1])
+        write_dataset(dg, "force_amplitude", float(np.hypot(drive_cos, drive_sin)), "N")
+        write_dataset(dg, "cos", float(drive_cos), "N")
+        write_dataset(dg, "sin", float(drive_sin), "N")
+        dg.attrs["source"] = DRIVE_CALIBRATED if declared is not None else DRIVE_FITTED
+        if declared is not None:  # afmid.fit.declared_drive: given, not fitted
+            write_dataset(dg, "phase", declared.phase, "rad", meaning="F_drive = F0 cos(2 pi f t + phase)")
+            write_dataset(dg, "force_amplitude_uncertainty", declared.force_amplitude_uncertainty, "1",
+                          meaning="relative, 1 sigma (0: not given)")
+            write_dataset(dg, "phase_uncertainty", declared.phase_uncertainty, "rad", meaning="1 sigma (0: not given)")
+            dg.attrs["force_amplitude_source"] = declared.amplitude_source
         write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
         write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
         found = getattr(result, "drive_search", None)
@@ -111,7 +124,8 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
             write_dataset(dg, "response_frequency", found.response_frequency, "Hz",
                           meaning="spectral peak of the deflection, replaced by the searched drive frequency")
         dg.attrs["frequency_source"] = (
-            "regression search (record not in steady state)" if found is not None
+            "nominal (calibrated drive, drive.phase)" if declared is not None
+            else "regression search (record not in steady state)" if found is not None
             else "nominal (fit.drive_frequency: nominal)" if config.fit.drive_frequency == "nominal"
             else "spectral peak of the deflection")
         if "offset" in result.system.names:

@@ -46,6 +46,7 @@ from afmid.fit.search import NonlinearEstimate, search_1d, search_range
 from afmid.fit.profile import GroupedProfile, ProfileResult, robust_profile
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
+from afmid.fit.declared_drive import declared_drive, with_declared_drive
 from afmid.preprocess.motion import fit_warning as motion_warning
 from afmid.fit.uncertainty import finish as finish_uncertainty, widen_interval
 from afmid.fit.undetermined import mark as mark_undetermined
@@ -309,6 +310,9 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
     if prep.motion is not None and prep.motion.non_periodic:
         warnings.append(motion_warning(prep.motion, prep.noise_rms))
+    drive = declared_drive(config, trace)
+    if drive is not None:  # a calibrated drive: not fitted, so the inverted force does not depend on the model
+        prep = with_declared_drive(prep, drive)
     params = library_parameters(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     physics, extra = profile_library(library, config)
@@ -322,8 +326,8 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     def estimate_again(p: Prepared) -> None:
         nonlinear.update(estimate_nonlinear(p, library, config, params, physics=(physics, extra)))
 
-    prep, drive_search = settle_drive_frequency(prep, fit.drive_frequency, fit.seed, factors_at,
-                                                estimate_again if nonlinear else None)
+    prep, drive_search = (prep, None) if prep.declared_drive is not None else settle_drive_frequency(
+        prep, fit.drive_frequency, fit.seed, factors_at, estimate_again if nonlinear else None)
     bar.update(1)
     settings = SelectionSettings.for_library(fit, library, len(prep.nuisance_names))
     system = build_system(prep, library, params)
