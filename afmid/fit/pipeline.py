@@ -2,7 +2,7 @@
 
 Pipeline (each step a plain function; the CLI only wires them):
 load (:func:`afmid.io.trace.load_trace`) -> :func:`prepare` (drive frequency, blocks of
-one period, Fourier coefficients, noise level, the model-free force) ->
+one period, Fourier coefficients, noise level, the inverted force) ->
 :func:`build_system` (library columns projected like the data, whitened, factored)
 -> :func:`afmid.fit.regression.select` (sparsity path + BIC / CV) -> nonlinear
 parameters (separation, decay lengths) by an outer search -> bagging for error
@@ -163,7 +163,7 @@ class FitResult:
     cv_error_noise_floor: float  # the error a perfect model would show at this noise
     signal_rows: np.ndarray  # bool (2K+1): rows counted in the error metric
     force_estimate: np.ndarray  # N per input sample (NaN where not estimated)
-    force_direct: np.ndarray  # N per input sample, model-free (band-limited)
+    force_inverted: np.ndarray  # N per input sample, drive - (m x'' + c x' + k x) (band-limited; prep.declared_drive)
     periods: dict[str, np.ndarray]
     warnings: list[str] = field(default_factory=list)
     drive_search: DriveSearch | None = None  # the drive frequency searched by the regression (transient records)
@@ -395,7 +395,7 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     # only sometimes widen the error bars they affect (afmid.fit.undetermined).
     mark_undetermined(quantities, library, system, coef, chosen, params, trace, inclusion,
                       fit.bootstrap if uncertainty else 0, fit.seed, read_out, warnings)
-    force_estimate, force_direct = per_sample_forces(prep, library, system, coef, rows)
+    force_estimate, force_inverted = per_sample_forces(prep, library, system, coef, rows)
     share = SHARE_NOT_COMPUTED
     if uncertainty and "d" in nonlinear and config.sample.separation is None:
         # the force curve along the separation's valley (afmid.fit.separation_share): often the largest part
@@ -409,14 +409,14 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     for name, est in nonlinear.items():
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
-                     nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_direct, periods,
+                     nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_inverted, periods,
                      warnings, drive_search, force_calibration, limited, share)
 
 
 def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:
     """Stop (InputError, nothing written) when the fit has no result afmid can stand behind.
 
-    A NaN error metric means no drive harmonic of the model-free force stood out of the noise on the
+    A NaN error metric means no drive harmonic of the inverted force stood out of the noise on the
     held-out periods: there was no tip-sample force to identify, and the coefficients only describe noise.
     """
     bad = [name for name, c in zip(library.names, coef) if not math.isfinite(c)]
@@ -425,7 +425,7 @@ def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: 
                          "degenerate on this trace; nothing was written", file=trace.path, key="model")
     if not math.isfinite(cv_error):
         raise InputError("the fit has no usable result: its cross-validated error is NaN because no harmonic of "
-                         "the model-free tip-sample force stands above the noise (the tip does not reach the sample, "
+                         "the inverted tip-sample force stands above the noise (the tip does not reach the sample, "
                          "or this is not a tapping trace); nothing was written", file=trace.path, key="data.path")
 
 

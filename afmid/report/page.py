@@ -22,6 +22,7 @@ import numpy as np
 
 from afmid import __version__
 import afmid.fit.plausibility as plausibility
+from afmid.report.energy_rows import energy_caveat, energy_rows, inverted_force_name
 from afmid.diagnosis.diagnose import BIC_EVIDENCE, band_limit, describe_residual, energy_check, localize, suggest
 from afmid.io.trace import now_iso
 from afmid.physics.effects import EFFECTS
@@ -122,13 +123,13 @@ def fig_phase_portraits(run: RunData, folder: Path, resim: dict | None) -> str:
 def fig_force_time(run: RunData, folder: Path) -> str:
     plt = _plt()
     F = run.force
-    ok = np.isfinite(F["estimate"]) & np.isfinite(F["direct"])
+    ok = np.isfinite(F["estimate"]) & np.isfinite(F["inverted"])
     idx = np.flatnonzero(ok)
     spp = 1.0 / (run.drive["frequency"] * (F["time"][1] - F["time"][0]))
     sel = idx[: int(3 * spp)]
     fig, ax = plt.subplots(figsize=(9, 3.2))
     t = (F["time"][sel] - F["time"][sel[0]]) * 1e6
-    ax.plot(t, F["direct"][sel] * NN, color="C0", lw=1, label="model-free (equation of motion, signal harmonics)")
+    ax.plot(t, F["inverted"][sel] * NN, color="C0", lw=1, label="inverted force (cantilever equation, signal harmonics)")
     ax.plot(t, F["estimate"][sel] * NN, color=MODEL, lw=1, ls="--", label="model (full bandwidth)")
     ax.set(xlabel="time (µs)", ylabel="force on tip (nN, repulsive +)", title="Tip-sample force over three periods")
     ax.legend(fontsize=7, loc="lower left")
@@ -148,7 +149,7 @@ def _branch_curves(run: RunData, force: np.ndarray, approach: bool):
 
 
 def fig_force_separation(run: RunData, folder: Path) -> str:
-    """Approach and retraction in separate panels: model-free mean with its noise band, model, truth."""
+    """Approach and retraction in separate panels: inverted-force mean with its noise band, model, truth."""
     plt = _plt()
     P = run.periods
     band = band_limit(P["force_model"], run)
@@ -156,9 +157,9 @@ def fig_force_separation(run: RunData, folder: Path) -> str:
     truth = run.truth
     for ax, approach, title, colour in ((axes[0], True, "approach (tip moving toward the sample)", APPROACH),
                                          (axes[1], False, "retraction (tip moving away)", RETRACTION)):
-        z, m, s = _branch_curves(run, P["force_direct"], approach)
+        z, m, s = _branch_curves(run, P["force_inverted"], approach)
         ax.fill_between(z, m - s, m + s, color=colour, alpha=0.25, lw=0)
-        ax.plot(z, m, color=colour, lw=1.4, label="model-free, period mean ± 2σ")
+        ax.plot(z, m, color=colour, lw=1.4, label="inverted force, period mean ± 2σ")
         zb, mb, _ = _branch_curves(run, band, approach)
         ax.plot(zb, mb, color=MODEL, lw=1.2, ls="--", label="model, same harmonics")
         zf, mf, _ = _branch_curves(run, P["force_model"], approach)
@@ -213,7 +214,7 @@ def fig_residual(local: dict, folder: Path, a0: float | None = None) -> str:
         _contact_line(ax, a0)
         ax.set_xlim(z.min() * NM - 0.2, (a0 + 4e-9) * NM)
     band = f", harmonics ≤ {local['max_signal_harmonic']}" if local.get("max_signal_harmonic") else ""
-    ax.set(xlabel="separation z (nm)", ylabel="residual (nN, model-free − model)",
+    ax.set(xlabel="separation z (nm)", ylabel="residual (nN, inverted − model)",
            title=f"Residual vs separation (period mean{band}; ±2σ noise)")
     ax.legend(fontsize=7)
     regions = list(local["by_region"])
@@ -246,7 +247,7 @@ def fig_periods(run: RunData, local: dict, folder: Path, energy: dict | None = N
     axes[1].set(xlabel="period", ylabel="model force (nN)", title="Model force extremes per period")
     axes[1].legend(fontsize=7)
     eV = 1.602176634e-19
-    axes[2].plot(k, P["dissipated_energy_direct"] / eV, ".-", label="model-free")
+    axes[2].plot(k, P["dissipated_energy_inverted"] / eV, ".-", label="inverted force")
     axes[2].plot(k, P["dissipated_energy"] / eV, ".-", label="model")
     if energy and "truth" in energy:
         axes[2].axhline(energy["truth"] / eV, color=TRUTH, lw=1, ls="--", label="truth (simulation, mean)")
@@ -383,8 +384,11 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>afmid report</title><style>{CSS}</style></head><body>",
              f"<h1>afmid report</h1><p>{len(runs)} run(s); afmid {__version__}; made {now_iso()}. "
              "Forces are on the tip, positive = repulsive; z is the tip-sample separation (contact at z = a0). "
-             "The model-free force is F = drive − (m x'' + c x' + k x), limited to the drive harmonics that stand "
-             "above the noise; the model is compared with it on the same harmonics.</p>"]
+             f"The {inverted_force_name(last.drive_calibrated)} is F = drive − (m x'' + c x' + k x), limited to the "
+             "drive harmonics that stand above the noise; the model is compared with it on the same harmonics. "
+             + ("The drive is the calibrated one (drive.force_amplitude, drive.phase): this force does not depend "
+                "on the model." if last.drive_calibrated else "The drive is fitted together with the force law, so "
+                "this force's first harmonic (and the energy from it) depends on the model.") + "</p>"]
     diag = summary.get("diagnosis", {})
     parts.append(_verdict_box(summary))
     parts.extend(f"<p><b>Note:</b> {html.escape(note)}</p>" for note in summary.get("notes", []))
@@ -438,10 +442,10 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                      + "</ul>")
     parts.append(f"<h2>The last run: {html.escape(last.path.name)}</h2>")
     parts.append(_img(folder, figures["force_separation"],
-                      "Force vs separation, approach (left) and retraction (right) drawn separately: the model-free "
+                      "Force vs separation, approach (left) and retraction (right) drawn separately: the inverted "
                       "force averaged over periods (band: ±2σ of that average), the model on the same harmonics and "
                       "at full bandwidth" + (", and the true force of the simulation" if last.truth is not None else "")))
-    parts.append(_img(folder, figures["force_time"], "Force vs time over three periods: model-free vs model"))
+    parts.append(_img(folder, figures["force_time"], "Force vs time over three periods: inverted force vs model"))
     parts.append(_img(folder, figures["phase_portraits"], "Phase portraits: measured periods vs the identified model re-simulated"))
     parts.append(_img(folder, figures["coefficients"], "Coefficients with bootstrap standard errors, 1 σ (truth when simulated)"))
     parts.append("<h2>Where the model fails</h2>")
@@ -452,24 +456,22 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     parts.append(_table(["region", "time", "share of residual", "rms", "noise", "approach", "retraction",
                          "correlation with dz/dt"], rows))
     limit = local.get("max_signal_harmonic")
-    parts.append(_img(folder, figures["residual"], "Systematic residual (model-free − model, averaged over periods): "
+    parts.append(_img(folder, figures["residual"], "Systematic residual (inverted force − model, averaged over periods): "
                                                    "vs separation for approach and retraction, by region, by harmonic. "
                       + (f"Both forces keep only the drive harmonics up to {limit} (those above the noise), so a "
                          "feature narrower in time than 1/" + str(2 * limit) + " of a period (e.g. a jump at contact) "
                          "is smeared over the neighbouring separations and rings." if limit else "")))
     eV = 1.602176634e-19
     parts.append("<h2>Energy check (dissipated per period)</h2>")
-    parts.append("<p>Energy the sample takes from the tip per period, estimated from the model-free force, from the "
+    parts.append("<p>Energy the sample takes from the tip per period, estimated from the inverted force, from the "
                  "cantilever's energy balance and from the model; they agree when the model captures the "
                  "dissipation.</p>")
-    parts.append(_table(["from", "energy"], [
-        ["model-free force (−∮F dz)", _fmt(energy["model_free"] / eV, "eV")],
-        ["cantilever balance (drive work − viscous loss)", _fmt(energy["energy_balance"] / eV, "eV")],
-        ["model (−∮F_model dz)", _fmt(energy["model"] / eV, "eV")],
-    ] + ([["truth (simulation)", _fmt(energy["truth"] / eV, "eV")]] if "truth" in energy else [])))
-    parts.append(f"<p>For scale: the drive does {_fmt(energy['drive_work'] / eV, 'eV')} of work per period. The first "
-                 "two estimates share the fitted drive, which is fitted together with the force law: a model "
-                 "that lacks a dissipative effect can pull them towards its own value.</p>")
+    parts.append(_table(["from", "depends on", "energy"], [
+        [what, depends, _fmt(energy[key] / eV, "eV")
+         + (f" ± {_fmt(energy[sigma] / eV, 'eV')} (1σ, drive calibration)" if sigma else "")]
+        for what, depends, key, sigma in energy_rows(energy, last.drive_calibrated)]))
+    parts.append(f"<p>For scale: the drive does {_fmt(energy['drive_work'] / eV, 'eV')} of work per period. "
+                 f"{energy_caveat(last.drive_calibrated)}</p>")
     parts.append(_img(folder, figures["periods"], "Per period: residual, model force extremes, dissipated energy"))
     if summary.get("tried"):
         parts.append("<h2>Effects tried</h2>")
