@@ -39,7 +39,7 @@ def base_raw() -> dict:
     return yaml.safe_load((REPO / "afmid" / "templates" / "demo_ldpe.yaml").read_text())
 
 
-def run_one(tmp: Path, raw: dict, drive: tuple, d_given: bool) -> dict:
+def run_one(tmp: Path, raw: dict, drive: tuple, d_given: bool, effects: list[str]) -> dict:
     from afmid.config import build_config
     from afmid.diagnosis.diagnose import load_run
     from afmid.diagnosis.localize import energy_check
@@ -50,6 +50,7 @@ def run_one(tmp: Path, raw: dict, drive: tuple, d_given: bool) -> dict:
     fit_raw = copy.deepcopy(raw)
     fit_raw["data"] = {"path": str(tmp / "trace.h5")}
     fit_raw.setdefault("fit", {})["bootstrap"] = 0
+    fit_raw["model"] = {"effects": effects}
     if not d_given:
         fit_raw["sample"]["separation"] = None
     if rel is not None:
@@ -73,8 +74,9 @@ def run_one(tmp: Path, raw: dict, drive: tuple, d_given: bool) -> dict:
     h_inv = np.linalg.lstsq(basis, f_inv[ok], rcond=None)[0]
     h_true = np.linalg.lstsq(basis, f_true[ok], rcond=None)[0]
     peak = float(np.max(f_true))
-    return {"energy_inverted": energy["model_free"] / EV, "energy_model": energy["model"] / EV,
+    return {"energy_inverted": energy["inverted"] / EV, "energy_model": energy["model"] / EV,
             "energy_truth": energy.get("truth", math.nan) / EV, "E_star": result.quantities["E_star"]["value"],
+            "viscosity": result.quantities.get("viscosity", {}).get("value", math.nan),
             "force_rms": float(np.hypot(*(h_inv[1:] - h_true[1:]))) / peak,
             "cv_error": result.cv_error, "floor": result.cv_error_noise_floor}
 
@@ -85,6 +87,7 @@ def main(argv=None) -> int:
     parser.add_argument("--sets", default="demo,glassy,soft")
     parser.add_argument("--drives", default=",".join(d[0] for d in DRIVES))
     parser.add_argument("--out", default="/tmp/calibrated_drive_study")
+    parser.add_argument("--effects", default="dmt", help="the fitted model's effects, comma-separated")
     args = parser.parse_args(argv)
     from afmid.config import build_config, dump_config
     from afmid.io.trace import write_trace_file
@@ -93,7 +96,7 @@ def main(argv=None) -> int:
     out = Path(args.out)
     sets = [s for s in SETS if s[0] in args.sets.split(",")]
     drives = [d for d in DRIVES if d[0] in args.drives.split(",")]
-    print("set seed d_given drive E_inv_eV E_model_eV E_truth_eV E_star_GPa h1_error_per_peak cv_error floor", flush=True)
+    print("set seed d_given drive E_inv_eV E_model_eV E_truth_eV E_star_GPa viscosity_Pas h1_error_per_peak cv_error floor", flush=True)
     for name, A0, d, E, eta in sets:
         for seed in range(1, args.seeds + 1):
             tmp = out / f"{name}_{seed}"
@@ -109,9 +112,9 @@ def main(argv=None) -> int:
                 write_trace_file(tmp / "trace.h5", simulate(sim), dump_config(sim))
             for d_given in (True, False):
                 for drive in drives:
-                    r = run_one(tmp, raw, drive, d_given)
+                    r = run_one(tmp, raw, drive, d_given, args.effects.split(","))
                     print(f"{name} {seed} {d_given} {drive[0]} {r['energy_inverted']:.3f} {r['energy_model']:.3f} "
-                          f"{r['energy_truth']:.3f} {r['E_star'] / 1e9:.4f} {r['force_rms']:.4f} "
+                          f"{r['energy_truth']:.3f} {r['E_star'] / 1e9:.4f} {r['viscosity']:.2f} {r['force_rms']:.4f} "
                           f"{r['cv_error']:.4f} {r['floor']:.4f}", flush=True)
     return 0
 

@@ -63,6 +63,26 @@ class DeclaredDrive:
         return text
 
 
+def drive_from_free_oscillation(spring_constant: float, resonance_frequency: float, quality_factor: float,
+                                drive_frequency: float, free_amplitude: float, free_phase: float) -> tuple[float, float]:
+    """(F0 in N, phase in rad) of the drive, for ``drive.force_amplitude`` and ``drive.phase``, from a free
+    oscillation x = A0 cos(2 pi f t + phi_x) recorded with the same drive settings, detector and time zero (the
+    tip far from the sample): m x'' + c x' + k x = F0 cos(2 pi f t + phi) gives
+    A0 = F0 / |k - m w^2 + i c w| and phi = phi_x + atan2(c w, k - m w^2) (the lever lags its drive by pi/2 at
+    resonance, where F0 = k A0 / Q). k in N/m, f0 and f in Hz, A0 in m, phi_x in rad.
+
+    The calibration enters the inverted force twice, through the drive and through m x'' + c x' + k x: F0
+    derived here with the k, Q and f0 the fit uses keeps an error of k or Q proportional in the force, where an
+    F0 of its own error moves the dissipated energy by that error times the drive's work per period (an order
+    of magnitude more, docs/accuracy.md)."""
+    omega = 2.0 * math.pi * drive_frequency
+    omega0 = 2.0 * math.pi * resonance_frequency
+    mass = spring_constant / omega0**2
+    damping = spring_constant / (quality_factor * omega0)
+    real, imaginary = spring_constant - mass * omega**2, damping * omega
+    return free_amplitude * math.hypot(real, imaginary), free_phase + math.atan2(imaginary, real)
+
+
 def declared_drive(config, trace) -> DeclaredDrive | None:
     """The calibrated drive of ``config`` (a RunConfig) for ``trace``, or None when ``drive.phase`` is not given
     (the drive is then fitted). Raises ConfigError (one line) when the declaration cannot be used."""

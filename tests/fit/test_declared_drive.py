@@ -238,3 +238,26 @@ def test_the_declared_drive_gives_the_true_dissipated_energy_with_dmt_alone(tmp_
         truth = energy["truth"]
         assert abs(energy["inverted"] - truth) <= 3 * sigma + 0.05 * truth, (seed, energy["inverted"] / EV,
                                                                               truth / EV, sigma / EV)
+
+
+def test_a_free_oscillation_gives_the_simulators_drive(tmp_path):
+    """The calibration a user makes: a free oscillation (the tip 1 um away) recorded with the same drive and time
+    zero; its first harmonic's amplitude and phase through drive_from_free_oscillation give back the simulator's
+    F0 and phase 0. Tolerance: thermal motion moves the amplitude by sqrt(kB T / k) = 1e-11 m (7e-4 of 15 nm;
+    the correlation time Q / pi ~ 80 periods leaves no averaging over 30 periods): 5 times that, relative for F0
+    and in rad for the phase."""
+    from afmid.fit.declared_drive import drive_from_free_oscillation
+    from afmid.io.trace import load_trace
+    from afmid.preprocess.periods import estimate_drive
+
+    raw = demo_raw(tmp_path, periods=30)
+    raw["sample"]["separation"] = 1e-6
+    simulated(tmp_path, raw)
+    trace = load_trace(build_config(copy.deepcopy(raw), source=tmp_path / "fit.yaml", base_dir=tmp_path))
+    free = estimate_drive(trace.deflection, trace.times, trace.drive_frequency)
+    cl = trace.cantilever
+    F0, phase = drive_from_free_oscillation(cl.spring_constant, cl.resonance_frequency, cl.quality_factor,
+                                            trace.drive_frequency, free.amplitude, free.phase)
+    tolerance = 5 * math.sqrt(BOLTZMANN * 300.0 / cl.spring_constant) / free.amplitude
+    assert F0 == pytest.approx(trace.drive_force_amplitude, rel=tolerance)
+    assert abs(math.remainder(phase, 2 * math.pi)) < tolerance
