@@ -66,7 +66,7 @@ def run_one(tmp: Path, raw: dict, drive: tuple, d_given: bool, effects: list[str
     truth = result.prep.trace.truth
     # The drive enters the inverted force at the first harmonic only: compare that harmonic with the truth's
     # (least squares on cos, sin and a constant over the samples where the inverted force exists).
-    f_true, f_inv = truth.force, result.force_direct
+    f_true, f_inv = truth.force, result.force_inverted
     ok = np.isfinite(f_inv)
     t = result.prep.t[ok]
     w = 2 * math.pi * result.prep.drive.frequency

@@ -261,3 +261,14 @@ def test_a_free_oscillation_gives_the_simulators_drive(tmp_path):
     tolerance = 5 * math.sqrt(BOLTZMANN * 300.0 / cl.spring_constant) / free.amplitude
     assert F0 == pytest.approx(trace.drive_force_amplitude, rel=tolerance)
     assert abs(math.remainder(phase, 2 * math.pi)) < tolerance
+
+
+def test_a_map_refuses_a_calibrated_drive_instead_of_ignoring_it(tmp_path):
+    from afmid.maps.run import run_map
+
+    raw = {"data": {"path": "x.h5"}, "drive": {"frequency": 3e5, "force_amplitude": 2.4e-9, "phase": 0.0}}
+    config = build_config(raw, source=tmp_path / "map.yaml", base_dir=tmp_path)
+    with pytest.raises(ConfigError) as caught:
+        run_map(config, "", tmp_path / "map.h5", tmp_path / "out.h5", engine=None)
+    assert caught.value.key == "drive.phase" and "single traces" in str(caught.value)
+    assert not (tmp_path / "out.h5").exists()
