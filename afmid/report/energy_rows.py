@@ -35,10 +35,11 @@ def energy_rows(energy: dict, calibrated: bool) -> list[tuple[str, str, str, str
 def energy_caveat(calibrated: bool) -> str:
     """The sentence under the table: how far the first two rows can be trusted as independent of the model."""
     if calibrated:
-        return ("The first two rows use the calibrated drive: they do not depend on the force model, only on the "
-                "calibration (a 2 % error in F0 or 0.05 rad in its phase moves them by a fraction of the drive's "
-                "work per period, see docs/accuracy.md), so a model row far from them means the model misses a "
-                "dissipation.")
+        return ("The first two rows use the calibrated drive: they do not depend on the force model, but on the "
+                "calibration: an error e in F0 that k and Q do not share moves them by e times the drive's work per "
+                "period, a phase error of p rad by up to p times it (docs/calibrated-drive.md); ± is the 1σ of the "
+                "declared drive.force_amplitude_uncertainty and drive.phase_uncertainty. A model row far from them "
+                "means the model misses a dissipation.")
     return ("The first two rows use the drive fitted together with the force law: a model that lacks a "
             "dissipative effect pulls the fitted drive, and with it these rows, towards its own value. Declare a "
             "calibrated drive (drive.force_amplitude, drive.phase) for an energy that does not depend on the model.")

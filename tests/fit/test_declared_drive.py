@@ -272,3 +272,19 @@ def test_a_map_refuses_a_calibrated_drive_instead_of_ignoring_it(tmp_path):
         run_map(config, "", tmp_path / "map.h5", tmp_path / "out.h5", engine=None)
     assert caught.value.key == "drive.phase" and "single traces" in str(caught.value)
     assert not (tmp_path / "out.h5").exists()
+
+
+def test_the_report_of_a_calibrated_run_says_what_its_energy_rows_depend_on(demo):
+    """The report of a run with a calibrated drive (its diagnosis refits with the same drive): the header and
+    the energy rows name the calibrated drive, and the declared uncertainties give a labelled 1 sigma."""
+    from afmid.report.page import make_report
+
+    folder, raw = demo
+    raw = copy.deepcopy(raw)
+    raw["drive"].update(force_amplitude_uncertainty=0.01, phase_uncertainty=0.01)
+    fitted(folder, raw, phase=0.0, name="report_run.h5")
+    make_report([folder / "report_run.h5"], folder / "report", suggest_effects=False)
+    page = (folder / "report" / "report.html").read_text()
+    assert "inverted force (cantilever equation, calibrated drive)" in page
+    assert "this force does not depend on the model" in page and "(1σ, drive calibration)" in page
+    assert "model-free" not in page
