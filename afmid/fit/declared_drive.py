@@ -125,4 +125,39 @@ def with_declared_drive(prep, drive: DeclaredDrive):
     Y_block = prep.Y_block - prep.nuisance_block[..., :2] @ known
     return dataclasses.replace(prep, Y=Y, Y_block=Y_block, nuisance=np.ascontiguousarray(prep.nuisance[..., 2:]),
                                nuisance_block=np.ascontiguousarray(prep.nuisance_block[..., 2:]),
-                               nuisance_names=list(prep.nuisance_names[2:]), declared_drive=drive)
+                               nuisance_names=list(prep.nuisance_names[2:]), declared_drive=drive,
+                               declared_drive_rows=np.array(prep.nuisance[..., :2]))
+
+
+def propagate_drive_calibration(quantities: dict, prep, library, system, coef: np.ndarray, mask: np.ndarray,
+                                params: dict, trace, read_out) -> None:
+    """Add the declared drive's calibration (``drive.force_amplitude_uncertainty``, ``drive.phase_uncertainty``)
+    to every read-out, in place, as :func:`afmid.fit.uncertainty.propagate_calibration` adds k and Q's: the
+    half-difference of the read-outs refitted (linearly, on the fit's support and weights) with F0 or the phase
+    at +-1 sigma, in quadrature into ``error_calibration``, ``error`` and the 95 % interval."""
+    from afmid.fit.uncertainty import coefficient_shift, widen_interval
+
+    drive = prep.declared_drive
+    if drive is None or not (drive.force_amplitude_uncertainty > 0 or drive.phase_uncertainty > 0):
+        return
+    base = np.array([drive.cos, drive.sin])
+    pairs = []
+    if drive.force_amplitude_uncertainty > 0:
+        pairs.append([base * (1 + sign * drive.force_amplitude_uncertainty) for sign in (1, -1)])
+    if drive.phase_uncertainty > 0:
+        turned = [dataclasses.replace(drive, phase=drive.phase + sign * drive.phase_uncertainty) for sign in (1, -1)]
+        pairs.append([np.array([d.cos, d.sin]) for d in turned])
+    variance = dict.fromkeys(quantities, 0.0)
+    for pair in pairs:  # Y = Y0 + rows @ (cos, sin): the change of the drive is a change of the left side
+        up, down = (read_out(library, coef + coefficient_shift(prep, system, prep.declared_drive_rows @ (new - base),
+                                                               mask), None, params, mask, trace) for new in pair)
+        for name in quantities:
+            delta = 0.5 * (up.get(name, {}).get("value", math.nan) - down.get(name, {}).get("value", math.nan))
+            if math.isfinite(delta):
+                variance[name] += delta**2
+    for name, q in quantities.items():
+        if variance[name] <= 0:
+            continue
+        q.setdefault("error_statistical", q["error"])
+        q["error_calibration"] = math.hypot(q.get("error_calibration", 0.0), math.sqrt(variance[name]))
+        widen_interval(q, math.sqrt(variance[name]))

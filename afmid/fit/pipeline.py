@@ -46,7 +46,7 @@ from afmid.fit.search import NonlinearEstimate, search_1d, search_range
 from afmid.fit.profile import GroupedProfile, ProfileResult, robust_profile
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
-from afmid.fit.declared_drive import declared_drive, with_declared_drive
+from afmid.fit.declared_drive import declared_drive, propagate_drive_calibration, with_declared_drive
 from afmid.preprocess.motion import fit_warning as motion_warning
 from afmid.fit.uncertainty import finish as finish_uncertainty, widen_interval
 from afmid.fit.undetermined import mark as mark_undetermined
@@ -391,6 +391,8 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
     force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,
                                                     trace, config, cv_error, noise_floor, read_out, uncertainty)
+    if uncertainty:  # a calibrated drive's declared uncertainty, like k's and Q's
+        propagate_drive_calibration(quantities, prep, library, system, coef, chosen, params, trace, read_out)
     # A read-out whose term was not selected is "not determined" (never 0 +- 0); terms the resamples select
     # only sometimes widen the error bars they affect (afmid.fit.undetermined).
     mark_undetermined(quantities, library, system, coef, chosen, params, trace, inclusion,
