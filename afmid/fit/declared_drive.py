@@ -74,7 +74,7 @@ def drive_from_free_oscillation(spring_constant: float, resonance_frequency: flo
     The calibration enters the inverted force twice, through the drive and through m x'' + c x' + k x: F0
     derived here with the k, Q and f0 the fit uses keeps an error of k or Q proportional in the force, where an
     F0 of its own error moves the dissipated energy by that error times the drive's work per period (an order
-    of magnitude more, docs/accuracy.md)."""
+    of magnitude more, docs/calibrated-drive.md)."""
     omega = 2.0 * math.pi * drive_frequency
     omega0 = 2.0 * math.pi * resonance_frequency
     mass = spring_constant / omega0**2

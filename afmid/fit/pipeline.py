@@ -313,6 +313,7 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     drive = declared_drive(config, trace)
     if drive is not None:  # a calibrated drive: not fitted, so the inverted force does not depend on the model
         prep = with_declared_drive(prep, drive)
+        log.info("drive not fitted: %s", drive.describe())
     params = library_parameters(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     physics, extra = profile_library(library, config)
