@@ -308,8 +308,8 @@ def export(run: Path, what: str, output: Path, overwrite: bool) -> None:
       afmid export run1.h5 --what parameters -o params.csv    # name, value, sigma_1, ci95_low, ci95_high, ...
       afmid export run1.h5 --what periods -o periods.csv      # period, peak_force_N, dissipated_energy_J, ...
 
-    force_N is the identified model's force, force_model_free_N the force from the equation of
-    motion on the harmonics above the noise (docs/file-formats.md, "CSV exports").
+    force_N is the identified model's force, force_inverted_N the force from the cantilever
+    equation on the harmonics above the noise (docs/file-formats.md, "CSV exports").
     """
     from afmid.report.export import export_run
 

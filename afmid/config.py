@@ -226,7 +226,16 @@ class DriveConfig(StrictModel):
     free_amplitude: _instrument("drive.free_amplitude") | None = Field(
         None, description="A0, free oscillation amplitude, m")
     force_amplitude: _instrument("drive.force_amplitude") | None = Field(
-        None, description="F0, drive force amplitude, N")
+        None, description="F0, drive force amplitude, N (with drive.phase: a calibrated drive the fit does not fit)")
+    phase: FiniteFloat | None = Field(None, description="phi, rad: F_drive = F0 cos(2 pi f t + phi), t = 0 at the "
+                                      "trace's time zero; given, the drive is calibrated, not fitted (fit.declared_drive)")
+    force_amplitude_uncertainty: RelativeUncertainty | None = Field(
+        None, description="relative 1-sigma uncertainty of drive.force_amplitude (0.02 = 2 %)")
+    phase_uncertainty: NonNegativeFloat | None = Field(None, description="1-sigma uncertainty of drive.phase, rad")
+    @model_validator(mode="after")
+    def _calibrated(self) -> "DriveConfig":
+        from afmid.fit.declared_drive import check_declaration  # lazy: `import afmid.cli` stays light
+        return check_declaration(self)
 
 
 class SampleConfig(StrictModel):

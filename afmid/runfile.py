@@ -45,10 +45,41 @@ log = logging.getLogger(__name__)
 #: Units of the datasets in ``/periods`` (per-period summaries and curves), by name.
 PERIOD_UNITS = {
     "phase": "rad", "period_start_time": "s", "deflection": "m", "velocity": "m/s", "acceleration": "m/s^2", "separation": "m",
-    "force_model": "N", "force_direct": "N", "peak_force": "N", "adhesion_force": "N", "max_indentation": "m",
-    "contact_time": "s", "dissipated_energy": "J", "dissipated_energy_direct": "J", "virial": "J",
-    "virial_direct": "J", "amplitude": "m", "period_error": "N",
+    "force_model": "N", "force_inverted": "N", "peak_force": "N", "adhesion_force": "N", "max_indentation": "m",
+    "contact_time": "s", "dissipated_energy": "J", "dissipated_energy_inverted": "J", "virial": "J",
+    "virial_inverted": "J", "amplitude": "m", "period_error": "N",
 }
+
+#: ``/model/drive`` attribute ``source``: whence the drive force the inverted force is computed with.
+DRIVE_FITTED = "fitted (two nuisance columns of the regression: depends on the force model)"
+DRIVE_CALIBRATED = "calibrated (drive.force_amplitude, drive.phase: given, not fitted)"
+
+#: Names of older run files (before the inverted force was named for what it is), read as the new ones.
+LEGACY_NAMES = {"force": {"direct": "inverted"},
+                "periods": {"force_direct": "force_inverted", "dissipated_energy_direct": "dissipated_energy_inverted",
+                            "virial_direct": "virial_inverted"}}
+
+
+def drive_kind(declared) -> str:
+    """``fitted`` or ``calibrated``: the drive the inverted force is computed with."""
+    return "fitted" if declared is None else "calibrated"
+
+
+def inverted_force_meaning(calibrated: bool) -> str:
+    """What the run file's inverted force is and what it depends on."""
+    if calibrated:
+        return ("inverted force F = F_drive - (m x'' + c x' + k x) from the cantilever equation with the calibrated "
+                "drive (drive.force_amplitude, drive.phase): depends on the data, k, Q, f0 and the drive calibration, "
+                "not on the force model; band-limited to the signal harmonics")
+    return ("inverted force F = F_drive - (m x'' + c x' + k x) from the cantilever equation with the drive fitted "
+            "together with the force model: its first harmonic (dissipated energy, virial) depends on the model; "
+            "band-limited to the signal harmonics")
+
+
+def renamed(group: str, items) -> dict:
+    """``{name: value}`` of a run file's group with the names of older files (:data:`LEGACY_NAMES`) made current."""
+    legacy = LEGACY_NAMES.get(group, {})
+    return {legacy.get(k, k): v for k, v in items}
 
 
 def text(value, errors: str = "strict") -> str:
@@ -99,10 +130,19 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         m.attrs["library"] = result.library.source
         dg = m.create_group("drive")
         nu = result.coef[p:]
-        write_dataset(dg, "force_amplitude", float(np.hypot(nu[0], nu[1])), "N")
+        declared = result.prep.declared_drive
         # F_drive = cos * cos(w t) + sin * sin(w t) in the trace's time base (the fit's columns are -F_drive)
-        write_dataset(dg, "cos", float(-nu[0]), "N")
-        write_dataset(dg, "sin", float(-nu[1]), "N")
+        drive_cos, drive_sin = (declared.cos, declared.sin) if declared is not None else (-nu[0], -nu[1])
+        write_dataset(dg, "force_amplitude", float(np.hypot(drive_cos, drive_sin)), "N")
+        write_dataset(dg, "cos", float(drive_cos), "N")
+        write_dataset(dg, "sin", float(drive_sin), "N")
+        dg.attrs["source"] = DRIVE_CALIBRATED if declared is not None else DRIVE_FITTED
+        if declared is not None:  # afmid.fit.declared_drive: given, not fitted
+            write_dataset(dg, "phase", declared.phase, "rad", meaning="F_drive = F0 cos(2 pi f t + phase)")
+            write_dataset(dg, "force_amplitude_uncertainty", declared.force_amplitude_uncertainty, "1",
+                          meaning="relative, 1 sigma (0: not given)")
+            write_dataset(dg, "phase_uncertainty", declared.phase_uncertainty, "rad", meaning="1 sigma (0: not given)")
+            dg.attrs["force_amplitude_source"] = declared.amplitude_source
         write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
         write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
         found = getattr(result, "drive_search", None)
@@ -111,7 +151,8 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
             write_dataset(dg, "response_frequency", found.response_frequency, "Hz",
                           meaning="spectral peak of the deflection, replaced by the searched drive frequency")
         dg.attrs["frequency_source"] = (
-            "regression search (record not in steady state)" if found is not None
+            "nominal (calibrated drive, drive.phase)" if declared is not None
+            else "regression search (record not in steady state)" if found is not None
             else "nominal (fit.drive_frequency: nominal)" if config.fit.drive_frequency == "nominal"
             else "spectral peak of the deflection")
         if "offset" in result.system.names:
@@ -146,8 +187,8 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
                               "declared k and Q uncertainties; separation_relative_uncertainty: the RMS of its "
                               "1-sigma change with the estimated rest separation, relative to the peak |force| "
                               "(NaN: the separation was given)")
-        write_dataset(fg, "direct", result.force_direct, "N", positive="repulsive",
-                      meaning="model-free force from the equation of motion, band-limited to signal harmonics")
+        write_dataset(fg, "inverted", result.force_inverted, "N", positive="repulsive", drive=drive_kind(declared),
+                      meaning=inverted_force_meaning(declared is not None))
         write_dataset(fg, "time", result.prep.t, "s")
         write_dataset(fg, "deflection", result.prep.x, "m", positive="toward_sample")
         pgp = h5.create_group("periods")
@@ -170,10 +211,10 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(dg, "n_rows", result.system.n_rows, "1")
         write_dataset(dg, "chi2_reduced", best.rss / max(result.system.n_rows - int(best.mask.sum()), 1), "1",
                       definition="rss / (n - k); about 1 when the model explains the data to the predicted noise")
-        residual = create_dataset(dg, "residual", result.force_direct.shape, np.float64, "N")
+        residual = create_dataset(dg, "residual", result.force_inverted.shape, np.float64, "N")
         for lo in range(0, residual.shape[0], 1 << 20):  # chunk by chunk: no third per-sample array
             piece = slice(lo, lo + (1 << 20))
-            residual[piece] = result.force_direct[piece] - result.force_estimate[piece]
+            residual[piece] = result.force_inverted[piece] - result.force_estimate[piece]
         write_dataset(dg, "noise_rms", result.prep.noise_rms, "m")
         write_dataset(dg, "steadiness", result.prep.steadiness, "1")
         write_dataset(dg, "harmonics", result.prep.blocks.harmonics, "1")
@@ -245,7 +286,13 @@ class RunData:
     warnings: list[str] = field(default_factory=list)
     n_rows: int = 0  # whitened equations behind bic / chi2_reduced (0 if the file does not say)
     harmonics: np.ndarray | None = None  # drive harmonic of each Fourier row (0, 1, 1, 2, 2, ...)
-    signal_rows: np.ndarray | None = None  # rows used by the model-free force (above the noise)
+    signal_rows: np.ndarray | None = None  # rows used by the inverted force (above the noise)
+    drive_source: str = DRIVE_FITTED  # /model/drive attribute source: fitted or calibrated (older files: fitted)
+
+    @property
+    def drive_calibrated(self) -> bool:
+        """True when the fit used a calibrated drive: the inverted force does not depend on the force model."""
+        return self.drive_source == DRIVE_CALIBRATED
     model_limited: bool = False  # cv_error above its noise floor (afmid.fit.uncertainty.model_limited)
     force_calibration_uncertainty: float = 0.0  # relative 1 sigma of the force from the declared k / Q
     force_separation_uncertainty: float = math.nan  # RMS 1 sigma of the force from the estimated d, / peak
@@ -370,8 +417,9 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         chi2_reduced=float(d["chi2_reduced"][()]),
         drive={k: float(v[()]) for k, v in m["drive"].items()},
         cantilever={k: float(v) for k, v in h5["cantilever"].attrs.items() if k != "units"},
-        periods={k: v[...] for k, v in h5["periods"].items()},
-        force={k: v[...] for k, v in h5["force"].items()},
+        periods=renamed("periods", ((k, v[...]) for k, v in h5["periods"].items())),
+        force=renamed("force", ((k, v[...]) for k, v in h5["force"].items())),
+        drive_source=text(m["drive"].attrs.get("source", DRIVE_FITTED)),
         input_path=Path(text(input_path)) if input_path else None,
         input_sha256=text(input_sha256) if input_sha256 is not None else None,
         warnings=[text(w) for w in d.attrs.get("warnings", [])],

@@ -3,9 +3,9 @@
 Works from run files (written by ``afmid fit``) so reports can be made later
 and compared across runs.
 
-:func:`localize` looks at the residual between the model-free force and the
+:func:`localize` looks at the residual between the inverted force and the
 model force (the model force band-limited to the same drive harmonics as the
-model-free one, so that a perfect model leaves only noise). The periods of a
+inverted one, so that a perfect model leaves only noise). The periods of a
 steady trace repeat, so the residual is averaged over periods at equal drive
 phase: what survives is the systematic misfit, and its spread from period to
 period is the noise it is compared with. The systematic residual is broken down

@@ -21,9 +21,9 @@ def _rms(a: np.ndarray) -> float:
 
 
 def band_limit(force: np.ndarray, run: RunData) -> np.ndarray:
-    """Per-period curves (periods, phase points) limited to the drive harmonics of the model-free force.
+    """Per-period curves (periods, phase points) limited to the drive harmonics of the inverted force.
 
-    The model-free force only keeps the harmonics that stand above the noise
+    The inverted force only keeps the harmonics that stand above the noise
     (/diagnostics/signal_rows); the model force is evaluated from the force law
     and has all of them. Comparing the two directly would show the model's own
     high harmonics (the sharp contact) as a residual even for a perfect model.
@@ -47,7 +47,7 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def localize(run: RunData) -> dict:
-    """Residual (model-free minus model force, N) by region, direction, phase, harmonic and character.
+    """Residual (inverted minus model force, N) by region, direction, phase, harmonic and character.
 
     ``rms`` and the per-region numbers describe the systematic residual (the
     period average at equal drive phase); ``noise_rms`` is the noise left in
@@ -57,15 +57,15 @@ def localize(run: RunData) -> dict:
     P = run.periods
     # A transient: the average at equal drive phase over its settled end only (afmid.preprocess.harmonics.settled_start).
     first = settled_start(0.5 * (P["separation"].max(axis=1) - P["separation"].min(axis=1)))
-    r_every = P["force_direct"] - band_limit(P["force_model"], run)  # (periods, phase)
-    f_direct = P["force_direct"][first:]
+    r_every = P["force_inverted"] - band_limit(P["force_model"], run)  # (periods, phase)
+    f_inverted = P["force_inverted"][first:]
     r_all = r_every[first:]
     n_periods = r_all.shape[0]
     r = r_all.mean(axis=0)
     noise = r_all.std(axis=0, ddof=1) / math.sqrt(n_periods) if n_periods > 1 else np.zeros_like(r)
     z = P["separation"][first:].mean(axis=0)
     zdot = -P["velocity"][first:].mean(axis=0)  # dz/dt; the separation falls on approach
-    force = f_direct.mean(axis=0)
+    force = f_inverted.mean(axis=0)
     a0 = run.config.sample.a0
     regions = {
         "contact": z <= a0,
@@ -160,24 +160,27 @@ def localize(run: RunData) -> dict:
 def energy_check(run: RunData) -> dict:
     """Energy the sample takes from the tip per period (J), three ways, plus the truth of a simulation.
 
-    - ``model_free``: -closed integral of F dz of the model-free force;
-    - ``energy_balance``: the work of the (fitted) drive on the lever minus its
+    - ``inverted``: -closed integral of F dz of the inverted force F = F_drive - (m x'' + c x' + k x);
+    - ``energy_balance``: the work of the drive on the lever minus its
       own viscous loss, from the measured motion: on a steady periodic orbit the
-      spring and inertia terms do no net work, so this equals ``model_free`` up
-      to the harmonics the model-free force leaves out (a check of the
+      spring and inertia terms do no net work, so this equals ``inverted`` up
+      to the harmonics the inverted force leaves out (a check of the
       processing, not an independent measurement);
     - ``model``: -closed integral of F dz of the identified force law: the
       independent one, it agrees with the other two when the model captures
       the dissipation;
-    - ``truth`` (simulated traces only): from the simulator's true force.
+    - ``truth`` (simulated traces only): from the simulator's true force;
+    - ``drive_calibration_sigma`` (a calibrated drive only): 1 sigma of the first two from the declared
+      uncertainties of F0 and the phase (the drive enters them linearly: through its work per period).
 
-    Caveat: the drive amplitude and phase are fitted together with the force
-    law, so a model that lacks a dissipative effect can pull the fitted drive
-    and with it the first two estimates towards its own (too small) value.
+    The first two use the run's drive: with the drive fitted (``run.drive_calibrated`` False) its amplitude
+    and phase are fitted together with the force law, so a model that lacks a dissipative effect pulls them
+    towards its own (too small) value; with a calibrated drive (:mod:`afmid.fit.declared_drive`) they do
+    not depend on the model.
     """
     P = run.periods
     out = {
-        "model_free": float(np.mean(P["dissipated_energy_direct"])),
+        "inverted": float(np.mean(P["dissipated_energy_inverted"])),
         "model": float(np.mean(P["dissipated_energy"])),
     }
     x = P["deflection"]
@@ -192,6 +195,11 @@ def energy_check(run: RunData) -> dict:
     viscous = damping * np.mean(np.sum(v**2, axis=1)) * period / x.shape[1]
     out["energy_balance"] = float(work - viscous)
     out["drive_work"] = float(work)
+    if run.drive_calibrated:  # both drive-based rows move with the drive's work: F0 scales it, the phase turns it
+        turned = run.drive["sin"] * np.cos(phase) - run.drive["cos"] * np.sin(phase)  # dF_drive / dphase
+        work_turned = np.mean(np.sum(turned * v, axis=1)) * period / x.shape[1]
+        out["drive_calibration_sigma"] = float(math.hypot(work * run.drive.get("force_amplitude_uncertainty", 0.0),
+                                                          work_turned * run.drive.get("phase_uncertainty", 0.0)))
     truth = run.truth
     if truth is not None and truth.force.size == truth.separation.size > 1 and "time" in run.force:
         t = run.force["time"]

@@ -30,9 +30,12 @@ CHUNK_BLOCKS = 256
 
 
 # --------------------------------------------------------------------------- error metric
-def direct_force_coefficients(prep: Prepared, system: System, coef: np.ndarray, blocks: slice = slice(None)
+def inverted_force_coefficients(prep: Prepared, system: System, coef: np.ndarray, blocks: slice = slice(None)
                                ) -> np.ndarray:
-    """Model-free force F_ts per period (B, 2K+1): -(m x'' + c x' + k x) plus the fitted drive (``blocks``: of those)."""
+    """The inverted force F_ts per period (B, 2K+1): the drive minus (m x'' + c x' + k x) (``blocks``: of those).
+
+    The drive is the fitted one (``coef``'s drive columns: then F_ts depends on the force model) or, with a
+    calibrated drive (:mod:`afmid.fit.declared_drive`), the declared one already in ``Y_block``."""
     p = system.theta.shape[2]
     Y = prep.Y_block[blocks]
     if "stiffness" in prep.nuisance_names:  # free cantilever: the identified k, c replace the calibrated ones
@@ -41,8 +44,8 @@ def direct_force_coefficients(prep: Prepared, system: System, coef: np.ndarray, 
 
 
 def signal_rows(prep: Prepared, system: System, coef: np.ndarray) -> np.ndarray:
-    """Rows whose mean model-free force stands above the per-block noise."""
-    F = direct_force_coefficients(prep, system, coef)
+    """Rows whose mean inverted force stands above the per-block noise."""
+    F = inverted_force_coefficients(prep, system, coef)
     mean = np.abs(F.mean(axis=0))
     rows = mean > SIGNAL_SNR * prep.block_sigma
     harmonics = prep.blocks.harmonics
@@ -63,7 +66,7 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
 
     For each fold of contiguous periods the model is refitted on the other
     periods. On the held-out periods, averaged like the paper averages periods,
-    the model force is compared with the model-free force
+    the model force is compared with the inverted force
     F_ts = drive - (m x'' + c x' + k x) on the drive harmonics where that
     average stands 3 sigma above its noise:
     error^2 = sum |F_free - F_model|^2 / sum |F_free - mean(F_free)|^2
@@ -179,16 +182,16 @@ def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) 
 
 # --------------------------------------------------------------------------- forces
 def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np.ndarray, rows: np.ndarray):
-    """Model force on every used sample and the band-limited model-free force (N; NaN elsewhere)."""
+    """Model force on every used sample and the band-limited inverted force (N; NaN elsewhere)."""
     n = prep.x.size
     estimate = model_force_samples(prep, library, system, coef)
     L = prep.blocks.L
     used = prep.blocks.used
-    direct = np.full(n, np.nan)
+    inverted = np.full(n, np.nan)
     for b0, b1 in prep.blocks.chunks():
-        F = direct_force_coefficients(prep, system, coef, slice(b0, b1)) * rows[None, :]
-        direct[used.start + b0 * L:used.start + b1 * L] = prep.blocks.synthesize_blocks(F[..., None], b0)[:, 0]
-    return estimate, direct
+        F = inverted_force_coefficients(prep, system, coef, slice(b0, b1)) * rows[None, :]
+        inverted[used.start + b0 * L:used.start + b1 * L] = prep.blocks.synthesize_blocks(F[..., None], b0)[:, 0]
+    return estimate, inverted
 
 
 def model_force_samples(prep: Prepared, library: Library, system: System, coef: np.ndarray) -> np.ndarray:
@@ -235,7 +238,7 @@ def period_curves(prep: Prepared, library: Library, system: System, coef, params
     step = B if library.states else PERIOD_CHUNK
     for b0 in range(0, B, step):
         b1 = min(b0 + step, B)
-        x, v, f_direct = (curves.curve(name, b0, b1) for name in ("deflection", "velocity", "force_direct"))
+        x, v, f_inverted = (curves.curve(name, b0, b1) for name in ("deflection", "velocity", "force_inverted"))
         f = curves.model_force(x, v, b0, b1)
         if library.states:
             held["force_model"] = f
@@ -249,11 +252,11 @@ def period_curves(prep: Prepared, library: Library, system: System, coef, params
             "contact_time": contact.mean(axis=1) * period,
             # energy taken from the tip per period: -closed integral of F dz
             "dissipated_energy": -np.sum(f * zdot, axis=1) * dt,
-            "dissipated_energy_direct": -np.sum(f_direct * zdot, axis=1) * dt,
+            "dissipated_energy_inverted": -np.sum(f_inverted * zdot, axis=1) * dt,
             # (1/T) integral of (force toward the sample) * x dt
             "virial": -np.mean(f * x, axis=1),
-            "virial_direct": -np.mean(f_direct * x, axis=1),
-            "period_error": np.sqrt(np.mean((f_direct - f) ** 2, axis=1)),
+            "virial_inverted": -np.mean(f_inverted * x, axis=1),
+            "period_error": np.sqrt(np.mean((f_inverted - f) ** 2, axis=1)),
         }
         for name, value in out.items():
             held[name][b0:b1] = value
@@ -266,7 +269,7 @@ class PeriodCurves(Mapping):
     """The outputs of :func:`period_curves`: a read-only mapping name -> array, in the run file's order.
 
     The per-period summaries are held. The curves on the phase grid
-    (deflection, velocity, acceleration, separation, the model and model-free
+    (deflection, velocity, acceleration, separation, the model and inverted
     forces: (periods, phase points) each, 0.1 GB apiece at 5e4 periods) are
     evaluated from the coefficients the fit keeps anyway when asked for, and
     chunk by chunk when written (:meth:`write`): the values are the same
@@ -275,11 +278,11 @@ class PeriodCurves(Mapping):
     """
 
     NAMES = ("phase", "period_start_time", "deflection", "velocity", "acceleration", "separation", "force_model",
-             "force_direct", "peak_force", "adhesion_force", "max_indentation", "contact_time", "dissipated_energy",
-             "dissipated_energy_direct", "virial", "virial_direct", "amplitude", "period_error")
-    CURVES = ("deflection", "velocity", "acceleration", "separation", "force_model", "force_direct")
+             "force_inverted", "peak_force", "adhesion_force", "max_indentation", "contact_time", "dissipated_energy",
+             "dissipated_energy_inverted", "virial", "virial_inverted", "amplitude", "period_error")
+    CURVES = ("deflection", "velocity", "acceleration", "separation", "force_model", "force_inverted")
     SUMMARIES = ("peak_force", "adhesion_force", "max_indentation", "contact_time", "dissipated_energy",
-                 "dissipated_energy_direct", "virial", "virial_direct", "period_error")
+                 "dissipated_energy_inverted", "virial", "virial_inverted", "period_error")
 
     def __init__(self, prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int):
         self.prep, self.library, self.system = prep, library, system
@@ -307,8 +310,8 @@ class PeriodCurves(Mapping):
     def curve(self, name: str, first: int, stop: int) -> np.ndarray:
         """One of :attr:`CURVES` for periods ``first`` .. ``stop - 1``: (stop - first, phase points)."""
         blocks, X = self.prep.blocks, self.prep.X[first:stop, :, None]
-        if name == "force_direct":
-            F = direct_force_coefficients(self.prep, self.system, self.coef, slice(first, stop)) * self.rows[None, :]
+        if name == "force_inverted":
+            F = inverted_force_coefficients(self.prep, self.system, self.coef, slice(first, stop)) * self.rows[None, :]
             return blocks.evaluate(F[..., None], self.phase)[..., 0]
         if name == "separation":
             return self.params["d"] - self.curve("deflection", first, stop)

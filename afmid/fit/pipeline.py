@@ -2,7 +2,7 @@
 
 Pipeline (each step a plain function; the CLI only wires them):
 load (:func:`afmid.io.trace.load_trace`) -> :func:`prepare` (drive frequency, blocks of
-one period, Fourier coefficients, noise level, the model-free force) ->
+one period, Fourier coefficients, noise level, the inverted force) ->
 :func:`build_system` (library columns projected like the data, whitened, factored)
 -> :func:`afmid.fit.regression.select` (sparsity path + BIC / CV) -> nonlinear
 parameters (separation, decay lengths) by an outer search -> bagging for error
@@ -47,6 +47,7 @@ from afmid.fit.search import NonlinearEstimate, search_1d, search_range
 from afmid.fit.profile import GroupedProfile, ProfileResult, robust_profile
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
+from afmid.fit.declared_drive import declared_drive, propagate_drive_calibration, with_declared_drive
 from afmid.preprocess.motion import fit_warning as motion_warning
 from afmid.fit.uncertainty import finish as finish_uncertainty, widen_interval
 from afmid.fit.undetermined import mark as mark_undetermined
@@ -163,7 +164,7 @@ class FitResult:
     cv_error_noise_floor: float  # the error a perfect model would show at this noise
     signal_rows: np.ndarray  # bool (2K+1): rows counted in the error metric
     force_estimate: np.ndarray  # N per input sample (NaN where not estimated)
-    force_direct: np.ndarray  # N per input sample, model-free (band-limited)
+    force_inverted: np.ndarray  # N per input sample, drive - (m x'' + c x' + k x) (band-limited; prep.declared_drive)
     periods: dict[str, np.ndarray]
     warnings: list[str] = field(default_factory=list)
     drive_search: DriveSearch | None = None  # the drive frequency searched by the regression (transient records)
@@ -310,6 +311,10 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
     if prep.motion is not None and prep.motion.non_periodic:
         warnings.append(motion_warning(prep.motion, prep.noise_rms))
+    drive = declared_drive(config, trace)
+    if drive is not None:  # a calibrated drive: not fitted, so the inverted force does not depend on the model
+        prep = with_declared_drive(prep, drive)
+        log.info("drive not fitted: %s", drive.describe())
     params = library_parameters(prep, config, library)
     bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
     physics, extra = profile_library(library, config)
@@ -323,8 +328,8 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     def estimate_again(p: Prepared) -> None:
         nonlinear.update(estimate_nonlinear(p, library, config, params, physics=(physics, extra)))
 
-    prep, drive_search = settle_drive_frequency(prep, fit.drive_frequency, fit.seed, factors_at,
-                                                estimate_again if nonlinear else None)
+    prep, drive_search = (prep, None) if prep.declared_drive is not None else settle_drive_frequency(
+        prep, fit.drive_frequency, fit.seed, factors_at, estimate_again if nonlinear else None)
     bar.update(1)
     settings = SelectionSettings.for_library(fit, library, len(prep.nuisance_names))
     system = build_system(prep, library, params)
@@ -388,11 +393,13 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
     force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,
                                                     trace, config, cv_error, noise_floor, read_out, uncertainty)
+    if uncertainty:  # a calibrated drive's declared uncertainty, like k's and Q's
+        propagate_drive_calibration(quantities, prep, library, system, coef, chosen, params, trace, read_out)
     # A read-out whose term was not selected is "not determined" (never 0 +- 0); terms the resamples select
     # only sometimes widen the error bars they affect (afmid.fit.undetermined).
     mark_undetermined(quantities, library, system, coef, chosen, params, trace, inclusion,
                       fit.bootstrap if uncertainty else 0, fit.seed, read_out, warnings)
-    force_estimate, force_direct = per_sample_forces(prep, library, system, coef, rows)
+    force_estimate, force_inverted = per_sample_forces(prep, library, system, coef, rows)
     share = SHARE_NOT_COMPUTED
     if uncertainty and "d" in nonlinear and config.sample.separation is None:
         # the force curve along the separation's valley (afmid.fit.separation_share): often the largest part
@@ -406,14 +413,14 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     for name, est in nonlinear.items():
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
-                     nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_direct, periods,
+                     nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_inverted, periods,
                      warnings, drive_search, force_calibration, limited, share)
 
 
 def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:
     """Stop (InputError, nothing written) when the fit has no result afmid can stand behind.
 
-    A NaN error metric means no drive harmonic of the model-free force stood out of the noise on the
+    A NaN error metric means no drive harmonic of the inverted force stood out of the noise on the
     held-out periods: there was no tip-sample force to identify, and the coefficients only describe noise.
     """
     bad = [name for name, c in zip(library.names, coef) if not math.isfinite(c)]
@@ -422,7 +429,7 @@ def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: 
                          "degenerate on this trace; nothing was written", file=trace.path, key="model")
     if not math.isfinite(cv_error):
         raise InputError("the fit has no usable result: its cross-validated error is NaN because no harmonic of "
-                         "the model-free tip-sample force stands above the noise (the tip does not reach the sample, "
+                         "the inverted tip-sample force stands above the noise (the tip does not reach the sample, "
                          "or this is not a tapping trace); nothing was written", file=trace.path, key="data.path")
 
 

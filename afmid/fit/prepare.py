@@ -76,6 +76,10 @@ class Prepared:
     #: m, the tip restored for the per-sample forces behind a declared detector (afmid.preprocess.restoration): the
     #: smoothed, Wiener-shrunk trajectory instead of ``x``, whose inverted noise is multiplied by |1/G| (None: x)
     x_restored: np.ndarray | None = None
+    #: the calibrated drive moved into Y and Y_block, its columns out of the regression
+    #: (:func:`afmid.fit.declared_drive.with_declared_drive`; None: the drive is fitted)
+    declared_drive: object = None
+    declared_drive_rows: np.ndarray | None = None  # (W, 2K+1, 2) the weak-form rows of its cos and sin
 
 
 def prepare(trace: Trace, fit, instrument=None) -> Prepared:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from afmid.errors import InputError
+from afmid.errors import ConfigError, InputError
 from afmid.maps.pixel_fit import ROUTES
 from afmid.maps.task import STATUS_FAILED, STATUS_NAMES, STATUS_OK, STATUS_SUSPECT, fit_chunk
 
@@ -58,6 +58,9 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
     from afmid.io.trace import check_output_path, sha256_file
     from afmid.maps.input_file import open_map
 
+    if config.drive.phase is not None:  # the shared pixel fit builds its own systems: it would ignore it silently
+        raise ConfigError("a calibrated drive (drive.phase) is for single traces (afmid fit): a map fits the drive "
+                          "of every pixel; leave drive.phase out", file=config.source, key="drive.phase")
     source = open_map(input_path, config)
     output = check_output_path(output, overwrite, inputs={config.source: "the config", input_path: "the map"})
     if config.sample.separation is not None:

@@ -7,18 +7,18 @@ where the run file has no finite value, ``true``/``false`` for flags. Layout in 
 
 - ``force-curves``: F(z) per period, every sample of the period grid, each marked ``approach`` (the tip moving
   toward the sample: dz/dt < 0, i.e. dx/dt > 0) or ``retract``. Columns ``period, branch, separation_m,
-  force_N`` (pinned) then ``phase_rad`` (drive phase within the period) and ``force_model_free_N``.
+  force_N`` (pinned) then ``phase_rad`` (drive phase within the period) and ``force_inverted_N``.
   ``force_N`` is the identified model's force along the measured trajectory (full bandwidth, the report's
-  "model" curve, ``/periods/force_model``); ``force_model_free_N`` is the force from the equation of motion
-  limited to the harmonics above the noise (``/periods/force_direct``), which depends on the model through
-  the fitted drive.
+  "model" curve, ``/periods/force_model``); ``force_inverted_N`` is the inverted force F_drive - (m x'' + c x'
+  + k x) limited to the harmonics above the noise (``/periods/force_inverted``), which depends on the model
+  through the drive when the drive was fitted (``/model/drive`` attribute ``source``), not with a calibrated drive.
 - ``parameters``: the physical read-outs, then the nonlinear shape parameters: ``name, value, sigma_1,
   ci95_low, ci95_high, unit, determined, model_limited`` (pinned) then ``plausible``; ``sigma_1`` is the
   1-sigma error, ``ci95_*`` the 95 % interval; a nonlinear parameter (a decay length, the separation d) has
   neither an interval nor a plausibility verdict in the run file (empty fields) and is model-limited when
   its run is.
 - ``periods``: one row per period with every per-period quantity of ``/periods`` (peak and adhesion force,
-  indentation, contact time, dissipated energy and virial from the model and model-free, amplitude, ...).
+  indentation, contact time, dissipated energy and virial from the model and the inverted force, amplitude, ...).
 
 The output is written under a temporary name and renamed when complete; an existing file is replaced only
 with ``overwrite``, an input never.
@@ -33,11 +33,11 @@ from pathlib import Path
 
 #: What ``afmid export --what`` can write (name -> one line for the help).
 EXPORTS = {
-    "force-curves": "F(z) per period and branch (approach / retract): model force and model-free force",
+    "force-curves": "F(z) per period and branch (approach / retract): model force and inverted force",
     "parameters": "the physical parameters: value, 1-sigma error, 95 % interval, unit, flags",
     "periods": "one row per period: the per-period quantities of the run file",
 }
-FORCE_CURVE_COLUMNS = ("period", "branch", "separation_m", "force_N", "phase_rad", "force_model_free_N")
+FORCE_CURVE_COLUMNS = ("period", "branch", "separation_m", "force_N", "phase_rad", "force_inverted_N")
 PARAMETER_COLUMNS = ("name", "value", "sigma_1", "ci95_low", "ci95_high", "unit", "determined", "model_limited",
                      "plausible")
 
@@ -110,13 +110,13 @@ def force_curves(run) -> tuple[list[str], Iterator[list]]:
     """F(z) of every period: (header, rows), rows period by period, samples in the order of the period grid."""
     periods = run.periods
     separation, velocity = periods["separation"], periods["velocity"]
-    model, model_free, phase = periods["force_model"], periods["force_direct"], periods["phase"]
+    model, inverted, phase = periods["force_model"], periods["force_inverted"], periods["phase"]
 
     def rows() -> Iterator[list]:
         for k in range(separation.shape[0]):
             for j in range(separation.shape[1]):
                 branch = "approach" if velocity[k, j] > 0 else "retract"  # dz/dt = -dx/dt
-                yield [k, branch, separation[k, j], model[k, j], phase[j], model_free[k, j]]
+                yield [k, branch, separation[k, j], model[k, j], phase[j], inverted[k, j]]
 
     return list(FORCE_CURVE_COLUMNS), rows()
 

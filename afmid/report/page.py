@@ -23,6 +23,7 @@ import numpy as np
 from afmid import __version__
 import afmid.fit.plausibility as plausibility
 from afmid.diagnosis.diagnose import BIC_EVIDENCE, describe_residual, energy_check, localize, suggest
+from afmid.report.energy_rows import energy_caveat, energy_rows, inverted_force_name
 from afmid.io.trace import now_iso
 from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import effect_for, tip_geometry
@@ -158,8 +159,11 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>afmid report</title><style>{CSS}</style></head><body>",
              f"<h1>afmid report</h1><p>{len(runs)} run(s); afmid {__version__}; made {now_iso()}. "
              "Forces are on the tip, positive = repulsive; z is the tip-sample separation (contact at z = a0). "
-             "The model-free force is F = drive − (m x'' + c x' + k x), limited to the drive harmonics that stand "
-             "above the noise; the model is compared with it on the same harmonics.</p>"]
+             f"The {inverted_force_name(last.drive_calibrated)} is F = drive − (m x'' + c x' + k x), limited to the "
+             "drive harmonics that stand above the noise; the model is compared with it on the same harmonics. "
+             + ("The drive is the calibrated one (drive.force_amplitude, drive.phase): this force does not depend "
+                "on the model." if last.drive_calibrated else "The drive is fitted together with the force law, so "
+                "this force's first harmonic (and the energy from it) depends on the model.") + "</p>"]
     diag = summary.get("diagnosis", {})
     if summary.get("loop"):  # several runs: the loop first, then the verdict on the last run
         parts.append(loop_html(summary["loop"], _rich))
@@ -219,14 +223,14 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                      + "</ul>")
     parts.append(f"<h2>The last run: {html.escape(last.path.name)}</h2>")
     parts.append(_img(folder, figures["force_separation"],
-                      "Force vs separation, approach (left) and retraction (right) drawn separately: the model-free "
+                      "Force vs separation, approach (left) and retraction (right) drawn separately: the inverted "
                       "force averaged over periods (band: ±2σ of that average), the model on the same harmonics and "
                       "at full bandwidth" + (", and the true force of the simulation" if last.truth is not None else "")))
     parts.append(_img(folder, figures["force_time"],
-                      "Force vs time over three consecutive steady periods: the model-free force and the identified "
+                      "Force vs time over three consecutive steady periods: the inverted force and the identified "
                       f"model on the same bandwidth ({bandwidth_text(last)}; solid), the model at full bandwidth "
                       "(dashed)" + (", the simulation's true force (grey)" if last.truth is not None else "")
-                      + ". At matched bandwidth a perfect model lies on the model-free force, ringing included: the "
+                      + ". At matched bandwidth a perfect model lies on the inverted force, ringing included: the "
                         "ringing is the finite bandwidth, not noise"))
     parts.append(_img(folder, figures["phase_portraits"],
                       "Phase portraits as in the paper's figures S1.1-S1.8: (a) the measured periods (transient ones "
@@ -252,24 +256,22 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     parts.append(_table(["region", "time", "share of residual", "rms", "noise", "approach", "retraction",
                          "correlation with dz/dt"], rows))
     limit = local.get("max_signal_harmonic")
-    parts.append(_img(folder, figures["residual"], "Systematic residual (model-free − model, averaged over periods): "
+    parts.append(_img(folder, figures["residual"], "Systematic residual (inverted force − model, averaged over periods): "
                                                    "vs separation for approach and retraction, by region, by harmonic. "
                       + (f"Both forces keep only the drive harmonics up to {limit} (those above the noise), so a "
                          "feature narrower in time than 1/" + str(2 * limit) + " of a period (e.g. a jump at contact) "
                          "is smeared over the neighbouring separations and rings." if limit else "")))
     eV = 1.602176634e-19
     parts.append("<h2>Energy check (dissipated per period)</h2>")
-    parts.append("<p>Energy the sample takes from the tip per period, estimated from the model-free force, from the "
+    parts.append("<p>Energy the sample takes from the tip per period, estimated from the inverted force, from the "
                  "cantilever's energy balance and from the model; they agree when the model captures the "
                  "dissipation.</p>")
-    parts.append(_table(["from", "energy"], [
-        ["model-free force (−∮F dz)", _fmt(energy["model_free"] / eV, "eV")],
-        ["cantilever balance (drive work − viscous loss)", _fmt(energy["energy_balance"] / eV, "eV")],
-        ["model (−∮F_model dz)", _fmt(energy["model"] / eV, "eV")],
-    ] + ([["truth (simulation)", _fmt(energy["truth"] / eV, "eV")]] if "truth" in energy else [])))
-    parts.append(f"<p>For scale: the drive does {_fmt(energy['drive_work'] / eV, 'eV')} of work per period. The first "
-                 "two estimates share the fitted drive, which is fitted together with the force law: a model "
-                 "that lacks a dissipative effect can pull them towards its own value.</p>")
+    parts.append(_table(["from", "depends on", "energy"], [
+        [what, depends, _fmt(energy[key] / eV, "eV")
+         + (f" ± {_fmt(energy[sigma] / eV, 'eV')} (1σ, drive calibration)" if sigma else "")]
+        for what, depends, key, sigma in energy_rows(energy, last.drive_calibrated)]))
+    parts.append(f"<p>For scale: the drive does {_fmt(energy['drive_work'] / eV, 'eV')} of work per period. "
+                 f"{energy_caveat(last.drive_calibrated)}</p>")
     parts.append(_img(folder, figures["periods"], "Per period: residual, model force extremes, dissipated energy"))
     if summary.get("tried"):
         parts.append("<h2>Effects tried</h2>")

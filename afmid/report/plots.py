@@ -39,7 +39,7 @@ def _contact_line(ax, a0: float) -> None:
 
 
 def signal_harmonics(run: RunData) -> list[int]:
-    """The drive harmonics the model-free force keeps (those above the noise), ascending; [] if the run file
+    """The drive harmonics the inverted force keeps (those above the noise), ascending; [] if the run file
     does not say."""
     if run.harmonics is None or run.signal_rows is None:
         return []
@@ -47,10 +47,10 @@ def signal_harmonics(run: RunData) -> list[int]:
 
 
 def bandwidth_text(run: RunData) -> str:
-    """The model-free force's bandwidth in words: "drive harmonics 0-7 (up to 2.1 MHz)"."""
+    """The inverted force's bandwidth in words: "drive harmonics 0-7 (up to 2.1 MHz)"."""
     kept = signal_harmonics(run)
     if not kept:
-        return "the drive harmonics of the model-free force"
+        return "the drive harmonics of the inverted force"
     top = kept[-1] * run.drive["frequency"]
     span = f"{kept[0]}–{kept[-1]}" if kept == list(range(kept[0], kept[-1] + 1)) else ", ".join(map(str, kept))
     return f"drive harmonics {span} (up to {top / 1e6:.3g} MHz)"
@@ -159,13 +159,13 @@ def fig_phase_portraits(run: RunData, folder: Path, resim: dict | None) -> str:
 
 
 def fig_force_time(run: RunData, folder: Path) -> str:
-    """Three consecutive steady periods: the model-free force and the identified model on the SAME drive
+    """Three consecutive steady periods: the inverted force and the identified model on the SAME drive
     harmonics (matched bandwidth), the model at full bandwidth dashed, and the simulation's true force."""
     plt = _plt()
     P = run.periods
     rows = _three_periods(run)
     fig, ax = plt.subplots(figsize=(FULL_WIDTH, 2.5))
-    t, measured = _on_time_axis(run, rows, P["force_direct"][rows])
+    t, measured = _on_time_axis(run, rows, P["force_inverted"][rows])
     _, matched = _on_time_axis(run, rows, band_limit(P["force_model"][rows], run))
     _, full = _on_time_axis(run, rows, P["force_model"][rows])
     truth = run.truth
@@ -176,7 +176,7 @@ def fig_force_time(run: RunData, folder: Path) -> str:
         true_force = np.where(inside, np.interp(t_abs, F["time"], truth.force), np.nan)
         ax.plot(t, true_force * NN, color=TRUTH, lw=0.8, label="true force (simulation)")
     ax.plot(t, full * NN, color=MODEL, lw=0.8, ls="--", label="identified model, full bandwidth")
-    ax.plot(t, measured * NN, color=MEASURED, lw=1.3, label="model-free (equation of motion)")
+    ax.plot(t, measured * NN, color=MEASURED, lw=1.3, label="inverted force (equation of motion)")
     ax.plot(t, matched * NN, color=MODEL, lw=1.3, label="identified model, same harmonics")
     ax.set(xlabel="time (µs)", ylabel=FORCE_LABEL,
            title=f"Tip-sample force, three steady periods (solid: {bandwidth_text(run)})")
@@ -198,7 +198,7 @@ def _branch_curves(run: RunData, force: np.ndarray, approach: bool):
 
 
 def fig_force_separation(run: RunData, folder: Path) -> str:
-    """Approach and retraction in separate panels: model-free mean with its noise band, model, truth."""
+    """Approach and retraction in separate panels: inverted-force mean with its noise band, model, truth."""
     plt = _plt()
     P = run.periods
     band = band_limit(P["force_model"], run)
@@ -206,9 +206,9 @@ def fig_force_separation(run: RunData, folder: Path) -> str:
     truth = run.truth
     for ax, approach, title, colour in ((axes[0], True, "approach (tip moving toward the sample)", APPROACH),
                                          (axes[1], False, "retraction (tip moving away)", RETRACTION)):
-        z, m, s = _branch_curves(run, P["force_direct"], approach)
+        z, m, s = _branch_curves(run, P["force_inverted"], approach)
         ax.fill_between(z, m - s, m + s, color=colour, alpha=0.25, lw=0)
-        ax.plot(z, m, color=colour, lw=1.4, label="model-free, period mean ± 2σ")
+        ax.plot(z, m, color=colour, lw=1.4, label="inverted force, period mean ± 2σ")
         zb, mb, _ = _branch_curves(run, band, approach)
         ax.plot(zb, mb, color=MODEL, lw=1.2, label="model, same harmonics")
         zf, mf, _ = _branch_curves(run, P["force_model"], approach)
@@ -275,7 +275,7 @@ def fig_residual(local: dict, folder: Path, a0: float | None = None) -> str:
         ax.set_xlim(z.min() * NM - 0.2, (a0 + 4e-9) * NM)
     limit = local.get("max_signal_harmonic")
     band = f" (harmonics ≤ {limit})" if limit else ""
-    ax.set(xlabel="separation z (nm)", ylabel="residual (nN, model-free − model)",
+    ax.set(xlabel="separation z (nm)", ylabel="residual (nN, inverted − model)",
            title=f"(a) vs separation{band}")
     ax.legend(fontsize=6.5)
     regions = list(local["by_region"])
@@ -316,7 +316,7 @@ def fig_periods(run: RunData, local: dict, folder: Path, energy: dict | None = N
     axes[1].set(xlabel="period", ylabel="model force (nN)", title="model force extremes per period")
     axes[1].legend(fontsize=6.5)
     eV = 1.602176634e-19
-    axes[2].plot(k, P["dissipated_energy_direct"] / eV, ".-", lw=0.8, label="model-free")
+    axes[2].plot(k, P["dissipated_energy_inverted"] / eV, ".-", lw=0.8, label="inverted force")
     axes[2].plot(k, P["dissipated_energy"] / eV, ".-", lw=0.8, label="model")
     if energy and "truth" in energy:
         axes[2].axhline(energy["truth"] / eV, color=TRUTH, lw=1, ls="--", label="truth (simulation, mean)")

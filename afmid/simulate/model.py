@@ -188,6 +188,10 @@ def resolve_setup(config: RunConfig) -> Setup:
             )
     else:
         F0 = F0_from_A0
+    if drive.phase is not None and drive.phase != 0.0:
+        raise ConfigError(f"the simulator drives with F0 cos(2 pi f t), t = 0 at the first sample (phase 0), got "
+                          f"{drive.phase!r} rad; drive.phase is for fitting a calibrated drive",
+                          file=config.source, key="drive.phase")
     oscillator = Oscillator(k, f0, Q, f, F0)
 
     if sim.setpoint is None:

@@ -18,6 +18,8 @@ OPTIONAL = {  # written only with non-default settings
     "/model/drive/frequency_sigma", "/model/drive/response_frequency",  # a transient record (drive searched)
     "/diagnostics/path/votes",  # only when at least two period groups voted (this trace has 12 periods: one)
     "/model/drive/baseline_drift",
+    # a calibrated drive (drive.phase): tests/fit/test_declared_drive.py writes and checks them
+    "/model/drive/phase", "/model/drive/force_amplitude_uncertainty", "/model/drive/phase_uncertainty",
 }
 
 

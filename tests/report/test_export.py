@@ -54,17 +54,17 @@ def test_force_curves_are_the_run_files_per_period_curves(run_file, tmp_path):
     with h5py.File(run_file, "r") as h5:
         p = h5["periods"]
         separation, velocity, phase = p["separation"][()], p["velocity"][()], p["phase"][()]
-        model, model_free = p["force_model"][()], p["force_direct"][()]
+        model, inverted = p["force_model"][()], p["force_inverted"][()]
         assert p["separation"].attrs["units"] == "m" and p["force_model"].attrs["units"] == "N"
     n_periods, n_samples = separation.shape
     assert len(rows) == n_periods * n_samples
     table = np.array([[number(r[col[c]]) for c in ("period", "separation_m", "force_N", "phase_rad",
-                                                   "force_model_free_N")] for r in rows]).reshape(n_periods, n_samples, 5)
+                                                   "force_inverted_N")] for r in rows]).reshape(n_periods, n_samples, 5)
     np.testing.assert_array_equal(table[..., 0], np.repeat(np.arange(n_periods), n_samples).reshape(n_periods, -1))
     np.testing.assert_array_equal(table[..., 1], separation)
     np.testing.assert_array_equal(table[..., 2], model)
     np.testing.assert_array_equal(table[..., 3], np.broadcast_to(phase, separation.shape))
-    np.testing.assert_array_equal(table[..., 4], model_free)
+    np.testing.assert_array_equal(table[..., 4], inverted)
     branch = np.array([r[col["branch"]] for r in rows]).reshape(n_periods, n_samples)
     assert set(np.unique(branch)) == {"approach", "retract"}
     np.testing.assert_array_equal(branch == "approach", velocity > 0)
