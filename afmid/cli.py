@@ -155,16 +155,10 @@ def fit(
     implausible = violations(check_plausibility(result.quantities))
     flagged = f"; {len(implausible)} read-out(s) implausible, flagged in the file (see the warnings)" if implausible else ""
     log.info("wrote %s: %s%s", output, result.summary_line(), flagged)
-    from afmid.fit.uncertainty import quantity_lines
+    if not _state["quiet"]:  # the read-out is the command's result: stdout (afmid.report.fit_text builds it)
+        from afmid.report.fit_text import fit_text
 
-    for line in quantity_lines(result.quantities):
-        log.info("  %s", line)
-    force_calibration = getattr(result, "force_calibration_uncertainty", 0.0)  # absent on older result objects
-    if force_calibration > 0:
-        log.info("  force: calibration share %.2g %% (1 sigma, relative)", 100 * force_calibration)
-    force_separation = getattr(result, "force_separation_uncertainty", float("nan"))
-    if force_separation == force_separation:  # not NaN: the separation was estimated
-        log.info("  force: separation share %.2g %% of the peak (1 sigma, RMS over the samples)", 100 * force_separation)
+        click.echo(fit_text(result, verbose=_state["verbose"] > 0))
     # The fit's own warnings (model-limited, non-periodic motion); the trace's findings were logged on loading.
     prep = getattr(result, "prep", None)
     loaded = {f"{f.severity}: {f.message}" for f in getattr(getattr(prep, "trace", None), "findings", [])}
