@@ -213,13 +213,6 @@ def _init_worker(env: dict[str, str], log_level: int, parent_pid: int | None = N
     logger.propagate = False
     logging.captureWarnings(True)
     _worker_state["log_level"] = log_level
-    # run_fit makes a (disabled) tqdm bar; tqdm's default lock is a multiprocessing semaphore, which a worker
-    # stopped with os._exit would leave registered (the resource tracker then warns). A thread lock suffices.
-    import threading
-
-    from tqdm import tqdm
-
-    tqdm.set_lock(threading.RLock())
     # Import once per worker; numba's kernels load from its on-disk cache at their first call.
     import afmid.fit.pipeline as fit  # noqa: F401
     import afmid.io.trace as io  # noqa: F401

@@ -40,6 +40,7 @@ import numpy as np
 
 import afmid.diagnosis.decide as decide
 import afmid.diagnosis.instrument_signature as instrument_signature
+from afmid.progress import counted
 import afmid.fit.plausibility as plausibility
 from afmid.config import RunConfig
 from afmid.errors import InputError
@@ -219,8 +220,6 @@ def _one_blas_thread():
 
 
 def _diagnose(run: RunData, progress: bool) -> dict:
-    from tqdm import tqdm
-
     from afmid.fit.pipeline import prepare
     from afmid.preprocess.instrument import from_config as instrument_from_config
     from afmid.io.trace import load_trace
@@ -239,7 +238,7 @@ def _diagnose(run: RunData, progress: bool) -> dict:
                     "comparing with the refit", run.path.name, base.error, run.cv_error)
     shapes = ShapeSearch(prepared)
     trials: list[Trial] = []
-    for effect in tqdm(candidate_effects(run.effects), desc="trying effects", disable=not progress, leave=False):
+    for effect in counted(candidate_effects(run.effects), "report", "trying effects", "effects", progress):
         t0 = time.perf_counter()
         config = refit_config(run, run.effects + [effect])
         shape_names = [p.name for p in EFFECTS.get(effect).parameters
