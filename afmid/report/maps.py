@@ -18,11 +18,9 @@ import numpy as np
 
 from afmid.errors import InputError
 from afmid.report.figures import figure_html, save_figure
+from afmid.report.quantity_text import display_unit
 
 MAP_RESULT_FORMAT = "afmid-map-result"
-#: SI unit -> (factor to the displayed unit, displayed unit).
-DISPLAY = {"m": (1e9, "nm"), "Pa": (1e-6, "MPa"), "N": (1e9, "nN"), "J": (1e21, "zJ"), "Pa s": (1.0, "Pa s"),
-           "Pa*s": (1.0, "Pa s"), "J/m^2": (1e3, "mJ/m^2"), "N/m": (1.0, "N/m"), "1": (1.0, "")}
 #: Pixels listed by name in the HTML (all of them are in summary.json).
 MAX_LISTED = 50
 STATUS_COLOURS = ("#2ca02c", "#ff7f0e", "#d62728")
@@ -40,11 +38,6 @@ def is_map_result(path: Path) -> bool:
             return h5.attrs.get("format") == MAP_RESULT_FORMAT
     except OSError:
         return False
-
-
-def display(unit: str) -> tuple[float, str]:
-    """(factor, displayed unit) for an SI unit; SI itself when not listed."""
-    return DISPLAY.get(unit, (1.0, unit))
 
 
 def read_map_result(path: Path) -> dict:
@@ -126,7 +119,7 @@ def _plt():
 def _map_figure(folder: Path, name: str, values: np.ndarray, sigma: np.ndarray | None, unit: str,
                 status: np.ndarray, extent, label: str | None = None) -> tuple[str, str]:
     plt = _plt()
-    factor, shown = display(unit)
+    factor, shown = display_unit(unit)
     panels = [(values, label or name)] + ([(sigma, f"{name} 1 sigma")] if sigma is not None else [])
     fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.8), squeeze=False)
     box, axis_unit = extent
@@ -163,7 +156,7 @@ def _mark(ax, pixels: np.ndarray, box, shape: tuple[int, int], marker: str, colo
 
 def _histogram(folder: Path, name: str, values: np.ndarray, unit: str, status: np.ndarray) -> tuple[str, str]:
     plt = _plt()
-    factor, shown = display(unit)
+    factor, shown = display_unit(unit)
     fig, ax = plt.subplots(figsize=(4.6, 3.4))
     groups = [(values[status == 0] * factor, "ok", STATUS_COLOURS[0]),
               (values[status == 1] * factor, "suspect", STATUS_COLOURS[1])]
@@ -225,7 +218,7 @@ def _summary(path: Path, result: dict, names: list[str], status: np.ndarray, mes
     for name in names:
         values, unit, _ = maps[name]
         sigma = maps[f"{name}_sigma"][0]
-        factor, shown = display(unit)
+        factor, shown = display_unit(unit)
         v = values[ok & np.isfinite(values)]
         s = sigma[ok & np.isfinite(sigma)]
         nan = math.nan
