@@ -142,6 +142,9 @@ def fit(
     from afmid.io.trace import check_output_path
 
     cfg = load_config(config, list(overrides))
+    from afmid.placeholders import refuse_placeholders
+
+    refuse_placeholders(config, cfg)  # a template's example value (marked CHECK) is not a calibration
     trace_path = None if cfg.data.path is None else cfg.resolve_path(cfg.data.path)
     check_output_path(output, overwrite, inputs={config: "the run config", trace_path: "the trace file, data.path"})
     from afmid.fit.pipeline import apply_effect_changes, run_fit
@@ -214,6 +217,13 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     """
     from afmid.batch.run import BatchInterrupted, fit_task, load_worker, run_batch
     from afmid.errors import AfmidError
+
+    if config is not None and not configs and config.is_file():  # the shared config (the usage checks are run_batch's)
+        # a template's example value (marked CHECK) stops it, as in fit
+        from afmid.config import load_config
+        from afmid.placeholders import refuse_placeholders
+
+        refuse_placeholders(config, load_config(config, list(overrides)))
 
     engine = None
     if scheduler is not None:  # the items on an existing dask cluster (afmid.batch.engine_dask)
@@ -396,7 +406,10 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     from afmid.fit.pipeline import apply_effect_changes
     from afmid.maps.run import run_map
 
+    from afmid.placeholders import refuse_placeholders
+
     cfg = load_config(config, list(overrides))
+    refuse_placeholders(config, cfg)
     apply_effect_changes(cfg, add_effects, remove_effects)
     engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
     counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite,
