@@ -206,12 +206,14 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
 
     Writes OUTPUT/NAME.run.h5 per item (NAME from the trace's or the config's stem) and
     OUTPUT/summary.csv + summary.h5: one row per item with its status (ok, suspect,
-    failed, skipped), error message, config, error metric and physical parameters with errors
-    (SI units; the union over all runs, empty where a run has no such quantity). Items
+    failed, skipped), the failure message, config, error metric against its noise floor, a
+    diagnosis (at the noise floor, or model-limited with the residual's region and character)
+    and physical parameters with their 1-sigma errors (`*_sigma`) and 95 % intervals (SI
+    units; the union over all runs, empty where a run has no such quantity). Items
     whose outputs are up to date (same input bytes, config and afmid version) are
     skipped; a failing item does not stop the batch. An item whose read-outs are not all
     plausible (outside their declared range, see `afmid effects`) is `suspect`, with the
-    reasons in the error column and a warning. Exit code 1 if any item failed (suspect
+    reasons in the failure column and a warning. Exit code 1 if any item failed (suspect
     items alone exit 0: their run files are written and flagged), 130 if interrupted.
     One batch at a time per OUTPUT (lock file OUTPUT/.afmid-batch.lock).
     """
@@ -251,10 +253,10 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
         from afmid.tempfiles import NO_SPACE_TEXT
 
         names = ", ".join(failed[:3]) + (", ..." if len(failed) > 3 else "")
-        full = sum(NO_SPACE_TEXT in r.error for r in result.rows if r.status == "failed")
+        full = sum(NO_SPACE_TEXT in r.failure for r in result.rows if r.status == "failed")
         why = f" ({full} of them: {NO_SPACE_TEXT})" if full else ""  # the one cause that fails every item after
-        raise AfmidError(f"{len(failed)} of {result.total} {result.unit} failed ({names}); the errors are in the "
-                         f"summary{why}", file=output / "summary.csv")
+        raise AfmidError(f"{len(failed)} of {result.total} {result.unit} failed ({names}); why is in the "
+                         f"summary's failure column{why}", file=output / "summary.csv")
 
 
 @cli.command()
