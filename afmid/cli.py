@@ -267,8 +267,11 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
 @click.option("--no-suggest", is_flag=True, help="Skip refitting with candidate effects.")
 @click.option("--allow-different-traces", is_flag=True,
               help="Compare runs fitted on different traces (refused otherwise); the report says so.")
+@click.option("--export", "export_tables", default=None, metavar="TABLES",
+              help="Also write the last run's tables as CSV into OUTPUT, e.g. force-curves,parameters,periods "
+                   "(as `afmid export`: OUTPUT/RUN.force-curves.csv, ...).")
 def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bool,
-           allow_different_traces: bool) -> None:
+           allow_different_traces: bool, export_tables: str | None) -> None:
     """Compare run files: where the model fails, which effect is missing, how the error falls.
 
     Given one force-map result (afmid map), draws its maps instead: every parameter with its
@@ -282,9 +285,19 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     from afmid.report.maps import is_map_result
     from afmid.tempfiles import disk_full_error, is_disk_full
 
+    tables = None
+    if export_tables is not None:  # checked before the report's work
+        from afmid.report.report_exports import parse_exports
+
+        tables = parse_exports(export_tables)
     try:
         if len(runs) == 1 and is_map_result(runs[0]):  # a force map's result (afmid map)
+            from afmid.errors import ConfigError
             from afmid.report.maps import make_map_report
+
+            if tables:
+                raise ConfigError("is for run files; a force map's result has maps, not one run's tables",
+                                  key="--export")
 
             click.echo(make_map_report(runs[0], output, overwrite=overwrite))
             return
@@ -292,6 +305,11 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
 
         summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest,
                               progress=not _state["quiet"], allow_different_traces=allow_different_traces)
+        if tables:  # the last run's CSVs beside the page, listed in the folder's marker
+            from afmid.report.report_exports import export_into_report
+
+            for name, rows in export_into_report(runs[-1], output, tables):
+                log.info("wrote %s (%d rows)", output / name, rows)
     except OSError as exc:  # the report's temporary folder is removed already
         if is_disk_full(exc):
             raise disk_full_error(exc, output) from None
@@ -340,12 +358,14 @@ def effects(models: bool, tips: bool, as_json: bool, names: tuple[str, ...]) -> 
 @OVERWRITE
 @click.option("--from", "from_file", type=click.Path(path_type=Path, readable=False), default=None,
               help="Pre-fill from a trace file.")
-def init_config(output: Path | None, overwrite: bool, from_file: Path | None) -> None:
+@click.option("--simulate", "with_simulate", is_flag=True,
+              help="Add a commented simulate: section (the model, parameters and noise `afmid simulate` uses).")
+def init_config(output: Path | None, overwrite: bool, from_file: Path | None, with_simulate: bool) -> None:
     """Write a commented template run config to edit."""
     from afmid.config import template_text
     from afmid.io.trace import atomic_path, check_output_path
 
-    text = template_text()
+    text = template_text(simulate=with_simulate)
     if output is not None:
         check_output_path(output, overwrite, inputs={from_file: "the trace file, --from"})
     if from_file is not None:
