@@ -78,7 +78,7 @@ test-kernels: $(STAMP)
 # $(RESULTS)/NAME.trace.h5, then fitted into $(RESULTS)/NAME.run.h5 (as `afmid simulate` +
 # `afmid fit --set data.path=...` would). $(RESULTS)/summary.csv and summary.h5 list every run.
 # A re-run skips what is up to date (same config, input bytes and afmid version); a failing
-# config is listed with its error and makes the target fail after the others have run.
+# config is listed with why in the summary's failure column and makes the target fail after the others have run.
 batch: $(STAMP)
 	$(AFMID) batch --configs 'configs/*.yaml' -o $(RESULTS) -j $(BATCH_JOBS)
 

@@ -142,6 +142,9 @@ def fit(
     from afmid.io.trace import check_output_path
 
     cfg = load_config(config, list(overrides))
+    from afmid.placeholders import refuse_placeholders
+
+    refuse_placeholders(config, cfg)  # a template's example value (marked CHECK) is not a calibration
     trace_path = None if cfg.data.path is None else cfg.resolve_path(cfg.data.path)
     check_output_path(output, overwrite, inputs={config: "the run config", trace_path: "the trace file, data.path"})
     from afmid.fit.pipeline import apply_effect_changes, run_fit
@@ -155,16 +158,10 @@ def fit(
     implausible = violations(check_plausibility(result.quantities))
     flagged = f"; {len(implausible)} read-out(s) implausible, flagged in the file (see the warnings)" if implausible else ""
     log.info("wrote %s: %s%s", output, result.summary_line(), flagged)
-    from afmid.fit.uncertainty import quantity_lines
+    if not _state["quiet"]:  # the read-out is the command's result: stdout (afmid.report.fit_text builds it)
+        from afmid.report.fit_text import fit_text
 
-    for line in quantity_lines(result.quantities):
-        log.info("  %s", line)
-    force_calibration = getattr(result, "force_calibration_uncertainty", 0.0)  # absent on older result objects
-    if force_calibration > 0:
-        log.info("  force: calibration share %.2g %% (1 sigma, relative)", 100 * force_calibration)
-    force_separation = getattr(result, "force_separation_uncertainty", float("nan"))
-    if force_separation == force_separation:  # not NaN: the separation was estimated
-        log.info("  force: separation share %.2g %% of the peak (1 sigma, RMS over the samples)", 100 * force_separation)
+        click.echo(fit_text(result, verbose=_state["verbose"] > 0))
     # The fit's own warnings (model-limited, non-periodic motion); the trace's findings were logged on loading.
     prep = getattr(result, "prep", None)
     loaded = {f"{f.severity}: {f.message}" for f in getattr(getattr(prep, "trace", None), "findings", [])}
@@ -209,17 +206,26 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
 
     Writes OUTPUT/NAME.run.h5 per item (NAME from the trace's or the config's stem) and
     OUTPUT/summary.csv + summary.h5: one row per item with its status (ok, suspect,
-    failed, skipped), error message, config, error metric and physical parameters with errors
-    (SI units; the union over all runs, empty where a run has no such quantity). Items
+    failed, skipped), the failure message, config, error metric against its noise floor, a
+    diagnosis (at the noise floor, or model-limited with the residual's region and character)
+    and physical parameters with their 1-sigma errors (`*_sigma`) and 95 % intervals (SI
+    units; the union over all runs, empty where a run has no such quantity). Items
     whose outputs are up to date (same input bytes, config and afmid version) are
     skipped; a failing item does not stop the batch. An item whose read-outs are not all
     plausible (outside their declared range, see `afmid effects`) is `suspect`, with the
-    reasons in the error column and a warning. Exit code 1 if any item failed (suspect
+    reasons in the failure column and a warning. Exit code 1 if any item failed (suspect
     items alone exit 0: their run files are written and flagged), 130 if interrupted.
     One batch at a time per OUTPUT (lock file OUTPUT/.afmid-batch.lock).
     """
     from afmid.batch.run import BatchInterrupted, fit_task, load_worker, run_batch
     from afmid.errors import AfmidError
+
+    if config is not None and not configs and config.is_file():  # the shared config (the usage checks are run_batch's)
+        # a template's example value (marked CHECK) stops it, as in fit
+        from afmid.config import load_config
+        from afmid.placeholders import refuse_placeholders
+
+        refuse_placeholders(config, load_config(config, list(overrides)))
 
     engine = None
     if scheduler is not None:  # the items on an existing dask cluster (afmid.batch.engine_dask)
@@ -247,10 +253,10 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
         from afmid.tempfiles import NO_SPACE_TEXT
 
         names = ", ".join(failed[:3]) + (", ..." if len(failed) > 3 else "")
-        full = sum(NO_SPACE_TEXT in r.error for r in result.rows if r.status == "failed")
+        full = sum(NO_SPACE_TEXT in r.failure for r in result.rows if r.status == "failed")
         why = f" ({full} of them: {NO_SPACE_TEXT})" if full else ""  # the one cause that fails every item after
-        raise AfmidError(f"{len(failed)} of {result.total} {result.unit} failed ({names}); the errors are in the "
-                         f"summary{why}", file=output / "summary.csv")
+        raise AfmidError(f"{len(failed)} of {result.total} {result.unit} failed ({names}); why is in the "
+                         f"summary's failure column{why}", file=output / "summary.csv")
 
 
 @cli.command()
@@ -261,8 +267,11 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
 @click.option("--no-suggest", is_flag=True, help="Skip refitting with candidate effects.")
 @click.option("--allow-different-traces", is_flag=True,
               help="Compare runs fitted on different traces (refused otherwise); the report says so.")
+@click.option("--export", "export_tables", default=None, metavar="TABLES",
+              help="Also write the last run's tables as CSV into OUTPUT, e.g. force-curves,parameters,periods "
+                   "(as `afmid export`: OUTPUT/RUN.force-curves.csv, ...).")
 def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bool,
-           allow_different_traces: bool) -> None:
+           allow_different_traces: bool, export_tables: str | None) -> None:
     """Compare run files: where the model fails, which effect is missing, how the error falls.
 
     Given one force-map result (afmid map), draws its maps instead: every parameter with its
@@ -276,9 +285,19 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     from afmid.report.maps import is_map_result
     from afmid.tempfiles import disk_full_error, is_disk_full
 
+    tables = None
+    if export_tables is not None:  # checked before the report's work
+        from afmid.report.report_exports import parse_exports
+
+        tables = parse_exports(export_tables)
     try:
         if len(runs) == 1 and is_map_result(runs[0]):  # a force map's result (afmid map)
+            from afmid.errors import ConfigError
             from afmid.report.maps import make_map_report
+
+            if tables:
+                raise ConfigError("is for run files; a force map's result has maps, not one run's tables",
+                                  key="--export")
 
             click.echo(make_map_report(runs[0], output, overwrite=overwrite))
             return
@@ -286,6 +305,11 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
 
         summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest,
                               progress=not _state["quiet"], allow_different_traces=allow_different_traces)
+        if tables:  # the last run's CSVs beside the page, listed in the folder's marker
+            from afmid.report.report_exports import export_into_report
+
+            for name, rows in export_into_report(runs[-1], output, tables):
+                log.info("wrote %s (%d rows)", output / name, rows)
     except OSError as exc:  # the report's temporary folder is removed already
         if is_disk_full(exc):
             raise disk_full_error(exc, output) from None
@@ -334,12 +358,14 @@ def effects(models: bool, tips: bool, as_json: bool, names: tuple[str, ...]) -> 
 @OVERWRITE
 @click.option("--from", "from_file", type=click.Path(path_type=Path, readable=False), default=None,
               help="Pre-fill from a trace file.")
-def init_config(output: Path | None, overwrite: bool, from_file: Path | None) -> None:
+@click.option("--simulate", "with_simulate", is_flag=True,
+              help="Add a commented simulate: section (the model, parameters and noise `afmid simulate` uses).")
+def init_config(output: Path | None, overwrite: bool, from_file: Path | None, with_simulate: bool) -> None:
     """Write a commented template run config to edit."""
     from afmid.config import template_text
     from afmid.io.trace import atomic_path, check_output_path
 
-    text = template_text()
+    text = template_text(simulate=with_simulate)
     if output is not None:
         check_output_path(output, overwrite, inputs={from_file: "the trace file, --from"})
     if from_file is not None:
@@ -402,7 +428,10 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     from afmid.fit.pipeline import apply_effect_changes
     from afmid.maps.run import run_map
 
+    from afmid.placeholders import refuse_placeholders
+
     cfg = load_config(config, list(overrides))
+    refuse_placeholders(config, cfg)
     apply_effect_changes(cfg, add_effects, remove_effects)
     engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
     counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite,

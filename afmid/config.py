@@ -704,6 +704,7 @@ def dump_config(config: RunConfig) -> str:
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
 
 
-def template_text() -> str:
-    """The commented template written by ``afmid init-config``."""
-    return (Path(__file__).parent / "templates" / "run_config.yaml").read_text(encoding="utf-8")
+def template_text(simulate: bool = False) -> str:
+    """The commented template written by ``afmid init-config`` (``simulate``: with a commented simulate section)."""
+    names = ["run_config.yaml"] + (["simulate_section.yaml"] if simulate else [])
+    return "".join((Path(__file__).parent / "templates" / n).read_text(encoding="utf-8") for n in names)

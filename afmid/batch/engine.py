@@ -111,16 +111,27 @@ class LocalPoolEngine:
         os.environ.update(SINGLE_THREAD_ENV)
         pool = new_pool()
         in_flight: dict = {}  # future -> ((key, task), isolated)
+
+        def submit(job, isolated: bool) -> bool:
+            try:
+                in_flight[pool.submit(worker, job[1])] = (job, isolated)
+                return True
+            except BrokenProcessPool:  # a worker died since the last wait: its future says so below
+                (suspects if isolated else pending).appendleft(job)
+                refused.append(job)
+                return False
+
+        refused: list = []  # jobs a broken pool refused since the last restart
+
         try:
             while pending or suspects or in_flight:
                 if suspects:
                     if not in_flight:  # a suspect runs alone: if the worker dies again, it is the culprit
-                        job = suspects.popleft()
-                        in_flight[pool.submit(worker, job[1])] = (job, True)
+                        submit(suspects.popleft(), True)
                 else:
                     while pending and len(in_flight) < n_workers:
-                        job = pending.popleft()
-                        in_flight[pool.submit(worker, job[1])] = (job, False)
+                        if not submit(pending.popleft(), False):
+                            break
                 done, _ = wait(list(in_flight), timeout=1.0, return_when=FIRST_COMPLETED)
                 interrupts.raise_if_pending()  # a Ctrl-C / SIGTERM that landed where Python could not raise it
                 broken = False
@@ -136,7 +147,9 @@ class LocalPoolEngine:
                             suspects.append(job)
                         continue
                     report(Outcome(job[0], out))
+                broken = broken or bool(refused and not in_flight)  # nothing left to report the death
                 if broken:
+                    refused.clear()
                     for fut, (job, isolated) in list(in_flight.items()):  # the pool is gone: requeue the rest
                         in_flight.pop(fut)
                         suspects.append(job)
@@ -213,13 +226,6 @@ def _init_worker(env: dict[str, str], log_level: int, parent_pid: int | None = N
     logger.propagate = False
     logging.captureWarnings(True)
     _worker_state["log_level"] = log_level
-    # run_fit makes a (disabled) tqdm bar; tqdm's default lock is a multiprocessing semaphore, which a worker
-    # stopped with os._exit would leave registered (the resource tracker then warns). A thread lock suffices.
-    import threading
-
-    from tqdm import tqdm
-
-    tqdm.set_lock(threading.RLock())
     # Import once per worker; numba's kernels load from its on-disk cache at their first call.
     import afmid.fit.pipeline as fit  # noqa: F401
     import afmid.io.trace as io  # noqa: F401

@@ -295,8 +295,7 @@ def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: s
             state["last"] = time.monotonic()
             state["cost"] = state["last"] - start
 
-    from tqdm import tqdm
-    from tqdm.contrib.logging import logging_redirect_tqdm
+    from afmid.progress import Progress
 
     import afmid.interrupts as interrupts
 
@@ -308,25 +307,25 @@ def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: s
     try:
         if todo:
             tmp_dir.mkdir(exist_ok=True)
-            with logging_redirect_tqdm(loggers=[logging.getLogger("afmid")], tqdm_class=tqdm):
-                bar = tqdm(total=len(items), initial=len(rows), desc="batch", unit=unit.rstrip("s"),
-                           disable=not progress, leave=False, dynamic_ncols=True)
-                by_index = {item.index: item for item in todo}
+            bar = Progress("batch", enabled=progress)
+            bar.stage(f"fitting ({len(rows)} up to date)" if rows else "fitting", total=len(items), unit=unit)
+            bar.advance(len(rows))
+            by_index = {item.index: item for item in todo}
 
-                def report(outcome: Outcome) -> None:
-                    item = by_index[outcome.key]
-                    if outcome.result is None and not outcome.crashed:  # stopped before it reported
-                        _record_if_written(item, rows)
-                        return
-                    if outcome.result is not None:
-                        _record(item, outcome.result, rows)
-                    else:
-                        rows[item.index] = Row(item, "failed", outcome.crashed)
-                        log.warning("%s: %s", item.name, outcome.crashed)
-                    bar.update(1)
-                    state["dirty"] = True
+            def report(outcome: Outcome) -> None:
+                item = by_index[outcome.key]
+                if outcome.result is None and not outcome.crashed:  # stopped before it reported
+                    _record_if_written(item, rows)
+                    return
+                if outcome.result is not None:
+                    _record(item, outcome.result, rows)
+                else:
+                    rows[item.index] = Row(item, "failed", outcome.crashed)
+                    log.warning("%s: %s", item.name, outcome.crashed)
+                bar.advance(1)
+                state["dirty"] = True
 
-                engine.run(worker, [(item.index, _task(item, tmp_dir)) for item in todo], report, flush)
+            engine.run(worker, [(item.index, _task(item, tmp_dir)) for item in todo], report, flush)
         flush(force_write=True)
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (interrupts.Terminated)
         interrupted = exc

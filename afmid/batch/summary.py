@@ -26,15 +26,53 @@ STATUSES = ("ok", "suspect", "failed", "skipped")
 
 def read_run_row(path: Path) -> dict:
     """The summary values of one run file: {'key', 'values', 'quantities', 'implausible'} (SI), read by the run
-    file's owner (:func:`afmid.runfile.read_summary`)."""
+    file's owner (:func:`afmid.runfile.read_summary`), with the summary's names (``*_sigma`` for 1-sigma errors)
+    and the :func:`diagnosis_text` of the run."""
     from afmid.runfile import read_summary
 
-    return read_summary(path)
+    got = read_summary(path)
+    values = got["values"]
+    values["separation_sigma"] = values.pop("separation_error", math.nan)
+    values["diagnosis"] = diagnosis_text(path)
+    return got
+
+
+#: What the diagnosis column says (the h5 dataset's ``meaning``; docs/file-formats.md).
+DIAGNOSIS_MEANING = (
+    "what afmid says of the fit without the costly refits of candidate effects: 'at the noise floor' (the model "
+    "explains the force: cv_error within 1.45 x its noise floor), or 'model-limited' with where the systematic "
+    "residual (model-free minus model force, averaged over periods) sits - its share in each region, contact / near "
+    "(within 2 nm of contact) / far, largest first - and its character (conservative: the same on approach and "
+    "retraction; dissipative: reverses with the motion; mixed; none beyond the noise); `afmid report RUN` tries "
+    "the candidate effects and names the missing one")
+
+
+def diagnosis_text(path: Path) -> str:
+    """One cell: the run's standing against its noise floor and, when model-limited, where its residual sits and
+    of what character (:func:`afmid.diagnosis.localize.localize`); no refits, a few ms per run file."""
+    from afmid.diagnosis.localize import localize
+    from afmid.errors import AfmidError
+    from afmid.fit.uncertainty import model_limited
+    from afmid.runfile import load_run
+
+    try:
+        run = load_run(path)
+        ratio = run.cv_error / run.cv_error_noise_floor
+        if not model_limited(run.cv_error, run.cv_error_noise_floor):
+            return f"at the noise floor (x{ratio:.2g})"
+        local = localize(run)
+    except (AfmidError, OSError, KeyError, ValueError, ZeroDivisionError) as exc:  # older or damaged: no verdict
+        return f"not diagnosed ({exc})"
+    # every region's share, largest first: the band-limited residual of a contact force also spreads
+    shares = sorted(local["by_region"].items(), key=lambda kv: -kv[1]["share_of_residual"])
+    where = ", ".join(f"{name} {100 * r['share_of_residual']:.0f} %" for name, r in shares)
+    character = local["character"] if local["character"] != "none" else "no character beyond the noise"
+    return f"model-limited (x{ratio:.2g} the floor): residual {where}; {character}"
 
 
 def run_file_row(item: "Item", got: dict, status: str, times: dict | None = None) -> "Row":
     """The summary row of an item whose run file exists (``got`` from :func:`read_run_row`): ``status``, or
-    ``suspect`` with the reasons in the error column when a read-out is implausible."""
+    ``suspect`` with the reasons in the failure column when a read-out is implausible."""
     if got.get("implausible"):
         return Row(item, "suspect", "implausible read-outs: " + "; ".join(got["implausible"]), got["values"],
                    got["quantities"], times or {})
@@ -49,17 +87,19 @@ def attr_text(value) -> str:
 
 
 FIXED_COLUMNS = [  # (name, unit or None for text)
-    ("name", None), ("status", None), ("error", None), ("config", None), ("input", None), ("run_file", None),
+    ("name", None), ("status", None), ("failure", None), ("config", None), ("input", None), ("run_file", None),
     ("input_sha256", None), ("effects", None), ("cv_error", "1"), ("cv_error_noise_floor", "1"),
-    ("chi2_reduced", "1"), ("terms", None), ("separation", "m"), ("separation_error", "m"),
+    ("chi2_reduced", "1"), ("diagnosis", None), ("terms", None), ("separation", "m"), ("separation_sigma", "m"),
 ]
 #: Wall time of each stage in the worker (simulate_time only for simulated traces), and the worker's CPU time
 #: for the item.
 TIME_COLUMNS = [("simulate_time", "s"), ("load_time", "s"), ("fit_time", "s"), ("write_time", "s"),
                 ("cpu_time", "s")]
-QUANTITY_FIELDS = ("value", "error", "ci_low", "ci_high", "determined")
-#: What the error and interval fields are (attributes of their datasets in summary.h5).
-FIELD_MEANINGS = {"error": {"error_kind": "1 sigma"}, "ci_low": {"interval": "95 %, lower end"},
+#: The columns of each quantity (``Q``, ``Q_sigma``, ...) and the run file's field each one holds.
+QUANTITY_FIELDS = ("value", "sigma", "ci_low", "ci_high", "determined")
+_QUANTITY_KEYS = {"sigma": "error"}  # the read-outs call their 1-sigma error `error`
+#: What the sigma and interval fields are (attributes of their datasets in summary.h5).
+FIELD_MEANINGS = {"sigma": {"error_kind": "1 sigma"}, "ci_low": {"interval": "95 %, lower end"},
                   "ci_high": {"interval": "95 %, upper end"},
                   "determined": {"meaning": "1: read out from selected terms; 0: its term was not selected, the "
                                             "value is NaN and ci_low..ci_high is the 95 % interval with the term "
@@ -70,7 +110,7 @@ FIELD_MEANINGS = {"error": {"error_kind": "1 sigma"}, "ci_low": {"interval": "95
 class Row:
     item: Item
     status: str
-    error: str = ""
+    failure: str = ""  # why the item failed, or the implausible read-outs of a suspect one
     values: dict = field(default_factory=dict)
     quantities: dict = field(default_factory=dict)
     times: dict = field(default_factory=dict)
@@ -118,7 +158,7 @@ def _row_cells(row: Row, output_dir: Path) -> dict[str, Any]:
     if item.simulate is not None and row.status == "failed" and not item.input.is_file():
         source = None  # the simulation failed: there is no trace
     cells: dict[str, Any] = {
-        "name": item.name, "status": row.status, "error": row.error,
+        "name": item.name, "status": row.status, "failure": row.failure,
         "config": "" if item.config_path is None else str(item.config_path),
         "input": "" if source is None else str(source),
         "run_file": item.output.name if row.status != "failed" else "",
@@ -152,7 +192,7 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
         line = [_fmt(cells.get(n)) for n, _ in FIXED_COLUMNS]
         for name, unit, _ in quantities:
             q = _quantity(row, name, unit)
-            line += [_fmt(q.get(f)) if q else "" for f in QUANTITY_FIELDS]
+            line += [_fmt(q.get(_QUANTITY_KEYS.get(f, f))) if q else "" for f in QUANTITY_FIELDS]
         line += [_fmt(cells.get(n)) for n, _ in TIME_COLUMNS]
         writer.writerow(line)
         table.append(cells)
@@ -165,12 +205,13 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
             h5.attrs[f"n_{status}"] = sum(r.status == status for r in rows)
         for name, unit in FIXED_COLUMNS + TIME_COLUMNS:
             if unit is None:
-                write_dataset(h5, name, np.array([str(c.get(name, "")) for c in table], dtype=str), "1")
+                meaning = {"meaning": DIAGNOSIS_MEANING} if name == "diagnosis" else {}
+                write_dataset(h5, name, np.array([str(c.get(name, "")) for c in table], dtype=str), "1", **meaning)
             else:
                 data = np.array([_float(c.get(name)) for c in table], dtype=float)
                 write_dataset(h5, name, data, unit)
         pg = h5.create_group("parameters")
-        pg.attrs["meaning"] = ("physical parameters per row: value, error (1 sigma: bootstrap, profiles of the "
+        pg.attrs["meaning"] = ("physical parameters per row: value, sigma (1 sigma: bootstrap, profiles of the "
                                "nonlinear parameters and the declared calibration), 95 % interval; the union over "
                                "all rows, NaN where a run has no such quantity")
         for name, unit, group in quantities:
@@ -178,7 +219,8 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
             found = [_quantity(r, name, unit) for r in rows]
             g.attrs["effect"] = ";".join(sorted({q["effect"] for q in found if q and q["effect"]}))
             for f in QUANTITY_FIELDS:
-                data = np.array([_float(q.get(f)) if q else math.nan for q in found], dtype=float)
+                data = np.array([_float(q.get(_QUANTITY_KEYS.get(f, f))) if q else math.nan for q in found],
+                                dtype=float)
                 write_dataset(g, f, data, "1" if f == "determined" else unit, **FIELD_MEANINGS.get(f, {}))
 
 

@@ -40,6 +40,7 @@ import numpy as np
 
 import afmid.diagnosis.decide as decide
 import afmid.diagnosis.instrument_signature as instrument_signature
+from afmid.progress import counted
 import afmid.fit.plausibility as plausibility
 from afmid.config import RunConfig
 from afmid.errors import InputError
@@ -224,8 +225,6 @@ def _one_blas_thread():
 
 
 def _diagnose(run: RunData, progress: bool) -> dict:
-    from tqdm import tqdm
-
     from afmid.fit.pipeline import prepare
     from afmid.preprocess.instrument import from_config as instrument_from_config
     from afmid.io.trace import load_trace
@@ -244,8 +243,8 @@ def _diagnose(run: RunData, progress: bool) -> dict:
                     "comparing with the refit", run.path.name, base.error, run.cv_error)
     shapes = ShapeSearch(prepared)
     trials: list[Trial] = []
-    candidates = candidate_effects(run.effects, run.config.sample.medium)
-    for effect in tqdm(candidates, desc="trying effects", disable=not progress, leave=False):
+    for effect in counted(candidate_effects(run.effects, run.config.sample.medium), "report", "trying effects", "effects",
+                          progress):
         t0 = time.perf_counter()
         config = refit_config(run, run.effects + [effect])
         shape_names = [p.name for p in EFFECTS.get(effect).parameters

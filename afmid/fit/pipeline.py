@@ -51,6 +51,7 @@ from afmid.fit.declared_drive import declared_drive, propagate_drive_calibration
 from afmid.preprocess.motion import fit_warning as motion_warning
 from afmid.fit.uncertainty import finish as finish_uncertainty, widen_interval
 from afmid.fit.undetermined import mark as mark_undetermined
+from afmid.progress import Progress
 from afmid.fit.separation_share import NOT_COMPUTED as SHARE_NOT_COMPUTED, SeparationShare, separation_share
 # Kept importable from afmid.fit.pipeline, where they were defined before (bench/bench_fit.py uses term_penalties).
 from afmid.fit.forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
@@ -59,6 +60,10 @@ from afmid.fit.selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F4
 from afmid.runfile import PERIOD_UNITS, write_run  # noqa: F401
 
 log = logging.getLogger(__name__)
+
+#: The fit's stages as the progress line counts them (after the trace is loaded): preparing periods, the
+#: separation / drive search, selecting terms, the bootstrap, the error and forces.
+FIT_STAGES = 5
 
 # The preparation and the regression system live in afmid.fit.prepare and afmid.fit.system; the names
 # below stay importable from afmid.fit.pipeline.
@@ -214,7 +219,7 @@ def first_contact(prep: Prepared, a0: float) -> float:
     return x_max + a0
 
 
-def estimate_nonlinear(prep, library, config, params, progress=None, physics=None) -> dict[str, NonlinearEstimate]:
+def estimate_nonlinear(prep, library, config, params, physics=None) -> dict[str, NonlinearEstimate]:
     """Coarse outer search over the rest separation and the library's decay lengths.
 
     The objective is the residual of the profile library (:func:`profile_library`: the run's catalog
@@ -266,13 +271,11 @@ def estimate_nonlinear(prep, library, config, params, progress=None, physics=Non
             params[name] = best
             estimates[name] = NonlinearEstimate(name, best, math.nan, unit, True, grid, values,
                                                 (0.0 if name in zero_allowed else lo, hi))
-            if progress:
-                progress.update(1)
     return estimates
 
 
-def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = None, uncertainty: bool = True,
-            prepared: Prepared | None = None) -> FitResult:
+def run_fit(config: RunConfig, progress: bool | Progress = False, trace: Trace | None = None,
+            uncertainty: bool = True, prepared: Prepared | None = None) -> FitResult:
     """Fit the trace named by ``config`` (or ``trace``) and return everything the run file holds.
 
     ``uncertainty=False`` skips the error bars (bootstrap, profile widths of the
@@ -281,30 +284,46 @@ def run_fit(config: RunConfig, progress: bool = False, trace: Trace | None = Non
     and shared by fits of other libraries or parameters on the same trace (it
     is never modified); its trace is the one fitted.
     """
-    if prepared is not None:
-        if trace is not None and trace is not prepared.trace:
-            raise ValueError("run_fit: `trace` is not the trace `prepared` was made from")
-        trace = prepared.trace
-    elif trace is None:
-        trace = load_trace(config)
-    library = build_library(config.model, config.source, tip_geometry(config.cantilever))
-    if len(library) == 0:
-        raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source, key="model")
-    prep = prepared if prepared is not None else prepare(trace, config.fit, instrument_from_config(config))
-    return fit_prepared(prep, library, config, progress=progress, uncertainty=uncertainty)
+    bar = progress if isinstance(progress, Progress) else Progress("fit", enabled=progress)
+    try:
+        if prepared is not None:
+            if trace is not None and trace is not prepared.trace:
+                raise ValueError("run_fit: `trace` is not the trace `prepared` was made from")
+            trace = prepared.trace
+        elif trace is None:
+            trace = load_trace(config)  # no stage line before: a file afmid refuses gives its one error line only
+        library = build_library(config.model, config.source, tip_geometry(config.cantilever))
+        if len(library) == 0:
+            raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source,
+                              key="model")
+        if prepared is None:
+            bar.stage("preparing periods", step=(1, FIT_STAGES))
+        prep = prepared if prepared is not None else prepare(trace, config.fit, instrument_from_config(config))
+        return fit_prepared(prep, library, config, progress=bar, uncertainty=uncertainty)
+    finally:
+        if bar is not progress:
+            bar.close()
 
 
-def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: bool = False,
+def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: bool | Progress = False,
                  uncertainty: bool = True) -> FitResult:
     """Fit ``library`` to a prepared trace (:func:`prepare` with ``config.fit``): the fit after the preparation.
 
     ``config`` gives the sample (a0, a fixed separation), fixed model parameters
     and the fit settings; ``config.model`` is not read (``library`` is fitted).
     ``prep`` is not modified, so one preparation serves fits of many libraries
-    and parameter sets. ``uncertainty`` as in :func:`run_fit`.
+    and parameter sets. ``uncertainty`` as in :func:`run_fit`; ``progress`` a bool (show the stages) or the
+    caller's :class:`afmid.progress.Progress`.
     """
-    from tqdm import tqdm
+    bar = progress if isinstance(progress, Progress) else Progress("fit", enabled=progress)
+    try:
+        return _fit_prepared(prep, library, config, bar, uncertainty)
+    finally:
+        if bar is not progress:
+            bar.close()
 
+
+def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Progress, uncertainty: bool) -> FitResult:
     fit = config.fit
     trace = prep.trace
     # Defects were detected and reported when the trace was loaded (afmid.io.defects); keep them with the run.
@@ -316,7 +335,8 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
         prep = with_declared_drive(prep, drive)
         log.info("drive not fitted: %s", drive.describe())
     params = library_parameters(prep, config, library)
-    bar = tqdm(total=4, desc="fit", disable=not progress, leave=False)
+    bar.stage("searching the separation" if config.sample.separation is None else "searching the drive",
+              step=(2, FIT_STAGES))
     physics, extra = profile_library(library, config)
     nonlinear = estimate_nonlinear(prep, library, config, params, physics=(physics, extra))
 
@@ -330,7 +350,7 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
 
     prep, drive_search = (prep, None) if prep.declared_drive is not None else settle_drive_frequency(
         prep, fit.drive_frequency, fit.seed, factors_at, estimate_again if nonlinear else None)
-    bar.update(1)
+    bar.stage("selecting terms", step=(3, FIT_STAGES))
     settings = SelectionSettings.for_library(fit, library, len(prep.nuisance_names))
     system = build_system(prep, library, params)
     selection = settings.select(system)
@@ -365,7 +385,6 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
                 # The profile of the final support (the first one's when the support did not change).
                 same = np.array_equal(chosen, support) or physics is not library
                 est.sigma = profiled[name] if same else profile(name, est, chosen).sigma
-    bar.update(1)
     T = regression.combine(system.T_blocks)
     coef, _ = regression.subset_fit(T, chosen)
     bagging = None
@@ -375,18 +394,19 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
     for name, est in nonlinear.items():
         est.value = params[name]
     if fit.bootstrap > 0 and uncertainty:
+        bar.stage(f"error bars ({fit.bootstrap} resamples)", step=(4, FIT_STAGES))
         rng = np.random.default_rng(fit.seed)
         bagging = settings.bag(system, chosen, fit.bootstrap, rng)
         coef_std = bagging.coef_samples.std(axis=0, ddof=1)
         ci_low, ci_high = np.percentile(bagging.coef_samples, [2.5, 97.5], axis=0)
         inclusion = bagging.inclusion
-    bar.update(1)
+    bar.stage("error and forces", step=(5, FIT_STAGES))
     rows = signal_rows(prep, system, coef)
     cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, rows, fit.folds)
     try:
         refuse_unusable(trace, library, coef[:len(library)], cv_error)
     except AfmidError:
-        bar.close()  # the error line must not land on the progress bar's line
+        bar.close()  # the error line must not land on the progress line
         raise
     quantities = read_out(library, coef, bagging, params, chosen, trace)
     if uncertainty:
@@ -408,8 +428,6 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
         if share.warning():
             warnings.append("warning: " + share.warning())
     periods = period_curves(prep, library, system, coef, params, rows, fit.phase_points)
-    bar.update(1)
-    bar.close()
     for name, est in nonlinear.items():
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,

@@ -131,7 +131,7 @@ def _format(dims: tuple[float, ...]) -> str:
     return best[2]
 
 
-_TOKEN = re.compile(r"\s*(?:(?P<sym>[A-Za-z]+)|(?P<num>[+-]?(?:\d+\.?\d*|\.\d+))|(?P<op>\*\*|[*/^()]))")
+_TOKEN = re.compile(r"\s*(?:(?P<sym>[A-Za-zµμ]+)|(?P<num>[+-]?(?:\d+\.?\d*|\.\d+))|(?P<op>\*\*|[*/^()]))")
 
 
 @lru_cache(maxsize=1024)  # Units are immutable; the same few strings are parsed for every library built
@@ -145,10 +145,31 @@ def parse_unit(text: str) -> Unit:
     """
     tokens = _tokenize_unit(text)
     parser = _UnitParser(text, tokens)
-    unit = parser.product()
+    unit, _ = parser.product()
     if parser.i != len(tokens):
         parser.fail(f"unexpected {tokens[parser.i][1]!r}")
     return unit
+
+
+#: SI prefixes a symbol may carry in :func:`parse_scaled_unit` (``u`` for micro where µ cannot be typed).
+SI_PREFIXES = {"a": 1e-18, "f": 1e-15, "p": 1e-12, "n": 1e-9, "u": 1e-6, "µ": 1e-6, "μ": 1e-6, "m": 1e-3,
+               "c": 1e-2, "k": 1e3, "M": 1e6, "G": 1e9, "T": 1e12}
+
+
+def parse_scaled_unit(text: str, extra_symbols: dict[str, Unit] | None = None) -> tuple[float, Unit]:
+    """(factor to SI, dimensions) of a unit written with SI prefixes: ``"MHz"`` -> (1e6, s^-1), ``"kS/s"`` with
+    ``extra_symbols={"S": DIMENSIONLESS}`` -> (1e3, s^-1), ``"ms"`` -> (1e-3, s), ``"s^-1"`` -> (1, s^-1).
+
+    The grammar is :func:`parse_unit`'s; a symbol is first looked up whole (``Pa``, ``kg``, ``mm`` is not one),
+    then as one prefix of :data:`SI_PREFIXES` before a symbol (``MHz``, ``mm``, ``kSa``). ``extra_symbols``
+    adds symbols for one context (counts such as samples). Raises ValueError on anything else.
+    """
+    tokens = _tokenize_unit(text)
+    parser = _UnitParser(text, tokens, {**SYMBOLS, **(extra_symbols or {})}, prefixes=True)
+    unit, factor = parser.product()
+    if parser.i != len(tokens):
+        parser.fail(f"unexpected {tokens[parser.i][1]!r}")
+    return factor, unit
 
 
 def as_unit(unit: Unit | str) -> Unit:
@@ -173,10 +194,13 @@ def _tokenize_unit(text: str) -> list[tuple[str, str]]:
 class _UnitParser:
     """Recursive descent over: product := power (('*' | '/' | space) power)*."""
 
-    def __init__(self, text: str, tokens: list[tuple[str, str]]):
+    def __init__(self, text: str, tokens: list[tuple[str, str]], symbols: dict[str, Unit] | None = None,
+                 prefixes: bool = False):
         self.text = text
         self.tokens = tokens
         self.i = 0
+        self.symbols = SYMBOLS if symbols is None else symbols
+        self.prefixes = prefixes  # SI prefixes allowed (a scale factor is tracked beside the dimensions)
 
     def fail(self, reason: str):
         raise ValueError(f"{reason} in unit {self.text!r}")
@@ -184,8 +208,8 @@ class _UnitParser:
     def peek(self) -> tuple[str, str] | None:
         return self.tokens[self.i] if self.i < len(self.tokens) else None
 
-    def product(self) -> Unit:
-        unit = DIMENSIONLESS  # an empty product ("" or "()") is dimensionless
+    def product(self) -> tuple[Unit, float]:
+        unit, scale = DIMENSIONLESS, 1.0  # an empty product ("" or "()") is dimensionless
         pending = None  # the '*' or '/' just read, waiting for its right-hand factor
         first = True
         while (tok := self.peek()) is not None and tok != ("op", ")"):
@@ -195,29 +219,37 @@ class _UnitParser:
                 pending = tok[1]
                 self.i += 1
                 continue
-            factor = self.power()
+            factor, factor_scale = self.power()
             # '/' divides by the next factor only: "N/m s" is N*s/m.
             unit = unit / factor if pending == "/" else unit * factor
+            scale = scale / factor_scale if pending == "/" else scale * factor_scale
             pending = None
             first = False
         if pending:
             self.fail(f"missing factor after {pending!r}")
-        return unit
+        return unit, scale
 
-    def power(self) -> Unit:
+    def symbol(self, value: str) -> tuple[Unit, float]:
+        if value in self.symbols:
+            return self.symbols[value], 1.0
+        if self.prefixes and len(value) > 1 and value[0] in SI_PREFIXES and value[1:] in self.symbols:
+            return self.symbols[value[1:]], SI_PREFIXES[value[0]]
+        allowed = ", ".join(self.symbols)
+        prefixed = " (with an SI prefix)" if self.prefixes else ""
+        raise ValueError(f"unknown unit symbol {value!r} in {self.text!r}; allowed: {allowed}, 1{prefixed}")
+
+    def power(self) -> tuple[Unit, float]:
         kind, value = self.tokens[self.i]
         self.i += 1
+        scale = 1.0
         if kind == "sym":
-            if value not in SYMBOLS:
-                allowed = ", ".join(SYMBOLS)
-                raise ValueError(f"unknown unit symbol {value!r} in {self.text!r}; allowed: {allowed}, 1")
-            base = SYMBOLS[value]
+            base, scale = self.symbol(value)
         elif kind == "num":
             if float(value) != 1:
                 self.fail(f"unexpected number {value!r} (only 1 may stand alone)")
             base = DIMENSIONLESS
         elif value == "(":
-            base = self.product()
+            base, scale = self.product()
             if self.peek() != ("op", ")"):
                 self.fail("missing ')'")
             self.i += 1
@@ -229,5 +261,5 @@ class _UnitParser:
             if tok is None or tok[0] != "num":
                 self.fail("expected a number after '^'")
             self.i += 1
-            return base ** float(tok[1])
-        return base
+            return base ** float(tok[1]), scale ** float(tok[1])
+        return base, scale

@@ -51,6 +51,7 @@ from afmid.errors import ConfigError
 from afmid.io.files import memory_shortfall
 from afmid.io.trace import Cantilever, Trace, Truth
 from afmid.preprocess.instrument import from_config as instrument_from_config
+from afmid.progress import Progress
 from afmid.physics.effects import BOLTZMANN
 from afmid.simulate.instrument import MultiModeIntegrator, detect, detector_lead_periods, integrator_for  # noqa: F401
 from afmid.simulate.integrator import (  # noqa: F401 (re-exported)
@@ -169,26 +170,20 @@ def thermal_force_std(oscillator: Oscillator, temperature: float, h: float) -> f
 
 
 class _Progress:
-    """A tqdm bar counting drive periods, shown only for runs longer than ~2 s."""
+    """The simulation's stages on an :class:`afmid.progress.Progress`, counting drive periods; callable with a
+    number of periods (the integrator's settle loop reports so)."""
 
     def __init__(self, enabled: bool):
-        self.bar = None
-        if enabled:
-            from tqdm import tqdm
+        self.progress = Progress("simulate", enabled=enabled)
 
-            self.bar = tqdm(unit="period", delay=2.0, leave=False, desc="simulate")
-
-    def stage(self, name: str) -> None:
-        if self.bar is not None:
-            self.bar.set_description_str(name)
+    def stage(self, name: str, total: int | None = None) -> None:
+        self.progress.stage(name, total=total, unit="periods")
 
     def __call__(self, periods: int) -> None:
-        if self.bar is not None:
-            self.bar.update(periods)
+        self.progress.advance(periods)
 
     def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
+        self.progress.close()
 
 
 def _search_separation(setup: Setup, compiled: CompiledForceLaw, config: RunConfig, progress: _Progress,
@@ -286,7 +281,7 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
             integrator.start(*osc.free_state(0.0))
 
         if sim.mode == "steady":
-            bar.stage("settling")
+            bar.stage(f"settling (at most {sim.max_settle_periods} periods)")
             state = settle(integrator, sim.steps_per_period, sim.settle_tolerance, sim.max_settle_periods, bar)
             extra.update(steady_amplitude=state.amplitude, steady_phase=state.phase, settle_periods=state.periods,
                          setpoint=state.amplitude / setup.free_amplitude)
@@ -295,8 +290,8 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
                             "this separation: bistable attractive/repulsive regimes)",
                             state.amplitude / setup.free_amplitude, sim.setpoint)
             if noise.thermal:
-                bar.stage("thermal warm-up")
                 warmup = math.ceil(THERMAL_WARMUP_ENERGY_TIMES * osc.quality_factor / (2.0 * math.pi))
+                bar.stage("thermal warm-up", total=warmup)
                 h = osc.period / sim.steps_per_period
                 sigma = thermal_force_std(osc, noise.temperature, h)
                 done = 0
@@ -310,7 +305,7 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
         else:
             extra["transient_start"] = sim.transient_start
 
-        bar.stage("recording")
+        bar.stage("recording", total=round(grid.n_samples * osc.drive_frequency / grid.sample_rate))
         if declared.detector is None:
             record = _record(integrator, grid, osc, noise, rng, bar)
             deflection = record.x.copy()

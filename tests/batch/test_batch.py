@@ -142,20 +142,23 @@ def test_summary_has_one_row_per_trace_with_si_units(traces, tmp_path):
     rows = _summary(out)
     assert [r["name"] for r in rows] == ["broken", "n01"]
     header = list(rows[0])
-    for column in ("cv_error [1]", "separation [m]", "E_star [Pa]", "E_star_error [Pa]", "E_star_ci_low [Pa]",
-                   "hamaker [J]", "adhesion_force [N]", "fit_time [s]", "status", "error"):
+    for column in ("cv_error [1]", "separation [m]", "E_star [Pa]", "E_star_sigma [Pa]", "E_star_ci_low [Pa]",
+                   "hamaker [J]", "adhesion_force [N]", "fit_time [s]", "status", "failure", "diagnosis"):
         assert column in header, column
     ok = rows[1]
     run = read_run_row(out / "n01.run.h5")
     assert float(ok["E_star [Pa]"]) == run["quantities"]["E_star"]["value"]
     assert float(ok["cv_error [1]"]) == run["values"]["cv_error"]
     assert 1e9 < float(ok["E_star [Pa]"]) < 3e9  # truth 2 GPa
-    assert "not a readable HDF5 file" in rows[0]["error"] and rows[0]["run_file"] == ""
+    assert "not a readable HDF5 file" in rows[0]["failure"] and rows[0]["run_file"] == "" and rows[0]["diagnosis"] == ""
+    assert ok["diagnosis"].startswith(("at the noise floor (x", "model-limited (x")), ok["diagnosis"]
     with h5py.File(out / "summary.h5", "r") as h5:
         assert h5.attrs["format"] == "afmid-batch-summary"
         assert [s.decode() for s in h5["status"][...]] == ["failed", "ok"]
         assert h5["parameters/E_star/value"].attrs["units"] == "Pa"
-        assert h5["parameters/E_star/error"].attrs["units"] == "Pa"
+        assert h5["parameters/E_star/sigma"].attrs["units"] == "Pa"
+        assert h5["parameters/E_star/sigma"].attrs["error_kind"] == "1 sigma" and "parameters/E_star/error" not in h5
+        assert [s.decode() for s in h5["diagnosis"][...]][0] == "" and "model-limited" in h5["diagnosis"].attrs["meaning"]
         assert h5["cv_error"].attrs["units"] == "1"
         assert h5["separation"].attrs["units"] == "m"
         assert np.isnan(h5["parameters/E_star/value"][0]) and h5["parameters/E_star/value"][1] == run["quantities"]["E_star"]["value"]
@@ -221,9 +224,9 @@ def test_bad_traces_and_overrides_are_reported_and_do_not_stop_the_batch(traces,
     rows = {r["name"]: r for r in _summary(out)}
     assert list(rows) == ["n01", "empty", "missing", "n02", "n02_q300"]
     assert rows["n01"]["status"] == "ok" and rows["n02_q300"]["status"] == "ok"
-    assert rows["empty"]["status"] == "failed" and "empty.h5" in rows["empty"]["error"]
-    assert rows["missing"]["status"] == "failed" and "not found" in rows["missing"]["error"]
-    assert rows["n02"]["status"] == "failed" and "quality_factor" in rows["n02"]["error"]
+    assert rows["empty"]["status"] == "failed" and "empty.h5" in rows["empty"]["failure"]
+    assert rows["missing"]["status"] == "failed" and "not found" in rows["missing"]["failure"]
+    assert rows["n02"]["status"] == "failed" and "quality_factor" in rows["n02"]["failure"]
     with h5py.File(out / "n02_q300.run.h5", "r") as h5:
         assert "quality_factor: 300" in h5.attrs["config"]
     assert not (out / "n02.run.h5").exists() and not _leftovers(out)
@@ -237,7 +240,7 @@ def test_a_worker_that_dies_fails_only_its_trace(traces, tmp_path):
     out = tmp_path / "out"
     result = run_batch(CONFIG, out, inputs=[str(tmp_path / "in" / "*.h5")], jobs=2, overrides=FAST,
                        worker=fit_task_dying_on_one_item)  # the worker of n02 SIGKILLs itself
-    status = {r.item.name: (r.status, r.error) for r in result.rows}
+    status = {r.item.name: (r.status, r.failure) for r in result.rows}
     assert status["n01"][0] == "ok" and status["n03"][0] == "ok"
     assert status["n02"][0] == "failed" and "worker process died" in status["n02"][1]
     assert not _leftovers(out)
@@ -414,7 +417,7 @@ def test_config_summary_has_the_union_of_the_runs_quantities(config_dir, config_
     rows = {r["name"]: r for r in _summary(out)}
     assert list(rows) == ["bad", "dmt", "lennard_jones", "measured", "nodata"]
     header = list(rows["dmt"])
-    for column in ("config", "effects", "E_star [Pa]", "E_star_error [Pa]", "sigma [m]", "sigma_ci_high [m]",
+    for column in ("config", "effects", "E_star [Pa]", "E_star_sigma [Pa]", "sigma [m]", "sigma_ci_high [m]",
                    "hamaker [J]", "simulate_time [s]", "fit_time [s]"):
         assert column in header, column
     dmt, lj, measured = rows["dmt"], rows["lennard_jones"], rows["measured"]
@@ -422,12 +425,12 @@ def test_config_summary_has_the_union_of_the_runs_quantities(config_dir, config_
     assert dmt["config"] == str(config_dir / "dmt.yaml")
     assert dmt["input"] == str((out / "dmt.trace.h5").resolve()) and dmt["run_file"] == "dmt.run.h5"
     assert measured["input"] == str((config_dir / "measured.h5").resolve())
-    assert 1e9 < float(dmt["E_star [Pa]"]) < 3e9 and dmt["sigma [m]"] == "" and dmt["sigma_error [m]"] == ""
-    assert 0.25e-9 < float(lj["sigma [m]"]) < 0.35e-9 and lj["E_star [Pa]"] == "" and lj["E_star_error [Pa]"] == ""
+    assert 1e9 < float(dmt["E_star [Pa]"]) < 3e9 and dmt["sigma [m]"] == "" and dmt["sigma_sigma [m]"] == ""
+    assert 0.25e-9 < float(lj["sigma [m]"]) < 0.35e-9 and lj["E_star [Pa]"] == "" and lj["E_star_sigma [Pa]"] == ""
     assert float(lj["hamaker [J]"]) > 0 and float(dmt["hamaker [J]"]) > 0  # shared by both models: one column
     assert float(dmt["simulate_time [s]"]) > 0 and measured["simulate_time [s]"] == ""
-    assert rows["bad"]["status"] == "failed" and "quality_factor: must be > 0" in rows["bad"]["error"]
-    assert rows["nodata"]["status"] == "failed" and "no data.path" in rows["nodata"]["error"]
+    assert rows["bad"]["status"] == "failed" and "quality_factor: must be > 0" in rows["bad"]["failure"]
+    assert rows["nodata"]["status"] == "failed" and "no data.path" in rows["nodata"]["failure"]
     assert rows["bad"]["run_file"] == rows["nodata"]["run_file"] == rows["nodata"]["input"] == ""
     with h5py.File(out / "summary.h5", "r") as h5:
         assert h5.attrs["config"] == "" and h5.attrs["n_ok"] == 3 and h5.attrs["n_failed"] == 2
@@ -437,7 +440,7 @@ def test_config_summary_has_the_union_of_the_runs_quantities(config_dir, config_
         assert sigma.attrs["units"] == "m" and e_star.attrs["units"] == "Pa"
         assert h5["parameters/sigma"].attrs["effect"] == "lennard_jones"
         assert np.isnan(sigma[1]) and sigma[2] == float(lj["sigma [m]"]) and np.isnan(e_star[2])
-        assert np.isnan(h5["parameters/sigma/error"][1]) and np.isnan(h5["simulate_time"][3])
+        assert np.isnan(h5["parameters/sigma/sigma"][1]) and np.isnan(h5["simulate_time"][3])
         assert h5["parameters/E_star/value"][1] == read_run_row(out / "dmt.run.h5")["quantities"]["E_star"]["value"]
 
 

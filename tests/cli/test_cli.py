@@ -14,6 +14,7 @@ import textwrap
 from pathlib import Path
 
 import h5py
+import numpy as np
 import pytest
 import yaml
 
@@ -150,6 +151,12 @@ def test_effects_unknown_name(run_cli):
 # --------------------------------------------------------------------------- fit plumbing (fit stubbed)
 class _StubResult:
     quantities: dict = {}  # no read-outs (nothing to judge for plausibility)
+    # what the printed read-out (afmid.report.fit_text) reads: an empty law, an error at its floor
+    library = None
+    n_library = 0
+    selected = np.zeros(0, dtype=bool)
+    nonlinear: dict = {}
+    cv_error, cv_error_noise_floor, cv_error_folds = 0.0, 1.0, np.zeros(0)
 
     def summary_line(self) -> str:
         return "cv_error 0.0000; terms: stub"

@@ -602,3 +602,24 @@ def test_errors_are_afmid_errors_with_exit_codes():
     err = ConfigError("must be > 0, got -3", file=Path("configs/x.yaml"), key="cantilever.quality_factor")
     assert str(err) == err.format() == "configs/x.yaml: cantilever.quality_factor: must be > 0, got -3"
     assert ConfigError("bad").format() == "bad"
+
+
+def test_init_config_simulate_writes_a_commented_simulate_section_that_runs(tmp_path, run_cli):
+    """`init-config --simulate`: the template plus a commented simulate section whose every documented key is
+    a SimulateConfig field (commented keys included), valid as written, and simulated after the template's
+    placeholders are filled (here: A0 and d given, 6 periods)."""
+    from afmid.config import SimulateConfig
+
+    code, out, _ = run_cli("init-config", "--simulate")
+    assert code == 0 and out.startswith(template_text()) and out != template_text()
+    section = out[len(template_text()):]
+    raw = yaml.safe_load(out)
+    assert raw["simulate"]["model"] == "dmt" and raw["simulate"]["parameters"] == {"E_star": 2.0e9, "hamaker": 5.0e-20}
+    keys = set(re.findall(r"^  #? ?([a-z_]+):", section, re.M))
+    assert keys and keys <= set(SimulateConfig.model_fields), keys - set(SimulateConfig.model_fields)
+    assert {"setpoint", "effects", "transient_start", "map"} <= keys  # the optional ones are documented too
+    config = tmp_path / "sim.yaml"
+    config.write_text(out.replace("  frequency: 3.0e+5 ", "  free_amplitude: 10.0e-9\n  frequency: 3.0e+5 ")
+                      .replace("  # separation: 14.0e-9 ", "  separation: 8.5e-9 "))
+    code, _, err = run_cli("-q", "simulate", config, "-o", tmp_path / "trace.h5", "--set", "simulate.periods=6")
+    assert code == 0, err

@@ -379,10 +379,10 @@ def test_a_batch_item_that_does_not_fit_says_so_in_the_summary(small_disk, trace
     fill_disk(small_disk, 120_000)  # the summary fits, the run file (~400 kB) does not
     result = run_batch(small_disk / "run.yaml", small_disk / "out", inputs=[str(small_disk / "trace.h5")], jobs=1)
     assert [r.status for r in result.rows] == ["failed"]
-    assert tempfiles.NO_SPACE_TEXT in result.rows[0].error and "trace.run.h5" in result.rows[0].error
+    assert tempfiles.NO_SPACE_TEXT in result.rows[0].failure and "trace.run.h5" in result.rows[0].failure
     with open(small_disk / "out" / "summary.csv", newline="") as fh:
         (row,) = list(csv.DictReader(fh))
-    assert row["status"] == "failed" and tempfiles.NO_SPACE_TEXT in row["error"]
+    assert row["status"] == "failed" and tempfiles.NO_SPACE_TEXT in row["failure"]
     assert sorted(p.name for p in (small_disk / "out").iterdir()) == ["summary.csv", "summary.h5"]
 
 

@@ -78,7 +78,7 @@ def test_a_batch_marks_a_trace_of_noise_failed(tmp_path, run_cli):
     with open(tmp_path / "out" / "summary.csv", newline="") as fh:
         rows = list(csv.DictReader(line for line in fh if not line.startswith("#")))
     assert [r["status"] for r in rows] == ["failed"]
-    assert "no oscillation at the drive frequency" in rows[0]["error"]
+    assert "no oscillation at the drive frequency" in rows[0]["failure"]
     assert not (tmp_path / "out" / "noise.run.h5").exists()
 
 

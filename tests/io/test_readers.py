@@ -275,6 +275,43 @@ def test_csv_comment_lines_and_header_fields(tmp_path):
     assert trace.metadata["header_fields"] == {"sample_rate": "2 MHz", "invols": "50 nm/V"}
 
 
+@pytest.mark.parametrize("stated, rate", [
+    ("60 MS/s", 60e6), ("60MS/s", 60e6), ("2 MSa/s", 2e6), ("500 kS/s", 5e5), ("250 kSa/s", 2.5e5),
+    ("2e6 Sa/s", 2e6), ("2e6 S/s", 2e6), ("1e6 samples/s", 1e6), ("2 MHz", 2e6), ("2 mhz", 2e6), ("2 MHZ", 2e6),
+    ("500 kHz", 5e5), ("2e6 Hz", 2e6), ("2e6", 2e6), ("2e6 s^-1", 2e6), ("2e6 1/s", 2e6), ("0.002 GHz", 2e6),
+])
+def test_csv_header_sample_rate_with_unit_prefixes(tmp_path, stated, rate):
+    """`# Sample rate: 60 MS/s` as instruments write it: the unit's SI prefix parsed, samples counted."""
+    path = write_csv(tmp_path / "r.csv", {"deflection_nm": SIGNAL * 1e9}, preamble=[f"# Sample rate: {stated}"])
+    trace = read_trace(path)
+    assert trace.sample_rate == pytest.approx(rate, rel=1e-12)
+    assert trace.source["sample_rate"] == "file:comment line 1 (sample_rate)"
+
+
+@pytest.mark.parametrize("field, stated, step", [("dt", "500 ns", 5e-7), ("dt", "0.5 us", 5e-7),
+                                                 ("dt", "0.5 µs", 5e-7), ("time_step", "5e-4 ms", 5e-7)])
+def test_csv_header_time_step_with_unit_prefixes(tmp_path, field, stated, step):
+    path = write_csv(tmp_path / "r.csv", {"deflection_nm": SIGNAL * 1e9}, preamble=[f"# {field}: {stated}"])
+    assert read_trace(path).sample_rate == pytest.approx(1 / step, rel=1e-12)
+
+
+@pytest.mark.parametrize("field, stated, expected", [
+    ("Sample rate", "60 MS", "a positive number of Hz, or one with a rate unit (Hz, kHz, MHz, S/s, kS/s, MS/s"),
+    ("Sample rate", "60 ms", "a positive number of Hz, or one with a rate unit"),  # a time is not a rate
+    ("Sample rate", "60 furlongs/s", "a positive number of Hz, or one with a rate unit"),
+    ("Sample rate", "60 XHz", "a positive number of Hz, or one with a rate unit"),  # not an SI prefix
+    ("Sample rate", "-60 MS/s", "a positive number of Hz"),
+    ("Sample rate", "fast", "a positive number of Hz"),
+    ("dt", "16 MHz", "a positive number of seconds, or one with a time unit (s, ms, us, µs or ns)"),
+])
+def test_csv_header_rate_in_an_unknown_unit_is_one_line_naming_file_and_line(tmp_path, field, stated, expected):
+    path = write_csv(tmp_path / "r.csv", {"deflection_nm": SIGNAL * 1e9},
+                     preamble=["# exported by the test", f"# {field}: {stated}"])
+    err = error_of(path)
+    assert f"comment line 2 ({field.lower().replace(' ', '_')}) = '{stated}' is not {expected}" in err.message
+    assert "\n" not in str(err)
+
+
 def test_csv_channel_by_name_index_and_digit_string(tmp_path):
     path = write_csv(tmp_path / "n.csv", {"time (s)": T, "deflection [nm]": SIGNAL, "drive_V": -SIGNAL})
     for channel in ("deflection [nm]", "deflection", "DEFLECTION", 1, "1"):

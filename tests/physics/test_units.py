@@ -4,7 +4,7 @@ import re
 
 import pytest
 
-from afmid.physics.units import DIMENSIONLESS, SYMBOLS, Unit, as_unit, parse_unit
+from afmid.physics.units import DIMENSIONLESS, SYMBOLS, Unit, as_unit, parse_scaled_unit, parse_unit
 
 pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 
@@ -128,3 +128,26 @@ def test_parse_errors(text, message):
 def test_wrong_number_of_exponents():
     with pytest.raises(ValueError, match="5 exponents"):
         Unit((1, 2))
+
+
+@pytest.mark.parametrize("text, factor, dims", [
+    ("MHz", 1e6, "s^-1"), ("kHz", 1e3, "s^-1"), ("s^-1", 1.0, "s^-1"), ("ms", 1e-3, "s"), ("us", 1e-6, "s"),
+    ("µs", 1e-6, "s"), ("nm", 1e-9, "m"), ("mm", 1e-3, "m"), ("kPa s", 1e3, "Pa*s"), ("nN/nm", 1.0, "N/m"),
+    ("Pa", 1.0, "Pa"), ("kg", 1.0, "kg"), ("MS/s", 1e6, "s^-1"), ("kSa/s", 1e3, "s^-1"), ("(ms)^-2", 1e6, "s^-2"),
+])
+def test_parse_scaled_unit(text, factor, dims):
+    """SI prefixes on any symbol (a whole symbol first: Pa, kg); S and Sa as counts of samples where given."""
+    counts = {"S": DIMENSIONLESS, "Sa": DIMENSIONLESS}
+    got_factor, unit = parse_scaled_unit(text, counts)
+    assert got_factor == pytest.approx(factor, rel=1e-12) and unit == parse_unit(dims)
+
+
+@pytest.mark.parametrize("text", ["MS/s", "XHz", "Mfoo", "M", "kHz/"])
+def test_parse_scaled_unit_errors(text):
+    with pytest.raises(ValueError):
+        parse_scaled_unit(text)  # S is not a symbol without the counts; X is no prefix
+
+
+def test_parse_unit_takes_no_prefix():
+    with pytest.raises(ValueError, match="unknown unit symbol 'MHz'"):
+        parse_unit("MHz")  # afmid's unit checks are dimensions of SI values: a prefix would be a scale

@@ -31,13 +31,19 @@ TIME_KEY = "data.time_column"
 
 #: Time units a time channel may declare, as factors to seconds.
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6, "μs": 1e-6, "ns": 1e-9}
-_RATE_UNITS = {"hz": 1.0, "khz": 1e3, "mhz": 1e6, "ghz": 1e9}
+_RATE_UNITS = {"hz": 1.0, "khz": 1e3, "mhz": 1e6, "ghz": 1e9}  # also in any case: "MHZ", "khz" (older files)
+#: Counts a rate may be written in: "60 MS/s", "2 MSa/s", "1e6 samples/s" (dimensionless, with SI prefixes).
+SAMPLE_COUNT_SYMBOLS = ("S", "Sa", "sample", "samples")
+#: What a sample rate or time step may be written in, for messages.
+RATE_UNIT_WORDS = "Hz, kHz, MHz, S/s, kS/s, MS/s, Sa/s, MSa/s or s^-1"
+STEP_UNIT_WORDS = "s, ms, us, µs or ns"
 
 # Name suffixes read as units ("deflection_nm", "time_s"). A closed list on
 # purpose: "_x" or "_raw" end many channel names without being units.
 _SUFFIX_UNITS = frozenset({"m", "mm", "um", "µm", "nm", "pm", "V", "mV", "s", "ms", "us", "ns"})
 _BRACKETED_UNIT = re.compile(r"^(?P<base>.*?\S)\s*[\[(](?P<unit>[^\[\]()]+)[\])]\s*$")
-_NUMBER_WITH_UNIT = re.compile(r"^\s*(?P<number>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(?P<unit>[A-Za-zµμ]*)\s*$")
+_NUMBER_WITH_UNIT = re.compile(
+    r"^\s*(?P<number>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(?P<unit>[A-Za-zµμ(1][A-Za-zµμ0-9/*^() -]*)?\s*$")
 
 #: Names that mark a time axis; such channels are never picked as the default signal.
 TIME_NAMES = frozenset({"t", "time", "times", "timestamp"})
@@ -310,8 +316,26 @@ def settle_rate(
 
 
 # --------------------------------------------------------------------------- metadata
-def _number(value: Any, unit_scales: Mapping[str, float]) -> float | None:
-    """A positive finite number from an attribute value, optionally with a unit ('2 MHz')."""
+def _unit_factor(unit: str, unit_scales: Mapping[str, float], dimension: str) -> float | None:
+    """The factor to SI of ``unit`` (a rate: s^-1, or a step: s), else None.
+
+    The older table first (case-insensitive: "mhz" has always meant MHz in afmid), then the unit parsed with SI
+    prefixes (afmid.physics.units.parse_scaled_unit), counts of samples allowed: "MS/s", "kSa/s", "s^-1", "µs".
+    """
+    if unit.lower() in unit_scales:
+        return unit_scales[unit.lower()]
+    from afmid.physics.units import DIMENSIONLESS, parse_scaled_unit, parse_unit
+
+    try:
+        factor, parsed = parse_scaled_unit(unit, {name: DIMENSIONLESS for name in SAMPLE_COUNT_SYMBOLS})
+    except ValueError:
+        return None
+    return factor if parsed == parse_unit(dimension) else None
+
+
+def _number(value: Any, unit_scales: Mapping[str, float], dimension: str = "s^-1") -> float | None:
+    """A positive finite number from an attribute value, optionally with a unit ('2 MHz', '60 MS/s') of
+    ``dimension``."""
     if isinstance(value, (list, tuple, np.ndarray)) and np.size(value) == 1:
         value = np.ravel(value)[0]  # one-element attribute arrays, 1 x 1 MATLAB matrices
     value = plain(value)
@@ -319,7 +343,7 @@ def _number(value: Any, unit_scales: Mapping[str, float]) -> float | None:
         match = _NUMBER_WITH_UNIT.match(value)
         if not match:
             return None
-        scale = unit_scales.get(match["unit"].lower() if match["unit"] else "", None)
+        scale = _unit_factor(match["unit"].strip(), unit_scales, dimension) if match["unit"] else unit_scales.get("")
         if scale is None:
             return None
         value = float(match["number"]) * scale
@@ -345,12 +369,12 @@ def rate_from_fields(
     ):
         if name not in fields:
             continue
-        number = _number(fields[name], scales)
+        number = _number(fields[name], scales, "s^-1" if name == "sample_rate" else "s")
         if number is None:
-            unit = "Hz" if name == "sample_rate" else "seconds"
-            raise InputError(
-                f"{where(name)} = {quoted(plain(fields[name]))} is not a positive number of {unit}", file=file
-            )
+            expected = (f"a positive number of Hz, or one with a rate unit ({RATE_UNIT_WORDS})"
+                        if name == "sample_rate" else
+                        f"a positive number of seconds, or one with a time unit ({STEP_UNIT_WORDS})")
+            raise InputError(f"{where(name)} = {quoted(plain(fields[name]))} is not {expected}", file=file)
         return (1.0 / number if invert else number), f"file:{where(name)}"
     return None
 

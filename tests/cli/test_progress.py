@@ -1,0 +1,95 @@
+"""Progress (afmid/progress.py): named stages, counts of what is counted, no rates; plain lines (one per stage,
+no carriage return) when stderr is not a terminal, one rewritten line erased at the end when it is."""
+
+from __future__ import annotations
+
+import io
+import logging
+import re
+
+from short_runs import short_dmt_viscoelastic_config
+
+from afmid.progress import Progress, counted
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_not_a_terminal_gives_one_plain_line_per_stage():
+    stream = io.StringIO()
+    bar = Progress("simulate", stream=stream)
+    assert not bar.terminal  # a StringIO is not a terminal
+    bar.stage("settling (at most 3000 periods)")
+    bar.advance(120)
+    bar.stage("recording", total=50, unit="periods")
+    for _ in range(50):
+        bar.advance()
+    bar.stage("selecting terms", step=(4, 6))
+    bar.close()
+    assert stream.getvalue().splitlines() == [
+        "simulate: settling (at most 3000 periods)",
+        "simulate: recording (50 periods)",
+        "simulate: selecting terms (4/6)",
+    ]
+    assert "\r" not in stream.getvalue()
+
+
+def test_a_terminal_line_counts_and_is_erased_at_the_end():
+    stream = _Terminal()
+    bar = Progress("batch", stream=stream)
+    assert bar.terminal
+    bar.stage("fitting", total=4, unit="traces")
+    bar.advance(3)
+    assert bar.text() == "batch: fitting 3/4 traces"
+    bar.close()
+    shown = stream.getvalue()
+    assert "\rbatch: fitting 0/4 traces" in shown
+    assert shown.endswith("\r")  # erased: what the command prints next starts on a clean line
+    assert not re.search(r"it/s|/s\b|[0-9]period", shown)
+
+
+def test_a_log_record_erases_the_terminal_line_first():
+    stream = _Terminal()
+    logger = logging.getLogger("afmid")
+    records = io.StringIO()
+    handler = logging.StreamHandler(records)
+    saved = list(logger.handlers)
+    logger.handlers[:] = [handler]
+    try:
+        with Progress("report", stream=stream) as bar:
+            bar.stage("trying effects", total=3, unit="effects")
+            logger.warning("a warning")
+            assert stream.getvalue().endswith("\r")  # the line was erased before the record
+        assert handler.filters == []  # the filter is gone with the progress
+    finally:
+        logger.handlers[:] = saved
+
+
+def test_counted_counts_the_items():
+    stream = io.StringIO()
+    assert list(counted(["a", "b"], "report", "trying effects", "effects", enabled=False)) == ["a", "b"]
+    bar = Progress("report", stream=stream)
+    bar.stage("trying effects", total=2, unit="effects")
+    assert stream.getvalue() == "report: trying effects (2 effects)\n"
+
+
+def test_simulate_and_fit_without_a_terminal_name_their_stages(tmp_path, run_cli):
+    config = short_dmt_viscoelastic_config(tmp_path)
+    code, _, err = run_cli("simulate", config, "-o", tmp_path / "trace.h5")
+    assert code == 0, err
+    assert "\r" not in err
+    lines = err.splitlines()
+    assert lines[:2] == ["simulate: settling (at most 20000 periods)",  # simulate.max_settle_periods
+                         "simulate: thermal warm-up (" + lines[1].split("(")[1]]
+    assert "simulate: recording (12 periods)" in lines
+    code, _, err = run_cli("fit", config, "-o", tmp_path / "run.h5")
+    assert code == 0, err
+    assert "\r" not in err
+    stages = [line for line in err.splitlines() if line.startswith("fit: ")]
+    assert stages == ["fit: preparing periods (1/5)", "fit: searching the drive (2/5)", "fit: selecting terms (3/5)",
+                      "fit: error bars (10 resamples) (4/5)", "fit: error and forces (5/5)"]
+    assert not re.search(r"it/s|[0-9]period", err)
+    code, _, err = run_cli("-q", "fit", config, "-o", tmp_path / "run.h5", "--overwrite")
+    assert code == 0 and not [line for line in err.splitlines() if line.startswith("fit: ")]

@@ -1,0 +1,112 @@
+"""What `afmid fit` prints (afmid/report/fit_text.py): the identified law, the parameters in human units with
+labelled intervals, plausibility, the model-limited verdict, the error against its floor; `-v` the selection.
+
+Short simulated fits (12 periods, 10 bootstrap draws): a DMT + Kelvin-Voigt trace fitted with [dmt] (the model
+misses the viscosity: model-limited) and with [dmt, viscoelastic] (at the
+floor); a pure DMT trace fitted with [dmt, viscoelastic] (the viscosity is not determined).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+import pytest
+
+from repo_paths import TEST_CONFIGS
+
+
+def _short_config(folder, source, effects, trace):
+    text = (TEST_CONFIGS / source).read_text()
+    text = re.sub(r"(?m)^  periods: 50\b", "  periods: 12", text)
+    text = re.sub(r"(?m)^  (library|effects): .*$", f"  effects: [{', '.join(effects)}]", text)
+    text = re.sub(r"(?m)^fit:\n(  .*\n)*", "", text)
+    assert "periods: 12" in text and "effects: [" in text
+    path = folder / f"{source.removesuffix('.yaml')}_{'_'.join(effects)}.yaml"
+    path.write_text(text + f"\ndata: {{path: {trace}}}\nfit: {{bootstrap: 10, seed: 0}}\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def traces(tmp_path_factory):
+    """The two simulated traces (12 periods each), by name, in one folder."""
+    from afmid.cli import main
+
+    folder = tmp_path_factory.mktemp("fit_text")
+    for source, name in (("dmt_viscoelastic.yaml", "ve.h5"), ("dmt.yaml", "dmt.h5")):
+        config = _short_config(folder, source, ["dmt"], name)
+        assert main(["-q", "simulate", str(config), "-o", str(folder / name)]) == 0
+    return folder
+
+
+def _fit(run_cli, folder, source, effects, trace, *flags):
+    config = _short_config(folder, source, effects, trace)
+    code, out, err = run_cli(*flags, "fit", config, "-o", folder / f"{config.stem}.run.h5", "--overwrite")
+    assert code == 0, err
+    return out, err
+
+
+def _parameter(out: str, name: str) -> str:
+    (line,) = [x.strip() for x in out.splitlines() if x.strip().startswith((f"{name} =", f"{name}:"))]
+    return line
+
+
+MEASUREMENT = r"-?[0-9.]+ ± [0-9.]+ {unit} \(1σ\), \[-?[0-9.]+, -?[0-9.]+\] {unit} \(95 %\)"
+
+
+def test_fit_prints_the_law_and_parameters_in_human_units(traces, run_cli):
+    out, err = _fit(run_cli, traces, "dmt_viscoelastic.yaml", ["dmt", "viscoelastic"], "ve.h5")
+    assert "wrote" in err and "wrote" not in out  # the log line stays on stderr, the read-out is stdout
+    law = out.split("physical parameters:")[0]
+    assert law.startswith("identified law") and "dmt.hertz:" in law and "viscoelastic.kelvin_voigt:" in law
+    assert "N/m^1.5 (1σ) x [z <= a0] * delta^1.5" in law  # coefficient unit, label and the term's expression
+    for name, unit in (("E_star", "MPa"), ("hamaker", "zJ"), ("adhesion_force", "nN"), ("viscosity", "Pa s")):
+        line = _parameter(out, name)
+        assert re.fullmatch(rf"{name} = {MEASUREMENT.format(unit=unit)}; plausible", line), line
+    # the numbers are the fit's in the display unit: the simulated E* is 1 GPa (a factor 1000 off would show)
+    e_star = float(_parameter(out, "E_star").split(" = ")[1].split(" ±")[0])
+    assert 800 < e_star < 1250
+    assert "MODEL-LIMITED" not in out and "verdict: at the noise floor" in out
+    folds = re.search(r"force error \(cross-validated, relative RMS\) ([0-9.]+) \(folds ([0-9.]+) to ([0-9.]+), "
+                      r"5 folds\), noise floor ([0-9.]+)", out)
+    assert folds, out
+    error, low, high, floor = map(float, folds.groups())
+    assert low <= error <= high and floor > 0
+    assert "selection:" not in out  # only with -v
+
+
+def test_a_model_limited_fit_says_so_on_every_parameter(traces, run_cli):
+    out, err = _fit(run_cli, traces, "dmt_viscoelastic.yaml", ["dmt"], "ve.h5", "-v")
+    for name in ("E_star", "hamaker", "adhesion_force"):
+        assert _parameter(out, name).endswith("; MODEL-LIMITED (biased beyond its error bar)")
+    verdict = next(x for x in out.splitlines() if x.startswith("verdict:"))
+    assert verdict.startswith("verdict: MODEL-LIMITED: x") and "the floor" in verdict
+    assert "model-limited" in err  # the warning stays on stderr
+    # -v: the selection's candidates with their criterion relative to the chosen one, the dropped terms
+    selection = out.split("selection: ")[1]
+    assert selection.startswith("criterion bic,") and "chosen: dmt.vdw, dmt.hertz" in selection
+    rows = [x for x in selection.splitlines() if "ΔBIC" in x]
+    assert len(rows) >= 2 and rows[0].lstrip().startswith("* ΔBIC       0")
+    assert all(float(x.split("ΔBIC")[1].split()[0]) >= 0 for x in rows)  # ranked best first
+    assert "dropped: " in selection
+
+
+def test_a_term_not_selected_reads_not_determined(traces, run_cli):
+    out, _ = _fit(run_cli, traces, "dmt.yaml", ["dmt", "viscoelastic"], "dmt.h5")
+    line = _parameter(out, "viscosity")
+    assert line.startswith("viscosity: NOT DETERMINED (viscoelastic.kelvin_voigt not selected, inclusion probability")
+    assert re.search(r"with its term forced in: \[-?[0-9.]+, -?[0-9.]+\] Pa s \(95 %\)", line), line
+    assert not re.search(r"± 0(\.0*)? |-0 ", out)  # no zero error bar, no negative zero
+    assert _parameter(out, "E_star").endswith("; plausible")
+
+
+def test_quantity_line_flags_an_implausible_read_out():
+    from afmid.report.fit_text import quantity_line
+
+    q = {"value": -24e3, "error": 3e3, "ci_low": -30e3, "ci_high": -18e3, "unit": "Pa*s", "effect": "viscoelastic",
+         "model_limited": False}
+    line = quantity_line("viscosity", q)
+    assert line.startswith("viscosity = (-2.40 ± 0.30)e4 Pa s (1σ)") or line.startswith("viscosity = -24000 ± 3000")
+    assert "IMPLAUSIBLE: viscosity" in line and "wrong sign" in line
+    q_nan = dict(q, value=math.nan)
+    assert "IMPLAUSIBLE" in quantity_line("viscosity", q_nan)
