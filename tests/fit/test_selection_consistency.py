@@ -84,12 +84,9 @@ def selection_outcomes():
     return get
 
 
-#: Measured failures, kept at the requirement (xfail, not strict: a fix shows up as XPASS).
-KNOWN_FAILURES = {
-    ("lennard_jones_q250", 50): "8/10 right (seed 104: z^-3 for z^-2; seed 108: + z^-6, z^-7): with 4 groups of "
-                                "12 periods the vote is decisive only when nearly unanimous (before issue 17: 6/10 "
-                                "on seeds 2-11); 10/10 at 500 periods",
-}
+#: Measured failures, kept at the requirement (xfail, not strict: a fix shows up as XPASS). The issue's Q 250 case at
+#: 50 periods (8/10 with 10-period vote groups) passes with 6-period groups (docs/accuracy.md): none left.
+KNOWN_FAILURES: dict[tuple[str, int], str] = {}
 
 
 def _support_cases():
