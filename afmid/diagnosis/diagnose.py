@@ -52,7 +52,7 @@ from afmid.diagnosis.localize import NEAR_RANGE, band_limit, energy_check, local
 import afmid.physics.medium as medium
 from afmid.physics.effects import EFFECTS
 # BIC differences as a person reads them (no -0, no 7e-13): the one formatter of afmid's numbers.
-from afmid.report.quantity_text import format_delta_bic
+from afmid.report.quantity_text import format_delta_bic, format_value
 # A cross-validated error within FLOOR_FACTOR of its noise floor counts as the noise level (one constant with
 # the fit's model-limited mark).
 from afmid.fit.uncertainty import FLOOR_FACTOR, at_noise_floor
@@ -600,14 +600,11 @@ def _evidence(t: Trial, local: dict, base: _Base, trials: list[Trial]) -> str:
 
 
 def _value_words(value: float, unit: str) -> str:
-    """A value with its unit, lengths in nm and forces in nN (the scales of the problem)."""
+    """A candidate's fitted value in its display unit (afmid.report.quantity_text: nm, nN, Pa s, zJ); a value the
+    refit could not determine (its term was not selected) said in words."""
     if not math.isfinite(value):
-        return "undefined"
-    if unit == "m" and abs(value) < 1e-6:
-        return f"{value * 1e9:.3g} nm"
-    if unit == "N" and abs(value) < 1e-6:
-        return f"{value * 1e9:.3g} nN"
-    return f"{value:.3g} {unit}"
+        return "not determined (term not selected)"
+    return format_value(value, unit)
 
 
 def _outside_words(t: Trial, top: Trial | None) -> str:
