@@ -204,40 +204,6 @@ def finish(quantities: dict, warnings: list, prep, library, system, coef, mask, 
     return force_calibration, limited
 
 
-def quantity_lines(quantities: dict) -> list[str]:
-    """One line per read-out for the console: value, 1-sigma error (statistical and calibration parts when
-    a calibration uncertainty was declared), the 95 % interval and the model-limited mark."""
-    lines = []
-    for name, q in quantities.items():
-        unit = q.get("unit", "")
-        if q.get("determined", True) is False:  # its term was not selected (afmid.fit.undetermined): no value
-            lines.append(f"{name}: not determined (term not selected, inclusion probability "
-                         f"{q.get('inclusion', float('nan')):.2f})" + _forced_interval(q, unit))
-            continue
-        text = f"{name} = {q['value']:.4g} {unit}"
-        if math.isfinite(q.get("error", math.nan)):
-            text += f" ± {q['error']:.2g} (1 sigma"
-            if q.get("error_calibration", 0.0) > 0:
-                text += f": statistical {q.get('error_statistical', math.nan):.2g}, calibration {q['error_calibration']:.2g}"
-            text += ")"
-        if math.isfinite(q.get("ci_low", math.nan)) and math.isfinite(q.get("ci_high", math.nan)):
-            text += f", 95 % interval [{q['ci_low']:.4g}, {q['ci_high']:.4g}]"
-        if q.get("undecided"):
-            text += (f"; the data cannot decide on {', '.join(q.get('undecided_terms', []))} (error bar includes "
-                     "the model uncertainty)")
-        if q.get("model_limited"):
-            text += "; MODEL-LIMITED (biased beyond its error bar)"
-        lines.append(text)
-    return lines
-
-
-def _forced_interval(q: dict, unit: str) -> str:
-    lo, hi = q.get("ci_low", math.nan), q.get("ci_high", math.nan)
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        return ""
-    return f"; 95 % interval with the term forced in [{lo:.4g}, {hi:.4g}] {unit}"
-
-
 def widen_interval(q: dict, sigma: float) -> None:
     """Add an independent 1-sigma error component ``sigma`` (the quantity's unit) to read-out ``q`` in place:
     in quadrature to its 1-sigma ``error`` and, as 1.96 sigma, to each side of its 95 % interval (an interval

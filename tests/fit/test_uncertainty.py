@@ -193,11 +193,11 @@ def test_the_right_model_is_not_model_limited(tmp_path, variant):
 
 def test_model_limited_report_and_console_lines():
     from afmid.report.page import quantity_cell
-    from afmid.fit.uncertainty import quantity_lines
+    from afmid.report.fit_text import quantity_line
 
     q = {"value": 2.2e-19, "error": 6.5e-22, "error_statistical": 6.5e-22, "error_calibration": 0.0,
          "ci_low": 2.19e-19, "ci_high": 2.21e-19, "unit": "J", "model_limited": True}
     cell = quantity_cell(q)
     assert "1σ" in cell and "model-limited" in cell
-    (line,) = quantity_lines({"hamaker": q})
-    assert "1 sigma" in line and "95 % interval" in line and "MODEL-LIMITED" in line
+    line = quantity_line("hamaker", q)  # what `afmid fit` prints
+    assert "(1σ)" in line and "(95 %)" in line and "MODEL-LIMITED" in line
