@@ -335,8 +335,9 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         prep = with_declared_drive(prep, drive)
         log.info("drive not fitted: %s", drive.describe())
     params = library_parameters(prep, config, library)
-    bar.stage("searching the separation" if config.sample.separation is None else "searching the drive",
-              step=(2, FIT_STAGES))
+    searched = ("the separation" if config.sample.separation is None  # a calibrated drive is not searched
+                else "the shape parameters" if drive is not None else "the drive")
+    bar.stage(f"searching {searched}", step=(2, FIT_STAGES))
     physics, extra = profile_library(library, config)
     nonlinear = estimate_nonlinear(prep, library, config, params, physics=(physics, extra))
 
