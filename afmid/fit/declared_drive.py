@@ -144,7 +144,7 @@ def propagate_drive_calibration(quantities: dict, prep, library, system, coef: n
     to every read-out, in place, as :func:`afmid.fit.uncertainty.propagate_calibration` adds k and Q's: the
     half-difference of the read-outs refitted (linearly, on the fit's support and weights) with F0 or the phase
     at +-1 sigma, in quadrature into ``error_calibration``, ``error`` and the 95 % interval."""
-    from afmid.fit.uncertainty import coefficient_shift, widen_interval
+    from afmid.fit.uncertainty import coefficient_shift, shift_variance, widen_interval
 
     drive = prep.declared_drive
     if drive is None or not (drive.force_amplitude_uncertainty > 0 or drive.phase_uncertainty > 0):
@@ -156,14 +156,10 @@ def propagate_drive_calibration(quantities: dict, prep, library, system, coef: n
     if drive.phase_uncertainty > 0:
         turned = [dataclasses.replace(drive, phase=drive.phase + sign * drive.phase_uncertainty) for sign in (1, -1)]
         pairs.append([np.array([d.cos, d.sin]) for d in turned])
-    variance = dict.fromkeys(quantities, 0.0)
-    for pair in pairs:  # Y = Y0 + rows @ (cos, sin): the change of the drive is a change of the left side
-        up, down = (read_out(library, coef + coefficient_shift(prep, system, prep.declared_drive_rows @ (new - base),
-                                                               mask), None, params, mask, trace) for new in pair)
-        for name in quantities:
-            delta = 0.5 * (up.get(name, {}).get("value", math.nan) - down.get(name, {}).get("value", math.nan))
-            if math.isfinite(delta):
-                variance[name] += delta**2
+    # Y = Y0 + rows @ (cos, sin): the change of the drive is a change of the left side
+    shifts = [tuple(coef + coefficient_shift(prep, system, prep.declared_drive_rows @ (new - base), mask)
+                    for new in pair) for pair in pairs]
+    variance = shift_variance(quantities, shifts, lambda c: read_out(library, c, None, params, mask, trace))
     for name, q in quantities.items():
         if variance[name] <= 0:
             continue

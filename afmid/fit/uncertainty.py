@@ -148,7 +148,6 @@ def propagate_calibration(quantities: dict, prep, library, system, coef: np.ndar
         q["error_statistical"] = q["error"]
         q["error_calibration"] = 0.0
     p = len(library)
-    variance = {k: 0.0 for k in quantities}
     force_variance = 0.0
     model_rows = np.einsum("wrp,p->wr", system.theta, coef[:p]) if calibration.declared else None
     norm = float(np.sqrt(np.mean(model_rows**2))) if model_rows is not None else 0.0
@@ -171,13 +170,7 @@ def propagate_calibration(quantities: dict, prep, library, system, coef: np.ndar
         if norm > 0:
             dF = np.einsum("wrp,p->wr", system.theta, 0.5 * (pair[0] - pair[1])[:p])
             force_variance += float(np.mean(dF**2)) / norm**2
-    for plus, minus in shifts:
-        up = read_out(library, plus, None, params, mask, trace)
-        down = read_out(library, minus, None, params, mask, trace)
-        for k in quantities:
-            delta = 0.5 * (up.get(k, {}).get("value", math.nan) - down.get(k, {}).get("value", math.nan))
-            if math.isfinite(delta):
-                variance[k] += delta**2
+    variance = shift_variance(quantities, shifts, lambda c: read_out(library, c, None, params, mask, trace))
     for k, q in quantities.items():
         if variance[k] <= 0:
             continue
@@ -202,6 +195,19 @@ def finish(quantities: dict, warnings: list, prep, library, system, coef, mask, 
     if limited:
         warnings.append("warning: " + model_limited_warning(cv_error, noise_floor))
     return force_calibration, limited
+
+
+def shift_variance(quantities: dict, shifts: list, read_out_at) -> dict[str, float]:
+    """Per read-out, the sum over ``shifts`` (pairs of coefficient vectors at +-1 sigma of a calibration) of the
+    squared half-difference of the read-outs ``read_out_at(coefficients)`` (units of each quantity, squared)."""
+    variance = dict.fromkeys(quantities, 0.0)
+    for plus, minus in shifts:
+        up, down = read_out_at(plus), read_out_at(minus)
+        for k in quantities:
+            delta = 0.5 * (up.get(k, {}).get("value", math.nan) - down.get(k, {}).get("value", math.nan))
+            if math.isfinite(delta):
+                variance[k] += delta**2
+    return variance
 
 
 def widen_interval(q: dict, sigma: float) -> None:
