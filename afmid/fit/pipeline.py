@@ -354,10 +354,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
     bar.stage("selecting terms", step=(3, FIT_STAGES))
     settings = SelectionSettings.for_library(fit, library, len(prep.nuisance_names))
     system = build_system(prep, library, params)
-    selection = settings.select(system)
-    chosen = selection.best.mask
-    # Second pass: weights that include the regressors' own noise, then select again.
-    coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), chosen)
+    # Weights that include the regressors' own noise (from a first support's stiffness), then the selection.
+    coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
     prep = with_regressor_noise(prep, library, params, coef0)
     system = build_system(prep, library, params, theta=system.theta)  # same columns, new row weights
     selection = settings.select(system)

@@ -461,6 +461,20 @@ def pick_support(T: np.ndarray, protected: np.ndarray, method: str, key: str, th
     return _pick(T, protected, method, key, thresholds, n_rows, penalty, rules)
 
 
+def pick_supports(Ts, n_rows: list[int], protected: np.ndarray, method: str, key: str, thresholds: np.ndarray,
+                  penalty: np.ndarray | None = None, rules: list | None = None) -> np.ndarray:
+    """:func:`pick_support` of several problems on the same columns (factors ``Ts``, ``n_rows`` whitened rows
+    each), one mask per row of the result; the subset criteria are built once per distinct row count."""
+    criteria: dict[int, _SubsetCriteria] = {}
+    masks = []
+    for T, n in zip(Ts, n_rows):
+        crit = None
+        if method == "exhaustive":
+            crit = criteria.get(n) or criteria.setdefault(n, _SubsetCriteria(protected, n, penalty, rules))
+        masks.append(_pick(T, protected, method, key, thresholds, n, penalty, rules, crit))
+    return np.array(masks)
+
+
 def vote_support(T: np.ndarray, protected: np.ndarray, votes: np.ndarray, method: str, key: str,
                  thresholds: np.ndarray, n_rows: int, penalty: np.ndarray | None = None, rules: list | None = None,
                  extra: list[np.ndarray] = (), undecided: float = 0.0) -> np.ndarray:

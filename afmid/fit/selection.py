@@ -61,6 +61,18 @@ class SelectionSettings:
         """The sparsity path of ``system`` (an afmid.fit.pipeline.System) scored and the support chosen by the strategy."""
         return self.strategy.select(self, system)
 
+    def weighting_support(self, system) -> np.ndarray:
+        """A support to weight the rows by (:func:`afmid.fit.prepare.with_regressor_noise`), not the fit's: the
+        whole record's criterion without the diagnostics (BIC for "cv").
+
+        The weights take one number from it, the model's mean squared stiffness along the trajectory, which the
+        distractors a long record's criterion may add hardly move (they fit the same data); the strategy's own
+        selection (a vote of period groups) would cost as much as the final one (bench_selection, issue 17).
+        """
+        return regression.pick_support(regression.combine(system.T_blocks), system.protected, self.method,
+                                       regression.resample_key(self.criterion), self.thresholds, system.n_rows,
+                                       self.penalty, self.rules)
+
     def bag(self, system, chosen: np.ndarray, n_boot: int, rng: np.random.Generator) -> regression.Bagging:
         """Bootstrap over periods of ``system``: inclusion probabilities and the spread of the ``chosen`` support.
 

@@ -85,11 +85,10 @@ class PeriodVote:
     def _picks(self, settings, system, groups) -> np.ndarray:
         key = regression.resample_key(settings.criterion)
         n_blocks = system.T_blocks.shape[0]
-        return np.array([
-            regression.pick_support(regression.combine(system.T_blocks[g]), system.protected, settings.method, key,
-                                    settings.thresholds, max(int(system.n_rows * g.size / n_blocks), 1),
-                                    settings.penalty, settings.rules)
-            for g in groups])
+        return regression.pick_supports((regression.combine(system.T_blocks[g]) for g in groups),
+                                        [max(int(system.n_rows * g.size / n_blocks), 1) for g in groups],
+                                        system.protected, settings.method, key, settings.thresholds,
+                                        settings.penalty, settings.rules)
 
     def _vote(self, settings, system, T: np.ndarray, picks: np.ndarray) -> np.ndarray:
         # A majority overrules the whole record's criterion only when it is clear: more than one binomial
