@@ -31,6 +31,7 @@ from afmid.preprocess.harmonics import (  # noqa: F401 - DriveEstimate, estimate
     block_layout,
     estimate_drive,
     fourier_design,
+    harmonic_cos_sin,
     highest_harmonic,
     least_squares_projector,
     noise_variance_factor,
@@ -325,16 +326,22 @@ def weak_windows(blocks: "HarmonicBlocks") -> WeakWindows:
     def family(s: np.ndarray, weight: float, derivatives: bool = True):
         # Rows: the window, then window x (cos, sin) of each harmonic, interleaved; the same element-wise
         # arithmetic as one row at a time, on (K, samples) arrays at once.
+        # Written into one array in place: the fine family is ~4 MB, and each temporary (stacked, concatenated,
+        # scaled) was a pass through memory: 2.5x the time of the same arithmetic in place (bench_selection).
         a = np.pi / T_w
-        sn_, cs_ = np.sin(a * s), np.cos(a * s)
+        sn_ = np.sin(a * s)
         win = sn_**4
         n = np.arange(1, K + 1)[:, None] * w
-        c, sn = np.cos(n * s), np.sin(n * s)
-        phi = np.empty((2 * K, s.size))
-        phi[0::2], phi[1::2] = c, sn
-        psi = np.concatenate([win[None], win * phi]) * weight
+        psi = np.empty((2 * K + 1, s.size))
+        psi[0] = win
+        harmonic_cos_sin(w * s, K, out_cos=psi[1::2], out_sin=psi[2::2])
+        phi = psi[1:].copy() if derivatives else None
+        psi[1:] *= win
+        psi *= weight
         if not derivatives:
             return psi, None, None
+        c, sn = phi[0::2], phi[1::2]
+        cs_ = np.cos(a * s)
         dwin = 4 * a * sn_**3 * cs_
         ddwin = 4 * a**2 * (3 * sn_**2 * cs_**2 - sn_**4)
         dphi, ddphi = np.empty_like(phi), np.empty_like(phi)
