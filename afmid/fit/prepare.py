@@ -16,7 +16,7 @@ import numpy as np
 
 from afmid.preprocess.baseline import BaselineColumns, remove_drift
 from afmid.errors import AfmidError
-from afmid.preprocess.instrument import crossfaded_series, deflection_views
+from afmid.preprocess.instrument import crossfaded_series, deflection_views, row_noise_gain
 from afmid.preprocess.restoration import restore_trajectory
 from afmid.io.trace import Trace
 from afmid.physics.library import Library
@@ -170,8 +170,10 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
         # Predicted noise per row: detector noise through the operator, thermal force noise through psi.
         psi_sq = _pair_mean(np.sum(windows.psi**2, axis=1))
         detector_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1))
-        if views.tip_gain is not None:  # the declared instrument's inverse amplifies the noise per harmonic
-            detector_variance = detector_variance * views.noise_gain(blocks.harmonics)
+        # a declared instrument: the rows' noise through the views' gains over each row's band (measured)
+        band_gain = row_noise_gain(instrument, trace.cantilever, blocks, operator)
+        if band_gain is not None:
+            detector_variance = detector_variance * band_gain
         base_variance = detector_variance + thermal * psi_sq
     else:
         # Rows: the equation at every used sample, derivatives from a registered differentiator.
