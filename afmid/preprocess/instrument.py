@@ -358,18 +358,15 @@ def row_noise_gain(instrument: Instrument, cantilever, blocks, rows: np.ndarray)
     modelled: white noise through :func:`deflection_views` on blocks like ``blocks`` (the map is linear), the
     rows' mean squares over NOISE_PROBE_WINDOWS windows.
     """
-    from afmid.preprocess.periods import harmonic_blocks
+    import dataclasses
 
     if instrument is None or instrument.ideal:
         return None
-    L, K = blocks.L, blocks.K
+    L = blocks.L
     n_windows = max(8, min(NOISE_PROBE_WINDOWS, NOISE_PROBE_SAMPLES // L - 2))
-    frequency = blocks.omega / (2.0 * math.pi)
-    probe = harmonic_blocks((n_windows + 2) * L + 1, 1.0 / blocks.dt, frequency, max_harmonic=K,
-                            periods_per_block=L * blocks.dt * frequency)
-    if probe.K != K or probe.L != L:
-        return np.abs(instrument.tip_gain(np.arange(K + 1) * frequency)[blocks.harmonics]) ** 2
-    noise = np.random.default_rng(NOISE_PROBE_SEED).standard_normal(probe.start + probe.n_blocks * L + 1)
+    # the same blocks (projector, harmonics) laid over the probe: n_windows + 2 blocks from its first sample
+    probe = dataclasses.replace(blocks, start=0, n_blocks=n_windows + 2, t0=0.0)
+    noise = np.random.default_rng(NOISE_PROBE_SEED).standard_normal(probe.n_blocks * L + 1)
     equation = deflection_views(noise, probe, instrument, cantilever).equation
     count = probe.n_blocks - 1
     index = probe.start + np.arange(count)[:, None] * L + np.arange(2 * L + 1)[None, :]
