@@ -373,7 +373,7 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         for name, est in nonlinear.items():
             found = profile(name, est, chosen)
             params[name] = found.value
-            profiled[name] = found.sigma
+            profiled[name] = found
         support = chosen
         system = build_system(prep, library, params)
         selection = settings.select(system)
@@ -383,7 +383,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
             if uncertainty:
                 # The profile of the final support (the first one's when the support did not change).
                 same = np.array_equal(chosen, support) or physics is not library
-                est.sigma = profiled[name] if same else profile(name, est, chosen).sigma
+                found = profiled[name] if same else profile(name, est, chosen)
+                est.sigma, est.sigma_width, est.sigma_jackknife = found.sigma, found.sigma_width, found.sigma_jackknife
     T = regression.combine(system.T_blocks)
     coef, _ = regression.subset_fit(T, chosen)
     bagging = None

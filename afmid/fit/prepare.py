@@ -16,7 +16,7 @@ import numpy as np
 
 from afmid.preprocess.baseline import BaselineColumns, remove_drift
 from afmid.errors import AfmidError
-from afmid.preprocess.instrument import crossfaded_series, deflection_views
+from afmid.preprocess.instrument import Instrument, crossfaded_series, deflection_views, row_noise_gain
 from afmid.preprocess.restoration import restore_trajectory
 from afmid.io.trace import Trace
 from afmid.physics.library import Library
@@ -170,9 +170,15 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
         # Predicted noise per row: detector noise through the operator, thermal force noise through psi.
         psi_sq = _pair_mean(np.sum(windows.psi**2, axis=1))
         detector_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1))
-        if views.tip_gain is not None:  # the declared instrument's inverse amplifies the noise per harmonic
-            detector_variance = detector_variance * views.noise_gain(blocks.harmonics)
-        base_variance = detector_variance + thermal * psi_sq
+        # a declared instrument: the rows' noise through the views' gains over each row's band (measured)
+        band_gain = row_noise_gain(instrument, trace.cantilever, blocks, operator)
+        if band_gain is not None:
+            detector_variance = detector_variance * band_gain
+        # behind higher modes the thermal force (on the first mode, as the simulator has it) reaches the
+        # equation through the modes' gain H_1 / H too: 1.5-2.8 at harmonics 3-5 for f2 = 6.27 f0
+        modes_gain = (row_noise_gain(Instrument(None, instrument.higher_modes), trace.cantilever, blocks, windows.psi)
+                      if thermal and instrument is not None and instrument.higher_modes else None)
+        base_variance = detector_variance + thermal * psi_sq * (1.0 if modes_gain is None else modes_gain)
     else:
         # Rows: the equation at every used sample, derivatives from a registered differentiator.
         xs, v, a = differentiate(x, trace.sample_rate, drive.frequency, fit.differentiation,
@@ -188,7 +194,8 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
     H2 = (1 - (n / w0) ** 2) ** 2 + (n / (Q * w0)) ** 2
     if views.tip_gain is not None:
         H2 = H2 * views.noise_gain(blocks.harmonics)
-    block_sigma = np.sqrt(blocks.noise_variance_factor() * (thermal + k**2 * H2 * noise_rms**2))
+    thermal_gain = 1.0 if views.equation_gain is None else np.abs(views.equation_gain[blocks.harmonics]) ** 2
+    block_sigma = np.sqrt(blocks.noise_variance_factor() * (thermal * thermal_gain + k**2 * H2 * noise_rms**2))
 
     # The library is evaluated on a trajectory smoothed across periods: detector noise is independent from
     # period to period while the real motion wanders slowly (thermal correlation time Q / pi periods), and

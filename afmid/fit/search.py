@@ -53,6 +53,9 @@ class NonlinearEstimate:
     grid: np.ndarray = field(default_factory=lambda: np.zeros(0))
     objective: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bounds: tuple[float, float] = (-math.inf, math.inf)  # searched range
+    # the parts of sigma from the profile (afmid.fit.profile.ProfileResult; NaN: not profiled)
+    sigma_width: float = math.nan
+    sigma_jackknife: float = math.nan
 
 
 def search_1d(objective, lo: float, hi: float, n_grid: int, log_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:

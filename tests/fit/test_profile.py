@@ -161,3 +161,38 @@ def test_separation_sigma_covers_the_truth():
     detail = "\n".join(f"{p} {o} seed {s}: d error {1e12 * e:+.1f} pm, sigma {1e12 * sg:.1f} pm"
                        for p, o, s, e, sg in rows)
     assert covered >= math.ceil(0.9 * len(rows)), detail
+
+
+#: Issue 13's weaker cases, 50 periods each: the soft lever in liquid (Q 4; tests/configs/liquid.yaml, d 4 nm)
+#: and the clean sample behind a declared 2-pole detector at 10 f0. Seeds and thresholds fixed before these
+#: seeds were run (scripts/separation_coverage.py measured seeds 1-12: liquid 8/12 within 1 sigma, 12/12
+#: within 2; detector 7/12 and 11/12). With an honest sigma, 12 fits fall within 2 sigma 10 or more times with
+#: probability 0.98 (0.95 per fit, a little less with the jackknife's 11 degrees of freedom) and within
+#: 1 sigma 5 or more times with probability 0.99 (0.68 per fit): a sigma 1.3x too small would give 0.84 and
+#: 0.56 per fit (8.5 % and 30 % chances to pass both).
+HARD_POINTS = [
+    ("tests/configs/liquid.yaml", []),
+    ("tests/configs/hidden_clean.yaml", ["data.detector={bandwidth: 3.0e6, filter: butterworth, order: 2}"]),
+]
+HARD_SEEDS = (21, 22, 23, 24, 25, 26)
+
+
+@pytest.mark.slow
+def test_separation_sigma_covers_the_truth_in_liquid_and_behind_a_declared_detector():
+    from afmid.config import load_config
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
+
+    rows = []
+    for path, overrides in HARD_POINTS:
+        for seed in HARD_SEEDS:
+            common = [f"simulate.seed={seed}", "simulate.periods=50", "fit.bootstrap=0", "data.path=null"] + overrides
+            trace = simulate(load_config(REPO_ROOT / path, common))
+            config = load_config(REPO_ROOT / path, common + ["model.effects=[dmt]", "sample.separation=null"])
+            est = run_fit(config, trace=trace).nonlinear["d"]
+            rows.append((path, seed, est.value - float(trace.truth.extra["separation"]), est.sigma))
+    ratios = [abs(e) / s if math.isfinite(s) and s > 0 else math.inf for *_, e, s in rows]
+    detail = "\n".join(f"{p} seed {s}: d error {1e12 * e:+.1f} pm, sigma {1e12 * sg:.1f} pm"
+                       for p, s, e, sg in rows)
+    assert sum(r < 2 for r in ratios) >= 10, detail
+    assert sum(r < 1 for r in ratios) >= 5, detail
