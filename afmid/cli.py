@@ -407,11 +407,14 @@ def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
 @click.option("--add", "add_effects", multiple=True, metavar="EFFECT", help="Add an effect to model.effects (repeatable).")
 @click.option("--remove", "remove_effects", multiple=True, metavar="EFFECT",
               help="Remove an effect from model.effects (repeatable).")
+@click.option("--diagnosis/--no-diagnosis", default=True, show_default=True,
+              help="Diagnose each model-limited group of pixels (grouped by residual signature and parameters) with "
+                   "the catalog, on a few representative pixels: which effect is missing where (/groups).")
 @OVERWRITE
 @SET
 def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, scheduler: str | None,
                 chunk: int | None, pixel_fit: str, add_effects: tuple[str, ...], remove_effects: tuple[str, ...],
-                overwrite: bool, overrides: tuple[str, ...]) -> None:
+                diagnosis: bool, overwrite: bool, overrides: tuple[str, ...]) -> None:
     """Fit every pixel of a force map with CONFIG and write maps of the parameters.
 
     Each pixel's trace is fitted with CONFIG's model (the separation estimated per pixel:
@@ -435,7 +438,7 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     apply_effect_changes(cfg, add_effects, remove_effects)
     engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
     counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite,
-                     pixel_fit=pixel_fit)
+                     pixel_fit=pixel_fit, diagnose=diagnosis)
     if counts["failed"]:  # the maps are written; the failed pixels are NaN there, flagged in /maps/status
         from afmid.errors import AfmidError
 

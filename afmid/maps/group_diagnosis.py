@@ -1,0 +1,256 @@
+"""The catalog diagnosis per group of pixels: which effect is missing where (issue 14 part 3).
+
+For each group of :mod:`afmid.maps.groups` whose typical pixel is model-limited (median cross-validated error above
+:data:`afmid.fit.uncertainty.FLOOR_FACTOR` x its noise floor), up to :data:`REPRESENTATIVES` pixels nearest the
+group's centre are diagnosed as single traces: the pixel's trace written to a temporary trace file, fitted as
+``afmid fit`` fits it (no bootstrap), and :func:`afmid.diagnosis.diagnose.suggest` run on that run (every catalog
+effect the model lacks refitted, BIC with the per-period evidence of afmid.diagnosis.decide). The group's verdict
+is what more than half of its representatives say:
+
+- ``missing: EFFECT`` (or ``A + B``): the diagnosis names the same effect(s) and they explain the residual;
+- ``nothing missing``: the diagnosis finds no effect missing;
+- ``not explained by the catalog``: a significant residual that no catalog effect explains;
+- ``undecided``: the representatives disagree (each one's verdict is kept).
+
+A group whose median error is within the model-limited rule (at most FLOOR_FACTOR x the floor) is not refitted:
+its verdict is ``nothing missing`` by the error rule, and says so ("not diagnosed"). The cost is a few single-trace
+diagnoses per model-limited group, never one per pixel.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: Pixels diagnosed per model-limited group (the verdict is their majority).
+REPRESENTATIVES = 3
+NOTHING = "nothing missing"
+UNEXPLAINED = "not explained by the catalog"
+UNDECIDED = "undecided"
+NOT_DIAGNOSED = "model-limited, not diagnosed"
+
+
+@dataclass
+class GroupVerdict:
+    """One group's verdict and what it rests on (SI; pixel indices flat, row-major)."""
+
+    group: int
+    pixels: int  # pixels in the group
+    fraction: float  # of the fitted pixels
+    error_over_floor: float  # median over the group's pixels
+    effects: list[str]  # the missing effects named (empty: none)
+    verdict: str  # NOTHING, UNEXPLAINED, UNDECIDED or "missing: A + B"
+    diagnosed: bool  # False: judged by the error rule alone
+    representatives: list[int] = field(default_factory=list)
+    pixel_verdicts: list[str] = field(default_factory=list)  # each representative's diagnosis verdict
+    delta_bic: list[float] = field(default_factory=list)  # each representative's BIC change with the effect(s)
+    error_after: list[float] = field(default_factory=list)  # each representative's error after adding them
+    floor: list[float] = field(default_factory=list)  # each representative's noise floor
+    region: str = ""  # the most common residual region of the group's pixels
+    character: str = ""  # the most common residual character
+
+    def sentence(self) -> str:
+        """The group's verdict in one sentence."""
+        head = f"group {self.group + 1} ({100 * self.fraction:.0f} % of the pixels, {self.pixels}"
+        head += f" pixels; median error {self.error_over_floor:.2f}x its noise floor"
+        head += f", residual mostly {self.character}, {self.region})" if self.character else ")"
+        if self.verdict == NOT_DIAGNOSED:
+            return f"{head}: {NOT_DIAGNOSED} (afmid map --no-diagnosis)"
+        if not self.diagnosed:
+            return (f"{head}: nothing missing by the error rule (within the model-limited factor); not diagnosed")
+        n = len(self.representatives)
+        agree = sum(v == self.verdict for v in self.pixel_verdicts)
+        basis = f"{agree} of {n} representative pixels"
+        if self.effects:
+            bic = [b for b, v in zip(self.delta_bic, self.pixel_verdicts) if v == self.verdict and math.isfinite(b)]
+            after = [e / f for e, f, v in zip(self.error_after, self.floor, self.pixel_verdicts)
+                     if v == self.verdict and math.isfinite(e) and f > 0]
+            extra = f"; ΔBIC {min(bic):.0f} .. {max(bic):.0f}" if bic else ""
+            extra += f"; their error falls to {np.median(after):.2f}x the floor" if after else ""
+            return f"{head}: {' + '.join(self.effects)} missing ({basis}{extra})"
+        if self.verdict == UNDECIDED:
+            return f"{head}: undecided (the representative pixels disagree: {'; '.join(self.pixel_verdicts)})"
+        return f"{head}: {self.verdict} ({basis})"
+
+
+def summary_sentence(verdicts: list[GroupVerdict]) -> str:
+    """The map's verdict: which effect is missing where ("viscoelastic missing in group 2 (38 % of pixels);
+    nothing missing elsewhere")."""
+    missing = [v for v in verdicts if v.effects]
+    other = [v for v in verdicts if not v.effects and v.verdict != NOTHING]
+    parts = [f"{' + '.join(v.effects)} missing in group {v.group + 1} ({100 * v.fraction:.0f} % of the pixels)"
+             for v in missing]
+    parts += [f"{v.verdict} in group {v.group + 1} ({100 * v.fraction:.0f} % of the pixels)" for v in other]
+    if not parts:
+        return "nothing missing anywhere on the map"
+    if any(v.verdict == NOTHING for v in verdicts):
+        parts.append("nothing missing elsewhere")
+    return "; ".join(parts)
+
+
+def pixel_verdict(summary: dict) -> tuple[str, list[str]]:
+    """A single-trace diagnosis (:func:`afmid.diagnosis.diagnose.suggest`'s summary) as (verdict, effects)."""
+    if not summary.get("missing_effect"):
+        return NOTHING, []
+    diagnosis = summary.get("diagnosis", {})
+    effects = [s["effect"] for s in summary.get("suggestions", [])]
+    if effects and diagnosis.get("explained_by_catalog"):
+        return "missing: " + " + ".join(effects), effects
+    return UNEXPLAINED, []
+
+
+def diagnose_groups(grouping, maps: dict[str, np.ndarray], source, config_text: str, config_source: str | None,
+                    diagnose: bool = True) -> list[GroupVerdict]:
+    """The verdict of every group (see the module docstring). ``maps``: name -> flat arrays over the pixels
+    (cv_error, cv_error_noise_floor, residual_region, residual_character); ``source``: the map
+    (:func:`afmid.maps.input_file.open_map`). ``diagnose`` False: no refit; a model-limited group's verdict is
+    :data:`NOT_DIAGNOSED`."""
+    from afmid.fit.uncertainty import FLOOR_FACTOR
+    from afmid.maps.groups import representatives
+    from afmid.maps.residual import CHARACTERS, REGIONS
+
+    labels = grouping.labels.ravel()
+    fitted = int(np.count_nonzero(labels >= 0))
+    ratio = maps["cv_error"] / maps["cv_error_noise_floor"]
+    out = []
+    for g in range(grouping.n_groups):
+        members = labels == g
+        median = float(np.nanmedian(ratio[members]))
+        verdict = GroupVerdict(g, int(members.sum()), members.sum() / max(fitted, 1), median, [], NOTHING, False,
+                               region=_most_common(maps["residual_region"][members], REGIONS),
+                               character=_most_common(maps["residual_character"][members], CHARACTERS))
+        if median > FLOOR_FACTOR and not diagnose:
+            verdict.verdict = NOT_DIAGNOSED
+        elif median > FLOOR_FACTOR:
+            chosen = representatives(grouping, g, REPRESENTATIVES)
+            _diagnose(verdict, chosen, source, config_text, config_source)
+        log.info("%s", verdict.sentence())
+        out.append(verdict)
+    return out
+
+
+def _most_common(codes: np.ndarray, names: tuple[str, ...]) -> str:
+    codes = codes[codes >= 0].astype(int)
+    return names[int(np.bincount(codes).argmax())] if codes.size else ""
+
+
+def _diagnose(verdict: GroupVerdict, pixels: np.ndarray, source, config_text: str, config_source: str | None) -> None:
+    """Diagnose the representative ``pixels`` and set the group's verdict (majority) in place."""
+    from afmid.errors import AfmidError
+
+    verdict.diagnosed = True
+    named: list[tuple[str, list[str]]] = []
+    for pixel in pixels:
+        try:
+            summary = diagnose_pixel(int(pixel), source, config_text, config_source)
+        except (AfmidError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            log.warning("pixel %s could not be diagnosed: %s", divmod(int(pixel), source.cols), exc)
+            continue
+        text, effects = pixel_verdict(summary)
+        diagnosis = summary.get("diagnosis", {})
+        verdict.representatives.append(int(pixel))
+        verdict.pixel_verdicts.append(text)
+        after = diagnosis.get("error_after")
+        verdict.delta_bic.append(float(diagnosis.get("delta_bic_after") or math.nan) if effects else math.nan)
+        verdict.error_after.append(float(after) if after is not None else math.nan)
+        verdict.floor.append(float(diagnosis.get("noise_floor", math.nan)))
+        named.append((text, effects))
+    if not named:
+        verdict.verdict = UNDECIDED
+        return
+    texts = [t for t, _ in named]
+    top = max(set(texts), key=lambda t: (texts.count(t), t))
+    if texts.count(top) * 2 > len(texts):
+        verdict.verdict = top
+        verdict.effects = next(e for t, e in named if t == top)
+    else:
+        verdict.verdict = UNDECIDED
+
+
+def diagnose_pixel(pixel: int, source, config_text: str, config_source: str | None) -> dict:
+    """The single-trace diagnosis of one pixel: its trace written to a temporary trace file, fitted without
+    bootstrap (the separation estimated), the run file written there and :func:`suggest` run on it."""
+    from afmid.config import DataConfig
+    from afmid.diagnosis.diagnose import suggest
+    from afmid.fit.pipeline import run_fit
+    from afmid.io.trace import write_trace_file
+    from afmid.maps.input_file import pixel_trace, read_pixels
+    from afmid.maps.task import map_config
+    from afmid.runfile import load_run, write_run
+
+    config = map_config(config_text, config_source)
+    trace = pixel_trace(source, read_pixels(source, pixel, pixel + 1)[0], config, pixel)
+    logger = logging.getLogger("afmid")
+    level = logger.level
+    with tempfile.TemporaryDirectory(prefix="afmid-pixel-") as folder:
+        trace_path = write_trace_file(Path(folder) / "pixel.h5", trace, config_text)
+        config.data = DataConfig(path=trace_path)
+        config.fit.bootstrap = 0
+        logger.setLevel(logging.ERROR)  # the pixel's own warnings are the map's (status, messages)
+        try:
+            result = run_fit(config, uncertainty=False)
+            run_path = write_run(Path(folder) / "pixel_run.h5", result, config)
+            return suggest(load_run(run_path))
+        finally:
+            logger.setLevel(level)
+
+
+def write_groups(h5, grouping, verdicts: list[GroupVerdict]) -> None:
+    """``/maps/group`` and ``/groups`` (one entry per group; padded per representative) into the open result."""
+    from afmid.io.trace import write_dataset
+    from afmid.maps.groups import MAX_GROUPS, MIN_SILHOUETTE
+
+    write_dataset(h5["maps"], "group", grouping.labels.astype(np.int16), "1",
+                  meaning="group of pixels by residual signature and parameters (0-based; -1: not fitted); the "
+                          "verdict of each group in /groups")
+    groups = h5.create_group("groups")
+    groups.attrs["summary"] = summary_sentence(verdicts)
+    groups.attrs["method"] = (f"k-means over the scaled features, k of 2..{MAX_GROUPS} by the mean silhouette (taken "
+                              f"when >= {MIN_SILHOUETTE}, else one group); per model-limited group the catalog "
+                              f"diagnosis of up to {REPRESENTATIVES} pixels nearest its centre, majority verdict "
+                              "(afmid.maps.groups, afmid.maps.group_diagnosis)")
+    groups.attrs["silhouette"] = grouping.silhouette
+    groups.attrs["features"] = grouping.feature_names
+    if not verdicts:
+        return
+    n, r = len(verdicts), REPRESENTATIVES
+
+    def padded(name: str, fill, dtype=float) -> np.ndarray:
+        out = np.full((n, r), fill, dtype=dtype)
+        for i, v in enumerate(verdicts):
+            values = getattr(v, name)
+            out[i, :len(values)] = values
+        return out
+
+    write_dataset(groups, "verdict", np.array([v.verdict for v in verdicts]), "1",
+                  meaning=f"'missing: EFFECT', '{NOTHING}', '{UNEXPLAINED}', '{UNDECIDED}' or '{NOT_DIAGNOSED}'")
+    write_dataset(groups, "effects", np.array([" + ".join(v.effects) for v in verdicts]), "1",
+                  meaning="the missing effects named (empty: none)")
+    write_dataset(groups, "sentence", np.array([v.sentence() for v in verdicts]), "1")
+    write_dataset(groups, "pixels", np.array([v.pixels for v in verdicts]), "1")
+    write_dataset(groups, "fraction", np.array([v.fraction for v in verdicts]), "1", meaning="of the fitted pixels")
+    write_dataset(groups, "error_over_floor", np.array([v.error_over_floor for v in verdicts]), "1",
+                  meaning="median over the group's pixels of cv_error / cv_error_noise_floor")
+    write_dataset(groups, "diagnosed", np.array([v.diagnosed for v in verdicts]), "1",
+                  meaning="False: the median error is within the model-limited factor; judged by that rule alone")
+    write_dataset(groups, "residual_region", np.array([v.region for v in verdicts]), "1",
+                  meaning="the most common /maps/residual_region of the group's pixels")
+    write_dataset(groups, "residual_character", np.array([v.character for v in verdicts]), "1",
+                  meaning="the most common /maps/residual_character of the group's pixels")
+    write_dataset(groups, "representatives", padded("representatives", -1, np.int64), "1",
+                  meaning="flat (row-major) index of each diagnosed pixel (-1: none)")
+    write_dataset(groups, "pixel_verdicts", padded("pixel_verdicts", "", object).astype(str), "1",
+                  meaning="each representative pixel's diagnosis verdict")
+    write_dataset(groups, "delta_bic", padded("delta_bic", np.nan), "1",
+                  meaning="each representative's BIC change when the missing effect(s) are added (NaN: none named)")
+    write_dataset(groups, "error_after", padded("error_after", np.nan), "1",
+                  meaning="each representative's normalised cv error with the effect(s) added")
+    write_dataset(groups, "noise_floor", padded("floor", np.nan), "1",
+                  meaning="each representative's cv error noise floor (its single-trace refit)")
