@@ -275,7 +275,9 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     """Compare run files: where the model fails, which effect is missing, how the error falls.
 
     Given one force-map result (afmid map), draws its maps instead: every parameter with its
-    1-sigma map and colour bar, histograms, topography, error over floor, the failed pixels.
+    1-sigma map and colour bar, histograms, topography, error over floor, the failed pixels, the
+    residual's character and which effect is missing where. Given two (an earlier fit of the same
+    map first, e.g. before --add EFFECT), also the error over its floor before and after.
 
     Writes OUTPUT/report.html (self-contained), OUTPUT/*.png with an SVG of each figure beside
     it (OUTPUT/*.svg, linked under the figure), OUTPUT/summary.json and the
@@ -291,15 +293,16 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
 
         tables = parse_exports(export_tables)
     try:
-        if len(runs) == 1 and is_map_result(runs[0]):  # a force map's result (afmid map)
+        if len(runs) in (1, 2) and all(is_map_result(r) for r in runs):  # force maps' results (afmid map)
             from afmid.errors import ConfigError
             from afmid.report.maps import make_map_report
 
             if tables:
                 raise ConfigError("is for run files; a force map's result has maps, not one run's tables",
                                   key="--export")
-
-            click.echo(make_map_report(runs[0], output, overwrite=overwrite))
+            # two: the earlier fit of the same map first (e.g. before afmid map --add EFFECT), drawn before / after
+            click.echo(make_map_report(runs[-1], output, overwrite=overwrite,
+                                       before=runs[0] if len(runs) == 2 else None))
             return
         from afmid.report.page import make_report
 
