@@ -233,7 +233,7 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
             values[name][lo:hi] = c["values"][k]
             sigmas[name][lo:hi] = c["sigmas"][k]
     counts = {name: int(np.count_nonzero(status == code)) for code, name in enumerate(STATUS_NAMES)}
-    grouping, verdicts = _groups(source, config, config_text, flat, values, names, status, diagnose)
+    grouping, verdicts = _groups(source, config, config_text, flat, values, sigmas, names, status, diagnose)
     with atomic_hdf5(output, MAP_RESULT_FORMAT, config_text, {str(source.path): key["input_sha256"]}) as h5:
         h5.attrs["rows"], h5.attrs["cols"], h5.attrs["samples"] = source.rows, source.cols, source.samples
         h5.attrs["chunk_pixels"] = key["chunk"]
@@ -280,14 +280,14 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
     return counts
 
 
-def _groups(source, config, config_text: str, flat: dict, values: dict, names: list[str], status: np.ndarray,
-            diagnose: bool):
+def _groups(source, config, config_text: str, flat: dict, values: dict, sigmas: dict, names: list[str],
+            status: np.ndarray, diagnose: bool):
     """The pixels' groups and (``diagnose``) their verdicts (afmid.maps.groups, afmid.maps.group_diagnosis)."""
     from afmid.maps.group_diagnosis import diagnose_groups
     from afmid.maps.groups import group_pixels
 
     fitted = status != STATUS_FAILED
-    maps = {**flat, **values}
+    maps = {**flat, **values, **{f"{name}_sigma": sigma for name, sigma in sigmas.items()}}
     grouping = group_pixels(maps, names, fitted, (source.rows, source.cols), seed=config.fit.seed)
     log.info("%d group(s) of pixels by residual signature and parameters (silhouette %.2f)", grouping.n_groups,
              grouping.silhouette)
