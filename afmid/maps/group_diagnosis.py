@@ -10,6 +10,8 @@ is what more than half of its representatives say:
 - ``missing: EFFECT`` (or ``A + B``): the diagnosis names the same effect(s) and they explain the residual;
 - ``nothing missing``: the diagnosis finds no effect missing;
 - ``not explained by the catalog``: a significant residual that no catalog effect explains;
+- ``cannot decide: A or B``: effects the per-period evidence does not tell apart (afmid.diagnosis.decide);
+- ``instrument: KIND``: the residual is the instrument's (afmid.diagnosis.instrument_signature);
 - ``undecided``: the representatives disagree (each one's verdict is kept).
 
 A group whose median error is within the model-limited rule (at most FLOOR_FACTOR x the floor) is not refitted:
@@ -74,7 +76,11 @@ class GroupVerdict:
                      if v == self.verdict and math.isfinite(e) and f > 0]
             extra = f"; ΔBIC {min(bic):.0f} .. {max(bic):.0f}" if bic else ""
             extra += f"; their error falls to {np.median(after):.2f}x the floor" if after else ""
+            others = [v for v in self.pixel_verdicts if v != self.verdict]
+            extra += f"; the other{'s' if len(others) > 1 else ''}: {'; '.join(others)}" if others else ""
             return f"{head}: {' + '.join(self.effects)} missing ({basis}{extra})"
+        if self.verdict == UNDECIDED and not self.representatives:
+            return f"{head}: undecided (none of its representative pixels could be diagnosed)"
         if self.verdict == UNDECIDED:
             return f"{head}: undecided (the representative pixels disagree: {'; '.join(self.pixel_verdicts)})"
         return f"{head}: {self.verdict} ({basis})"
@@ -100,6 +106,10 @@ def pixel_verdict(summary: dict) -> tuple[str, list[str]]:
     if not summary.get("missing_effect"):
         return NOTHING, []
     diagnosis = summary.get("diagnosis", {})
+    if summary.get("undecided"):  # afmid.diagnosis.decide: candidates the per-period evidence does not tell apart
+        return "cannot decide: " + " or ".join(t["effect"] for t in summary["undecided"]), []
+    if diagnosis.get("instrument"):  # afmid.diagnosis.instrument_signature: the instrument, not the sample
+        return f"instrument: {diagnosis['instrument'].get('kind', '')}", []
     effects = [s["effect"] for s in summary.get("suggestions", [])]
     if effects and diagnosis.get("explained_by_catalog"):
         return "missing: " + " + ".join(effects), effects
@@ -156,8 +166,11 @@ def _diagnose(verdict: GroupVerdict, pixels: np.ndarray, source, config_text: st
     for pixel in pixels:
         try:
             summary = diagnose_pixel(int(pixel), source, config_text, config_source)
-        except (AfmidError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
-            log.warning("pixel %s could not be diagnosed: %s", divmod(int(pixel), source.cols), exc)
+        except KeyboardInterrupt:
+            raise
+        except Exception as exc:  # one pixel that cannot be diagnosed must not lose the fitted map
+            why = exc.message if isinstance(exc, AfmidError) else f"{type(exc).__name__}: {exc}"
+            log.warning("pixel %s could not be diagnosed: %s", divmod(int(pixel), source.cols), why)
             continue
         text, effects = pixel_verdict(summary)
         diagnosis = summary.get("diagnosis", {})
@@ -197,7 +210,7 @@ def diagnose_pixel(pixel: int, source, config_text: str, config_source: str | No
     level = logger.level
     with tempfile.TemporaryDirectory(prefix="afmid-pixel-") as folder:
         trace_path = write_trace_file(Path(folder) / "pixel.h5", trace, config_text)
-        config.data = DataConfig(path=trace_path)
+        config.data = DataConfig(path=trace_path, detector=config.data.detector)  # the trace file is SI
         config.fit.bootstrap = 0
         logger.setLevel(logging.ERROR)  # the pixel's own warnings are the map's (status, messages)
         try:

@@ -97,6 +97,12 @@ def test_pixel_verdicts_from_diagnosis_summaries():
     partial = {"missing_effect": True, "diagnosis": {"explained_by_catalog": False},
                "suggestions": [{"effect": "viscoelastic"}]}
     assert pixel_verdict(partial) == (UNEXPLAINED, [])
+    undecided = {"missing_effect": True, "diagnosis": {"explained_by_catalog": False}, "suggestions": [],
+                 "undecided": [{"effect": "viscoelastic"}, {"effect": "exponential_damping"}]}
+    assert pixel_verdict(undecided) == ("cannot decide: viscoelastic or exponential_damping", [])
+    instrument = {"missing_effect": True, "suggestions": [],
+                  "diagnosis": {"explained_by_catalog": False, "instrument": {"kind": "detector_lowpass"}}}
+    assert pixel_verdict(instrument) == ("instrument: detector_lowpass", [])
 
 
 def test_the_map_sentence_names_the_effect_and_where():
