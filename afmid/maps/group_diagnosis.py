@@ -5,13 +5,16 @@ For each group of :mod:`afmid.maps.groups` whose typical pixel is model-limited 
 group's centre are diagnosed as single traces: the pixel's trace written to a temporary trace file, fitted as
 ``afmid fit`` fits it (no bootstrap), and :func:`afmid.diagnosis.diagnose.suggest` run on that run (every catalog
 effect the model lacks refitted, BIC with the per-period evidence of afmid.diagnosis.decide). The group's verdict
-is what more than half of its representatives say:
+is what more than half of its representatives say, in this order:
 
 - ``missing: EFFECT`` (or ``A + B``): the diagnosis names the same effect(s) and they explain the residual;
 - ``nothing missing``: the diagnosis finds no effect missing;
 - ``not explained by the catalog``: a significant residual that no catalog effect explains;
 - ``cannot decide: A or B``: effects the per-period evidence does not tell apart (afmid.diagnosis.decide);
 - ``instrument: KIND``: the residual is the instrument's (afmid.diagnosis.instrument_signature);
+- ``leading candidate: EFFECT``: no verdict has a majority, but more than half of the representatives rank the same
+  effect first among those their diagnosis accepts (it names it with a reservation: not told apart from a rival,
+  or a significant residual left); every representative's verdict is kept and said;
 - ``undecided``: the representatives disagree (each one's verdict is kept).
 
 A group whose median error is within the model-limited rule (at most FLOOR_FACTOR x the floor) is not refitted:
@@ -37,6 +40,7 @@ NOTHING = "nothing missing"
 UNEXPLAINED = "not explained by the catalog"
 UNDECIDED = "undecided"
 NOT_DIAGNOSED = "model-limited, not diagnosed"
+LEADING = "leading candidate: "
 
 
 @dataclass
@@ -55,6 +59,7 @@ class GroupVerdict:
     delta_bic: list[float] = field(default_factory=list)  # each representative's BIC change with the effect(s)
     error_after: list[float] = field(default_factory=list)  # each representative's error after adding them
     floor: list[float] = field(default_factory=list)  # each representative's noise floor
+    leading: list[str] = field(default_factory=list)  # each representative's leading candidate ("" none)
     region: str = ""  # the most common residual region of the group's pixels
     character: str = ""  # the most common residual character
 
@@ -70,6 +75,13 @@ class GroupVerdict:
         n = len(self.representatives)
         agree = sum(v == self.verdict for v in self.pixel_verdicts)
         basis = f"{agree} of {n} representative pixels"
+        if self.verdict.startswith(LEADING):
+            effect = self.effects[0]
+            first = sum(e == effect for e in self.leading)
+            bic = [b for b, e in zip(self.delta_bic, self.leading) if e == effect and math.isfinite(b)]
+            extra = f"; ΔBIC {min(bic):.0f} .. {max(bic):.0f}" if bic else ""
+            return (f"{head}: {effect} the leading candidate ({first} of {n} representative pixels rank it first"
+                    f"{extra}; but not one catalog verdict: {'; '.join(self.pixel_verdicts)})")
         if self.effects:
             bic = [b for b, v in zip(self.delta_bic, self.pixel_verdicts) if v == self.verdict and math.isfinite(b)]
             after = [e / f for e, f, v in zip(self.error_after, self.floor, self.pixel_verdicts)
@@ -91,8 +103,8 @@ def summary_sentence(verdicts: list[GroupVerdict]) -> str:
     nothing missing elsewhere")."""
     missing = [v for v in verdicts if v.effects]
     other = [v for v in verdicts if not v.effects and v.verdict != NOTHING]
-    parts = [f"{' + '.join(v.effects)} missing in group {v.group + 1} ({100 * v.fraction:.0f} % of the pixels)"
-             for v in missing]
+    parts = [f"{' + '.join(v.effects)} {'the leading candidate' if v.verdict.startswith(LEADING) else 'missing'} "
+             f"in group {v.group + 1} ({100 * v.fraction:.0f} % of the pixels)" for v in missing]
     parts += [f"{v.verdict} in group {v.group + 1} ({100 * v.fraction:.0f} % of the pixels)" for v in other]
     if not parts:
         return "nothing missing anywhere on the map"
@@ -162,7 +174,6 @@ def _diagnose(verdict: GroupVerdict, pixels: np.ndarray, source, config_text: st
     from afmid.errors import AfmidError
 
     verdict.diagnosed = True
-    named: list[tuple[str, list[str]]] = []
     for pixel in pixels:
         try:
             summary = diagnose_pixel(int(pixel), source, config_text, config_source)
@@ -174,23 +185,40 @@ def _diagnose(verdict: GroupVerdict, pixels: np.ndarray, source, config_text: st
             continue
         text, effects = pixel_verdict(summary)
         diagnosis = summary.get("diagnosis", {})
+        lead = leading_candidate(summary)
         verdict.representatives.append(int(pixel))
         verdict.pixel_verdicts.append(text)
-        after = diagnosis.get("error_after")
-        verdict.delta_bic.append(float(diagnosis.get("delta_bic_after") or math.nan) if effects else math.nan)
+        verdict.leading.append(lead["effect"] if lead else "")
+        if effects:  # the named effect(s) together
+            after, delta = diagnosis.get("error_after"), diagnosis.get("delta_bic_after")
+        else:  # the leading candidate's own refit (NaN: none)
+            after, delta = (lead["error_after"], lead["delta_bic"]) if lead else (None, None)
+        verdict.delta_bic.append(float(delta) if delta is not None else math.nan)
         verdict.error_after.append(float(after) if after is not None else math.nan)
         verdict.floor.append(float(diagnosis.get("noise_floor", math.nan)))
-        named.append((text, effects))
-    if not named:
+    if not verdict.representatives:
         verdict.verdict = UNDECIDED
         return
-    texts = [t for t, _ in named]
+    texts, leads = verdict.pixel_verdicts, [e for e in verdict.leading if e]
+    n = len(texts)
     top = max(set(texts), key=lambda t: (texts.count(t), t))
-    if texts.count(top) * 2 > len(texts):
+    first = max(set(leads), key=lambda e: (leads.count(e), e)) if leads else ""
+    if texts.count(top) * 2 > n and top.startswith("missing: "):
+        verdict.verdict, verdict.effects = top, top[len("missing: "):].split(" + ")
+    elif first and leads.count(first) * 2 > n:
+        verdict.verdict, verdict.effects = LEADING + first, [first]
+    elif texts.count(top) * 2 > n:
         verdict.verdict = top
-        verdict.effects = next(e for t, e in named if t == top)
     else:
         verdict.verdict = UNDECIDED
+
+
+def leading_candidate(summary: dict) -> dict | None:
+    """The catalog effect a single-trace diagnosis ranks first among those it accepts (its trial record), also when
+    it does not name it alone: not told apart from a rival, or a significant residual left; None when it accepts
+    none."""
+    ranked = summary.get("suggestions") or summary.get("undecided") or []
+    return ranked[0] if ranked else None
 
 
 def diagnose_pixel(pixel: int, source, config_text: str, config_source: str | None) -> dict:
@@ -249,9 +277,10 @@ def write_groups(h5, grouping, verdicts: list[GroupVerdict]) -> None:
         return out
 
     write_dataset(groups, "verdict", np.array([v.verdict for v in verdicts]), "1",
-                  meaning=f"'missing: EFFECT', '{NOTHING}', '{UNEXPLAINED}', '{UNDECIDED}' or '{NOT_DIAGNOSED}'")
+                  meaning=f"'missing: EFFECT', '{LEADING}EFFECT', '{NOTHING}', '{UNEXPLAINED}', "
+                          f"'cannot decide: A or B', 'instrument: KIND', '{UNDECIDED}' or '{NOT_DIAGNOSED}'")
     write_dataset(groups, "effects", np.array([" + ".join(v.effects) for v in verdicts]), "1",
-                  meaning="the missing effects named (empty: none)")
+                  meaning="the missing effects named, or the leading candidate (empty: none)")
     write_dataset(groups, "sentence", np.array([v.sentence() for v in verdicts]), "1")
     write_dataset(groups, "pixels", np.array([v.pixels for v in verdicts]), "1")
     write_dataset(groups, "fraction", np.array([v.fraction for v in verdicts]), "1", meaning="of the fitted pixels")
@@ -267,9 +296,13 @@ def write_groups(h5, grouping, verdicts: list[GroupVerdict]) -> None:
                   meaning="flat (row-major) index of each diagnosed pixel (-1: none)")
     write_dataset(groups, "pixel_verdicts", padded("pixel_verdicts", "", object).astype(str), "1",
                   meaning="each representative pixel's diagnosis verdict")
+    write_dataset(groups, "leading", padded("leading", "", object).astype(str), "1",
+                  meaning="each representative's leading candidate: the effect its diagnosis ranks first among those "
+                          "it accepts (empty: none)")
     write_dataset(groups, "delta_bic", padded("delta_bic", np.nan), "1",
-                  meaning="each representative's BIC change when the missing effect(s) are added (NaN: none named)")
+                  meaning="each representative's BIC change when the effect(s) it names, else its leading candidate, "
+                          "are added (NaN: none)")
     write_dataset(groups, "error_after", padded("error_after", np.nan), "1",
-                  meaning="each representative's normalised cv error with the effect(s) added")
+                  meaning="each representative's normalised cv error with that effect (those effects) added")
     write_dataset(groups, "noise_floor", padded("floor", np.nan), "1",
                   meaning="each representative's cv error noise floor (its single-trace refit)")

@@ -103,6 +103,14 @@ def _verdict_colour(group: dict, missing_index: dict) -> str:
     return NOTHING_COLOUR if group["verdict"] == "nothing missing" else OTHER_COLOUR
 
 
+def _label(group: dict) -> str:
+    if not group["effects"]:
+        return group["verdict"]
+    if group["verdict"].startswith("missing"):
+        return f"{group['effects']} missing"
+    return f"{group['effects']} ({group['verdict'].split(':')[0]})"
+
+
 def groups_figure(folder: Path, groups: dict, extent) -> tuple[str, str] | None:
     """The group map, each group coloured by its verdict (a named effect red, nothing missing pale green)."""
     from matplotlib.colors import ListedColormap
@@ -119,8 +127,7 @@ def groups_figure(folder: Path, groups: dict, extent) -> tuple[str, str] | None:
     image = ax.imshow(np.where(labels >= 0, labels, np.nan), extent=extent[0], cmap=ListedColormap(colours),
                       vmin=-0.5, vmax=n - 0.5, interpolation="nearest")
     bar = fig.colorbar(image, ax=ax, ticks=range(n))
-    bar.ax.set_yticklabels([f"group {g['group']}: " + (f"{g['effects']} missing" if g["effects"] else g["verdict"])
-                            for g in groups["groups"]], fontsize=7)
+    bar.ax.set_yticklabels([f"group {g['group']}: " + _label(g) for g in groups["groups"]], fontsize=7)
     ax.set_title("which effect is missing where")
     _axes_labels(ax, extent)
     fig.tight_layout()

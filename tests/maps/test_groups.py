@@ -109,10 +109,26 @@ def test_the_map_sentence_names_the_effect_and_where():
     verdicts = [GroupVerdict(0, 24, 24 / 36, 1.0, [], NOTHING, False),
                 GroupVerdict(1, 12, 12 / 36, 6.4, ["viscoelastic"], "missing: viscoelastic", True,
                              [3, 4, 5], ["missing: viscoelastic"] * 3, [-4600.0, -4400.0, -4500.0], [0.06] * 3,
-                             [0.05] * 3, "contact", "dissipative")]
+                             [0.05] * 3, region="contact", character="dissipative")]
     assert summary_sentence(verdicts) == ("viscoelastic missing in group 2 (33 % of the pixels); "
                                           "nothing missing elsewhere")
     sentence = verdicts[1].sentence()
     assert "viscoelastic missing (3 of 3 representative pixels; ΔBIC -4600 .. -4400" in sentence
     assert "1.20x the floor" in sentence and "dissipative" in sentence
     assert summary_sentence(verdicts[:1]) == "nothing missing anywhere on the map"
+
+
+def test_the_leading_candidate_when_no_verdict_has_a_majority():
+    from afmid.maps.group_diagnosis import LEADING, leading_candidate
+
+    assert leading_candidate({"suggestions": [], "undecided": [{"effect": "viscoelastic", "delta_bic": -4400.0}]}) == {
+        "effect": "viscoelastic", "delta_bic": -4400.0}
+    assert leading_candidate({"missing_effect": False}) is None
+    v = GroupVerdict(1, 12, 12 / 36, 6.4, ["viscoelastic"], LEADING + "viscoelastic", True, [13, 19, 8],
+                     ["cannot decide: viscoelastic or contact_damping", UNEXPLAINED, "missing: viscoelastic"],
+                     [-4380.0, -4375.0, -4391.0], [0.055, 0.065, 0.077], [0.059, 0.056, 0.063],
+                     leading=["viscoelastic"] * 3)
+    sentence = v.sentence()
+    assert "viscoelastic the leading candidate (3 of 3 representative pixels rank it first" in sentence
+    assert "cannot decide: viscoelastic or contact_damping" in sentence and UNEXPLAINED in sentence
+    assert summary_sentence([v]).startswith("viscoelastic the leading candidate in group 2 (33 % of the pixels)")
