@@ -26,6 +26,8 @@ import numpy as np
 REGIONS = ("contact", "near", "far")
 #: Index stored in /maps/residual_character (names in its ``meaning`` attribute).
 CHARACTERS = ("none", "conservative", "dissipative", "mixed")
+#: The signature's maps that hold codes (int8; -1: not fitted), not values.
+CODED = ("residual_region", "residual_character")
 #: The per-pixel signature: name -> (unit, meaning) of its /maps dataset.
 SIGNATURE = {
     "residual_region": ("1", "where most of the systematic residual sits: "

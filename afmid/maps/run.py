@@ -174,7 +174,8 @@ def _crashed_chunk(first: int, stop: int, why: str) -> dict:
     n = stop - first
     nan = np.full(n, np.nan)
     unfitted = empty_signature()
-    return {**{k: np.full(n, unfitted[k]) for k in SIGNATURE}, "first": first, "stop": stop, "status": np.full(n, STATUS_FAILED, np.int8), "message": [why] * n,
+    return {"first": first, "stop": stop, "status": np.full(n, STATUS_FAILED, np.int8), "message": [why] * n,
+            **{k: np.full(n, unfitted[k]) for k in SIGNATURE},
             "separation": nan, "separation_sigma": nan, "cv_error": nan, "cv_error_noise_floor": nan,
             "selected": np.zeros(n, np.int64), "route": np.full(n, -1, np.int8), "evaluations": np.zeros(n, np.int32),
             "terms": [], "names": [], "units": [], "effects": [], "values": None, "sigmas": None}
@@ -196,7 +197,7 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
     """Assemble the saved chunks into ``output`` (atomically, with provenance), with the pixels' groups and their
     verdicts (``diagnose``: the catalog diagnosis of the model-limited groups); returns the pixel counts."""
     from afmid.io.trace import atomic_hdf5, write_dataset
-    from afmid.maps.residual import SIGNATURE
+    from afmid.maps.residual import CODED, SIGNATURE
 
     chunks = _load_chunks(folder, n_chunks)
     shape = (source.rows, source.cols)
@@ -266,8 +267,9 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
                       meaning="library evaluations (regression systems built) the pixel's fit cost")
         for name, (unit, meaning) in SIGNATURE.items():
             data = flat[name].reshape(shape)
-            write_dataset(maps, name, np.where(np.isfinite(data), data, -1).astype(np.int8) if unit == "1" and
-                          name in ("residual_region", "residual_character") else data, unit, meaning=meaning)
+            if name in CODED:  # codes into REGIONS / CHARACTERS, -1 where not fitted
+                data = np.where(np.isfinite(data), data, -1).astype(np.int8)
+            write_dataset(maps, name, data, unit, meaning=meaning)
         write_groups(h5, grouping, verdicts)
         model = h5.create_group("model")
         write_dataset(model, "terms", np.array(terms or [""]), "1")
