@@ -17,7 +17,7 @@ TEST_JOBS ?= 2
 
 help:
 	@echo "make demo   - set up .venv, simulate a soft-polymer trace, fit it, write a report"
-	@echo "make demo-map - a force map with hidden viscoelasticity: map with [dmt], refit with --add viscoelastic, reports"
+	@echo "make demo-map - a force map with hidden viscoelasticity: map with [dmt] (which effect is missing where), refit with --add viscoelastic, reports before/after"
 	@echo "make test   - set up .venv with test extras and run the test suite"
 	@echo "make test-kernels - the BLAS-sensitive tests again under two other OpenBLAS kernels of this CPU"
 	@echo "make batch  - fit every config in configs/ (simulated first where it has no data) into $(RESULTS)/ (BATCH_JOBS=N workers)"
@@ -48,6 +48,7 @@ demo-map: $(STAMP)
 	-$(AFMID) map $(MAP_CONFIG) --input $(DEMO_MAP_DIR)/hidden.h5 -o $(DEMO_MAP_DIR)/visco.h5 -j 2 --overwrite --add viscoelastic
 	$(AFMID) report $(DEMO_MAP_DIR)/dmt.h5 -o $(DEMO_MAP_DIR)/report_dmt --overwrite
 	$(AFMID) report $(DEMO_MAP_DIR)/visco.h5 -o $(DEMO_MAP_DIR)/report_visco --overwrite
+	$(AFMID) report $(DEMO_MAP_DIR)/dmt.h5 $(DEMO_MAP_DIR)/visco.h5 -o $(DEMO_MAP_DIR)/report_before_after --overwrite
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n $(TEST_JOBS)

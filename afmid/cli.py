@@ -275,7 +275,9 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     """Compare run files: where the model fails, which effect is missing, how the error falls.
 
     Given one force-map result (afmid map), draws its maps instead: every parameter with its
-    1-sigma map and colour bar, histograms, topography, error over floor, the failed pixels.
+    1-sigma map and colour bar, histograms, topography, error over floor, the failed pixels, the
+    residual's character and which effect is missing where. Given two (an earlier fit of the same
+    map first, e.g. before --add EFFECT), also the error over its floor before and after.
 
     Writes OUTPUT/report.html (self-contained), OUTPUT/*.png with an SVG of each figure beside
     it (OUTPUT/*.svg, linked under the figure), OUTPUT/summary.json and the
@@ -291,15 +293,16 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
 
         tables = parse_exports(export_tables)
     try:
-        if len(runs) == 1 and is_map_result(runs[0]):  # a force map's result (afmid map)
+        if len(runs) in (1, 2) and all(is_map_result(r) for r in runs):  # force maps' results (afmid map)
             from afmid.errors import ConfigError
             from afmid.report.maps import make_map_report
 
             if tables:
                 raise ConfigError("is for run files; a force map's result has maps, not one run's tables",
                                   key="--export")
-
-            click.echo(make_map_report(runs[0], output, overwrite=overwrite))
+            # two: the earlier fit of the same map first (e.g. before afmid map --add EFFECT), drawn before / after
+            click.echo(make_map_report(runs[-1], output, overwrite=overwrite,
+                                       before=runs[0] if len(runs) == 2 else None))
             return
         from afmid.report.page import make_report
 
@@ -407,11 +410,14 @@ def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
 @click.option("--add", "add_effects", multiple=True, metavar="EFFECT", help="Add an effect to model.effects (repeatable).")
 @click.option("--remove", "remove_effects", multiple=True, metavar="EFFECT",
               help="Remove an effect from model.effects (repeatable).")
+@click.option("--diagnosis/--no-diagnosis", default=True, show_default=True,
+              help="Diagnose each model-limited group of pixels (grouped by residual signature and parameters) with "
+                   "the catalog, on a few representative pixels: which effect is missing where (/groups).")
 @OVERWRITE
 @SET
 def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, scheduler: str | None,
                 chunk: int | None, pixel_fit: str, add_effects: tuple[str, ...], remove_effects: tuple[str, ...],
-                overwrite: bool, overrides: tuple[str, ...]) -> None:
+                diagnosis: bool, overwrite: bool, overrides: tuple[str, ...]) -> None:
     """Fit every pixel of a force map with CONFIG and write maps of the parameters.
 
     Each pixel's trace is fitted with CONFIG's model (the separation estimated per pixel:
@@ -435,7 +441,7 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     apply_effect_changes(cfg, add_effects, remove_effects)
     engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
     counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite,
-                     pixel_fit=pixel_fit)
+                     pixel_fit=pixel_fit, diagnose=diagnosis)
     if counts["failed"]:  # the maps are written; the failed pixels are NaN there, flagged in /maps/status
         from afmid.errors import AfmidError
 

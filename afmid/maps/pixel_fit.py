@@ -64,6 +64,8 @@ class PixelResult:
     warnings: list[str] = field(default_factory=list)
     route: int = ROUTE_FULL
     evaluations: int = 0  # library evaluations (system builds) this pixel cost; 0 when not counted
+    #: the residual's character (afmid.maps.residual.SIGNATURE names -> value); empty when not computed
+    signature: dict = field(default_factory=dict)
 
 
 class FullPixelFit:
@@ -82,10 +84,15 @@ class FullPixelFit:
 
         prep = prepare(trace, self.config.fit, from_config(self.config))
         result = fit_prepared(prep, self.library, self.config, uncertainty=self.config.fit.bootstrap > 0)
+        from afmid.maps.residual import ResidualView, signature_of
+
         est = result.nonlinear.get("d")
+        view = ResidualView(result.periods, prep.blocks.harmonics, result.signal_rows, self.config,
+                            {"frequency": prep.drive.frequency})
         return PixelResult(result.quantities, result.system.params["d"], est.sigma if est is not None else math.nan,
                            result.cv_error, result.cv_error_noise_floor,
-                           np.asarray(result.selected[:len(self.library)], bool), list(result.warnings), ROUTE_FULL)
+                           np.asarray(result.selected[:len(self.library)], bool), list(result.warnings), ROUTE_FULL,
+                           signature=signature_of(view))
 
 
 class SharedSupportFit:
@@ -238,6 +245,7 @@ class SharedSupportFit:
         from afmid.fit.forces import force_cv_error, read_out, signal_rows
         from afmid.fit.search import NonlinearEstimate
         from afmid.fit.uncertainty import finish
+        from afmid.maps.residual import signature_of_fit
 
         config, library, trace = self.config, self.library, prep.trace
         found = search.found
@@ -265,8 +273,9 @@ class SharedSupportFit:
             warnings.append(fit_warning(prep.motion, prep.noise_rms))
         finish(quantities, warnings, prep, library, system, coef, support, params, trace, config, cv_error, floor,
                read_out, True)
+        signature = signature_of_fit(prep, library, system, coef, params, rows, config)
         return PixelResult(quantities, found.value, found.sigma, cv_error, floor,
-                           np.asarray(support[:len(library)], bool), warnings, route), coef
+                           np.asarray(support[:len(library)], bool), warnings, route, signature=signature), coef
 
 
 @dataclass

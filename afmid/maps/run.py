@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from afmid.errors import ConfigError, InputError
+from afmid.maps.group_diagnosis import write_groups
 from afmid.maps.pixel_fit import ROUTES
 from afmid.maps.task import STATUS_FAILED, STATUS_NAMES, STATUS_OK, STATUS_SUSPECT, fit_chunk
 
@@ -27,6 +28,8 @@ log = logging.getLogger(__name__)
 
 MAP_RESULT_FORMAT = "afmid-map-result"
 SIDECAR_SUFFIX = ".afmid-map"
+#: What a saved chunk holds (in the sidecar's key: chunks of an older layout are fitted again, not misread).
+CHUNK_LAYOUT = 2  # 2: with the residual signature (afmid.maps.residual)
 #: Largest chunk (pixels) chosen by default: enough tasks to balance the workers, few enough to share the setup.
 MAX_DEFAULT_CHUNK = 64
 #: Smallest chunk chosen by default (unless the map is smaller): the shared pixel fit searches each chunk's first
@@ -50,10 +53,12 @@ def sidecar_for(output: Path) -> Path:
 
 
 def run_map(config, config_text: str, input_path: Path, output: Path, engine, chunk: int | None = None,
-            overwrite: bool = False, pixel_fit: str | None = None) -> dict:
+            overwrite: bool = False, pixel_fit: str | None = None, diagnose: bool = True) -> dict:
     """Fit the map ``input_path`` with ``config`` on ``engine`` and write ``output``; returns the pixel counts.
 
-    ``pixel_fit``: the strategy of :data:`afmid.maps.pixel_fit.PIXEL_FITS` (None: the default, ``shared``)."""
+    ``pixel_fit``: the strategy of :data:`afmid.maps.pixel_fit.PIXEL_FITS` (None: the default, ``shared``).
+    ``diagnose``: run the catalog diagnosis on the model-limited groups of pixels (afmid.maps.group_diagnosis);
+    the groups themselves are always formed."""
     from afmid.maps.pixel_fit import DEFAULT_PIXEL_FIT
     from afmid.io.trace import check_output_path, sha256_file
     from afmid.maps.input_file import open_map
@@ -71,7 +76,7 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
     bounds = [(lo, min(n, lo + chunk)) for lo in range(0, n, chunk)]
     key = {"input_sha256": sha256_file(source.path), "config_sha256": hashlib.sha256(config_text.encode()).hexdigest(),
            "shape": [source.rows, source.cols, source.samples], "chunk": chunk,
-           "pixel_fit": pixel_fit or DEFAULT_PIXEL_FIT}
+           "pixel_fit": pixel_fit or DEFAULT_PIXEL_FIT, "chunk_layout": CHUNK_LAYOUT}
     folder = _open_sidecar(sidecar_for(output), key)  # made when the first chunk is saved
     done = {i for i in range(len(bounds)) if (folder / _chunk_name(i)).is_file()}
     if done:
@@ -103,7 +108,7 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
         log.warning("interrupted: %d of %d chunks are saved in %s; run the same command again to resume",
                     progress["done"], len(bounds), folder)
         raise
-    counts = write_map_result(output, source, config, config_text, folder, len(bounds), key)
+    counts = write_map_result(output, source, config, config_text, folder, len(bounds), key, diagnose=diagnose)
     shutil.rmtree(folder, ignore_errors=True)
     return counts
 
@@ -144,8 +149,11 @@ def _save_chunk(path: Path, result: dict) -> None:
     """One finished chunk, written atomically (a Ctrl-C leaves it whole or absent)."""
     from afmid.io.trace import atomic_path
 
+    from afmid.maps.residual import SIGNATURE
+
     arrays = {k: np.asarray(result[k]) for k in ("status", "separation", "separation_sigma", "cv_error",
-                                                 "cv_error_noise_floor", "selected", "route", "evaluations")}
+                                                 "cv_error_noise_floor", "selected", "route", "evaluations",
+                                                 *SIGNATURE)}
     arrays["message"] = np.array(result["message"], dtype=str)
     arrays["range"] = np.array([result["first"], result["stop"]])
     arrays["terms"] = np.array(result["terms"] or [""], dtype=str)
@@ -161,9 +169,13 @@ def _save_chunk(path: Path, result: dict) -> None:
 
 
 def _crashed_chunk(first: int, stop: int, why: str) -> dict:
+    from afmid.maps.residual import SIGNATURE, empty_signature
+
     n = stop - first
     nan = np.full(n, np.nan)
+    unfitted = empty_signature()
     return {"first": first, "stop": stop, "status": np.full(n, STATUS_FAILED, np.int8), "message": [why] * n,
+            **{k: np.full(n, unfitted[k]) for k in SIGNATURE},
             "separation": nan, "separation_sigma": nan, "cv_error": nan, "cv_error_noise_floor": nan,
             "selected": np.zeros(n, np.int64), "route": np.full(n, -1, np.int8), "evaluations": np.zeros(n, np.int32),
             "terms": [], "names": [], "units": [], "effects": [], "values": None, "sigmas": None}
@@ -180,9 +192,12 @@ def _load_chunks(folder: Path, n_chunks: int) -> list[dict]:
     return chunks
 
 
-def write_map_result(output: Path, source, config, config_text: str, folder: Path, n_chunks: int, key: dict) -> dict:
-    """Assemble the saved chunks into ``output`` (atomically, with provenance); returns the pixel counts."""
+def write_map_result(output: Path, source, config, config_text: str, folder: Path, n_chunks: int, key: dict,
+                     diagnose: bool = True) -> dict:
+    """Assemble the saved chunks into ``output`` (atomically, with provenance), with the pixels' groups and their
+    verdicts (``diagnose``: the catalog diagnosis of the model-limited groups); returns the pixel counts."""
     from afmid.io.trace import atomic_hdf5, write_dataset
+    from afmid.maps.residual import CODED, SIGNATURE
 
     chunks = _load_chunks(folder, n_chunks)
     shape = (source.rows, source.cols)
@@ -197,7 +212,8 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
             if name not in units:
                 names.append(name)
                 units[name], effects[name] = unit, effect
-    flat = {k: np.full(n, np.nan) for k in ("separation", "separation_sigma", "cv_error", "cv_error_noise_floor")}
+    flat = {k: np.full(n, np.nan) for k in ("separation", "separation_sigma", "cv_error", "cv_error_noise_floor",
+                                            *SIGNATURE)}
     status = np.full(n, STATUS_FAILED, np.int8)
     selected = np.zeros(n, np.int64)
     route = np.full(n, -1, np.int8)
@@ -218,6 +234,7 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
             values[name][lo:hi] = c["values"][k]
             sigmas[name][lo:hi] = c["sigmas"][k]
     counts = {name: int(np.count_nonzero(status == code)) for code, name in enumerate(STATUS_NAMES)}
+    grouping, verdicts = _groups(source, config, config_text, flat, values, sigmas, names, status, diagnose)
     with atomic_hdf5(output, MAP_RESULT_FORMAT, config_text, {str(source.path): key["input_sha256"]}) as h5:
         h5.attrs["rows"], h5.attrs["cols"], h5.attrs["samples"] = source.rows, source.cols, source.samples
         h5.attrs["chunk_pixels"] = key["chunk"]
@@ -248,6 +265,12 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
                       meaning=", ".join(f"{code}: {name}" for code, name in enumerate(ROUTES)) + ", -1: not fitted")
         write_dataset(maps, "evaluations", evaluations.reshape(shape), "1",
                       meaning="library evaluations (regression systems built) the pixel's fit cost")
+        for name, (unit, meaning) in SIGNATURE.items():
+            data = flat[name].reshape(shape)
+            if name in CODED:  # codes into REGIONS / CHARACTERS, -1 where not fitted
+                data = np.where(np.isfinite(data), data, -1).astype(np.int8)
+            write_dataset(maps, name, data, unit, meaning=meaning)
+        write_groups(h5, grouping, verdicts)
         model = h5.create_group("model")
         write_dataset(model, "terms", np.array(terms or [""]), "1")
         if source.x is not None:
@@ -257,6 +280,22 @@ def write_map_result(output: Path, source, config, config_text: str, folder: Pat
     log.info("wrote %s: %d pixels ok, %d suspect, %d failed", output, counts["ok"], counts["suspect"],
              counts["failed"])
     return counts
+
+
+def _groups(source, config, config_text: str, flat: dict, values: dict, sigmas: dict, names: list[str],
+            status: np.ndarray, diagnose: bool):
+    """The pixels' groups and (``diagnose``) their verdicts (afmid.maps.groups, afmid.maps.group_diagnosis)."""
+    from afmid.maps.group_diagnosis import diagnose_groups
+    from afmid.maps.groups import group_pixels
+
+    fitted = status != STATUS_FAILED
+    maps = {**flat, **values, **{f"{name}_sigma": sigma for name, sigma in sigmas.items()}}
+    grouping = group_pixels(maps, names, fitted, (source.rows, source.cols), seed=config.fit.seed)
+    log.info("%d group(s) of pixels by residual signature and parameters (silhouette %.2f)", grouping.n_groups,
+             grouping.silhouette)
+    verdicts = diagnose_groups(grouping, maps, source, config_text, str(config.source) if config.source else None,
+                               diagnose=diagnose)
+    return grouping, verdicts
 
 
 __all__ = ["run_map", "write_map_result", "default_chunk", "sidecar_for", "STATUS_OK", "STATUS_SUSPECT"]

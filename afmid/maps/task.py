@@ -33,8 +33,8 @@ def fit_chunk(task: dict) -> dict:
     """Fit pixels ``task['first']`` to ``task['stop']`` of ``task['input']``; see the module docstring.
 
     Returns ``{"first", "stop", "status", "message", "separation", "separation_sigma", "cv_error",
-    "cv_error_noise_floor", "selected" (bit mask per pixel), "terms", "names", "units", "values", "sigmas",
-    "seconds"}`` (values/sigmas: (n_quantities, n_pixels), SI, sigma = 1 sigma bootstrap).
+    "cv_error_noise_floor", "selected" (bit mask per pixel), the residual signature (afmid.maps.residual.SIGNATURE),
+    "terms", "names", "units", "values", "sigmas", "seconds"}`` (values/sigmas: (n_quantities, n_pixels), SI, sigma = 1 sigma bootstrap).
     """
     import time
 
@@ -45,6 +45,7 @@ def fit_chunk(task: dict) -> dict:
     from afmid.physics.tips import tip_geometry
     from afmid.maps.pixel_fit import DEFAULT_PIXEL_FIT, PIXEL_FITS
     from afmid.maps.input_file import open_map, pixel_trace, read_pixels
+    from afmid.maps.residual import SIGNATURE, empty_signature
 
     started = time.perf_counter()
     logger = logging.getLogger("afmid")
@@ -66,6 +67,9 @@ def fit_chunk(task: dict) -> dict:
         "route": np.full(n, -1, np.int8), "evaluations": np.zeros(n, np.int32),
         "terms": list(library.names), "names": [], "units": [], "effects": [], "values": None, "sigmas": None,
     }
+    unfitted = empty_signature()
+    for name in SIGNATURE:  # the residual's character (afmid.maps.residual): integer codes or floats
+        out[name] = np.full(n, unfitted[name], np.int8 if isinstance(unfitted[name], int) else float)
     if len(library.names) > 63:
         raise ValueError("the selected-term bit mask holds at most 63 terms")
     per_pixel: list[dict | None] = [None] * n
@@ -91,6 +95,8 @@ def fit_chunk(task: dict) -> dict:
         out["selected"][i] = int(sum(1 << k for k, m in enumerate(result.selected[:len(library)]) if m))
         out["route"][i] = result.route
         out["evaluations"][i] = result.evaluations
+        for name, value in result.signature.items():
+            out[name][i] = value
         # Defects the checks only warned about (not those repaired or informational), and implausible read-outs.
         # Not the separation share's warning: it concerns the force curve, and the read-outs' error bars already
         # carry the separation's sigma.

@@ -61,16 +61,23 @@ def parameter_names(maps: dict) -> list[str]:
     return [name for name in maps if f"{name}_sigma" in maps and name != "separation"]
 
 
-def make_map_report(path: Path, output: Path, overwrite: bool = False) -> str:
-    """Write the report folder of the map result ``path``; returns the terminal summary."""
+def make_map_report(path: Path, output: Path, overwrite: bool = False, before: Path | None = None) -> str:
+    """Write the report folder of the map result ``path``; returns the terminal summary. ``before``: the result of
+    an earlier fit of the same map (e.g. before ``afmid map --add EFFECT``): the error over its floor is drawn
+    before and after (afmid.report.map_groups)."""
+    import afmid.report.map_groups as map_groups
     from afmid.report.folder import report_folder
 
     result = read_map_result(path)
+    groups = map_groups.read_groups(path)
+    compared = (map_groups.comparison(before, read_map_result(before)["maps"], result["maps"])
+                if before is not None else None)
     maps = result["maps"]
     status = maps["status"][0].astype(int)
     message = np.vectorize(lambda m: m.decode() if isinstance(m, bytes) else str(m))(maps["message"][0])
     names = parameter_names(maps)
-    with report_folder(Path(output), overwrite, {path: "the map result"}) as tmp:
+    inputs = {path: "the map result", **({before: "the earlier map result"} if before is not None else {})}
+    with report_folder(Path(output), overwrite, inputs) as tmp:
         figures = []
         extent = _extent(status.shape, result["pixel_size"])
         for name in names:
@@ -85,16 +92,29 @@ def make_map_report(path: Path, output: Path, overwrite: bool = False) -> str:
         ratio = maps["cv_error"][0] / maps["cv_error_noise_floor"][0]
         figures.append(_map_figure(tmp, "error_over_floor", ratio, None, "1", status, extent,
                                    label="cv error / noise floor (1: at the floor)"))
+        if compared is not None:
+            figures.append(map_groups.comparison_figure(tmp, compared, extent))
+        if groups is not None:
+            figures.append(map_groups.groups_figure(tmp, groups, extent))
+        figures.append(map_groups.residual_figure(tmp, maps, extent))
+        figures = [f for f in figures if f is not None]
         figures.append(_status_figure(tmp, status, maps.get("fit_route"), extent))
         summary = _summary(path, result, names, status, message)
+        summary.update(map_groups.groups_summary(groups, compared))
+        section = map_groups.groups_html(groups, compared)
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
-        (tmp / "report.html").write_text(_html(path, summary, figures, tmp), encoding="utf-8")
+        (tmp / "report.html").write_text(_html(path, summary, figures, tmp, section), encoding="utf-8")
     counts = summary["pixels"]
     lines = [f"map {summary['rows']}x{summary['cols']}: {counts['ok']} ok, {counts['suspect']} suspect, "
              f"{counts['failed']} failed; {summary['model_limited']['pixels']} model-limited"]
     for name, p in summary["parameters"].items():
         lines.append(f"  {name}: median {p['median']:.4g} {p['unit']} (ok pixels; 16-84 % {p['p16']:.4g} .. "
                      f"{p['p84']:.4g}; median 1 sigma {p['median_sigma']:.2g})")
+    if groups is not None:
+        lines.append(f"missing effects: {groups['summary']}")
+        lines += [f"  {g['sentence']}" for g in groups["groups"]]
+    if compared is not None:
+        lines += map_groups.comparison_lines(compared)
     lines.append(f"wrote {Path(output) / 'report.html'}")
     return "\n".join(lines)
 
@@ -235,7 +255,7 @@ def _summary(path: Path, result: dict, names: list[str], status: np.ndarray, mes
     return out
 
 
-def _html(path: Path, summary: dict, figures: list[tuple[str, str]], folder: Path) -> str:
+def _html(path: Path, summary: dict, figures: list[tuple[str, str]], folder: Path, section: str = "") -> str:
     counts = summary["pixels"]
     rows = "".join(
         f"<tr><td>{html.escape(name)}</td><td>{p['median']:.4g}</td><td>{p['p16']:.4g} .. {p['p84']:.4g}</td>"
@@ -261,5 +281,5 @@ def _html(path: Path, summary: dict, figures: list[tuple[str, str]], folder: Pat
         f"Model-limited (error above the noise floor): {summary['model_limited']['pixels']} pixels "
         f"({100 * summary['model_limited']['fraction_of_fitted']:.0f} % of the fitted).</p>"
         "<table><tr><th>parameter</th><th>median (ok pixels)</th><th>16-84 %</th><th>median 1 sigma</th>"
-        f"<th>unit</th><th>pixels</th></tr>{rows}</table>"
+        f"<th>unit</th><th>pixels</th></tr>{rows}</table>{section}"
         f"{body}{''.join(listed)}</body></html>\n")

@@ -1,0 +1,219 @@
+"""The missing-effect map in a force map's report (issue 14 part 3): which effect is missing where.
+
+Reads what ``afmid map`` wrote (afmid.maps.residual, afmid.maps.groups, afmid.maps.group_diagnosis): the per-pixel
+residual character (region, conservative / dissipative, size over the noise) as maps, the groups of pixels coloured
+by their verdict with one sentence per group, and, given the result of an earlier fit of the same map (``afmid
+report BEFORE.h5 AFTER.h5``, e.g. before and after ``afmid map --add EFFECT``), the error over its noise floor
+before and after on one colour scale with the change per group of the earlier result.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+import numpy as np
+
+from afmid.report.figures import save_figure
+
+#: Colours of the verdicts on the group map: a named missing effect, nothing missing, the rest.
+MISSING_COLOURS = ("#d62728", "#9467bd", "#8c564b", "#e377c2")
+NOTHING_COLOUR = "#c7e9c0"
+OTHER_COLOUR = "#ff7f0e"
+
+
+def _text(value) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def read_groups(path: Path) -> dict | None:
+    """The groups of a map result: summary, per group (verdict, effects, sentence, fraction, error_over_floor) and
+    the group map; None when the result has none (written before issue 14 part 3)."""
+    import h5py
+
+    with h5py.File(path, "r") as h5:
+        if "groups" not in h5 or "group" not in h5["maps"]:
+            return None
+        g = h5["groups"]
+        out = {"summary": _text(g.attrs.get("summary", "")), "method": _text(g.attrs.get("method", "")),
+               "silhouette": float(g.attrs.get("silhouette", np.nan)), "labels": h5["maps/group"][()],
+               "groups": []}
+        if "verdict" in g:
+            for i in range(g["verdict"].shape[0]):
+                out["groups"].append({
+                    "group": i + 1, "verdict": _text(g["verdict"][i]), "effects": _text(g["effects"][i]),
+                    "sentence": _text(g["sentence"][i]), "pixels": int(g["pixels"][i]),
+                    "fraction": float(g["fraction"][i]), "error_over_floor": float(g["error_over_floor"][i]),
+                    "diagnosed": bool(g["diagnosed"][i])})
+    return out
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _axes_labels(ax, extent) -> None:
+    ax.set_xlabel(f"x [{extent[1]}]")
+    ax.set_ylabel(f"y [{extent[1]}]")
+
+
+def residual_figure(folder: Path, maps: dict, extent) -> tuple[str, str] | None:
+    """Region, character and size (snr) of each pixel's residual, as maps; None when the result has none."""
+    from matplotlib.colors import ListedColormap
+
+    from afmid.maps.residual import CHARACTERS, REGIONS
+
+    if "residual_region" not in maps:
+        return None
+    plt = _plt()
+    panels = [("residual_region", REGIONS, ListedColormap(["#1f77b4", "#17becf", "#bcbd22"]), "where the residual sits"),
+              ("residual_character", CHARACTERS, ListedColormap(["#dddddd", "#2ca02c", "#d62728", "#9467bd"]),
+               "its character")]
+    fig, axes = plt.subplots(1, 3, figsize=(14.0, 3.8), squeeze=False)
+    box = extent[0]
+    for ax, (name, names, cmap, title) in zip(axes[0], panels):
+        data = maps[name][0].astype(float)
+        image = ax.imshow(np.where(data >= 0, data, np.nan), extent=box, cmap=cmap, vmin=-0.5,
+                          vmax=len(names) - 0.5, interpolation="nearest")
+        bar = fig.colorbar(image, ax=ax, ticks=range(len(names)))
+        bar.ax.set_yticklabels(names, fontsize=7)
+        ax.set_title(title)
+        _axes_labels(ax, extent)
+    ax = axes[0][2]
+    snr = maps["residual_snr"][0]
+    image = ax.imshow(np.log10(np.clip(snr, 1e-2, None)), extent=box, cmap="magma", interpolation="nearest")
+    fig.colorbar(image, ax=ax).set_label("log10 (residual rms / its noise)")
+    ax.set_title("its size over the noise (0: noise only)")
+    _axes_labels(ax, extent)
+    fig.tight_layout()
+    return (save_figure(fig, folder, "map_residual", dpi=90),
+            "each pixel's residual (inverted minus model force, period-averaged): the region holding most of it, "
+            "whether it is the same on approach and retraction (conservative) or reverses with the motion "
+            "(dissipative), and its rms over the noise of the average (afmid.diagnosis.localize per pixel)")
+
+
+def _verdict_colour(group: dict, missing_index: dict) -> str:
+    if group["effects"]:
+        return MISSING_COLOURS[missing_index[group["effects"]] % len(MISSING_COLOURS)]
+    return NOTHING_COLOUR if group["verdict"] == "nothing missing" else OTHER_COLOUR
+
+
+def _label(group: dict) -> str:
+    if not group["effects"]:
+        return group["verdict"]
+    if group["verdict"].startswith("missing"):
+        return f"{group['effects']} missing"
+    return f"{group['effects']} ({group['verdict'].split(':')[0]})"
+
+
+def groups_figure(folder: Path, groups: dict, extent) -> tuple[str, str] | None:
+    """The group map, each group coloured by its verdict (a named effect red, nothing missing pale green)."""
+    from matplotlib.colors import ListedColormap
+
+    if not groups["groups"]:
+        return None
+    plt = _plt()
+    effects = sorted({g["effects"] for g in groups["groups"] if g["effects"]})
+    missing_index = {e: i for i, e in enumerate(effects)}
+    colours = [_verdict_colour(g, missing_index) for g in groups["groups"]]
+    labels = groups["labels"].astype(float)
+    n = len(colours)
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    image = ax.imshow(np.where(labels >= 0, labels, np.nan), extent=extent[0], cmap=ListedColormap(colours),
+                      vmin=-0.5, vmax=n - 0.5, interpolation="nearest")
+    bar = fig.colorbar(image, ax=ax, ticks=range(n))
+    bar.ax.set_yticklabels([f"group {g['group']}: " + _label(g) for g in groups["groups"]], fontsize=7)
+    ax.set_title("which effect is missing where")
+    _axes_labels(ax, extent)
+    fig.tight_layout()
+    return (save_figure(fig, folder, "map_missing_effect", dpi=90),
+            "groups of pixels (by residual signature and parameters), each coloured by its catalog verdict: "
+            + html.escape(groups["summary"]))
+
+
+def comparison(before_path: Path, before_maps: dict, after_maps: dict) -> dict:
+    """The error over its noise floor before and after, per pixel and per group of the earlier result."""
+    from afmid.fit.uncertainty import FLOOR_FACTOR
+
+    def ratio(maps):
+        r = maps["cv_error"][0] / maps["cv_error_noise_floor"][0]
+        return np.where(maps["status"][0] < 2, r, np.nan)
+
+    before, after = ratio(before_maps), ratio(after_maps)
+    if before.shape != after.shape:
+        from afmid.errors import InputError
+
+        raise InputError(f"the earlier map result is {before.shape[0]}x{before.shape[1]} pixels, this one "
+                         f"{after.shape[0]}x{after.shape[1]}: not the same map", file=before_path)
+    groups = read_groups(before_path)
+    per_group = []
+    if groups is not None:
+        for g in groups["groups"]:
+            members = groups["labels"] == g["group"] - 1
+            per_group.append({"group": g["group"], "verdict": g["verdict"], "pixels": int(members.sum()),
+                              "median_before": float(np.nanmedian(before[members])),
+                              "median_after": float(np.nanmedian(after[members]))})
+    return {"before": str(before_path), "ratio_before": before, "ratio_after": after,
+            "model_limited_before": int(np.nansum(before > FLOOR_FACTOR)),
+            "model_limited_after": int(np.nansum(after > FLOOR_FACTOR)),
+            "median_before": float(np.nanmedian(before)), "median_after": float(np.nanmedian(after)),
+            "groups": per_group}
+
+
+def comparison_figure(folder: Path, compared: dict, extent) -> tuple[str, str]:
+    """Error over floor before | after on one (log) colour scale."""
+    from matplotlib.colors import LogNorm
+
+    plt = _plt()
+    both = np.concatenate([compared["ratio_before"].ravel(), compared["ratio_after"].ravel()])
+    both = both[np.isfinite(both) & (both > 0)]
+    norm = LogNorm(vmin=max(both.min(), 0.3), vmax=max(both.max(), 2.0)) if both.size else None
+    fig, axes = plt.subplots(1, 2, figsize=(10.0, 3.8), squeeze=False)
+    for ax, key, title in zip(axes[0], ("ratio_before", "ratio_after"), ("before", "after")):
+        image = ax.imshow(compared[key], extent=extent[0], cmap="viridis", norm=norm, interpolation="nearest")
+        fig.colorbar(image, ax=ax).set_label("cv error / noise floor (1: at the floor)")
+        ax.set_title(f"{title}: median {np.nanmedian(compared[key]):.2f}x the floor")
+        _axes_labels(ax, extent)
+    fig.tight_layout()
+    return (save_figure(fig, folder, "map_error_before_after", dpi=90),
+            f"error over its noise floor before ({html.escape(Path(compared['before']).name)}) and after (this "
+            "result), one colour scale")
+
+
+def comparison_lines(compared: dict) -> list[str]:
+    """The fall of the error in words: over the map and per group of the earlier result."""
+    lines = [f"error over its noise floor: median {compared['median_before']:.2f}x -> {compared['median_after']:.2f}x; "
+             f"model-limited pixels {compared['model_limited_before']} -> {compared['model_limited_after']}"]
+    for g in compared["groups"]:
+        lines.append(f"group {g['group']} of the earlier result ({g['verdict']}, {g['pixels']} pixels): median "
+                     f"{g['median_before']:.2f}x -> {g['median_after']:.2f}x the floor")
+    return lines
+
+
+def groups_html(groups: dict | None, compared: dict | None) -> str:
+    """The section of the page: the map's verdict, one sentence per group, and the fall of the error."""
+    parts = []
+    if groups is not None:
+        items = "".join(f"<li>{html.escape(g['sentence'])}</li>" for g in groups["groups"])
+        parts.append(f"<h2>Which effect is missing where</h2><p><b>{html.escape(groups['summary'])}</b></p>"
+                     f"<ul>{items}</ul><p><small>{html.escape(groups['method'])}</small></p>")
+    if compared is not None:
+        items = "".join(f"<li>{html.escape(line)}</li>" for line in comparison_lines(compared))
+        parts.append(f"<h2>Before and after</h2><ul>{items}</ul>")
+    return "".join(parts)
+
+
+def groups_summary(groups: dict | None, compared: dict | None) -> dict:
+    """The groups and the comparison for summary.json (no arrays)."""
+    out = {}
+    if groups is not None:
+        out["groups"] = {"summary": groups["summary"], "silhouette": groups["silhouette"], "method": groups["method"],
+                         "groups": groups["groups"]}
+    if compared is not None:
+        out["compared_with"] = {k: v for k, v in compared.items() if not k.startswith("ratio_")}
+    return out

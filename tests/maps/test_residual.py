@@ -1,0 +1,77 @@
+"""A map pixel's residual signature (afmid.maps.residual) is the single-trace diagnosis' breakdown
+(afmid.diagnosis.localize) of the same fit: computed from the fit in memory it must equal localize() of the run file
+that fit writes (the same period curves, written chunk by chunk and read back). A trace hiding viscoelasticity
+(tests/configs/hidden_viscoelastic.yaml, shortened) fitted with [dmt]: dissipative, in contact, far above its noise;
+fitted with [dmt, viscoelastic]: at its noise."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import yaml
+
+from afmid.maps.residual import CHARACTERS, REGIONS, ResidualView, signature_of, signature_of_fit
+from repo_paths import TEST_CONFIGS
+
+#: The residual's snr (its rms over the whole period against the noise of the average) with the viscous force in
+#: the model stays below this. (A first threshold of 5 for the model without it was wrong: measured 2.2 here, the
+#: residual sits in the contact part of the period only; its dissipative part is what localize finds significant.)
+COMPLETE_SNR = 3.0
+
+
+@pytest.fixture(scope="module")
+def fits(tmp_path_factory):
+    from afmid.cli import main
+    from afmid.config import build_config
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import load_run, write_run
+
+    folder = tmp_path_factory.mktemp("signature")
+    raw = yaml.safe_load((TEST_CONFIGS / "hidden_viscoelastic.yaml").read_text())
+    raw["simulate"]["periods"] = 20
+    raw["simulate"]["samples_per_period"] = 100
+    raw["simulate"]["steps_per_period"] = 1000
+    (folder / "run.yaml").write_text(yaml.safe_dump(raw))
+    assert main(["-q", "simulate", str(folder / "run.yaml"), "-o", str(folder / "t.h5")]) == 0
+    out = {}
+    for effects in (["dmt"], ["dmt", "viscoelastic"]):
+        raw["model"]["effects"] = effects
+        raw["data"] = {"path": str(folder / "t.h5")}
+        config = build_config(raw, source=folder / "run.yaml")
+        result = run_fit(config, uncertainty=False)
+        run = load_run(write_run(folder / f"{'_'.join(effects)}.h5", result, config))
+        out[tuple(effects)] = (result, run, config)
+    return out
+
+
+def test_the_signature_from_memory_equals_localize_of_the_run_file(fits):
+    from afmid.diagnosis.localize import localize
+
+    for result, run, config in fits.values():
+        local = localize(run)
+        view = ResidualView(result.periods, result.prep.blocks.harmonics, result.signal_rows, config,
+                            {"frequency": result.prep.drive.frequency})
+        for signature in (signature_of(view),
+                          signature_of_fit(result.prep, result.library, result.system, result.coef,
+                                           result.system.params, result.signal_rows, config)):
+            assert REGIONS[signature["residual_region"]] == local["region"]
+            assert CHARACTERS[signature["residual_character"]] == local["character"]
+            assert signature["residual_snr"] == pytest.approx(local["snr"], rel=1e-9)
+            share = local["dissipative_rms"] / (local["dissipative_rms"] + local["conservative_rms"])
+            assert signature["residual_dissipative_share"] == pytest.approx(share, rel=1e-9)
+
+
+def test_a_missing_viscous_force_is_dissipative_in_contact_and_the_complete_model_leaves_noise(fits):
+    result, _, config = fits[("dmt",)]
+    missing = signature_of_fit(result.prep, result.library, result.system, result.coef, result.system.params,
+                               result.signal_rows, config)
+    assert CHARACTERS[missing["residual_character"]] in ("dissipative", "mixed")
+    assert REGIONS[missing["residual_region"]] == "contact"
+    assert missing["residual_dissipative_share"] > 0.5
+    result, _, config = fits[("dmt", "viscoelastic")]
+    complete = signature_of_fit(result.prep, result.library, result.system, result.coef, result.system.params,
+                                result.signal_rows, config)
+    assert complete["residual_snr"] < COMPLETE_SNR and complete["residual_snr"] < missing["residual_snr"], (missing,
+                                                                                                          complete)
+    assert CHARACTERS[complete["residual_character"]] == "none" and math.isfinite(complete["residual_dissipative_share"])
