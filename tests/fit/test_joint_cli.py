@@ -10,6 +10,8 @@ import pytest
 import yaml
 from repo_paths import TEST_CONFIGS
 
+from tests.cli.test_run_file import documented_run_paths
+
 #: Short traces: 20 periods at 100 samples per period (the CLI path, not the accuracy, is tested here).
 SHORT = ["--set", "simulate.periods=20", "--set", "simulate.samples_per_period=100"]
 
@@ -70,6 +72,13 @@ def test_joint_fit_writes_the_shared_law_and_every_trace(traces, run_cli, tmp_pa
         e_star = h5["model/parameters/E_star"]
         assert np.isfinite(e_star[()]) and e_star.attrs["error"] > 0
         assert "shared" in h5["model"].attrs["joint"]
+        documented = documented_run_paths()
+        joint_datasets = [f"/joint/{k}" for k, v in g.items() if isinstance(v, h5py.Dataset)]
+        assert joint_datasets and all(p in documented for p in joint_datasets), joint_datasets
+        no_units = []
+        g.visititems(lambda name, obj: no_units.append(name) if isinstance(obj, h5py.Dataset)
+                     and "units" not in obj.attrs else None)
+        assert not no_units, no_units
     code, out, err = run_cli("report", run, "-o", tmp_path / "report", "--no-suggest")
     assert code == 0, err
     assert (tmp_path / "report" / "report.html").exists()
