@@ -11,11 +11,12 @@ weak-form rows are stacked into one regression:
 
 ``c`` (the catalog terms: the sample's law) is shared, the cantilever-side columns ``N_i`` (the drive, an
 offset, a drift) stay per trace; each trace's rows are whitened by its own predicted noise, so a noisy trace
-weighs less. The selection, the bootstrap (periods of all traces resampled together) and the read-out run on
-the stacked system. Each trace's rest separation (when not given per trace as ``sample.separation: [...]``)
-is profiled once on the joint residual (the others held), so that the separations agree with each other, then
-all are moved together to the joint minimum by Powell's method (:func:`minimise_separations`; a coordinate
-search crawled along the valley of their common shift); the library's shared decay lengths are profiled there.
+weighs less. The selection, the bootstrap (the periods of each trace resampled within it; the inclusion
+frequencies from resamples of all periods) and the read-out run on the stacked system. Each trace's rest
+separation (when not given per trace as ``sample.separation: [...]``) is found on the joint residual: a scan
+of their common shift, each re-minimised at every shift (:func:`scan_common_shift`: the single fits' start lies
+near a second valley), then Powell's method from the best (:func:`minimise_separations`; a coordinate search
+crawled along the valley of the common shift); the library's shared decay lengths are profiled there.
 Each separation's 1 sigma is its own profile's (the others held) and that of the common shift
 (:class:`SeparationShift`), in quadrature; both are propagated into the shared read-outs like a single fit's
 (refit at +-1 sigma, in quadrature).

@@ -82,7 +82,7 @@ def write_joint_run(path, result: JointResult, overwrite: bool = False) -> tuple
         g.attrs["meaning"] = ("one force law fitted to every trace: /model holds the shared coefficients and "
                               "parameters; /force, /periods, /diagnostics and /model/separation are trace 0's; "
                               "each trace's own in /joint/trace_<i>")
-        g.attrs["coordinate_rounds"] = result.rounds
+        g.attrs["search_evaluations"] = result.rounds
         traces = result.traces
         write_dataset(g, "paths", np.array([str(t.prep.trace.path) for t in traces]), "1")
         write_dataset(g, "sha256", np.array([t.prep.trace.sha256 or "" for t in traces]), "1")
