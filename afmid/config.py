@@ -247,7 +247,7 @@ class DriveConfig(StrictModel):
 
 
 class SampleConfig(StrictModel):
-    separation: PositiveFloat | list[PositiveFloat] | None = Field(
+    separation: PositiveFloat | None = Field(
         None, description="d, rest tip-sample separation, m; estimated by the fit if absent; with data.paths a "
         "list, one per trace in the same order"
     )
@@ -255,6 +255,15 @@ class SampleConfig(StrictModel):
     medium: Literal["air", "liquid"] = Field("air", description="which effects exist (afmid.physics.medium)")
     ionic_strength: PositiveFloat | None = Field(None, description="mol/L, 1:1 electrolyte: fixes the Debye length")
     temperature: PositiveFloat | None = Field(None, description="K, for the Debye length; default 298.15")
+
+    @field_validator("separation", mode="wrap")
+    @classmethod
+    def _one_per_trace(cls, value, handler):
+        # A list (data.paths: one per trace) is checked entry by entry like a single value; a union type would
+        # report a bad single value twice, once as "not a list".
+        if isinstance(value, (list, tuple)):
+            return [handler(v) for v in value]
+        return handler(value)
 
 
 class ModelConfig(StrictModel):
