@@ -146,11 +146,18 @@ def fit(
 
     refuse_placeholders(config, cfg)  # a template's example value (marked CHECK) is not a calibration
     trace_path = None if cfg.data.path is None else cfg.resolve_path(cfg.data.path)
-    check_output_path(output, overwrite, inputs={config: "the run config", trace_path: "the trace file, data.path"})
+    joint_paths = {cfg.resolve_path(p): f"a trace file, data.paths[{i}]" for i, p in enumerate(cfg.data.paths or [])}
+    check_output_path(output, overwrite, inputs={config: "the run config", trace_path: "the trace file, data.path",
+                                                 **joint_paths})
     from afmid.fit.pipeline import apply_effect_changes, run_fit
     from afmid.runfile import write_run
 
     apply_effect_changes(cfg, add_effects, remove_effects)
+    if cfg.data.paths is not None:  # several traces, one force law (afmid.fit.joint)
+        from afmid.fit.joint_output import fit_joint
+
+        fit_joint(cfg, output, overwrite, quiet=_state["quiet"], verbose=_state["verbose"] > 0)
+        return
     result = run_fit(cfg, progress=not _state["quiet"])
     write_run(output, result, cfg, overwrite=overwrite)
     from afmid.fit.plausibility import check_plausibility, violations

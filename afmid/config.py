@@ -108,6 +108,9 @@ class DataConfig(StrictModel):
     """Where the deflection trace is and how to read it."""
 
     path: Path | None = Field(None, description="trace file, relative to the config file")
+    paths: list[Path] | None = Field(
+        None, description="several trace files of one sample and one tip (e.g. set-points), fitted jointly: one "
+        "force law, a separation per trace (afmid.fit.joint); instead of data.path")
     format: str = Field("auto", description="auto (from the suffix), csv, npy, hdf5, mat, ibw, tdms")
     column: Annotated[str | int | None, _Column] = Field(
         None, description="CSV column / HDF5 dataset path / MAT variable (or a 0-based column index)")
@@ -134,6 +137,11 @@ class DataConfig(StrictModel):
         if self.column is not None and self.column == self.time_column:
             raise ValueError(f"data.time_column: names the same column as data.column ({self.column!r}): the "
                              "deflection cannot be its own time axis")
+        if self.paths is not None:  # afmid.fit.joint
+            if self.path is not None:
+                raise ValueError("data.paths: give data.path (one trace) or data.paths (a joint fit), not both")
+            if not self.paths:
+                raise ValueError("data.paths: the list is empty; give the trace files to fit jointly")
         if self.start is not None and self.stop is not None and self.stop <= self.start:
             raise ValueError(f"data.stop: {self.stop:g} s is not after data.start ({self.start:g} s)")
         return self
@@ -240,12 +248,22 @@ class DriveConfig(StrictModel):
 
 class SampleConfig(StrictModel):
     separation: PositiveFloat | None = Field(
-        None, description="d, rest tip-sample separation, m; estimated by the fit if absent"
+        None, description="d, rest tip-sample separation, m; estimated by the fit if absent; with data.paths a "
+        "list, one per trace in the same order"
     )
     a0: PositiveFloat = Field(0.165e-9, description="intermolecular distance, m")
     medium: Literal["air", "liquid"] = Field("air", description="which effects exist (afmid.physics.medium)")
     ionic_strength: PositiveFloat | None = Field(None, description="mol/L, 1:1 electrolyte: fixes the Debye length")
     temperature: PositiveFloat | None = Field(None, description="K, for the Debye length; default 298.15")
+
+    @field_validator("separation", mode="wrap")
+    @classmethod
+    def _one_per_trace(cls, value, handler):
+        # A list (data.paths: one per trace) is checked entry by entry like a single value; a union type would
+        # report a bad single value twice, once as "not a list".
+        if isinstance(value, (list, tuple)):
+            return [handler(v) for v in value]
+        return handler(value)
 
 
 class ModelConfig(StrictModel):
@@ -439,6 +457,21 @@ class RunConfig(StrictModel):
             problem = term_problem(text, self.fit.baseline)
             if problem:
                 raise ValueError(f"model.terms[{i}]: {problem}")
+        return self
+
+    @model_validator(mode="after")
+    def _separation_per_trace(self) -> "RunConfig":
+        separation, paths = self.sample.separation, self.data.paths
+        if isinstance(separation, list):
+            if paths is None:
+                raise ValueError("sample.separation: a list (one separation per trace) needs data.paths; with "
+                                 "data.path give one value")
+            if len(separation) != len(paths):
+                raise ValueError(f"sample.separation: {len(separation)} value(s) for {len(paths)} trace(s) in "
+                                 "data.paths; give one per trace, in the same order")
+        elif separation is not None and paths is not None and len(paths) > 1:
+            raise ValueError("sample.separation: one value for several traces in data.paths; give a list, one "
+                             "per trace in the same order (the traces are recorded at different separations)")
         return self
 
     @model_validator(mode="after")

@@ -95,9 +95,11 @@ def text(value, errors: str = "strict") -> str:
 
 
 # --------------------------------------------------------------------------- writer
-def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = False, root_attrs: dict | None = None):
+def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = False, root_attrs: dict | None = None,
+              extra=None):
     """Write the run file (layout: docs/file-formats.md); ``root_attrs`` are further root attributes (a batch's
-    resume key), written with the rest rather than by opening the file again."""
+    resume key), written with the rest rather than by opening the file again; ``extra(h5)`` writes further
+    groups into the same file before it appears (a joint fit's /joint, afmid.fit.joint_output)."""
     path = check_output_path(path, overwrite)
     trace = result.prep.trace
     inputs = {str(trace.path): trace.sha256} if trace.path else {}
@@ -239,6 +241,8 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         dg.attrs["n_implausible"] = len(implausible)
         if implausible:
             dg.attrs["implausible"] = implausible
+        if extra is not None:
+            extra(h5)
     plausibility.warn(verdicts)
     return path
 

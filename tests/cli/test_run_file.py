@@ -20,6 +20,9 @@ OPTIONAL = {  # written only with non-default settings
     "/model/drive/baseline_drift",
     # a calibrated drive (drive.phase): tests/fit/test_declared_drive.py writes and checks them
     "/model/drive/phase", "/model/drive/force_amplitude_uncertainty", "/model/drive/phase_uncertainty",
+    # a joint fit (data.paths): tests/fit/test_joint_cli.py writes and checks them
+    "/joint/paths", "/joint/sha256", "/joint/separation", "/joint/separation_error", "/joint/cv_error",
+    "/joint/cv_error_noise_floor", "/joint/model_limited",
 }
 
 
