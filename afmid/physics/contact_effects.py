@@ -88,7 +88,7 @@ STANDARD_LINEAR_SOLID = Effect(
     region=Region.CONTACT,
     notes="Exact (Lee-Radok) while the contact grows; on withdrawal the same hereditary integral is continued "
           "(Fung's quasi-linear viscoelasticity): the surface is taken to follow the tip down to delta = 0, so the "
-          "relaxing part pulls (up to (E_0 - E_inf) R^1.5 q at the contact edge) where Ting's solution for a "
+          "relaxing part pulls (4/3 sqrt(R) (E_0 - E_inf) R^1.5 q at the contact edge) where Ting's solution for a "
           "shrinking, non-adhesive contact would release the tip earlier; it is cut off at z = a0. Valid for small "
           "strains (delta << R) and a modulus ratio E_0 / E_inf not much above a few. tau much shorter than the "
           "contact time: the relaxed DMT contact (plus a Kelvin-Voigt-like 2 (E_0 - E_inf) tau sqrt(R delta) "
