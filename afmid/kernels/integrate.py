@@ -13,10 +13,10 @@ is checked; on a sign change the first crossing is located to 1e-12 of the step
 by regula falsi (Illinois) on RK4 sub-steps from the step start, the solution is
 advanced to just past it, gates are flipped there, and the rest of the step is
 integrated from that point. Gate values are frozen within a (sub-)step. A relaxing
-state (a lagging value, afmid.physics.effect_types.RelaxingState) is frozen too and
-advanced exactly at the end of every (sub-)step, its source taken linear over it:
-the force sees it half a step late, an O(h) error (T / 4000 at 2000 steps a
-period: a relative shift of its time constant tau of about (h / 2 tau) (1 + (w tau)^2)).
+state (a lagging value, afmid.physics.effect_types.RelaxingState) is advanced
+exactly at the end of every (sub-)step, its source taken linear over it; within
+the step the force programs extrapolate it linearly from there
+(afmid.simulate.model.compile_force_law), so the force's error is O(h^2).
 
 The module has two parts.
 

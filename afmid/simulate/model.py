@@ -298,6 +298,19 @@ def _state_conditions(state, params, slots):
     return [expr.compile_expression(f"[{cond}]", params, slots) for cond in (state.on, state.off)]
 
 
+def _relaxing_states_within_step(text: str, states) -> str:
+    """A term's text for the kernel: a relaxing state q, advanced exactly only at the ends of (sub-)steps, read
+    inside a step at t as q + (t - t_q) (g_q - q) / tau (its value and source at its last update t_q, the
+    kernel's bookkeeping slots): first order in (t - t_q), so the force's error over a step is O(h^2) (held at
+    q, the error was O(h): the state half a step late)."""
+    for state in states:
+        if isinstance(state, RelaxingState):
+            source, clock = (state.name + suffix for suffix in RELAXING_SLOTS)
+            text = re.sub(rf"\b{state.name}\b",
+                          f"({state.name} + (t - {clock}) * ({source} - {state.name}) / {state.time})", text)
+    return text
+
+
 def compile_force_law(law: ForceLaw) -> CompiledForceLaw:
     """Compile a force law's terms, switching functions and gate conditions."""
     params = dict(law.parameters)
@@ -316,6 +329,7 @@ def compile_force_law(law: ForceLaw) -> CompiledForceLaw:
                 switching[key] = (switching[key][0], -1)
 
     for _effect, _label, text, coefficient in law.terms:
+        text = _relaxing_states_within_step(text, law.states)
         terms.append(expr.compile_expression(text, params, states))
         coefficients.append(coefficient)
         add(expr.switching_programs(text, params, states), -1)
