@@ -89,10 +89,10 @@ def test_relaxing_solid_recovered(fitted, variant, separation, request):
     assert tau.unit == "s"
     found = {"relaxation_time": tau.value, "E_star": result.quantities["E_star"]["value"],
              "relaxing_modulus": result.quantities["relaxing_modulus"]["value"]}
-    print(f"\n{variant} {separation}: " + ", ".join(f"{k} {v / truth[k] - 1:+.2%}" for k, v in found.items())
-          + f", tau 1 sigma {tau.sigma / truth['relaxation_time']:.1%}, E_0 {(found['E_star'] + found['relaxing_modulus'])"
-          f" / (truth['E_star'] + truth['relaxing_modulus']) - 1:+.2%}, error {result.cv_error:.4f} (floor "
-          f"{result.cv_error_noise_floor:.4f})")
+    e0 = (found["E_star"] + found["relaxing_modulus"]) / (truth["E_star"] + truth["relaxing_modulus"]) - 1
+    errors = ", ".join(f"{k} {v / truth[k] - 1:+.2%}" for k, v in found.items())
+    print(f"\n{variant} {separation}: {errors}, tau 1 sigma {tau.sigma / truth['relaxation_time']:.1%}, E_0 {e0:+.2%}, "
+          f"error {result.cv_error:.4f} (floor {result.cv_error_noise_floor:.4f})")
     assert found["relaxation_time"] == pytest.approx(truth["relaxation_time"], rel=TAU_TOLERANCE), found
     assert found["E_star"] == pytest.approx(truth["E_star"], rel=MODULUS_TOLERANCE), found
     assert found["relaxing_modulus"] == pytest.approx(truth["relaxing_modulus"], rel=MODULUS_TOLERANCE), found
