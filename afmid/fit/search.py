@@ -40,7 +40,8 @@ def search_range(library: Library, name: str, medium: str = "air") -> SearchRang
     p = next(p for e in library.effects for p in EFFECTS.get(e).parameters if p.name == name)
     low, high = p.search_span(medium)
     first = max(low, 1e-12) if low > 0 else LOG_GRID_START
-    return SearchRange(name, first, min(high, LENGTH_SEARCH_MAX), p.unit, low == 0)
+    top = min(high, LENGTH_SEARCH_MAX) if p.unit == "m" else high  # a time (relaxation_time) keeps its range
+    return SearchRange(name, first, top, p.unit, low == 0)
 
 
 @dataclass

@@ -12,7 +12,11 @@ flips. RK4 loses its order across such an instant, so after each step every
 is checked; on a sign change the first crossing is located to 1e-12 of the step
 by regula falsi (Illinois) on RK4 sub-steps from the step start, the solution is
 advanced to just past it, gates are flipped there, and the rest of the step is
-integrated from that point. Gate values are frozen within a (sub-)step.
+integrated from that point. Gate values are frozen within a (sub-)step. A relaxing
+state (a lagging value, afmid.physics.effect_types.RelaxingState) is advanced
+exactly at the end of every (sub-)step, its source taken linear over it; within
+the step the force programs extrapolate it linearly from there
+(afmid.simulate.model.compile_force_law), so the force's error is O(h^2).
 
 The module has two parts.
 
@@ -109,6 +113,39 @@ def next_gate_state_at(state, on, off):
     return 0.0 if off != 0.0 else state
 
 
+# Below this step / time constant a relaxing state's weights come from their series.
+RELAXATION_SERIES_BELOW = 1e-4
+
+
+@_inline
+def next_relaxation_state_at(state, source_start, source_end, dt, time):
+    """A relaxing state after dt (s) with time constant ``time`` (s), the source linear from source_start to
+    source_end over dt: the numba twin of afmid.physics.kinematics.next_relaxation_state."""
+    u = dt / time
+    gain = -math.expm1(-u)
+    if u < RELAXATION_SERIES_BELOW:
+        w_end = u / 2.0 - u * u / 6.0
+    else:
+        w_end = 1.0 - gain / u
+    return math.exp(-u) * state + (gain - w_end) * source_start + w_end * source_end
+
+
+@_inline
+def start_relaxation_clocks(t, gates, cond_values):
+    """At the start of a run at t (s): the clock slot of every relaxing state to t.
+
+    A relaxing state takes three gate slots (value, source at its last update, time of that update) and is
+    marked by its second condition, minus its time constant (< 0; a gate's conditions are 0 or 1)."""
+    g = 0
+    while g < gates.size:
+        if cond_values[2 * g + 1] < 0.0:
+            gates[g + 1] = cond_values[2 * g]
+            gates[g + 2] = t
+            g += 3
+        else:
+            g += 1
+
+
 @_jit
 def drive_table(w, h, n):
     """cos (row 0) and sin (row 1) of the angles w (m h / 2), m = 0..2n (w rad/s, h s)."""
@@ -186,11 +223,23 @@ def update_gates(x, v, t, dyn, gates, law, work, cond_values):
         return False
     law_conditions(x, v, t, dyn, gates, law, work, cond_values)
     flipped = False
-    for g in range(gates.size):
+    g = 0
+    while g < gates.size:
+        if cond_values[2 * g + 1] < 0.0:  # a relaxing state (see start_relaxation_clocks): advanced to t
+            dt = t - gates[g + 2]
+            if dt > 0.0:
+                gates[g] = next_relaxation_state_at(gates[g], gates[g + 1], cond_values[2 * g], dt,
+                                                    -cond_values[2 * g + 1])
+                gates[g + 1] = cond_values[2 * g]
+                gates[g + 2] = t
+                flipped = True
+            g += 3
+            continue
         state = next_gate_state_at(gates[g], cond_values[2 * g], cond_values[2 * g + 1])
         if state != gates[g]:
             gates[g] = state
             flipped = True
+        g += 1
     return flipped
 
 
@@ -316,6 +365,9 @@ def integrate(x, v, t0, h, n_steps, n_sub, dyn, gates, law, owners, thermal, out
     record_force = out_f.size > 0
     has_thermal = thermal.size > 0
 
+    if n_gates > 0:
+        law_conditions(x, v, t0, dyn, gates, law, work, cond_values)
+        start_relaxation_clocks(t0, gates, cond_values)
     state[0] = law_full(x, v, t0, dyn, gates, law, work, s_tmp)
     for j in range(n_switch):
         state[1 + j] = s_tmp[j]

@@ -33,7 +33,8 @@ from afmid.kernels.integrate import (
     law_force,
     law_full,
     law_work,
-    next_gate_state_at,
+    start_relaxation_clocks,
+    update_gates,
 )
 
 _jit = njit(cache=True, error_model="numpy")
@@ -87,16 +88,8 @@ def rk4_modes(x, v, t, h, f_start, f_thermal, dyn, modes, gates, law, work, tmp,
 
 @_jit
 def _update_gates(x, v, t, dyn, gates, law, work, cond_values):
-    if gates.size == 0:
-        return False
-    law_conditions(x, v, t, dyn, gates, law, work, cond_values)
-    flipped = False
-    for g in range(gates.size):
-        state = next_gate_state_at(gates[g], cond_values[2 * g], cond_values[2 * g + 1])
-        if state != gates[g]:
-            gates[g] = state
-            flipped = True
-    return flipped
+    """The single-mode kernel's gate update (flips, relaxing states) at the tip's (x, v, t)."""
+    return update_gates(x, v, t, dyn, gates, law, work, cond_values)
 
 
 @_jit
@@ -163,6 +156,9 @@ def integrate_modes(x, v, t0, h, n_steps, n_sub, dyn, modes, gates, law, owners,
     s_end, s_tmp = np.empty(n_switch), np.empty(n_switch)
     cond_values = np.empty(2 * n_gates)
     has_thermal = thermal.size > 0
+    if n_gates > 0:
+        law_conditions(x.sum(), v.sum(), t0, dyn, gates, law, work, cond_values)
+        start_relaxation_clocks(t0, gates, cond_values)
     state[0] = law_full(x.sum(), v.sum(), t0, dyn, gates, law, work, s_tmp)
     for j in range(n_switch):
         state[1 + j] = s_tmp[j]

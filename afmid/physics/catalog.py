@@ -6,6 +6,7 @@ import json
 
 from afmid.fit.plausibility import range_words
 from afmid.physics.effect_tags import TERM_ROLES
+from afmid.physics.effect_types import RelaxingState
 from afmid.physics.effects import EFFECTS, MODELS, coefficient_unit, quantity_range, term_unit
 from afmid.physics.tips import TIP_SHAPES
 from afmid.registry import unknown_name_message
@@ -31,7 +32,8 @@ def effect_record(name: str) -> dict:
              "coefficient_unit": str(coefficient_unit(effect, t)), "roles": list(t.roles)}
             for t in effect.terms
         ],
-        "states": [{"name": s.name, "on": s.on, "off": s.off} for s in effect.states],
+        "states": [{"name": s.name, "source": s.source, "time": s.time} if isinstance(s, RelaxingState)
+                   else {"name": s.name, "on": s.on, "off": s.off} for s in effect.states],
         "quantities": [
             {"name": q.name, "unit": q.unit, "doc": q.doc, "plausible_range": list(quantity_range(effect, q))}
             for q in effect.quantities
@@ -116,7 +118,8 @@ def describe_effects(names: list[str], models: bool = False, as_json: bool = Fal
                 role = "".join(f"; {TERM_ROLES[r]}" for r in t["roles"])
                 lines.append(f"  term  {t['label']}: {t['expression']}  (coefficient in {t['coefficient_unit']}{role})")
             for s in r["states"]:
-                lines.append(f"  state {s['name']}: on when {s['on']}, off when {s['off']}")
+                lines.append(f"  state {s['name']}: lags {s['source']} with time constant {s['time']}" if "source" in s
+                             else f"  state {s['name']}: on when {s['on']}, off when {s['off']}")
             for q in r["quantities"]:
                 low, high = q["plausible_range"]
                 plausible = range_words(low, high, q["unit"])

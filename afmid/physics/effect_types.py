@@ -101,6 +101,34 @@ class StateGate:
 
 
 @dataclass(frozen=True)
+class RelaxingState:
+    """A continuous history state used in terms by its ``name``: the dimensionless ``source`` (an expression of
+    the trajectory) seen through a first-order lag of time constant ``time`` (the name of a parameter, s)::
+
+        d(state)/dt = (source - state) / time
+
+    e.g. the relaxing part of a standard linear solid's contact force. Scanned along a trajectory with the source
+    taken linear in time between samples (exact for that; :func:`afmid.physics.kinematics.next_relaxation_state`);
+    it starts relaxed (state = source) where no earlier value is known.
+    """
+
+    name: str
+    source: str
+    time: str
+
+
+#: A state an effect carries through the period: a boolean gate or a relaxing (lagging) value.
+State = StateGate | RelaxingState
+
+
+def state_expressions(state: State) -> str:
+    """One expression naming everything a state uses (for the names a library must know)."""
+    if isinstance(state, RelaxingState):
+        return f"({state.source}) * {state.time}"
+    return f"[{state.on}] * [{state.off}]"
+
+
+@dataclass(frozen=True)
 class Effect:
     name: str
     title: str
@@ -110,7 +138,7 @@ class Effect:
     quantities: tuple[Quantity, ...]
     readout: Callable[[Mapping[str, float], Mapping[str, float]], dict[str, float]]
     references: tuple[str, ...]
-    states: tuple[StateGate, ...] = ()
+    states: tuple[State, ...] = ()
     character: Character = Character.CONSERVATIVE  # guides the diagnosis
     region: Region = Region.CONTACT  # where it acts
     notes: str = ""
@@ -204,6 +232,9 @@ def validate_effect(effect: Effect) -> None:
     for term in effect.terms + effect.readout_only_terms:
         _validate_term(effect, term, units, values)
     for gate in effect.states:
+        if isinstance(gate, RelaxingState):
+            _validate_relaxing_state(effect, gate, units, state_names)
+            continue
         for cond in (gate.on, gate.off):
             expr.expression_units(f"[{cond}]", units, states=state_names)
     # The readout must invert the coefficients at the defaults.
@@ -226,6 +257,20 @@ def validate_effect(effect: Effect) -> None:
             if not math.isclose(with_extra.get(name, math.nan), value, rel_tol=1e-9):
                 raise DefinitionError(f"readout of {name} changes with the read-out-only terms at the defaults "
                                       f"({value!r} -> {with_extra.get(name)!r})")
+
+
+def _validate_relaxing_state(effect: Effect, state: RelaxingState, units: Mapping[str, Unit],
+                             state_names: tuple[str, ...]) -> None:
+    """A relaxing state's source is dimensionless, free of states, and its time a nonlinear parameter in s."""
+    source_unit = expr.expression_units(state.source, units, states=())
+    if source_unit != parse_unit("1"):
+        raise DefinitionError(f"state {state.name}: source {state.source!r} is in {source_unit}, not dimensionless")
+    try:
+        time = effect.parameter(state.time)
+    except KeyError:
+        raise DefinitionError(f"state {state.name}: time {state.time!r} is not a parameter of {effect.name}") from None
+    if parse_unit(time.unit) != parse_unit("s") or not time.nonlinear or time.low <= 0:
+        raise DefinitionError(f"state {state.name}: time {state.time!r} must be a nonlinear parameter in s, > 0")
 
 
 def quantity_range(effect: Effect, quantity: Quantity) -> tuple[float, float]:

@@ -25,7 +25,7 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from afmid.physics.contact_effects import CONTACT_DAMPING
+from afmid.physics.contact_effects import CONTACT_DAMPING, STANDARD_LINEAR_SOLID
 from afmid.physics.liquid_effects import DOUBLE_LAYER
 from afmid.physics.effect_types import (BOLTZMANN, CHECK_CONTEXT, CONTEXT_UNITS, EFFECTS, EPSILON_0, MODELS, NEWTON,
                                         Effect, Model, Parameter, Quantity, StateGate, Term, coefficient_unit,
@@ -324,6 +324,7 @@ EFFECTS.register(
 
 EFFECTS.register(CONTACT_DAMPING)
 EFFECTS.register(DOUBLE_LAYER)
+EFFECTS.register(STANDARD_LINEAR_SOLID)
 
 
 # =========================================================================== models

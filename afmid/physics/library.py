@@ -20,9 +20,10 @@ import numpy as np
 
 import afmid.physics.expr as expr
 from afmid.errors import ConfigError
-from afmid.physics.kinematics import contact_kinematics, next_gate_state
+from afmid.physics.kinematics import contact_kinematics, next_gate_state, next_relaxation_state
 from afmid.physics.effect_tags import SELECTION_RULES, Role
-from afmid.physics.effects import CONTEXT_UNITS, EFFECTS, StateGate, coefficient_unit, effect_parameter_names, term_unit
+from afmid.physics.effect_types import RelaxingState, State, state_expressions
+from afmid.physics.effects import CONTEXT_UNITS, EFFECTS, coefficient_unit, effect_parameter_names, term_unit
 from afmid.physics.presets import PRESETS
 from afmid.physics.tips import SPHERE, SPHERE_POWER, TipGeometry, shaped_effect
 from afmid.registry import unknown_name_message
@@ -48,7 +49,7 @@ class Library:
     """Candidate terms plus what evaluating them needs (states, nonlinear parameters)."""
 
     terms: list[LibraryTerm]
-    states: tuple[StateGate, ...] = ()
+    states: tuple[State, ...] = ()  # gates and relaxing states, scanned along the trajectory
     effects: tuple[str, ...] = ()  # effects whose read-out applies
     nonlinear: dict[str, float] = field(default_factory=dict)  # default values, SI
     source: str = ""
@@ -96,6 +97,9 @@ class Library:
         programs = [expr.compile_expression(t.expression, dict(params), states) for t in self.terms]
         gates = []
         for gate in self.states:
+            if isinstance(gate, RelaxingState):  # (its source, its time constant in s)
+                gates.append((expr.compile_expression(gate.source, dict(params), states), float(params[gate.time])))
+                continue
             gates.append((
                 expr.compile_expression(f"[{gate.on}]", dict(params), states),
                 expr.compile_expression(f"[{gate.off}]", dict(params), states),
@@ -146,11 +150,13 @@ class Library:
         return bool(finite), bool(any_zero)
 
     def states_along(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
-                     backend: str = "numba") -> np.ndarray:
-        """The state gates (n_states, N), 0 or 1, scanned along a trajectory."""
+                     backend: str = "numba", initial: np.ndarray | None = None) -> np.ndarray:
+        """The states (n_states, N) scanned along a trajectory: gates 0 or 1, relaxing states their values.
+        ``initial`` (n_states,): the relaxing states' values at the first sample where known (NaN or None:
+        relaxed there, state = source); gates always start from their conditions at the first sample."""
         variables = trajectory_variables(x, xdot, t, params["d"], params["a0"], len(self.states))
         if self.states:
-            _fill_states(variables, self.compile(params)[1], backend)
+            _fill_states(variables, self.compile(params)[1], backend, initial)
         return variables[len(expr.VARIABLES):]
 
     def states_from(self, initial: np.ndarray, x: np.ndarray, xdot: np.ndarray, t: np.ndarray,
@@ -160,9 +166,21 @@ class Library:
         m, S = x.shape
         variables = trajectory_variables(x.ravel(), xdot.ravel(), t.ravel(), params["d"], params["a0"], len(self.states))
         out = np.empty((len(self.states), m, S))
-        for k, (on_prog, off_prog) in enumerate(self.compile(params)[1]):
-            on = expr.evaluate_numpy(on_prog, variables).reshape(m, S) != 0
-            off = expr.evaluate_numpy(off_prog, variables).reshape(m, S) != 0
+        for k, (first, second) in enumerate(self.compile(params)[1]):
+            if isinstance(self.states[k], RelaxingState):
+                # ``initial`` (the value at the sample before each short trajectory) is taken as the value at its
+                # first sub-sample, then stepped exactly: an O(h) error in the two cells a contact switches in.
+                source = expr.evaluate_numpy(first, variables).reshape(m, S)
+                tt = t.reshape(m, S)
+                state = initial[k].astype(float)
+                out[k, :, 0] = state
+                for j in range(1, S):
+                    state = next_relaxation_state(state, source[:, j - 1], source[:, j], tt[:, j] - tt[:, j - 1],
+                                                  second)
+                    out[k, :, j] = state
+                continue
+            on = expr.evaluate_numpy(first, variables).reshape(m, S) != 0
+            off = expr.evaluate_numpy(second, variables).reshape(m, S) != 0
             state = initial[k].astype(float)
             for j in range(S):
                 state = next_gate_state(state, on[:, j], off[:, j])
@@ -181,11 +199,21 @@ def trajectory_variables(x, xdot, t, d: float, a0: float, n_states: int = 0) -> 
     return v
 
 
-def _fill_states(variables: np.ndarray, gates, backend: str) -> None:
-    from afmid.kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy
+def _fill_states(variables: np.ndarray, gates, backend: str, initial: np.ndarray | None = None) -> None:
+    from afmid.kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy, scan_relaxation, scan_relaxation_numpy
 
     base = len(expr.VARIABLES)
     for k, (on_prog, off_prog) in enumerate(gates):
+        if not isinstance(off_prog, expr.Program):  # a relaxing state: (source, time constant in s)
+            source = expr.evaluate_numpy(on_prog, variables)
+            start = source[0] if initial is None or not np.isfinite(initial[k]) else float(initial[k])
+            if backend == "numba":
+                out = np.empty_like(source)
+                scan_relaxation(source, variables[6], off_prog, start, out)
+            else:
+                out = scan_relaxation_numpy(source, variables[6], off_prog, start)
+            variables[base + k] = out
+            continue
         on = expr.evaluate_numpy(on_prog, variables)
         off = expr.evaluate_numpy(off_prog, variables)
         if backend == "numba":
@@ -226,7 +254,7 @@ def build_library(model_config, source=None, tip: TipGeometry = SPHERE) -> Libra
     its elastic contact terms following the ``tip``'s contact law (``cantilever.tip_shape``)."""
 
     terms: list[LibraryTerm] = []
-    states: list[StateGate] = []
+    states: list[State] = []
     nonlinear: dict[str, float] = {}
     param_units: dict[str, str] = {}
     if model_config.library is not None:
@@ -283,14 +311,13 @@ def build_library(model_config, source=None, tip: TipGeometry = SPHERE) -> Libra
     for term in terms:
         used |= expr.free_names(term.expression)
     for gate in states:
-        used |= expr.free_names(f"[{gate.on}] * [{gate.off}]")
-    states = [g for g in states if any(f"[{g.name}]" in t.expression.replace(" ", "") or
-                                       f"not{g.name}" in t.expression.replace(" ", "") for t in terms)]
+        used |= expr.free_names(state_expressions(gate))
+    states = [g for g in states if any(g.name in expr.free_names(t.expression) for t in terms)]
     used = set()
     for term in terms:
         used |= expr.free_names(term.expression)
     for gate in states:
-        used |= expr.free_names(f"[{gate.on}] * [{gate.off}]")
+        used |= expr.free_names(state_expressions(gate))
     nonlinear = {k: v for k, v in nonlinear.items() if k in used}
     for name, value in model_config.parameters.items():
         if name not in nonlinear:

@@ -27,6 +27,7 @@ from afmid.config import RunConfig
 from afmid.errors import ConfigError
 from afmid.physics.kinematics import contact_kinematics
 import afmid.physics.medium as medium
+from afmid.physics.effect_types import RelaxingState
 from afmid.physics.effects import CONTEXT_UNITS, MODELS, ForceLaw, build_force_law, effect_parameter_names
 from afmid.physics.tips import tip_geometry
 from afmid.registry import unknown_name_message
@@ -247,7 +248,8 @@ class CompiledForceLaw:
 
     @property
     def n_gates(self) -> int:
-        return len(self.law.states)
+        """Gate slots: one per gate, three per relaxing state (:func:`gate_slot_names`)."""
+        return len(gate_slot_names(self.law.states))
 
     def vm_law(self) -> tuple:
         """The ``law`` argument of the generic (VM) kernel: (force bundle, terms + switching bundle,
@@ -274,10 +276,45 @@ def _bundle(programs) -> tuple:
     return (s.code, s.code_offsets, s.consts, s.const_offsets)
 
 
+#: The slots a relaxing state takes after its value: its source at its last update and the time of that update.
+RELAXING_SLOTS = ("__source", "__clock")
+
+
+def gate_slot_names(states) -> tuple[str, ...]:
+    """The kernel's gate slots of a law's states: a gate's name; a relaxing state's name and its two bookkeeping
+    slots (:func:`afmid.kernels.integrate.start_relaxation_clocks`), which no term reads."""
+    return tuple(name for s in states
+                 for name in ((s.name, *(s.name + suffix for suffix in RELAXING_SLOTS))
+                              if isinstance(s, RelaxingState) else (s.name,)))
+
+
+def _state_conditions(state, params, slots):
+    """A state's (program, kind-of-condition text) pairs for the kernel: a gate's on and off conditions; a
+    relaxing state's source and minus its time constant (the kernel's marker), then two idle pairs."""
+    if isinstance(state, RelaxingState):
+        idle = expr.compile_expression("0", params, slots)
+        return [expr.compile_expression(state.source, params, slots),
+                expr.compile_expression(f"-{state.time}", params, slots), idle, idle, idle, idle]
+    return [expr.compile_expression(f"[{cond}]", params, slots) for cond in (state.on, state.off)]
+
+
+def _relaxing_states_within_step(text: str, states) -> str:
+    """A term's text for the kernel: a relaxing state q, advanced exactly only at the ends of (sub-)steps, read
+    inside a step at t as q + (t - t_q) (g_q - q) / tau (its value and source at its last update t_q, the
+    kernel's bookkeeping slots): first order in (t - t_q), so the force's error over a step is O(h^2) (held at
+    q, the error was O(h): the state half a step late)."""
+    for state in states:
+        if isinstance(state, RelaxingState):
+            source, clock = (state.name + suffix for suffix in RELAXING_SLOTS)
+            text = re.sub(rf"\b{state.name}\b",
+                          f"({state.name} + (t - {clock}) * ({source} - {state.name}) / {state.time})", text)
+    return text
+
+
 def compile_force_law(law: ForceLaw) -> CompiledForceLaw:
     """Compile a force law's terms, switching functions and gate conditions."""
     params = dict(law.parameters)
-    states = law.state_names
+    states = gate_slot_names(law.states)
     terms, coefficients = [], []
     switching: dict[tuple[bytes, bytes], tuple[expr.Program, int]] = {}
 
@@ -292,6 +329,7 @@ def compile_force_law(law: ForceLaw) -> CompiledForceLaw:
                 switching[key] = (switching[key][0], -1)
 
     for _effect, _label, text, coefficient in law.terms:
+        text = _relaxing_states_within_step(text, law.states)
         terms.append(expr.compile_expression(text, params, states))
         coefficients.append(coefficient)
         add(expr.switching_programs(text, params, states), -1)
@@ -299,9 +337,12 @@ def compile_force_law(law: ForceLaw) -> CompiledForceLaw:
             # delta = max(a0 - z, 0) and deltadot kink at contact, out of sight of the term's text.
             add(expr.switching_programs("[z <= a0]", params, states), -1)
     conditions = []
-    for g, gate in enumerate(law.states):
+    for gate in law.states:
+        g = len(conditions) // 2
+        conditions.extend(_state_conditions(gate, params, states))
+        if isinstance(gate, RelaxingState):
+            continue  # a lagging value: nothing switches
         for kind, cond in enumerate((gate.on, gate.off)):
-            conditions.append(expr.compile_expression(f"[{cond}]", params, states))
             add(expr.switching_programs(f"[{cond}]", params, states), 2 * g + kind)
     return CompiledForceLaw(
         law=law,
@@ -338,5 +379,13 @@ def force_numpy(compiled: CompiledForceLaw, x, v, t, d: float, gates) -> np.ndar
 def initial_gates(compiled: CompiledForceLaw, x: float, v: float, t: float, d: float) -> np.ndarray:
     """Gate values at the start: off unless the on-condition holds there."""
     variables = program_variables(x, v, t, d, compiled.law.parameters["a0"], np.zeros(compiled.n_gates))
-    return np.array([float(expr.evaluate_numpy(compiled.conditions[2 * g], variables)[0] != 0.0)
-                     for g in range(compiled.n_gates)])
+    first = [float(expr.evaluate_numpy(compiled.conditions[2 * g], variables)[0]) for g in range(compiled.n_gates)]
+    values, g = [], 0
+    for state in compiled.law.states:
+        if isinstance(state, RelaxingState):  # relaxed: its source's value (the clock slots are set by the kernel)
+            values += [first[g], first[g], t]
+            g += 3
+        else:
+            values.append(float(first[g] != 0.0))
+            g += 1
+    return np.array(values)

@@ -104,15 +104,16 @@ def test_console_script_exit_code(tmp_path):
 
 
 # --------------------------------------------------------------------------- effects
-def test_effects_lists_all_eleven_and_the_tip_shapes(run_cli):
+def test_effects_lists_all_twelve_and_the_tip_shapes(run_cli):
     code, out, _ = run_cli("effects")
     assert code == 0
     catalog, tips = out.split("\nTip shapes (cantilever.tip_shape")
     names = [line.split(":")[0] for line in catalog.splitlines() if line and not line.startswith(" ")]
     assert names == EFFECTS.names()
-    assert len(names) == 11
+    assert len(names) == 12
     assert set(names) == {"dmt", "lennard_jones", "jkr", "viscoelastic", "exponential_damping", "electrostatic",
-                          "capillary", "hydration", "squeeze_film", "contact_damping", "double_layer"}
+                          "capillary", "hydration", "squeeze_film", "contact_damping", "double_layer",
+                          "standard_linear_solid"}
     assert "force (repulsive +):" in out and "param E_star [Pa]" in out
     shapes = [line.split(":")[0] for line in tips.splitlines()[1:] if line and not line.startswith(" ")]
     assert shapes == ["sphere", "cone", "pyramid", "flat_punch"]
