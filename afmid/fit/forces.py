@@ -61,6 +61,20 @@ def _power(F: np.ndarray, harmonics: np.ndarray) -> np.ndarray:
     return np.sum(w * F**2, axis=-1)
 
 
+def fold_error_sums(free: np.ndarray, model: np.ndarray, sigma: np.ndarray, held_out: np.ndarray,
+                    rows: np.ndarray, harmonics: np.ndarray) -> tuple[float, float, float]:
+    """One held-out fold's sums behind :func:`force_cv_error` (N^2, Parseval over the drive harmonics): the misfit
+    |F_free - F_model|^2, the signal |F_free - mean|^2 and the expected noise (``sigma``^2), over the ``rows``
+    where the held-out average ``free`` stands 3 ``held_out`` sigma above its noise (cos and sin of a harmonic
+    together)."""
+    keep = rows & (np.abs(free) > 3 * held_out)
+    for n in np.unique(harmonics[keep]):  # cos and sin of a harmonic together
+        keep[harmonics == n] = True
+    h = harmonics[keep]
+    ac = np.where(h == 0, 0.0, free[keep])
+    return _power((free - model)[keep], h), _power(ac, h), _power(sigma[keep], h)
+
+
 def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.ndarray, folds: int):
     """Normalised cross-validated force error over held-out periods (0 = perfect, 1 = a constant force).
 
@@ -92,17 +106,11 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
         columns = np.concatenate([system.theta[test].mean(axis=0), prep.nuisance[test].mean(axis=0)], axis=1)
         held_out = prep.row_sigma / math.sqrt(test.size)
         sigma = np.sqrt(held_out**2 + prediction_variance(trained, mask, columns))
-        keep = rows & (np.abs(free) > 3 * held_out)
-        for n in np.unique(harmonics[keep]):  # cos and sin of a harmonic together
-            keep[harmonics == n] = True
-        h = harmonics[keep]
-        n_f = _power((free - model)[keep], h)
-        ac = np.where(h == 0, 0.0, free[keep])
-        d_f = _power(ac, h)
+        n_f, d_f, noise_f = fold_error_sums(free, model, sigma, held_out, rows, harmonics)
         per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
         num += n_f
         den += d_f
-        noise += _power(sigma[keep], h)
+        noise += noise_f
     if den <= 0:
         return math.nan, np.asarray(per_fold), math.nan
     return math.sqrt(num / den), np.asarray(per_fold), math.sqrt(noise / den)

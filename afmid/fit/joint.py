@@ -37,14 +37,15 @@ import numpy as np
 import afmid.fit.regression as regression
 from afmid.config import RunConfig
 from afmid.errors import AfmidError, ConfigError, InputError
-from afmid.fit.forces import prediction_variance, read_out, signal_rows
+from afmid.fit.forces import fold_error_sums, prediction_variance, read_out, signal_rows
 from afmid.fit.pipeline import FitResult, profile_library, run_fit, whole_effects
 from afmid.fit.prepare import Prepared
 from afmid.fit.profile import GroupedProfile, robust_profile
 from afmid.fit.search import NonlinearEstimate
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.system import System, build_system, library_columns
-from afmid.fit.uncertainty import mark_model_limited, model_limited, model_limited_warning, widen_interval
+from afmid.fit.uncertainty import (add_half_difference, mark_model_limited, model_limited, model_limited_warning,
+                                   widen_interval)
 from afmid.fit.undetermined import mark as mark_undetermined
 from afmid.io.files import check_input_file
 from afmid.io.trace import Trace, load_trace
@@ -592,10 +593,7 @@ def _propagate(quantities: dict, columns: _Columns, directions: list, mask: np.n
             coef, _ = regression.subset_fit(regression.combine(joint.T_blocks), mask)
             shifted.append(read_out(library, coef, None, replaced.get(0, first.params), mask, first.prep.trace))
         if len(shifted) == 2:
-            for k in quantities:
-                delta = 0.5 * (shifted[0].get(k, {}).get("value", math.nan) - shifted[1].get(k, {}).get("value", math.nan))
-                if math.isfinite(delta):
-                    extra[k] += delta**2
+            add_half_difference(extra, *shifted)
     for k, q in quantities.items():
         widen_interval(q, math.sqrt(extra[k]))
 
@@ -642,21 +640,11 @@ def trace_cv_error(joint: JointSystem, prep: Prepared, system: System, mask: np.
         held_out = prep.row_sigma / math.sqrt(test.size)
         sigma = np.sqrt(held_out**2 + prediction_variance(trained, mask, cols))
         rows = signal_rows(prep, system, trace_coefficients(joint, coef, i, p))
-        keep = rows & (np.abs(free) > 3 * held_out)
-        for h in np.unique(harmonics[keep]):
-            keep[harmonics == h] = True
-        h = harmonics[keep]
-        n_f = _power((free - model)[keep], h)
-        d_f = _power(np.where(h == 0, 0.0, free[keep]), h)
+        n_f, d_f, noise_f = fold_error_sums(free, model, sigma, held_out, rows, harmonics)
         per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
         num += n_f
         den += d_f
-        noise += _power(sigma[keep], h)
+        noise += noise_f
     if den <= 0:
         return math.nan, np.asarray(per_fold), math.nan
     return math.sqrt(num / den), np.asarray(per_fold), math.sqrt(noise / den)
-
-
-def _power(F: np.ndarray, harmonics: np.ndarray) -> np.ndarray:
-    w = np.where(harmonics == 0, 1.0, 0.5)
-    return np.sum(w * F**2, axis=-1)

@@ -49,7 +49,7 @@ from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
 from afmid.fit.declared_drive import declared_drive, propagate_drive_calibration, with_declared_drive
 from afmid.preprocess.motion import fit_warning as motion_warning
-from afmid.fit.uncertainty import finish as finish_uncertainty, widen_interval
+from afmid.fit.uncertainty import add_half_difference, finish as finish_uncertainty, widen_interval
 from afmid.fit.undetermined import mark as mark_undetermined
 from afmid.progress import Progress
 from afmid.fit.separation_share import NOT_COMPUTED as SHARE_NOT_COMPUTED, SeparationShare, separation_share
@@ -472,10 +472,7 @@ def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params
             coef, _ = regression.subset_fit(regression.combine(system.T_blocks), mask)
             shifted.append(read_out(library, coef, None, trial, mask, trace))
         if len(shifted) == 2:
-            for k in quantities:
-                delta = 0.5 * (shifted[0].get(k, {}).get("value", math.nan) - shifted[1].get(k, {}).get("value", math.nan))
-                if math.isfinite(delta):
-                    extra[k] += delta**2
+            add_half_difference(extra, *shifted)
     for k, q in quantities.items():
         widen_interval(q, math.sqrt(extra[k]))
 

@@ -202,12 +202,18 @@ def shift_variance(quantities: dict, shifts: list, read_out_at) -> dict[str, flo
     squared half-difference of the read-outs ``read_out_at(coefficients)`` (units of each quantity, squared)."""
     variance = dict.fromkeys(quantities, 0.0)
     for plus, minus in shifts:
-        up, down = read_out_at(plus), read_out_at(minus)
-        for k in quantities:
-            delta = 0.5 * (up.get(k, {}).get("value", math.nan) - down.get(k, {}).get("value", math.nan))
-            if math.isfinite(delta):
-                variance[k] += delta**2
+        add_half_difference(variance, read_out_at(plus), read_out_at(minus))
     return variance
+
+
+def add_half_difference(variance: dict[str, float], up: dict, down: dict) -> None:
+    """Add to ``variance[k]`` (in place, for each of its keys) the squared half-difference of read-out ``k``
+    between two read-outs at +-1 sigma of one input (``up``, ``down``: read-out dicts); a quantity missing or
+    not finite in either adds nothing."""
+    for k in variance:
+        delta = 0.5 * (up.get(k, {}).get("value", math.nan) - down.get(k, {}).get("value", math.nan))
+        if math.isfinite(delta):
+            variance[k] += delta**2
 
 
 def widen_interval(q: dict, sigma: float) -> None:
