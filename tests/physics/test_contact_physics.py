@@ -22,13 +22,13 @@ Measured: docs/accuracy.md, "Tip shapes and contact damping" (c_d -4.6 .. +0.8 %
 
 from __future__ import annotations
 
-import copy
 import json
 import math
 
 import numpy as np
 import pytest
 from repo_paths import TEST_CONFIGS
+from unknown_separation import diagnose_simulated
 
 from afmid.config import apply_overrides, build_config, dump_config, load_config, parse_override, read_yaml
 from afmid.errors import ConfigError
@@ -236,32 +236,14 @@ def test_modulus_recovered_with_the_tip_shape(fitted, shape, variant):
 @pytest.fixture(scope="module")
 def diagnosed(tmp_path_factory):
     """``diagnosed(config_name, separation_given, periods)`` -> suggest summary of a [dmt] fit of the hidden-effect trace."""
-    from afmid.diagnosis.diagnose import load_run, suggest
-    from afmid.fit.pipeline import run_fit
-    from afmid.io.trace import write_trace_file
-    from afmid.runfile import write_run
-    from afmid.simulate.driver import simulate
-
     folder = tmp_path_factory.mktemp("contact_diagnosis")
     cache: dict = {}
 
     def get(name: str, separation_given: bool = True, periods: int = 50):
         key = (name, separation_given, periods)
         if key not in cache:
-            raw = apply_overrides(read_yaml(CONFIGS / f"{name}.yaml"),
-                                  [parse_override("fit.bootstrap=0"), parse_override(f"simulate.periods={periods}")])
-            sim = build_config(raw, source=folder / f"{name}.yaml", base_dir=folder)
-            trace_path = folder / f"{name}_{separation_given}_{periods}.h5"
-            write_trace_file(trace_path, simulate(sim), dump_config(sim))
-            fit_raw = copy.deepcopy(raw)
-            fit_raw["data"] = {"path": str(trace_path)}
-            fit_raw["simulate"]["parameters"] = {}
-            if not separation_given:
-                fit_raw["sample"].pop("separation")
-            config = build_config(fit_raw, source=folder / f"{name}.yaml", base_dir=folder)
-            run_path = folder / f"{name}_{separation_given}_{periods}.run.h5"
-            write_run(run_path, run_fit(config, uncertainty=False), config)
-            cache[key] = suggest(load_run(run_path))
+            raw = apply_overrides(read_yaml(CONFIGS / f"{name}.yaml"), [parse_override(f"simulate.periods={periods}")])
+            cache[key], _ = diagnose_simulated(folder, raw, separation_given, stem=f"{name}_{separation_given}_{periods}")
         return cache[key]
 
     return get

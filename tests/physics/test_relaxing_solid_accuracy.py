@@ -17,12 +17,12 @@ Measured: docs/accuracy.md, "A relaxing solid".
 
 from __future__ import annotations
 
-import copy
 
 import pytest
 from repo_paths import TEST_CONFIGS
+from unknown_separation import diagnose_simulated
 
-from afmid.config import apply_overrides, build_config, dump_config, load_config, parse_override, read_yaml
+from afmid.config import dump_config, load_config, read_yaml
 
 pytestmark = [pytest.mark.numerics, pytest.mark.slow]
 
@@ -104,31 +104,14 @@ def test_relaxing_solid_recovered(fitted, variant, separation, request):
 @pytest.fixture(scope="module")
 def diagnosed(tmp_path_factory):
     """``diagnosed(config_name, separation_given)`` -> suggest summary of a [dmt] fit of the hidden-effect trace."""
-    from afmid.diagnosis.diagnose import load_run, suggest
-    from afmid.fit.pipeline import run_fit
-    from afmid.io.trace import write_trace_file
-    from afmid.runfile import write_run
-    from afmid.simulate.driver import simulate
-
     folder = tmp_path_factory.mktemp("relaxing_diagnosis")
     cache: dict = {}
 
     def get(name: str, separation_given: bool = True):
         key = (name, separation_given)
         if key not in cache:
-            raw = apply_overrides(read_yaml(TEST_CONFIGS / f"{name}.yaml"), [parse_override("fit.bootstrap=0")])
-            sim = build_config(raw, source=folder / f"{name}.yaml", base_dir=folder)
-            trace_path = folder / f"{name}_{separation_given}.h5"
-            write_trace_file(trace_path, simulate(sim), dump_config(sim))
-            fit_raw = copy.deepcopy(raw)
-            fit_raw["data"] = {"path": str(trace_path)}
-            fit_raw["simulate"]["parameters"] = {}
-            if not separation_given:
-                fit_raw["sample"].pop("separation")
-            config = build_config(fit_raw, source=folder / f"{name}.yaml", base_dir=folder)
-            run_path = folder / f"{name}_{separation_given}.run.h5"
-            write_run(run_path, run_fit(config, uncertainty=False), config)
-            cache[key] = suggest(load_run(run_path))
+            raw = read_yaml(TEST_CONFIGS / f"{name}.yaml")
+            cache[key], _ = diagnose_simulated(folder, raw, separation_given, stem=f"{name}_{separation_given}")
         return cache[key]
 
     return get
