@@ -74,7 +74,7 @@ def residual_figure(folder: Path, maps: dict, extent) -> tuple[str, str] | None:
     panels = [("residual_region", REGIONS, ListedColormap(["#1f77b4", "#17becf", "#bcbd22"]), "where the residual sits"),
               ("residual_character", CHARACTERS, ListedColormap(["#dddddd", "#2ca02c", "#d62728", "#9467bd"]),
                "its character")]
-    fig, axes = plt.subplots(1, 3, figsize=(14.0, 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, 3, figsize=(14.0, 3.8), squeeze=False, layout="tight")
     box = extent[0]
     for ax, (name, names, cmap, title) in zip(axes[0], panels):
         data = maps[name][0].astype(float)
@@ -90,7 +90,6 @@ def residual_figure(folder: Path, maps: dict, extent) -> tuple[str, str] | None:
     fig.colorbar(image, ax=ax).set_label("log10 (residual rms / its noise)")
     ax.set_title("its size over the noise (0: noise only)")
     _axes_labels(ax, extent)
-    fig.tight_layout()
     return (save_figure(fig, folder, "map_residual", dpi=90),
             "each pixel's residual (inverted minus model force, period-averaged): the region holding most of it, "
             "whether it is the same on approach and retraction (conservative) or reverses with the motion "
@@ -123,14 +122,13 @@ def groups_figure(folder: Path, groups: dict, extent) -> tuple[str, str] | None:
     colours = [_verdict_colour(g, missing_index) for g in groups["groups"]]
     labels = groups["labels"].astype(float)
     n = len(colours)
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(6.4, 4.2), layout="tight")
     image = ax.imshow(np.where(labels >= 0, labels, np.nan), extent=extent[0], cmap=ListedColormap(colours),
                       vmin=-0.5, vmax=n - 0.5, interpolation="nearest")
     bar = fig.colorbar(image, ax=ax, ticks=range(n))
     bar.ax.set_yticklabels([f"group {g['group']}: " + _label(g) for g in groups["groups"]], fontsize=7)
     ax.set_title("which effect is missing where")
     _axes_labels(ax, extent)
-    fig.tight_layout()
     return (save_figure(fig, folder, "map_missing_effect", dpi=90),
             "groups of pixels (by residual signature and parameters), each coloured by its catalog verdict: "
             + html.escape(groups["summary"]))
@@ -173,13 +171,12 @@ def comparison_figure(folder: Path, compared: dict, extent) -> tuple[str, str]:
     both = np.concatenate([compared["ratio_before"].ravel(), compared["ratio_after"].ravel()])
     both = both[np.isfinite(both) & (both > 0)]
     norm = LogNorm(vmin=max(both.min(), 0.3), vmax=max(both.max(), 2.0)) if both.size else None
-    fig, axes = plt.subplots(1, 2, figsize=(10.0, 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, 2, figsize=(10.0, 3.8), squeeze=False, layout="tight")
     for ax, key, title in zip(axes[0], ("ratio_before", "ratio_after"), ("before", "after")):
         image = ax.imshow(compared[key], extent=extent[0], cmap="viridis", norm=norm, interpolation="nearest")
         fig.colorbar(image, ax=ax).set_label("cv error / noise floor (1: at the floor)")
         ax.set_title(f"{title}: median {np.nanmedian(compared[key]):.2f}x the floor")
         _axes_labels(ax, extent)
-    fig.tight_layout()
     return (save_figure(fig, folder, "map_error_before_after", dpi=90),
             f"error over its noise floor before ({html.escape(Path(compared['before']).name)}) and after (this "
             "result), one colour scale")

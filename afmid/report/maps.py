@@ -141,7 +141,7 @@ def _map_figure(folder: Path, name: str, values: np.ndarray, sigma: np.ndarray |
     plt = _plt()
     factor, shown = display_unit(unit)
     panels = [(values, label or name)] + ([(sigma, f"{name} 1 sigma")] if sigma is not None else [])
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.8), squeeze=False, layout="tight")
     box, axis_unit = extent
     for ax, (data, title) in zip(axes[0], panels):
         shown_data = np.where(status < 2, data * factor, np.nan)
@@ -157,7 +157,6 @@ def _map_figure(folder: Path, name: str, values: np.ndarray, sigma: np.ndarray |
         suspect = np.argwhere(status == 1)
         if suspect.size:
             _mark(ax, suspect, box, status.shape, "o", "orange")
-    fig.tight_layout()
     file = save_figure(fig, folder, f"map_{name}", dpi=90)
     caption = f"{label or name} [{shown}]" + (" and its 1-sigma map" if sigma is not None else "")
     return file, caption + "; failed pixels blank with a red x, suspect pixels ringed orange"
@@ -177,7 +176,7 @@ def _mark(ax, pixels: np.ndarray, box, shape: tuple[int, int], marker: str, colo
 def _histogram(folder: Path, name: str, values: np.ndarray, unit: str, status: np.ndarray) -> tuple[str, str]:
     plt = _plt()
     factor, shown = display_unit(unit)
-    fig, ax = plt.subplots(figsize=(4.6, 3.4))
+    fig, ax = plt.subplots(figsize=(4.6, 3.4), layout="tight")
     groups = [(values[status == 0] * factor, "ok", STATUS_COLOURS[0]),
               (values[status == 1] * factor, "suspect", STATUS_COLOURS[1])]
     finite = np.concatenate([g[np.isfinite(g)] for g, _, _ in groups])
@@ -189,7 +188,6 @@ def _histogram(folder: Path, name: str, values: np.ndarray, unit: str, status: n
     ax.set_xlabel(f"{name} [{shown}]" if shown else name)
     ax.set_ylabel("pixels")
     ax.legend()
-    fig.tight_layout()
     file = save_figure(fig, folder, f"hist_{name}", dpi=90)
     return file, f"histogram of {name} over the pixels (ok and suspect apart; failed pixels have no value)"
 
@@ -204,7 +202,7 @@ def _status_figure(folder: Path, status: np.ndarray, route, extent) -> tuple[str
     panels = [(status, ListedColormap(STATUS_COLOURS), STATUS_NAMES, "status")]
     if route is not None:
         panels.append((route[0], plt.get_cmap("tab10", len(ROUTES)), ROUTES, "how the pixel was fitted"))
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.2 * len(panels), 3.8), squeeze=False, layout="tight")
     box, axis_unit = extent
     for ax, (data, cmap, names, title) in zip(axes[0], panels):
         image = ax.imshow(np.where(data >= 0, data, np.nan), extent=box, cmap=cmap, vmin=-0.5,
@@ -214,7 +212,6 @@ def _status_figure(folder: Path, status: np.ndarray, route, extent) -> tuple[str
         ax.set_title(title)
         ax.set_xlabel(f"x [{axis_unit}]")
         ax.set_ylabel(f"y [{axis_unit}]")
-    fig.tight_layout()
     return save_figure(fig, folder, "map_status", dpi=90), "status per pixel (ok / suspect / failed) and how each pixel was fitted"
 
 

@@ -105,3 +105,17 @@ def test_map_report_does_not_replace_a_folder_it_did_not_write(report):
     assert done.returncode != 0 and "Traceback" not in done.stderr
     assert (ws / "mine" / "notes.txt").read_text() == "keep"
     assert not list((ws / "mine").glob("*.png"))
+
+
+@pytest.mark.slow
+def test_map_report_in_a_process_that_drew_a_run_report_first(report, tmp_path):
+    # The run report's style (afmid.report.figures.pyplot) sets matplotlib's constrained layout process-wide; a
+    # map figure with colour bars then laid out tight raised "Colorbar layout of new layout engine not compatible"
+    # (found in CI, order-dependent). In one process: the style first, then the map report.
+    from afmid.report.figures import pyplot
+    from afmid.report.maps import make_map_report
+
+    ws, _ = report
+    assert pyplot().rcParams["figure.constrained_layout.use"]
+    text = make_map_report(ws / "result.h5", tmp_path / "rep")
+    assert (tmp_path / "rep" / "map_E_star.png").is_file() and "report.html" in text
