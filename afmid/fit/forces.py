@@ -61,18 +61,39 @@ def _power(F: np.ndarray, harmonics: np.ndarray) -> np.ndarray:
     return np.sum(w * F**2, axis=-1)
 
 
-def fold_error_sums(free: np.ndarray, model: np.ndarray, sigma: np.ndarray, held_out: np.ndarray,
-                    rows: np.ndarray, harmonics: np.ndarray) -> tuple[float, float, float]:
-    """One held-out fold's sums behind :func:`force_cv_error` (N^2, Parseval over the drive harmonics): the misfit
-    |F_free - F_model|^2, the signal |F_free - mean|^2 and the expected noise (``sigma``^2), over the ``rows``
-    where the held-out average ``free`` stands 3 ``held_out`` sigma above its noise (cos and sin of a harmonic
-    together)."""
-    keep = rows & (np.abs(free) > 3 * held_out)
-    for n in np.unique(harmonics[keep]):  # cos and sin of a harmonic together
-        keep[harmonics == n] = True
-    h = harmonics[keep]
-    ac = np.where(h == 0, 0.0, free[keep])
-    return _power((free - model)[keep], h), _power(ac, h), _power(sigma[keep], h)
+class FoldErrors:
+    """The cross-validated force error summed over held-out folds (:func:`force_cv_error`; the joint fit's
+    per-trace error uses the same sums): per fold the misfit |F_free - F_model|^2, the signal |F_free - mean|^2
+    and the expected noise (N^2, Parseval over the drive harmonics), over the rows where the held-out average
+    stands 3 sigma above its noise (cos and sin of a harmonic together)."""
+
+    def __init__(self, harmonics: np.ndarray):
+        self.harmonics = harmonics
+        self.misfit = self.signal = self.noise = 0.0
+        self.per_fold: list[float] = []
+
+    def add(self, free: np.ndarray, model: np.ndarray, sigma: np.ndarray, held_out: np.ndarray,
+            rows: np.ndarray) -> None:
+        """One held-out fold: ``free`` and ``model`` its averaged force coefficients (N), ``sigma`` the noise of
+        their difference, ``held_out`` that of ``free`` alone, ``rows`` the signal rows of the fit."""
+        harmonics = self.harmonics
+        keep = rows & (np.abs(free) > 3 * held_out)
+        for n in np.unique(harmonics[keep]):  # cos and sin of a harmonic together
+            keep[harmonics == n] = True
+        h = harmonics[keep]
+        ac = np.where(h == 0, 0.0, free[keep])
+        misfit, signal = _power((free - model)[keep], h), _power(ac, h)
+        self.per_fold.append(math.sqrt(misfit / signal) if signal > 0 else math.nan)
+        self.misfit += misfit
+        self.signal += signal
+        self.noise += _power(sigma[keep], h)
+
+    def result(self) -> tuple[float, np.ndarray, float]:
+        """(error, error of each fold, noise floor); NaN where no held-out row carried signal."""
+        if self.signal <= 0:
+            return math.nan, np.asarray(self.per_fold), math.nan
+        return (math.sqrt(self.misfit / self.signal), np.asarray(self.per_fold),
+                math.sqrt(self.noise / self.signal))
 
 
 def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.ndarray, folds: int):
@@ -92,9 +113,7 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
     """
     if prep.form == "strong":
         return _time_domain_cv_error(prep, system, mask, folds)
-    harmonics = prep.blocks.harmonics
-    num = den = noise = 0.0
-    per_fold = []
+    errors = FoldErrors(prep.blocks.harmonics)
     p = system.theta.shape[2]
     for test in regression.fold_slices(system.T_blocks.shape[0], folds):
         train = regression.training_blocks(system.T_blocks.shape[0], test)
@@ -106,14 +125,8 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
         columns = np.concatenate([system.theta[test].mean(axis=0), prep.nuisance[test].mean(axis=0)], axis=1)
         held_out = prep.row_sigma / math.sqrt(test.size)
         sigma = np.sqrt(held_out**2 + prediction_variance(trained, mask, columns))
-        n_f, d_f, noise_f = fold_error_sums(free, model, sigma, held_out, rows, harmonics)
-        per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
-        num += n_f
-        den += d_f
-        noise += noise_f
-    if den <= 0:
-        return math.nan, np.asarray(per_fold), math.nan
-    return math.sqrt(num / den), np.asarray(per_fold), math.sqrt(noise / den)
+        errors.add(free, model, sigma, held_out, rows)
+    return errors.result()
 
 
 def prediction_variance(trained: np.ndarray, mask: np.ndarray, columns: np.ndarray) -> np.ndarray:

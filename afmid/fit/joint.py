@@ -37,7 +37,7 @@ import numpy as np
 import afmid.fit.regression as regression
 from afmid.config import RunConfig
 from afmid.errors import AfmidError, ConfigError, InputError
-from afmid.fit.forces import fold_error_sums, prediction_variance, read_out, signal_rows
+from afmid.fit.forces import FoldErrors, prediction_variance, read_out, signal_rows
 from afmid.fit.pipeline import FitResult, profile_library, run_fit, whole_effects
 from afmid.fit.prepare import Prepared
 from afmid.fit.profile import GroupedProfile, robust_profile
@@ -619,14 +619,13 @@ def trace_cv_error(joint: JointSystem, prep: Prepared, system: System, mask: np.
     """Trace ``i``'s cross-validated force error with the shared law and its noise floor (as
     :func:`afmid.fit.forces.force_cv_error`): each fold of its periods held out, the joint support refitted on
     all the other periods of every trace; returns (error, per fold, floor)."""
-    harmonics = prep.blocks.harmonics
+    errors = FoldErrors(prep.blocks.harmonics)
     p = system.theta.shape[2]
     b0, b1 = int(joint.block_start[i]), int(joint.block_start[i + 1])
     c0, c1 = int(joint.column_start[i]), int(joint.column_start[i + 1])
     others = np.concatenate([np.arange(0, b0), np.arange(b1, joint.T_blocks.shape[0])]).astype(int)
     q = joint.T_blocks.shape[-1] - 1
-    num = den = noise = 0.0
-    per_fold = []
+    rows = signal_rows(prep, system, trace_coefficients(joint, coef, i, p))  # of the shared law: the same each fold
     for test in regression.fold_slices(b1 - b0, folds):
         train = np.concatenate([others, b0 + regression.training_blocks(b1 - b0, test)])
         trained = regression.combine(joint.T_blocks[train])
@@ -639,12 +638,5 @@ def trace_cv_error(joint: JointSystem, prep: Prepared, system: System, mask: np.
         cols[:, c0:c1] = prep.nuisance[test].mean(axis=0)
         held_out = prep.row_sigma / math.sqrt(test.size)
         sigma = np.sqrt(held_out**2 + prediction_variance(trained, mask, cols))
-        rows = signal_rows(prep, system, trace_coefficients(joint, coef, i, p))
-        n_f, d_f, noise_f = fold_error_sums(free, model, sigma, held_out, rows, harmonics)
-        per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
-        num += n_f
-        den += d_f
-        noise += noise_f
-    if den <= 0:
-        return math.nan, np.asarray(per_fold), math.nan
-    return math.sqrt(num / den), np.asarray(per_fold), math.sqrt(noise / den)
+        errors.add(free, model, sigma, held_out, rows)
+    return errors.result()
