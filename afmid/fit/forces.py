@@ -333,14 +333,19 @@ class PeriodCurves(Mapping):
         blocks, X = self.prep.blocks, self.prep.X[first:stop, :, None]
         if name == "force_inverted":
             F = inverted_force_coefficients(self.prep, self.system, self.coef, slice(first, stop)) * self.rows[None, :]
-            return blocks.evaluate(F[..., None], self.phase)[..., 0]
+            return self.at_drive_phase(F[..., None], first, stop)
         if name == "separation":
             return self.params["d"] - self.curve("deflection", first, stop)
         if name == "force_model":
             return self.model_force(self.curve("deflection", first, stop), self.curve("velocity", first, stop),
                                     first, stop)
         order = ("deflection", "velocity", "acceleration").index(name)
-        return blocks.evaluate(blocks.derivative(X, order) if order else X, self.phase)[..., 0]
+        return self.at_drive_phase(blocks.derivative(X, order) if order else X, first, stop)
+
+    def at_drive_phase(self, series: np.ndarray, first: int, stop: int) -> np.ndarray:
+        """Block series (stop - first, 2K+1, 1) on the phase grid of the drive's periods ``first`` .. ``stop - 1``."""
+        blocks = self.prep.blocks
+        return blocks.evaluate_in_periods(series, self.phase, self.cycles[first:stop], self.prep.drive.omega)[..., 0]
 
     def __getitem__(self, name: str) -> np.ndarray:
         if name in self.held:

@@ -157,3 +157,46 @@ def test_harmonic_cos_sin_agrees_with_direct_evaluation_to_the_rounding_of_the_a
     design = np.empty((phase.size, 2 * K + 1))
     harmonics.harmonic_cos_sin(phase, K, out_cos=design[:, 1::2].T, out_sin=design[:, 2::2].T)
     assert np.array_equal(design[:, 1::2].T, cos_n) and np.array_equal(design[:, 2::2].T, sin_n)
+
+
+# --------------------------------------------------------------------------- per-period curves at the drive's phase
+def _two_harmonic_motion(t: np.ndarray, omega: float) -> np.ndarray:
+    """10 nm at the drive frequency and 3 nm at twice it (m), a phase that is not a multiple of pi/2."""
+    return 10e-9 * np.cos(omega * t + 0.7) + 3e-9 * np.sin(2 * omega * t - 0.2)
+
+
+@pytest.mark.parametrize("relative_offset", [3.4e-5, -1.0e-4])
+def test_per_period_curves_follow_the_drive_when_the_blocks_were_cut_at_another_frequency(relative_offset):
+    """The fit's drive may be the nominal frequency while the blocks were cut at the one measured on loading
+    (thermal wander moved it by 3.4e-5: 10 Hz at 300 kHz). The curve of period i must be the motion at the drive's
+    times (2 pi i + phase) / w_drive. Scale, from the arithmetic: a block fits a sinusoid whose frequency differs by
+    the relative offset eps from its basis, so its phase runs about +-pi eps off across the block: a misfit of
+    ~pi eps (10 nm + 2 x 3 nm) (harmonic 2 runs twice as fast), 1.7e-12 m at eps 3.4e-5 (the least-squares fit
+    leaves up to about twice that at the block ends): tolerance 3 pi |eps| 16 nm. Evaluating the blocks' series at
+    the phase alone (the old curves) drifts by 2 pi eps per period: ~1.2e-10 m at the last of 40 periods."""
+    periods = 40
+    omega_drive = 2 * np.pi * F_DRIVE
+    t = np.arange(periods * SPP) / FS
+    x = _two_harmonic_motion(t, omega_drive)
+    from afmid.preprocess.periods import harmonic_blocks
+    blocks = harmonic_blocks(t.size, FS, F_DRIVE * (1 + relative_offset), max_harmonic=8)
+    series = blocks.project(x)
+    phase = 2 * np.pi * np.arange(64) / 64
+    cycles = np.floor(blocks.block_times() * omega_drive / (2 * np.pi))
+    curves = blocks.evaluate_in_periods(series, phase, cycles, omega_drive)[..., 0]
+    truth = _two_harmonic_motion((2 * np.pi * cycles[:, None] + phase[None, :]) / omega_drive, omega_drive)
+    tolerance = 3 * np.pi * abs(relative_offset) * 16e-9
+    assert np.max(np.abs(curves - truth)) < tolerance
+    old = blocks.evaluate(series, phase)[..., 0]
+    assert np.max(np.abs(old[-1] - truth[-1])) > 10 * tolerance  # the drift this replaces, so the test can fail
+
+
+def test_per_period_curves_at_the_blocks_own_frequency_are_the_plain_evaluation_bit_for_bit():
+    """Equal frequencies: no turn (cos 0 = 1, sin 0 = 0 exactly) and the same phase grid, so the same bits."""
+    t = np.arange(12 * SPP) / FS
+    from afmid.preprocess.periods import harmonic_blocks
+    blocks = harmonic_blocks(t.size, FS, F_DRIVE, max_harmonic=8)
+    series = blocks.project(_two_harmonic_motion(t, 2 * np.pi * F_DRIVE * (1 + 2e-4)))
+    phase = 2 * np.pi * np.arange(64) / 64
+    cycles = np.floor(blocks.block_times() * blocks.omega / (2 * np.pi))
+    assert np.array_equal(blocks.evaluate_in_periods(series, phase, cycles, blocks.omega), blocks.evaluate(series, phase))
