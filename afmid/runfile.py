@@ -301,6 +301,9 @@ class RunData:
     force_calibration_uncertainty: float = 0.0  # relative 1 sigma of the force from the declared k / Q
     force_separation_uncertainty: float = math.nan  # RMS 1 sigma of the force from the estimated d, / peak
     cv_error_folds: np.ndarray | None = None  # the cross-validated error of each fold (cv_error is their mean)
+    #: A joint fit's traces (/joint, data.paths), in order: path, separation and its 1 sigma (m; sigma 0 when
+    #: given), cv error, noise floor, model-limited. None for a single trace. The rest of RunData is trace 0's.
+    joint: list[dict] | None = None
 
     @property
     def n_terms(self) -> int:
@@ -435,7 +438,19 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         force_calibration_uncertainty=float(h5["force"]["estimate"].attrs.get("calibration_relative_uncertainty", 0.0)),
         force_separation_uncertainty=float(h5["force"]["estimate"].attrs.get("separation_relative_uncertainty",
                                                                              math.nan)),
+        joint=read_joint_traces(h5["joint"]) if "joint" in h5 else None,
     )
+
+
+def read_joint_traces(joint) -> list[dict]:
+    """The table of a joint fit's traces (``/joint``, afmid.fit.joint_output): one dict per trace."""
+    columns = {"path": _texts(joint["paths"]), "separation": joint["separation"][...],
+               "separation_error": joint["separation_error"][...], "cv_error": joint["cv_error"][...],
+               "cv_error_noise_floor": joint["cv_error_noise_floor"][...],
+               "model_limited": joint["model_limited"][...].astype(bool)}
+    return [{"path": columns["path"][i], **{k: (bool(v[i]) if k == "model_limited" else float(v[i]))
+                                             for k, v in columns.items() if k != "path"}}
+            for i in range(len(columns["path"]))]
 
 
 def read_verdict(name: str, dataset) -> plausibility.Verdict:

@@ -179,6 +179,7 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     if "error_by_run" in figures:
         parts.append(_img(folder, figures["error_by_run"], "Cross-validated error of each run, in the order given, "
                                                            "with the error a perfect model would show (noise floor)"))
+    parts.extend(joint_html(r) for r in runs if r.joint)
     parts.append("<h2>Physical parameters</h2>")
     names = sorted({k for r in runs for k in r.quantities}) + sorted(
         {k for r in runs for k in r.nonlinear if k != "d"} - {k for r in runs for k in r.quantities})
@@ -293,6 +294,23 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
 
 
 # --------------------------------------------------------------------------- main
+def joint_html(run: RunData) -> str:
+    """A joint fit's traces (data.paths): one law, a separation and a cross-validated error per trace."""
+    rows = [[Path(t["path"]).name,
+             (f"{t['separation'] * 1e9:.4f} ± {t['separation_error'] * 1e9:.4f} nm (1σ)" if t["separation_error"] > 0
+              else f"{t['separation'] * 1e9:.4f} nm (given)"),
+             _fmt(t["cv_error"], digits=3), _fmt(t["cv_error_noise_floor"], digits=3),
+             "yes" if t["model_limited"] else "no"] for t in run.joint]
+    return (f"<h2>Joint fit: one force law, {len(run.joint)} traces ({html.escape(run.path.name)})</h2>"
+            "<p>The traces were fitted together (<code>data.paths</code>): one sample, one tip, one set of force-law "
+            "coefficients and physical parameters (below: shared by every trace, their 1σ from resampling each "
+            "trace's periods within it), a rest separation and a drive per trace. Each trace's error is cross-validated "
+            "with the shared law (its held-out periods; the law refitted on every other period of every trace). "
+            "The plots below show the first trace; the run file's <code>/joint/trace_&lt;i&gt;</code> holds every "
+            "trace's per-period forces.</p>"
+            + _table(["trace", "rest separation d", "cv error", "noise floor", "model-limited"], rows))
+
+
 def resimulate(run: RunData) -> dict | None:
     """Forward simulation of the identified model (one steady period), or None if unavailable."""
     try:

@@ -81,7 +81,16 @@ def test_joint_fit_writes_the_shared_law_and_every_trace(traces, run_cli, tmp_pa
         assert not no_units, no_units
     code, out, err = run_cli("report", run, "-o", tmp_path / "report", "--no-suggest")
     assert code == 0, err
-    assert (tmp_path / "report" / "report.html").exists()
+    page = (tmp_path / "report" / "report.html").read_text()
+    # the report names the joint fit and every trace with its own separation (given here) and error
+    assert "Joint fit: one force law, 2 traces" in page
+    for i, k in enumerate(("a", "b")):
+        assert files[k].name in page and f"{given[i] * 1e9:.4f} nm (given)" in page
+    from afmid.runfile import load_run
+
+    table = load_run(run).joint
+    assert [t["separation"] for t in table] == given and all(t["separation_error"] == 0 for t in table)
+    assert all(np.isfinite(t["cv_error"]) and t["cv_error_noise_floor"] > 0 for t in table)
 
 
 @pytest.mark.parametrize("case, key", [
