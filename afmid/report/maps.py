@@ -170,7 +170,10 @@ def _mark(ax, pixels: np.ndarray, box, shape: tuple[int, int], marker: str, colo
     else:
         sx, sy = (box[1] - box[0]) / shape[1], (box[2] - box[3]) / shape[0]
         xs, ys = box[0] + (cols + 0.5) * sx, box[3] + (rows + 0.5) * sy
-    ax.scatter(xs, ys, marker=marker, facecolors="none" if marker == "o" else colour, edgecolors=colour, s=40)
+    if marker == "o":  # a ring: the pixel's value stays visible
+        ax.scatter(xs, ys, marker=marker, facecolors="none", edgecolors=colour, s=40)
+    else:  # a line marker (x, +) has no face: its colour is the line's
+        ax.scatter(xs, ys, marker=marker, color=colour, s=40)
 
 
 def _histogram(folder: Path, name: str, values: np.ndarray, unit: str, status: np.ndarray) -> tuple[str, str]:
