@@ -309,8 +309,11 @@ class PeriodCurves(Mapping):
         self.prep, self.library, self.system = prep, library, system
         self.coef, self.params, self.rows = coef, params, rows
         self.phase = 2 * np.pi * np.arange(n_phase) / n_phase
-        # The series are evaluated at drive phase w t = phase (mod 2 pi): the period that starts in each block.
-        self.cycles = np.floor(prep.blocks.block_times() * prep.drive.omega / (2 * np.pi))
+        # Each block shows the drive period whose start lies nearest the block's start: the series is evaluated
+        # at most half a period outside its block (floor reached up to a whole period back, and a start that
+        # rounding put a hair below a period boundary showed the period before it: 430 pm off on a transient
+        # whose blocks were cut 3e-3 off the drive frequency, 190 pm with the nearest period).
+        self.cycles = np.round(prep.blocks.block_times() * prep.drive.omega / (2 * np.pi))
         start = (2 * np.pi * self.cycles + self.phase[0]) / prep.drive.omega  # = times(...)[:, 0]
         self.held = {"phase": self.phase, "period_start_time": start}
 
