@@ -80,9 +80,11 @@ class FullPixelFit:
 
     def fit(self, trace, pixel: int) -> PixelResult:
         from afmid.fit.pipeline import fit_prepared, prepare
+        from afmid.fit.prepare import with_fine_grid
         from afmid.preprocess.instrument import from_config
 
-        prep = prepare(trace, self.config.fit, from_config(self.config))
+        # The trajectory on the fine grid made once for the pixel's ~90 library evaluations (the same values).
+        prep = with_fine_grid(prepare(trace, self.config.fit, from_config(self.config)))
         result = fit_prepared(prep, self.library, self.config, uncertainty=self.config.fit.bootstrap > 0)
         from afmid.maps.residual import ResidualView, signature_of
 
@@ -121,10 +123,11 @@ class SharedSupportFit:
     def fit(self, trace, pixel: int) -> PixelResult:
         from afmid.fit.drive_search import is_transient
         from afmid.fit.pipeline import fit_prepared, first_contact, library_parameters, prepare
+        from afmid.fit.prepare import with_fine_grid
         from afmid.preprocess.instrument import from_config
 
         config = self.config
-        prep = prepare(trace, config.fit, from_config(config))
+        prep = with_fine_grid(prepare(trace, config.fit, from_config(config)))
         if config.fit.drive_frequency == "search" or (config.fit.drive_frequency == "auto" and is_transient(prep)):
             return self.full.fit(trace, pixel)
         if config.fit.drive_frequency == "nominal":
