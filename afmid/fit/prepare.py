@@ -346,19 +346,23 @@ def fine_chunks(prep: Prepared, overlap: int = 0):
     arrays, made once: callers do not write into them).
     """
     grid = prep.fine_grid
+    bounds = _fine_chunk_bounds(prep.blocks.n_blocks, overlap)
     if grid is not None and grid.holds(prep):
-        if overlap not in grid.chunks:
-            grid.chunks[overlap] = list(_fine_chunks(prep, overlap))
-        yield from grid.chunks[overlap]
+        if bounds not in grid.chunks:  # keyed by the blocks: a trace of one chunk has the same one for any overlap
+            grid.chunks[bounds] = list(_fine_chunks(prep, bounds))
+        yield from grid.chunks[bounds]
         return
-    yield from _fine_chunks(prep, overlap)
+    yield from _fine_chunks(prep, bounds)
     _release_free_memory()
 
 
-def _fine_chunks(prep: Prepared, overlap: int):
-    B = prep.blocks.n_blocks
-    for b0 in range(0, B - overlap if overlap else B, CHUNK_BLOCKS):
-        b1 = min(b0 + CHUNK_BLOCKS + overlap, B)
+def _fine_chunk_bounds(n_blocks: int, overlap: int) -> tuple[tuple[int, int], ...]:
+    return tuple((b0, min(b0 + CHUNK_BLOCKS + overlap, n_blocks))
+                 for b0 in range(0, n_blocks - overlap if overlap else n_blocks, CHUNK_BLOCKS))
+
+
+def _fine_chunks(prep: Prepared, bounds: tuple[tuple[int, int], ...]):
+    for b0, b1 in bounds:
         x, v = prep.blocks.synthesize_fine_rows(prep.X_traj[b0:b1], prep.V_traj[b0:b1], first=b0)
         yield b0, x, v, prep.blocks.fine_times(b0, b1)
 
@@ -375,7 +379,7 @@ class FineGrid:
 
     X_traj: np.ndarray
     V_traj: np.ndarray
-    chunks: dict  # overlap -> [(first block, x, xdot, t)]
+    chunks: dict  # the chunks' (first, stop) blocks -> [(first block, x, xdot, t)]
 
     def holds(self, prep: Prepared) -> bool:
         """Whether this grid is ``prep``'s trajectory (a copy of ``prep`` with another trajectory is not)."""
