@@ -122,7 +122,7 @@ class SharedSupportFit:
     # ------------------------------------------------------------------ protocol
     def fit(self, trace, pixel: int) -> PixelResult:
         from afmid.fit.drive_search import is_transient
-        from afmid.fit.pipeline import fit_prepared, first_contact, library_parameters, prepare
+        from afmid.fit.pipeline import first_contact, library_parameters, prepare
         from afmid.fit.prepare import with_fine_grid
         from afmid.preprocess.instrument import from_config
 
@@ -136,18 +136,38 @@ class SharedSupportFit:
             prep = with_drive_frequency(prep, prep.drive.nominal)
         touch = first_contact(prep, config.sample.a0)
         anchor = not self.offsets
-        if anchor:  # the chunk's first pixel: the full search, no bootstrap
-            fitted = fit_prepared(prep, self.library, config, uncertainty=False)
-            self.support = np.asarray(fitted.selected, bool).copy()
-            self.coef = np.asarray(fitted.coef, float).copy()
-            self.offsets = [fitted.system.params["d"] - touch]
-            self.nonlinear = {k: fitted.system.params[k] for k in self.library.nonlinear}
+        if anchor:  # the chunk's first pixel: the coarse search over the whole window, no profile, no bootstrap
+            self._learn_from_anchor(prep, touch)
         params = library_parameters(prep, config, self.library)
         params.update(self.nonlinear)
         result = self._fit_shared(prep, params, touch)
         if anchor:
             result.route, result.evaluations = ROUTE_ANCHOR, 0  # the full search's evaluations are not counted
         return result
+
+    def _learn_from_anchor(self, prep, touch: float) -> None:
+        """The support, coefficients and separation offset (and the library's other nonlinear parameters) that the
+        chunk's pixels start from, from its first pixel: the single-trace coarse search over the whole separation
+        window (:func:`afmid.fit.pipeline.estimate_nonlinear`, with its bounded refinement), then the weights with
+        the regressors' noise and one selection there, as :func:`afmid.fit.pipeline.fit_prepared` makes them
+        before its profile. The profile itself (~30 library evaluations) is left out: the anchor's own result
+        comes from the carried path's search started here, which finds the minimum and its sigma."""
+        from afmid.fit.pipeline import build_system, estimate_nonlinear, library_parameters
+        from afmid.fit.prepare import with_regressor_noise
+
+        library = self.library
+        params = library_parameters(prep, self.config, library)
+        estimate_nonlinear(prep, library, self.config, params, physics=(self.physics, self.extra))
+        settings = self.settings_for(len(prep.nuisance_names))
+        system = build_system(prep, library, params)
+        coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
+        weighted = with_regressor_noise(prep, library, params, coef0)
+        system = build_system(weighted, library, params, theta=system.theta)
+        support = np.asarray(settings.select(system).best.mask, bool)
+        self.support = support.copy()
+        self.coef = np.asarray(regression.subset_fit(regression.combine(system.T_blocks), support)[0], float)
+        self.offsets = [params["d"] - touch]
+        self.nonlinear = {k: params[k] for k in library.nonlinear}
 
     # ------------------------------------------------------------------ the cheap path
     def _fit_shared(self, prep, params: dict, touch: float) -> PixelResult:
