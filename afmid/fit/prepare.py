@@ -391,6 +391,8 @@ def with_fine_grid(prep: Prepared, max_bytes: int = FINE_GRID_MAX_BYTES) -> Prep
     fits in ``max_bytes``; else ``prep`` itself (long records are evaluated chunk by chunk as before). The same
     values either way: only the synthesis is not repeated."""
     blocks = prep.blocks
+    if prep.fine_grid is not None and prep.fine_grid.holds(prep):
+        return prep  # kept already (its chunks stay)
     if 3 * 8 * blocks.n_blocks * blocks.L * blocks.oversample > max_bytes:
         return prep
     import dataclasses

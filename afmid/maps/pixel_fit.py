@@ -80,11 +80,9 @@ class FullPixelFit:
 
     def fit(self, trace, pixel: int) -> PixelResult:
         from afmid.fit.pipeline import fit_prepared, prepare
-        from afmid.fit.prepare import with_fine_grid
         from afmid.preprocess.instrument import from_config
 
-        # The trajectory on the fine grid made once for the pixel's ~90 library evaluations (the same values).
-        prep = with_fine_grid(prepare(trace, self.config.fit, from_config(self.config)))
+        prep = prepare(trace, self.config.fit, from_config(self.config))
         result = fit_prepared(prep, self.library, self.config, uncertainty=self.config.fit.bootstrap > 0)
         from afmid.maps.residual import ResidualView, signature_of
 

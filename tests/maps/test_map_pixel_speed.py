@@ -1,6 +1,6 @@
 """The cheaper per-pixel work of ``afmid map`` (issue 14) against the slower computations it replaces, pixel by pixel.
 
-- The trajectory's fine grid kept across a pixel's library evaluations (afmid.fit.prepare.with_fine_grid) and the
+- The trajectory's fine grid kept across a fit's library evaluations (afmid.fit.prepare.with_fine_grid) and the
   library's programs compiled once per separation search (afmid.physics.library.Library.compile): the same code
   path on the same numbers, so the same bits.
 - The carried pixel's separation search (afmid.maps.pixel_fit.parabolic_minimum: only its own bracket's points,
@@ -93,6 +93,16 @@ def test_kept_fine_grid_and_compiled_programs_give_the_same_bits(small_map):
         # one program set for every d (the programs do not hold it); a grid too big to keep is not kept
         assert library.compile(dict(params, d=1e-9)) is library.compile(dict(params, d=2e-9))
         assert with_fine_grid(prep, max_bytes=1).fine_grid is None
+        assert with_fine_grid(kept) is kept  # kept once, with the chunks made so far
+
+
+def test_a_fit_keeps_the_fine_grid_only_while_it_runs(small_map):
+    """afmid fit keeps the grid for its own evaluations; its result does not hold it (callers keep many results)."""
+    from afmid.fit.pipeline import fit_prepared
+
+    config, library, preps = small_map
+    result = fit_prepared(preps[0], library, config, uncertainty=False)
+    assert preps[0].fine_grid is None and result.prep.fine_grid is None
 
 
 def test_carried_separation_search_agrees_with_the_robust_profile_pixel_by_pixel(small_map):
