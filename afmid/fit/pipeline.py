@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -74,6 +74,7 @@ from afmid.fit.prepare import (  # noqa: E402,F401
     prepare,
     smooth_across_blocks,
     smoothing_variance_factor,
+    with_fine_grid,
     with_regressor_noise,
 )
 from afmid.fit.system import System, build_system, library_columns, residual_sum_squares  # noqa: E402,F401
@@ -326,6 +327,10 @@ def fit_prepared(prep: Prepared, library: Library, config: RunConfig, progress: 
 def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Progress, uncertainty: bool) -> FitResult:
     fit = config.fit
     trace = prep.trace
+    # The trajectory on the fine grid made once for the ~90 library evaluations (the same values); not kept with
+    # the result (up to 64 MB: callers keep many results).
+    grid_made_here = prep.fine_grid is None
+    prep = with_fine_grid(prep)
     # Defects were detected and reported when the trace was loaded (afmid.io.defects); keep them with the run.
     warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
     if prep.motion is not None and prep.motion.non_periodic:
@@ -430,6 +435,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
     periods = period_curves(prep, library, system, coef, params, rows, fit.phase_points)
     for name, est in nonlinear.items():
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
+    if grid_made_here:
+        prep = replace(prep, fine_grid=None)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_inverted, periods,
                      warnings, drive_search, force_calibration, limited, share)

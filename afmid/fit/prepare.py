@@ -80,6 +80,9 @@ class Prepared:
     #: (:func:`afmid.fit.declared_drive.with_declared_drive`; None: the drive is fitted)
     declared_drive: object = None
     declared_drive_rows: np.ndarray | None = None  # (W, 2K+1, 2) the weak-form rows of its cos and sin
+    #: the trajectory on the fine grid kept for repeated library evaluations (:func:`with_fine_grid`; None: made
+    #: afresh by every :func:`fine_chunks` pass)
+    fine_grid: "FineGrid | None" = None
 
 
 def prepare(trace: Trace, fit, instrument=None) -> Prepared:
@@ -338,14 +341,63 @@ def _model_force(model: Library, x: np.ndarray, v: np.ndarray, t: np.ndarray, pa
 def fine_chunks(prep: Prepared, overlap: int = 0):
     """Yield (first block, x, xdot, t) on the fine grid, (n, L U) each, chunk by chunk.
 
-    ``overlap`` extra blocks are included at the end of each chunk (windows need the next block).
+    ``overlap`` extra blocks are included at the end of each chunk (windows need the next block). With a
+    :class:`FineGrid` of this trajectory at hand (:func:`with_fine_grid`) the chunks come from it (the same
+    arrays, made once: callers do not write into them).
     """
-    B = prep.blocks.n_blocks
-    for b0 in range(0, B - overlap if overlap else B, CHUNK_BLOCKS):
-        b1 = min(b0 + CHUNK_BLOCKS + overlap, B)
+    grid = prep.fine_grid
+    bounds = _fine_chunk_bounds(prep.blocks.n_blocks, overlap)
+    if grid is not None and grid.holds(prep):
+        if bounds not in grid.chunks:  # keyed by the blocks: a trace of one chunk has the same one for any overlap
+            grid.chunks[bounds] = list(_fine_chunks(prep, bounds))
+        yield from grid.chunks[bounds]
+        return
+    yield from _fine_chunks(prep, bounds)
+    _release_free_memory()
+
+
+def _fine_chunk_bounds(n_blocks: int, overlap: int) -> tuple[tuple[int, int], ...]:
+    return tuple((b0, min(b0 + CHUNK_BLOCKS + overlap, n_blocks))
+                 for b0 in range(0, n_blocks - overlap if overlap else n_blocks, CHUNK_BLOCKS))
+
+
+def _fine_chunks(prep: Prepared, bounds: tuple[tuple[int, int], ...]):
+    for b0, b1 in bounds:
         x, v = prep.blocks.synthesize_fine_rows(prep.X_traj[b0:b1], prep.V_traj[b0:b1], first=b0)
         yield b0, x, v, prep.blocks.fine_times(b0, b1)
-    _release_free_memory()
+
+
+#: Largest trajectory (bytes of x, xdot and t on the fine grid) that :func:`with_fine_grid` keeps in memory.
+FINE_GRID_MAX_BYTES = 64 << 20
+
+
+@dataclass
+class FineGrid:
+    """The fine-grid chunks of one trajectory (``X_traj``, ``V_traj`` of a :class:`Prepared`), made on first use
+    and kept: a search that evaluates the library at many separations on one trace synthesises the trajectory
+    once instead of once per evaluation (the trajectory does not depend on the library's parameters)."""
+
+    X_traj: np.ndarray
+    V_traj: np.ndarray
+    chunks: dict  # the chunks' (first, stop) blocks -> [(first block, x, xdot, t)]
+
+    def holds(self, prep: Prepared) -> bool:
+        """Whether this grid is ``prep``'s trajectory (a copy of ``prep`` with another trajectory is not)."""
+        return self.X_traj is prep.X_traj and self.V_traj is prep.V_traj
+
+
+def with_fine_grid(prep: Prepared, max_bytes: int = FINE_GRID_MAX_BYTES) -> Prepared:
+    """``prep`` with its trajectory's fine grid kept across library evaluations (:class:`FineGrid`), when the grid
+    fits in ``max_bytes``; else ``prep`` itself (long records are evaluated chunk by chunk as before). The same
+    values either way: only the synthesis is not repeated."""
+    blocks = prep.blocks
+    if prep.fine_grid is not None and prep.fine_grid.holds(prep):
+        return prep  # kept already (its chunks stay)
+    if 3 * 8 * blocks.n_blocks * blocks.L * blocks.oversample > max_bytes:
+        return prep
+    import dataclasses
+
+    return dataclasses.replace(prep, fine_grid=FineGrid(prep.X_traj, prep.V_traj, {}))
 
 
 def smooth_across_blocks(coef: np.ndarray, window: int) -> np.ndarray:

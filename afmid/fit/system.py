@@ -86,7 +86,7 @@ def _plain_library_columns(prep: Prepared, library: Library, params: dict) -> np
         if any_zero:
             average_switching_cells(library, params, x, v, t, fine)
         if not finite or any_zero:
-            check_finite(fine.reshape(-1, p), library, params)
+            check_finite(columns.reshape(-1, p), library, params)
         parts.append(prep.windows.integrate_fine_columns(columns, b0))
     return np.concatenate(parts, axis=0)
 
@@ -113,8 +113,7 @@ def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np
     through the cell from the state of the sample before it (``states``:
     their values along the rows, (n_states, n * M), as the library scans them).
     """
-    zero = fine == 0.0
-    switch = (zero[:, 1:, :] != zero[:, :-1, :]).any(axis=2)  # between samples j and j + 1
+    switch = _switches(fine)  # between samples j and j + 1
     flagged = np.zeros(x.shape, dtype=bool)
     flagged[:, :-1] |= switch
     flagged[:, 1:] |= switch
@@ -133,7 +132,6 @@ def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np
     xs = (2 * s3 - 3 * s2 + 1) * xa + (s3 - 2 * s2 + s) * h * va + (3 * s2 - 2 * s3) * xb + (s3 - s2) * h * vb
     vs = (6 * s2 - 6 * s) * (xa - xb) / h + (3 * s2 - 4 * s + 1) * va + (3 * s2 - 2 * s) * vb
     ts = t[rows, cols][:, None] + u[None, :] * h
-    states = None
     sub_states = None
     if library.states:  # scanned through the cell from the state of the sample before it
         if states is None:
@@ -144,8 +142,24 @@ def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np
     fine[rows, cols, :] = sub.reshape(rows.size, SWITCH_SUBSAMPLES, -1).mean(axis=1)
 
 
+def _switches(fine: np.ndarray) -> np.ndarray:
+    """(n, M - 1) bool: whether any term of ``fine`` (n, M, p) is zero on one of samples j, j + 1 and not on the
+    other. Computed in the sample-major layout the weak form keeps the columns in (``fine`` a transposed view of a
+    C-contiguous (M, n, p) array) and one term at a time: a reduction over a short last axis, or over a strided
+    view, is a slow per-element loop in NumPy (10x the time of the comparisons themselves)."""
+    sample_major = fine.transpose(1, 0, 2)
+    layout = sample_major if sample_major.flags.c_contiguous else np.ascontiguousarray(sample_major)
+    switch = np.zeros(layout.shape[:2], bool)[1:]
+    for j in range(layout.shape[2]):
+        zero = layout[:, :, j] == 0.0
+        switch |= zero[1:] != zero[:-1]
+    return switch.T
+
+
 def check_finite(columns: np.ndarray, library: Library, params: dict) -> None:
-    if np.isfinite(columns.sum(axis=0)).all():  # cheap: a sum is finite only if every term is (barring overflow)
+    # Cheap: the sum of all values is finite only if every value is (barring overflow); one pass, no copy of a
+    # strided view (a per-column sum over a transposed layout copied it first).
+    if np.isfinite(np.sum(columns)):
         return
     finite = np.isfinite(columns).all(axis=0)
     if not finite.all():

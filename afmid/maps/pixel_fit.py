@@ -120,11 +120,12 @@ class SharedSupportFit:
     # ------------------------------------------------------------------ protocol
     def fit(self, trace, pixel: int) -> PixelResult:
         from afmid.fit.drive_search import is_transient
-        from afmid.fit.pipeline import fit_prepared, first_contact, library_parameters, prepare
+        from afmid.fit.pipeline import first_contact, library_parameters, prepare
+        from afmid.fit.prepare import with_fine_grid
         from afmid.preprocess.instrument import from_config
 
         config = self.config
-        prep = prepare(trace, config.fit, from_config(config))
+        prep = with_fine_grid(prepare(trace, config.fit, from_config(config)))
         if config.fit.drive_frequency == "search" or (config.fit.drive_frequency == "auto" and is_transient(prep)):
             return self.full.fit(trace, pixel)
         if config.fit.drive_frequency == "nominal":
@@ -133,18 +134,38 @@ class SharedSupportFit:
             prep = with_drive_frequency(prep, prep.drive.nominal)
         touch = first_contact(prep, config.sample.a0)
         anchor = not self.offsets
-        if anchor:  # the chunk's first pixel: the full search, no bootstrap
-            fitted = fit_prepared(prep, self.library, config, uncertainty=False)
-            self.support = np.asarray(fitted.selected, bool).copy()
-            self.coef = np.asarray(fitted.coef, float).copy()
-            self.offsets = [fitted.system.params["d"] - touch]
-            self.nonlinear = {k: fitted.system.params[k] for k in self.library.nonlinear}
+        if anchor:  # the chunk's first pixel: the coarse search over the whole window, no profile, no bootstrap
+            self._learn_from_anchor(prep, touch)
         params = library_parameters(prep, config, self.library)
         params.update(self.nonlinear)
         result = self._fit_shared(prep, params, touch)
         if anchor:
             result.route, result.evaluations = ROUTE_ANCHOR, 0  # the full search's evaluations are not counted
         return result
+
+    def _learn_from_anchor(self, prep, touch: float) -> None:
+        """The support, coefficients and separation offset (and the library's other nonlinear parameters) that the
+        chunk's pixels start from, from its first pixel: the single-trace coarse search over the whole separation
+        window (:func:`afmid.fit.pipeline.estimate_nonlinear`, with its bounded refinement), then the weights with
+        the regressors' noise and one selection there, as :func:`afmid.fit.pipeline.fit_prepared` makes them
+        before its profile. The profile itself (~30 library evaluations) is left out: the anchor's own result
+        comes from the carried path's search started here, which finds the minimum and its sigma."""
+        from afmid.fit.pipeline import build_system, estimate_nonlinear, library_parameters
+        from afmid.fit.prepare import with_regressor_noise
+
+        library = self.library
+        params = library_parameters(prep, self.config, library)
+        estimate_nonlinear(prep, library, self.config, params, physics=(self.physics, self.extra))
+        settings = self.settings_for(len(prep.nuisance_names))
+        system = build_system(prep, library, params)
+        coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
+        weighted = with_regressor_noise(prep, library, params, coef0)
+        system = build_system(weighted, library, params, theta=system.theta)
+        support = np.asarray(settings.select(system).best.mask, bool)
+        self.support = support.copy()
+        self.coef = np.asarray(regression.subset_fit(regression.combine(system.T_blocks), support)[0], float)
+        self.offsets = [params["d"] - touch]
+        self.nonlinear = {k: params[k] for k in library.nonlinear}
 
     # ------------------------------------------------------------------ the cheap path
     def _fit_shared(self, prep, params: dict, touch: float) -> PixelResult:
@@ -232,9 +253,10 @@ class SharedSupportFit:
         profile = GroupedProfile(factors_at, mask)
         n_columns = len(physics) + len(prep.nuisance_names)
         k = int((np.ones(n_columns, bool) if mask is None else mask).sum())
-        start = min(starts, key=profile)
-        found = parabolic_minimum(profile, start, self.step, *bounds, k)
+        found = parabolic_minimum(profile, starts[0], self.step, *bounds, k, alternatives=starts[1:])
         if found is None:  # no clean parabola near the start: the single-trace profile on the same points
+            x, y = profile.points()
+            start = float(x[np.argmin(y)])
             s2 = profile(start) / max(profile.n_rows - k, 1)
             res = robust_profile(profile, start, 0.3e-9, s2, *bounds, min_step=1e-14, jackknife=True)
             found = SeparationFound(res.value, res.sigma)
@@ -328,7 +350,8 @@ class SeparationFound:
     sigma: float  # m, 1 sigma: max(chi-square width, block jackknife); NaN when undetermined
 
 
-def parabolic_minimum(profile, start: float, step: float, lo: float, hi: float, k: int) -> SeparationFound | None:
+def parabolic_minimum(profile, start: float, step: float, lo: float, hi: float, k: int,
+                      alternatives: tuple[float, ...] | list[float] = ()) -> SeparationFound | None:
     """The minimum of ``profile`` (an :class:`afmid.fit.profile.GroupedProfile`) by a bracket around ``start`` and
     parabola steps, with its 1 sigma; None when it does not converge within :data:`MAX_SEARCH_EVALUATIONS`
     or the profile is not locally parabolic (the caller then runs the robust profile on the same points).
@@ -339,22 +362,46 @@ def parabolic_minimum(profile, start: float, step: float, lo: float, hi: float, 
     are added at the vertex and at +-sigma until the vertex moves by less than a tenth of sigma, so the width is
     read where the chi-square rises by about one. sigma is the larger of that width and the spread of the vertex
     over the block jackknife (leave-one-group-out profiles from the same factors, no library evaluation).
+
+    ``alternatives``: other starts (the offsets of other phases met before), evaluated only when the first
+    bracket's lowest point is on its edge (the minimum is not near ``start``); when one of them is lower, the
+    search starts again from it. Only the points of the current bracket take part in its parabolas: a far start
+    among them would pass for a neighbour of the lowest point and make the bracket halve its way back.
     """
     def clip(v):
         return min(max(v, lo), hi)
 
-    for v in (clip(start - step), clip(start), clip(start + step)):
-        profile(v)
+    def bracket(centre: float) -> _BracketPoints:
+        points = _BracketPoints(profile)
+        for v in (clip(centre - step), clip(centre), clip(centre + step)):
+            points(v)
+        return points
+
+    first_step = step
+    local = bracket(start)
+    alternatives = list(alternatives)
     for _ in range(MAX_SEARCH_EVALUATIONS):
-        x, y = profile.points()
-        if not np.all(np.isfinite(y)) or x.size >= MAX_SEARCH_EVALUATIONS:
+        x, y = local.points()
+        if not np.all(np.isfinite(y)) or len(profile.full) >= MAX_SEARCH_EVALUATIONS:
             return None
         i = int(np.argmin(y))
-        if i == 0 or i == x.size - 1:  # on the edge: move outwards
+        if i == 0 or i == x.size - 1:  # on the edge: another phase's start if lower, else move outwards
+            near = _vertex_beyond_edge(x, y, i, lo, hi, profile.n_rows - k)
+            if near:  # the parabola of the edge's three points bends within reach: bracket its vertex
+                for v in near:
+                    local(v)
+                continue
+            if alternatives:
+                best = min(alternatives, key=profile)
+                alternatives = []
+                if profile(best) < y[i]:
+                    step = first_step
+                    local = bracket(best)
+                    continue
             if (i == 0 and x[0] <= lo) or (i == x.size - 1 and x[-1] >= hi):
                 return None  # the minimum is on the search window's bound
             step *= 2
-            profile(clip(x[i] - step if i == 0 else x[i] + step))
+            local(clip(x[i] - step if i == 0 else x[i] + step))
             continue
         vertex, curvature = _parabola(x[i - 1:i + 2], y[i - 1:i + 2])
         s2 = y[i] / max(profile.n_rows - k, 1)
@@ -363,7 +410,7 @@ def parabolic_minimum(profile, start: float, step: float, lo: float, hi: float, 
         if spacing > BRACKET_WIDTHS * sigma or not math.isfinite(sigma):
             # Too wide a bracket to trust a parabola (after a long move): halve it around the lowest point.
             for v in (0.5 * (x[i - 1] + x[i]), 0.5 * (x[i] + x[i + 1])):
-                profile(v)
+                local(v)
             continue
         wanted = [vertex] if spacing <= 3 * sigma else [vertex - sigma, vertex, vertex + sigma]
         new = [clip(v) for v in wanted if np.min(np.abs(x - v)) > 0.1 * sigma]
@@ -371,8 +418,52 @@ def parabolic_minimum(profile, start: float, step: float, lo: float, hi: float, 
             jk = _jackknife_spread(profile, x[i - 1:i + 2])
             return SeparationFound(float(vertex), max(sigma, jk) if math.isfinite(jk) else sigma)
         for v in new:
-            profile(v)
+            local(v)
     return None
+
+
+#: An edge's parabola is followed when its vertex lies within this many of the bracket's spacings beyond the edge.
+EDGE_REACH = 3.0
+
+
+def _vertex_beyond_edge(x: np.ndarray, y: np.ndarray, i: int, lo: float, hi: float, dof: int) -> list[float]:
+    """Where to evaluate next when the lowest point ``x[i]`` is on the bracket's edge: the vertex of the parabola
+    through it and its two nearest points and one chi-square width sigma beyond the vertex (so that the vertex
+    ends inside the bracket), when the parabola bends upwards and the vertex lies beyond the edge within
+    :data:`EDGE_REACH` spacings (inside the search window); points within a tenth of sigma of one evaluated are
+    left out. An empty list: move outwards, or try another start."""
+    if x.size < 3:
+        return []
+    three = slice(0, 3) if i == 0 else slice(x.size - 3, x.size)
+    vertex, curvature = _parabola(x[three], y[three])
+    if not curvature > 0:
+        return []
+    outwards = -1.0 if i == 0 else 1.0
+    spacing = abs(x[i] - x[i + 1 if i == 0 else i - 1])
+    beyond = outwards * (vertex - x[i])
+    if beyond > EDGE_REACH * spacing:
+        return []
+    sigma = math.sqrt(y[i] / max(dof, 1) / curvature)
+    wanted = [vertex, vertex + outwards * sigma] if beyond > 0 else [x[i] + outwards * sigma]
+    near = [min(max(v, lo), hi) for v in wanted if np.min(np.abs(x - v)) > 0.1 * sigma]
+    return [v for v in near if np.min(np.abs(x - v)) > 0.1 * sigma]
+
+
+class _BracketPoints:
+    """The points of one bracket of :func:`parabolic_minimum` on a shared profile (evaluations cached there)."""
+
+    def __init__(self, profile):
+        self.profile = profile
+        self.values: dict[float, float] = {}
+
+    def __call__(self, value: float) -> float:
+        value = float(value)
+        self.values[value] = self.profile(value)
+        return self.values[value]
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        x = np.array(sorted(self.values))
+        return x, np.array([self.values[v] for v in x])
 
 
 def _parabola(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:

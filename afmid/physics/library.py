@@ -84,7 +84,15 @@ class Library:
     def compile(self, params: Mapping[str, float]):
         """A :class:`afmid.physics.expr.ProgramSet` of the terms and the state-gate conditions (cached per parameter set:
         the fit evaluates the same library at the same parameters many times)."""
-        key = (tuple(t.expression for t in self.terms), tuple(sorted(params.items())))
+        # Keyed by the parameters the programs use (not the separation d, say, a variable's offset passed to the
+        # kernels at run time): a search over d compiles once, not at every trial value.
+        expressions = tuple(t.expression for t in self.terms)
+        used = self.__dict__.get("_used_names")
+        if used is None or used[0] != (expressions, tuple(self.states)):
+            names = set().union(*(expr.free_names(e) for e in expressions),
+                                *(expr.free_names(state_expressions(g)) for g in self.states))
+            used = self.__dict__["_used_names"] = ((expressions, tuple(self.states)), names)
+        key = (expressions, tuple(sorted((k, v) for k, v in params.items() if k in used[1])))
         cache = self.__dict__.setdefault("_compiled", {})
         if key not in cache:
             if len(cache) > 64:
