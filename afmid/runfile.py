@@ -186,13 +186,16 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
                       calibration_relative_uncertainty=result.force_calibration_uncertainty, error_kind=ERROR_LABEL,
                       separation_relative_uncertainty=separation_share,
                       statistical_relative_uncertainty=float(getattr(result, "force_statistical_uncertainty", math.nan)),
+                      selection_relative_uncertainty=float(getattr(result, "force_selection_uncertainty", math.nan)),
                       total_relative_uncertainty=float(getattr(result, "force_total_uncertainty", math.nan)),
                       meaning="model force; calibration_relative_uncertainty: its relative 1-sigma share of the "
                               "declared k and Q uncertainties; separation_relative_uncertainty: the RMS of its "
                               "1-sigma change with the estimated rest separation, relative to the peak |force| "
                               "(NaN: the separation was given); statistical_relative_uncertainty: the RMS of its "
                               "bootstrap standard deviation, relative to the peak (NaN: no bootstrap); "
-                              "total_relative_uncertainty: the three in quadrature (1 sigma)")
+                              "selection_relative_uncertainty: half the RMS change with the dropped terms of "
+                              "the selected effects forced in; total_relative_uncertainty: the shares in "
+                              "quadrature (1 sigma)")
         write_dataset(fg, "inverted", result.force_inverted, "N", positive="repulsive", drive=drive_kind(declared),
                       meaning=inverted_force_meaning(declared is not None))
         write_dataset(fg, "time", result.prep.t, "s")

@@ -8,6 +8,8 @@ What is tested (operating points, seeds and tolerances fixed before the results 
   same numbers: agreement to 1e-9 of the largest force, rounding only);
 - a fit with error bars stores the statistical and total shares in the run file and prints them; without
   the bootstrap nothing is claimed;
+- the selection share: nothing dropped, nothing claimed; a support missing a term of its effect gives half the
+  force's change when the term is forced in (computed here as a plain difference of two least-squares fits);
 - the poor instrument (10 pm detector noise, 50 samples per period, 50 periods, separation NOT given; seeds
   251-256, not used anywhere else; 241-246 are in docs/accuracy.md): the force error against the simulator's
   truth is within 2 x the stated total (1 sigma) on at least 5 of 6 seeds and within 3 x on all.
@@ -83,8 +85,10 @@ def test_fit_stores_and_prints_the_band_and_claims_nothing_without_a_bootstrap(t
 
     trace, result = _fit(["simulate.periods=12", "fit.bootstrap=20", "simulate.seed=240"], separation_given=False)
     assert 0 < result.force_statistical_uncertainty < 1
+    assert result.force_selection_uncertainty >= 0
     assert result.force_total_uncertainty == pytest.approx(
-        math.hypot(result.force_statistical_uncertainty, result.force_separation_uncertainty), rel=1e-12)
+        math.hypot(result.force_statistical_uncertainty, result.force_separation_uncertainty,
+                   result.force_selection_uncertainty), rel=1e-12)
     lines = force_lines(result)
     assert any(line.startswith("force: statistical share") for line in lines), lines
     assert any(line.startswith("force: known to") and "1σ" in line for line in lines), lines
@@ -98,10 +102,31 @@ def test_fit_stores_and_prints_the_band_and_claims_nothing_without_a_bootstrap(t
     assert math.isnan(plain.force_statistical_uncertainty) and math.isnan(plain.force_total_uncertainty)
 
 
+def test_selection_share_is_half_the_change_with_the_dropped_term_forced_in():
+    import afmid.fit.regression as regression
+    from afmid.fit.force_band import selection_share
+    from afmid.fit.forces import model_force_samples
+    from afmid.fit.pipeline import whole_effects
+
+    _, result = _fit(["simulate.periods=12", "simulate.seed=240"])
+    prep, library, system, mask = result.prep, result.library, result.system, result.selection.best.mask
+    whole = whole_effects(library, mask)
+    assert selection_share(prep, library, system, whole, whole, result.force_estimate) == 0.0
+    dropped = whole.copy()
+    dropped[library.names.index("dmt.vdw")] = False  # the poor instrument's case: the tail (and adhesion) dropped
+    share = selection_share(prep, library, system, dropped, whole, result.force_estimate)
+    T = regression.combine(system.T_blocks)
+    used = np.isfinite(result.force_estimate)
+    with_term, without = (model_force_samples(prep, library, system, regression.subset_fit(T, m)[0])[used]
+                          for m in (whole, dropped))
+    expected = 0.5 * np.sqrt(np.mean((with_term - without) ** 2)) / np.abs(result.force_estimate[used]).max()
+    assert share == pytest.approx(expected, rel=1e-12) and share > 0.01  # the adhesion is ~10 % of the peak
+
+
 @pytest.mark.slow
 def test_poor_instrument_force_error_is_within_its_stated_band():
     ratios = []
     for seed in range(251, 257):
-        trace, result = _fit(POOR + [f"simulate.seed={seed}"], separation_given=False)
+        trace, result = _fit(POOR + [f"simulate.seed={seed}", "fit.bootstrap=100"], separation_given=False)
         ratios.append(_force_error(result, trace) / result.force_total_uncertainty)
     assert sum(r <= 2.0 for r in ratios) >= 5 and max(ratios) <= 3.0, [f"{r:.2f}" for r in ratios]
