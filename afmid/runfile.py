@@ -185,10 +185,17 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
         write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive",
                       calibration_relative_uncertainty=result.force_calibration_uncertainty, error_kind=ERROR_LABEL,
                       separation_relative_uncertainty=separation_share,
+                      statistical_relative_uncertainty=float(getattr(result, "force_statistical_uncertainty", math.nan)),
+                      selection_relative_uncertainty=float(getattr(result, "force_selection_uncertainty", math.nan)),
+                      total_relative_uncertainty=float(getattr(result, "force_total_uncertainty", math.nan)),
                       meaning="model force; calibration_relative_uncertainty: its relative 1-sigma share of the "
                               "declared k and Q uncertainties; separation_relative_uncertainty: the RMS of its "
                               "1-sigma change with the estimated rest separation, relative to the peak |force| "
-                              "(NaN: the separation was given)")
+                              "(NaN: the separation was given); statistical_relative_uncertainty: the RMS of its "
+                              "bootstrap standard deviation, relative to the peak (NaN: no bootstrap); "
+                              "selection_relative_uncertainty: half the RMS change with the dropped terms of "
+                              "the selected effects forced in; total_relative_uncertainty: the shares in "
+                              "quadrature (1 sigma)")
         write_dataset(fg, "inverted", result.force_inverted, "N", positive="repulsive", drive=drive_kind(declared),
                       meaning=inverted_force_meaning(declared is not None))
         write_dataset(fg, "time", result.prep.t, "s")
@@ -300,6 +307,8 @@ class RunData:
     model_limited: bool = False  # cv_error above its noise floor (afmid.fit.uncertainty.model_limited)
     force_calibration_uncertainty: float = 0.0  # relative 1 sigma of the force from the declared k / Q
     force_separation_uncertainty: float = math.nan  # RMS 1 sigma of the force from the estimated d, / peak
+    force_statistical_uncertainty: float = math.nan  # RMS bootstrap 1 sigma of the force, / peak
+    force_total_uncertainty: float = math.nan  # the three shares in quadrature (afmid.fit.force_band), 1 sigma
     cv_error_folds: np.ndarray | None = None  # the cross-validated error of each fold (cv_error is their mean)
     #: A joint fit's traces (/joint, data.paths), in order: path, separation and its 1 sigma (m; sigma 0 when
     #: given), cv error, noise floor, model-limited. None for a single trace. The rest of RunData is trace 0's.
@@ -438,6 +447,9 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         force_calibration_uncertainty=float(h5["force"]["estimate"].attrs.get("calibration_relative_uncertainty", 0.0)),
         force_separation_uncertainty=float(h5["force"]["estimate"].attrs.get("separation_relative_uncertainty",
                                                                              math.nan)),
+        force_statistical_uncertainty=float(h5["force"]["estimate"].attrs.get("statistical_relative_uncertainty",
+                                                                              math.nan)),
+        force_total_uncertainty=float(h5["force"]["estimate"].attrs.get("total_relative_uncertainty", math.nan)),
         joint=read_joint_traces(h5["joint"]) if "joint" in h5 else None,
     )
 

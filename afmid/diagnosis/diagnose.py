@@ -289,9 +289,14 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         explained = True
     missing = bool(good) or residual_significant
     description = describe_residual(local, run)
+    # A residual no sample effect explains, or a quiet one where the detector's shape stands out (a lag the fit
+    # absorbed into the force law and the separation).
+    quiet_lag = not missing and instrument_signature.detector_stands_out(base_result, prepared.drive.frequency,
+                                                                         instrument_from_config(base_config))
+    search_instrument = (missing and not (good and explained)) or quiet_lag
     finding = (instrument_signature.undeclared(base_config, prepared, base_result, base.bic, trials, _fit_quick,
                                                BIC_EVIDENCE, BIC_DISTINCT, separation_estimated(run))
-               if missing and not (good and explained) else None)  # a residual no sample effect explains
+               if search_instrument else None)
     # Rivals the per-period evidence does not tell apart from the best candidate: name none of them. Only for a
     # single accepted effect: a set of effects was chosen over each single one by the BIC of their joint refit.
     undecided = decide.rivals(good[0], trials) if len(good) == 1 and not outside else []

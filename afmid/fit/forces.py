@@ -218,10 +218,29 @@ def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np
 def model_force_samples(prep: Prepared, library: Library, system: System, coef: np.ndarray) -> np.ndarray:
     """The model force (N) with coefficients ``coef`` on every used sample (NaN elsewhere), at the parameters
     of ``system``."""
-    n = prep.x.size
+    estimate = np.full(prep.x.size, np.nan)
     p = system.theta.shape[2]
+    for where, cols in _library_pieces(prep, library, system):
+        estimate[where] = cols @ coef[:p]
+    return estimate
+
+
+def model_force_spread(prep: Prepared, library: Library, system: System, coef_samples: np.ndarray) -> np.ndarray:
+    """The standard deviation (N) of the model force over the rows of ``coef_samples`` (resampled coefficient
+    vectors, e.g. the bootstrap's) on every used sample (NaN elsewhere), at the parameters of ``system``."""
+    spread = np.full(prep.x.size, np.nan)
+    p = system.theta.shape[2]
+    samples = np.asarray(coef_samples, dtype=float)[:, :p]
+    if samples.shape[0] < 2:
+        return spread
+    for where, cols in _library_pieces(prep, library, system):
+        spread[where] = (cols @ samples.T).std(axis=1, ddof=1)
+    return spread
+
+
+def _library_pieces(prep: Prepared, library: Library, system: System):
+    """(slice of the input samples, the library's columns there) over every used sample, piece by piece."""
     used = prep.blocks.used
-    estimate = np.full(n, np.nan)
     # Behind a declared detector, the restored tip (the inverted samples carry the noise times |1/G|).
     x_used = (prep.x if prep.x_restored is None else prep.x_restored)[used]
     t_used = prep.t[used]
@@ -232,8 +251,7 @@ def model_force_samples(prep: Prepared, library: Library, system: System, coef: 
     for i in range(0, x_used.size, step):
         sl = slice(i, i + step)
         cols = library.evaluate(x_used[sl], prep.xdot_used[sl], t_used[sl], system.params)
-        estimate[used.start + i: used.start + i + cols.shape[0]] = cols @ coef[:p]
-    return estimate
+        yield slice(used.start + i, used.start + i + cols.shape[0]), cols
 
 
 #: Periods per chunk in :func:`period_curves` and when its curves are evaluated (bounds the temporaries). A

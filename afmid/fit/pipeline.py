@@ -53,6 +53,7 @@ from afmid.fit.uncertainty import add_half_difference, finish as finish_uncertai
 from afmid.fit.undetermined import mark as mark_undetermined
 from afmid.progress import Progress
 from afmid.fit.separation_share import NOT_COMPUTED as SHARE_NOT_COMPUTED, SeparationShare, separation_share
+from afmid.fit.force_band import selection_share, statistical_share, total_share
 # Kept importable from afmid.fit.pipeline, where they were defined before (bench/bench_fit.py uses term_penalties).
 from afmid.fit.forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from afmid.fit.selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
@@ -178,10 +179,22 @@ class FitResult:
     model_limited: bool = False  # cv_error above its noise floor: parameters biased beyond their error bars
     #: the estimated separation's share of the force's uncertainty (relative to the peak, 1 sigma; NaN: d given)
     separation_share: SeparationShare = SHARE_NOT_COMPUTED
+    #: the bootstrap's share of the force's uncertainty (relative to the peak, 1 sigma; NaN: no bootstrap)
+    force_statistical_uncertainty: float = math.nan
+    #: half the force's change with the dropped terms of its effects forced in (relative, 1 sigma; NaN: not computed)
+    force_selection_uncertainty: float = math.nan
 
     @property
     def force_separation_uncertainty(self) -> float:
         return self.separation_share.relative
+
+    @property
+    def force_total_uncertainty(self) -> float:
+        """The force curve's 1 sigma relative to its peak: the statistical, separation and calibration shares
+        in quadrature (afmid.fit.force_band); NaN when none was computed."""
+        return total_share(self.force_statistical_uncertainty, self.force_separation_uncertainty,
+                           self.force_selection_uncertainty,
+                           self.force_calibration_uncertainty if self.force_calibration_uncertainty > 0 else math.nan)
 
     @property
     def selected(self) -> np.ndarray:
@@ -432,6 +445,10 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
                                  nonlinear["d"].sigma, force_estimate)
         if share.warning():
             warnings.append("warning: " + share.warning())
+    statistical = (statistical_share(prep, library, system, bagging.coef_samples, force_estimate)
+                   if uncertainty and bagging is not None else math.nan)
+    selection_doubt = (selection_share(prep, library, system, chosen, whole_effects(library, chosen), force_estimate)
+                       if uncertainty else math.nan)
     periods = period_curves(prep, library, system, coef, params, rows, fit.phase_points)
     for name, est in nonlinear.items():
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
@@ -439,7 +456,7 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         prep = replace(prep, fine_grid=None)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_inverted, periods,
-                     warnings, drive_search, force_calibration, limited, share)
+                     warnings, drive_search, force_calibration, limited, share, statistical, selection_doubt)
 
 
 def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:

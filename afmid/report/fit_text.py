@@ -39,6 +39,17 @@ def force_lines(result) -> list[str]:
     separation = getattr(result, "force_separation_uncertainty", math.nan)
     if math.isfinite(separation):  # not NaN: the separation was estimated
         lines.append(f"force: separation share {100 * separation:.2g} % of the peak (1σ, RMS over the samples)")
+    statistical = getattr(result, "force_statistical_uncertainty", math.nan)
+    if math.isfinite(statistical):  # not NaN: error bars by the bootstrap
+        lines.append(f"force: statistical share {100 * statistical:.2g} % of the peak (1σ, RMS over the samples; "
+                     "bootstrap over periods)")
+    selection = getattr(result, "force_selection_uncertainty", math.nan)
+    if math.isfinite(selection) and selection > 0:  # a term of a selected effect was dropped
+        lines.append(f"force: selection share {100 * selection:.2g} % of the peak (1σ: half its change with the "
+                     "dropped terms of the selected effects forced in)")
+    total = getattr(result, "force_total_uncertainty", math.nan)
+    if math.isfinite(total) and len(lines) > 1:
+        lines.append(f"force: known to {100 * total:.2g} % of the peak (1σ, the shares above in quadrature)")
     return lines
 
 
