@@ -70,8 +70,19 @@ def _expected(case: str) -> str:
     return case.split("-")[0]
 
 
-PARAMS = [pytest.param(case, variant, id=f"{case}-{variant}") for case, (_, variants) in CASES.items()
-          for variant in variants if FULL or variant == DEFAULT_VARIANT]
+#: Cases the data cannot decide at 50 periods, with the measured numbers (strict: the trace is seeded, a change
+#: that names the effect shows as XPASS and fails until this entry goes).
+UNDECIDED_AT_50 = {
+    ("capillary", "b"): "a 3.3 nN meniscus rupturing 0.5 nm out: capillary vs exponential damping χ² 6.0 apart "
+    "(Vuong 0.5 σ); taken as the truth each predicts the other's fit worse by χ² 37 (spread 14): exponential "
+    "damping is refuted at 3.0 σ but capillary misses its own prediction by 2.2 σ, so neither is named "
+    "('cannot decide'); at 200 periods capillary is named (ΔBIC -5316 vs -5179, exponential damping leaves a "
+    "residual 1.8x the floor: test_capillary_b_is_decided_by_a_longer_record)",
+}
+PARAMS = [pytest.param(case, variant, id=f"{case}-{variant}",
+                       marks=[pytest.mark.xfail(reason=UNDECIDED_AT_50[case, variant], strict=True)]
+                       if (case, variant) in UNDECIDED_AT_50 else [])
+          for case, (_, variants) in CASES.items() for variant in variants if FULL or variant == DEFAULT_VARIANT]
 
 
 @pytest.mark.parametrize("case, variant", PARAMS)
@@ -92,4 +103,18 @@ def test_hidden_effect_is_named_first_with_the_separation_unknown(tmp_path, case
                 "compared": summary.get("compared_with_best")}, default=float) + "\n")
     assert top is not None and top["effect"] == _expected(case), verdict
     assert summary["diagnosis"]["explained_by_catalog"] is True, verdict
+    assert top["error_after"] <= WITHIN_FLOOR * top["noise_floor_after"], verdict
+
+
+def test_capillary_b_is_decided_by_a_longer_record(tmp_path):
+    """The case the data cannot decide at 50 periods (UNDECIDED_AT_50), recorded for 200: capillary is named
+    first and explains the data (~70 s CPU: the one slow case, it shows the limit is the record length)."""
+    config, variants = CASES["capillary"]
+    raw = apply_overrides(read_yaml(TEST_CONFIGS / f"{config}.yaml"),
+                          [parse_override(o) for o in variants["b"] + ["simulate.periods=200"]])
+    summary, _ = diagnose_without_separation(tmp_path, raw)
+    verdict = summary["diagnosis"]["verdict"]
+    assert summary["suggestions"] and summary["suggestions"][0]["effect"] == "capillary", verdict
+    assert summary["diagnosis"]["explained_by_catalog"] is True, verdict
+    top = summary["suggestions"][0]
     assert top["error_after"] <= WITHIN_FLOOR * top["noise_floor_after"], verdict
