@@ -208,6 +208,10 @@ def suggest(run: RunData, progress: bool = False) -> dict:
         log.warning("%s changed since the run was made (SHA-256 differs); no effects are suggested", run.input_path)
         return {"missing_effect": False, "suggestions": [], "tried": [],
                 "note": f"no suggestions: the input trace {run.input_path} changed since the run was made"}
+    if run.config.sample.separation is None and not run.separation > 0:  # a failed estimate: nothing to refit from
+        raise InputError(f"the run estimated a rest separation of {run.separation * 1e9:.3g} nm, which is not physical: "
+                         "the candidates cannot be refitted from it; give sample.separation", file=run.path,
+                         key="sample.separation")
     with _one_blas_thread():
         return _diagnose(run, progress)
 
