@@ -13,7 +13,12 @@ candidate needs (ln n per parameter, fixed). The best candidate is told apart fr
 
 - it fits better by at least :data:`VUONG_SIGMAS` of the per-block evidence, or
 - the rival needs more parameters and does not fit better by that much (parsimony: a candidate with a free
-  decay length that fits no better than one without is not the simpler explanation).
+  decay length that fits no better than one without is not the simpler explanation), or
+- the rival, taken as the truth, is refuted while the best, taken as the truth, is not (Cox's test,
+  :mod:`afmid.diagnosis.rival_truth`): were the rival the truth its refit would fit better than the best's by
+  the squared distance D_r of its fitted force from the best's model; it fits worse, and the observed
+  difference lies :data:`VUONG_SIGMAS` of the per-period spread above -D_r, while it meets the best's own
+  prediction D_b within that spread.
 
 Otherwise (the rival is as simple or simpler, and the fits are within :data:`VUONG_SIGMAS`) the diagnosis says
 that the data cannot decide between them and names none. Measured on issue 13's table with the separation not
@@ -31,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import afmid.fit.regression as regression
+from afmid.diagnosis.rival_truth import Predictions, predictions, spread
 
 #: A rival whose fit is within this many standard deviations of the summed per-block chi-square difference of
 #: the best candidate is not told apart from it by the fit (two-sided 5 % for a normal statistic: 1.96).
@@ -49,6 +55,32 @@ class Comparison:
     fit_difference: float  # summed chi-square of the rival minus the best's (> 0: the best fits better)
     fit_sd: float  # standard deviation of that sum from the scatter of the per-block differences
     extra_parameters: int  # parameters the rival needs beyond the best's (terms + nonlinear shape parameters)
+    #: what each taken as the truth predicts for the fit difference (afmid.diagnosis.rival_truth; None: not known)
+    predictions: Predictions | None = None
+    spread: float = math.nan  # sd of the summed difference, neighbouring periods' correlation counted
+
+    @property
+    def rival_refuted_sigmas(self) -> float:
+        """How far (in spreads) the observed difference lies above what the rival, taken as the truth, predicts
+        (-D_r, less one chi-square unit of noise absorbed per extra parameter of the rival); NaN when not known."""
+        if self.predictions is None or not self.spread > 0:
+            return math.nan
+        expected = -self.predictions.rival_as_truth - self.extra_parameters
+        return (self.fit_difference - expected) / self.spread
+
+    @property
+    def best_met_sigmas(self) -> float:
+        """How far (in spreads) the observed difference lies below what the best, taken as the truth, predicts
+        (+D_b, less one chi-square unit of noise absorbed per extra parameter of the rival); NaN when not known."""
+        if self.predictions is None or not self.spread > 0:
+            return math.nan
+        expected = self.predictions.best_as_truth - self.extra_parameters
+        return (expected - self.fit_difference) / self.spread
+
+    @property
+    def by_rival_refuted(self) -> bool:
+        """The rival taken as the truth is refuted by :data:`VUONG_SIGMAS`, the best taken as the truth is not."""
+        return self.rival_refuted_sigmas >= VUONG_SIGMAS and self.best_met_sigmas < VUONG_SIGMAS
 
     @property
     def fit_sigmas(self) -> float:
@@ -69,7 +101,7 @@ class Comparison:
 
     @property
     def told_apart(self) -> bool:
-        return self.by_fit or self.by_parsimony
+        return self.by_fit or self.by_parsimony or self.by_rival_refuted
 
 
 def compare(best, rival) -> Comparison | None:
@@ -78,8 +110,10 @@ def compare(best, rival) -> Comparison | None:
     if a is None or b is None or a.shape != b.shape or a.size < 3:
         return None
     diff = b - a
+    spaces = getattr(best, "space", None), getattr(rival, "space", None)
+    known = predictions(spaces[0](), spaces[1]()) if None not in spaces else None
     return Comparison(float(diff.sum()), math.sqrt(a.size * float(np.var(diff, ddof=1))),
-                      int(rival.n_parameters) - int(best.n_parameters))
+                      int(rival.n_parameters) - int(best.n_parameters), known, spread(diff))
 
 
 def contenders(best, trials: list) -> list[tuple]:
@@ -106,7 +140,11 @@ def comparisons(best, trials: list) -> list[dict]:
     scripts/experiment_table.py)."""
     return [{"effect": t.effect, "fit_difference": c.fit_difference, "fit_sd": c.fit_sd, "fit_sigmas": c.fit_sigmas,
              "extra_parameters": c.extra_parameters, "by_fit": c.by_fit, "by_parsimony": c.by_parsimony,
-             "told_apart": c.told_apart} for t, c in contenders(best, trials)]
+             "rival_as_truth": c.predictions.rival_as_truth if c.predictions else None,
+             "best_as_truth": c.predictions.best_as_truth if c.predictions else None, "spread": c.spread,
+             "rival_refuted_sigmas": c.rival_refuted_sigmas, "best_met_sigmas": c.best_met_sigmas,
+             "by_rival_refuted": c.by_rival_refuted, "told_apart": c.told_apart}
+            for t, c in contenders(best, trials)]
 
 
 def _words(c: Comparison) -> str:
@@ -117,15 +155,19 @@ def _words(c: Comparison) -> str:
 
 def parsimony_note(best, trials: list) -> str:
     """A clause for the verdict naming the rivals that explain the residual as well as ``best`` and are set
-    aside only because they need more parameters ("" when there are none)."""
-    notes = []
+    aside only because they need more parameters, or only because, taken as the truth, they are refuted
+    ("" when there are none)."""
+    notes, refuted = [], []
     for t, c in contenders(best, trials):
         if c.by_parsimony and not c.by_fit:
             more = f"{c.extra_parameters} more parameter" + ("s" if c.extra_parameters > 1 else "")
             notes.append(f"`{t.effect}` fits as well ({_words(c)}) with {more}")
-    if not notes:
-        return ""
-    return "; " + "; ".join(notes) + f": the simpler `{best.effect}` is named"
+        elif c.by_rival_refuted and not c.by_fit:
+            refuted.append(f"`{t.effect}` ({_words(c)}) would, were it the truth, fit better by χ² "
+                           f"{c.predictions.rival_as_truth:.1f}: refuted at {c.rival_refuted_sigmas:.1f} σ, while "
+                           f"`{best.effect}` predicts the difference within {max(c.best_met_sigmas, 0.0):.1f} σ")
+    text = ("; " + "; ".join(notes) + f": the simpler `{best.effect}` is named") if notes else ""
+    return text + ("; " + "; ".join(refuted) if refuted else "")
 
 
 def verdict(best, others: list) -> str:

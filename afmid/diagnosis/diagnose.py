@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
 import logging
 import math
 import time
@@ -40,6 +41,7 @@ import numpy as np
 
 import afmid.diagnosis.decide as decide
 import afmid.diagnosis.instrument_signature as instrument_signature
+import afmid.diagnosis.rival_truth as rival_truth
 from afmid.progress import counted
 import afmid.fit.plausibility as plausibility
 from afmid.config import RunConfig
@@ -110,6 +112,7 @@ class Trial:
     separation: float = math.nan  # the rest separation of the refit, m (re-profiled when the run estimated it)
     block_chi2: np.ndarray | None = field(default=None, repr=False)  # per-block chi-square (afmid.diagnosis.decide)
     n_parameters: int = 0  # selected terms + estimated nonlinear parameters of the refit (afmid.diagnosis.decide)
+    space: object = field(default=None, repr=False)  # () -> its rival_truth.ModelSpace, computed on first call
 
 
 @dataclass
@@ -205,6 +208,10 @@ def suggest(run: RunData, progress: bool = False) -> dict:
         log.warning("%s changed since the run was made (SHA-256 differs); no effects are suggested", run.input_path)
         return {"missing_effect": False, "suggestions": [], "tried": [],
                 "note": f"no suggestions: the input trace {run.input_path} changed since the run was made"}
+    if run.config.sample.separation is None and not run.separation > 0:  # a failed estimate: nothing to refit from
+        raise InputError(f"the run estimated a rest separation of {run.separation * 1e9:.3g} nm, which is not physical: "
+                         "the candidates cannot be refitted from it; give sample.separation", file=run.path,
+                         key="sample.separation")
     with _one_blas_thread():
         return _diagnose(run, progress)
 
@@ -263,7 +270,9 @@ def _diagnose(run: RunData, progress: bool) -> dict:
         trials.append(Trial(effect, result.cv_error, result.cv_error_noise_floor, bic_after, bic_after - base.bic,
                             chi2_after, limit_after, selected, qty, shape, _implausible(effect, qty, run),
                             time.perf_counter() - t0, separation=separation, block_chi2=decide.block_chi2(result),
-                            n_parameters=int(result.selection.best.mask.sum()) + len(shape)))
+                            n_parameters=int(result.selection.best.mask.sum()) + len(shape),
+                            space=functools.cache(functools.partial(rival_truth.model_space, prepared, result,
+                                                                    list(shape), separation_estimated(run)))))
     residual_significant = _significant(base.chi2, base.chi2_limit, base.error, base.floor)
     for t in trials:
         t.reasons = _rejections(t, base)

@@ -267,14 +267,12 @@ def test_hidden_contact_damping_is_named_first(diagnosed, separation_given):
 def test_kelvin_voigt_is_not_taken_for_contact_damping(diagnosed, periods):
     """On a Kelvin-Voigt trace (hidden_viscoelastic.yaml: 0.5 nm indentation) ``viscoelastic`` ranks first and
     ``contact_damping`` is never named in its place. The two differ only by the sqrt(R delta) factor, i.e. at the
-    edges of a short contact: with 50 periods the data cannot decide between them (measured: ΔBIC -2210 vs -2201,
-    χ² 8.8 apart, 1.6 σ of the per-period evidence: no effect named, both listed); with 200 periods
-    ``viscoelastic`` is named (ΔBIC -9645 vs -9576)."""
+    edges of a short contact: with 50 periods the fits are χ² 8.8 apart, 1.6 σ of the per-period evidence (Vuong's
+    rule alone named neither), but contact damping taken as the truth would fit better by χ² 8.2: refuted at
+    3.0 σ (afmid.diagnosis.rival_truth), so ``viscoelastic`` is named; with 200 periods by its fit alone
+    (ΔBIC -9645 vs -9576)."""
     summary = diagnosed("hidden_viscoelastic", True, periods)
     verdict = summary["diagnosis"]["verdict"]
     tried = {t["effect"]: t["delta_bic"] for t in summary["tried"]}
     assert tried["viscoelastic"] < tried["contact_damping"], tried
-    ranked = summary["suggestions"] or summary.get("undecided", [])
-    assert ranked and ranked[0]["effect"] == "viscoelastic", verdict
-    if periods == 200:
-        assert summary["suggestions"] and summary["suggestions"][0]["effect"] == "viscoelastic", verdict
+    assert summary["suggestions"] and summary["suggestions"][0]["effect"] == "viscoelastic", verdict
