@@ -70,8 +70,9 @@ def _expected(case: str) -> str:
     return case.split("-")[0]
 
 
-#: Cases the data cannot decide at 50 periods, with the measured numbers (strict: the trace is seeded, a change
-#: that names the effect shows as XPASS and fails until this entry goes).
+#: Cases the data cannot decide at 50 periods, with the measured numbers (not strict, as every measured xfail in
+#: the suite: a change that names the effect shows as XPASS; these sit near a decision threshold, and another
+#: CPU's BLAS rounding must not fail the suite by deciding one of them).
 UNDECIDED_AT_50 = {
     ("capillary", "b"): "a 3.3 nN meniscus rupturing 0.5 nm out: capillary vs exponential damping χ² 6.0 apart "
     "(Vuong 0.5 σ); taken as the truth each predicts the other's fit worse by χ² 37 (spread 14): exponential "
@@ -87,7 +88,7 @@ UNDECIDED_AT_50 = {
     "to 1.5 nm overlap in shape over the 3.5 nm the tip samples)",
 }
 PARAMS = [pytest.param(case, variant, id=f"{case}-{variant}",
-                       marks=[pytest.mark.xfail(reason=UNDECIDED_AT_50[case, variant], strict=True)]
+                       marks=[pytest.mark.xfail(reason=UNDECIDED_AT_50[case, variant], strict=False)]
                        if (case, variant) in UNDECIDED_AT_50 else [])
           for case, (_, variants) in CASES.items() for variant in variants if FULL or variant == DEFAULT_VARIANT]
 
