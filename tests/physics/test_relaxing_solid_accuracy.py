@@ -7,7 +7,9 @@ Seeds, parameter sets and tolerances were fixed before any result was seen; the 
   A0 15 nm, R 10 nm, relaxed E* 1 GPa, 1000 periods, thermal + 1 pm detector noise) with tau at three
   fractions of the period (w tau = 0.3 in sets a and d, 1 in c, 3 in b; c and d with a stronger relaxation,
   E_0 - E_inf = 2 GPa, d also E* 1.5 GPa), fitted with ``model.effects: [dmt, standard_linear_solid]``,
-  separation given: tau within 10 %, E* (the relaxed modulus) and E_0 - E_inf within 5 %;
+  separation given: tau within 10 %, E* (the relaxed modulus) and E_0 - E_inf within 5 %; where tau is poorly
+  determined (sets b and c, 200 periods) its interval covers the truth over six seeds (at least 5 of 6 within
+  2 sigma) and E_0 is within 5 %;
 - the diagnosis: the relaxing solid hidden from a ``[dmt]`` fit (``hidden_standard_linear_solid.yaml``, 50
   periods) is named first, not Kelvin-Voigt, with the separation given and not given; on a Kelvin-Voigt trace
   (``hidden_viscoelastic.yaml``) it is not named first (the two are told apart).
@@ -98,6 +100,33 @@ def test_relaxing_solid_recovered(fitted, variant, separation, request):
     assert found["relaxation_time"] == pytest.approx(truth["relaxation_time"], rel=TAU_TOLERANCE), found
     assert found["E_star"] == pytest.approx(truth["E_star"], rel=MODULUS_TOLERANCE), found
     assert found["relaxing_modulus"] == pytest.approx(truth["relaxing_modulus"], rel=MODULUS_TOLERANCE), found
+
+
+#: Coverage of tau's interval where tau is poorly determined (w tau = 3 and 1, 200 periods, d given): over six
+#: seeds the profile's 1 sigma must cover the truth as a 1-sigma interval would at 2 sigma: at least 5 of 6 within
+#: 2 sigma (the criterion of the session's brief, fixed before this test ran; 95 % of a normal error lies within
+#: 2 sigma, so 5 of 6 fails for right intervals with probability 3 %). E_0 = E* + (E_0 - E_inf), which these
+#: records do determine, within the 5 % of the moduli in every seed.
+COVERAGE_SEEDS = (601, 602, 603, 604, 605, 606)
+
+
+@pytest.mark.parametrize("variant", ["b", "c"])
+def test_relaxation_time_interval_covers_the_truth_over_seeds(fitted, variant):
+    rows, misses = [], 0
+    for seed in COVERAGE_SEEDS:
+        own_seed = f"simulate.seed={seed}" in SETS[variant]  # the set's own trace: shared with the test above
+        result, sim = fitted(SETS[variant] + ([] if own_seed else [f"simulate.seed={seed}"]), "known")
+        truth = sim.simulate.parameters
+        tau = result.nonlinear["relaxation_time"]
+        z = (tau.value - truth["relaxation_time"]) / tau.sigma
+        e0 = result.quantities["E_star"]["value"] + result.quantities["relaxing_modulus"]["value"]
+        e0_error = e0 / (truth["E_star"] + truth["relaxing_modulus"]) - 1
+        rows.append((seed, round(tau.value / truth["relaxation_time"] - 1, 3), round(tau.sigma / truth["relaxation_time"], 3),
+                     round(z, 2), round(e0_error, 4)))
+        misses += abs(z) >= 2.0
+        assert abs(e0_error) < MODULUS_TOLERANCE, rows
+    print(f"\n{variant}: (seed, tau error, tau 1 sigma, z, E_0 error) {rows}")
+    assert misses <= 1, rows
 
 
 # --------------------------------------------------------------------------- diagnosis
