@@ -126,8 +126,8 @@ def test_relaxation_time_interval_covers_the_truth_over_seeds(fitted, variant):
         z = (tau.value - truth["relaxation_time"]) / tau.sigma
         e0 = result.quantities["E_star"]["value"] + result.quantities["relaxing_modulus"]["value"]
         e0_error = e0 / (truth["E_star"] + truth["relaxing_modulus"]) - 1
-        rows.append((seed, round(tau.value / truth["relaxation_time"] - 1, 3), round(tau.sigma / truth["relaxation_time"], 3),
-                     round(z, 2), round(e0_error, 4)))
+        rows.append((seed, round(float(tau.value / truth["relaxation_time"] - 1), 3),
+                     round(float(tau.sigma / truth["relaxation_time"]), 3), round(float(z), 2), round(float(e0_error), 4)))
         misses += abs(z) >= 2.0
         assert abs(e0_error) < MODULUS_TOLERANCE, rows
     print(f"\n{variant}: (seed, tau error, tau 1 sigma, z, E_0 error) {rows}")
