@@ -56,6 +56,8 @@ def test_joint_fit_writes_the_shared_law_and_every_trace(traces, run_cli, tmp_pa
     code, out, err = run_cli("fit", config, "-o", run)
     assert code == 0, err
     assert "joint fit of 2 traces" in out and "trace 1:" in out
+    shared = next(line for line in out.splitlines() if line.strip().startswith("E_star = "))
+    assert "(1σ)" in shared and "(95 %)" in shared, shared  # the shared parameters with their intervals shown
     with h5py.File(run, "r") as h5:
         g = h5["joint"]
         assert g.attrs["n_traces"] == 2

@@ -11,7 +11,7 @@ before any result was seen, the tolerances are the issue's requirements:
   ``model.effects: [dmt, contact_damping]``, separation given and estimated: c_d within 5 %;
 - DMT with a cone and with a four-sided pyramid (``tests/configs/dmt_cone.yaml``, ``dmt_pyramid.yaml``,
   3 parameter sets each: modulus, half angle, Hamaker constant, seed), fitted with ``model.effects: [dmt]``
-  and the same ``cantilever.tip_shape``, separation given: E* within 2 %;
+  and the same ``cantilever.tip_shape``, separation given: E* within 2 %; the same for a flat punch (2 sets);
 - the diagnosis: contact damping hidden from a ``[dmt]`` fit (``tests/configs/hidden_contact_damping.yaml``)
   is named first, with the separation given and estimated; on a Kelvin-Voigt trace
   (``hidden_viscoelastic.yaml``) ``viscoelastic`` is named, not ``contact_damping`` (the reverse holds in
@@ -178,6 +178,13 @@ TIP_SETS = {
                       "simulate.parameters.hamaker=6.0e-20", "simulate.seed=502"],
                 "c": ["simulate.parameters.E_star=4.0e9", "cantilever.tip_half_angle=0.5", "simulate.seed=503"]},
 }
+#: A flat punch (F = 2 E* R delta, R = tip_radius) on the cone's operating point (the issue asks 2 % for the cone
+#: and the pyramid; the same tolerance, fixed before the fit was run).
+FLAT_PUNCH_SETS = {
+    "a": ["cantilever.tip_shape=flat_punch", "cantilever.tip_half_angle=null", "simulate.seed=451"],
+    "b": ["cantilever.tip_shape=flat_punch", "cantilever.tip_half_angle=null", "simulate.parameters.E_star=1.0e9",
+          "simulate.parameters.hamaker=6.0e-20", "simulate.seed=452"],
+}
 CONTACT_DAMPING_TOLERANCE = 0.05  # the issue's requirement
 MODULUS_TOLERANCE = 0.02  # the issue's requirement
 
@@ -228,6 +235,17 @@ def test_modulus_recovered_with_the_tip_shape(fitted, shape, variant):
     result, sim = fitted(f"dmt_{shape}", TIP_SETS[shape][variant], "known")
     assert result.library.tip.shape == shape
     assert any("delta^2" in t.expression for t in result.library.terms)
+    truth = sim.simulate.parameters["E_star"]
+    assert result.quantities["E_star"]["value"] == pytest.approx(truth, rel=MODULUS_TOLERANCE)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", sorted(FLAT_PUNCH_SETS))
+def test_modulus_recovered_with_a_flat_punch(fitted, variant):
+    result, sim = fitted("dmt_cone", FLAT_PUNCH_SETS[variant], "known")
+    assert result.library.tip.shape == "flat_punch"
+    hertz = next(t for t in result.library.terms if t.label == "hertz")
+    assert "delta^2" not in hertz.expression and "delta^1.5" not in hertz.expression
     truth = sim.simulate.parameters["E_star"]
     assert result.quantities["E_star"]["value"] == pytest.approx(truth, rel=MODULUS_TOLERANCE)
 

@@ -16,7 +16,8 @@ before any result was seen:
 - low Q: a DMT trace on the same lever with Q 2 and Q 4 (2 seeds each), fitted without the separation: force
   error <= 1 % of the peak force;
 - the diagnosis: the double layer hidden from a ``[dmt]`` fit in liquid is named first and not taken for
-  hydration (3 variants); a hydration trace in liquid is not named ``double_layer``.
+  hydration (3 variants, separation given and not given); a hydration trace in liquid is not named
+  ``double_layer``.
 
 Measured: docs/accuracy.md, "Liquid: the double layer and low Q".
 """
@@ -306,12 +307,19 @@ def force_error(result, trace) -> float:
 
 
 #: Cases that missed the tolerances fixed beforehand, with the measured numbers (the requirement is kept: a fix
-#: shows as XPASS).
+#: shows as XPASS). Both are information limits of a 200-period record, measured (session 9):
+#: - c, d estimated: the force at contact's own 1 sigma is 4.2 % (the separation's and the Debye length's
+#:   uncertainty carried through the extrapolation to z = a0), so 5 % is 1.2 sigma and an unbiased estimate misses
+#:   it one time in four; +5.2 % is z = +1.26. The same set at 600 periods (1 sigma 2.7 %): -4.5 % (z -1.65),
+#:   lambda_D +3.3 %, d +1 pm (1 sigma 5 pm); 5 % at 2 sigma needs 1 sigma <= 2.5 %: ~700 periods.
+#: - Q2-b: the error with d given is 0.61 %; d estimated +14 pm (1 sigma 16 pm) adds the separation share
+#:   (0.99 % of the peak per sigma): sqrt(0.61^2 + (0.87 * 0.99)^2) = 1.06 %, measured 1.10 %.
 MEASURED_LIMITS = {
-    ("c", "estimated"): "force at contact +5.2 % (tolerance 5 %), lambda_D -6.2 %, sigma_t sigma_s +12.8 %: with d "
-    "estimated the exponential's amplitude moves by exp(delta_d / lambda_D), 5 % for 0.1 nm at lambda_D = 2 nm; "
-    "with d given +1.0 %, -2.4 %, +3.6 %",
-    "Q2-b": "force error 1.10 % (tolerance 1 %) with d estimated; Q2-a 0.61 %, Q4-a 0.69 %, Q4-b 0.73 %",
+    ("c", "estimated"): "force at contact +5.2 % (tolerance 5 %) with its 1 sigma 4.2 % (z +1.26), lambda_D -6.2 % "
+    "(1 sigma 5.0 %), sigma_t sigma_s +12.8 %, d -14 pm (1 sigma 8.5 pm): information-limited at 200 periods "
+    "(600 periods: -4.5 %, 1 sigma 2.7 %); with d given +1.0 %, -2.4 %, +3.6 %",
+    "Q2-b": "force error 1.10 % (tolerance 1 %) with d estimated: 0.61 % with d given plus the separation's share "
+    "0.99 % per sigma at d +14 pm (0.87 sigma); Q2-a 0.61 %, Q4-a 0.69 %, Q4-b 0.73 %",
 }
 
 
@@ -406,6 +414,51 @@ def test_hidden_double_layer_is_named_first(diagnosed, variant):
     assert summary["suggestions"] and summary["suggestions"][0]["effect"] == "double_layer", verdict
     tried = {t["effect"]: t["delta_bic"] for t in summary["tried"]}
     assert "capillary" not in tried and "electrostatic" not in tried
+    assert tried["double_layer"] < tried["hydration"], tried
+
+
+#: The hidden double layer with the separation NOT given (measured, not loosened: the requirement is kept).
+UNKNOWN_SEPARATION_LIMITS = {
+    "b": "the [dmt] fit's separation goes below zero (-0.86 nm; truth 5 nm): the force is nearly static over the "
+    "oscillation at lambda_D = 5 nm (no harmonic above the noise, the mean deflection -347 pm), the separation's "
+    "window (6 nm below first contact) reaches below zero and the diagnosis's refit cannot build its config "
+    "(sample.separation must be > 0)",
+    "c": "the data cannot decide: double_layer and hydration both explain the residual (dBIC -570 vs -558, "
+    "error 0.083 vs floor 0.078); at lambda_D = 2 nm the double layer overlaps hydration's range once d is free",
+}
+
+
+@pytest.fixture(scope="module")
+def diagnosed_unknown_separation(tmp_path_factory):
+    """``diagnosed_unknown_separation(overrides)`` -> suggest summary of a [dmt] fit, separation NOT given."""
+    from unknown_separation import diagnose_simulated
+
+    folder = tmp_path_factory.mktemp("liquid_diagnosis_unknown_d")
+    cache: dict = {}
+
+    def get(overrides: list[str]):
+        key = tuple(overrides)
+        if key not in cache:
+            raw = apply_overrides(read_yaml(CONFIGS / "liquid_double_layer.yaml"),
+                                  [parse_override(o) for o in overrides + ["model.effects=[dmt]", "simulate.periods=50"]])
+            cache[key], _ = diagnose_simulated(folder, raw, separation_given=False, stem=f"liquid_{len(cache)}")
+        return cache[key]
+
+    return get
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", sorted(DOUBLE_LAYER_SETS))
+def test_hidden_double_layer_is_named_first_without_the_separation(diagnosed_unknown_separation, variant, request):
+    """As above, as an experimenter would diagnose: ``sample.separation`` absent from the fit."""
+    if variant in UNKNOWN_SEPARATION_LIMITS:
+        request.applymarker(pytest.mark.xfail(reason=UNKNOWN_SEPARATION_LIMITS[variant], strict=False))
+    summary = diagnosed_unknown_separation(DOUBLE_LAYER_SETS[variant])
+    verdict = summary["diagnosis"]["verdict"]
+    tried = {t["effect"]: t["delta_bic"] for t in summary["tried"]}
+    _record("hidden_double_layer_unknown_d", variant, verdict=verdict, tried=tried)
+    assert summary["missing_effect"] is True, verdict
+    assert summary["suggestions"] and summary["suggestions"][0]["effect"] == "double_layer", verdict
     assert tried["double_layer"] < tried["hydration"], tried
 
 

@@ -7,7 +7,9 @@ Seeds, parameter sets and tolerances were fixed before any result was seen; the 
   A0 15 nm, R 10 nm, relaxed E* 1 GPa, 1000 periods, thermal + 1 pm detector noise) with tau at three
   fractions of the period (w tau = 0.3 in sets a and d, 1 in c, 3 in b; c and d with a stronger relaxation,
   E_0 - E_inf = 2 GPa, d also E* 1.5 GPa), fitted with ``model.effects: [dmt, standard_linear_solid]``,
-  separation given: tau within 10 %, E* (the relaxed modulus) and E_0 - E_inf within 5 %;
+  separation given: tau within 10 %, E* (the relaxed modulus) and E_0 - E_inf within 5 %; where tau is poorly
+  determined (sets b and c, 200 periods) its interval covers the truth over six seeds (at least 5 of 6 within
+  2 sigma) and E_0 is within 5 %;
 - the diagnosis: the relaxing solid hidden from a ``[dmt]`` fit (``hidden_standard_linear_solid.yaml``, 50
   periods) is named first, not Kelvin-Voigt, with the separation given and not given; on a Kelvin-Voigt trace
   (``hidden_viscoelastic.yaml``) it is not named first (the two are told apart).
@@ -44,10 +46,15 @@ SETS = {
 CASES = [("a", "known"), ("d", "known"), ("b", "known"), ("c", "known")]
 #: Cases that fail honestly, with what was measured (kept, not loosened; see docs/accuracy.md). With tau
 #: beyond the contact time (~0.17 T here) the contact sees mostly the unrelaxed modulus: E_0 = E* + (E_0 - E_inf)
-#: is determined, its split and tau are not (information, not bias: the profile's sigma covers the error).
+#: is determined, its split and tau are not (the profile's sigma covers the error; over seeds the error is a
+#: noise-induced bias that shrinks with the record: docs/accuracy.md).
 KNOWN_GAPS: dict[tuple[str, str], str] = {
-    ("b", "known"): "w tau = 3: tau -39 % (1 sigma 23 %), E* +36 %, E_0 - E_inf -35 %; E_0 +0.3 %",
-    ("c", "known"): "w tau = 1: tau +30 % (1 sigma 32 %), E* -43 %, E_0 - E_inf +20 %; E_0 -1.1 %",
+    ("b", "known"): "w tau = 3: tau -39 % (1 sigma 23 %), E* +36 %, E_0 - E_inf -35 %; E_0 +0.3 %; every one of seeds "
+    "601-606 reads tau short (mean -31 %, noise-free +0.65 %: a noise-induced bias); 1000 periods: -1.8 % (1 sigma "
+    "10.4 %); 10 % at 2 sigma needs ~4300 periods",
+    ("c", "known"): "w tau = 1: tau +30 % (1 sigma 32 %), E* -43 %, E_0 - E_inf +20 %; E_0 -1.1 %; every one of seeds "
+    "601-606 reads tau long (mean +30 %, noise-free -1.3 %); 1000 periods: +12.8 % (1 sigma 19 %); 10 % at 2 sigma "
+    "needs ~14000 periods",
 }
 
 
@@ -98,6 +105,34 @@ def test_relaxing_solid_recovered(fitted, variant, separation, request):
     assert found["relaxation_time"] == pytest.approx(truth["relaxation_time"], rel=TAU_TOLERANCE), found
     assert found["E_star"] == pytest.approx(truth["E_star"], rel=MODULUS_TOLERANCE), found
     assert found["relaxing_modulus"] == pytest.approx(truth["relaxing_modulus"], rel=MODULUS_TOLERANCE), found
+
+
+#: Coverage of tau's interval where tau is poorly determined (w tau = 3 and 1, 200 periods, d given): over six
+#: seeds the profile's 1 sigma must cover the truth as a 1-sigma interval would at 2 sigma: at least 5 of 6 within
+#: 2 sigma (the criterion of the session's brief; the fits were first measured by a script, then this test
+#: written; 95 % of a normal error lies within 2 sigma, so at most 1 of 6 outside fails for right intervals with
+#: probability 3 %). E_0 = E* + (E_0 - E_inf), which these
+#: records do determine, within the 5 % of the moduli in every seed.
+COVERAGE_SEEDS = (601, 602, 603, 604, 605, 606)
+
+
+@pytest.mark.parametrize("variant", ["b", "c"])
+def test_relaxation_time_interval_covers_the_truth_over_seeds(fitted, variant):
+    rows, misses = [], 0
+    for seed in COVERAGE_SEEDS:
+        own_seed = f"simulate.seed={seed}" in SETS[variant]  # the set's own trace: shared with the test above
+        result, sim = fitted(SETS[variant] + ([] if own_seed else [f"simulate.seed={seed}"]), "known")
+        truth = sim.simulate.parameters
+        tau = result.nonlinear["relaxation_time"]
+        z = (tau.value - truth["relaxation_time"]) / tau.sigma
+        e0 = result.quantities["E_star"]["value"] + result.quantities["relaxing_modulus"]["value"]
+        e0_error = e0 / (truth["E_star"] + truth["relaxing_modulus"]) - 1
+        rows.append((seed, round(float(tau.value / truth["relaxation_time"] - 1), 3),
+                     round(float(tau.sigma / truth["relaxation_time"]), 3), round(float(z), 2), round(float(e0_error), 4)))
+        misses += abs(z) >= 2.0
+        assert abs(e0_error) < MODULUS_TOLERANCE, rows
+    print(f"\n{variant}: (seed, tau error, tau 1 sigma, z, E_0 error) {rows}")
+    assert misses <= 1, rows
 
 
 # --------------------------------------------------------------------------- diagnosis
