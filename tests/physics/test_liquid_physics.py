@@ -24,7 +24,7 @@ Measured: docs/accuracy.md, "Liquid: the double layer and low Q".
 
 from __future__ import annotations
 
-import copy
+import itertools
 import json
 import math
 import re
@@ -374,31 +374,19 @@ HYDRATION_IN_LIQUID = {  # (F_h N at contact, lambda_h m): a hydration force on 
 
 @pytest.fixture(scope="module")
 def diagnosed(tmp_path_factory):
-    """``diagnosed(overrides)`` -> suggest summary of a [dmt] fit (separation given) of the liquid trace."""
-    from afmid.diagnosis.diagnose import load_run, suggest
-    from afmid.fit.pipeline import run_fit
-    from afmid.io.trace import write_trace_file
-    from afmid.runfile import write_run
-    from afmid.simulate.driver import simulate
+    """``diagnosed(overrides, separation_given=True)`` -> suggest summary of a [dmt] fit of the liquid trace."""
+    from unknown_separation import diagnose_simulated
 
     folder = tmp_path_factory.mktemp("liquid_diagnosis")
     cache: dict = {}
+    stems = itertools.count()  # not len(cache): a case the diagnosis refuses leaves its files and no cache entry
 
-    def get(overrides: list[str]):
-        key = tuple(overrides)
+    def get(overrides: list[str], separation_given: bool = True):
+        key = (tuple(overrides), separation_given)
         if key not in cache:
             raw = apply_overrides(read_yaml(CONFIGS / "liquid_double_layer.yaml"),
                                   [parse_override(o) for o in overrides + ["model.effects=[dmt]", "simulate.periods=50"]])
-            sim = build_config(raw, source=folder / "liquid.yaml", base_dir=folder)
-            trace_path = folder / f"liquid_{len(cache)}.h5"
-            write_trace_file(trace_path, simulate(sim), dump_config(sim))
-            fit_raw = copy.deepcopy(raw)
-            fit_raw["data"] = {"path": str(trace_path)}
-            fit_raw["simulate"]["parameters"] = {}
-            config = build_config(fit_raw, source=folder / "liquid.yaml", base_dir=folder)
-            run_path = folder / f"liquid_{len(cache)}.run.h5"
-            write_run(run_path, run_fit(config, uncertainty=False), config)
-            cache[key] = suggest(load_run(run_path))
+            cache[key], _ = diagnose_simulated(folder, raw, separation_given, stem=f"liquid_{next(stems)}")
         return cache[key]
 
     return get
@@ -421,39 +409,20 @@ def test_hidden_double_layer_is_named_first(diagnosed, variant):
 UNKNOWN_SEPARATION_LIMITS = {
     "b": "the [dmt] fit's separation goes below zero (-0.86 nm; truth 5 nm): the force is nearly static over the "
     "oscillation at lambda_D = 5 nm (no harmonic above the noise, the mean deflection -347 pm), the separation's "
-    "window (6 nm below first contact) reaches below zero and the diagnosis's refit cannot build its config "
+    "window (6 nm below first contact) reaches below zero and the diagnosis refuses the run in one line "
     "(sample.separation must be > 0)",
     "c": "the data cannot decide: double_layer and hydration both explain the residual (dBIC -570 vs -558, "
     "error 0.083 vs floor 0.078); at lambda_D = 2 nm the double layer overlaps hydration's range once d is free",
 }
 
 
-@pytest.fixture(scope="module")
-def diagnosed_unknown_separation(tmp_path_factory):
-    """``diagnosed_unknown_separation(overrides)`` -> suggest summary of a [dmt] fit, separation NOT given."""
-    from unknown_separation import diagnose_simulated
-
-    folder = tmp_path_factory.mktemp("liquid_diagnosis_unknown_d")
-    cache: dict = {}
-
-    def get(overrides: list[str]):
-        key = tuple(overrides)
-        if key not in cache:
-            raw = apply_overrides(read_yaml(CONFIGS / "liquid_double_layer.yaml"),
-                                  [parse_override(o) for o in overrides + ["model.effects=[dmt]", "simulate.periods=50"]])
-            cache[key], _ = diagnose_simulated(folder, raw, separation_given=False, stem=f"liquid_{len(cache)}")
-        return cache[key]
-
-    return get
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("variant", sorted(DOUBLE_LAYER_SETS))
-def test_hidden_double_layer_is_named_first_without_the_separation(diagnosed_unknown_separation, variant, request):
+def test_hidden_double_layer_is_named_first_without_the_separation(diagnosed, variant, request):
     """As above, as an experimenter would diagnose: ``sample.separation`` absent from the fit."""
     if variant in UNKNOWN_SEPARATION_LIMITS:
         request.applymarker(pytest.mark.xfail(reason=UNKNOWN_SEPARATION_LIMITS[variant], strict=False))
-    summary = diagnosed_unknown_separation(DOUBLE_LAYER_SETS[variant])
+    summary = diagnosed(DOUBLE_LAYER_SETS[variant], separation_given=False)
     verdict = summary["diagnosis"]["verdict"]
     tried = {t["effect"]: t["delta_bic"] for t in summary["tried"]}
     _record("hidden_double_layer_unknown_d", variant, verdict=verdict, tried=tried)
