@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 import afmid.fit.regression as regression
-from afmid.fit.forces import model_force_samples, model_force_spread
+from afmid.fit.forces import estimated_peak, model_force_samples, model_force_spread
 
 
 def statistical_share(prep, library, system, coef_samples, force_estimate: np.ndarray) -> float:
@@ -29,8 +29,7 @@ def statistical_share(prep, library, system, coef_samples, force_estimate: np.nd
     of ``force_estimate`` (N; NaN where not estimated): relative, 1 sigma. NaN without resamples."""
     if coef_samples is None or len(coef_samples) < 2:
         return math.nan
-    used = np.isfinite(force_estimate)
-    peak = float(np.max(np.abs(force_estimate[used]))) if used.any() else 0.0
+    used, peak = estimated_peak(force_estimate)
     if peak <= 0:
         return math.nan
     spread = model_force_spread(prep, library, system, coef_samples)[used]
@@ -54,8 +53,7 @@ def selection_share(prep, library, system, mask: np.ndarray, whole: np.ndarray, 
     mask = np.asarray(mask, dtype=bool)
     if np.array_equal(whole, mask):
         return 0.0
-    used = np.isfinite(force_estimate)
-    peak = float(np.max(np.abs(force_estimate[used]))) if used.any() else 0.0
+    used, peak = estimated_peak(force_estimate)
     if peak <= 0:
         return math.nan
     T = regression.combine(system.T_blocks)

@@ -215,6 +215,13 @@ def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np
     return estimate, inverted
 
 
+def estimated_peak(force_estimate: np.ndarray) -> tuple[np.ndarray, float]:
+    """(the samples where ``force_estimate`` (N) is estimated, its largest |value| there, N; 0 if none): what the
+    force's relative uncertainties are an RMS over and relative to."""
+    used = np.isfinite(force_estimate)
+    return used, (float(np.max(np.abs(force_estimate[used]))) if used.any() else 0.0)
+
+
 def model_force_samples(prep: Prepared, library: Library, system: System, coef: np.ndarray) -> np.ndarray:
     """The model force (N) with coefficients ``coef`` on every used sample (NaN elsewhere), at the parameters
     of ``system``."""

@@ -26,7 +26,7 @@ import numpy as np
 
 import afmid.fit.regression as regression
 from afmid.errors import AfmidError
-from afmid.fit.forces import model_force_samples
+from afmid.fit.forces import estimated_peak, model_force_samples
 from afmid.fit.system import build_system
 
 #: A separation share above this fraction of the peak force is reported as a warning (the force curve is then
@@ -87,8 +87,7 @@ def separation_share(prep, library, params: dict, select, sigma: float,
     """
     if not (math.isfinite(sigma) and sigma > 0):
         return NOT_COMPUTED
-    used = np.isfinite(force_estimate)
-    peak = float(np.max(np.abs(force_estimate[used]))) if used.any() else 0.0
+    used, peak = estimated_peak(force_estimate)
     if peak <= 0:
         return NOT_COMPUTED
     forces = []
