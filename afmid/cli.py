@@ -160,9 +160,9 @@ def fit(
         return
     result = run_fit(cfg, progress=not _state["quiet"])
     write_run(output, result, cfg, overwrite=overwrite)
-    from afmid.fit.plausibility import check_plausibility, violations
+    from afmid.fit.plausibility import check_run, violations
 
-    implausible = violations(check_plausibility(result.quantities))
+    implausible = violations(check_run(result.quantities, result.nonlinear))
     flagged = f"; {len(implausible)} read-out(s) implausible, flagged in the file (see the warnings)" if implausible else ""
     log.info("wrote %s: %s%s", output, result.summary_line(), flagged)
     if not _state["quiet"]:  # the read-out is the command's result: stdout (afmid.report.fit_text builds it)

@@ -166,7 +166,7 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
             write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
             write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
         pg = m.create_group("parameters")
-        verdicts = plausibility.check_plausibility(result.quantities)  # a value outside its range is flagged
+        verdicts = plausibility.check_run(result.quantities, result.nonlinear)  # a value outside its range is flagged
         for name, q in result.quantities.items():
             parts = {k: q[k] for k in ("error_statistical", "error_calibration") if k in q}
             parts.update(undetermined_attributes(q))
@@ -178,8 +178,10 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
             write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated,
                           error_kind=ERROR_LABEL)
         fixed_d = config.sample.separation
+        separation_verdict = verdicts.get(plausibility.SEPARATION)
         write_dataset(m, "separation", result.system.params["d"], "m", estimated=fixed_d is None,
-                      error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0, error_kind=ERROR_LABEL)
+                      error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0, error_kind=ERROR_LABEL,
+                      **(plausibility.attributes(separation_verdict) if separation_verdict else {}))
         fg = h5.create_group("force")
         separation_share = float(getattr(result, "force_separation_uncertainty", math.nan))
         write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive",
@@ -549,5 +551,7 @@ def read_summary(path: Path) -> dict:
             verdict = read_verdict(name, ds)
             if not verdict.plausible:
                 implausible.append(verdict.reason)
+        if not sep.attrs.get("plausible", True):  # an estimated rest separation afmid cannot stand behind
+            implausible.append(text(sep.attrs.get("plausibility", "")))
     return {"key": None if key is None else text(key), "values": values, "quantities": quantities,
             "implausible": implausible}

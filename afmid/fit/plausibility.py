@@ -200,6 +200,38 @@ def check_plausibility(quantities: Mapping[str, Mapping | float]) -> dict[str, V
     return {name: judge(name, q) for name, q in quantities.items()}
 
 
+def judge_separation(value: float, sigma: float) -> Verdict:
+    """The verdict on an estimated rest separation ``value`` +- ``sigma`` (1 sigma), m.
+
+    At d <= 0 the undeflected tip would sit at or below the surface's contact distance minus a0, pressed into
+    the sample at rest: a tapping record does not come from there. Such an estimate means the record does not
+    locate the contact point (a force nearly static over the oscillation, a long-range force the search
+    confuses with contact), so neither d nor the read-outs that depend on it are results.
+    """
+    if math.isfinite(value) and value > 0:
+        return Verdict(True, "")
+    shown = f"the estimated rest separation d = {display(value, 'm')}"
+    if math.isfinite(sigma):
+        shown += f" ± {display(sigma, 'm')} (1σ)"
+    what = f"{shown} is not above zero: the tip would rest inside the sample, so the record does not locate " \
+           "the contact point"
+    return Verdict(False, f"{what}; set sample.separation if it is known, or record a larger amplitude", what)
+
+
+#: The key of the rest separation's verdict among a run's verdicts (:func:`check_run`).
+SEPARATION = "separation"
+
+
+def check_run(quantities: Mapping[str, Mapping | float], nonlinear: Mapping) -> dict[str, Verdict]:
+    """:func:`check_plausibility` of the read-outs, plus the estimated rest separation's verdict
+    (:func:`judge_separation`, key :data:`SEPARATION`) when ``nonlinear`` (a fit's ``nonlinear``) estimated it."""
+    verdicts = check_plausibility(quantities)
+    d = nonlinear.get("d")
+    if d is not None and d.estimated:
+        verdicts[SEPARATION] = judge_separation(float(d.value), float(d.sigma))
+    return verdicts
+
+
 def violations(verdicts: Mapping[str, Verdict]) -> list[str]:
     """The reasons of the implausible verdicts, in order."""
     return [v.reason for v in verdicts.values() if not v.plausible]

@@ -101,8 +101,11 @@ def fit_chunk(task: dict) -> dict:
         # Not the separation share's warning: it concerns the force curve, and the read-outs' error bars already
         # carry the separation's sigma.
         doubts = [w for w in result.warnings if w.startswith("warning") and not is_separation_limited(w)]
-        doubts += [f"implausible: {name}"
-                   for name in plausibility.violations(plausibility.check_plausibility(result.quantities))]
+        doubts += [f"implausible: {reason}"
+                   for reason in plausibility.violations(plausibility.check_plausibility(result.quantities))]
+        separation = plausibility.judge_separation(result.separation, result.separation_sigma)
+        if not separation.plausible:  # the topography at this pixel is not a measurement
+            doubts.append(f"implausible: {separation.reason}")
         out["status"][i] = STATUS_SUSPECT if doubts else STATUS_OK
         out["message"][i] = "; ".join(doubts)
     names: list[str] = []

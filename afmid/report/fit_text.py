@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from afmid.fit.plausibility import judge
+from afmid.fit.plausibility import judge, judge_separation
 from afmid.fit.uncertainty import FLOOR_FACTOR, model_limited
 from afmid.report.quantity_text import format_delta_bic, format_interval, format_measurement, format_value
 
@@ -80,6 +80,10 @@ def _nonlinear_lines(result) -> list[str]:
             lines.append(f"  {label} = {format_measurement(est.value, est.sigma, est.unit)} (estimated, profile)")
         else:
             lines.append(f"  {label} = {format_value(est.value, est.unit, significant=4)} (estimated, no error bar)")
+        if name == "d" and est.estimated:
+            verdict = judge_separation(float(est.value), float(est.sigma))
+            if not verdict.plausible:
+                lines[-1] += f"; IMPLAUSIBLE: {verdict.finding}"
     return lines
 
 

@@ -80,7 +80,8 @@ UNDECIDED_AT_50 = {
     "('cannot decide'); at 200 periods capillary is named (ΔBIC -5316 vs -5179, exponential damping leaves a "
     "residual 1.8x the floor: test_capillary_b_is_decided_by_a_longer_record)",
     ("double_layer", "b"): "Q 2, 0.3 N/m lever in liquid: the [dmt] run estimates the rest separation at -0.86 nm "
-    "(truth 5 nm), so the diagnosis refuses ('not physical: give sample.separation'; before it raised a "
+    "(truth 5 nm): the fit flags it (an implausible read-out: the run is suspect) and the diagnosis refuses "
+    "('not physical: give sample.separation'; before it raised a "
     "validation traceback); with the separation given the double layer is named (test_liquid_physics)",
     ("double_layer", "c"): "lambda_D 2 nm: double_layer vs hydration χ² 8.8 apart (Vuong 1.0 σ), ΔBIC -570 vs -558; "
     "linearised, each is within χ² 0.7-2.2 of the other's model, so neither taken as the truth is refuted "

@@ -253,3 +253,56 @@ def test_effects_lists_the_plausible_ranges(run_cli):
     (record,) = json.loads(out)
     ranges = {q["name"]: q["plausible_range"] for q in record["quantities"]}
     assert ranges["E_star"] == [1e2, 1e12] and ranges["surface_energy"] == [1e-4, 5.0]
+
+
+# --------------------------------------------------------------------------- the estimated rest separation
+@pytest.mark.parametrize("value, plausible", [(5e-9, True), (1e-12, True), (0.0, False), (-0.86e-9, False),
+                                              (math.nan, False)])
+def test_an_estimated_rest_separation_at_or_below_zero_is_flagged(value, plausible):
+    from afmid.fit.plausibility import judge_separation
+
+    verdict = judge_separation(value, 0.2e-9)
+    assert verdict.plausible is plausible
+    if not plausible:
+        assert "sample.separation" in verdict.reason and "\n" not in verdict.reason
+        assert "sample.separation" not in verdict.finding and "rest separation" in verdict.finding
+    if value == -0.86e-9:
+        assert "d = -860 pm ± 200 pm (1σ)" in verdict.reason
+
+
+def test_a_run_whose_estimated_separation_is_below_zero_is_suspect(workspace, run_cli):
+    """The fit estimated d <= 0 (seen on a Q 2 lever in liquid: -0.86 nm, truth 5 nm): the run file flags it on
+    /model/separation and counts it among the implausible read-outs, so a batch lists the item as suspect; a
+    positive estimate or a given separation carries no verdict against it."""
+    import dataclasses
+
+    from afmid.config import load_config
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import read_summary, write_run
+
+    config = load_config(workspace / "run.yaml", ["sample.separation=null", "fit.bootstrap=0"])
+    result = run_fit(config)
+    estimate = result.nonlinear["d"]
+    assert estimate.estimated and estimate.value > 0
+    good = workspace / "separation-good.h5"
+    write_run(good, result, config, overwrite=True)
+    with h5py.File(good, "r") as h5:
+        assert h5["model/separation"].attrs["plausible"]
+    assert read_summary(good)["implausible"] == []
+
+    negative = dataclasses.replace(estimate, value=-0.86e-9)
+    flagged = dataclasses.replace(result, nonlinear={**result.nonlinear, "d": negative})
+    bad = workspace / "separation-bad.h5"
+    write_run(bad, flagged, config, overwrite=True)
+    with h5py.File(bad, "r") as h5:
+        attrs = h5["model/separation"].attrs
+        reason = str(attrs["plausibility"])
+        assert not attrs["plausible"] and "-860 pm" in reason
+        assert h5["diagnostics"].attrs["n_implausible"] == 1
+        assert list(h5["diagnostics"].attrs["implausible"]) == [reason]
+    assert read_summary(bad)["implausible"] == [reason]
+    from afmid.report.fit_text import parameter_lines
+
+    shown = [line for line in parameter_lines(flagged) if "rest separation d" in line]
+    assert len(shown) == 1 and "IMPLAUSIBLE: the estimated rest separation d = -860 pm" in shown[0]
+    assert not any("IMPLAUSIBLE" in line for line in parameter_lines(result) if "rest separation d" in line)
