@@ -108,12 +108,14 @@ def _series(coef: np.ndarray, phase: np.ndarray, harmonics, weights=None, deriva
 
 def analyse(
     x: np.ndarray, resonance_ratio: float | None = None, quality_factor: float | None = None,
-    cycles_per_sample: float | None = None,
+    cycles_per_sample: float | None = None, thermal_variance: float = 0.0,
 ) -> Analysis | None:
     """Measure the oscillation, per-period amplitude/phase/mean, harmonics, noise and the force shape.
 
     ``resonance_ratio`` is f / f0 (1 if unknown: tapping drives near resonance),
-    ``quality_factor`` Q (infinite if unknown; it matters little for n >= 2).
+    ``quality_factor`` Q (infinite if unknown; it matters little for n >= 2),
+    ``thermal_variance`` the lever's thermal deflection variance k_B T / k, m^2 (0 if unknown), for the
+    motion's classification (:func:`afmid.preprocess.motion.classify`).
     Returns None when there is no oscillation to analyse or it has fewer than
     :data:`MIN_ANALYSABLE_SPP` samples per period or fewer than 3 periods.
     """
@@ -164,7 +166,7 @@ def analyse(
         n=x.size, cycles_per_sample=f, spp=spp, K=K, L=L, start=start,
         amplitude=float(np.hypot(coef[1], coef[2])), mean=float(x.mean()), noise_rms=noise,
         block_amplitude=amp, block_phase=phase, block_mean=glob[:, 0].copy(), coef=coef, coef_sigma=sigma,
-        above_noise=[], motion=classify_motion(glob, white**2),
+        above_noise=[], motion=classify_motion(glob, white**2, thermal_variance),
     )
     _interaction(out, 1.0 if resonance_ratio is None else resonance_ratio, quality_factor)
     return out
