@@ -44,8 +44,9 @@ MARGIN_VALLEYS = 3.0
 
 
 def is_transient(prep) -> bool:
-    """True if the amplitude of the prepared record changes by more than :data:`TRANSIENT_LIMIT`."""
-    return bool(prep.steadiness > TRANSIENT_LIMIT)
+    """True if the amplitude of the prepared record changes by more than its transient limit (:data:`TRANSIENT_LIMIT`,
+    more where the lever's thermal motion moves the amplitude more: ``prep.transient_limit``)."""
+    return bool(prep.steadiness > prep.transient_limit)
 
 
 def with_drive_frequency(prep, frequency: float):

@@ -27,11 +27,13 @@ from afmid.preprocess.periods import (
     detrend,
     differentiate,
     estimate_drive,
+    amplitude_per_block,
     harmonic_blocks,
     ou_smooth,
     steadiness,
     weak_windows,
 )
+from afmid.preprocess.harmonics import transient_limit
 from afmid.preprocess.motion import classify as classify_motion
 from afmid.fit.forces import CHUNK_BLOCKS
 
@@ -68,7 +70,10 @@ class Prepared:
     X_traj: np.ndarray  # (B, 2K+1) m, smoothed trajectory coefficients (the library's input)
     V_traj: np.ndarray  # (B, 2K+1) m/s, its velocity
     noise_rms: float  # m, detector noise estimated from the block fits
-    steadiness: float
+    steadiness: float  # relative change of the amplitude over the record (afmid.preprocess.harmonics.amplitude_change)
+    #: the change above which the record is a transient (afmid.preprocess.harmonics.transient_limit: larger than
+    #: 2 % where the lever's thermal motion moves the amplitude more, a soft lever in liquid)
+    transient_limit: float
     removed: dict  # detrend info
     form: str = "weak"
     strong: tuple | None = None  # (x, xdot) on the used samples from the differentiator (strong form)
@@ -207,7 +212,8 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
     noise_var = blocks.noise_variance_factor() * noise_rms**2
     if views.tip_gain is not None:  # an undone detector amplifies the noise of each harmonic by |1 / G|
         noise_var = noise_var * np.abs(views.tip_gain[blocks.harmonics]) ** 2
-    motion = classify_motion(X[..., 0], noise_var, BOLTZMANN * fit.temperature / k if fit.thermal_noise else 0.0)
+    thermal_variance = BOLTZMANN * fit.temperature / k if fit.thermal_noise else 0.0  # m^2, k_B T / k
+    motion = classify_motion(X[..., 0], noise_var, thermal_variance)
     if fit.smooth_periods is not None:
         X_traj = smooth_across_blocks(X, fit.smooth_periods)
         residual_var = smoothing_variance_factor(blocks.n_blocks, fit.smooth_periods)
@@ -230,7 +236,8 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
         Y_block=Y_block, nuisance_block=nuisance_block, block_sigma=block_sigma,
         trajectory_noise=noise_rms * math.sqrt(residual_var),
         xdot_used=blocks.synthesize(V_traj)[:, 0],  # chunk by chunk into one array
-        X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X), removed=removed,
+        X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X),
+        transient_limit=transient_limit(float(np.mean(amplitude_per_block(X))), thermal_variance), removed=removed,
         form=fit.form, strong=strong, motion=motion, x_restored=x_restored,
     )
 

@@ -47,6 +47,7 @@ from afmid.preprocess.harmonics import (  # the engine the fit uses too
     estimate_drive,
     measure_frequency,
     strongest_peak,
+    transient_limit,
 )
 from afmid.io.oscillation import check_drive_line
 from afmid.io.onset import check_onset, find_onset
@@ -63,9 +64,6 @@ log = logging.getLogger(__name__)
 DIFFERENTIATOR_MIN_SPP = {"central": 500.0, "savgol": 60.0}
 #: Below this relative difference the measured and nominal drive frequencies agree.
 DRIVE_TOLERANCE = 1e-3
-#: Relative amplitude change over the trace (afmid.preprocess.harmonics.amplitude_change, as the fit's steadiness)
-#: above which it is not in steady state.
-STEADINESS_LIMIT = 0.02
 #: An offset is reported when the mean deflection exceeds both this fraction of the amplitude ...
 OFFSET_FRACTION = 0.02
 #: ... and this multiple of the interaction force range / k (the largest mean a tip-sample force explains).
@@ -226,11 +224,17 @@ def analyse_with(x: np.ndarray, settings: Settings, cycles_per_sample: float | N
     r = None
     if settings.sample_rate and settings.resonance_frequency:
         r = f * settings.sample_rate / settings.resonance_frequency
-    # The lever's thermal motion, where the samples are metres and k is known: on a soft lever in liquid (k 0.8
-    # N/m: 72 pm rms) it makes the periods differ by a few % of the amplitude, which is not chaos.
-    thermal = (BOLTZMANN * settings.temperature / settings.spring_constant
-               if settings.units == "m" and settings.spring_constant else 0.0)
-    return analyse(x, r, settings.quality_factor, cycles_per_sample=f, thermal_variance=thermal)
+    # The lever's thermal motion: on a soft lever in liquid (k 0.8 N/m: 72 pm rms) it makes the periods differ by a
+    # few % of the amplitude, which is neither chaos nor a transient.
+    return analyse(x, r, settings.quality_factor, cycles_per_sample=f, thermal_variance=thermal_variance(settings))
+
+
+def thermal_variance(settings: Settings) -> float:
+    """The lever's thermal deflection variance k_B T / k in the samples' units squared (m^2), 0 where unknown
+    (no spring constant, or samples not in metres)."""
+    if settings.units == "m" and settings.spring_constant:
+        return BOLTZMANN * settings.temperature / settings.spring_constant
+    return 0.0
 
 
 def check_signal(x: np.ndarray, settings: Settings, analysis: Analysis | None = None) -> list[Finding]:
@@ -482,7 +486,7 @@ def check_steady(a: Analysis, s: Settings) -> list[Finding]:
     if B < 3 or amp.mean() <= 0:
         return []
     change = amplitude_change(amp)
-    if change <= STEADINESS_LIMIT:
+    if change <= transient_limit(float(amp.mean()), thermal_variance(s)):
         return []
     final = float(np.median(amp[-max(3, B // 5):]))
     outside = np.flatnonzero(np.abs(amp - final) > 0.01 * final)

@@ -22,7 +22,6 @@ import numpy as np
 from afmid.preprocess.motion import classify as classify_motion
 from afmid.preprocess.harmonics import (
     MIN_PERIODS,
-    TRANSIENT_CHANGE,
     amplitude_change,
     block_layout,
     fourier_design,
@@ -32,6 +31,7 @@ from afmid.preprocess.harmonics import (
     noise_variance_factor,
     rotate_to_global,
     settled_start,
+    transient_limit,
 )
 
 #: Fewer samples per period than this and no signal check is meaningful (near Nyquist).
@@ -155,8 +155,8 @@ def analyse(
     noise = float(np.sqrt(rss / dof)) if dof > 0 else float("nan")
     amp = np.hypot(glob[:, 1], glob[:, 2])
     phase = np.unwrap(np.arctan2(-glob[:, 2], glob[:, 1]))
-    steady = amplitude_change(amp) <= TRANSIENT_CHANGE
-    averaged = glob if steady else aligned_periods(glob, phase, settled_start(amp))
+    steady = amplitude_change(amp) <= transient_limit(float(amp.mean()), thermal_variance)
+    averaged = glob if steady else aligned_periods(glob, phase, settled_start(amp, thermal_variance))
     coef = averaged.mean(axis=0)
     # Noise of the averages: white noise through the projector, or the scatter between periods if larger
     # (non-white noise, period-to-period variation of the motion).

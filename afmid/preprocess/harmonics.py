@@ -451,16 +451,33 @@ def amplitude_change(amplitude: np.ndarray) -> float:
 TRANSIENT_CHANGE = 0.02
 #: The settled end of a transient: the last periods within this fraction of the final amplitude.
 SETTLED_FRACTION = 0.05
+#: A change of the amplitude must also exceed this many times the lever's thermal rms deflection (relative to the
+#: amplitude) to be a transient. The thermal motion moves each period's amplitude by up to ~sqrt(k_B T / k) and
+#: wanders over Q / pi periods: a linear fit over the record then reads a "change" of up to ~1.5 of it when the
+#: record is shorter than that wander (Q 250 in air), ~0.5-0.8 of it when the periods decorrelate (liquid). A soft
+#: lever in liquid (k 0.3-1 N/m: 64-117 pm on a 5 nm amplitude) read 2.2-2.4 % on clean steady records and was
+#: taken for a transient (the warning and the drive search); a stiff lever in air (k 40 N/m: 10 pm on 10 nm, a
+#: limit of 0.4 %) keeps :data:`TRANSIENT_CHANGE`.
+THERMAL_CHANGE_MULTIPLE = 4.0
 
 
-def settled_start(amplitude: np.ndarray) -> int:
-    """First block of the settled end of a record (0 if it is steady, :data:`TRANSIENT_CHANGE`): the last blocks
+def transient_limit(amplitude: float, thermal_variance: float = 0.0) -> float:
+    """The relative amplitude change above which a record is a transient: :data:`TRANSIENT_CHANGE`, or
+    :data:`THERMAL_CHANGE_MULTIPLE` x the thermal rms deflection sqrt(``thermal_variance``) (k_B T / k, m^2; 0
+    when unknown) over the mean ``amplitude`` (m) where that is larger."""
+    if thermal_variance <= 0 or not amplitude > 0:
+        return TRANSIENT_CHANGE
+    return max(TRANSIENT_CHANGE, THERMAL_CHANGE_MULTIPLE * math.sqrt(thermal_variance) / amplitude)
+
+
+def settled_start(amplitude: np.ndarray, thermal_variance: float = 0.0) -> int:
+    """First block of the settled end of a record (0 if it is steady, :func:`transient_limit`): the last blocks
     within :data:`SETTLED_FRACTION` of the final amplitude, and at least the last fifth (at least 3 blocks).
 
     Averages over the periods of a transient at equal drive phase mix periods of other amplitudes and phases
     (before the tip reached the sample, while the free response beat with the drive)."""
     B = amplitude.size
-    if B < 3 or amplitude_change(amplitude) <= TRANSIENT_CHANGE:
+    if B < 3 or amplitude_change(amplitude) <= transient_limit(float(np.mean(amplitude)), thermal_variance):
         return 0
     tail = max(3, B // 5)
     final = float(np.median(amplitude[-tail:]))

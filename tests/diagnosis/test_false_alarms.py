@@ -6,7 +6,7 @@ is missing"). Before issue 13's audit, clean trace c of tests/diagnosis/test_dia
 no catalog effect explains" at 1.31x its noise floor: the threshold (FLOOR_FACTOR 1.3) sat inside the spread of
 a right model's error over its floor (docs/diagnosis.md, "The noise floor and its threshold"). Kinds: steady
 traces at several seeds, moduli, lengths and sampling rates, with and without thermal noise, noise-free, and
-transients from rest and from free oscillation; all chosen before the first run. Required: 0 alarms of 12.
+transients from rest and from free oscillation; all chosen before the first run. Required: 0 alarms of 12; and soft levers in liquid (below).
 """
 
 from __future__ import annotations
@@ -44,6 +44,16 @@ def _transient(Q: float, A0: float, d: float, drive: float, periods: int, spp: i
     }
 
 
+def _soft_lever_in_liquid(seed: int) -> dict:
+    """A 0.3 N/m lever at Q 2 in liquid (f0 15 kHz, A0 5 nm, d 4.5 nm; tests/configs/liquid.yaml's soft sample):
+    its thermal force's work on the tip read as a negative damping, and the diagnosis called two of five such
+    clean traces "not explained by the catalog" (exponential damping with gamma0 < 0, 12 and 29 BIC units better,
+    the error 1.11-1.30x its floor: within the noise). Seeds 908 and 12 are those two; 21 was chosen with them."""
+    overrides = ["cantilever.spring_constant=0.3", "cantilever.quality_factor=2", "cantilever.resonance_frequency=15e3",
+                 "drive.frequency=15e3", "sample.separation=4.5e-9", f"simulate.seed={seed}"]
+    return apply_overrides(read_yaml(ROOT / "tests" / "configs" / "liquid.yaml"), [parse_override(o) for o in overrides])
+
+
 CASES: dict[str, list[str] | dict | object] = {
     "steady-200spp": _steady(2.0e9, 5.0e-20, 8.5e-9, 50, 200, 501),
     "steady-100spp": _steady(3.0e9, 4.0e-20, 8.5e-9, 50, 100, 502),
@@ -57,6 +67,9 @@ CASES: dict[str, list[str] | dict | object] = {
     "transient-from-rest-detuned": _transient(120, 15e-9, 9e-9, 299.4e3, 80, 100, "rest", 512),
     "transient-from-free": _transient(250, 10e-9, 4.5e-9, 300e3, 100, 200, "free", 513),
     "transient-from-rest-50spp": _transient(400, 8e-9, 5e-9, 300.6e3, 150, 50, "rest", 514),
+    "liquid-Q2-908": _soft_lever_in_liquid(908),
+    "liquid-Q2-12": _soft_lever_in_liquid(12),
+    "liquid-Q2-21": _soft_lever_in_liquid(21),
 }
 
 
