@@ -20,6 +20,8 @@ estimated samples / max |true force|), and the separation error.
     python scripts/poor_signals.py --coverage liquid-d4 --seeds 1-12 --out cov.jsonl   # fits only
     python scripts/poor_signals.py --table poor.jsonl
     python scripts/poor_signals.py --compare before.jsonl after.jsonl
+    python scripts/poor_signals.py --smoother 1-8 [--unknown] --out smoother.jsonl   # the poor instrument's fit
+        with the default smoother's trajectory, none, and the true motion (tests/support/smoother_oracle.py)
 
 Run from the repository root (PYTHONPATH=other/checkout measures another version with the same traces).
 """
@@ -199,6 +201,22 @@ def compare(before: Path, after: Path) -> str:
     return "\n".join(out)
 
 
+def smoother(seeds: str, separation_given: bool, out: Path | None) -> None:
+    """The poor instrument (hidden_clean.yaml, seeds ``lo-hi``): force, E*, H and separation errors with each
+    trajectory for the force law (does the default smoother bias the fit? issue 13)."""
+    from smoother_oracle import fit_three_ways
+
+    lo, hi = map(int, seeds.split("-"))
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in range(lo, hi + 1):
+            entry = {"seed": seed, "separation_given": separation_given,
+                     **fit_three_ways(Path(tmp), seed, separation_given=separation_given)}
+            print(json.dumps(entry), flush=True)
+            if out:
+                with out.open("a") as fh:
+                    fh.write(json.dumps(entry) + "\n")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path)
@@ -207,7 +225,12 @@ def main(argv=None) -> int:
     parser.add_argument("--compare", type=Path, nargs=2, metavar=("BEFORE", "AFTER"))
     parser.add_argument("--coverage", help="a liquid separation name (d3, d4, d5, d5.5): fits only, over --seeds")
     parser.add_argument("--seeds", default="1-12")
+    parser.add_argument("--smoother", metavar="LO-HI", help="seeds: default smoother vs none vs the true motion")
+    parser.add_argument("--unknown", action="store_true", help="with --smoother: the separation NOT given")
     args = parser.parse_args(argv)
+    if args.smoother:
+        smoother(args.smoother, not args.unknown, args.out)
+        return 0
     if args.table:
         print(table(args.table))
         return 0

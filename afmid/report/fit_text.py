@@ -49,8 +49,24 @@ def force_lines(result) -> list[str]:
                      "dropped terms of the selected effects forced in)")
     total = getattr(result, "force_total_uncertainty", math.nan)
     if math.isfinite(total) and len(lines) > 1:
-        lines.append(f"force: known to {100 * total:.2g} % of the peak (1σ, the shares above in quadrature)")
+        lines.append(f"force: known to {100 * total:.2g} % of the peak (1σ, the shares above in quadrature)"
+                     + _record_clause(result, statistical, separation, selection, calibration, total))
     return lines
+
+
+def _record_clause(result, statistical: float, separation: float, selection: float, calibration: float,
+                   total: float) -> str:
+    """"; a record of about N periods ..." when the band is above the target and a longer record would help."""
+    from afmid.fit.force_band import RECORD_TARGET, periods_for_total
+
+    prep, config = getattr(result, "prep", None), getattr(result, "config", None)
+    if total <= RECORD_TARGET or prep is None or config is None:
+        return ""
+    periods = int(prep.blocks.n_blocks * config.fit.periods_per_block)
+    needed = periods_for_total(periods, statistical, separation, selection, calibration if calibration > 0 else math.nan)
+    if needed is None:
+        return f"; no longer record brings it to {100 * RECORD_TARGET:.2g} % (the calibration share is larger)"
+    return f"; a record of about {needed:,} periods (now {periods:,}) would bring it to {100 * RECORD_TARGET:.2g} %"
 
 
 def _selected_columns(result) -> list[int]:

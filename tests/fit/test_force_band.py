@@ -2,7 +2,9 @@
 
 What is tested (operating points, seeds and tolerances fixed before the results were looked at):
 
-- the arithmetic: shares add in quadrature, unknown (NaN) shares are left out;
+- the arithmetic: shares add in quadrature, unknown (NaN) shares are left out; the record length that would
+  bring the total to 1 %: the statistical, separation and selection shares fall as 1 / sqrt(periods), the
+  calibration share stays (none when it alone reaches the target); the fit prints it with the band;
 - the bootstrap spread of the model force computed piece by piece with one matrix product per piece equals
   the standard deviation over separate evaluations of each resample's force (a different computation of the
   same numbers: agreement to 1e-9 of the largest force, rounding only);
@@ -24,7 +26,7 @@ import numpy as np
 import pytest
 from repo_paths import TEST_CONFIGS
 
-from afmid.fit.force_band import total_share
+from afmid.fit.force_band import periods_for_total, total_share
 
 pytestmark = pytest.mark.numerics
 
@@ -77,6 +79,19 @@ def test_spread_piece_by_piece_is_the_spread_of_the_resampled_forces(tmp_path):
     assert np.max(np.abs(spread[used] - each[:, used].std(axis=0, ddof=1))) <= 1e-9 * peak
 
 
+def test_record_length_for_the_band_scales_the_periods_shares_and_keeps_the_calibration():
+    nan = math.nan
+    # 4 % and 3 %: 5 % in total; (5 / 1)^2 x 50 periods
+    assert periods_for_total(50, 0.04, 0.03, nan, nan) == 1250
+    assert periods_for_total(50, 0.04, nan, 0.03, nan) == 1250  # the selection share falls the same way
+    # a 0.6 % calibration share stays: 50 x 0.05^2 / (0.01^2 - 0.006^2) = 1953.1
+    assert periods_for_total(50, 0.04, 0.03, nan, 0.006) == 1954
+    assert periods_for_total(50, 0.04, 0.03, nan, 0.01) is None  # the calibration alone is at the target
+    assert periods_for_total(50, 0.004, 0.003, nan, nan) == 50  # already within it: no shorter record claimed
+    assert periods_for_total(200, 0.02, nan, nan, nan, target=0.03) == 200
+    assert periods_for_total(200, 0.06, nan, nan, nan, target=0.03) == 800
+
+
 def test_fit_stores_and_prints_the_band_and_claims_nothing_without_a_bootstrap(tmp_path):
     from afmid.config import build_config
     from afmid.fit.pipeline import run_fit, write_run
@@ -92,6 +107,10 @@ def test_fit_stores_and_prints_the_band_and_claims_nothing_without_a_bootstrap(t
     lines = force_lines(result)
     assert any(line.startswith("force: statistical share") for line in lines), lines
     assert any(line.startswith("force: known to") and "1σ" in line for line in lines), lines
+    if result.force_total_uncertainty > 0.01:  # the record that would bring it to 1 %
+        needed = periods_for_total(12, result.force_statistical_uncertainty, result.force_separation_uncertainty,
+                                   result.force_selection_uncertainty, math.nan)
+        assert any(f"a record of about {needed:,} periods (now 12)" in line for line in lines), lines
     config = build_config(_raw(["simulate.periods=12", "sample.separation=null"]), source=TEST_CONFIGS / "x.yaml",
                           base_dir=TEST_CONFIGS)
     write_run(tmp_path / "run.h5", result, config)
