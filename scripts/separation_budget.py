@@ -129,6 +129,7 @@ def measure(kind: str, seed: int) -> dict:
 
     return {
         "case": kind, "seed": seed, "d_error_pm": 1e12 * (est.value - d_true), "d_sigma_pm": 1e12 * est.sigma,
+        "d_sigma_width_pm": 1e12 * est.sigma_width, "d_sigma_jackknife_pm": 1e12 * est.sigma_jackknife,
         "force_error": force_error(result.force_estimate, truth),
         "separation_share": result.separation_share.relative,
         "force_error_d_given": force_error(given.force_estimate, truth),
