@@ -4,7 +4,7 @@ Issue 13: clean ideal-instrument records with d unknown at 50 periods miss the 1
 separation's share. Is that the record's information, or does afmid's weak-form estimator throw some away? The
 bound (tests/support/cramer_rao.py: the Fisher information of the record's harmonics, the force law's
 parameters and the drive fitted alongside, no afmid code in the loop) answers it: measured on seeds 101-143
-(docs/accuracy.md, "Separation unknown: the record's information"), afmid's sigma lies at 0.83-1.42x the bound
+(docs/accuracy.md, "Is it the record or the estimator?"), afmid's sigma lies at 0.83-1.41x the bound
 at 1 and 5 pm of detector noise; ``fit.max_harmonic`` 95, ``fit.smooth_periods`` 1 and
 ``fit.periods_per_block`` 2 change it by < 15 %.
 
@@ -12,8 +12,9 @@ Held here on seeds not used there (fixed before they were run), hidden_clean.yam
 200 samples per period) at 1 pm and 5 pm of detector noise, where the bound (37 and 152 pm) is small against
 the indentation (~0.5 nm), so the linear bound applies:
 
-- no fit claims a sigma below half the bound (a claimed sigma under the bound is overconfident: no unbiased
-  estimator gets there) or above twice it (an estimator that wastes 3/4 of the information);
+- no fit claims a sigma below half the bound (no unbiased estimator gets far under it: the bound ignores only
+  the thermal wander of the amplitude between periods, which probes the law at slightly different
+  indentations) or above twice it (an estimator that wastes 3/4 of the information);
 - over the six fits the geometric mean of sigma / bound lies within 0.75-1.35: afmid's sigma is the larger of
   the chi-square width and a 12-group block jackknife (~20 % spread each, the max biased up by ~10 %), so the
   mean of six is ~1.1 +- 0.1 when the estimator is efficient and its sigma honest.
