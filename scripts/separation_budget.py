@@ -41,13 +41,28 @@ LIQUID_SEPARATIONS = (4.0e-9, 3.5e-9, 3.0e-9)
 
 #: Record length override (periods; None: the case's own, 50): set by --periods.
 PERIODS: int | None = None
+#: Extra overrides of the simulation (--sim) and of the fit only (--fit), e.g. simulate.noise.detector_rms=5e-12
+#: and fit.max_harmonic=95: the estimator's knobs on the same traces.
+SIM_OVERRIDES: list[str] = []
+FIT_OVERRIDES: list[str] = []
 
 
 def raw_config(kind: str, seed: int) -> dict:
     raw = _raw_config(kind, seed)
     if PERIODS is not None:
         raw["simulate"]["periods"] = PERIODS
+    if SIM_OVERRIDES:
+        from afmid.config import apply_overrides, parse_override
+
+        raw = apply_overrides(raw, [parse_override(o) for o in SIM_OVERRIDES])
     return raw
+
+
+def fit_config(raw: dict) -> dict:
+    """The fit's raw config: ``raw`` with --fit's overrides (the simulation does not see them)."""
+    from afmid.config import apply_overrides, parse_override
+
+    return apply_overrides(raw, [parse_override(o) for o in FIT_OVERRIDES]) if FIT_OVERRIDES else raw
 
 
 def _raw_config(kind: str, seed: int) -> dict:
@@ -88,7 +103,7 @@ def measure(kind: str, seed: int) -> dict:
     sim_config = build_config(raw, source=ROOT / "x.yaml", base_dir=ROOT)
     trace = simulate(sim_config)
     d_true = float(trace.truth.extra["separation"])
-    fit_raw = copy.deepcopy(raw)
+    fit_raw = fit_config(copy.deepcopy(raw))
     fit_raw["simulate"]["parameters"] = {}
     fit_raw["sample"]["separation"] = None
     started = time.perf_counter()
@@ -114,6 +129,7 @@ def measure(kind: str, seed: int) -> dict:
 
     return {
         "case": kind, "seed": seed, "d_error_pm": 1e12 * (est.value - d_true), "d_sigma_pm": 1e12 * est.sigma,
+        "d_sigma_width_pm": 1e12 * est.sigma_width, "d_sigma_jackknife_pm": 1e12 * est.sigma_jackknife,
         "force_error": force_error(result.force_estimate, truth),
         "separation_share": result.separation_share.relative,
         "force_error_d_given": force_error(given.force_estimate, truth),
@@ -125,7 +141,7 @@ def measure(kind: str, seed: int) -> dict:
                               "smooth": 1e12 * float(np.sqrt(np.mean((x_smooth - x_true)[used] ** 2))),
                               "claimed": 1e12 * prep.trajectory_noise},
         "periods": int(raw["simulate"]["periods"]), "terms": result.selected_terms(), "terms_d_given": given.selected_terms(),
-        "seconds": round(seconds, 1),
+        "seconds": round(seconds, 1), "fit_overrides": FIT_OVERRIDES, "sim_overrides": SIM_OVERRIDES,
     }
 
 
@@ -217,9 +233,13 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path)
     parser.add_argument("--information", help="separation offsets in pm (comma-separated): the information check")
     parser.add_argument("--periods", type=int, help="record length in drive periods (default: the case's, 50)")
+    parser.add_argument("--sim", action="append", default=[], help="override of the simulation (and the fit)")
+    parser.add_argument("--fit", action="append", default=[], help="override of the fit only")
     args = parser.parse_args(argv)
     global PERIODS
     PERIODS = args.periods
+    SIM_OVERRIDES[:] = args.sim
+    FIT_OVERRIDES[:] = args.fit
     for kind in args.only.split(","):
         for seed in map(int, args.seeds.split(",")):
             if args.information:

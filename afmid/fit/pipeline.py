@@ -45,6 +45,7 @@ import afmid.fit.regression as regression
 from afmid.fit.forces import force_cv_error, per_sample_forces, period_curves, read_out, signal_rows
 from afmid.fit.search import NonlinearEstimate, search_1d, search_range
 from afmid.fit.profile import GroupedProfile, ProfileResult, robust_profile
+from afmid.fit.joint_profile import other_valley
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
 from afmid.fit.declared_drive import declared_drive, propagate_drive_calibration, with_declared_drive
@@ -403,6 +404,16 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
                 same = np.array_equal(chosen, support) or physics is not library
                 found = profiled[name] if same else profile(name, est, chosen)
                 est.sigma, est.sigma_width, est.sigma_jackknife = found.sigma, found.sigma_width, found.sigma_jackknife
+        if uncertainty and "d" in nonlinear and len(nonlinear) > 1:  # d and a decay length: a second valley?
+            moved, warning = other_valley(prep, physics, extra, params, nonlinear, system.n_rows,
+                                          whole_effects(library, chosen) if physics is library else None,
+                                          lambda name, est: profile(name, est, chosen))
+            if moved:
+                system = build_system(prep, library, params)
+                selection = settings.select(system)
+                chosen = selection.best.mask
+            if warning:
+                warnings.append("warning: " + warning)
     T = regression.combine(system.T_blocks)
     coef, _ = regression.subset_fit(T, chosen)
     bagging = None
