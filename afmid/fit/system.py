@@ -17,6 +17,7 @@ from afmid.fit.forces import CHUNK_BLOCKS
 log = logging.getLogger(__name__)
 
 from afmid.fit.prepare import Prepared, fine_chunks
+from afmid.preprocess.periods import fine_support
 
 
 @dataclass
@@ -87,7 +88,9 @@ def _plain_library_columns(prep: Prepared, library: Library, params: dict) -> np
             average_switching_cells(library, params, x, v, t, fine)
         if not finite or any_zero:
             check_finite(columns.reshape(-1, p), library, params)
-        parts.append(prep.windows.integrate_fine_columns(columns, b0))
+        # A gated term (contact only) is integrated over the samples where it is non-zero.
+        support = fine_support(columns) if any_zero else None
+        parts.append(prep.windows.integrate_fine_columns(columns, b0, support))
     return np.concatenate(parts, axis=0)
 
 

@@ -31,7 +31,7 @@ SIDECAR_SUFFIX = ".afmid-map"
 #: What a saved chunk holds (in the sidecar's key: chunks of an older layout are fitted again, not misread).
 CHUNK_LAYOUT = 2  # 2: with the residual signature (afmid.maps.residual)
 #: Largest chunk (pixels) chosen by default: enough tasks to balance the workers, few enough to share the setup.
-MAX_DEFAULT_CHUNK = 64
+MAX_DEFAULT_CHUNK = 128
 #: Smallest chunk chosen by default (unless the map is smaller): the shared pixel fit searches each chunk's first
 #: pixel in full (afmid.maps.pixel_fit), so a chunk of a few pixels would pay that search for most of its pixels.
 MIN_DEFAULT_CHUNK = 8

@@ -198,10 +198,20 @@ class HarmonicBlocks:
 
     def evaluate(self, coef: np.ndarray, phase: np.ndarray) -> np.ndarray:
         """Series at drive phases ``phase`` (rad, 0 = t where w t is a multiple of 2 pi): (n_blocks, P, m)."""
-        basis = fourier_design(phase, 1.0, self.K)
+        basis = self._phase_basis(np.asarray(phase, dtype=float))
         b, k, m = coef.shape
         flat = np.ascontiguousarray(coef.transpose(0, 2, 1)).reshape(b * m, k)
         return (flat @ basis.T).reshape(b, m, -1).transpose(0, 2, 1)  # one BLAS product (einsum is not BLAS)
+
+    def _phase_basis(self, phase: np.ndarray) -> np.ndarray:
+        """``fourier_design(phase, 1, K)``, the last one kept: a fit's force curves evaluate every curve (deflection,
+        velocity, force, ...) on the same phase grid, and the basis was ~5 % of a map pixel's time. The same bits."""
+        key = (phase.shape, phase.tobytes())
+        last = self.__dict__.get("_last_phase_basis")
+        if last is None or last[0] != key:
+            last = (key, fourier_design(phase, 1.0, self.K))
+            self.__dict__["_last_phase_basis"] = last
+        return last[1]
 
     def evaluate_in_periods(self, coef: np.ndarray, phase: np.ndarray, cycles: np.ndarray, drive_omega: float
                             ) -> np.ndarray:
@@ -319,20 +329,51 @@ class WeakWindows:
         n = min(fine.shape[0] - 1, self.n_windows - first)
         return self.integrate_fine_columns(np.ascontiguousarray(fine[: n + 1].transpose(1, 0, 2)), first)
 
-    def integrate_fine_columns(self, columns: np.ndarray, first: int = 0) -> np.ndarray:
+    def integrate_fine_columns(self, columns: np.ndarray, first: int = 0, support: np.ndarray | None = None
+                               ) -> np.ndarray:
         """:meth:`integrate_fine` of columns already laid out sample-major: ``columns`` (L U, n + 1, m),
         C-contiguous, holds blocks ``first`` .. ``first + n`` (``fine.transpose(1, 0, 2)``), giving windows
-        ``first`` .. ``first + n - 1`` (or up to the last window). The same bits as :meth:`integrate_fine`."""
+        ``first`` .. ``first + n - 1`` (or up to the last window). The same bits as :meth:`integrate_fine`.
+
+        ``support`` (L U, m) bool (:func:`fine_support`; None: every sample): the fine-grid samples where each
+        column may be non-zero in some block. A column non-zero on fewer than :data:`NARROW_SUPPORT` of them (a
+        contact-only term) is integrated over its support only: the same sum without its exact zeros, so equal to
+        rounding (the products' summation order changes; ~4x fewer operations for a term in contact 10 % of
+        the period)."""
         half, n_blocks, m = columns.shape
         n = min(n_blocks - 1, self.n_windows - first)
         if n + 1 < n_blocks:
             columns = np.ascontiguousarray(columns[:, : n + 1])
         rows = self.psi_fine.shape[0]
-        # One GEMM for both halves and all blocks: (2 rows, LU) @ (LU, (n + 1) m). A batched matmul over
-        # blocks with few columns (m ~ 3-20 terms) runs ~10x slower.
-        both = (self.psi_halves @ columns.reshape(half, -1)).reshape(2, rows, n + 1, m)
+        narrow = [] if support is None else np.flatnonzero(support.sum(axis=0) < NARROW_SUPPORT * half).tolist()
+        if narrow:
+            both = np.empty((2, rows, n + 1, m))
+            wide = [j for j in range(m) if j not in narrow]
+            if wide:
+                both[..., wide] = (self.psi_halves @ columns[:, :, wide].reshape(half, -1)).reshape(
+                    2, rows, n + 1, len(wide))
+            for j in narrow:
+                on = np.flatnonzero(support[:, j])
+                both[..., j] = (self.psi_halves[:, on] @ columns[on, :, j]).reshape(2, rows, n + 1)
+        else:
+            # One GEMM for both halves and all blocks: (2 rows, LU) @ (LU, (n + 1) m). A batched matmul over
+            # blocks with few columns (m ~ 3-20 terms) runs ~10x slower.
+            both = (self.psi_halves @ columns.reshape(half, -1)).reshape(2, rows, n + 1, m)
         local = (both[0, :, :n] + both[1, :, 1:]).transpose(1, 0, 2)
         return rotate_to_global(local, self.start_times()[first : first + n], self.omega)
+
+
+#: Share of a block's fine-grid samples below which a column is integrated over its non-zero samples only.
+NARROW_SUPPORT = 0.5
+
+
+def fine_support(columns: np.ndarray) -> np.ndarray:
+    """(L U, m) bool: the fine-grid samples of a block where each column of ``columns`` (L U, blocks, m) is
+    non-zero in at least one block (NaN counts as non-zero)."""
+    half, _, m = columns.shape
+    nonzero = (columns != 0.0).reshape(half, -1)
+    # One column at a time over a strided view: ~10x faster than any() over the middle axis (a per-element loop).
+    return np.stack([nonzero[:, j::m].any(axis=1) for j in range(m)], axis=1)
 
 
 def weak_windows(blocks: "HarmonicBlocks") -> WeakWindows:

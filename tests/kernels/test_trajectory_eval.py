@@ -96,12 +96,14 @@ def test_a_library_with_state_gates_is_refused():
 @pytest.mark.parametrize("effects, library_name", [([], "lj_table1"), (["dmt", "viscoelastic"], None)])
 def test_weak_form_columns_through_the_kernel_equal_the_evaluate_then_transpose_path(effects, library_name):
     """library_columns (kernel, sample-major) against the per-chunk path of Library.evaluate + integrate_fine,
-    with the switching-cell averaging where gated terms switch (dmt): the same bits."""
+    with the switching-cell averaging where gated terms switch (dmt) and each gated term integrated over its
+    non-zero samples (afmid.preprocess.periods.fine_support, when any value is zero): the same bits."""
 
     from afmid.config import load_config
     from afmid.fit.pipeline import library_parameters, prepare
     from afmid.fit.prepare import fine_chunks
     from afmid.fit.system import average_switching_cells, library_columns
+    from afmid.preprocess.periods import fine_support
     from afmid.simulate.driver import simulate
 
     config = REPO_ROOT / "configs" / "lennard_jones.yaml"
@@ -116,5 +118,7 @@ def test_weak_form_columns_through_the_kernel_equal_the_evaluate_then_transpose_
     for b0, x, v, t in fine_chunks(prepared, overlap=1):
         fine = library.evaluate(x.ravel(), v.ravel(), t.ravel(), params).reshape(x.shape + (-1,))
         average_switching_cells(library, params, x, v, t, fine)
-        parts.append(prepared.windows.integrate_fine(fine, b0))
+        columns = np.ascontiguousarray(fine.transpose(1, 0, 2))
+        support = fine_support(columns) if np.any(fine == 0.0) else None
+        parts.append(prepared.windows.integrate_fine_columns(columns, b0, support))
     np.testing.assert_array_equal(library_columns(prepared, library, params), np.concatenate(parts, axis=0))

@@ -292,7 +292,7 @@ def test_scheduler_address_and_default_chunking():
     assert scheduler_address("tcp://127.0.0.1:8786") == "tcp://127.0.0.1:8786"
     with pytest.raises(ConfigError, match="--scheduler"):
         scheduler_address("127.0.0.1:8786")
-    assert [default_chunk(n) for n in (1, 5, 16, 32, 33, 512, 4096, 10**6)] == [1, 5, 8, 8, 8, 16, 64, 64]
+    assert [default_chunk(n) for n in (1, 5, 16, 32, 33, 512, 4096, 10**6)] == [1, 5, 8, 8, 8, 16, 128, 128]
 
 
 def test_a_npy_map_gives_the_pixels_of_the_hdf5_map(workspace, tmp_path):
