@@ -30,11 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from afmid.preprocess.baseline import DRIFT, OFFSET, BaselineColumns
-from afmid.preprocess.harmonics import TRANSIENT_CHANGE
 
-#: Relative amplitude change across a record above which it is treated as a transient (the drive searched).
-#: The same limit as the not-steady warning of :mod:`afmid.io.defects`.
-TRANSIENT_LIMIT = TRANSIENT_CHANGE
 #: Grid points per valley width 1 / (2 pi N) of the residual over the drive frequency.
 POINTS_PER_VALLEY = 3
 #: Most grid points of the search (a wider window is searched coarser: the nominal frequency far off).
@@ -44,8 +40,9 @@ MARGIN_VALLEYS = 3.0
 
 
 def is_transient(prep) -> bool:
-    """True if the amplitude of the prepared record changes by more than its transient limit (:data:`TRANSIENT_LIMIT`,
-    more where the lever's thermal motion moves the amplitude more: ``prep.transient_limit``)."""
+    """True if the amplitude of the prepared record changes by more than its transient limit
+    (``prep.transient_limit``, :func:`afmid.preprocess.harmonics.transient_limit`: the same limit as the
+    not-steady warning of :mod:`afmid.io.defects`), so its drive is searched."""
     return bool(prep.steadiness > prep.transient_limit)
 
 
