@@ -47,7 +47,7 @@ from afmid.preprocess.harmonics import (  # the engine the fit uses too
     estimate_drive,
     measure_frequency,
     strongest_peak,
-    transient_limit,
+    changes_like_a_transient,
 )
 from afmid.io.oscillation import check_drive_line
 from afmid.io.onset import check_onset, find_onset
@@ -485,9 +485,9 @@ def check_steady(a: Analysis, s: Settings) -> list[Finding]:
     B = amp.size
     if B < 3 or amp.mean() <= 0:
         return []
-    change = amplitude_change(amp)
-    if change <= transient_limit(float(amp.mean()), thermal_variance(s)):
+    if not changes_like_a_transient(amp, thermal_variance(s)):
         return []
+    change = amplitude_change(amp)
     final = float(np.median(amp[-max(3, B // 5):]))
     outside = np.flatnonzero(np.abs(amp - final) > 0.01 * final)
     settled = int(outside[-1]) + 1 if outside.size else 0

@@ -22,7 +22,7 @@ import numpy as np
 from afmid.preprocess.motion import classify as classify_motion
 from afmid.preprocess.harmonics import (
     MIN_PERIODS,
-    amplitude_change,
+    changes_like_a_transient,
     block_layout,
     fourier_design,
     highest_harmonic,
@@ -31,7 +31,6 @@ from afmid.preprocess.harmonics import (
     noise_variance_factor,
     rotate_to_global,
     settled_start,
-    transient_limit,
 )
 
 #: Fewer samples per period than this and no signal check is meaningful (near Nyquist).
@@ -155,7 +154,7 @@ def analyse(
     noise = float(np.sqrt(rss / dof)) if dof > 0 else float("nan")
     amp = np.hypot(glob[:, 1], glob[:, 2])
     phase = np.unwrap(np.arctan2(-glob[:, 2], glob[:, 1]))
-    steady = amplitude_change(amp) <= transient_limit(float(amp.mean()), thermal_variance)
+    steady = not changes_like_a_transient(amp, thermal_variance)
     averaged = glob if steady else aligned_periods(glob, phase, settled_start(amp, thermal_variance))
     coef = averaged.mean(axis=0)
     # Noise of the averages: white noise through the projector, or the scatter between periods if larger

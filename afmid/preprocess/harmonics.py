@@ -470,6 +470,12 @@ def transient_limit(amplitude: float, thermal_variance: float = 0.0) -> float:
     return max(TRANSIENT_CHANGE, THERMAL_CHANGE_MULTIPLE * math.sqrt(thermal_variance) / amplitude)
 
 
+def changes_like_a_transient(amplitude: np.ndarray, thermal_variance: float = 0.0) -> bool:
+    """True when the per-block ``amplitude`` (m) changes across the record by more than :func:`transient_limit`
+    (``thermal_variance``: k_B T / k, m^2; 0 when unknown): not in steady state."""
+    return amplitude_change(amplitude) > transient_limit(float(np.mean(amplitude)), thermal_variance)
+
+
 def settled_start(amplitude: np.ndarray, thermal_variance: float = 0.0) -> int:
     """First block of the settled end of a record (0 if it is steady, :func:`transient_limit`): the last blocks
     within :data:`SETTLED_FRACTION` of the final amplitude, and at least the last fifth (at least 3 blocks).
@@ -477,7 +483,7 @@ def settled_start(amplitude: np.ndarray, thermal_variance: float = 0.0) -> int:
     Averages over the periods of a transient at equal drive phase mix periods of other amplitudes and phases
     (before the tip reached the sample, while the free response beat with the drive)."""
     B = amplitude.size
-    if B < 3 or amplitude_change(amplitude) <= transient_limit(float(np.mean(amplitude)), thermal_variance):
+    if B < 3 or not changes_like_a_transient(amplitude, thermal_variance):
         return 0
     tail = max(3, B // 5)
     final = float(np.median(amplitude[-tail:]))
