@@ -29,6 +29,7 @@ from afmid.batch.run import (RUN_SUFFIX, TRACE_SUFFIX, assign_names, batch_key, 
                          trace_is_current, Entry)
 from afmid.errors import ConfigError, InputError
 from repo_paths import REPO_ROOT
+from terminal_signals import terminal_signals
 
 pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 
@@ -278,17 +279,10 @@ def test_load_worker_finds_the_function_or_fails_naming_it():
             load_worker(spec)
 
 
-def _terminal_signals() -> None:
-    """In the child: Ctrl-C as in a terminal. A test suite started in the background by a non-interactive shell
-    (e.g. `cmd &` in a CI script) inherits SIGINT ignored, and Python then keeps it ignored: the batch would
-    never see the Ctrl-C this test sends."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def _interrupt_after_first_run(args: list[str], out: Path, env: dict) -> tuple[int, str]:
     """Start ``afmid batch`` in its own process group, Ctrl-C it once a run file exists; (exit code, stderr)."""
     proc = subprocess.Popen(args, env=env, cwd=ROOT, stderr=subprocess.PIPE, text=True, start_new_session=True,
-                            preexec_fn=_terminal_signals)
+                            preexec_fn=terminal_signals)
     try:
         deadline = time.monotonic() + 60
         while not list(out.glob(f"*{RUN_SUFFIX}")) and time.monotonic() < deadline:

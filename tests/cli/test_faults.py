@@ -29,6 +29,7 @@ from afmid.errors import OutputError
 from afmid.io.trace import atomic_hdf5, atomic_path
 from tests.cli.test_corpus_faults import RUN_CONFIG, fill_disk, mounted_tmpfs, trace_file_bytes
 from repo_paths import SIGNAL_CHILD
+from terminal_signals import ctrl_c_raises
 
 SIGNAL_CHILD = SIGNAL_CHILD
 
@@ -119,7 +120,7 @@ def test_an_interrupt_lost_in_a_weakref_callback_still_stops_the_write(tmp_path)
     class Released:
         pass
 
-    with interrupts.handled():
+    with ctrl_c_raises(), interrupts.handled():
         with pytest.raises(KeyboardInterrupt):
             with atomic_path(tmp_path / "out.yaml") as tmp:
                 tmp.write_text("x: 1\n")
@@ -161,7 +162,7 @@ def test_an_interrupt_swallowed_in_a_c_callback_ends_the_command_as_interrupted(
 
 def test_signals_during_an_hdf5_write_wait_for_the_file_to_be_closed(tmp_path):
     """Neither Ctrl-C (default handler) nor SIGTERM (afmid's handler) lands inside the HDF5 library."""
-    with pytest.raises(KeyboardInterrupt):
+    with ctrl_c_raises(), pytest.raises(KeyboardInterrupt):
         with atomic_hdf5(tmp_path / "a.h5", "test", "") as h5:
             os.kill(os.getpid(), signal.SIGINT)
             h5.create_dataset("x", data=np.arange(10.0))  # still written: the interrupt waits

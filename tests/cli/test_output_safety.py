@@ -28,6 +28,7 @@ import yaml
 from afmid.errors import OutputError
 from afmid.io.trace import refuse_input_as_output
 from tests.cli.test_corpus_config import base_config, write_tapping_csv
+from terminal_signals import ctrl_c_raises
 
 AFMID = [sys.executable, "-m", "afmid.cli"]
 LOCK = ".afmid-batch.lock"
@@ -143,7 +144,7 @@ def test_an_interrupted_report_leaves_the_old_one_and_no_temporary_folder(made_r
         raise KeyboardInterrupt
 
     monkeypatch.setattr(afmid.report.page, "fig_periods", interrupted)
-    with pytest.raises(KeyboardInterrupt):
+    with ctrl_c_raises(), pytest.raises(KeyboardInterrupt):
         make_report([run_path], out, overwrite=True, suggest_effects=False)
     assert _contents(out) == before
     assert _tmp_leftovers(tmp_path) == []
@@ -168,7 +169,7 @@ def test_ctrl_c_during_the_swap_still_leaves_one_whole_report(made_report, run_p
             os.kill(os.getpid(), signal.SIGINT)
 
     monkeypatch.setattr(shutil, "rmtree", remove_then_ctrl_c)
-    with pytest.raises(KeyboardInterrupt):
+    with ctrl_c_raises(), pytest.raises(KeyboardInterrupt):
         make_report([run_path], out, overwrite=True, suggest_effects=False)
     assert sent, "the old report was never removed"
     marker = json.loads((out / ".afmid-report").read_text())

@@ -26,6 +26,7 @@ import pytest
 from afmid.io.trace import sha256_file
 from afmid.threads import SINGLE_THREAD_ENV
 from repo_paths import REPO_ROOT
+from terminal_signals import terminal_signals
 
 REPO = REPO_ROOT
 CONFIG = REPO / "tests" / "configs" / "map_small.yaml"
@@ -45,7 +46,8 @@ def afmid(*args: str, cwd: Path, env: dict | None = None, timeout: float = RUN_T
 def start_map(*args: str, cwd: Path) -> subprocess.Popen:
     """A map run in its own process group (a terminal's Ctrl-C reaches the whole group)."""
     return subprocess.Popen([sys.executable, "-m", "afmid.cli", *args], cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=terminal_signals)
 
 
 def wait_for_chunks(sidecar: Path, n: int, proc: subprocess.Popen, timeout: float = RUN_TIMEOUT) -> None:
