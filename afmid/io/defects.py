@@ -536,11 +536,19 @@ def check_offset_and_drift(a: Analysis, s: Settings) -> list[Finding]:
                     f"{what}: the fit would read it as a slowly changing force; set fit.detrend: linear "
                     "(the fit then estimates the drift with the force law)", "fit.detrend", numbers))
     offset = a.mean
-    limit = max(OFFSET_FRACTION * a.amplitude, OFFSET_FORCE_MULTIPLE * a.force_range)
+    limit = offset_limit(a)
     if abs(offset) > limit and a.amplitude > 0:
         numbers = {"offset": offset, "amplitude": a.amplitude, "limit": limit}
         what = (f"the mean deflection is {length(offset, s.units)} ({100 * abs(offset) / a.amplitude:.2g} % of the "
                 "amplitude), more than tip-sample forces explain: the detector zero is off")
+        if a.contact == "none":
+            # No harmonic out of the noise: nothing bounds the force, and a force that barely changes over the
+            # oscillation (a double layer as long as the amplitude on a soft lever in liquid) holds the lever
+            # off zero by its mean / k (k x = F on average: the zeroth harmonic of the equation of motion).
+            what = (f"the mean deflection is {length(offset, s.units)} ({100 * abs(offset) / a.amplitude:.2g} % of "
+                    f"the amplitude) and no harmonic of the oscillation stands above the noise: either a force that "
+                    f"barely changes over the oscillation holds the lever{_static_force_words(offset, s)}, or the "
+                    "detector zero is off")
         if s.baseline == "free":
             findings.append(Finding("offset", "repaired", f"{what}; fit.baseline: free absorbs it", "fit.baseline",
                                     numbers))
@@ -548,19 +556,40 @@ def check_offset_and_drift(a: Analysis, s: Settings) -> list[Finding]:
             findings.append(Finding("offset", "repaired", f"{what}; fit.detrend: {s.detrend} removes it "
                                     "(fit.baseline: free would keep the mean force)", "fit.detrend", numbers))
         else:
+            when = "if the zero was not set with the tip far from the sample, " if a.contact == "none" else ""
             findings.append(Finding(
                 "offset", "warning",
-                f"{what}; set fit.baseline: free (or data.offset to the free-oscillation mean, in file units)",
+                f"{what}; {when}set fit.baseline: free (or data.offset to the free-oscillation mean, in file units)",
                 "fit.baseline", numbers))
     return findings
+
+
+def offset_limit(a: Analysis) -> float:
+    """The largest mean deflection not reported as an offset (samples' units): :data:`OFFSET_FRACTION` of the
+    amplitude or :data:`OFFSET_FORCE_MULTIPLE` times the force range the harmonics show, whichever is larger."""
+    return max(OFFSET_FRACTION * a.amplitude, OFFSET_FORCE_MULTIPLE * a.force_range)
+
+
+def _static_force_words(offset: float, s: Settings) -> str:
+    """' (k x = 0.104 nN, repulsive)': the mean force a mean deflection ``offset`` (m) stands for, where k is
+    known (positive deflection is toward the sample: a lever held away feels a repulsion)."""
+    if s.units != "m" or not s.spring_constant:
+        return ""
+    force = -s.spring_constant * offset  # N, positive = repulsive
+    return (f" (k x = {abs(force) * 1e9:.3g} nN, {'repulsive' if force > 0 else 'attractive'}: a long-range force "
+            "such as a double layer or electrostatics)")
 
 
 def check_contact(a: Analysis, s: Settings) -> list[Finding]:
     """No tip-sample force at all, or an attractive one only (the tip never touches): warnings.
 
-    Needs at least :data:`MIN_SAMPLES_PER_PERIOD` samples per period to see the harmonics.
+    Needs at least :data:`MIN_SAMPLES_PER_PERIOD` samples per period to see the harmonics. Without harmonics but
+    with a mean deflection beyond :func:`offset_limit`, the offset's finding says it all (a static force or a
+    detector zero that is off): "no tip-sample force" would contradict its first half.
     """
     if a.spp < MIN_SAMPLES_PER_PERIOD:
+        return []
+    if a.contact == "none" and abs(a.mean) > offset_limit(a) and a.amplitude > 0:
         return []
     if a.contact == "none":
         return [Finding(

@@ -166,6 +166,31 @@ def test_offset_is_reported_with_the_setting_that_removes_it(load, caplog):
     assert "offset" not in findings(tapping(separation=8.0e-9))
 
 
+def test_a_mean_deflection_without_harmonics_is_a_static_force_or_an_offset():
+    """A soft lever in liquid held off zero by a double layer as long as the amplitude: a mean deflection of
+    several % of the amplitude and no harmonic out of the noise. Before, two contradictory warnings: "the detector
+    zero is off" and "no tip-sample force detected" (on a trace whose fit then found the double layer at 0.26 nN,
+    tests/diagnosis/test_hidden_unknown_d.py double_layer b). Now one finding names both readings, with the force
+    k x the mean stands for; a free oscillation with a centred zero still gets "no tip-sample force"."""
+    free = AMPLITUDE * np.cos(2 * np.pi * np.arange(2000) / SPP)
+    free += 1e-12 * np.random.default_rng(1).standard_normal(free.size)
+    held = free - 0.5e-9  # 5 % of the amplitude, away from the sample
+    found = findings(held)
+    assert set(found) == {"offset"}, found
+    message = found["offset"].message
+    assert found["offset"].severity == "warning" and found["offset"].key == "fit.baseline"
+    assert message.startswith("the mean deflection is -500 pm (5 % of the amplitude) and no harmonic of the "
+                              "oscillation stands above the noise: either a force that barely changes over the "
+                              "oscillation holds the lever (k x = 20 nN, repulsive: "), message
+    assert message.endswith("or the detector zero is off; if the zero was not set with the tip far from the sample, "
+                            "set fit.baseline: free (or data.offset to the free-oscillation mean, in file units)")
+    pulled = findings(free + 0.5e-9)["offset"].message
+    assert "(k x = 20 nN, attractive: " in pulled
+    without_k = findings(held, spring_constant=None)["offset"].message
+    assert "holds the lever, or the detector zero is off" in without_k
+    assert set(findings(free)) == {"no_interaction"}
+
+
 def test_drift_is_reported_with_the_setting_that_removes_it(load):
     x = tapping()
     x = x + np.linspace(-0.25e-9, 0.25e-9, x.size)
