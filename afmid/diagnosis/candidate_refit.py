@@ -87,6 +87,21 @@ def search_separation(prepared, config: RunConfig, centre: float, window: float 
     return local_minimum(x, y) if np.isfinite(y).any() else centre
 
 
+def separation_start(run, prepared, config: RunConfig) -> tuple[float, float]:
+    """Where a candidate's separation search starts and its half-width, m: the run's estimate +-
+    :data:`SEPARATION_WINDOW`; when that estimate is not above zero (no physical separation: the run's model
+    lacks a force the trace shows, e.g. a double layer's long-range repulsion put a [dmt] fit at -0.86 nm, truth
+    5 nm), the single-trace fit's whole window instead (``fit.separation_window`` around first contact), as a
+    fit with the candidate added would search it."""
+    if run.separation > 0:
+        return run.separation, SEPARATION_WINDOW
+    from afmid.fit.pipeline import first_contact
+
+    touch = first_contact(prepared, config.sample.a0)
+    below, above = config.fit.separation_window
+    return touch + 0.5 * (above - below), 0.5 * (above + below)
+
+
 def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: list[str], shapes, fit_quick,
                     quick_shape: bool = True):
     """Refit ``config`` (the run's effects plus ``effect``) with the separation and the effect's shape re-profiled.
@@ -99,12 +114,12 @@ def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: 
     """
     free = separation_estimated(run)
     trial = copy.deepcopy(config)
+    window = SEPARATION_WINDOW
     if free:
-        trial.sample.separation = run.separation
+        trial.sample.separation, window = separation_start(run, prepared, config)
     separation = trial.sample.separation
     quick = bool(shape_names) and trial.fit.estimate_nonlinear and quick_shape
     shape: dict[str, float] = {}
-    window = SEPARATION_WINDOW
     for _ in range(REPROFILE_ROUNDS if free and quick else 1):
         if quick:
             try:

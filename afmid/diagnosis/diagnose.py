@@ -137,7 +137,7 @@ def candidate_effects(current: list[str], medium: str = "air") -> list[str]:
 def refit_config(run: RunData, effects: list[str]) -> RunConfig:
     """The run's own config with another effect list, pointing at the run's input file.
 
-    The separation and the run's own nonlinear parameters (decay lengths of
+    The separation (when the run's estimate is above zero) and the run's own nonlinear parameters (decay lengths of
     effects already in the model) are fixed at the run's values: the candidate
     refits then differ from the run only by the added effect, and are quick.
     """
@@ -146,7 +146,7 @@ def refit_config(run: RunData, effects: list[str]) -> RunConfig:
     if run.input_path is not None:
         config.data.path = run.input_path
     config.fit.bootstrap = 0
-    if config.sample.separation is None and math.isfinite(run.separation):
+    if config.sample.separation is None and run.separation > 0:  # else (not physical) searched again by each fit
         config.sample.separation = run.separation
     fixed = dict(config.model.parameters)
     for name, est in run.nonlinear.items():
@@ -208,10 +208,14 @@ def suggest(run: RunData, progress: bool = False) -> dict:
         log.warning("%s changed since the run was made (SHA-256 differs); no effects are suggested", run.input_path)
         return {"missing_effect": False, "suggestions": [], "tried": [],
                 "note": f"no suggestions: the input trace {run.input_path} changed since the run was made"}
-    if run.config.sample.separation is None and not run.separation > 0:  # a failed estimate: nothing to refit from
-        raise InputError(f"the run estimated a rest separation of {run.separation * 1e9:.3g} nm, which is not physical: "
-                         "the candidates cannot be refitted from it; give sample.separation", file=run.path,
-                         key="sample.separation")
+    if run.config.sample.separation is None and not math.isfinite(run.separation):  # no estimate to refit from
+        raise InputError("the run holds no estimate of the rest separation: the candidates cannot be refitted; give "
+                         "sample.separation", file=run.path, key="sample.separation")
+    if run.config.sample.separation is None and not run.separation > 0:
+        # The run's model could not place the surface (a missing long-range force moves the estimate far): each
+        # candidate's separation is searched over the fit's whole window (candidate_refit.separation_start).
+        log.warning("the run's rest separation estimate (%.3g nm) is not physical: each candidate effect is refitted "
+                    "with the separation searched over the fit's whole window", run.separation * 1e9)
     with _one_blas_thread():
         return _diagnose(run, progress)
 
@@ -333,7 +337,8 @@ def _diagnose(run: RunData, progress: bool) -> dict:
             "rate_correlation": local["rate_correlation"],
             "description": description,
             "outside_catalog": _outside_words(outside[0], good[0] if good else None) if outside else "",
-            "verdict": _verdict(good, residual_significant, explained, base, outside, final[2], final_bic - base.bic),
+            "verdict": _verdict(good, residual_significant, explained, base, outside, final[2], final_bic - base.bic,
+                                final[3]),
             "error_after": final[2] if good else None,
             "delta_bic_after": final_bic - base.bic if good else None,
         },
@@ -470,6 +475,22 @@ def _excess(error: float, floor: float) -> float:
     return math.sqrt(max(error**2 - floor**2, 0.0))
 
 
+def _errors_compared(t: Trial, base: _Base) -> tuple[float, float, float]:
+    """(the base's error, the candidate's error, the floor) in one unit: each error over its own noise floor
+    (floor 1) where both floors are known, else the raw errors over the base's floor.
+
+    A cross-validated error is normalised by the spread of the inverted force over the harmonics that stand out
+    of the noise in its own fit, and its floor in the same way, so errors of fits with other signal harmonics
+    or another separation are not comparable, their ratios to their floors are. With the separation re-searched
+    per candidate they differ: on a liquid double-layer trace whose [dmt] fit put the surface at -0.86 nm, the
+    double layer (refitted at 5.2 nm, its charge and Debye length within 5 % of the truth) took the error from
+    0.187 (floor 0.127: 1.47 floors) to 0.228 (floor 0.199: 1.15 floors), and was rejected as "the error does
+    not fall". Where the floors agree (the separation fixed) the decisions are those of the raw errors."""
+    if all(math.isfinite(f) and f > 0 for f in (base.floor, t.noise_floor_after)):
+        return base.error / base.floor, t.error_after / t.noise_floor_after, 1.0
+    return base.error, t.error_after, base.floor
+
+
 def _significant(chi2: float, limit: float, error: float, floor: float) -> bool:
     """A misfit is significant when the in-sample chi-square OR the out-of-sample error sees it.
 
@@ -493,10 +514,11 @@ def _rejections(t: Trial, base: _Base) -> list[str]:
         reasons.append("its terms were not selected")
     if t.delta_bic > -BIC_EVIDENCE:
         reasons.append(f"ΔBIC {format_delta_bic(t.delta_bic)} is not below -{BIC_EVIDENCE:g}")
-    if not t.error_after < base.error:
+    error_before, error_after, floor = _errors_compared(t, base)
+    if not error_after < error_before:
         reasons.append("the cross-validated error does not fall")
     elif base.error > FLOOR_FACTOR * base.floor:
-        before, after = _excess(base.error, base.floor), _excess(t.error_after, base.floor)
+        before, after = _excess(error_before, floor), _excess(error_after, floor)
         if after > ERROR_RATIO * before:
             reasons.append(f"it removes only {100 * (1 - after / before):.0f} % of the error above the noise")
     reasons += t.implausible
@@ -585,8 +607,11 @@ def _strength(delta: float) -> str:
 
 def _evidence(t: Trial, local: dict, base: _Base, trials: list[Trial]) -> str:
     text = f"{_match_words(t.effect, local)}. Adding it "
-    before, after = _excess(base.error, base.floor), _excess(t.error_after, base.floor)
+    error_before, error_after, floor = _errors_compared(t, base)
+    before, after = _excess(error_before, floor), _excess(error_after, floor)
     text += f"changes the cross-validated error from {base.error:.3g} to {t.error_after:.3g} (noise floor {base.floor:.3g}"
+    if t.noise_floor_after != base.floor and math.isfinite(t.noise_floor_after):
+        text += f" -> {t.noise_floor_after:.3g}"
     if before > 0 and base.error > FLOOR_FACTOR * base.floor:
         text += f"; {100 * (1 - (after / before) ** 2):.0f} % of the error variance above the noise removed"
     text += f") and the BIC by {format_delta_bic(t.delta_bic)} ({_strength(t.delta_bic)}); reduced chi-square {base.chi2:.3g} -> {t.chi2_after:.3g}"
@@ -636,9 +661,13 @@ def _outside_words(t: Trial, top: Trial | None) -> str:
 
 
 def _verdict(good: list[Trial], significant: bool, explained: bool, base: _Base, outside: list[Trial],
-             error_after: float = math.nan, delta_bic: float = math.nan) -> str:
+             error_after: float = math.nan, delta_bic: float = math.nan, floor_after: float = math.nan) -> str:
     names = " + ".join(t.effect for t in good)
-    change = f"error {base.error:.3g} -> {error_after:.3g}, ΔBIC {format_delta_bic(delta_bic)}"
+    change = f"error {base.error:.3g} -> {error_after:.3g}"
+    if math.isfinite(floor_after) and floor_after > 0 and base.floor > 0 and floor_after != base.floor:
+        # Another separation or other signal harmonics: the errors' normalisations differ (_errors_compared).
+        change += f", {base.error / base.floor:.3g} -> {error_after / floor_after:.3g} times its noise floor"
+    change += f", ΔBIC {format_delta_bic(delta_bic)}"
     if good and explained:
         what = "missing effect" if len(good) == 1 else "missing effects"
         return f"{what}: {names} ({change})"

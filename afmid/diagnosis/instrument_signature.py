@@ -332,7 +332,7 @@ def undeclared(config, prepared, base_result, base_bic: float, trials: list, fit
     finding = search(config, searched)
     if separation_free and (finding is None or not finding.explains):
         separation = reprofiled(config, prepared, _variants(searched, prepared.drive.frequency), fit_quick)
-        if separation is not None:
+        if separation is not None and separation > 0:  # a separation not above zero places no surface
             trial_config = copy.deepcopy(config)
             trial_config.sample.separation = separation
             again = search(trial_config)

@@ -338,19 +338,21 @@ def test_suggest_needs_a_model_built_from_effects():
     assert out["missing_effect"] is False and out["suggestions"] == [] and "library" in out["note"]
 
 
-def test_suggest_refuses_a_run_whose_estimated_separation_is_not_physical(tmp_path):
-    """Found on a Q 2 lever in liquid (tests/diagnosis/test_hidden_unknown_d.py, double_layer b): the [dmt] run
-    estimated d = -0.86 nm and the diagnosis raised a validation traceback; now a one-line error naming the key."""
+def test_suggest_refuses_a_run_without_a_separation_estimate(tmp_path):
+    """A run that estimated no separation (NaN) has nothing to refit from: a one-line error naming the key. (A
+    run whose estimate is not above zero is diagnosed with each candidate's separation searched over the fit's
+    whole window: tests/diagnosis/test_hidden_unknown_d.py, double_layer b, where that names the double layer;
+    session 10 refused it, and before that it raised a validation traceback.)"""
     from afmid.errors import InputError
 
     run = _synthetic_run(None, periods=2)
     run.config.sample.separation = None
-    run.separation = -0.86e-9
+    run.separation = float("nan")
     run.input_path = tmp_path / "trace.h5"
     run.input_path.write_bytes(b"")
     with pytest.raises(InputError) as info:
         diagnose.suggest(run)
-    assert info.value.key == "sample.separation" and "-0.86 nm" in str(info.value) and "\n" not in str(info.value)
+    assert info.value.key == "sample.separation" and "no estimate" in str(info.value) and "\n" not in str(info.value)
 
 
 # --------------------------------------------------------------------------- experiments
