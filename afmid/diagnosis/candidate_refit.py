@@ -49,8 +49,8 @@ SEPARATION_STEP = 2e-12
 
 
 def search_separation(prepared, config: RunConfig, centre: float, window: float = SEPARATION_WINDOW) -> float:
-    """The rest separation within ``window`` of ``centre`` that minimises the weighted residual of ``config``'s
-    full library (its nonlinear parameters as ``config.model.parameters`` fixes them), m.
+    """The rest separation within ``window`` of ``centre`` (and not below ``sample.a0``) that minimises the weighted
+    residual of ``config``'s full library (its nonlinear parameters as ``config.model.parameters`` fixes them), m.
 
     A coarse grid, then zooms on the lowest point (each a grid of SEPARATION_ZOOM points between its
     neighbours) and a parabola through the last three (:func:`afmid.fit.profile.local_minimum`: no parabola
@@ -78,11 +78,14 @@ def search_separation(prepared, config: RunConfig, centre: float, window: float 
         x = np.array(sorted(values))
         return x, np.array([values[v] for v in x])
 
-    x, y = evaluate(np.linspace(centre - window, centre + window, SEPARATION_GRID))
+    # Not below a0: a rest separation there puts the resting tip in the sample (a candidate whose best lies below
+    # is fitted at the bound and judged like any other, instead of failing on an unphysical separation).
+    lowest = config.sample.a0
+    x, y = evaluate(np.linspace(max(centre - window, lowest), max(centre + window, 2 * lowest), SEPARATION_GRID))
     step = x[1] - x[0]
     while step > SEPARATION_STEP:
         i = int(np.argmin(y))
-        x, y = evaluate(np.linspace(x[i] - step, x[i] + step, SEPARATION_ZOOM))
+        x, y = evaluate(np.maximum(np.linspace(x[i] - step, x[i] + step, SEPARATION_ZOOM), lowest))
         step /= (SEPARATION_ZOOM - 1) / 2
     return local_minimum(x, y) if np.isfinite(y).any() else centre
 

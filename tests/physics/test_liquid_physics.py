@@ -407,10 +407,6 @@ def test_hidden_double_layer_is_named_first(diagnosed, variant):
 
 #: The hidden double layer with the separation NOT given (measured, not loosened: the requirement is kept).
 UNKNOWN_SEPARATION_LIMITS = {
-    "b": "the [dmt] fit's separation goes below zero (-0.86 nm; truth 5 nm): the force is nearly static over the "
-    "oscillation at lambda_D = 5 nm (no harmonic above the noise, the mean deflection -347 pm), the separation's "
-    "window (6 nm below first contact) reaches below zero and the diagnosis refuses the run in one line "
-    "(sample.separation must be > 0)",
     "c": "the data cannot decide: double_layer and hydration both explain the residual (dBIC -570 vs -558, "
     "error 0.083 vs floor 0.078); at lambda_D = 2 nm the double layer overlaps hydration's range once d is free",
 }
