@@ -226,6 +226,9 @@ def _init_worker(env: dict[str, str], log_level: int, parent_pid: int | None = N
     logger.propagate = False
     logging.captureWarnings(True)
     _worker_state["log_level"] = log_level
+    from afmid.batch.allocator import keep_freed_memory_for_reuse
+
+    keep_freed_memory_for_reuse()
     # Import once per worker; numba's kernels load from its on-disk cache at their first call.
     import afmid.fit.pipeline as fit  # noqa: F401
     import afmid.io.trace as io  # noqa: F401
