@@ -481,8 +481,9 @@ def _jackknife_spread(profile, points: np.ndarray) -> float:
     if G < 2:
         return math.nan
     vertices = []
+    left_out = np.array([profile.leave_each_out(v) for v in points])  # (points, groups)
     for g in range(G):
-        y = np.array([profile.leave_out(v, g) for v in points])
+        y = left_out[:, g]
         if not np.all(np.isfinite(y)):
             return math.nan
         v, a = _parabola(points, y)
