@@ -1,12 +1,15 @@
 """How ``afmid map`` fits its pixels: strategies with one protocol, in the registry :data:`PIXEL_FITS`.
 
-A strategy is made once per chunk (``PixelFit(config, library)``) and fits the chunk's pixels in order
+A strategy is made once per chunk (``PixelFit(config, library)``), is shown the chunk's traces first
+(``start_chunk(traces)``: what they share, e.g. the drive frequency) and fits the chunk's pixels in order
 (``fit(trace, pixel) -> PixelResult``); it may carry what it learnt from one pixel to the next.
 
 - ``full``: every pixel fitted exactly as ``afmid fit`` fits a trace (:func:`afmid.fit.pipeline.fit_prepared`: the coarse
   separation search, the profile, three selections, the bootstrap of ``fit.bootstrap``). About 90 evaluations of
   the library columns per pixel.
-- ``shared`` (the default): the support and the offset of the separation from first contact are learnt on the
+- ``shared`` (the default): the chunk's pixels cut into periods at one drive frequency (the median of their
+  measured ones, for the pixels whose own agrees with it: :meth:`SharedSupportFit.start_chunk`), sharing their
+  blocks and test functions; the support and the offset of the separation from first contact are learnt on the
   chunk's first pixel by the full search (no bootstrap) and carried from pixel to pixel (neighbours in a row-major
   chunk: the topography and the phases are smooth). Each pixel then needs only a short 1-D search of its separation
   started from ``first contact + carried offset`` (a few library evaluations: a bracket and parabola steps on the
