@@ -90,7 +90,7 @@ class Prepared:
     fine_grid: "FineGrid | None" = None
 
 
-def prepare(trace: Trace, fit, instrument=None) -> Prepared:
+def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None = None) -> Prepared:
     """Everything about the data that the library does not change: drive, blocks, weak-form rows, noise.
 
     ``instrument`` (:class:`afmid.preprocess.instrument.Instrument`, None: ideal) is undone per harmonic first
@@ -98,6 +98,12 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
 
     Per-sample work runs chunk by chunk (:data:`afmid.preprocess.periods.CHUNK_BLOCKS` periods): the only arrays as
     long as the trace are the deflection, its times and the velocity kept for the per-sample forces.
+
+    ``drive`` (:class:`afmid.preprocess.harmonics.DriveEstimate`, None: the one measured on loading, else measured
+    here) sets the drive frequency the record is cut at. ``layouts``: a dict in which the blocks and test
+    functions are kept, keyed by everything they are made from (samples, rate, drive frequency, start time,
+    harmonics, fine grid), so records of one layout share them (the pixels of a map fitted at one drive
+    frequency); they are not modified by the fit.
     """
     t = trace.times
     x, removed = detrend(trace.deflection, t, fit.detrend)
@@ -106,17 +112,26 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
         if np.max(np.abs(steps - steps.mean())) > 1e-3 * steps.mean():
             raise AfmidError("the time column is not uniformly sampled (gaps or jitter); resample or crop it first",
                              file=trace.path, key="data.time_column")
-    drive = trace.drive_for(fit.detrend) or estimate_drive(x, t, trace.drive_frequency)  # measured on loading
+    if drive is None:
+        drive = trace.drive_for(fit.detrend) or estimate_drive(x, t, trace.drive_frequency)  # measured on loading
     spp = trace.sample_rate / drive.frequency
     oversample = fit.oversample or max(1, int(math.ceil(FINE_POINTS_PER_PERIOD / spp)))
-    blocks = harmonic_blocks(x.size, trace.sample_rate, drive.frequency, t0=float(t[0]),
-                             periods_per_block=fit.periods_per_block, max_harmonic=fit.max_harmonic,
-                             oversample=oversample)
+    layout = (x.size, trace.sample_rate, drive.frequency, float(t[0]), fit.periods_per_block, fit.max_harmonic,
+              oversample)
+    if layouts is not None and layout in layouts:
+        blocks, windows = layouts[layout]
+    else:
+        blocks = harmonic_blocks(x.size, trace.sample_rate, drive.frequency, t0=float(t[0]),
+                                 periods_per_block=fit.periods_per_block, max_harmonic=fit.max_harmonic,
+                                 oversample=oversample)
+        windows = weak_windows(blocks)
+        if layouts is not None:
+            layouts.clear()  # one layout at a time: a map's pixels come in runs of one drive frequency
+            layouts[layout] = blocks, windows
     if fit.detrend == "linear":  # the trajectory without the drift; the regression's columns take the rest
         x, removed["drift"] = remove_drift(x, t, blocks)
     views = deflection_views(x, blocks, instrument, trace.cantilever)
     x, x_equation = views.tip, views.equation
-    windows = weak_windows(blocks)
     cl = trace.cantilever
     k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
     m, c = k / w0**2, k / (Q * w0)

@@ -94,8 +94,7 @@ class GroupedProfile:
                 T, n_rows = found
                 self.n_rows = max(self.n_rows, n_rows)
                 n_groups = min(self.n_groups, T.shape[0] // 2)
-                parts = np.array_split(np.arange(T.shape[0]), max(n_groups, 1))
-                R = np.stack([regression.combine(T[p]) for p in parts])
+                R = _group_factors(T, max(n_groups, 1))
                 self.groups[value] = R if n_groups >= 2 else None
                 self.full[value] = self._rss(R)
         return self.full[value]
@@ -112,12 +111,34 @@ class GroupedProfile:
             return math.inf
         return self._rss(np.delete(R, group, axis=0))
 
+    def leave_each_out(self, value: float) -> np.ndarray:
+        """:meth:`leave_out` of every group at ``value`` (G,), the leave-one-out factors combined in one call."""
+        R = self.groups.get(float(value))
+        G = self.jackknife_groups()
+        if R is None:
+            return np.full(G, math.inf)
+        others = np.stack([np.delete(R, group, axis=0) for group in range(R.shape[0])])
+        mask = np.ones(R.shape[-1] - 1, dtype=bool) if self.mask is None else self.mask
+        rss = np.array([regression.subset_fit(T, mask)[1] for T in regression.combine_each(others)])
+        return np.where(np.isfinite(rss), rss, math.inf)
+
     def jackknife_groups(self) -> int:
         return next((R.shape[0] for R in self.groups.values() if R is not None), 0)
 
     def points(self) -> tuple[np.ndarray, np.ndarray]:
         x = np.array(sorted(self.full))
         return x, np.array([self.full[v] for v in x])
+
+
+def _group_factors(T: np.ndarray, n_groups: int) -> np.ndarray:
+    """:func:`afmid.fit.regression.combine` of each of ``n_groups`` contiguous groups of the block factors ``T``
+    (``np.array_split``'s groups: at most two sizes), one stacked call per size: the same bits."""
+    parts = np.array_split(np.arange(T.shape[0]), n_groups)
+    R = np.empty((n_groups, T.shape[-1], T.shape[-1]))
+    for size in sorted({p.size for p in parts}):
+        same = [g for g, p in enumerate(parts) if p.size == size]
+        R[same] = regression.combine_each(np.stack([T[parts[g]] for g in same]))
+    return R
 
 
 def local_minimum(x: np.ndarray, y: np.ndarray) -> float:
@@ -277,8 +298,9 @@ def _jackknife(profile: GroupedProfile, best: float, width: float, s2: float, lo
         x, _ = profile.points()
         x = x[(x >= best - reach) & (x <= best + reach)]
         minima, on_edge = [], False
+        left_out = np.array([profile.leave_each_out(v) for v in x])  # (points, groups)
         for group in range(G):
-            y = np.array([profile.leave_out(v, group) for v in x])
+            y = left_out[:, group]
             j = int(np.argmin(y))
             on_edge |= (j == 0 and x[0] > lo) or (j == x.size - 1 and x[-1] < hi)
             minima.append(estimate_minimum(x, y, s2 * (G - 1) / G)[0])

@@ -51,6 +51,17 @@ def combine(T_blocks: np.ndarray, multiplicity: np.ndarray | None = None) -> np.
     return R
 
 
+def combine_each(T_stacks: np.ndarray) -> np.ndarray:
+    """:func:`combine` of each of several equal-sized sets of block factors, ``T_stacks`` (sets, blocks, q, q) ->
+    (sets, q, q), in one LAPACK call over the stack: the same routine on the same matrices, so the same bits as
+    one :func:`combine` per set, without NumPy's per-call overhead (~40 us, paid ~100 times per map pixel by its
+    separation profile's groups and jackknife)."""
+    sets, blocks, rows, q = T_stacks.shape
+    if blocks * rows < q:  # combine() pads a short factor with zero rows; rare enough to do one by one
+        return np.stack([combine(T) for T in T_stacks])
+    return np.linalg.qr(T_stacks.reshape(sets, blocks * rows, q), mode="r")
+
+
 def subset_fit(T: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float]:
     """Least-squares coefficients on the columns in ``mask`` and the residual sum of squares."""
     coef, rss = subset_lstsq(np.ascontiguousarray(T), mask.astype(np.bool_))

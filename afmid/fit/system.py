@@ -17,6 +17,7 @@ from afmid.fit.forces import CHUNK_BLOCKS
 log = logging.getLogger(__name__)
 
 from afmid.fit.prepare import Prepared, fine_chunks
+from afmid.kernels.switching import cell_subsamples, switching_cells
 from afmid.preprocess.periods import fine_support
 
 
@@ -116,25 +117,13 @@ def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np
     through the cell from the state of the sample before it (``states``:
     their values along the rows, (n_states, n * M), as the library scans them).
     """
-    switch = _switches(fine)  # between samples j and j + 1
-    flagged = np.zeros(x.shape, dtype=bool)
-    flagged[:, :-1] |= switch
-    flagged[:, 1:] |= switch
-    flagged[:, 0] = flagged[:, -1] = False  # the cell needs both neighbours
-    rows, cols = np.nonzero(flagged)
+    # Both kernels (afmid.kernels.switching) are one pass each; their NumPy twins (the array expressions, ~0.6 ms
+    # of passes over the fine grid and its strided views per library evaluation) are compared in
+    # tests/kernels/test_switching.py bit for bit.
+    rows, cols = switching_cells(fine)
     if rows.size == 0:
         return
-    h = float(t[0, 1] - t[0, 0])
-    u = (np.arange(SWITCH_SUBSAMPLES) + 0.5) / SWITCH_SUBSAMPLES - 0.5  # offsets within the cell, in cells
-    left = u < 0  # the left half of the cell lies between samples j - 1 and j
-    a = cols[:, None] - left[None, :].astype(int)  # first sample of the interval holding each sub-sample
-    s = np.where(left, 1.0 + u, u)[None, :]
-    r = rows[:, None]
-    xa, xb, va, vb = x[r, a], x[r, a + 1], v[r, a], v[r, a + 1]
-    s2, s3 = s * s, s * s * s
-    xs = (2 * s3 - 3 * s2 + 1) * xa + (s3 - 2 * s2 + s) * h * va + (3 * s2 - 2 * s3) * xb + (s3 - s2) * h * vb
-    vs = (6 * s2 - 6 * s) * (xa - xb) / h + (3 * s2 - 4 * s + 1) * va + (3 * s2 - 2 * s) * vb
-    ts = t[rows, cols][:, None] + u[None, :] * h
+    xs, vs, ts = cell_subsamples(x, v, t, rows, cols, SWITCH_SUBSAMPLES)
     sub_states = None
     if library.states:  # scanned through the cell from the state of the sample before it
         if states is None:
@@ -143,20 +132,6 @@ def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np
         sub_states = library.states_from(along[:, rows, cols - 1], xs, vs, ts, params)
     sub = library.evaluate(xs.ravel(), vs.ravel(), ts.ravel(), params, state_values=sub_states)
     fine[rows, cols, :] = sub.reshape(rows.size, SWITCH_SUBSAMPLES, -1).mean(axis=1)
-
-
-def _switches(fine: np.ndarray) -> np.ndarray:
-    """(n, M - 1) bool: whether any term of ``fine`` (n, M, p) is zero on one of samples j, j + 1 and not on the
-    other. Computed in the sample-major layout the weak form keeps the columns in (``fine`` a transposed view of a
-    C-contiguous (M, n, p) array) and one term at a time: a reduction over a short last axis, or over a strided
-    view, is a slow per-element loop in NumPy (10x the time of the comparisons themselves)."""
-    sample_major = fine.transpose(1, 0, 2)
-    layout = sample_major if sample_major.flags.c_contiguous else np.ascontiguousarray(sample_major)
-    switch = np.zeros(layout.shape[:2], bool)[1:]
-    for j in range(layout.shape[2]):
-        zero = layout[:, :, j] == 0.0
-        switch |= zero[1:] != zero[:-1]
-    return switch.T
 
 
 def check_finite(columns: np.ndarray, library: Library, params: dict) -> None:

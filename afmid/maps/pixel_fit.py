@@ -1,12 +1,15 @@
 """How ``afmid map`` fits its pixels: strategies with one protocol, in the registry :data:`PIXEL_FITS`.
 
-A strategy is made once per chunk (``PixelFit(config, library)``) and fits the chunk's pixels in order
+A strategy is made once per chunk (``PixelFit(config, library)``), is shown the chunk's traces first
+(``start_chunk(traces)``: what they share, e.g. the drive frequency) and fits the chunk's pixels in order
 (``fit(trace, pixel) -> PixelResult``); it may carry what it learnt from one pixel to the next.
 
 - ``full``: every pixel fitted exactly as ``afmid fit`` fits a trace (:func:`afmid.fit.pipeline.fit_prepared`: the coarse
   separation search, the profile, three selections, the bootstrap of ``fit.bootstrap``). About 90 evaluations of
   the library columns per pixel.
-- ``shared`` (the default): the support and the offset of the separation from first contact are learnt on the
+- ``shared`` (the default): the chunk's pixels cut into periods at one drive frequency (the median of their
+  measured ones, for the pixels whose own agrees with it: :meth:`SharedSupportFit.start_chunk`), sharing their
+  blocks and test functions; the support and the offset of the separation from first contact are learnt on the
   chunk's first pixel by the full search (no bootstrap) and carried from pixel to pixel (neighbours in a row-major
   chunk: the topography and the phases are smooth). Each pixel then needs only a short 1-D search of its separation
   started from ``first contact + carried offset`` (a few library evaluations: a bracket and parabola steps on the
@@ -49,6 +52,10 @@ MAX_STARTS = 3
 #: The pixel's separation is moved onto an evaluated point within this fraction of its sigma (no extra build).
 RESOLUTION = 0.1
 DISTINCT_OFFSET = 0.2e-9
+#: A pixel is cut at the chunk's drive frequency when its own measurement lies within this many robust sigmas of
+#: the chunk's scatter from it; the chunk needs this many measured pixels for a median and a scatter.
+DRIVE_AGREEMENT = 3.0
+DRIVE_MIN_PIXELS = 5
 
 
 @dataclass
@@ -77,6 +84,9 @@ class FullPixelFit:
 
     def __init__(self, config, library):
         self.config, self.library = config, library
+
+    def start_chunk(self, traces: list) -> None:
+        """Nothing is shared: every pixel as a trace of its own."""
 
     def fit(self, trace, pixel: int) -> PixelResult:
         from afmid.fit.pipeline import fit_prepared, prepare
@@ -116,8 +126,38 @@ class SharedSupportFit:
         self.offsets: list[float] = []
         self.step: float = 0.05e-9  # m, the first bracket's half-width (the last pixel's sigma, bounded)
         self.nonlinear: dict[str, float] = {}  # the library's other nonlinear parameters (from the anchor)
+        self.drive_frequency: float | None = None  # Hz, the chunk's (start_chunk); None: each pixel its own
+        self.drive_spread: float = math.nan  # Hz, robust 1 sigma of the pixels' measured drive frequencies
+        self.layouts: dict = {}  # blocks and test functions of the chunk's drive (afmid.fit.prepare.prepare)
 
     # ------------------------------------------------------------------ protocol
+    def start_chunk(self, traces: list) -> None:
+        """The chunk's drive frequency: the median of the frequencies measured on its traces (one piezo drives
+        every pixel of a map; each pixel's own measurement scatters by its estimation error, 5.5 Hz rms at
+        300 kHz on the 16x16 bench map, whose drive is exactly 300 kHz everywhere). Pixels that agree with it
+        within :data:`DRIVE_AGREEMENT` robust sigmas of that scatter are cut at it, so that they share their
+        blocks and test functions; a pixel further off keeps its own. Fewer than :data:`DRIVE_MIN_PIXELS`
+        measured traces: no chunk frequency."""
+        measured = [t.drive_for(self.config.fit.detrend) for t in traces]
+        frequencies = np.array([d.frequency for d in measured if d is not None])
+        self.drive_frequency, self.drive_spread = None, math.nan
+        if frequencies.size >= DRIVE_MIN_PIXELS and self.config.fit.drive_frequency in ("auto", "response"):
+            self.drive_frequency = float(np.median(frequencies))
+            self.drive_spread = 1.4826 * float(np.median(np.abs(frequencies - self.drive_frequency)))
+
+    def chunk_drive(self, trace):
+        """The :class:`afmid.preprocess.harmonics.DriveEstimate` of ``trace`` at the chunk's drive frequency when
+        its own measurement agrees with it (see :meth:`start_chunk`), else None (its own)."""
+        from afmid.preprocess.harmonics import EXACT_SPECTRUM_MAX, drive_at
+        from afmid.preprocess.periods import detrend
+
+        own = trace.drive_for(self.config.fit.detrend)
+        if (self.drive_frequency is None or own is None or trace.n_samples > EXACT_SPECTRUM_MAX
+                or not abs(own.frequency - self.drive_frequency) <= DRIVE_AGREEMENT * self.drive_spread):
+            return None
+        x, _ = detrend(trace.deflection, trace.times, self.config.fit.detrend)
+        return drive_at(x, trace.times, own.nominal, self.drive_frequency)
+
     def fit(self, trace, pixel: int) -> PixelResult:
         from afmid.fit.drive_search import is_transient
         from afmid.fit.pipeline import first_contact, library_parameters, prepare
@@ -125,7 +165,8 @@ class SharedSupportFit:
         from afmid.preprocess.instrument import from_config
 
         config = self.config
-        prep = with_fine_grid(prepare(trace, config.fit, from_config(config)))
+        prep = with_fine_grid(prepare(trace, config.fit, from_config(config), drive=self.chunk_drive(trace),
+                                      layouts=self.layouts))
         if config.fit.drive_frequency == "search" or (config.fit.drive_frequency == "auto" and is_transient(prep)):
             return self.full.fit(trace, pixel)
         if config.fit.drive_frequency == "nominal":
@@ -481,8 +522,9 @@ def _jackknife_spread(profile, points: np.ndarray) -> float:
     if G < 2:
         return math.nan
     vertices = []
+    left_out = np.array([profile.leave_each_out(v) for v in points])  # (points, groups)
     for g in range(G):
-        y = np.array([profile.leave_out(v, g) for v in points])
+        y = left_out[:, g]
         if not np.all(np.isfinite(y)):
             return math.nan
         v, a = _parabola(points, y)

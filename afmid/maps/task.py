@@ -74,15 +74,30 @@ def fit_chunk(task: dict) -> dict:
         raise ValueError("the selected-term bit mask holds at most 63 terms")
     per_pixel: list[dict | None] = [None] * n
     strategy = PIXEL_FITS.get(task.get("pixel_fit") or DEFAULT_PIXEL_FIT)(config, library)
+    failures = (ValueError, FloatingPointError, np.linalg.LinAlgError, ArithmeticError)
+    traces: list = [None] * n  # the chunk's traces first: a strategy may use what they share (the drive)
     for i in range(n):
+        logger.setLevel(logging.ERROR)
+        try:
+            traces[i] = pixel_trace(source, raw[i], config, first + i)
+        except AfmidError as exc:
+            out["message"][i] = exc.message
+        except failures as exc:
+            out["message"][i] = f"the fit failed: {type(exc).__name__}: {exc}"
+        finally:
+            logger.setLevel(level)
+    strategy.start_chunk([trace for trace in traces if trace is not None])
+    for i in range(n):
+        if traces[i] is None:
+            continue
         pixel = first + i
         logger.setLevel(logging.ERROR)
         try:
-            result = strategy.fit(pixel_trace(source, raw[i], config, pixel), pixel)
+            result = strategy.fit(traces[i], pixel)
         except AfmidError as exc:
             out["message"][i] = exc.message
             continue
-        except (ValueError, FloatingPointError, np.linalg.LinAlgError, ArithmeticError) as exc:
+        except failures as exc:
             out["message"][i] = f"the fit failed: {type(exc).__name__}: {exc}"
             continue
         finally:

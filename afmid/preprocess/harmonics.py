@@ -207,13 +207,20 @@ def estimate_drive(x: np.ndarray, t: np.ndarray, nominal: float, search: float =
     idx = np.flatnonzero(band)[np.argmax(spectrum[band])]
     df = freqs[1] - freqs[0]
     f = _refine_peak(weighted, t, freqs[idx] - 1.5 * df, freqs[idx] + 1.5 * df, nominal * 1e-10)
-    # Unwindowed least-squares amplitude and phase over whole periods.
-    w = 2 * np.pi * f
+    return drive_at(x, t, nominal, f)
+
+
+def drive_at(x: np.ndarray, t: np.ndarray, nominal: float, frequency: float) -> DriveEstimate:
+    """The drive at a known ``frequency`` (Hz; ``t`` in s): the unwindowed least-squares amplitude, phase and offset
+    of the first harmonic over the record, as :func:`estimate_drive` gives them at the frequency it measures.
+    Traces up to :data:`EXACT_SPECTRUM_MAX` samples (the single-product path of :func:`estimate_drive`)."""
+    w = 2 * np.pi * frequency
     design = np.column_stack([np.ones_like(t), np.cos(w * t), np.sin(w * t)])
     coef, *_ = np.linalg.lstsq(design, x, rcond=None)
     amplitude = float(np.hypot(coef[1], coef[2]))
     phase = float(np.arctan2(-coef[2], coef[1]))
-    return DriveEstimate(frequency=f, nominal=nominal, amplitude=amplitude, phase=phase, offset=float(coef[0]))
+    return DriveEstimate(frequency=frequency, nominal=nominal, amplitude=amplitude, phase=phase,
+                         offset=float(coef[0]))
 
 
 def _estimate_drive_long(x: np.ndarray, t: np.ndarray, nominal: float, search: float) -> DriveEstimate:

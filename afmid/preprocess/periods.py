@@ -225,8 +225,13 @@ class HarmonicBlocks:
         :meth:`evaluate` at ``phase`` bit for bit.
         """
         ratio = self.omega / drive_omega
+        cycles = np.asarray(cycles, dtype=float)
+        if ratio == 1.0 and np.all(np.mod(cycles, 1.0) == 0.0):
+            # Whole periods at the blocks' own frequency all start at phase 0 of the series: the rotation by 0
+            # (cos 1, sin 0) would give the coefficients back, the same bits; skipped (~1 ms a map pixel).
+            return self.evaluate(coef, phase)
         # The series' phase at each period's start, reduced mod 2 pi before the harmonic numbers multiply it.
-        start_phase = 2.0 * np.pi * np.mod(np.asarray(cycles, dtype=float) * ratio, 1.0)
+        start_phase = 2.0 * np.pi * np.mod(cycles * ratio, 1.0)
         local = rotate_to_global(coef, start_phase / self.omega, -self.omega)
         return self.evaluate(local, phase * ratio)
 
@@ -259,11 +264,18 @@ class WeakWindows:
     psi: np.ndarray  # (2K+1, 2L+1) psi * dt
     dpsi: np.ndarray  # (2K+1, 2L+1) psi' * dt
     ddpsi: np.ndarray  # (2K+1, 2L+1) psi'' * dt
-    psi_fine: np.ndarray  # (2K+1, 2 L U) psi * dt / U on the fine grid of two blocks (C-contiguous halves)
+    #: (2 (2K+1), L U) psi * dt / U on the fine grid of two blocks, as two C-contiguous halves stacked: the rows
+    #: over the first block, then the rows over the second (the layout of the weak form's one matrix product)
+    psi_halves: np.ndarray
 
     def __post_init__(self) -> None:
-        half = self.psi_fine.shape[1] // 2  # (2 (2K+1), L U): the first halves, then the second halves
-        self.psi_halves = np.concatenate([self.psi_fine[:, :half], self.psi_fine[:, half:]])
+        self._turns: dict = {}  # (first, count) -> rotation of those windows (see rotation())
+
+    @property
+    def psi_fine(self) -> np.ndarray:
+        """(2K+1, 2 L U) psi * dt / U on the fine grid of two blocks (made from :attr:`psi_halves` on each call)."""
+        rows = self.psi_halves.shape[0] // 2
+        return np.concatenate([self.psi_halves[:rows], self.psi_halves[rows:]], axis=1)
 
     def start_times(self) -> np.ndarray:
         return self.t0 + (self.start + self.L * np.arange(self.n_windows)) * self.dt
@@ -344,7 +356,7 @@ class WeakWindows:
         n = min(n_blocks - 1, self.n_windows - first)
         if n + 1 < n_blocks:
             columns = np.ascontiguousarray(columns[:, : n + 1])
-        rows = self.psi_fine.shape[0]
+        rows = self.psi_halves.shape[0] // 2
         narrow = [] if support is None else np.flatnonzero(support.sum(axis=0) < NARROW_SUPPORT * half).tolist()
         if narrow:
             both = np.empty((2, rows, n + 1, m))
@@ -360,7 +372,15 @@ class WeakWindows:
             # blocks with few columns (m ~ 3-20 terms) runs ~10x slower.
             both = (self.psi_halves @ columns.reshape(half, -1)).reshape(2, rows, n + 1, m)
         local = (both[0, :, :n] + both[1, :, 1:]).transpose(1, 0, 2)
-        return rotate_to_global(local, self.start_times()[first : first + n], self.omega)
+        return rotate_to_global(local, self.start_times()[first : first + n], self.omega, self.rotation(first, n))
+
+    def rotation(self, first: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`rotation` of windows ``first`` .. ``first + count - 1``, made once and kept: every library
+        evaluation of a fit turns its integrals by the same angles (2 K n cos/sin each time)."""
+        key = (first, count)
+        if key not in self._turns:
+            self._turns[key] = rotation(self.start_times()[first:first + count], self.omega, self.K)
+        return self._turns[key]
 
 
 #: Share of a block's fine-grid samples below which a column is integrated over its non-zero samples only.
@@ -381,7 +401,7 @@ def weak_windows(blocks: "HarmonicBlocks") -> WeakWindows:
     L, K, dt, w = blocks.L, blocks.K, blocks.dt, blocks.omega
     T_w = 2 * L * dt
 
-    def family(s: np.ndarray, weight: float, derivatives: bool = True):
+    def family(s: np.ndarray, weight: float, derivatives: bool = True, out: np.ndarray | None = None):
         # Rows: the window, then window x (cos, sin) of each harmonic, interleaved; the same element-wise
         # arithmetic as one row at a time, on (K, samples) arrays at once.
         # Written into one array in place: the fine family is ~4 MB, and each temporary (stacked, concatenated,
@@ -390,7 +410,7 @@ def weak_windows(blocks: "HarmonicBlocks") -> WeakWindows:
         sn_ = np.sin(a * s)
         win = sn_**4
         n = np.arange(1, K + 1)[:, None] * w
-        psi = np.empty((2 * K + 1, s.size))
+        psi = np.empty((2 * K + 1, s.size)) if out is None else out
         psi[0] = win
         harmonic_cos_sin(w * s, K, out_cos=psi[1::2], out_sin=psi[2::2])
         phi = psi[1:].copy() if derivatives else None
@@ -413,9 +433,14 @@ def weak_windows(blocks: "HarmonicBlocks") -> WeakWindows:
     psi, dpsi, ddpsi = family(s, dt)
     U = blocks.oversample
     s_fine = np.arange(2 * L * U) * (dt / U)
-    psi_fine, _, _ = family(s_fine, dt / U, derivatives=False)
+    # Each half of the two blocks written in place (the arithmetic is element by element: the same values as
+    # the family over both blocks at once, without the 4 MB copy that cut it into halves, ~2 ms a map pixel).
+    rows = 2 * K + 1
+    psi_halves = np.empty((2 * rows, L * U))
+    family(s_fine[:L * U], dt / U, derivatives=False, out=psi_halves[:rows])
+    family(s_fine[L * U:], dt / U, derivatives=False, out=psi_halves[rows:])
     n_windows = blocks.n_blocks - 1
-    return WeakWindows(w, dt, L, K, blocks.start, n_windows, blocks.t0, psi, dpsi, ddpsi, psi_fine)
+    return WeakWindows(w, dt, L, K, blocks.start, n_windows, blocks.t0, psi, dpsi, ddpsi, psi_halves)
 
 
 def harmonic_blocks(

@@ -1,0 +1,114 @@
+"""The chunk's drive frequency of the shared pixel fit (afmid.maps.pixel_fit.SharedSupportFit.start_chunk) and the
+blocks and test functions its pixels share (afmid.fit.prepare.prepare(layouts=...)).
+
+- Sharing is bookkeeping only: a record prepared with a layouts dict at a given drive is the same, bit for bit, as
+  one prepared without it at that drive, and a second record of the same layout gets the very same objects.
+- harmonics.drive_at at the measured frequency is the measurement's own amplitude, phase and offset (the same
+  least-squares product, so the same bits).
+- The chunk's frequency is the median of its pixels' measured ones, and a pixel cut at it is one whose own lies
+  within DRIVE_AGREEMENT robust sigmas of their scatter; a pixel further off keeps its own.
+
+Map: tests/configs/map_small.yaml (3x3: a glassy matrix and a soft domain 1 nm higher), simulator seed 7.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from repo_paths import REPO_ROOT
+
+CONFIG = REPO_ROOT / "tests" / "configs" / "map_small.yaml"
+
+
+@pytest.fixture(scope="module")
+def small_map(tmp_path_factory):
+    """(config, library, [trace]) of the small map."""
+    import yaml
+
+    from afmid.config import build_config, dump_config
+    from afmid.maps.input_file import open_map, pixel_trace, read_pixels
+    from afmid.maps.simulate import simulate_map, write_map_file
+    from afmid.maps.task import map_config
+    from afmid.physics.library import build_library
+    from afmid.physics.tips import tip_geometry
+
+    folder = tmp_path_factory.mktemp("chunk_drive")
+    config = build_config(yaml.safe_load(CONFIG.read_text()), source=folder / "run.yaml")
+    text = dump_config(config)
+    path = folder / "map.h5"
+    write_map_file(path, simulate_map(config), text)
+    config = map_config(text, str(folder / "run.yaml"))
+    source = open_map(path, config)
+    library = build_library(config.model, config.source, tip_geometry(config.cantilever))
+    n = source.rows * source.cols
+    return config, library, [pixel_trace(source, row, config, i) for i, row in enumerate(read_pixels(source, 0, n))]
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, np.ndarray):
+        return isinstance(b, np.ndarray) and a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
+    return a == b
+
+
+def test_shared_layouts_give_the_same_bits(small_map):
+    from afmid.fit.pipeline import prepare
+    from afmid.preprocess.harmonics import drive_at
+    from afmid.preprocess.instrument import from_config
+    from afmid.preprocess.periods import detrend
+
+    config, _, traces = small_map
+    first, second = traces[0], traces[1]
+    x, _ = detrend(second.deflection, second.times, config.fit.detrend)
+    common = drive_at(x, second.times, second.drive_frequency, first.drive_for(config.fit.detrend).frequency)
+    layouts: dict = {}
+    prepare(first, config.fit, from_config(config), layouts=layouts)
+    shared = prepare(second, config.fit, from_config(config), drive=common, layouts=layouts)
+    alone = prepare(second, config.fit, from_config(config), drive=common)
+    assert shared.blocks is next(iter(layouts.values()))[0]  # the first record's blocks, not new ones
+    assert shared.windows is next(iter(layouts.values()))[1]
+    for f in dataclasses.fields(alone):
+        if f.name in ("trace", "blocks", "windows", "drive", "motion", "fine_grid", "removed"):
+            continue
+        assert _same(getattr(shared, f.name), getattr(alone, f.name)), f.name
+    for f in dataclasses.fields(alone.blocks):
+        assert _same(getattr(shared.blocks, f.name), getattr(alone.blocks, f.name)), f.name
+    for f in dataclasses.fields(alone.windows):
+        assert _same(getattr(shared.windows, f.name), getattr(alone.windows, f.name)), f.name
+
+
+def test_drive_at_the_measured_frequency_is_the_measurement(small_map):
+    from afmid.preprocess.harmonics import drive_at, estimate_drive
+    from afmid.preprocess.periods import detrend
+
+    config, _, traces = small_map
+    trace = traces[4]
+    x, _ = detrend(trace.deflection, trace.times, config.fit.detrend)
+    measured = estimate_drive(x, trace.times, trace.drive_frequency)
+    assert drive_at(x, trace.times, trace.drive_frequency, measured.frequency) == measured
+
+
+def test_chunk_frequency_is_the_median_and_an_outlier_keeps_its_own(small_map):
+    from afmid.maps.pixel_fit import DRIVE_AGREEMENT, SharedSupportFit
+
+    config, library, traces = small_map
+    strategy = SharedSupportFit(config, library)
+    strategy.start_chunk(traces)
+    own = np.array([t.drive_for(config.fit.detrend).frequency for t in traces])
+    assert strategy.drive_frequency == np.median(own)
+    spread = strategy.drive_spread
+    assert spread == pytest.approx(1.4826 * np.median(np.abs(own - np.median(own))), rel=1e-12)
+    for trace, f in zip(traces, own):
+        drive = strategy.chunk_drive(trace)
+        if abs(f - strategy.drive_frequency) <= DRIVE_AGREEMENT * spread:
+            assert drive is not None and drive.frequency == strategy.drive_frequency
+        else:
+            assert drive is None
+    # An outlier: the chunk's frequency moved far from every pixel's own (as a pixel far off it would be).
+    strategy.drive_frequency = float(own.max() + 10 * DRIVE_AGREEMENT * spread)
+    assert all(strategy.chunk_drive(trace) is None for trace in traces)
+    # Too few measured pixels for a scatter: each pixel its own.
+    strategy.start_chunk(traces[:2])
+    assert strategy.drive_frequency is None and all(strategy.chunk_drive(trace) is None for trace in traces)
