@@ -36,6 +36,7 @@ from afmid.preprocess.periods import (
 from afmid.preprocess.harmonics import transient_limit
 from afmid.preprocess.motion import classify as classify_motion
 from afmid.fit.forces import CHUNK_BLOCKS
+from afmid.threads import map_in_order
 
 log = logging.getLogger(__name__)
 
@@ -322,12 +323,18 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
     p = len(library)
     keep = np.flatnonzero(coef[:p] != 0)  # only the terms of the model enter its stiffness
     model = dataclasses.replace(library, terms=[library.terms[j] for j in keep])
-    total, count = 0.0, 0
-    for _, x, v, t in (fine_chunks(prep) if keep.size else ()):
+
+    def squared_stiffness(_, x, v, t):  # (sum of squares, samples) of one chunk
         f_hi = _model_force(model, x + eps, v, t, params) @ coef[keep]
         f_lo = _model_force(model, x - eps, v, t, params) @ coef[keep]
-        total += float(np.sum(((f_hi - f_lo) / (2 * eps)) ** 2))
-        count += f_hi.size
+        return float(np.sum(((f_hi - f_lo) / (2 * eps)) ** 2)), f_hi.size
+
+    if keep.size:
+        model.compile(params)  # once, before the chunks' threads share it
+    total, count = 0.0, 0
+    for chunk_total, chunk_count in (map_fine_chunks(prep, squared_stiffness) if keep.size else ()):
+        total += chunk_total  # in chunk order: the same sum whatever the threads
+        count += chunk_count
     stiffness_sq = total / max(count, 1)
     variance = prep.base_variance + prep.psi_sq * stiffness_sq * prep.trajectory_noise**2
     return dataclasses.replace(prep, row_sigma=np.sqrt(variance))
@@ -361,6 +368,25 @@ def fine_chunks(prep: Prepared, overlap: int = 0):
         return
     yield from _fine_chunks(prep, bounds)
     _release_free_memory()
+
+
+def map_fine_chunks(prep: Prepared, work, overlap: int = 0) -> list:
+    """``work(first block, x, xdot, t)`` on each chunk of :func:`fine_chunks`, in chunk order, the chunks shared among
+    :func:`afmid.threads.trace_threads` threads (:func:`afmid.threads.map_in_order`): each thread synthesises the
+    chunks it works on, so at most that many chunks of the fine grid exist at a time. The same results as one
+    thread, in chunk order; ``work`` must only write into its own chunk's part of any shared output (and a
+    library it evaluates should be compiled first, :meth:`afmid.physics.library.Library.compile`)."""
+    grid = prep.fine_grid
+    if grid is not None and grid.holds(prep):  # kept chunks: made once (here, in order), then shared out
+        return map_in_order(lambda chunk: work(*chunk), list(fine_chunks(prep, overlap)))
+
+    def on_chunk(bounds):
+        (chunk,) = _fine_chunks(prep, (bounds,))
+        return work(*chunk)
+
+    out = map_in_order(on_chunk, _fine_chunk_bounds(prep.blocks.n_blocks, overlap))
+    _release_free_memory()
+    return out
 
 
 def _fine_chunk_bounds(n_blocks: int, overlap: int) -> tuple[tuple[int, int], ...]:
