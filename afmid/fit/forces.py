@@ -283,6 +283,11 @@ def map_library_pieces(prep: Prepared, library: Library, system: System, work) -
 #: multiple of 8, and every evaluation starts at a multiple of it: the BLAS products then round the same way
 #: whenever a curve is evaluated (the summaries, the mapping, the run file agree to the bit).
 PERIOD_CHUNK = 2048
+#: Periods per piece of the per-period summaries in :func:`period_curves`: a divisor of :data:`PERIOD_CHUNK` (its
+#: pieces start where the curves' do, so they round alike). Smaller than the curves' pieces so that two threads'
+#: temporaries (~10 MB each at 256 phase points) stay small and are reused from the heap, not mapped afresh: at
+#: 2,048 periods each piece took ~0.1 GB, and mapping it cost ~0.4 s of page faults at 5e4 periods.
+SUMMARY_CHUNK = 256
 
 
 def period_curves(prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int
@@ -299,7 +304,7 @@ def period_curves(prep: Prepared, library: Library, system: System, coef, params
     d, a0 = params["d"], params["a0"]
     held = {name: np.empty(B) for name in PeriodCurves.SUMMARIES}
     # Hysteresis gates are scanned along the evaluated points: in one piece, as the states need (and kept).
-    step = B if library.states else PERIOD_CHUNK
+    step = B if library.states else min(SUMMARY_CHUNK, PERIOD_CHUNK)
     library.compile(params)  # once, before the chunks' threads share it
 
     def summarise(b0: int) -> None:  # one chunk of periods, into its rows of `held`

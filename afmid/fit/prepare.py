@@ -141,7 +141,8 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
         Y = np.empty((W, rows))
         nuisance = np.empty((W, rows, n_drive + (0 if fixed else 2)))
         minus_dpsi = -windows.dpsi
-    for b0, b1 in blocks.chunks():
+    def project_chunk(bounds: tuple[int, int]) -> None:  # into its own rows (chunks shared among threads)
+        b0, b1 = bounds
         lo = blocks.start + b0 * blocks.L
         n_block = (b1 - b0) * blocks.L
         hi = lo + n_block + (blocks.L + 1 if weak else 0)
@@ -157,7 +158,8 @@ def prepare(trace: Trace, fit, instrument=None) -> Prepared:
             if not fixed:
                 nuisance[b0:w1, :, n_drive:n_drive + 1] = windows.integrate_samples(windows.psi, xs, b0, w1 - b0, turn)
                 nuisance[b0:w1, :, n_drive + 1:] = windows.integrate_samples(minus_dpsi, xs, b0, w1 - b0, turn)
-    del xs, xe, cols
+
+    map_in_order(project_chunk, blocks.chunks())
     _release_free_memory()
 
     # The trajectory, the outputs and the noise level.
