@@ -12,6 +12,7 @@ with them). This module imports nothing heavy.
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Callable, Iterable, MutableMapping
 
 #: How many threads one fit gives the chunks of a long trace (:func:`trace_threads`; unset: up to
@@ -70,13 +71,36 @@ def map_in_order(work: Callable, items: Iterable, threads: int | None = None) ->
     For the chunks of one trace: each item's work is the same computation whichever thread runs it, so the
     results are the same bits as one thread's, in the items' order (callers reduce them in that order). The work
     must release the GIL to gain anything (NumPy's large operations and BLAS do; numba kernels with
-    ``nogil=True``) and must not write where another item's work reads.
+    ``nogil=True``) and must not write where another item's work reads. The threads are kept between calls (the
+    same threads, so the same malloc arenas: a new pool per call left freed chunks in fresh arenas, 0.3 GB more
+    peak memory at 1e7 samples); a call from inside one of them runs its items in that thread.
     """
     items = list(items)
     threads = trace_threads() if threads is None else threads
-    if threads <= 1 or len(items) <= 1:
+    if threads <= 1 or len(items) <= 1 or getattr(_worker, "busy", False):
         return [work(item) for item in items]
+
+    def run(item):
+        _worker.busy = True
+        try:
+            return work(item)
+        finally:
+            _worker.busy = False
+
+    return list(_pool(threads).map(run, items))
+
+
+_worker = threading.local()  # .busy: this thread is running an item of map_in_order
+_pools: dict = {}  # (process id, threads) -> ThreadPoolExecutor
+_pools_lock = threading.Lock()
+
+
+def _pool(threads: int):
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(min(threads, len(items)), thread_name_prefix="afmid-chunk") as pool:
-        return list(pool.map(work, items))
+    key = (os.getpid(), threads)  # a forked child makes its own (the parent's threads are not in it)
+    with _pools_lock:
+        pool = _pools.get(key)
+        if pool is None:
+            pool = _pools[key] = ThreadPoolExecutor(threads, thread_name_prefix="afmid-chunk")
+        return pool

@@ -210,9 +210,13 @@ def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np
     L = prep.blocks.L
     used = prep.blocks.used
     inverted = np.full(n, np.nan)
-    for b0, b1 in prep.blocks.chunks():
+
+    def synthesize(bounds: tuple[int, int]) -> None:  # one chunk of blocks, into its own samples
+        b0, b1 = bounds
         F = inverted_force_coefficients(prep, system, coef, slice(b0, b1)) * rows[None, :]
         inverted[used.start + b0 * L:used.start + b1 * L] = prep.blocks.synthesize_blocks(F[..., None], b0)[:, 0]
+
+    map_in_order(synthesize, prep.blocks.chunks())
     return estimate, inverted
 
 

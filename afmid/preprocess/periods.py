@@ -39,6 +39,7 @@ from afmid.preprocess.harmonics import (  # noqa: F401 - DriveEstimate, estimate
     rotation,
 )
 from afmid.registry import Registry
+from afmid.threads import map_in_order
 
 log = logging.getLogger(__name__)
 
@@ -183,8 +184,12 @@ class HarmonicBlocks:
     def synthesize(self, coef: np.ndarray) -> np.ndarray:
         """Samples (n_blocks * L, m) of the series, on the used samples."""
         out = np.empty((self.n_blocks * self.L, coef.shape[2]))
-        for b0, b1 in self.chunks():
+
+        def synthesize(bounds: tuple[int, int]) -> None:  # one chunk, into its own samples (chunks share threads)
+            b0, b1 = bounds
             out[b0 * self.L:b1 * self.L] = self.synthesize_blocks(coef[b0:b1], b0)
+
+        map_in_order(synthesize, self.chunks())
         return out
 
     def synthesize_blocks(self, coef: np.ndarray, first: int = 0) -> np.ndarray:
