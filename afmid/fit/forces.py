@@ -277,7 +277,7 @@ def map_library_pieces(prep: Prepared, library: Library, system: System, work) -
 
     def on_piece(i: int):
         sl = slice(i, i + step)
-        cols = library.evaluate(x_used[sl], prep.xdot_used[sl], t_used[sl], system.params)
+        cols = library.evaluate_rows(x_used[sl], prep.xdot_used[sl], t_used[sl], system.params)
         return work(slice(used.start + i, used.start + i + cols.shape[0]), cols)
 
     return map_in_order(on_piece, range(0, x_used.size, step))
@@ -384,7 +384,7 @@ class PeriodCurves(Mapping):
 
     def model_force(self, x: np.ndarray, v: np.ndarray, first: int, stop: int) -> np.ndarray:
         """The model force (N) on the phase grid of periods ``first`` .. ``stop - 1`` at deflection x, velocity v."""
-        cols = self.library.evaluate(x.ravel(), v.ravel(), self.times(first, stop).ravel(), self.params)
+        cols = self.library.evaluate_rows(x, v, self.times(first, stop), self.params)
         return (cols @ self.coef[:self.system.theta.shape[2]]).reshape(x.shape)
 
     def curve(self, name: str, first: int, stop: int) -> np.ndarray:

@@ -347,11 +347,7 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
 def _model_force(model: Library, x: np.ndarray, v: np.ndarray, t: np.ndarray, params: dict) -> np.ndarray:
     """The model's columns (N, k) along fine-grid rows (n, L U): one pass without the variables array when the
     model has no state gates (the same bits as ``model.evaluate`` on the raveled rows)."""
-    if model.states:
-        return model.evaluate(x.ravel(), v.ravel(), t.ravel(), params)
-    out = np.empty(x.shape + (len(model),))
-    model.evaluate_into(x, v, t, params, out)
-    return out.reshape(x.size, -1)
+    return model.evaluate_rows(x, v, t, params)
 
 
 def fine_chunks(prep: Prepared, overlap: int = 0):

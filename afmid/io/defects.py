@@ -55,7 +55,6 @@ from afmid.preprocess.periods import detrend
 from afmid.io.resolution import check_quantization
 from afmid.io.trace_analysis import MAX_HARMONIC, MIN_ANALYSABLE_SPP, Analysis, analyse
 from afmid.physics.effects import BOLTZMANN
-from afmid.threads import map_in_order, trace_threads
 
 log = logging.getLogger(__name__)
 
@@ -605,17 +604,9 @@ def check_loaded(trace, config) -> tuple[list[Finding], MeasuredDrive | None]:
     """
     settings = settings_for(trace, config)
     x = np.asarray(trace.deflection, dtype=np.float64)
-    # The two spectra are independent: with two threads the drive is measured beside the peak search (~0.4 s
-    # each at 1e7 samples, one FFT each) and set aside below if the peak says the trace has no drive to measure.
-    threads = trace_threads()
-    peak, drive = map_in_order(lambda task: task(), [
-        lambda: strongest_peak(x), (lambda: measure_drive(trace, config.fit.detrend)) if threads > 1 else lambda: None],
-        threads)
-    near_drive = (peak is not None
-                  and abs(peak.cycles_per_sample * trace.sample_rate / trace.drive_frequency - 1) <= DRIVE_SEARCH)
-    if not near_drive:
-        drive = None
-    elif threads <= 1:
+    peak = strongest_peak(x)
+    drive = None
+    if peak is not None and abs(peak.cycles_per_sample * trace.sample_rate / trace.drive_frequency - 1) <= DRIVE_SEARCH:
         drive = measure_drive(trace, config.fit.detrend)
     if drive is not None:
         f = drive.estimate.frequency / trace.sample_rate

@@ -72,7 +72,7 @@ def test_two_threads_fit_the_same_bits_as_one(dmt_trace_file, monkeypatch):
     for f in dataclasses.fields(one.prep):  # the preparation (chunked projections, weak-form rows, row noise)
         _assert_identical(getattr(one.prep, f.name), getattr(two.prep, f.name), f"prep.{f.name}")
     _assert_identical(one.system.theta, two.system.theta, "system.theta")
-    assert one.prep.drive.frequency == two.prep.drive.frequency  # measured beside the load checks' peak search
+    assert one.prep.drive.frequency == two.prep.drive.frequency
 
 
 def test_map_in_order_keeps_the_order_and_runs_every_item():
