@@ -9,7 +9,9 @@ deflection only (no ground truth), as a measured trace would.
 
 Each size is fitted in a fresh process (``run_fit`` with ``sample.separation``
 given, ``fit.bootstrap`` = 10, everything else default; one BLAS thread, see
-bench/README.md; one extra row repeats 1e5 with the default thread count), after a warm-up fit of the 1e4 trace in the
+bench/README.md; the fit shares a long trace's chunks among two threads of its
+own, each calling one-thread BLAS (afmid.threads.trace_threads); extra rows repeat
+1e7 with one such thread and 1e5 with the default BLAS thread count), after a warm-up fit of the 1e4 trace in the
 same process (JIT warm). Reported: wall time and CPU time of the fit (including
 loading the file; on a shared machine the CPU time is the one to compare), and
 the process's peak resident memory (``ru_maxrss``, what ``/usr/bin/time -v``
@@ -216,6 +218,17 @@ def run(quick: bool = False) -> list[dict]:
             peak_gb=gb, cpu_s=got["cpu"],
         ))
         previous = got["seconds"]
+    if not quick:  # the 1e7 fit with afmid's chunks on one thread (the rows above share them among two)
+        n = SIZES[-1]
+        got = measure(files[n], warm, env={"AFMID_TRACE_THREADS": "1"})
+        two = rows[-1]
+        rows.append(row(
+            f"fit scaling: {n:.0e} samples with one thread for the chunks (vs two above)", got["seconds"],
+            two["afmid_s"], two["afmid_s"] / got["seconds"], "report only", None,
+            f"'reference' = the two-thread time; AFMID_TRACE_THREADS=1; peak RSS {got['peak_kb'] / 1024**2:.2f} GB; "
+            f"CPU {got['cpu']:.1f} s (two threads: {two['cpu_s']:.1f} s)",
+            peak_gb=got["peak_kb"] / 1024**2, cpu_s=got["cpu"],
+        ))
     if not quick:  # the same 1e5 fit with the BLAS threads the environment gives by default (all cores)
         n = SIZES[1]
         got = measure(files[n], warm, default_threads=True)
