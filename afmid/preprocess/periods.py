@@ -166,7 +166,10 @@ class HarmonicBlocks:
         """
         n = coefs[0].shape[0]
         times = self.block_times()[first:first + n]
-        local = rotate_to_global(np.concatenate(coefs, axis=0)[..., None], np.tile(times, len(coefs)), -self.omega)
+        c, s = rotation(times, -self.omega, self.K)  # once for all the series (the same blocks)
+        turn = (np.tile(c, (len(coefs), 1)), np.tile(s, (len(coefs), 1)))
+        local = rotate_to_global(np.concatenate(coefs, axis=0)[..., None], np.tile(times, len(coefs)), -self.omega,
+                                 turn)
         values = local[..., 0] @ self.design_fine.T
         return [values[i * n:(i + 1) * n] for i in range(len(coefs))]
 
