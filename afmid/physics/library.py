@@ -157,6 +157,16 @@ class Library:
                                      float(params["a0"]), out)
         return bool(finite), bool(any_zero)
 
+    def reads_velocity(self) -> bool:
+        """Whether a term or state reads a velocity (zdot, deltadot, xdot): if not, the columns do not depend on
+        the velocity passed with the trajectory (only on x and t)."""
+        from afmid.physics.term_parser import walk
+
+        velocities = {"zdot", "deltadot", "xdot"}
+        texts = [t.expression for t in self.terms] + [state_expressions(gate) for gate in self.states]
+        return any(isinstance(node, expr.Name) and node.name in velocities
+                   for text in texts for node in walk(expr.parse(text)))
+
     def evaluate_rows(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float]
                       ) -> np.ndarray:
         """Library columns (x.size, p) along a trajectory given as rows (x, xdot, t of one shape, m, m/s, s; 1-D is

@@ -93,3 +93,27 @@ def test_trace_threads_reads_the_environment(monkeypatch):
     assert trace_threads() == 3
     monkeypatch.delenv(TRACE_THREADS_ENV)
     assert 1 <= trace_threads() <= 2
+
+
+def test_regressor_noise_without_the_velocity_is_the_same_bits(dmt_trace_file):
+    """The regressor-noise pass synthesises only x when no kept term reads a velocity (DMT); the pass over the kept
+    fine grid (x and xdot) gives the same row weights bit for bit. A velocity-reading library is recognised."""
+    import afmid.fit.prepare as prepare
+    import afmid.fit.regression as regression
+    from afmid.config import ModelConfig, load_config
+    from afmid.fit.pipeline import build_system, library_parameters, prepare as prepare_trace
+    from afmid.io.trace import load_trace
+    from afmid.physics.library import build_library
+
+    config = load_config(REPO_ROOT / "configs" / "dmt.yaml", [f"data.path={dmt_trace_file}"])
+    prep = prepare_trace(load_trace(config), config.fit)
+    library = build_library(ModelConfig(effects=["dmt"]))
+    assert not library.reads_velocity()
+    assert build_library(ModelConfig(effects=["viscoelastic"])).reads_velocity()
+    params = dict(library_parameters(prep, config, library), d=config.sample.separation)
+    system = build_system(prep, library, params)
+    coef, _ = regression.subset_fit(regression.combine(system.T_blocks), np.ones(system.protected.size, bool))
+    x_only = prepare.with_regressor_noise(prep, library, params, coef)
+    with_grid = prepare.with_regressor_noise(prepare.with_fine_grid(prep), library, params, coef)
+    assert prepare.with_fine_grid(prep).fine_grid is not None  # the other path was taken
+    np.testing.assert_array_equal(x_only.row_sigma, with_grid.row_sigma, strict=True)
