@@ -12,9 +12,18 @@ with them). This module imports nothing heavy.
 from __future__ import annotations
 
 import os
-from collections.abc import MutableMapping
+import threading
+from collections.abc import Callable, Iterable, MutableMapping
 
-#: Environment variables that cap the thread pools of BLAS/OpenMP/numba, each at one thread.
+#: How many threads one fit gives the chunks of a long trace (:func:`trace_threads`; unset: up to
+#: :data:`MAX_TRACE_THREADS`, as many as the process may use cores).
+TRACE_THREADS_ENV = "AFMID_TRACE_THREADS"
+#: At most this many threads work on one trace: each holds a chunk's temporaries (memory grows with them), and
+#: the issue-14 target machine has two cores.
+MAX_TRACE_THREADS = 2
+
+#: Environment variables that cap the thread pools of BLAS/OpenMP/numba, each at one thread, and afmid's own
+#: threads over a trace's chunks (batch workers: N workers of one thread each fill N cores).
 SINGLE_THREAD_ENV: dict[str, str] = {
     "OMP_NUM_THREADS": "1",
     "OPENBLAS_NUM_THREADS": "1",
@@ -23,18 +32,75 @@ SINGLE_THREAD_ENV: dict[str, str] = {
     "VECLIB_MAXIMUM_THREADS": "1",
     "NUMEXPR_NUM_THREADS": "1",
     "NUMBA_NUM_THREADS": "1",
+    TRACE_THREADS_ENV: "1",
 }
 
 
 def limit_native_threads(environ: MutableMapping[str, str] | None = None, *, override: bool = False) -> None:
     """One thread for the native thread pools, in ``environ`` (default: this process's environment).
 
-    ``override=False`` keeps a value the user set (a person may choose more threads for one run);
+    ``override=False`` keeps a value the user set (a person may choose more threads for one run) and leaves
+    afmid's own chunk threads (:func:`trace_threads`) at their default: a single fit of a long trace uses the
+    cores it has, each thread calling one-thread BLAS (no spin-waiting pool);
     ``override=True`` sets every variable (batch workers: N workers of one thread each fill N cores).
     """
     environ = os.environ if environ is None else environ
     for name, value in SINGLE_THREAD_ENV.items():
         if override:
             environ[name] = value
-        else:
+        elif name != TRACE_THREADS_ENV:
             environ.setdefault(name, value)
+
+
+def trace_threads() -> int:
+    """Threads that work on the chunks of one trace: :data:`TRACE_THREADS_ENV` if set, else the cores this process
+    may run on, at most :data:`MAX_TRACE_THREADS`."""
+    value = os.environ.get(TRACE_THREADS_ENV, "").strip()
+    if value:
+        return max(1, int(value))
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(MAX_TRACE_THREADS, cores))
+
+
+def map_in_order(work: Callable, items: Iterable, threads: int | None = None) -> list:
+    """``[work(item) for item in items]``, computed by up to ``threads`` threads (None: :func:`trace_threads`).
+
+    For the chunks of one trace: each item's work is the same computation whichever thread runs it, so the
+    results are the same bits as one thread's, in the items' order (callers reduce them in that order). The work
+    must release the GIL to gain anything (NumPy's large operations and BLAS do; numba kernels with
+    ``nogil=True``) and must not write where another item's work reads. The threads are kept between calls (the
+    same threads, so the same malloc arenas: a new pool per call left freed chunks in fresh arenas, 0.3 GB more
+    peak memory at 1e7 samples); a call from inside one of them runs its items in that thread.
+    """
+    items = list(items)
+    threads = trace_threads() if threads is None else threads
+    if threads <= 1 or len(items) <= 1 or getattr(_worker, "busy", False):
+        return [work(item) for item in items]
+
+    def run(item):
+        _worker.busy = True
+        try:
+            return work(item)
+        finally:
+            _worker.busy = False
+
+    return list(_pool(threads).map(run, items))
+
+
+_worker = threading.local()  # .busy: this thread is running an item of map_in_order
+_pools: dict = {}  # (process id, threads) -> ThreadPoolExecutor
+_pools_lock = threading.Lock()
+
+
+def _pool(threads: int):
+    from concurrent.futures import ThreadPoolExecutor
+
+    key = (os.getpid(), threads)  # a forked child makes its own (the parent's threads are not in it)
+    with _pools_lock:
+        pool = _pools.get(key)
+        if pool is None:
+            pool = _pools[key] = ThreadPoolExecutor(threads, thread_name_prefix="afmid-chunk")
+        return pool

@@ -9,15 +9,18 @@ deflection only (no ground truth), as a measured trace would.
 
 Each size is fitted in a fresh process (``run_fit`` with ``sample.separation``
 given, ``fit.bootstrap`` = 10, everything else default; one BLAS thread, see
-bench/README.md; one extra row repeats 1e5 with the default thread count), after a warm-up fit of the 1e4 trace in the
+bench/README.md; the fit shares a long trace's chunks among two threads of its
+own, each calling one-thread BLAS (afmid.threads.trace_threads); extra rows repeat
+1e7 with one such thread and 1e5 with the default BLAS thread count), after a warm-up fit of the 1e4 trace in the
 same process (JIT warm). Reported: wall time and CPU time of the fit (including
 loading the file; on a shared machine the CPU time is the one to compare), and
 the process's peak resident memory (``ru_maxrss``, what ``/usr/bin/time -v``
 calls maximum resident set size).
 
 ``--profile`` prints a cProfile (CPU time) of the 1e7 fit; ``--memory`` the
-peak resident memory and CPU time of each stage of the 1e7 fit (Linux: the
-peak is reset between stages through /proc/self/clear_refs).
+peak resident memory, wall, CPU and system time and minor page faults at each
+stage boundary of the 1e7 fit (Linux: the peak is reset between stages through
+/proc/self/clear_refs).
 
 Run: python bench/bench_scaling.py [--quick] [--profile] [--memory]
 """
@@ -113,7 +116,8 @@ print("{{}}")
 STAGES_CODE = """
 import functools, json, sys, time
 sys.path.insert(0, {root!r})
-import afmid.io.defects, afmid.fit.pipeline as F, afmid.fit.regression
+import resource
+import afmid.io.defects, afmid.fit.pipeline as F, afmid.fit.prepare as P, afmid.fit.regression
 from afmid.config import load_config
 def cfg(path):
     return load_config({config!r}, ["data.path=" + path] + {fit!r})
@@ -126,7 +130,9 @@ def reset():  # VmHWM := VmRSS
         fh.write("5")
 events, depth = [], [0]
 def mark(label):
-    events.append((label, depth[0], gb("VmHWM:"), gb("VmRSS:"), time.process_time()))
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    events.append((label, depth[0], gb("VmHWM:"), gb("VmRSS:"), time.process_time(), usage.ru_stime,
+                   usage.ru_minflt, time.perf_counter()))
     reset()
 def wrap(module, name):
     fn = getattr(module, name)
@@ -140,9 +146,12 @@ def wrap(module, name):
             depth[0] -= 1
             mark("< " + name)
     setattr(module, name, wrapped)
-for name in ("load_trace", "prepare", "estimate_drive", "ou_smooth", "estimate_nonlinear", "build_system",
-             "with_regressor_noise", "force_cv_error", "per_sample_forces", "period_curves"):
+for name in ("load_trace", "prepare", "estimate_nonlinear", "build_system", "settle_drive_frequency",
+             "with_regressor_noise", "force_cv_error", "per_sample_forces", "statistical_share", "selection_share",
+             "period_curves"):
     wrap(F, name)
+for name in ("estimate_drive", "ou_smooth"):  # looked up in afmid.fit.prepare
+    wrap(P, name)
 wrap(afmid.io.defects, "analyse_with")
 wrap(F.regression, "select")
 wrap(F.regression, "bag")
@@ -158,11 +167,13 @@ def stages(path: Path, warm: Path) -> str:
     """Peak RSS (since the previous event) and CPU time at every stage boundary of one fit (Linux only)."""
     code = STAGES_CODE.format(root=str(ROOT_DIR), config=str(CONFIG), fit=FIT, warm=str(warm), path=str(path))
     events = run_python(code)
-    t0 = events[0][4]
-    lines = [f"{'CPU s':>7s}  {'peak GB':>7s}  {'RSS GB':>6s}  stage (peak RSS since the line above)"]
-    for label, depth, hwm, rss, cpu in events:
+    t0, s0, f0, w0 = events[0][4], events[0][5], events[0][6], events[0][7]
+    lines = [f"{'wall s':>7s}  {'CPU s':>7s}  {'sys s':>6s}  {'faults':>8s}  {'peak GB':>7s}  {'RSS GB':>6s}  "
+             "stage (peak RSS since the line above; CPU includes sys, the kernel's time, mostly page faults)"]
+    for label, depth, hwm, rss, cpu, sys_s, faults, wall in events:
         indent = "  " * depth
-        lines.append(f"{cpu - t0:7.2f}  {hwm:7.3f}  {rss:6.3f}  {indent}{label}")
+        lines.append(f"{wall - w0:7.2f}  {cpu - t0:7.2f}  {sys_s - s0:6.2f}  {faults - f0:8d}  {hwm:7.3f}  {rss:6.3f}  "
+                     f"{indent}{label}")
     lines.append(f"peak {max(e[2] for e in events):.3f} GB")
     return "\n".join(lines)
 
@@ -207,6 +218,17 @@ def run(quick: bool = False) -> list[dict]:
             peak_gb=gb, cpu_s=got["cpu"],
         ))
         previous = got["seconds"]
+    if not quick:  # the 1e7 fit with afmid's chunks on one thread (the rows above share them among two)
+        n = SIZES[-1]
+        got = measure(files[n], warm, env={"AFMID_TRACE_THREADS": "1"})
+        two = rows[-1]
+        rows.append(row(
+            f"fit scaling: {n:.0e} samples with one thread for the chunks (vs two above)", got["seconds"],
+            two["afmid_s"], two["afmid_s"] / got["seconds"], "report only", None,
+            f"'reference' = the two-thread time; AFMID_TRACE_THREADS=1; peak RSS {got['peak_kb'] / 1024**2:.2f} GB; "
+            f"CPU {got['cpu']:.1f} s (two threads: {two['cpu_s']:.1f} s)",
+            peak_gb=got["peak_kb"] / 1024**2, cpu_s=got["cpu"],
+        ))
     if not quick:  # the same 1e5 fit with the BLAS threads the environment gives by default (all cores)
         n = SIZES[1]
         got = measure(files[n], warm, default_threads=True)

@@ -32,10 +32,15 @@ def statistical_share(prep, library, system, coef_samples, force_estimate: np.nd
     used, peak = estimated_peak(force_estimate)
     if peak <= 0:
         return math.nan
-    spread = model_force_spread(prep, library, system, coef_samples)[used]
-    if not np.isfinite(spread).all():
+    spread = model_force_spread(prep, library, system, coef_samples)
+    # The estimated samples are one run (the used blocks) unless the force is not finite somewhere: then a view of
+    # them, not a copy as long as the trace (at 1e7 samples the copy was the fit's peak memory).
+    first = int(np.argmax(used))
+    stop = used.size - int(np.argmax(used[::-1]))
+    values = spread[first:stop] if used[first:stop].all() else spread[used]
+    if not np.isfinite(values).all():
         return math.nan
-    return float(np.sqrt(np.mean(spread**2)) / peak)
+    return float(np.sqrt(np.mean(np.square(values, out=values))) / peak)  # squared in place: no second copy
 
 
 def selection_share(prep, library, system, mask: np.ndarray, whole: np.ndarray, force_estimate: np.ndarray) -> float:

@@ -19,6 +19,7 @@ from afmid.io.trace import Trace, create_dataset, write_dataset
 from afmid.physics.library import Library
 from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import shaped_effect
+from afmid.threads import map_in_order
 
 if TYPE_CHECKING:  # annotations only: afmid.fit.pipeline imports this module
     from afmid.fit.pipeline import Prepared, System
@@ -209,9 +210,13 @@ def per_sample_forces(prep: Prepared, library: Library, system: System, coef: np
     L = prep.blocks.L
     used = prep.blocks.used
     inverted = np.full(n, np.nan)
-    for b0, b1 in prep.blocks.chunks():
+
+    def synthesize(bounds: tuple[int, int]) -> None:  # one chunk of blocks, into its own samples
+        b0, b1 = bounds
         F = inverted_force_coefficients(prep, system, coef, slice(b0, b1)) * rows[None, :]
         inverted[used.start + b0 * L:used.start + b1 * L] = prep.blocks.synthesize_blocks(F[..., None], b0)[:, 0]
+
+    map_in_order(synthesize, prep.blocks.chunks())
     return estimate, inverted
 
 
@@ -219,7 +224,10 @@ def estimated_peak(force_estimate: np.ndarray) -> tuple[np.ndarray, float]:
     """(the samples where ``force_estimate`` (N) is estimated, its largest |value| there, N; 0 if none): what the
     force's relative uncertainties are an RMS over and relative to."""
     used = np.isfinite(force_estimate)
-    return used, (float(np.max(np.abs(force_estimate[used]))) if used.any() else 0.0)
+    if not used.any():
+        return used, 0.0
+    values = force_estimate[used]
+    return used, float(np.max(np.abs(values, out=values)))  # in place: one temporary as long as the trace, not two
 
 
 def model_force_samples(prep: Prepared, library: Library, system: System, coef: np.ndarray) -> np.ndarray:
@@ -227,8 +235,11 @@ def model_force_samples(prep: Prepared, library: Library, system: System, coef: 
     of ``system``."""
     estimate = np.full(prep.x.size, np.nan)
     p = system.theta.shape[2]
-    for where, cols in _library_pieces(prep, library, system):
+
+    def fill(where, cols):
         estimate[where] = cols @ coef[:p]
+
+    map_library_pieces(prep, library, system, fill)
     return estimate
 
 
@@ -240,31 +251,47 @@ def model_force_spread(prep: Prepared, library: Library, system: System, coef_sa
     samples = np.asarray(coef_samples, dtype=float)[:, :p]
     if samples.shape[0] < 2:
         return spread
-    for where, cols in _library_pieces(prep, library, system):
+
+    def fill(where, cols):
         spread[where] = (cols @ samples.T).std(axis=1, ddof=1)
+
+    map_library_pieces(prep, library, system, fill)
     return spread
 
 
-def _library_pieces(prep: Prepared, library: Library, system: System):
-    """(slice of the input samples, the library's columns there) over every used sample, piece by piece."""
+def map_library_pieces(prep: Prepared, library: Library, system: System, work) -> list:
+    """``work(slice of the input samples, the library's columns there)`` over every used sample, piece by piece,
+    the pieces shared among :func:`afmid.threads.trace_threads` threads (results in the pieces' order; ``work``
+    writes only into its own slice of any shared output)."""
     used = prep.blocks.used
     # Behind a declared detector, the restored tip (the inverted samples carry the noise times |1/G|).
     x_used = (prep.x if prep.x_restored is None else prep.x_restored)[used]
     t_used = prep.t[used]
     L = prep.blocks.L
-    # Hysteresis states are scanned along each evaluated piece: pieces of CHUNK_BLOCKS periods, as always;
-    # without states, pieces of afmid.preprocess.periods.CHUNK_BLOCKS (compiling the library costs ~3 ms a call).
-    step = CHUNK_BLOCKS * L if library.states else prep.blocks.chunks()[0][1] * L
-    for i in range(0, x_used.size, step):
+    # Pieces of CHUNK_BLOCKS periods (hysteresis states are scanned along each): small enough that the threads'
+    # pieces in flight add little to the peak memory (~13 MB each at 200 samples per period; pieces of 2,048
+    # periods took ~0.1 GB each) and that their temporaries are reused from the heap instead of being mapped
+    # afresh (page faults); the library is compiled once for all of them (a compilation costs ~3 ms).
+    step = CHUNK_BLOCKS * L
+    library.compile(system.params)  # once, before the threads share it
+
+    def on_piece(i: int):
         sl = slice(i, i + step)
-        cols = library.evaluate(x_used[sl], prep.xdot_used[sl], t_used[sl], system.params)
-        yield slice(used.start + i, used.start + i + cols.shape[0]), cols
+        cols = library.evaluate_rows(x_used[sl], prep.xdot_used[sl], t_used[sl], system.params)
+        return work(slice(used.start + i, used.start + i + cols.shape[0]), cols)
+
+    return map_in_order(on_piece, range(0, x_used.size, step))
 
 
 #: Periods per chunk in :func:`period_curves` and when its curves are evaluated (bounds the temporaries). A
 #: multiple of 8, and every evaluation starts at a multiple of it: the BLAS products then round the same way
 #: whenever a curve is evaluated (the summaries, the mapping, the run file agree to the bit).
 PERIOD_CHUNK = 2048
+#: Periods per piece of the per-period summaries in :func:`period_curves`: a divisor of :data:`PERIOD_CHUNK` (its
+#: pieces start where the curves' do, so they round alike). Smaller than the curves' pieces so that two threads'
+#: temporaries (~10 MB each at 256 phase points) stay small and are reused from the heap, not mapped afresh: at
+#: 2,048 periods each piece took ~0.1 GB, and mapping it cost ~0.4 s of page faults at 5e4 periods.
+SUMMARY_CHUNK = 256
 
 
 def period_curves(prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int
@@ -281,8 +308,10 @@ def period_curves(prep: Prepared, library: Library, system: System, coef, params
     d, a0 = params["d"], params["a0"]
     held = {name: np.empty(B) for name in PeriodCurves.SUMMARIES}
     # Hysteresis gates are scanned along the evaluated points: in one piece, as the states need (and kept).
-    step = B if library.states else PERIOD_CHUNK
-    for b0 in range(0, B, step):
+    step = B if library.states else min(SUMMARY_CHUNK, PERIOD_CHUNK)
+    library.compile(params)  # once, before the chunks' threads share it
+
+    def summarise(b0: int) -> None:  # one chunk of periods, into its rows of `held`
         b1 = min(b0 + step, B)
         x, v, f_inverted = (curves.curve(name, b0, b1) for name in ("deflection", "velocity", "force_inverted"))
         f = curves.model_force(x, v, b0, b1)
@@ -306,6 +335,8 @@ def period_curves(prep: Prepared, library: Library, system: System, coef, params
         }
         for name, value in out.items():
             held[name][b0:b1] = value
+
+    map_in_order(summarise, range(0, B, step))
     held["amplitude"] = np.hypot(prep.X[:, 1], prep.X[:, 2])
     curves.held.update(held)
     return curves
@@ -353,7 +384,7 @@ class PeriodCurves(Mapping):
 
     def model_force(self, x: np.ndarray, v: np.ndarray, first: int, stop: int) -> np.ndarray:
         """The model force (N) on the phase grid of periods ``first`` .. ``stop - 1`` at deflection x, velocity v."""
-        cols = self.library.evaluate(x.ravel(), v.ravel(), self.times(first, stop).ravel(), self.params)
+        cols = self.library.evaluate_rows(x, v, self.times(first, stop), self.params)
         return (cols @ self.coef[:self.system.theta.shape[2]]).reshape(x.shape)
 
     def curve(self, name: str, first: int, stop: int) -> np.ndarray:

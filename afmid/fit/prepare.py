@@ -36,6 +36,7 @@ from afmid.preprocess.periods import (
 from afmid.preprocess.harmonics import transient_limit
 from afmid.preprocess.motion import classify as classify_motion
 from afmid.fit.forces import CHUNK_BLOCKS
+from afmid.threads import map_in_order
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +157,9 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
         nuisance = np.empty((W, rows, n_drive + (0 if fixed else 2)))
         minus_dpsi = -windows.dpsi
     chunks = list(blocks.chunks())
-    for b0, b1 in chunks:
+
+    def project_chunk(bounds: tuple[int, int]) -> None:  # into its own rows (chunks shared among threads)
+        b0, b1 = bounds
         lo = blocks.start + b0 * blocks.L
         n_block = (b1 - b0) * blocks.L
         hi = lo + n_block + (blocks.L + 1 if weak else 0)
@@ -172,7 +175,8 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
             if not fixed:
                 nuisance[b0:w1, :, n_drive:n_drive + 1] = windows.integrate_samples(windows.psi, xs, b0, w1 - b0, turn)
                 nuisance[b0:w1, :, n_drive + 1:] = windows.integrate_samples(minus_dpsi, xs, b0, w1 - b0, turn)
-    del xs, xe, cols
+
+    map_in_order(project_chunk, chunks)
     if len(chunks) > 1:
         _release_free_memory()
 
@@ -341,12 +345,31 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
     p = len(library)
     keep = np.flatnonzero(coef[:p] != 0)  # only the terms of the model enter its stiffness
     model = dataclasses.replace(library, terms=[library.terms[j] for j in keep])
-    total, count = 0.0, 0
-    for _, x, v, t in (fine_chunks(prep) if keep.size else ()):
+
+    def squared_stiffness(_, x, v, t):  # (sum of squares, samples) of one chunk
         f_hi = _model_force(model, x + eps, v, t, params) @ coef[keep]
         f_lo = _model_force(model, x - eps, v, t, params) @ coef[keep]
-        total += float(np.sum(((f_hi - f_lo) / (2 * eps)) ** 2))
-        count += f_hi.size
+        return float(np.sum(((f_hi - f_lo) / (2 * eps)) ** 2)), f_hi.size
+
+    if keep.size:
+        model.compile(params)  # once, before the chunks' threads share it
+    kept_grid = prep.fine_grid is not None and prep.fine_grid.holds(prep)
+    if keep.size and not kept_grid and not model.states and not model.reads_velocity():
+        # The model's columns do not read the velocity: the trajectory's x alone is synthesised (half the GEMM of
+        # the pass); the kernel is handed x in the velocity's place, a value no term reads (the same bits).
+        def on_chunk(bounds):
+            b0, b1 = bounds
+            (x,) = prep.blocks.synthesize_fine_rows(prep.X_traj[b0:b1], first=b0)
+            return squared_stiffness(b0, x, x, prep.blocks.fine_times(b0, b1))
+
+        parts = map_in_order(on_chunk, _fine_chunk_bounds(prep.blocks.n_blocks, 0))
+        _release_free_memory()
+    else:
+        parts = map_fine_chunks(prep, squared_stiffness) if keep.size else []
+    total, count = 0.0, 0
+    for chunk_total, chunk_count in parts:
+        total += chunk_total  # in chunk order: the same sum whatever the threads
+        count += chunk_count
     stiffness_sq = total / max(count, 1)
     variance = prep.base_variance + prep.psi_sq * stiffness_sq * prep.trajectory_noise**2
     return dataclasses.replace(prep, row_sigma=np.sqrt(variance))
@@ -357,11 +380,7 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
 def _model_force(model: Library, x: np.ndarray, v: np.ndarray, t: np.ndarray, params: dict) -> np.ndarray:
     """The model's columns (N, k) along fine-grid rows (n, L U): one pass without the variables array when the
     model has no state gates (the same bits as ``model.evaluate`` on the raveled rows)."""
-    if model.states:
-        return model.evaluate(x.ravel(), v.ravel(), t.ravel(), params)
-    out = np.empty(x.shape + (len(model),))
-    model.evaluate_into(x, v, t, params, out)
-    return out.reshape(x.size, -1)
+    return model.evaluate_rows(x, v, t, params)
 
 
 def fine_chunks(prep: Prepared, overlap: int = 0):
@@ -381,6 +400,27 @@ def fine_chunks(prep: Prepared, overlap: int = 0):
     yield from _fine_chunks(prep, bounds)
     if len(bounds) > 1:
         _release_free_memory()
+
+
+def map_fine_chunks(prep: Prepared, work, overlap: int = 0) -> list:
+    """``work(first block, x, xdot, t)`` on each chunk of :func:`fine_chunks`, in chunk order, the chunks shared among
+    :func:`afmid.threads.trace_threads` threads (:func:`afmid.threads.map_in_order`): each thread synthesises the
+    chunks it works on, so at most that many chunks of the fine grid exist at a time. The same results as one
+    thread, in chunk order; ``work`` must only write into its own chunk's part of any shared output (and a
+    library it evaluates should be compiled first, :meth:`afmid.physics.library.Library.compile`)."""
+    grid = prep.fine_grid
+    if grid is not None and grid.holds(prep):  # kept chunks: made once (here, in order), then shared out
+        return map_in_order(lambda chunk: work(*chunk), list(fine_chunks(prep, overlap)))
+
+    def on_chunk(bounds):
+        (chunk,) = _fine_chunks(prep, (bounds,))
+        return work(*chunk)
+
+    bounds = _fine_chunk_bounds(prep.blocks.n_blocks, overlap)
+    out = map_in_order(on_chunk, bounds)
+    if len(bounds) > 1:
+        _release_free_memory()
+    return out
 
 
 def _fine_chunk_bounds(n_blocks: int, overlap: int) -> tuple[tuple[int, int], ...]:

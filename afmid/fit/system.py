@@ -16,7 +16,7 @@ from afmid.fit.forces import CHUNK_BLOCKS
 
 log = logging.getLogger(__name__)
 
-from afmid.fit.prepare import Prepared, fine_chunks
+from afmid.fit.prepare import Prepared, fine_chunks, map_fine_chunks
 from afmid.kernels.switching import cell_subsamples, switching_cells
 from afmid.preprocess.periods import fine_support
 
@@ -79,9 +79,9 @@ def _plain_library_columns(prep: Prepared, library: Library, params: dict) -> np
     terms are written straight into the sample-major layout of the weak form's matrix product
     (:meth:`afmid.physics.library.Library.evaluate_into`), which also says whether any value is zero (only then can a
     gate switch inside a cell) or not finite (only then are the columns checked one by one)."""
-    parts = []
     p = len(library)
-    for b0, x, v, t in fine_chunks(prep, overlap=1):
+
+    def integrals(b0, x, v, t):  # one chunk's windows (chunks are shared among threads: map_fine_chunks)
         columns = np.empty((x.shape[1], x.shape[0], p))  # (L U, blocks, p): sample-major
         fine = columns.transpose(1, 0, 2)  # (blocks, L U, p) view
         finite, any_zero = library.evaluate_into(x, v, t, params, fine)
@@ -91,8 +91,10 @@ def _plain_library_columns(prep: Prepared, library: Library, params: dict) -> np
             check_finite(columns.reshape(-1, p), library, params)
         # A gated term (contact only) is integrated over the samples where it is non-zero.
         support = fine_support(columns) if any_zero else None
-        parts.append(prep.windows.integrate_fine_columns(columns, b0, support))
-    return np.concatenate(parts, axis=0)
+        return prep.windows.integrate_fine_columns(columns, b0, support)
+
+    library.compile(params)  # once, before the threads share it
+    return np.concatenate(map_fine_chunks(prep, integrals, overlap=1), axis=0)
 
 
 #: Sub-samples per fine-grid cell in which a gated term switches on or off.

@@ -415,17 +415,17 @@ def _convert_units(values: np.ndarray, units: str | None, config, file: Path) ->
             file=config.source,
             key="data.units",
         )
-    values = values - data.offset
+    values = values - data.offset  # a new array: scaled in place below (one array as long as the trace, not two)
     if units in _UNIT_SCALE:
-        return values * _UNIT_SCALE[units]
+        return np.multiply(values, _UNIT_SCALE[units], out=values)
     if units == "V":
         if data.invols is None:
             raise ConfigError("units V needs data.invols (m/V) to convert to metres", file=config.source, key="data.invols")
-        return values * data.invols
+        return np.multiply(values, data.invols, out=values)
     if units == "raw":
         if data.scale is None:
             raise ConfigError("units raw needs data.scale (m per count)", file=config.source, key="data.scale")
-        return values * data.scale
+        return np.multiply(values, data.scale, out=values)
     raise InputError(f"cannot convert deflection units {units!r}; set data.units", file=file, key="data.units")
 
 

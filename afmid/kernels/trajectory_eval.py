@@ -24,7 +24,7 @@ from afmid.kernels.integrate import N_VARIABLES, contact_kinematics_at
 from afmid.kernels.vm import BLOCK, STACK_SIZE, run_program
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)  # nogil: chunks of one trace run in threads
 def eval_rows(code, code_offsets, consts, const_offsets, x, xdot, t, separation, a0, out):
     """out[r, i, j] = program j at sample i of row r of the trajectory (x, xdot, t: (rows, n) in m, m/s, s).
 

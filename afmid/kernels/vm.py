@@ -244,7 +244,7 @@ def eval_set_point(code, code_offsets, consts, const_offsets, var, out, stack=No
         out[j] = stack[0, 0]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)  # nogil: chunks of one trace run in threads
 def eval_set(code, code_offsets, consts, const_offsets, variables, out):
     """out[i, j] = program j of a ProgramSet at sample i of ``variables``.
 

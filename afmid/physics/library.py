@@ -157,6 +157,33 @@ class Library:
                                      float(params["a0"]), out)
         return bool(finite), bool(any_zero)
 
+    def reads_velocity(self) -> bool:
+        """Whether a term or state reads a velocity (zdot, deltadot, xdot): if not, the columns do not depend on
+        the velocity passed with the trajectory (only on x and t)."""
+        from afmid.physics.term_parser import walk
+
+        velocities = {"zdot", "deltadot", "xdot"}
+        texts = [t.expression for t in self.terms] + [state_expressions(gate) for gate in self.states]
+        return any(isinstance(node, expr.Name) and node.name in velocities
+                   for text in texts for node in walk(expr.parse(text)))
+
+    def evaluate_rows(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float]
+                      ) -> np.ndarray:
+        """Library columns (x.size, p) along a trajectory given as rows (x, xdot, t of one shape, m, m/s, s; 1-D is
+        one row): :meth:`evaluate` of the raveled arrays, bit for bit (state gates scanned along them as one series).
+        Without state gates through :meth:`evaluate_into`: no (7, N) array of variables and no temporaries, which
+        is what lets threads evaluate pieces of one trace at once (page faults of fresh temporaries serialise
+        them: two threads evaluating the variables array took longer than one)."""
+        if self.states:
+            return self.evaluate(x.ravel(), xdot.ravel(), t.ravel(), params)
+        def as_rows(a: np.ndarray) -> np.ndarray:
+            return a[None] if a.ndim == 1 else a.reshape(-1, a.shape[-1])
+
+        rows = as_rows(x)
+        out = np.empty(rows.shape + (len(self.terms),))
+        self.evaluate_into(rows, as_rows(xdot), as_rows(t), params, out)
+        return out.reshape(x.size, -1)
+
     def states_along(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
                      backend: str = "numba", initial: np.ndarray | None = None) -> np.ndarray:
         """The states (n_states, N) scanned along a trajectory: gates 0 or 1, relaxing states their values.

@@ -522,7 +522,8 @@ def rotate_to_global(local: np.ndarray, start_times: np.ndarray, omega: float,
     K = (local.shape[1] - 1) // 2
     c, s = rotation(start_times, omega, K) if turn is None else turn
     c, s = c[:local.shape[0], :, None], s[:local.shape[0], :, None]
-    out = local.copy()
+    out = np.empty_like(local)  # every row written below (a copy of `local` first was a wasted pass)
+    out[:, 0, :] = local[:, 0, :]
     a, b = local[:, 1::2, :], local[:, 2::2, :]
     out[:, 1::2, :] = c * a - s * b
     out[:, 2::2, :] = s * a + c * b

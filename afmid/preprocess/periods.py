@@ -39,6 +39,7 @@ from afmid.preprocess.harmonics import (  # noqa: F401 - DriveEstimate, estimate
     rotation,
 )
 from afmid.registry import Registry
+from afmid.threads import map_in_order
 
 log = logging.getLogger(__name__)
 
@@ -165,7 +166,10 @@ class HarmonicBlocks:
         """
         n = coefs[0].shape[0]
         times = self.block_times()[first:first + n]
-        local = rotate_to_global(np.concatenate(coefs, axis=0)[..., None], np.tile(times, len(coefs)), -self.omega)
+        c, s = rotation(times, -self.omega, self.K)  # once for all the series (the same blocks)
+        turn = (np.tile(c, (len(coefs), 1)), np.tile(s, (len(coefs), 1)))
+        local = rotate_to_global(np.concatenate(coefs, axis=0)[..., None], np.tile(times, len(coefs)), -self.omega,
+                                 turn)
         values = local[..., 0] @ self.design_fine.T
         return [values[i * n:(i + 1) * n] for i in range(len(coefs))]
 
@@ -183,8 +187,12 @@ class HarmonicBlocks:
     def synthesize(self, coef: np.ndarray) -> np.ndarray:
         """Samples (n_blocks * L, m) of the series, on the used samples."""
         out = np.empty((self.n_blocks * self.L, coef.shape[2]))
-        for b0, b1 in self.chunks():
+
+        def synthesize(bounds: tuple[int, int]) -> None:  # one chunk, into its own samples (chunks share threads)
+            b0, b1 = bounds
             out[b0 * self.L:b1 * self.L] = self.synthesize_blocks(coef[b0:b1], b0)
+
+        map_in_order(synthesize, self.chunks())
         return out
 
     def synthesize_blocks(self, coef: np.ndarray, first: int = 0) -> np.ndarray:

@@ -122,3 +122,18 @@ def test_weak_form_columns_through_the_kernel_equal_the_evaluate_then_transpose_
         support = fine_support(columns) if np.any(fine == 0.0) else None
         parts.append(prepared.windows.integrate_fine_columns(columns, b0, support))
     np.testing.assert_array_equal(library_columns(prepared, library, params), np.concatenate(parts, axis=0))
+
+
+@pytest.mark.parametrize("name", list(LIBRARIES) + ["capillary meniscus (state gate)"])
+def test_evaluate_rows_equals_evaluate_of_the_raveled_rows(name):
+    """Library.evaluate_rows (the threads' path: no variables array) gives Library.evaluate's bits, for rows (2-D),
+    one series (1-D) and a strided series; a library with a state gate scans it along the raveled rows."""
+    config = ModelConfig(effects=["dmt", "capillary"]) if name.startswith("capillary") else LIBRARIES[name]
+    library = build_library(config)
+    params = _params(library)
+    x, v, t = _trajectory()
+    reference = library.evaluate(x.ravel(), v.ravel(), t.ravel(), params)
+    np.testing.assert_array_equal(library.evaluate_rows(x, v, t, params), reference, strict=True)
+    np.testing.assert_array_equal(library.evaluate_rows(x.ravel(), v.ravel(), t.ravel(), params), reference)
+    column = np.stack([x.ravel(), v.ravel()], axis=1)  # x and xdot as strided views of one array
+    np.testing.assert_array_equal(library.evaluate_rows(column[:, 0], column[:, 1], t.ravel(), params), reference)
