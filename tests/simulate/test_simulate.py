@@ -388,7 +388,11 @@ def test_generated_law_is_the_vm_law_bit_for_bit():
         for j, p in enumerate(compiled.switching):
             np.testing.assert_allclose(ours[2][finite, j], evaluate_numpy(p, variables), rtol=1e-12, err_msg=name)
         for j, p in enumerate(compiled.conditions):
-            np.testing.assert_array_equal(ours[3][finite, j], evaluate_numpy(p, variables), err_msg=name)
+            # Not bit for bit: NumPy's exp and pow take its AVX-512 code where the CPU has it (a few ulp from the
+            # C library's, which numba calls): on a Zen 5 the standard linear solid's conditions differed by one
+            # ulp (session 11). rtol << 1 with atol 0 keeps what a condition decides: its sign and its zeros.
+            np.testing.assert_allclose(ours[3][finite, j], evaluate_numpy(p, variables), rtol=1e-12, atol=0,
+                                       err_msg=name)
 
 
 @pytest.mark.parametrize("model, mode", [("dmt", "steady"), ("dmt_exponential_damping", "steady"),
