@@ -18,33 +18,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from repo_paths import REPO_ROOT
-
-CONFIG = REPO_ROOT / "tests" / "configs" / "map_small.yaml"
+from small_map import simulated_pixels
 
 
 @pytest.fixture(scope="module")
 def small_map(tmp_path_factory):
     """(config, library, [trace]) of the small map."""
-    import yaml
-
-    from afmid.config import build_config, dump_config
-    from afmid.maps.input_file import open_map, pixel_trace, read_pixels
-    from afmid.maps.simulate import simulate_map, write_map_file
-    from afmid.maps.task import map_config
-    from afmid.physics.library import build_library
-    from afmid.physics.tips import tip_geometry
-
-    folder = tmp_path_factory.mktemp("chunk_drive")
-    config = build_config(yaml.safe_load(CONFIG.read_text()), source=folder / "run.yaml")
-    text = dump_config(config)
-    path = folder / "map.h5"
-    write_map_file(path, simulate_map(config), text)
-    config = map_config(text, str(folder / "run.yaml"))
-    source = open_map(path, config)
-    library = build_library(config.model, config.source, tip_geometry(config.cantilever))
-    n = source.rows * source.cols
-    return config, library, [pixel_trace(source, row, config, i) for i, row in enumerate(read_pixels(source, 0, n))]
+    return simulated_pixels(tmp_path_factory.mktemp("chunk_drive"))
 
 
 def _same(a, b) -> bool:

@@ -19,9 +19,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from repo_paths import REPO_ROOT
-
-CONFIG = REPO_ROOT / "tests" / "configs" / "map_small.yaml"
+from small_map import simulated_pixels
 SEEDS = (7, 8)
 #: |search minimum - robust minimum| / robust sigma, per pixel.
 SEPARATION_AGREEMENT = 0.2
@@ -33,28 +31,10 @@ OTHER_PHASE = 1.5e-9
 
 def _pixels(folder, seed):
     """(config, library, [prepared pixel]) of the small map simulated with ``seed``."""
-    import yaml
-
-    from afmid.config import build_config, dump_config
     from afmid.fit.pipeline import prepare
-    from afmid.maps.input_file import open_map, pixel_trace, read_pixels
-    from afmid.maps.simulate import simulate_map, write_map_file
-    from afmid.maps.task import map_config
-    from afmid.physics.library import build_library
-    from afmid.physics.tips import tip_geometry
     from afmid.preprocess.instrument import from_config
 
-    raw = yaml.safe_load(CONFIG.read_text())
-    raw["simulate"]["seed"] = seed
-    config = build_config(raw, source=folder / "run.yaml")
-    text = dump_config(config)
-    path = folder / "map.h5"
-    write_map_file(path, simulate_map(config), text)
-    config = map_config(text, str(folder / "run.yaml"))
-    source = open_map(path, config)
-    library = build_library(config.model, config.source, tip_geometry(config.cantilever))
-    n = source.rows * source.cols
-    traces = [pixel_trace(source, row, config, i) for i, row in enumerate(read_pixels(source, 0, n))]
+    config, library, traces = simulated_pixels(folder, seed)
     return config, library, [prepare(trace, config.fit, from_config(config)) for trace in traces]
 
 
