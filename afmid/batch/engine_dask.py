@@ -125,10 +125,15 @@ class DaskEngine:
 
 def run_in_worker(worker: Callable[[dict], dict], task: dict) -> dict:
     """``worker(task)`` in a dask worker, with glibc's allocator keeping freed arrays for reuse
-    (:mod:`afmid.batch.allocator`: dask's nanny starts workers with a setting that made a map 1.6x slower)."""
+    (:mod:`afmid.batch.allocator`: dask's nanny starts workers with a setting that made a map 1.6x slower), and
+    one thread per trace unless the worker's environment says otherwise (a worker is one of N single-threaded
+    processes filling N cores: on a cluster afmid did not start, :data:`afmid.threads.TRACE_THREADS_ENV` is not
+    set by afmid's local cluster, and a long trace would take two threads per worker)."""
     from afmid.batch.allocator import keep_freed_memory_for_reuse
+    from afmid.threads import TRACE_THREADS_ENV
 
     keep_freed_memory_for_reuse()
+    os.environ.setdefault(TRACE_THREADS_ENV, "1")
     return worker(task)
 
 

@@ -1,4 +1,6 @@
-"""afmid.batch.allocator: dask's MALLOC_TRIM_THRESHOLD_ in a worker's environment must not make every freed
+"""What a task sets up in an engine worker (afmid.batch.engine_dask.run_in_worker, afmid.batch.allocator).
+
+afmid.batch.allocator: dask's MALLOC_TRIM_THRESHOLD_ in a worker's environment must not make every freed
 array go back to the OS (each reuse then page-faults afresh: a map ran 1.6x slower on the local cluster).
 
 Counted, not timed: minor page faults of a loop that allocates and frees a 1 MiB array 200 times. With glibc's
@@ -52,3 +54,21 @@ def test_fixed_thresholds_without_the_variable():
     applied, count = faults("restore", trim_variable=False)
     assert applied == "True"  # fixed in every worker: the dynamic rule still trims and faults between traces
     assert count < 0.05 * PASSES * PAGES_PER_PASS
+
+
+def _threads_for_a_trace(task: dict) -> dict:
+    from afmid.threads import trace_threads
+
+    return {"threads": trace_threads()}
+
+
+def test_a_dask_task_fits_a_trace_on_one_thread(monkeypatch):
+    """On a cluster afmid did not start, the worker's environment lacks AFMID_TRACE_THREADS: the task sets it to 1
+    (N single-threaded workers fill N cores), and keeps a value the worker's owner set."""
+    from afmid.batch.engine_dask import run_in_worker
+    from afmid.threads import TRACE_THREADS_ENV
+
+    monkeypatch.delenv(TRACE_THREADS_ENV, raising=False)
+    assert run_in_worker(_threads_for_a_trace, {}) == {"threads": 1}
+    monkeypatch.setenv(TRACE_THREADS_ENV, "2")
+    assert run_in_worker(_threads_for_a_trace, {}) == {"threads": 2}
