@@ -19,7 +19,7 @@ help:
 	@echo "make demo   - set up .venv, simulate a soft-polymer trace, fit it, write a report"
 	@echo "make demo-map - a force map with hidden viscoelasticity: map with [dmt] (which effect is missing where), refit with --add viscoelastic, reports before/after"
 	@echo "make test   - set up .venv with test extras and run the test suite"
-	@echo "make test-kernels - the BLAS-sensitive tests again under two other OpenBLAS kernels of this CPU"
+	@echo "make test-kernels - the BLAS-sensitive tests again under two other OpenBLAS kernels of this CPU (and without NumPy's AVX-512 code)"
 	@echo "make batch  - fit every config in configs/ (simulated first where it has no data) into $(RESULTS)/ (BATCH_JOBS=N workers)"
 	@echo "make bench  - benchmarks in one table (afmid vs SciPy / PySINDy, scaling, start-up, batch);"
 	@echo "              BENCH_ARGS=--quick for a smoke run"
@@ -53,6 +53,10 @@ demo-map: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -n $(TEST_JOBS)
 
+# On a CPU with AVX-512, the same tests and the kernels' NumPy twins (tests/kernels, tests/simulate, tests/physics)
+# once more with NumPy's AVX-512 code switched off (scripts/numpy_dispatch.py: NumPy's AVX-512 exp and pow differ
+# from the AVX2 / C library ones by ulps, and a test comparing a kernel with its twin bit for bit held on one
+# family only).
 # The tests marked `blas_sensitive` again under other OpenBLAS kernels (OPENBLAS_CORETYPE) that this CPU runs
 # correctly (scripts/blas_kernels.py picks and checks them): a test that holds on one CPU family only fails here.
 # OPENBLAS_CORETYPE changes only what BLAS/LAPACK computes, so the re-run keeps the tests whose results depend on
@@ -73,6 +77,12 @@ test-kernels: $(STAMP)
 		echo "== BLAS-sensitive tests with OPENBLAS_CORETYPE=$$kernel"; \
 		OPENBLAS_CORETYPE=$$kernel $(PY) -m pytest -q -p no:cacheprovider -n $(TEST_JOBS) -m blas_sensitive || exit 1; \
 	done
+	@features="$$($(PY) scripts/numpy_dispatch.py)"; \
+	if [ -z "$$features" ]; then echo "test-kernels: no AVX-512 code in NumPy to switch off on this CPU"; exit 0; fi; \
+	echo "== BLAS-sensitive tests and the kernels' NumPy twins with NumPy's AVX-512 code off (NPY_DISABLE_CPU_FEATURES=$$features)"; \
+	NPY_DISABLE_CPU_FEATURES="$$features" $(PY) -m pytest -q -p no:cacheprovider -n $(TEST_JOBS) -m blas_sensitive || exit 1; \
+	NPY_DISABLE_CPU_FEATURES="$$features" $(PY) -m pytest -q -p no:cacheprovider -n $(TEST_JOBS) -m "not slow" \
+		tests/kernels tests/simulate tests/physics || exit 1
 
 # Every config in configs/ with its own cantilever and model, in BATCH_JOBS worker processes:
 # a config with data.path fits that file; one without is simulated first into
