@@ -48,21 +48,28 @@ def cpu_flags() -> set[str]:
     return set()
 
 
-def probe(coretype: str | None) -> dict | None:
-    """The kernel OpenBLAS runs with OPENBLAS_CORETYPE=coretype (None: as the environment says), or None."""
-    env = dict(os.environ)
-    if coretype is not None:
-        env["OPENBLAS_CORETYPE"] = coretype
+def run_probe(source: str, env: dict[str, str]) -> dict | None:
+    """The JSON object a child ``python -c source`` prints last, run with ``env``; None when it fails, hangs
+    (120 s) or prints none (also used by scripts/numpy_dispatch.py)."""
     try:
-        done = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=120)
+        done = subprocess.run([sys.executable, "-c", source], env=env, capture_output=True, text=True, timeout=120)
     except subprocess.TimeoutExpired:
         return None
     if done.returncode != 0:
         return None
     try:
-        return json.loads(done.stdout.strip().splitlines()[-1])
+        found = json.loads(done.stdout.strip().splitlines()[-1])
     except (ValueError, IndexError):
         return None
+    return found if isinstance(found, dict) else None
+
+
+def probe(coretype: str | None) -> dict | None:
+    """The kernel OpenBLAS runs with OPENBLAS_CORETYPE=coretype (None: as the environment says), or None."""
+    env = dict(os.environ)
+    if coretype is not None:
+        env["OPENBLAS_CORETYPE"] = coretype
+    return run_probe(_PROBE, env)
 
 
 def other_kernels(count: int = 2) -> list[str]:

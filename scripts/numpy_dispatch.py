@@ -13,10 +13,9 @@ Usage: ``python scripts/numpy_dispatch.py``
 
 from __future__ import annotations
 
-import json
 import os
-import subprocess
-import sys
+
+from blas_kernels import run_probe  # the child-process probe both scripts use (scripts/ is on sys.path)
 
 #: NumPy 2.x's names of its AVX-512 dispatch targets (x86-64-v4 and the later AVX-512 groups).
 AVX512_FEATURES = ("X86_V4", "AVX512_ICL", "AVX512_SPR")
@@ -39,16 +38,8 @@ def found_features(disabled: str | None) -> str | None:
     env.pop("NPY_DISABLE_CPU_FEATURES", None)
     if disabled:
         env["NPY_DISABLE_CPU_FEATURES"] = disabled
-    try:
-        done = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=120)
-    except subprocess.TimeoutExpired:
-        return None
-    if done.returncode != 0:
-        return None
-    try:
-        return json.loads(done.stdout.strip().splitlines()[-1])["found"]
-    except (ValueError, IndexError, KeyError):
-        return None
+    found = run_probe(_PROBE, env)
+    return None if found is None else found.get("found")
 
 
 def without_avx512() -> str:
