@@ -536,9 +536,8 @@ def check_offset_and_drift(a: Analysis, s: Settings) -> list[Finding]:
                     f"{what}: the fit would read it as a slowly changing force; set fit.detrend: linear "
                     "(the fit then estimates the drift with the force law)", "fit.detrend", numbers))
     offset = a.mean
-    limit = offset_limit(a)
-    if abs(offset) > limit and a.amplitude > 0:
-        numbers = {"offset": offset, "amplitude": a.amplitude, "limit": limit}
+    if mean_stands_out(a):
+        numbers = {"offset": offset, "amplitude": a.amplitude, "limit": offset_limit(a)}
         what = (f"the mean deflection is {length(offset, s.units)} ({100 * abs(offset) / a.amplitude:.2g} % of the "
                 "amplitude), more than tip-sample forces explain: the detector zero is off")
         if a.contact == "none":
@@ -570,6 +569,12 @@ def offset_limit(a: Analysis) -> float:
     return max(OFFSET_FRACTION * a.amplitude, OFFSET_FORCE_MULTIPLE * a.force_range)
 
 
+def mean_stands_out(a: Analysis) -> bool:
+    """The mean deflection lies beyond :func:`offset_limit` (an oscillation to compare it with): the offset's
+    finding is made."""
+    return a.amplitude > 0 and abs(a.mean) > offset_limit(a)
+
+
 def _static_force_words(offset: float, s: Settings) -> str:
     """' (k x = 0.104 nN, repulsive)': the mean force a mean deflection ``offset`` (m) stands for, where k is
     known (positive deflection is toward the sample: a lever held away feels a repulsion)."""
@@ -589,7 +594,7 @@ def check_contact(a: Analysis, s: Settings) -> list[Finding]:
     """
     if a.spp < MIN_SAMPLES_PER_PERIOD:
         return []
-    if a.contact == "none" and abs(a.mean) > offset_limit(a) and a.amplitude > 0:
+    if a.contact == "none" and mean_stands_out(a):
         return []
     if a.contact == "none":
         return [Finding(
