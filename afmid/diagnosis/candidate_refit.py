@@ -94,15 +94,19 @@ def separation_start(run, prepared, config: RunConfig) -> tuple[float, float]:
     """Where a candidate's separation search starts and its half-width, m: the run's estimate +-
     :data:`SEPARATION_WINDOW`; when that estimate is not above zero (no physical separation: the run's model
     lacks a force the trace shows, e.g. a double layer's long-range repulsion put a [dmt] fit at -0.86 nm, truth
-    5 nm), the single-trace fit's whole window instead (``fit.separation_window`` around first contact), as a
-    fit with the candidate added would search it."""
+    5 nm), the single-trace fit's whole window instead (``fit.separation_window`` around first contact, its
+    part above ``sample.a0``), as a fit with the candidate added would search it."""
     if run.separation > 0:
         return run.separation, SEPARATION_WINDOW
     from afmid.fit.pipeline import first_contact
 
     touch = first_contact(prepared, config.sample.a0)
     below, above = config.fit.separation_window
-    return touch + 0.5 * (above - below), 0.5 * (above + below)
+    # The part of the window above a0 (a rest separation below it puts the resting tip in the sample): centred
+    # on the whole window, a first contact below ~1.5 nm would start the candidate at a separation <= 0.
+    lowest = max(touch - below, config.sample.a0)
+    highest = max(touch + above, 2 * config.sample.a0)
+    return 0.5 * (lowest + highest), 0.5 * (highest - lowest)
 
 
 def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: list[str], shapes, fit_quick,

@@ -47,3 +47,29 @@ def test_hidden_effect_is_named_with_the_separation_unknown(tmp_path, case):
     assert summary["diagnosis"]["explained_by_catalog"] is True, verdict
     top = summary["suggestions"][0]
     assert top["error_after"] <= 1.5 * top["noise_floor_after"], verdict
+
+
+@pytest.mark.parametrize("below_beyond_touch", [-2e-9, 0.5e-9, 5e-9])
+def test_a_candidate_with_an_implausible_separation_starts_inside_the_window_above_a0(tmp_path, below_beyond_touch):
+    """A run whose separation is not above zero restarts each candidate on fit.separation_window around first
+    contact, its part above sample.a0 only: a window reaching below a0 (first contact closer than the window's
+    lower reach) must not centre the candidate at a separation <= 0 (it then failed and dropped out)."""
+    from types import SimpleNamespace
+
+    from afmid.config import build_config
+    from afmid.diagnosis.candidate_refit import separation_start
+    from afmid.fit.pipeline import first_contact, prepare
+    from afmid.simulate.driver import simulate
+
+    source = REPO_ROOT / "tests" / "configs" / "hidden_clean.yaml"
+    raw = read_yaml(source)
+    raw["simulate"]["periods"] = 20
+    config = build_config(raw, source=source, base_dir=tmp_path)
+    prepared = prepare(simulate(config), config.fit)
+    touch, a0 = first_contact(prepared, config.sample.a0), config.sample.a0
+    above = 3e-9
+    config.fit.separation_window = [touch + below_beyond_touch, above]
+    centre, half = separation_start(SimpleNamespace(separation=-0.5e-9), prepared, config)
+    assert centre - half == pytest.approx(max(touch - config.fit.separation_window[0], a0), rel=1e-12)
+    assert centre + half == pytest.approx(touch + above, rel=1e-12)
+    assert centre > a0 and half > 0
