@@ -44,7 +44,7 @@ from afmid.fit.profile import GroupedProfile, robust_profile
 from afmid.fit.search import NonlinearEstimate
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.system import System, build_system, library_columns
-from afmid.fit.uncertainty import (add_half_difference, mark_model_limited, model_limited, model_limited_warning,
+from afmid.fit.uncertainty import (add_largest_shift, mark_model_limited, model_limited, model_limited_warning,
                                    widen_interval)
 from afmid.fit.undetermined import mark as mark_undetermined
 from afmid.io.files import check_input_file
@@ -576,8 +576,8 @@ def _profile(columns: _Columns, direction, mask: np.ndarray | None, jackknife: b
 def _propagate(quantities: dict, columns: _Columns, directions: list, mask: np.ndarray, library: Library,
                first: TraceFit) -> None:
     """Each searched direction's 1 sigma (the common separation shift, each separation, each shared decay
-    length) into the shared read-outs: the joint support refitted at +-1 sigma, the half-difference of the
-    read-outs added in quadrature (in place)."""
+    length) into the shared read-outs: the joint support refitted at +-1 sigma, the larger change of the
+    read-outs (afmid.fit.uncertainty.add_largest_shift) added in quadrature (in place)."""
     extra = dict.fromkeys(quantities, 0.0)
     for direction in directions:
         sigma = direction.sigma
@@ -589,11 +589,10 @@ def _propagate(quantities: dict, columns: _Columns, directions: list, mask: np.n
             try:
                 joint = columns.joint(replaced)
             except AfmidError:
-                break
+                continue  # the other side alone
             coef, _ = regression.subset_fit(regression.combine(joint.T_blocks), mask)
             shifted.append(read_out(library, coef, None, replaced.get(0, first.params), mask, first.prep.trace))
-        if len(shifted) == 2:
-            add_half_difference(extra, *shifted)
+        add_largest_shift(extra, quantities, shifted)
     for k, q in quantities.items():
         widen_interval(q, math.sqrt(extra[k]))
 

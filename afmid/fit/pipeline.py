@@ -50,8 +50,9 @@ from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
 from afmid.fit.declared_drive import declared_drive, propagate_drive_calibration, with_declared_drive
 from afmid.preprocess.motion import fit_warning as motion_warning
-from afmid.fit.uncertainty import add_half_difference, finish as finish_uncertainty, widen_interval
+from afmid.fit.uncertainty import add_largest_shift, finish as finish_uncertainty, widen_interval
 from afmid.fit.undetermined import mark as mark_undetermined
+from afmid.fit.undetermined import whole_effects
 from afmid.progress import Progress
 from afmid.fit.separation_share import NOT_COMPUTED as SHARE_NOT_COMPUTED, SeparationShare, separation_share
 from afmid.fit.force_band import selection_share, statistical_share, total_share
@@ -106,25 +107,6 @@ def profile_parameter(prep: "Prepared", library: Library, params: dict, name: st
     half = 0.3e-9 if name == "d" else max(0.3 * abs(params[name]), 1e-3 * (bounds[1] - bounds[0]))
     min_step = 1e-14 if name == "d" else 1e-4 * half
     return robust_profile(grouped, params[name], half, s2, *bounds, min_step=min_step, jackknife=jackknife)
-
-
-def whole_effects(library: Library, mask: np.ndarray) -> np.ndarray:
-    """The columns a nonlinear parameter is profiled with: the support ``mask`` plus every term of each catalog
-    effect that has a term in it (the nuisance columns as in ``mask``).
-
-    An effect is one piece of physics: DMT's tail and adhesion are tied, and a term the selection drops because
-    the data cannot resolve it (the van der Waals tail on a noisy record) is still there. Profiling the
-    separation without it lets the remaining contact term imitate the missing adhesion by moving d, with a
-    profile that ends where the contact ends: measured on the poor instrument (10 pm, 50 samples per period),
-    support [hertz], d +891 pm at a sigma of 101 pm (seed 301), +831 at 195 (seed 235); with the whole effect
-    +729 +- 1312 and +582 +- 2319 pm. Effects with no selected term stay out (they would only blur d).
-    """
-    out = np.array(mask, dtype=bool, copy=True)
-    chosen = {library.terms[j].effect for j in np.flatnonzero(out[:len(library)])} - {None}
-    for j, term in enumerate(library.terms):
-        if term.effect in chosen:
-            out[j] = True
-    return out
 
 
 def profile_library(library: Library, config: RunConfig) -> tuple[Library, dict[str, float]]:
@@ -490,8 +472,9 @@ def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params
     """Add the uncertainty of estimated nonlinear parameters (separation, decay lengths) to the quantities.
 
     The bootstrap holds them fixed; refitting at +-1 sigma of each and reading
-    out again gives the sensitivity, added in quadrature to the error and to
-    both halves of the 95 % interval (in place).
+    out again gives the sensitivity (the larger change of the two sides:
+    :func:`afmid.fit.uncertainty.add_largest_shift`), added in quadrature to the
+    error and to both halves of the 95 % interval (in place).
     """
     extra = {k: 0.0 for k in quantities}
     for name, est in nonlinear.items():
@@ -503,11 +486,10 @@ def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params
             try:
                 system = build_system(prep, library, trial)
             except AfmidError:
-                break
+                continue  # e.g. a separation below a0: the other side alone
             coef, _ = regression.subset_fit(regression.combine(system.T_blocks), mask)
             shifted.append(read_out(library, coef, None, trial, mask, trace))
-        if len(shifted) == 2:
-            add_half_difference(extra, *shifted)
+        add_largest_shift(extra, quantities, shifted)
     for k, q in quantities.items():
         widen_interval(q, math.sqrt(extra[k]))
 

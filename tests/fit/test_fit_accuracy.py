@@ -165,9 +165,12 @@ EXPECT["dmt_exponential_damping", "poor", "known"] = Expect(  # seed 4: E* +44 %
     # 13.6 % / 13.9 %, when the +44 % / +51 % errors stood 2.9-3.2 claimed sigmas out). Cap 1.5 x those.
     sigma_max=_C(E_star=0.64, adhesion_force=0.79, damping_coefficient=0.12),
     force=0.145, may_drop=_TAIL)  # 1.2 x seed 4 (seeds 4.2-12.8 %)
-EXPECT["jkr", "poor", "known"] = Expect(  # seed 5: E* +30 %, adhesion +53 % (3.4 and 3.7 sigma), force 9.6 %
+EXPECT["jkr", "poor", "known"] = Expect(  # seed 5: E* +30 %, adhesion +53 % (1.3 and 1.2 sigma), force 9.6 %
     contact=_C(E_star=0.365, adhesion_force=0.645),  # 1.2 x seed 5 (seeds 1-3: <= 6.2 %, <= 14.8 %)
-    sigma_max=_C(E_star=0.135, adhesion_force=0.215),
+    # 1.2 x seed 5's 23.3 % and 45.5 %: the dropped tail forced in moves E* and the adhesion by more than twice
+    # their bootstrap errors, so both models are in the error bars (afmid.fit.undetermined; were 11 % and 18 %,
+    # 3.4 and 3.7 sigma from the truth)
+    sigma_max=_C(E_star=0.28, adhesion_force=0.55),
     force=0.116, may_drop=_TAIL)  # 1.2 x seed 5 (seeds 1-3: 6.4-7.8 %)
 
 # ---- separation estimated (sample.separation removed): 5 seeds measured (good), 3 (poor).
@@ -209,7 +212,9 @@ EXPECT["lennard_jones", "poor", "estimated"] = Expect(  # seed 2: d +0.022 nm, s
     contact=_C(sigma=0.165, hamaker=3.04),  # 1.2 x 13.6 %; 3 x 101 % (seed 3: +47 %, +300 %; seed 1 drops z^-2)
     # The separation's sigma is the block jackknife's since issue 13 (0.074 nm at seed 2; the curvature's was
     # ~0.03 nm), propagated: reported std 50 % / 215 %, in line with the seed spread of sigma (+14 to +47 %).
-    sigma_max=_C(sigma=0.60, hamaker=2.6),
+    # Since session 12 the separation's sigma enters as the larger change of the two sides (not the half-difference:
+    # afmid.fit.uncertainty.add_largest_shift): H's std 215 -> 299 %; cap 1.2 x.
+    sigma_max=_C(sigma=0.60, hamaker=3.6),
     force=0.124, may_drop=_TAIL, separation_nm=0.09)  # force 5.2-10.3 %; d within 0.074 nm
 EXPECT["jkr", "poor", "estimated"] = Expect(  # seed 5: d -0.05 +- 0.73 nm, E* +23 %, adhesion +50 %, force 8.1 %
     contact=_C(E_star=1.20, adhesion_force=0.64),  # 3 x 40 %, 3 x 21 % (seed 1: d +1.2 nm, Hertz dropped)
@@ -217,7 +222,9 @@ EXPECT["jkr", "poor", "estimated"] = Expect(  # seed 5: d -0.05 +- 0.73 nm, E* +
     force=0.121, may_drop=_TAIL, separation_nm=2.0)  # force 6.1-13.3 %; d: 3 x median sigma 0.68 nm
 EXPECT["dmt_viscoelastic", "poor", "estimated"] = Expect(  # seed 3: d -0.006 +- 0.34 nm, E* +11 %, eta -4.7 %
     contact=_C(E_star=2.07, adhesion_force=1.07, viscosity=1.225),  # 3 x 69 %, 36 %, 41 %: not determined
-    sigma_max=_C(E_star=1.21, adhesion_force=0.54, viscosity=0.61),  # 1.5 x the test seed's 81 %, 36 %, 41 %
+    # 1.5 x the test seed's 155 %, 54 %, 72 % (81 %, 36 %, 41 % with the separation's sigma as the half-difference
+    # of the two sides; now the larger change of the two: afmid.fit.uncertainty.add_largest_shift)
+    sigma_max=_C(E_star=2.33, adhesion_force=0.81, viscosity=1.07),
     force=0.12, may_drop=_TAIL, separation_nm=1.05)  # force 6.3, 8.0 % (seed 1: 58 %, adhesion dropped)
 EXPECT["dmt_exponential_damping", "poor", "estimated"] = Expect(  # seed 4: d -0.83 +- 0.49 nm, E* -46 %, force 19 %
     contact=_C(E_star=1.95, adhesion_force=0.93, damping_coefficient=1.05),  # 3 x 65 %, 31 %, 35 %: not determined
