@@ -12,8 +12,9 @@ A strategy is made once per chunk (``PixelFit(config, library)``), is shown the 
   blocks and test functions; the support and the offset of the separation from first contact are learnt on the
   chunk's first pixel by the full search (no bootstrap) and carried from pixel to pixel (neighbours in a row-major
   chunk: the topography and the phases are smooth). Each pixel then needs only a short 1-D search of its separation
-  started from ``first contact + carried offset`` (a few library evaluations: a bracket and parabola steps on the
-  residual profile, the profile's chi-square width and its block jackknife for sigma), one selection at the found
+  started from ``first contact + carried offset`` (a few library evaluations: two points and the vertex that the
+  last pixel's profile curvature predicts from them, else a bracket, then parabola steps on the residual profile;
+  the profile's chi-square width and its block jackknife for sigma), one selection at the found
   separation (no library evaluation: when it picks another support, the separation is searched again with it),
   and error bars from the least-squares covariance of the chosen support (sampled through the read-out so that
   E* etc. get the same kind of interval as the bootstrap gives) with the separation's sigma propagated. A pixel
