@@ -55,7 +55,7 @@ RESOLUTION = 0.1
 DISTINCT_OFFSET = 0.2e-9
 #: The anchor's coarse search refines its grid minimum to this fraction of two grid steps (0.75 pm of the blend
 #: map's 0.75 nm, ~0.03 of a pixel's separation sigma): it only seeds the chunk's carried search, which finds
-#: each minimum to a tenth of its sigma; the single-trace fit's 1e-6 took ~24 library evaluations, this ~10.
+#: each minimum to a tenth of its sigma; the single-trace fit's 1e-6 took ~23 library evaluations, this 9-14.
 ANCHOR_TOLERANCE = 1e-3
 #: A pixel is cut at the chunk's drive frequency when its own measurement lies within this many robust sigmas of
 #: the chunk's scatter from it; the chunk needs this many measured pixels for a median and a scatter.
@@ -420,11 +420,12 @@ def parabolic_minimum(profile, start: float, step: float, lo: float, hi: float, 
     has its vertex within a tenth of sigma of it, that is the minimum as well (the same test on one side).
 
     ``curvature`` (1/m^2, the last pixel's; None: unknown): the bracket's first two points (``start`` and
-    ``start + step``) and that curvature predict the vertex (:func:`predicted_vertex`), which is the third point
+    ``start + step``) and that curvature predict the vertex (:func:`predicted_third_point`), which is the third point
     when it lies within :data:`EDGE_REACH` steps of ``start`` (the points ``start - step`` and beyond otherwise,
     the plain bracket): on a smooth map the residual profile's curvature changes little from pixel to pixel
-    (within ~10 % in a phase on the blend map), so the third point is within a tenth of sigma of the vertex for
-    most pixels and the search ends after three library evaluations instead of five.
+    (within ~10 % in a phase on the blend map), so the third point lands within a few tenths of sigma of the vertex
+    and the search ends after three or four library evaluations instead of four or five (22 % and 70 % of the
+    64x64 blend map's carried pixels).
 
     ``alternatives``: other starts (the offsets of other phases met before), evaluated only when the first
     bracket's lowest point is on its edge (the minimum is not near ``start``); when one of them is lower, the
