@@ -294,12 +294,15 @@ PERIOD_CHUNK = 2048
 SUMMARY_CHUNK = 256
 
 
-def period_curves(prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int
-                  ) -> "PeriodCurves":
+def period_curves(prep: Prepared, library: Library, system: System, coef, params, rows, n_phase: int,
+                  keep_curves: bool = False) -> "PeriodCurves":
     """Per-period curves on a common phase grid and per-period summaries (SI), chunk by chunk of periods.
 
     Returns a read-only mapping name -> array (:class:`PeriodCurves`): the summaries are computed here, the
-    curves (periods x phase points each) when asked for or written.
+    curves (periods x phase points each) when asked for or written. ``keep_curves``: a record of one piece
+    (at most :data:`SUMMARY_CHUNK` periods) keeps the curves the summaries were made from (deflection, velocity,
+    the model and inverted forces; <= 2 MB at 256 phase points), so that a caller reading them right away (a map
+    pixel's residual signature, afmid.maps.residual) does not evaluate them again (the same values).
     """
     curves = PeriodCurves(prep, library, system, coef, params, rows, n_phase)
     B = prep.blocks.n_blocks
@@ -317,6 +320,8 @@ def period_curves(prep: Prepared, library: Library, system: System, coef, params
         f = curves.model_force(x, v, b0, b1)
         if library.states:
             held["force_model"] = f
+        if keep_curves and b0 == 0 and b1 == B:
+            curves.kept.update(deflection=x, velocity=v, force_inverted=f_inverted, force_model=f)
         z = d - x
         zdot = -v
         contact = z <= a0
@@ -372,6 +377,8 @@ class PeriodCurves(Mapping):
         self.cycles = np.round(prep.blocks.block_times() * prep.drive.omega / (2 * np.pi))
         start = (2 * np.pi * self.cycles + self.phase[0]) / prep.drive.omega  # = times(...)[:, 0]
         self.held = {"phase": self.phase, "period_start_time": start}
+        #: whole curves (name -> (periods, phase points)) kept by period_curves(keep_curves=True); read, not written
+        self.kept: dict[str, np.ndarray] = {}
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -389,6 +396,8 @@ class PeriodCurves(Mapping):
 
     def curve(self, name: str, first: int, stop: int) -> np.ndarray:
         """One of :attr:`CURVES` for periods ``first`` .. ``stop - 1``: (stop - first, phase points)."""
+        if name in self.kept:
+            return self.kept[name][first:stop]
         blocks, X = self.prep.blocks, self.prep.X[first:stop, :, None]
         if name == "force_inverted":
             F = inverted_force_coefficients(self.prep, self.system, self.coef, slice(first, stop)) * self.rows[None, :]

@@ -216,12 +216,14 @@ def first_contact(prep: Prepared, a0: float) -> float:
     return x_max + a0
 
 
-def estimate_nonlinear(prep, library, config, params, physics=None) -> dict[str, NonlinearEstimate]:
+def estimate_nonlinear(prep, library, config, params, physics=None, refine_tolerance: float = 1e-6
+                       ) -> dict[str, NonlinearEstimate]:
     """Coarse outer search over the rest separation and the library's decay lengths.
 
     The objective is the residual of the profile library (:func:`profile_library`: the run's catalog
     effects, all their terms; ``physics`` = its (library, extra parameters) when already built);
-    :func:`run_fit` then refines each on its profile.
+    :func:`run_fit` then refines each on its profile. ``refine_tolerance``: of the grid search's Brent refinement
+    (:func:`afmid.fit.search.search_1d`), relative to its bracket (two grid steps).
     """
     fit = config.fit
     estimates: dict[str, NonlinearEstimate] = {}
@@ -262,7 +264,7 @@ def estimate_nonlinear(prep, library, config, params, physics=None) -> dict[str,
                     lo_r, hi_r = (max(lo, cur / 2), min(hi, cur * 2)) if cur > 0 else (lo, min(hi, 4 * lo))
             else:
                 lo_r, hi_r = lo, hi
-            best, grid, values = search_1d(objective, lo_r, hi_r, n_grid, log_scale)
+            best, grid, values = search_1d(objective, lo_r, hi_r, n_grid, log_scale, refine_tolerance)
             if name in zero_allowed and objective(0.0) <= min(objective(best), float(np.min(values))):
                 best = 0.0
             params[name] = best

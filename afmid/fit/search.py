@@ -59,8 +59,10 @@ class NonlinearEstimate:
     sigma_jackknife: float = math.nan
 
 
-def search_1d(objective, lo: float, hi: float, n_grid: int, log_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
-    """Grid then bounded Brent refinement; returns (argmin, grid, values)."""
+def search_1d(objective, lo: float, hi: float, n_grid: int, log_scale: bool, tolerance: float = 1e-6
+              ) -> tuple[float, np.ndarray, np.ndarray]:
+    """Grid then bounded Brent refinement to ``tolerance`` times the width of the bracket around the grid's best
+    point (on a log scale: to ``tolerance`` in the logarithm); returns (argmin, grid, values)."""
     from scipy.optimize import minimize_scalar
 
     grid = np.geomspace(lo, hi, n_grid) if log_scale else np.linspace(lo, hi, n_grid)
@@ -72,9 +74,9 @@ def search_1d(objective, lo: float, hi: float, n_grid: int, log_scale: bool) -> 
         return float(grid[i]), grid, values
     if log_scale:
         res = minimize_scalar(lambda u: objective(math.exp(u)), bounds=(math.log(a), math.log(b)), method="bounded",
-                              options={"xatol": 1e-6})
+                              options={"xatol": tolerance})
         best = math.exp(res.x)
     else:
-        res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": (b - a) * 1e-6})
+        res = minimize_scalar(objective, bounds=(a, b), method="bounded", options={"xatol": (b - a) * tolerance})
         best = float(res.x)
     return (best, grid, values) if res.fun <= values[i] else (float(grid[i]), grid, values)

@@ -78,6 +78,6 @@ def signature_of_fit(prep, library, system, coef, params: dict, rows: np.ndarray
     ``d``, signal rows): the period curves on ``config.fit.phase_points`` and :func:`signature_of`."""
     from afmid.fit.forces import period_curves
 
-    periods = period_curves(prep, library, system, coef, params, rows, config.fit.phase_points)
+    periods = period_curves(prep, library, system, coef, params, rows, config.fit.phase_points, keep_curves=True)
     return signature_of(ResidualView(periods, prep.blocks.harmonics, rows, config,
                                      {"frequency": prep.drive.frequency}))
