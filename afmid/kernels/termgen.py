@@ -42,7 +42,7 @@ _by_structure: dict[tuple, object] = {}  # program structure -> generated module
 class TermKernel:
     """A generated module for one library structure and the constants of one parameter set for it."""
 
-    module: object  # has eval_rows(consts, x, xdot, t, separation, a0, out) -> (all finite, any zero)
+    module: object  # has eval_rows (the columns) and stiffness_squares (the regressor-noise pass)
     consts: np.ndarray  # the programs' constants concatenated in term order
 
     def eval_rows(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, separation: float, a0: float,
@@ -53,6 +53,16 @@ class TermKernel:
         checks the values themselves, as after the VM kernel)."""
         finite, any_zero = self.module.eval_rows(self.consts, x, xdot, t, separation, a0, out)
         return bool(finite), bool(any_zero)
+
+    def stiffness_squares(self, coef: np.ndarray, x: np.ndarray, xdot: np.ndarray, t: np.ndarray,
+                          separation: float, a0: float, eps: float) -> float:
+        """The sum over the samples of rows (x, xdot, t: (rows, n), m, m/s, s) of the squared central difference
+        ((F(x + eps) - F(x - eps)) / (2 eps))^2, (N/m)^2, of the force F = sum_j coef[j] term j: one pass, no
+        columns. Its plain-NumPy twin is the columns at x +- eps times ``coef`` (afmid.fit.prepare's
+        regressor-noise pass without a generated kernel); they differ by rounding (the force summed term by term
+        here, by BLAS there; the squares summed in sample order here, pairwise by np.sum there)."""
+        return float(self.module.stiffness_squares(self.consts, np.ascontiguousarray(coef, dtype=np.float64),
+                                                   x, xdot, t, separation, a0, eps))
 
 
 def _kinematics_source() -> str:
@@ -105,6 +115,36 @@ def module_source(programs) -> str:
         w.emit(2, "any_zero = True")
         offset += len(program.consts)
     w.emit(1, "return total, any_zero")
+    w.emit(0, "")
+    w.emit(0, "")
+    w.emit(0, '@njit(cache=True, error_model="numpy", inline="always")')
+    w.emit(0, "def force_at(K, C, x, v, t, separation, a0):")
+    w.emit(1, '"""sum_j C[j] * term j at one sample, in term order."""')
+    if _reads(programs) & {0, 1, 2, 3}:
+        w.emit(1, "z, zdot, delta, deltadot = contact_kinematics_at(x, v, separation, a0)")
+    w.emit(1, "total = 0.0")
+    offset = 0
+    for j, program in enumerate(programs):
+        w.emit(1, f"# term {j}: {program.text}")
+        value = translate_program(program, offset, w, 1, 0)
+        w.emit(1, f"total += C[{j}] * {value}")
+        offset += len(program.consts)
+    w.emit(1, "return total")
+    w.emit(0, "")
+    w.emit(0, "")
+    w.emit(0, '@njit(cache=True, error_model="numpy", nogil=True)')
+    w.emit(0, "def stiffness_squares(K, C, x_rows, v_rows, t_rows, separation, a0, eps):")
+    w.emit(1, '"""sum over the samples of ((F(x + eps) - F(x - eps)) / (2 eps))^2, F = sum_j C[j] term j."""')
+    w.emit(1, "rows, n = x_rows.shape")
+    w.emit(1, "total = 0.0")
+    w.emit(1, "for r in range(rows):")
+    w.emit(2, "for i in range(n):")
+    w.emit(3, "x, v, t = x_rows[r, i], v_rows[r, i], t_rows[r, i]")
+    w.emit(3, "f_hi = force_at(K, C, x + eps, v, t, separation, a0)")
+    w.emit(3, "f_lo = force_at(K, C, x - eps, v, t, separation, a0)")
+    w.emit(3, "slope = (f_hi - f_lo) / (2 * eps)")
+    w.emit(3, "total += slope * slope")
+    w.emit(1, "return total")
     w.emit(0, "")
     w.emit(0, "")
     w.emit(0, '@njit(cache=True, error_model="numpy", nogil=True)  # nogil: chunks of one trace run in threads')

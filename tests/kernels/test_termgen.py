@@ -122,3 +122,37 @@ def test_a_library_travels_to_another_process_without_its_kernel():
     copy = pickle.loads(pickle.dumps(library))
     x, v, t = _trajectory(rows=2, n=40)
     np.testing.assert_array_equal(copy.evaluate_rows(x, v, t, params), library.evaluate_rows(x, v, t, params))
+
+
+@pytest.mark.parametrize("name", list(LIBRARIES))
+def test_stiffness_squares_equals_the_columns_at_x_plus_minus_eps_to_rounding(name):
+    """The fused regressor-noise pass (sum of squared central differences of the model force) against its
+    NumPy twin, the columns at x +- eps times the coefficients (Library.evaluate_rows, BLAS), squared and summed by
+    np.sum. Bound from the arithmetic: each force is a p-term dot product (error <= p u sum_j |c_j term_j| in
+    either path), so a slope s_i errs by <= 2 p u (A_i + B_i) / (2 eps) between them (A, B: those sums at x + eps
+    and x - eps); its square by 2 |s_i| ds_i + ds_i^2; the sums of n squares by n u (in sample order) + log2(n) u
+    (pairwise) of their total."""
+    library = build_library(LIBRARIES[name])
+    params = _params()
+    x, v, t = _trajectory(rows=4, n=997)
+    rng = np.random.default_rng(5)
+    with np.errstate(all="ignore"):  # each term's coefficient scaled to its own size: every term counts
+        size = np.sqrt(np.nanmean(library.evaluate_rows(x, v, t, params) ** 2, axis=0))
+    coef = rng.uniform(0.5, 2.0, len(library)) * rng.choice([-1.0, 1.0], len(library)) / np.where(size > 0, size, 1)
+    eps = 2e-13
+    got = library.term_kernel(params).stiffness_squares(coef, x, v, t, params["d"], params["a0"], eps)
+    with np.errstate(all="ignore"):
+        hi = library.evaluate_rows(x + eps, v, t, params) * coef
+        lo = library.evaluate_rows(x - eps, v, t, params) * coef
+    finite = np.isfinite(hi).all(axis=1) & np.isfinite(lo).all(axis=1)
+    if not finite.all():  # a library singular somewhere on this trajectory: compare where it is finite
+        pytest.skip("columns not finite on the test trajectory")
+    slope = (hi.sum(axis=1) - lo.sum(axis=1)) / (2 * eps)
+    f_hi = library.evaluate_rows(x + eps, v, t, params) @ coef
+    f_lo = library.evaluate_rows(x - eps, v, t, params) @ coef
+    twin = float(np.sum(((f_hi - f_lo) / (2 * eps)) ** 2))
+    u, p, n = np.finfo(float).eps / 2, len(library), x.size
+    d_slope = 2 * p * u * (np.abs(hi).sum(axis=1) + np.abs(lo).sum(axis=1)) / (2 * eps)
+    bound = np.sum(2 * np.abs(slope) * d_slope + d_slope**2) + (n + np.log2(n)) * u * twin
+    assert abs(got - twin) <= bound, (got, twin, bound)
+    assert got > 0
