@@ -112,7 +112,10 @@ class PeriodVote:
                                          [max(int(system.n_rows * g.size / n_blocks), 1) for g in groups],
                                          system.protected, settings.method, key, settings.thresholds,
                                          settings.penalty, settings.rules)
-        _last_picks = (weakref.ref(system), weakref.ref(settings), sizes, picks.copy())
+        try:
+            _last_picks = (weakref.ref(system), weakref.ref(settings), sizes, picks.copy())
+        except TypeError:  # an object without weak references (a stand-in system): nothing kept
+            _last_picks = ()
         return picks
 
     def _vote(self, settings, system, T: np.ndarray, picks: np.ndarray) -> np.ndarray:
