@@ -346,7 +346,14 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
     keep = np.flatnonzero(coef[:p] != 0)  # only the terms of the model enter its stiffness
     model = dataclasses.replace(library, terms=[library.terms[j] for j in keep])
 
+    # A generated kernel (afmid.kernels.termgen) takes the central difference in one pass without the columns;
+    # without one (state gates), the columns at x +- eps: the same up to rounding (its docstring).
+    kernel = model.term_kernel(params) if keep.size else None
+
     def squared_stiffness(_, x, v, t):  # (sum of squares, samples) of one chunk
+        if kernel is not None:
+            total = kernel.stiffness_squares(coef[keep], x, v, t, float(params["d"]), float(params["a0"]), eps)
+            return total, x.size
         f_hi = _model_force(model, x + eps, v, t, params) @ coef[keep]
         f_lo = _model_force(model, x - eps, v, t, params) @ coef[keep]
         return float(np.sum(((f_hi - f_lo) / (2 * eps)) ** 2)), f_hi.size

@@ -19,6 +19,7 @@ on the whole record, and the coefficients are fitted on it.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +57,22 @@ def period_groups(n_blocks: int, group_blocks: int) -> list[np.ndarray]:
     return [g for g in np.array_split(np.arange(n_blocks), n_groups) if g.size]
 
 
+def group_factors(T_blocks: np.ndarray, groups: list[np.ndarray]) -> list[np.ndarray]:
+    """:func:`afmid.fit.regression.combine` of each group's block factors, in group order: one LAPACK call per
+    group size (:func:`afmid.fit.regression.combine_each`, the same bits) instead of one per group."""
+    out: list = [None] * len(groups)
+    by_size: dict[int, list[int]] = {}
+    for i, g in enumerate(groups):
+        by_size.setdefault(g.size, []).append(i)
+    for members in by_size.values():
+        for i, R in zip(members, regression.combine_each(T_blocks[np.stack([groups[i] for i in members])])):
+            out[i] = R
+    return out
+
+
+_last_picks: tuple = ()  # PeriodVote._picks: (system, settings) weak references, group sizes, picks
+
+
 @dataclass(frozen=True)
 class PeriodVote:
     """The support held by the majority of the selections made on groups of ``periods`` periods each.
@@ -83,12 +100,23 @@ class PeriodVote:
         return period_groups(system.T_blocks.shape[0], windows)
 
     def _picks(self, settings, system, groups) -> np.ndarray:
+        # select() and bag() of one system ask for the same picks (thousands of groups on a long record): the
+        # last ones are kept, tied to the system and settings by weak references (nothing is kept alive).
+        global _last_picks
+        sizes = tuple(g.size for g in groups)
+        if _last_picks and _last_picks[0]() is system and _last_picks[1]() is settings and _last_picks[2] == sizes:
+            return _last_picks[3].copy()
         key = regression.resample_key(settings.criterion)
         n_blocks = system.T_blocks.shape[0]
-        return regression.pick_supports((regression.combine(system.T_blocks[g]) for g in groups),
-                                        [max(int(system.n_rows * g.size / n_blocks), 1) for g in groups],
-                                        system.protected, settings.method, key, settings.thresholds,
-                                        settings.penalty, settings.rules)
+        picks = regression.pick_supports(group_factors(system.T_blocks, groups),
+                                         [max(int(system.n_rows * g.size / n_blocks), 1) for g in groups],
+                                         system.protected, settings.method, key, settings.thresholds,
+                                         settings.penalty, settings.rules)
+        try:
+            _last_picks = (weakref.ref(system), weakref.ref(settings), sizes, picks.copy())
+        except TypeError:  # an object without weak references (a stand-in system): nothing kept
+            _last_picks = ()
+        return picks
 
     def _vote(self, settings, system, T: np.ndarray, picks: np.ndarray) -> np.ndarray:
         # A majority overrules the whole record's criterion only when it is clear: more than one binomial

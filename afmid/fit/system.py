@@ -132,7 +132,10 @@ def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np
             states = library.states_along(x.ravel(), v.ravel(), t.ravel(), params)
         along = states.reshape(-1, *x.shape)
         sub_states = library.states_from(along[:, rows, cols - 1], xs, vs, ts, params)
-    sub = library.evaluate(xs.ravel(), vs.ravel(), ts.ravel(), params, state_values=sub_states)
+    if library.states:
+        sub = library.evaluate(xs.ravel(), vs.ravel(), ts.ravel(), params, state_values=sub_states)
+    else:  # the same bits through the library's generated kernel (Library.evaluate_rows)
+        sub = library.evaluate_rows(xs, vs, ts, params)
     fine[rows, cols, :] = sub.reshape(rows.size, SWITCH_SUBSAMPLES, -1).mean(axis=1)
 
 

@@ -79,7 +79,9 @@ class LawKernel:
 
 
 # =========================================================================== translation
-class _Writer:
+class SourceWriter:
+    """Lines of generated Python source, with fresh temporary names (``_t1``, ``_t2``, ...)."""
+
     def __init__(self):
         self.lines: list[str] = []
         self._n = 0
@@ -96,8 +98,11 @@ def _operand_names(n_gates: int) -> list[str]:
     return [*_SLOT_NAMES, *(f"gates[{g}]" for g in range(n_gates))]
 
 
-def _translate(program: expr.Program, offset: int, w: _Writer, indent: int, n_gates: int) -> str:
-    """Emit statements computing ``program`` (constants at consts[offset:]); return the name of its value."""
+def translate_program(program: expr.Program, offset: int, w: SourceWriter, indent: int, n_gates: int) -> str:
+    """Emit statements computing ``program`` (constants at consts[offset:]); return the name of its value.
+
+    The program's variable slots are the locals z, zdot, delta, deltadot, x, v, t (and ``gates[g]``), which the
+    surrounding generated code defines (afmid.kernels.termgen uses it too)."""
     code = [int(c) for c in program.code]
     names = _operand_names(n_gates)
 
@@ -185,7 +190,7 @@ def _unary(op: int, a: str) -> str:
     raise GenerationError(f"unknown unary opcode {op}")
 
 
-def _pow_halves(a: str, k: int, w: _Writer, level: int) -> str:
+def _pow_halves(a: str, k: int, w: SourceWriter, level: int) -> str:
     """a ** (k/2) exactly as the VM's _pow_halves: repeated multiplication from 1.0, times sqrt, inverted."""
     m = abs(k)
     result = w.temp()
@@ -207,7 +212,7 @@ def _pow_halves(a: str, k: int, w: _Writer, level: int) -> str:
     return result
 
 
-def _variables(w: _Writer, programs: list[expr.Program]) -> None:
+def _variables(w: SourceWriter, programs: list[expr.Program]) -> None:
     """Emit the variable locals the programs read (as afmid.kernels.integrate.fill_variables computes them)."""
     used = set()
     for p in programs:
@@ -254,7 +259,7 @@ def law_source(terms, switching, conditions, n_gates: int) -> str:
     ]
 
     def function(name: str, signature: str, doc: str, body) -> None:
-        w = _Writer()
+        w = SourceWriter()
         w.emit(0, "")
         w.emit(0, "")
         # Compiled as functions of their own: LLVM inlines them into the algorithm anyway, and numba
@@ -267,33 +272,33 @@ def law_source(terms, switching, conditions, n_gates: int) -> str:
         body(w)
         out.extend(w.lines)
 
-    def term_sum(w: _Writer) -> None:
+    def term_sum(w: SourceWriter) -> None:
         values = []
         for j, (p, off) in enumerate(zip(terms, t_off)):
             w.emit(1, f"# term {j}: {p.text}")
-            values.append(_translate(p, off, w, 1, n_gates))
+            values.append(translate_program(p, off, w, 1, n_gates))
         w.emit(1, "total = 0.0")
         for j, value in enumerate(values):
             w.emit(1, f"total += C[{j}] * {value}")
 
-    def force_body(w: _Writer) -> None:
+    def force_body(w: SourceWriter) -> None:
         _variables(w, terms)
         term_sum(w)
         w.emit(1, "return total")
 
-    def full_body(w: _Writer) -> None:
+    def full_body(w: SourceWriter) -> None:
         _variables(w, terms + switching)
         term_sum(w)
         for j, (p, off) in enumerate(zip(switching, s_off)):
             w.emit(1, f"# switching function {j}: {p.text}")
-            w.emit(1, f"s_out[{j}] = {_translate(p, off, w, 1, n_gates)}")
+            w.emit(1, f"s_out[{j}] = {translate_program(p, off, w, 1, n_gates)}")
         w.emit(1, "return total")
 
-    def conditions_body(w: _Writer) -> None:
+    def conditions_body(w: SourceWriter) -> None:
         _variables(w, conditions)
         for j, (p, off) in enumerate(zip(conditions, c_off)):
             w.emit(1, f"# gate {j // 2} {'off' if j % 2 else 'on'}: {p.text}")
-            w.emit(1, f"cond_out[{j}] = {_translate(p, off, w, 1, n_gates)}")
+            w.emit(1, f"cond_out[{j}] = {translate_program(p, off, w, 1, n_gates)}")
 
     function("law_force", "x, v, t, dyn, gates, law, work", "F_ts (N) at (x, v, t) with the current gates.",
              force_body)

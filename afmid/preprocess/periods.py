@@ -175,12 +175,12 @@ class HarmonicBlocks:
 
     def derivative(self, coef: np.ndarray, order: int = 1) -> np.ndarray:
         """Coefficients of the ``order``-th time derivative (exact for the series)."""
-        out = coef.copy()
         n = np.arange(1, self.K + 1)[None, :, None] * self.omega
-        for _ in range(order):
-            a, b = out[:, 1::2, :].copy(), out[:, 2::2, :].copy()
-            out[:, 1::2, :] = n * b
-            out[:, 2::2, :] = -n * a
+        out = coef.copy() if order == 0 else coef
+        for _ in range(order):  # each order written once into a fresh array (copies of the halves cost 3 passes)
+            out, a, b = np.empty_like(out), out[:, 1::2, :], out[:, 2::2, :]
+            np.multiply(n, b, out=out[:, 1::2, :])
+            np.multiply(-n, a, out=out[:, 2::2, :])  # -n * a, as (-n) * a
             out[:, 0, :] = 0.0
         return out
 
