@@ -407,7 +407,7 @@ class FitConfig(StrictModel):
     @field_validator("differentiation")
     @classmethod
     def _known_differentiator(cls, name: str) -> str:
-        from afmid.preprocess.periods import DIFFERENTIATORS
+        from afmid.preprocess.differentiation import DIFFERENTIATORS
 
         if name not in DIFFERENTIATORS:
             raise ValueError(unknown_name_message("differentiator", name, DIFFERENTIATORS.names()))
@@ -424,7 +424,7 @@ class FitConfig(StrictModel):
 
     @model_validator(mode="after")
     def _known_differentiation_options(self) -> "FitConfig":
-        from afmid.preprocess.periods import DIFFERENTIATORS
+        from afmid.preprocess.differentiation import DIFFERENTIATORS
 
         if self.differentiation in DIFFERENTIATORS:
             problem = DIFFERENTIATORS.get(self.differentiation).check_options(self.differentiation_options)

@@ -124,7 +124,7 @@ def _sindy(threshold: float, library, x, t, x_dot=None, u=None):
 def regression_only(quick: bool) -> dict:
     import afmid.fit.regression as regression
     from afmid.fit.pipeline import term_penalties
-    from afmid.preprocess.periods import differentiate
+    from afmid.preprocess.differentiation import differentiate
 
     cfg, trace, library, true = _setup(cached_trace(CONFIG, NOISE_OFF, "lennard_jones_noise_free"))
     fs, f = trace.sample_rate, trace.drive_frequency

@@ -25,7 +25,6 @@ from afmid.preprocess.periods import (
     HarmonicBlocks,
     WeakWindows,
     detrend,
-    differentiate,
     estimate_drive,
     amplitude_per_block,
     harmonic_blocks,
@@ -33,6 +32,7 @@ from afmid.preprocess.periods import (
     steadiness,
     weak_windows,
 )
+from afmid.preprocess.differentiation import differentiate
 from afmid.preprocess.harmonics import transient_limit
 from afmid.preprocess.motion import classify as classify_motion
 from afmid.fit.forces import CHUNK_BLOCKS
