@@ -25,6 +25,12 @@ log = logging.getLogger(__name__)
 
 #: Environment variable naming an existing scheduler (``tcp://HOST:PORT``) when ``--scheduler`` is not given.
 SCHEDULER_ENV = "AFMID_SCHEDULER"
+#: dask's statistical profiler samples each worker's task thread every 10 ms, taking the GIL to walk its Python
+#: stack: measured on the 64x64 blend map (bench conditions, 2 local workers, quiet machine) 91.6-94.1 s with it,
+#: 86.6 s without, CPU 176 -> 169 s, maps bit-identical. afmid's local cluster runs without it (its nannies hand
+#: the workers the dask config of this process as it is when they are made); a cluster afmid did not start keeps
+#: its own setting (docs/maps.md).
+WORKER_PROFILER_OFF = {"distributed.worker.profile.enabled": False}
 
 
 def scheduler_address(option: str | None) -> str | None:
@@ -53,6 +59,7 @@ class DaskEngine:
         return self.n_workers_seen
 
     def _client(self, n_tasks: int):
+        import dask
         from distributed import Client, LocalCluster
 
         if self.scheduler is not None:
@@ -65,9 +72,10 @@ class DaskEngine:
             return client, None
         # A terminal's Ctrl-C reaches the whole process group: the workers ignore it (afmid.batch.dask_worker_setup)
         # and leave it to this process, which cancels the tasks and keeps what finished.
-        cluster = LocalCluster(n_workers=self.workers_for(n_tasks), threads_per_worker=1, processes=True,
-                               dashboard_address=None, env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR,
-                               preload=["afmid.batch.dask_worker_setup"])
+        with dask.config.set(WORKER_PROFILER_OFF):
+            cluster = LocalCluster(n_workers=self.workers_for(n_tasks), threads_per_worker=1, processes=True,
+                                   dashboard_address=None, env=dict(SINGLE_THREAD_ENV), silence_logs=logging.ERROR,
+                                   preload=["afmid.batch.dask_worker_setup"])
         self.n_workers_seen = len(cluster.workers)
         return Client(cluster, set_as_default=False), cluster
 
