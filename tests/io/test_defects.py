@@ -387,3 +387,19 @@ def test_a_coarsely_quantized_trace_is_warned_about_and_a_fine_one_is_not():
     assert check_quantization(x) == []
     assert check_quantization(np.round(x / 0.5e-12) * 0.5e-12) == []
     assert np.unique(np.round(x / 0.5e-12)).size > MIN_LEVELS
+
+
+def test_the_drive_lines_f_threshold_is_scipys():
+    """The drive-line test's threshold (an F(2, 2m) quantile) in closed form: scipy's survival function gives back
+    the probability (scipy's own isf, a numerical inversion, is off by 3e-8 relative at p = 1e-9, d2 = 2, where
+    the exact value is 1/p - 1), and it agrees with scipy's isf where that is accurate."""
+    from scipy.stats import f as f_distribution
+
+    from afmid.io.oscillation import f_2_isf
+
+    assert f_2_isf(1e-9, 2) == pytest.approx(1e9 - 1, rel=1e-12)
+    for p in (1e-9, 1e-6, 1e-3 / 7, 0.05, 0.5):
+        for d2 in (2, 8, 40, 400, 4000):
+            assert float(f_distribution.sf(f_2_isf(p, d2), 2, d2)) == pytest.approx(p, rel=1e-9), (p, d2)
+            if p >= 1e-3 / 7:
+                assert f_2_isf(p, d2) == pytest.approx(float(f_distribution.isf(p, 2, d2)), rel=1e-8), (p, d2)

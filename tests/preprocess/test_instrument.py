@@ -66,10 +66,22 @@ def test_digital_detector_matches_scipy_analog_response_at_the_harmonics(filter_
 
 
 def test_filters_are_registered_with_unit_gain_at_dc():
+    """Every family at every order it allows passes DC with gain 1 (registration checks only the declaration:
+    designing a filter there imported scipy.signal into every afmid process)."""
     assert set(FILTERS.names()) == {"butterworth", "bessel", "first_order"}
     for kind in FILTERS:
-        b, a = kind.analog(1, 2 * np.pi * 1e6)
-        assert np.polyval(b, 0) / np.polyval(a, 0) == pytest.approx(1.0, abs=1e-12)
+        for order in range(1, kind.max_order + 1):
+            b, a = kind.analog(order, 2 * np.pi * 1e6)
+            assert np.polyval(b, 0) / np.polyval(a, 0) == pytest.approx(1.0, abs=1e-12), (kind.name, order)
+
+
+def test_importing_the_fit_does_not_import_scipy_signal():
+    import subprocess
+    import sys
+
+    code = "import sys, afmid.fit.pipeline, afmid.maps.task; print('scipy.signal' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() \
+        == "False"
 
 
 def test_per_harmonic_gain_is_the_filter_on_the_series():
