@@ -212,8 +212,8 @@ def _pow_halves(a: str, k: int, w: SourceWriter, level: int) -> str:
     return result
 
 
-def _variables(w: SourceWriter, programs: list[expr.Program]) -> None:
-    """Emit the variable locals the programs read (as afmid.kernels.integrate.fill_variables computes them)."""
+def variables_read(programs) -> set[int]:
+    """The variable slots (afmid.kernels.integrate.fill_variables' order) that the programs' code reads."""
     used = set()
     for p in programs:
         code = [int(c) for c in p.code]
@@ -223,7 +223,12 @@ def _variables(w: SourceWriter, programs: list[expr.Program]) -> None:
             if op == expr.PUSH_VAR:
                 used.add(code[pc + 1])
             pc += 2 if op in (expr.PUSH_VAR, expr.PUSH_CONST, expr.JUMP_IF_FALSE_PUSH0, expr.POW_HALVES) else 1
-    if used & {0, 1, 2, 3}:  # contact_kinematics_at is in the algorithm section copied into the kernel
+    return used
+
+
+def _variables(w: SourceWriter, programs: list[expr.Program]) -> None:
+    """Emit the variable locals the programs read (as afmid.kernels.integrate.fill_variables computes them)."""
+    if variables_read(programs) & {0, 1, 2, 3}:  # contact_kinematics_at is in the algorithm section copied into the kernel
         w.emit(1, "z, zdot, delta, deltadot = contact_kinematics_at(x, v, dyn[5], dyn[6])")
 
 

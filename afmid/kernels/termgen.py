@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import afmid.physics.expr as expr
-from afmid.kernels.lawgen import GenerationError, SourceWriter, load_module, translate_program
+from afmid.kernels.lawgen import GenerationError, SourceWriter, load_module, translate_program, variables_read
 
 #: Bump when the generated text changes in a way the text itself would not show.
 GENERATOR_VERSION = 1
@@ -74,20 +74,6 @@ def _kinematics_source() -> str:
     return '@njit(cache=True, error_model="numpy", inline="always")\n' + body
 
 
-def _reads(programs) -> set[int]:
-    """The variable slots the programs read."""
-    used = set()
-    for program in programs:
-        code = [int(c) for c in program.code]
-        pc = 0
-        while pc < len(code):
-            op = code[pc]
-            if op == expr.PUSH_VAR:
-                used.add(code[pc + 1])
-            pc += 2 if op in (expr.PUSH_VAR, expr.PUSH_CONST, expr.JUMP_IF_FALSE_PUSH0, expr.POW_HALVES) else 1
-    return used
-
-
 #: Samples of a row per tile when ``out`` is sample-major (the weak form's layout, rows = blocks): the kernel runs
 #: over a tile of 8 samples (a cache line of x, xdot and t) for every row, so that its writes are contiguous; row
 #: by row they would land one per page (7 ns a sample against 2 ns).
@@ -103,7 +89,7 @@ def module_source(programs) -> str:
     w.emit(1, '"""out[r, i, :] = the terms at one sample; returns (their sum, whether one is exactly zero)."""')
     w.emit(1, "total = 0.0")
     w.emit(1, "any_zero = False")
-    if _reads(programs) & {0, 1, 2, 3}:
+    if variables_read(programs) & {0, 1, 2, 3}:
         w.emit(1, "z, zdot, delta, deltadot = contact_kinematics_at(x, v, separation, a0)")
     offset = 0
     for j, program in enumerate(programs):
@@ -120,7 +106,7 @@ def module_source(programs) -> str:
     w.emit(0, '@njit(cache=True, error_model="numpy", inline="always")')
     w.emit(0, "def force_at(K, C, x, v, t, separation, a0):")
     w.emit(1, '"""sum_j C[j] * term j at one sample, in term order."""')
-    if _reads(programs) & {0, 1, 2, 3}:
+    if variables_read(programs) & {0, 1, 2, 3}:
         w.emit(1, "z, zdot, delta, deltadot = contact_kinematics_at(x, v, separation, a0)")
     w.emit(1, "total = 0.0")
     offset = 0
