@@ -19,7 +19,6 @@ on the whole record, and the coefficients are fitted on it.
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,7 +69,8 @@ def group_factors(T_blocks: np.ndarray, groups: list[np.ndarray]) -> list[np.nda
     return out
 
 
-_last_picks: tuple = ()  # PeriodVote._picks: (system, settings) weak references, group sizes, picks
+#: Where PeriodVote keeps a system's last group selections (an attribute of the system: gone with it).
+_PICKS_MEMO = "_period_vote_picks"
 
 
 @dataclass(frozen=True)
@@ -101,21 +101,20 @@ class PeriodVote:
 
     def _picks(self, settings, system, groups) -> np.ndarray:
         # select() and bag() of one system ask for the same picks (thousands of groups on a long record): the
-        # last ones are kept, tied to the system and settings by weak references (nothing is kept alive).
-        global _last_picks
+        # last ones are kept on the system itself, with the settings and group sizes they were made for.
         sizes = tuple(g.size for g in groups)
-        if _last_picks and _last_picks[0]() is system and _last_picks[1]() is settings and _last_picks[2] == sizes:
-            return _last_picks[3].copy()
+        memo = getattr(system, "__dict__", None)  # None: a stand-in system without attributes, nothing kept
+        kept = memo.get(_PICKS_MEMO) if memo is not None else None
+        if kept is not None and kept[0] is settings and kept[1] == sizes:
+            return kept[2].copy()
         key = regression.resample_key(settings.criterion)
         n_blocks = system.T_blocks.shape[0]
         picks = regression.pick_supports(group_factors(system.T_blocks, groups),
                                          [max(int(system.n_rows * g.size / n_blocks), 1) for g in groups],
                                          system.protected, settings.method, key, settings.thresholds,
                                          settings.penalty, settings.rules)
-        try:
-            _last_picks = (weakref.ref(system), weakref.ref(settings), sizes, picks.copy())
-        except TypeError:  # an object without weak references (a stand-in system): nothing kept
-            _last_picks = ()
+        if memo is not None:
+            memo[_PICKS_MEMO] = (settings, sizes, picks.copy())
         return picks
 
     def _vote(self, settings, system, T: np.ndarray, picks: np.ndarray) -> np.ndarray:
