@@ -176,9 +176,7 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
                 nuisance[b0:w1, :, n_drive:n_drive + 1] = windows.integrate_samples(windows.psi, xs, b0, w1 - b0, turn)
                 nuisance[b0:w1, :, n_drive + 1:] = windows.integrate_samples(minus_dpsi, xs, b0, w1 - b0, turn)
 
-    map_in_order(project_chunk, chunks)
-    if len(chunks) > 1:
-        _release_free_memory()
+    _map_chunks(project_chunk, chunks)
 
     # The trajectory, the outputs and the noise level.
     V = blocks.derivative(X, 1)
@@ -369,8 +367,7 @@ def with_regressor_noise(prep: Prepared, library: Library, params: dict, coef: n
             (x,) = prep.blocks.synthesize_fine_rows(prep.X_traj[b0:b1], first=b0)
             return squared_stiffness(b0, x, x, prep.blocks.fine_times(b0, b1))
 
-        parts = map_in_order(on_chunk, _fine_chunk_bounds(prep.blocks.n_blocks, 0))
-        _release_free_memory()
+        parts = _map_chunks(on_chunk, _fine_chunk_bounds(prep.blocks.n_blocks, 0))
     else:
         parts = map_fine_chunks(prep, squared_stiffness) if keep.size else []
     total, count = 0.0, 0
@@ -423,8 +420,13 @@ def map_fine_chunks(prep: Prepared, work, overlap: int = 0) -> list:
         (chunk,) = _fine_chunks(prep, (bounds,))
         return work(*chunk)
 
-    bounds = _fine_chunk_bounds(prep.blocks.n_blocks, overlap)
-    out = map_in_order(on_chunk, bounds)
+    return _map_chunks(on_chunk, _fine_chunk_bounds(prep.blocks.n_blocks, overlap))
+
+
+def _map_chunks(work, bounds) -> list:
+    """:func:`afmid.threads.map_in_order` over chunk ``bounds``, then the freed pages handed back when there was
+    more than one chunk (:func:`_release_free_memory` says why not after one)."""
+    out = map_in_order(work, bounds)
     if len(bounds) > 1:
         _release_free_memory()
     return out
