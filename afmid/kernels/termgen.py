@@ -84,37 +84,39 @@ def module_source(programs) -> str:
     """The text of the generated module for these programs (a library's terms, in column order)."""
     programs = list(programs)
     w = SourceWriter()
+    kinematics = bool(variables_read(programs) & {0, 1, 2, 3})
+
+    def each_term(on_value) -> None:  # the terms' statements in column order; on_value(j, name of its value)
+        offset = 0
+        for j, program in enumerate(programs):
+            w.emit(1, f"# term {j}: {program.text}")
+            on_value(j, translate_program(program, offset, w, 1, 0))
+            offset += len(program.consts)
+
+    def into_out(j: int, value: str) -> None:
+        w.emit(1, f"out[r, i, {j}] = {value}")
+        w.emit(1, f"total += {value}")
+        w.emit(1, f"if {value} == 0.0:")
+        w.emit(2, "any_zero = True")
+
     w.emit(0, '@njit(cache=True, error_model="numpy", inline="always")')
     w.emit(0, "def terms_at(K, out, r, i, x, v, t, separation, a0):")
     w.emit(1, '"""out[r, i, :] = the terms at one sample; returns (their sum, whether one is exactly zero)."""')
     w.emit(1, "total = 0.0")
     w.emit(1, "any_zero = False")
-    if variables_read(programs) & {0, 1, 2, 3}:
+    if kinematics:
         w.emit(1, "z, zdot, delta, deltadot = contact_kinematics_at(x, v, separation, a0)")
-    offset = 0
-    for j, program in enumerate(programs):
-        w.emit(1, f"# term {j}: {program.text}")
-        value = translate_program(program, offset, w, 1, 0)
-        w.emit(1, f"out[r, i, {j}] = {value}")
-        w.emit(1, f"total += {value}")
-        w.emit(1, f"if {value} == 0.0:")
-        w.emit(2, "any_zero = True")
-        offset += len(program.consts)
+    each_term(into_out)
     w.emit(1, "return total, any_zero")
     w.emit(0, "")
     w.emit(0, "")
     w.emit(0, '@njit(cache=True, error_model="numpy", inline="always")')
     w.emit(0, "def force_at(K, C, x, v, t, separation, a0):")
     w.emit(1, '"""sum_j C[j] * term j at one sample, in term order."""')
-    if variables_read(programs) & {0, 1, 2, 3}:
+    if kinematics:
         w.emit(1, "z, zdot, delta, deltadot = contact_kinematics_at(x, v, separation, a0)")
     w.emit(1, "total = 0.0")
-    offset = 0
-    for j, program in enumerate(programs):
-        w.emit(1, f"# term {j}: {program.text}")
-        value = translate_program(program, offset, w, 1, 0)
-        w.emit(1, f"total += C[{j}] * {value}")
-        offset += len(program.consts)
+    each_term(lambda j, value: w.emit(1, f"total += C[{j}] * {value}"))
     w.emit(1, "return total")
     w.emit(0, "")
     w.emit(0, "")
