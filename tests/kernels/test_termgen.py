@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tapping_rows import tapping_rows
 
 import afmid.physics.expr as expr
 from afmid.config import ModelConfig
@@ -36,14 +37,8 @@ def _params():
 
 
 def _trajectory(rows=5, n=701, seed=3):
-    """Rows of a tapping-like motion (m, m/s, s) that cross into contact (z <= a0); n is not a multiple of the
-    tile."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(rows * n).reshape(rows, n) * 1e-9
-    w = 2 * np.pi * 3e5
-    x = 9.75e-9 * np.cos(w * t) + 1e-12 * rng.standard_normal(t.shape)
-    v = -9.75e-9 * w * np.sin(w * t)
-    return x, v, t
+    """Rows crossing into contact (tests/support/tapping_rows.py); n is not a multiple of the tile."""
+    return tapping_rows(rows, n, seed)
 
 
 def _vm(library, params, x, v, t, out):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tapping_rows import tapping_rows
 
 from afmid.config import ModelConfig
 import afmid.physics.expr as expr
@@ -39,13 +40,8 @@ def eval_rows_numpy(library, params, x: np.ndarray, xdot: np.ndarray, t: np.ndar
 
 
 def _trajectory(rows=5, n=700, seed=3):
-    """Rows of a tapping-like motion (m, m/s, s) that cross into contact (z <= a0) at the rest separation 9.8 nm."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(rows * n).reshape(rows, n) * 1e-9
-    w = 2 * np.pi * 3e5
-    x = 9.75e-9 * np.cos(w * t) + 1e-12 * rng.standard_normal(t.shape)
-    v = -9.75e-9 * w * np.sin(w * t)
-    return x, v, t
+    """Rows crossing into contact (tests/support/tapping_rows.py)."""
+    return tapping_rows(rows, n, seed)
 
 
 def _params(library):
