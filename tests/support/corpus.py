@@ -53,6 +53,8 @@ class Case:
     leaves: tuple[str, ...] = ()  # workspace paths (relative) the command may create
     env: dict[str, str] = field(default_factory=dict)  # extra environment (subprocess cases)
     skip_unless: Callable[[], str | None] | None = None  # returns a reason to skip, or None
+    #: A further check of the workspace after the command (e.g. that a file it may leave is whole and listed).
+    then: Callable[[Path], None] | None = None
 
     def __post_init__(self):
         if self.category not in CATEGORIES:
@@ -167,4 +169,6 @@ def check_case(case: Case, workspace: Path, capsys, monkeypatch) -> str:
     assert not changed, f"inputs changed: {changed}"
     assert not removed, f"files removed: {removed}"
     assert not created, f"left behind: {created}"
+    if case.then is not None:
+        case.then(workspace)
     return line
