@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import afmid.fit.regression as regression
-from afmid.fit.uncertainty import widen_interval
 from afmid.errors import AfmidError
+from afmid.fit.uncertainty import add_largest_shift, widen_interval
 from afmid.registry import Registry
 
 #: How a pixel was fitted (stored per pixel in /maps/fit_route; names in its ``meaning`` attribute).
@@ -372,10 +372,14 @@ class SeparationSearch:
         return self.systems[nearest]
 
     def propagate(self, quantities: dict, found: "SeparationFound", read, support: np.ndarray) -> bool:
-        """Add d's sigma to the quantities' errors (in place) from their slope over the evaluated points within
-        3 sigma of the minimum (no library evaluation); ``read(coef, d)`` reads out. False when fewer than
-        three points are there (the caller refits at d +- sigma instead). Added in quadrature to the error and to
-        both halves of the 95 % interval, as afmid.fit.pipeline.propagate_nonlinear does."""
+        """Add d's sigma to the quantities' errors (in place) from the evaluated points within 3 sigma of the
+        minimum (no library evaluation); ``read(coef, d)`` reads out. Each read-out's change at d +- sigma is
+        read off the parabola through those points (in d), and the larger of the two sides is added, the rule of
+        the single-trace fit (afmid.fit.uncertainty.add_largest_shift): a slope through them misses a read-out
+        that is not monotone in d within its sigma (E* that falls on both sides of the minimum). For a read-out
+        linear in d this is the slope times sigma. False when fewer than three points are there (the caller
+        refits at d +- sigma instead). Added in quadrature to the error and to both halves of the 95 %
+        interval, as afmid.fit.pipeline.propagate_nonlinear does."""
         sigma = found.sigma
         if not (math.isfinite(sigma) and sigma > 0):
             return True  # nothing to propagate
@@ -388,11 +392,17 @@ class SeparationSearch:
             read_at = read(coef, v)
             for k in quantities:
                 values[k].append(read_at.get(k, {}).get("value", math.nan))
+        offsets = (np.asarray(near) - found.value) / sigma  # in sigmas: a well-conditioned parabola
+        sides = [{}, {}]  # the read-outs at d - sigma and d + sigma
+        for k, y in values.items():
+            y = np.asarray(y)
+            if np.all(np.isfinite(y)):
+                at = np.polynomial.polynomial.polyval([-1.0, 1.0], np.polynomial.polynomial.polyfit(offsets, y, 2))
+                sides[0][k], sides[1][k] = {"value": float(at[0])}, {"value": float(at[1])}
+        variance = {k: 0.0 for k in quantities}
+        add_largest_shift(variance, quantities, sides)
         for k, q in quantities.items():
-            y = np.asarray(values[k])
-            if not np.all(np.isfinite(y)):
-                continue
-            widen_interval(q, abs(np.polyfit(np.asarray(near) - found.value, y, 1)[0]) * sigma)
+            widen_interval(q, math.sqrt(variance[k]))
         return True
 
 

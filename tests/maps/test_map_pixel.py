@@ -224,3 +224,47 @@ def test_parabolic_minimum_from_a_neighbours_curvature():
                 calls[way] += fast.calls
                 assert way == "bracket" or fast.calls <= 4, (offset, scale, fast.calls)
     assert calls["curvature"] < calls["bracket"], calls
+
+
+def _search_over(points):
+    """A finished search whose systems (one block [A | y] of a one-column fit each) sit at ``points`` (m)."""
+    from types import SimpleNamespace
+
+    from afmid.maps.pixel_fit import SeparationSearch
+
+    block = np.array([[[1.0, 2.0], [0.0, 0.5]]])  # coefficient 2 at every point: the read-out reads d alone
+    return SeparationSearch(None, {float(v): SimpleNamespace(T_blocks=block) for v in points})
+
+
+def test_the_separations_sigma_reaches_a_read_out_by_its_larger_side():
+    """The map pixel adds d's sigma to a read-out as the single-trace fit does (the larger change at d +- sigma,
+    afmid.fit.uncertainty.add_largest_shift), from the search's points without a library evaluation: a read-out
+    linear in d gains |slope| sigma; one with its extremum at the minimum (a slope of zero through symmetric
+    points) gains its change at +- sigma, which a slope misses."""
+    from afmid.maps.pixel_fit import SeparationFound
+
+    d0, sigma = 5e-9, 0.2e-9
+    points = d0 + sigma * np.array([-2.0, -1.0, 0.0, 1.0, 2.0])
+    search = _search_over(points)
+    support = np.array([True])
+
+    def read(coef, d):
+        assert coef[0] == pytest.approx(2.0)
+        u = (d - d0) / sigma
+        return {"linear": {"value": 3.0 + 0.5 * u}, "valley": {"value": 3.0 - 0.8 * u * u},
+                "lopsided": {"value": 3.0 + 0.1 * u + 0.4 * u * u}}
+
+    quantities = {k: {"value": q["value"], "error": 0.1, "ci_low": q["value"] - 0.196, "ci_high": q["value"] + 0.196}
+                  for k, q in read(np.array([2.0]), d0).items()}
+    assert search.propagate(quantities, SeparationFound(d0, sigma), read, support)
+    expected = {"linear": 0.5, "valley": 0.8, "lopsided": 0.5}  # the larger side: 0.1 + 0.4 at +1 sigma
+    for k, shift in expected.items():
+        assert quantities[k]["error"] == pytest.approx(math.hypot(0.1, shift), rel=1e-9), k
+        assert quantities[k]["ci_high"] - 3.0 == pytest.approx(math.hypot(0.196, 1.96 * shift), rel=1e-9), k
+
+
+def test_the_map_pixel_refits_when_its_search_has_too_few_points_near_the_minimum():
+    from afmid.maps.pixel_fit import SeparationFound
+
+    search = _search_over([5e-9, 5.1e-9, 9e-9])  # one point more than 3 sigma away
+    assert not search.propagate({}, SeparationFound(5e-9, 0.1e-9), lambda c, d: {}, np.array([True]))
