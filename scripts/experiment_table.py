@@ -15,6 +15,7 @@ fit and with the named effect.
     python scripts/experiment_table.py --out table.jsonl          # all rows, three variants each
     python scripts/experiment_table.py --quick --out quick.jsonl  # one variant per row
     python scripts/experiment_table.py --table table.jsonl        # the markdown table of a finished run
+    python scripts/experiment_table.py --seed-offset 500 --out new.jsonl  # the same rows on new noise
 
 Run from the repository root (PYTHONPATH=other/checkout measures another version with the same traces).
 """
@@ -37,6 +38,8 @@ sys.path.insert(0, str(ROOT))
 
 DETECTOR = "data.detector={bandwidth: 3.0e6, filter: butterworth, order: 2}"  # 2-pole low-pass at 10 f0
 SECOND_MODE = "cantilever.higher_modes=[{resonance_frequency: 1.881e6, quality_factor: 750, spring_constant: 1572}]"
+#: Added to every trace's simulator seed (--seed-offset): the same rows on other noise realisations.
+SEED_OFFSET = 0
 NOISY = ["simulate.noise.detector_rms=1.0e-11", "simulate.samples_per_period=50"]  # 10 pm, 50 samples/period
 
 
@@ -151,7 +154,9 @@ def _raw(case: Case, with_instrument: bool) -> dict:
     base = (copy.deepcopy(case.base) if isinstance(case.base, dict)
             else read_yaml(ROOT / "tests" / "configs" / f"{case.base}.yaml"))
     overrides = case.overrides + (case.instrument if with_instrument else [])
-    return apply_overrides(base, [parse_override(o) for o in overrides])
+    raw = apply_overrides(base, [parse_override(o) for o in overrides])
+    raw["simulate"]["seed"] = int(raw["simulate"].get("seed", 0)) + SEED_OFFSET
+    return raw
 
 
 def measure(case: Case, folder: Path) -> dict:
@@ -263,7 +268,11 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="one variant per row")
     parser.add_argument("--only", help="rows whose name contains this")
     parser.add_argument("--table", type=Path, help="print the markdown table of a finished --out file")
+    parser.add_argument("--seed-offset", type=int, default=0,
+                        help="add this to every simulator seed (the same rows on new noise)")
     args = parser.parse_args(argv)
+    global SEED_OFFSET
+    SEED_OFFSET = args.seed_offset
     if args.table:
         print(table([json.loads(line) for line in args.table.read_text().splitlines() if line.strip()]))
         return 0

@@ -47,7 +47,8 @@ import afmid.fit.plausibility as plausibility
 from afmid.config import RunConfig
 from afmid.errors import InputError
 from afmid.io.trace import sha256_file
-from afmid.diagnosis.candidate_refit import refit_candidate, search_separation, separation_estimated
+from afmid.diagnosis.candidate_refit import (SEPARATION_WINDOW, refit_candidate, search_separation,
+                                             separation_estimated)
 from afmid.diagnosis.candidate_shapes import ShapeSearch
 # Where the residual sits: afmid.diagnosis.localize (importable from here as before).
 from afmid.diagnosis.localize import NEAR_RANGE, band_limit, energy_check, localize  # noqa: F401
@@ -213,7 +214,7 @@ def suggest(run: RunData, progress: bool = False) -> dict:
                          "sample.separation", file=run.path, key="sample.separation")
     if run.config.sample.separation is None and not run.separation > 0:
         # The run's model could not place the surface (a missing long-range force moves the estimate far): each
-        # candidate's separation is searched over the fit's whole window (candidate_refit.separation_start).
+        # candidate's separation is searched over the fit's whole window (candidate_refit.separation_starts).
         log.warning("the run's rest separation estimate (%.3g nm) is not physical: each candidate effect is refitted "
                     "with the separation searched over the fit's whole window", run.separation * 1e9)
     with _one_blas_thread():
@@ -377,7 +378,8 @@ def _fit_set(run: RunData, prepared, members: list[Trial]) -> _SetFit | None:
         fixed.update(m.shape)
     config.model.parameters = fixed
     if separation_estimated(run) and math.isfinite(members[0].separation):
-        config.sample.separation = search_separation(prepared, config, members[0].separation)
+        config.sample.separation = search_separation(prepared, config, members[0].separation - SEPARATION_WINDOW,
+                                                     members[0].separation + SEPARATION_WINDOW)
     try:
         result = _fit_quick(config, prepared)
     except Exception as exc:
