@@ -133,7 +133,8 @@ def separation_starts(run, prepared, config: RunConfig) -> tuple[list[float], fl
     low = max(min(low, run.separation - SEPARATION_WINDOW), config.sample.a0)
     high = max(high, run.separation + SEPARATION_WINDOW)
     middle = 0.5 * (low + high)
-    return [run.separation] + ([middle] if abs(middle - run.separation) > SEPARATION_REFINE_WINDOW else []), low, high
+    starts = [run.separation] + ([middle] if abs(middle - run.separation) > SEPARATION_REFINE_WINDOW else [])
+    return starts, low, high
 
 
 def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: list[str], shapes, fit_quick,
@@ -150,14 +151,14 @@ def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: 
     free = separation_estimated(run)
     quick = bool(shape_names) and config.fit.estimate_nonlinear and quick_shape
     if not free:
-        trial, shape, quick = _reprofile(config, config.sample.separation, None, effect, shape_names, shapes, quick,
-                                         prepared)[:3]
+        trial, shape, _ = _reprofile(config, config.sample.separation, None, effect, shape_names, shapes, quick,
+                                     prepared)
     else:
         starts, low, high = separation_starts(run, prepared, config)
         # Without a shape to search the grid over the span does not depend on the start.
         ends = [_reprofile(config, start, (low, high), effect, shape_names, shapes, quick, prepared)
                 for start in (starts if quick else starts[:1])]
-        trial, shape, quick = min(ends, key=lambda end: end[3])[:3]
+        trial, shape, _ = min(ends, key=lambda end: end[2])
     result = fit_quick(trial, prepared)
     if not shape:
         shape = {k: est.value for k, est in result.nonlinear.items() if k in shape_names}
@@ -167,7 +168,7 @@ def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: 
 def _reprofile(config: RunConfig, start: float, span, effect: str, shape_names: list[str], shapes, quick: bool,
                prepared):
     """The alternation of :func:`refit_candidate` from separation ``start`` (m) over ``span`` (low, high; None:
-    the separation is given): (trial config, shape, whether the quick shape search held, the last residual)."""
+    the separation is given): (trial config, shape, the last separation search's residual; inf without one)."""
     trial = copy.deepcopy(config)
     trial.sample.separation = start
     shape: dict[str, float] = {}
@@ -184,5 +185,6 @@ def _reprofile(config: RunConfig, start: float, span, effect: str, shape_names: 
         if span is not None:
             trial.sample.separation, residual = separation_minimum(prepared, trial, *span)
             # The next round starts from a separation that fits the effect.
-            span = (trial.sample.separation - SEPARATION_REFINE_WINDOW, trial.sample.separation + SEPARATION_REFINE_WINDOW)
-    return trial, shape, quick, residual
+            separation = trial.sample.separation
+            span = (separation - SEPARATION_REFINE_WINDOW, separation + SEPARATION_REFINE_WINDOW)
+    return trial, shape, residual
