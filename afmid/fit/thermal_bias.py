@@ -1,0 +1,265 @@
+"""The thermal force's bias of the weak-form regression, and its removal from the per-window factors.
+
+A weak-form row is the equation of motion integrated against a test function psi over one window (two
+periods): ``Y = A coef + e``, whose equation error ``e = -integral psi(t) xi(t) dt`` is the window's thermal
+force xi (plus detector noise, independent of the motion). The library columns ``A_l = integral psi f_l(x, v)``
+are evaluated on the trajectory, and the trajectory inside the window is moved by that same xi: the free
+lever's response to it, ``delta x(t) = integral_{s<t} h(t - s) xi(s) ds`` (h: displacement per unit impulse,
+``m h'' + c h' + k h = delta(t)``). With ``E[xi(t) xi(s)] = 2 c k_B T delta(t - s)`` (c = k / (Q w0)):
+
+    E[A_l e] = -2 c k_B T integral psi(t) [df_l/dx(t) G(t) + df_l/dv(t) G'(t)] dt,
+    G(t) = integral_{s<t} psi(s) h(t - s) ds,   G'(t) = integral_{s<t} psi(s) h'(t - s) ds
+
+(to first order in the thermal motion). The least-squares estimate is then biased by
+``(A^T W A)^-1 E[A^T W e]``: h'(0+) = 1 / m > 0, so a damping term (df/dv > 0) reads low in liquid (Q 2-4),
+where c k_B T is large; in air (Q 250) c is ~100x smaller.
+
+:func:`thermal_bias_rows` evaluates ``E[A_l e]`` per window and test function (the same integrals as the
+library columns, with the test functions replaced by the kernels ``psi(t) G(t)``, ``psi(t) G'(t)``, and the
+terms by their derivatives along the trajectory); :func:`remove_thermal_bias` takes it out of the normal
+equations of every window: with the window's factor ``[R | z]`` of the whitened ``[A | y]`` (``R^T R = A^T W A``,
+``R^T z = A^T W y``), ``z <- z - R^-T b``, ``b = sum over rows of E[A e] / sigma^2``. That is the factor of data
+``y`` shifted inside the span of the columns, so the residual left over (the factor's last diagonal) stays and
+every use of the factors (selection, cross-validation, bootstrap over windows) sees the corrected equations.
+
+Assumes: the thermal force white, on the first mode; the lever's response in the window that of the free
+lever (in contact the sample's stiffness and damping change it for part of each period); the trajectory the
+library is evaluated on following the true motion (it is smoothed across periods, but the thermal motion is
+far above the detector noise in liquid).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from afmid.physics.effects import BOLTZMANN
+from afmid.physics.library import Library
+from afmid.preprocess.harmonics import rotate_to_global
+from afmid.preprocess.periods import ou_smooth_given
+
+#: Relative step of the central differences of the terms (of the amplitude, and of the amplitude times w).
+DERIVATIVE_STEP = 1e-4
+
+
+@dataclass(frozen=True, eq=False)
+class TrajectorySmoother:
+    """How the fit's trajectory is made from the per-period coefficients (:func:`afmid.fit.prepare.prepare`), as a
+    linear filter across periods: ``ou`` (:func:`afmid.preprocess.periods.ou_smooth_given` with the variances
+    it used), ``savgol`` (``fit.smooth_periods``) or ``none`` (each period as it is)."""
+
+    kind: str
+    n_blocks: int  # periods of the trace (the OU smoother's mean is over all of them)
+    noise_var: np.ndarray | None = None  # (2K+1,) m^2
+    signal_var: np.ndarray | None = None  # (2K+1,) m^2
+    rho: float = 0.0
+    window: int = 0
+
+    def smooth(self, seq: np.ndarray) -> np.ndarray:
+        """The filter applied to a perturbation ``seq`` (blocks, 2K+1, m) of the coefficients (zero outside)."""
+        if self.kind == "none":
+            return seq
+        blocks, rows, m = seq.shape
+        if self.kind == "savgol":
+            from afmid.fit.prepare import smooth_across_blocks
+
+            return smooth_across_blocks(seq.reshape(blocks, -1), self.window).reshape(seq.shape)
+
+        def paired(v):  # the rows of a harmonic alike, so the filter does not depend on the window's phase
+            out = v.copy()
+            out[1::2] = out[2::2] = 0.5 * (v[1::2] + v[2::2])
+            return np.repeat(out, m)
+
+        flat = seq.reshape(blocks, -1)
+        smoothed, _ = ou_smooth_given(flat, paired(self.noise_var), paired(self.signal_var), self.rho,
+                                      mean=flat.sum(axis=0) / self.n_blocks)
+        return smoothed.reshape(seq.shape)
+
+
+@dataclass(frozen=True, eq=False)
+class ThermalForce:
+    """The lever's thermal force as the fit knows it (its configuration): ``fit.temperature`` and the calibrated
+    lever, and the filter that makes the trajectory the library is evaluated on; present only where
+    ``fit.thermal_noise`` is on."""
+
+    spring_constant: float  # N/m
+    omega0: float  # rad/s
+    quality_factor: float  # 1
+    temperature: float  # K
+    smoother: TrajectorySmoother
+
+    @property
+    def mass(self) -> float:
+        """kg, the effective mass k / w0^2."""
+        return self.spring_constant / self.omega0**2
+
+    @property
+    def damping(self) -> float:
+        """N s/m, c = k / (Q w0)."""
+        return self.spring_constant / (self.quality_factor * self.omega0)
+
+    @property
+    def strength(self) -> float:
+        """N^2 s, 2 c k_B T: the thermal force's white spectrum, E[xi(t) xi(s)] = strength * delta(t - s)."""
+        return 2.0 * self.damping * BOLTZMANN * self.temperature
+
+
+def lever_response(force: ThermalForce, t: np.ndarray) -> np.ndarray:
+    """The free lever's displacement per unit impulse h(t) (m / (N s)) at times ``t`` >= 0:
+    ``m h'' + c h' + k h = delta(t)``, h(0) = 0, h'(0+) = 1 / m. Under- and overdamped."""
+    m, c, k = force.mass, force.damping, force.spring_constant
+    root = np.sqrt(complex(c * c - 4 * m * k)) / (2 * m)
+    s1, s2 = -c / (2 * m) + root, -c / (2 * m) - root
+    if abs(s1 - s2) < 1e-9 * abs(s1):  # critically damped: h = t e^{st} / m
+        return t * np.exp(s1.real * t) / m
+    return ((np.exp(s1 * t) - np.exp(s2 * t)) / (m * (s1 - s2))).real
+
+
+#: Periods after a window over which the lever's ringing from its thermal force is followed (e^-pi n / Q: 1e-4
+#: after 2.9 Q periods; capped: in air, Q 250, the correlation is ~100x weaker than in liquid and is truncated).
+MAX_RINGING_PERIODS = 64
+
+
+@dataclass(frozen=True)
+class BiasKernels:
+    """The kernels psi(t) G(t) (position) and psi(t) G'(t) (velocity) of one window's test functions, on the fine
+    grid of its two blocks, in the layout of :attr:`afmid.preprocess.periods.WeakWindows.psi_halves`: (2 rows,
+    L U), the rows over the first block, then over the second. G_j(t) = E[delta x_traj(t) integral psi_j xi] /
+    (2 c k_B T): the trajectory's response (as the fit reconstructs it: per-period Fourier fits, smoothed across
+    periods) to the window's thermal force. Rows (3K + 1): the mean row with itself, then per harmonic the cos
+    row with itself (K), the sin row with itself (K), and the two cross products summed (K): what the rotation
+    to global phase needs (:func:`rotate_bias`)."""
+
+    position: np.ndarray
+    velocity: np.ndarray
+
+
+def bias_kernels(windows, blocks, force: ThermalForce) -> BiasKernels:
+    """:class:`BiasKernels` of the weak form's test functions (``windows``, on ``blocks``)."""
+    L, dt = blocks.L, blocks.dt
+    rows = blocks.n_coef
+    K = (rows - 1) // 2
+    ringing = int(min(MAX_RINGING_PERIODS, math.ceil(force.quality_factor / math.pi * math.log(1e4)),
+                      max(blocks.n_blocks - 2, 0)))
+    span = (ringing + 2) * L  # the window's two blocks and the ringing after them, on the data's samples
+    size = 1 << int(math.ceil(math.log2(span + 2 * L + 1)))
+    h = lever_response(force, np.arange(span) * dt)
+    # G_j(u) = sum_{s <= u} psi_j(s) ds h(u - s): the true motion's response to the window's thermal force
+    G = np.fft.irfft(np.fft.rfft(windows.psi, size, axis=1) * np.fft.rfft(h, size), size, axis=1)[:, :span]
+    # ... as the fit sees it: per-period Fourier coefficients (n, 2K+1, functions), in the window's frame
+    local = np.einsum("cl,jkl->kcj", blocks.projector, G.reshape(rows, ringing + 2, L))
+    starts = np.arange(ringing + 2) * L * dt
+    framed = rotate_to_global(local, starts, blocks.omega)
+    # smoothed across periods, the window in the middle of zeros before it (the smoother looks both ways)
+    seq = np.concatenate([np.zeros((ringing,) + framed.shape[1:]), framed])
+    smoothed = force.smoother.smooth(seq)[ringing:ringing + 2]
+    back = rotate_to_global(smoothed, starts[:2], -blocks.omega)  # to each block's own phase
+    fine = blocks.design_fine  # (L U, 2K+1)
+    position = np.concatenate([fine @ back[0], fine @ back[1]]).T  # (functions, 2 L U)
+    speed = blocks.derivative(back, 1)
+    velocity = np.concatenate([fine @ speed[0], fine @ speed[1]]).T
+    psi_fine = windows.psi_fine
+
+    def pairs(conv: np.ndarray) -> np.ndarray:
+        cos, sin = slice(1, rows, 2), slice(2, rows, 2)
+        n = conv.shape[1]
+        out = np.empty((3 * K + 1, n))
+        out[0] = psi_fine[0] * conv[0]
+        out[1:K + 1] = psi_fine[cos] * conv[cos]
+        out[K + 1:2 * K + 1] = psi_fine[sin] * conv[sin]
+        out[2 * K + 1:] = psi_fine[cos] * conv[sin] + psi_fine[sin] * conv[cos]
+        half = n // 2
+        return np.concatenate([out[:, :half], out[:, half:]], axis=0)  # the halves' layout
+
+    return BiasKernels(pairs(position), pairs(velocity))
+
+
+def rotate_bias(local: np.ndarray, turn: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """E[A e] per global-phase row (n, 2K+1, p) from the local pair products ``local`` (n, 3K+1, p) (rows as in
+    :class:`BiasKernels`), with the windows' rotation ``turn`` (cos, sin (n, K) of n w t0;
+    :func:`afmid.preprocess.harmonics.rotate_to_global` turns a row pair (a, b) into (c a - s b, s a + c b))."""
+    n, rows3, p = local.shape
+    K = (rows3 - 1) // 3
+    c, s = turn[0][:n, :, None], turn[1][:n, :, None]
+    same_cos, same_sin, cross = local[:, 1:K + 1], local[:, K + 1:2 * K + 1], local[:, 2 * K + 1:]
+    out = np.empty((n, 2 * K + 1, p))
+    out[:, 0] = local[:, 0]
+    out[:, 1::2] = c * c * same_cos - c * s * cross + s * s * same_sin
+    out[:, 2::2] = s * s * same_cos + c * s * cross + c * c * same_sin
+    return out
+
+
+def thermal_bias_rows(chunks, windows, blocks, library: Library, params: dict, force: ThermalForce,
+                      amplitude: float, omega: float) -> np.ndarray:
+    """E[A_l e] (W, 2K+1, p), in the units of the columns times N s, of every window and test function.
+
+    ``chunks``: the fine-grid trajectory chunk by chunk, (first block, x, xdot, t) with one block of overlap
+    (:func:`afmid.fit.prepare.fine_chunks`); ``windows``: the weak form's
+    :class:`afmid.preprocess.periods.WeakWindows`. The terms' derivatives are central differences with steps
+    :data:`DERIVATIVE_STEP` times ``amplitude`` (m) and ``amplitude * omega`` (m/s).
+    """
+    kernels = _kernels_of(windows, blocks, force)
+    dx, dv = DERIVATIVE_STEP * amplitude, DERIVATIVE_STEP * amplitude * omega
+    reads_velocity = library.reads_velocity()
+    library.compile(params)
+    parts = []
+    for b0, x, v, t in chunks:
+        n = min(x.shape[0] - 1, windows.n_windows - b0)
+        if n <= 0:
+            continue
+        f_x = (library.evaluate_rows(x + dx, v, t, params) - library.evaluate_rows(x - dx, v, t, params)) / (2 * dx)
+        local = _integrate(kernels.position, f_x, x.shape, n)
+        if reads_velocity:
+            f_v = (library.evaluate_rows(x, v + dv, t, params) - library.evaluate_rows(x, v - dv, t, params)) / (2 * dv)
+            local += _integrate(kernels.velocity, f_v, x.shape, n)
+        parts.append(rotate_bias(local, windows.rotation(b0, n)))
+    return -force.strength * np.concatenate(parts, axis=0)
+
+
+def _kernels_of(windows, blocks, force: ThermalForce) -> BiasKernels:
+    """:func:`bias_kernels`, made once per trace's preparation and kept (one at a time: the fit evaluates its
+    library many times on one trace)."""
+    held = _KERNELS.get("last")
+    if held is not None and held[0] is windows and held[1] is force:
+        return held[2]
+    kernels = bias_kernels(windows, blocks, force)
+    _KERNELS["last"] = (windows, force, kernels)
+    return kernels
+
+
+_KERNELS: dict = {}
+
+
+def _integrate(kernel_halves: np.ndarray, values: np.ndarray, shape: tuple, n: int) -> np.ndarray:
+    """Window integrals (n, rows, p) of fine-grid values ((blocks L U, p), blocks of ``shape`` (blocks, L U))
+    against kernels in the halves' layout: window b is the first half applied to block b plus the second half
+    applied to block b + 1."""
+    blocks, half = shape
+    p = values.shape[-1]
+    columns = np.ascontiguousarray(values.reshape(blocks, half, p)[: n + 1].transpose(1, 0, 2))
+    rows = kernel_halves.shape[0] // 2
+    both = (kernel_halves @ columns.reshape(half, -1)).reshape(2, rows, n + 1, p)
+    return (both[0, :, :n] + both[1, :, 1:]).transpose(1, 0, 2)
+
+
+def remove_thermal_bias(T_blocks: np.ndarray, bias: np.ndarray, row_sigma: np.ndarray) -> np.ndarray:
+    """The per-window factors ``T_blocks`` (W, q, q) of the whitened ``[A | y]`` with E[A^T W e] taken out of
+    their normal equations: ``z <- z - R^-T b``, b = sum_r bias_r / sigma_r^2 over the window's rows (``bias``
+    (W, rows, p) for the first p columns; the others, the drive's, are not random). A window whose R is
+    singular (a term that is zero in it) is solved in the least-squares sense (columns scaled to unit norm
+    first: SI columns span many orders of magnitude)."""
+    W, q, _ = T_blocks.shape
+    p = bias.shape[2]
+    b = np.zeros((W, q - 1))
+    b[:, :p] = np.einsum("wrp,r->wp", bias, 1.0 / row_sigma**2)
+    R = T_blocks[:, :q - 1, :q - 1]
+    scale = np.linalg.norm(R, axis=1)  # (W, q-1): column norms
+    scale[scale == 0] = 1.0
+    S = R / scale[:, None, :]
+    # R^T u = b  <=>  S^T u = b / scale
+    u = np.einsum("wij,wj->wi", np.linalg.pinv(np.transpose(S, (0, 2, 1))), b / scale)
+    out = T_blocks.copy()
+    out[:, :q - 1, q - 1] -= u
+    return out
