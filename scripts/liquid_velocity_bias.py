@@ -70,9 +70,11 @@ def fit_viscosity(raw: dict, trace_path: Path, folder: Path, separation_given: b
     result = run_fit(config, uncertainty=True)
     seconds = time.process_time() - start
     q = result.quantities.get("viscosity")
+    e_star = result.quantities.get("E_star") or {}
+    others = {"E_star": e_star.get("value"), "E_star_error": e_star.get("error")}
     if q is None:
-        return {"value": None, "error": None, "cpu_s": seconds}
-    return {"value": float(q["value"]), "error": float(q["error"]), "cpu_s": seconds}
+        return {"value": None, "error": None, "cpu_s": seconds, **others}
+    return {"value": float(q["value"]), "error": float(q["error"]), "cpu_s": seconds, **others}
 
 
 def main(argv=None) -> None:
@@ -110,7 +112,7 @@ def main(argv=None) -> None:
                     continue
                 z = (r["value"] - args.viscosity) / r["error"]
                 print(f"{lever} seed {seed} {case:9s}: eta {r['value']:7.2f} +- {r['error']:5.2f} Pa s  z {z:+.2f}"
-                      f"  ({r['cpu_s']:.1f} s CPU)", flush=True)
+                      f"  E* {r['E_star'] / 1e6:6.2f} MPa  ({r['cpu_s']:.1f} s CPU in this process)", flush=True)
     print()
     print(f"{'lever':5s} {'separation':10s} {'n':>2s} {'mean rel. error':>15s} {'mean z':>7s} {'rms z':>6s}")
     for lever in args.levers:

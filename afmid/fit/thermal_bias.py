@@ -38,7 +38,7 @@ import numpy as np
 from afmid.physics.effects import BOLTZMANN
 from afmid.physics.library import Library
 from afmid.preprocess.harmonics import rotate_to_global
-from afmid.preprocess.periods import ou_smooth_given
+from afmid.preprocess.periods import NARROW_SUPPORT, fine_support, ou_smooth_given
 
 #: Relative step of the central differences of the terms (of the amplitude, and of the amplitude times w).
 DERIVATIVE_STEP = 1e-4
@@ -122,6 +122,15 @@ def lever_response(force: ThermalForce, t: np.ndarray) -> np.ndarray:
 MAX_RINGING_PERIODS = 64
 
 
+def window_responses(psi: np.ndarray, force: ThermalForce, span: int, dt: float) -> np.ndarray:
+    """G_j(u) = sum_{s <= u} psi_j(s) ds h(u - s) (rows, ``span``), m / N: the free lever's motion at the data's
+    samples u (step ``dt``, s) from the start of a window on, per unit of the window's thermal force projected on
+    its test function j (``psi``: (rows, 2 L + 1), psi times the quadrature weight ``dt``). Causal convolutions."""
+    size = 1 << int(math.ceil(math.log2(span + psi.shape[1])))
+    h = lever_response(force, np.arange(span) * dt)
+    return np.fft.irfft(np.fft.rfft(psi, size, axis=1) * np.fft.rfft(h, size), size, axis=1)[:, :span]
+
+
 @dataclass(frozen=True)
 class BiasKernels:
     """The kernels psi(t) G(t) (position) and psi(t) G'(t) (velocity) of one window's test functions, on the fine
@@ -144,10 +153,7 @@ def bias_kernels(windows, blocks, force: ThermalForce) -> BiasKernels:
     ringing = int(min(MAX_RINGING_PERIODS, math.ceil(force.quality_factor / math.pi * math.log(1e4)),
                       max(blocks.n_blocks - 2, 0)))
     span = (ringing + 2) * L  # the window's two blocks and the ringing after them, on the data's samples
-    size = 1 << int(math.ceil(math.log2(span + 2 * L + 1)))
-    h = lever_response(force, np.arange(span) * dt)
-    # G_j(u) = sum_{s <= u} psi_j(s) ds h(u - s): the true motion's response to the window's thermal force
-    G = np.fft.irfft(np.fft.rfft(windows.psi, size, axis=1) * np.fft.rfft(h, size), size, axis=1)[:, :span]
+    G = window_responses(windows.psi, force, span, dt)
     # ... as the fit sees it: per-period Fourier coefficients (n, 2K+1, functions), in the window's frame
     local = np.einsum("cl,jkl->kcj", blocks.projector, G.reshape(rows, ringing + 2, L))
     starts = np.arange(ringing + 2) * L * dt
@@ -235,12 +241,26 @@ _KERNELS: dict = {}
 def _integrate(kernel_halves: np.ndarray, values: np.ndarray, shape: tuple, n: int) -> np.ndarray:
     """Window integrals (n, rows, p) of fine-grid values ((blocks L U, p), blocks of ``shape`` (blocks, L U))
     against kernels in the halves' layout: window b is the first half applied to block b plus the second half
-    applied to block b + 1."""
+    applied to block b + 1. A column that is zero on most samples of every block (a contact term's derivative)
+    is integrated over its non-zero samples only (as the library columns are:
+    :meth:`afmid.preprocess.periods.WeakWindows.integrate_fine_columns`)."""
     blocks, half = shape
     p = values.shape[-1]
     columns = np.ascontiguousarray(values.reshape(blocks, half, p)[: n + 1].transpose(1, 0, 2))
     rows = kernel_halves.shape[0] // 2
-    both = (kernel_halves @ columns.reshape(half, -1)).reshape(2, rows, n + 1, p)
+    support = fine_support(columns)
+    both = np.empty((2, rows, n + 1, p))
+    for j in range(p):
+        on = np.flatnonzero(support[:, j])
+        if on.size >= NARROW_SUPPORT * half:
+            both[..., j] = (kernel_halves @ columns[:, :, j]).reshape(2, rows, n + 1)
+        elif on.size:
+            run = slice(int(on[0]), int(on[-1]) + 1)  # one run per period (contact once per period), else gathered
+            part = (kernel_halves[:, run] @ columns[run, :, j] if on[-1] - on[0] + 1 == on.size
+                    else kernel_halves[:, on] @ columns[on, :, j])
+            both[..., j] = part.reshape(2, rows, n + 1)
+        else:
+            both[..., j] = 0.0
     return (both[0, :, :n] + both[1, :, 1:]).transpose(1, 0, 2)
 
 
