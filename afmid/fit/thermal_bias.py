@@ -16,16 +16,18 @@ where c k_B T is large; in air (Q 250) c is ~100x smaller.
 
 :func:`thermal_bias_rows` evaluates ``E[A_l e]`` per window and test function (the same integrals as the
 library columns, with the test functions replaced by the kernels ``psi(t) G(t)``, ``psi(t) G'(t)``, and the
-terms by their derivatives along the trajectory); :func:`remove_thermal_bias` takes it out of the normal
-equations of every window: with the window's factor ``[R | z]`` of the whitened ``[A | y]`` (``R^T R = A^T W A``,
-``R^T z = A^T W y``), ``z <- z - R^-T b``, ``b = sum over rows of E[A e] / sigma^2``. That is the factor of data
-``y`` shifted inside the span of the columns, so the residual left over (the factor's last diagonal) stays and
-every use of the factors (selection, cross-validation, bootstrap over windows) sees the corrected equations.
+terms by their derivatives along the trajectory; G as the fit sees the motion: through its per-period Fourier
+fits and its smoother across periods); :func:`remove_thermal_bias` takes ``b = E[A^T W e]`` out of the normal
+equations: every window's data moved by the same ``A_w v`` in the span of the columns (``A^T W A v = -b``), so
+every subset of the columns solves its corrected normal equations, the full model's residual stays, and every
+use of the factors (selection, cross-validation, bootstrap over windows) sees the corrected equations.
 
-Assumes: the thermal force white, on the first mode; the lever's response in the window that of the free
-lever (in contact the sample's stiffness and damping change it for part of each period); the trajectory the
-library is evaluated on following the true motion (it is smoothed across periods, but the thermal motion is
-far above the detector noise in liquid).
+Assumes: the thermal force white, on the first mode (higher modes and a declared detector's restoration are
+not followed); the lever's response that of the free lever (in contact the sample's stiffness and damping
+change it for part of each period: on the Q 2 lever of scripts/liquid_velocity_bias.py, the response
+linearised about the fitted contact moved eta by 0.04 %, session 13); the thermal motion Gaussian, so that
+E[f(x) e] = E[f'(x)] Cov(x, e) holds beyond first order (Stein's lemma): the derivatives are taken on the
+trajectory as it is (one draw of the motion), which is what makes the average over windows right.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import afmid.fit.regression as regression
 from afmid.physics.effects import BOLTZMANN
 from afmid.physics.library import Library
 from afmid.preprocess.harmonics import rotate_to_global
@@ -266,20 +269,24 @@ def _integrate(kernel_halves: np.ndarray, values: np.ndarray, shape: tuple, n: i
 
 def remove_thermal_bias(T_blocks: np.ndarray, bias: np.ndarray, row_sigma: np.ndarray) -> np.ndarray:
     """The per-window factors ``T_blocks`` (W, q, q) of the whitened ``[A | y]`` with E[A^T W e] taken out of
-    their normal equations: ``z <- z - R^-T b``, b = sum_r bias_r / sigma_r^2 over the window's rows (``bias``
-    (W, rows, p) for the first p columns; the others, the drive's, are not random). A window whose R is
-    singular (a term that is zero in it) is solved in the least-squares sense (columns scaled to unit norm
-    first: SI columns span many orders of magnitude)."""
-    W, q, _ = T_blocks.shape
+    their normal equations: the data of every window moved by the same ``A_w v`` inside the span of the columns,
+    ``z_w <- z_w + R_w v`` with ``A^T W A v = -b`` (A^T W A = R^T R of all windows combined; b = sum over windows
+    and rows of ``bias`` / sigma_r^2, ``bias`` (W, rows, p) for the first p columns; the others, the drive's, are
+    not random). Every subset S of the columns then solves ``A_S^T W A_S c = A_S^T W y - b_S`` (the rows S of
+    ``A^T W A v``), and the full model's residual is unchanged. One shift for all windows, not one per window:
+    a window's own R is near-singular for collinear terms (the powers of a Lennard-Jones library), and per-window
+    shifts ``R_w^-T b_w`` differ from window to window by far more than the bias, which the residual then counts.
+    The columns are scaled to unit norm for the solve (SI columns span many orders of magnitude); directions the
+    columns do not determine (zero singular values) are left alone."""
+    q = T_blocks.shape[1]
     p = bias.shape[2]
-    b = np.zeros((W, q - 1))
-    b[:, :p] = np.einsum("wrp,r->wp", bias, 1.0 / row_sigma**2)
-    R = T_blocks[:, :q - 1, :q - 1]
-    scale = np.linalg.norm(R, axis=1)  # (W, q-1): column norms
+    b = np.zeros(q - 1)
+    b[:p] = np.einsum("wrp,r->p", bias, 1.0 / row_sigma**2)
+    R = regression.combine(T_blocks)[:q - 1, :q - 1]
+    scale = np.linalg.norm(R, axis=0)
     scale[scale == 0] = 1.0
-    S = R / scale[:, None, :]
-    # R^T u = b  <=>  S^T u = b / scale
-    u = np.einsum("wij,wj->wi", np.linalg.pinv(np.transpose(S, (0, 2, 1))), b / scale)
+    S = R / scale  # R^T R v = -b  <=>  S^T S (scale v) = -b / scale
+    v = -(np.linalg.pinv(S) @ (np.linalg.pinv(S.T) @ (b / scale))) / scale
     out = T_blocks.copy()
-    out[:, :q - 1, q - 1] -= u
+    out[:, :q - 1, q - 1] += T_blocks[:, :q - 1, :q - 1] @ v
     return out
