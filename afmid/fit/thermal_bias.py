@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -58,7 +59,9 @@ class TrajectorySmoother:
     noise_var: np.ndarray | None = None  # (2K+1,) m^2
     signal_var: np.ndarray | None = None  # (2K+1,) m^2
     rho: float = 0.0
-    window: int = 0
+    #: savgol: the filter across periods itself, (blocks, n) -> (blocks, n)
+    #: (:func:`afmid.fit.prepare.smooth_across_blocks` with its window)
+    across_blocks: Callable | None = None
 
     def smooth(self, seq: np.ndarray) -> np.ndarray:
         """The filter applied to a perturbation ``seq`` (blocks, 2K+1, m) of the coefficients (zero outside)."""
@@ -66,9 +69,7 @@ class TrajectorySmoother:
             return seq
         blocks, rows, m = seq.shape
         if self.kind == "savgol":
-            from afmid.fit.prepare import smooth_across_blocks
-
-            return smooth_across_blocks(seq.reshape(blocks, -1), self.window).reshape(seq.shape)
+            return self.across_blocks(seq.reshape(blocks, -1)).reshape(seq.shape)
 
         def paired(v):  # the rows of a harmonic alike, so the filter does not depend on the window's phase
             out = v.copy()
@@ -146,10 +147,20 @@ class BiasKernels:
 
     position: np.ndarray
     velocity: np.ndarray
+    harmonics: int  # the highest harmonic kept (:data:`KERNEL_TAIL`); rows above it are left at 0
 
 
-def bias_kernels(windows, blocks, force: ThermalForce) -> BiasKernels:
-    """:class:`BiasKernels` of the weak form's test functions (``windows``, on ``blocks``)."""
+#: The kernels' harmonics are kept up to where the rest holds less than this share of the rows' weighted sum
+#: of |kernel| (weights 1 / sigma^2 of the rows): the kernels fall off as the lever's response does and the
+#: rows' weights as the detector noise through the operator grows. On the 50-period traces of
+#: scripts/liquid_velocity_bias.py (K 60) 28 (Q 4) and 36 (Q 2) harmonics are kept, and the bias b differs from
+#: all 60's by 6e-5 and 8e-5 of itself (bias rows 7.1 -> 5.1 and 7.6 -> 5.9 ms per evaluation; session 13).
+KERNEL_TAIL = 1e-4
+
+
+def bias_kernels(windows, blocks, force: ThermalForce, row_variance: np.ndarray) -> BiasKernels:
+    """:class:`BiasKernels` of the weak form's test functions (``windows``, on ``blocks``); ``row_variance``
+    (2K+1,) the rows' noise variance (the weights 1 / sigma^2 that decide how many harmonics are kept)."""
     L, dt = blocks.L, blocks.dt
     rows = blocks.n_coef
     K = (rows - 1) // 2
@@ -182,34 +193,57 @@ def bias_kernels(windows, blocks, force: ThermalForce) -> BiasKernels:
         half = n // 2
         return np.concatenate([out[:, :half], out[:, half:]], axis=0)  # the halves' layout
 
-    return BiasKernels(pairs(position), pairs(velocity))
+    position, velocity = pairs(position), pairs(velocity)
+    kept = max(_harmonics_needed(position, row_variance), _harmonics_needed(velocity, row_variance))
+    rows3 = 3 * K + 1
+    keep = np.concatenate([[0], np.arange(1, kept + 1), K + np.arange(1, kept + 1), 2 * K + np.arange(1, kept + 1)])
+    keep = np.concatenate([keep, rows3 + keep])  # both halves
+    return BiasKernels(np.ascontiguousarray(position[keep]), np.ascontiguousarray(velocity[keep]), kept)
 
 
-def rotate_bias(local: np.ndarray, turn: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """E[A e] per global-phase row (n, 2K+1, p) from the local pair products ``local`` (n, 3K+1, p) (rows as in
-    :class:`BiasKernels`), with the windows' rotation ``turn`` (cos, sin (n, K) of n w t0;
-    :func:`afmid.preprocess.harmonics.rotate_to_global` turns a row pair (a, b) into (c a - s b, s a + c b))."""
+def _harmonics_needed(kernel_halves: np.ndarray, row_variance: np.ndarray) -> int:
+    """The highest harmonic whose kernel rows (:class:`BiasKernels` layout) the bias needs: beyond it the rows'
+    weighted sum of |kernel| is below :data:`KERNEL_TAIL` of the whole."""
+    rows3 = kernel_halves.shape[0] // 2
+    K = (rows3 - 1) // 3
+    size = np.abs(kernel_halves[:rows3]).sum(axis=1) + np.abs(kernel_halves[rows3:]).sum(axis=1)
+    per_harmonic = np.empty(K + 1)
+    per_harmonic[0] = size[0] / row_variance[0]
+    per_harmonic[1:] = (size[1:K + 1] + size[K + 1:2 * K + 1] + size[2 * K + 1:]) / row_variance[1::2]
+    total = per_harmonic.sum()
+    if total == 0:
+        return 0
+    beyond = np.concatenate([np.cumsum(per_harmonic[::-1])[::-1][1:], [0.0]])  # the sum above each harmonic
+    return int(np.flatnonzero(beyond <= KERNEL_TAIL * total)[0])
+
+
+def rotate_bias(local: np.ndarray, turn: tuple[np.ndarray, np.ndarray], rows: int) -> np.ndarray:
+    """E[A e] per global-phase row (n, ``rows`` = 2K+1, p) from the local pair products ``local`` (n, 3k+1, p) of
+    the first k harmonics (rows as in :class:`BiasKernels`; the rows above them 0), with the windows' rotation
+    ``turn`` (cos, sin (n, K) of n w t0; :func:`afmid.preprocess.harmonics.rotate_to_global` turns a row pair
+    (a, b) into (c a - s b, s a + c b))."""
     n, rows3, p = local.shape
     K = (rows3 - 1) // 3
-    c, s = turn[0][:n, :, None], turn[1][:n, :, None]
+    c, s = turn[0][:n, :K, None], turn[1][:n, :K, None]
     same_cos, same_sin, cross = local[:, 1:K + 1], local[:, K + 1:2 * K + 1], local[:, 2 * K + 1:]
-    out = np.empty((n, 2 * K + 1, p))
+    out = np.zeros((n, rows, p))
     out[:, 0] = local[:, 0]
-    out[:, 1::2] = c * c * same_cos - c * s * cross + s * s * same_sin
-    out[:, 2::2] = s * s * same_cos + c * s * cross + c * c * same_sin
+    out[:, 1:2 * K + 1:2] = c * c * same_cos - c * s * cross + s * s * same_sin
+    out[:, 2:2 * K + 2:2] = s * s * same_cos + c * s * cross + c * c * same_sin
     return out
 
 
 def thermal_bias_rows(chunks, windows, blocks, library: Library, params: dict, force: ThermalForce,
-                      amplitude: float, omega: float) -> np.ndarray:
+                      amplitude: float, omega: float, row_variance: np.ndarray) -> np.ndarray:
     """E[A_l e] (W, 2K+1, p), in the units of the columns times N s, of every window and test function.
 
     ``chunks``: the fine-grid trajectory chunk by chunk, (first block, x, xdot, t) with one block of overlap
     (:func:`afmid.fit.prepare.fine_chunks`); ``windows``: the weak form's
     :class:`afmid.preprocess.periods.WeakWindows`. The terms' derivatives are central differences with steps
-    :data:`DERIVATIVE_STEP` times ``amplitude`` (m) and ``amplitude * omega`` (m/s).
+    :data:`DERIVATIVE_STEP` times ``amplitude`` (m) and ``amplitude * omega`` (m/s). ``row_variance`` (2K+1,):
+    the rows' noise (decides the harmonics the kernels keep, :data:`KERNEL_TAIL`).
     """
-    kernels = _kernels_of(windows, blocks, force)
+    kernels = _kernels_of(windows, blocks, force, row_variance)
     dx, dv = DERIVATIVE_STEP * amplitude, DERIVATIVE_STEP * amplitude * omega
     reads_velocity = library.reads_velocity()
     library.compile(params)
@@ -223,18 +257,18 @@ def thermal_bias_rows(chunks, windows, blocks, library: Library, params: dict, f
         if reads_velocity:
             f_v = (library.evaluate_rows(x, v + dv, t, params) - library.evaluate_rows(x, v - dv, t, params)) / (2 * dv)
             local += _integrate(kernels.velocity, f_v, x.shape, n)
-        parts.append(rotate_bias(local, windows.rotation(b0, n)))
+        parts.append(rotate_bias(local, windows.rotation(b0, n), blocks.n_coef))
     return -force.strength * np.concatenate(parts, axis=0)
 
 
-def _kernels_of(windows, blocks, force: ThermalForce) -> BiasKernels:
+def _kernels_of(windows, blocks, force: ThermalForce, row_variance: np.ndarray) -> BiasKernels:
     """:func:`bias_kernels`, made once per trace's preparation and kept (one at a time: the fit evaluates its
     library many times on one trace)."""
     held = _KERNELS.get("last")
-    if held is not None and held[0] is windows and held[1] is force:
-        return held[2]
-    kernels = bias_kernels(windows, blocks, force)
-    _KERNELS["last"] = (windows, force, kernels)
+    if held is not None and held[0] is windows and held[1] is force and held[2] is row_variance:
+        return held[3]
+    kernels = bias_kernels(windows, blocks, force, row_variance)
+    _KERNELS["last"] = (windows, force, row_variance, kernels)
     return kernels
 
 
