@@ -243,7 +243,7 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
     if fit.smooth_periods is not None:
         X_traj = smooth_across_blocks(X, fit.smooth_periods)
         residual_var = smoothing_variance_factor(blocks.n_blocks, fit.smooth_periods)
-        smoother = TrajectorySmoother("savgol", blocks.n_blocks,
+        smoother = TrajectorySmoother("savgol", blocks.n_blocks, window=fit.smooth_periods,
                                       across_blocks=functools.partial(smooth_across_blocks, window=fit.smooth_periods))
     elif motion is not None and motion.non_periodic:  # no one orbit to smooth towards: each period as it is
         X_traj, residual_var = X, 1.0

@@ -48,7 +48,7 @@ from afmid.preprocess.periods import NARROW_SUPPORT, fine_support, ou_smooth_giv
 DERIVATIVE_STEP = 1e-4
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False)  # equality below: the variances are arrays
 class TrajectorySmoother:
     """How the fit's trajectory is made from the per-period coefficients (:func:`afmid.fit.prepare.prepare`), as a
     linear filter across periods: ``ou`` (:func:`afmid.preprocess.periods.ou_smooth_given` with the variances
@@ -59,9 +59,21 @@ class TrajectorySmoother:
     noise_var: np.ndarray | None = None  # (2K+1,) m^2
     signal_var: np.ndarray | None = None  # (2K+1,) m^2
     rho: float = 0.0
+    window: int = 0  # savgol: periods
     #: savgol: the filter across periods itself, (blocks, n) -> (blocks, n)
-    #: (:func:`afmid.fit.prepare.smooth_across_blocks` with its window)
+    #: (:func:`afmid.fit.prepare.smooth_across_blocks` with ``window``)
     across_blocks: Callable | None = None
+
+    def __eq__(self, other) -> bool:
+        """The same filter: kind, periods, variances, rho and window (the savgol function is the window's)."""
+        if not isinstance(other, TrajectorySmoother):
+            return NotImplemented
+        same = (self.kind, self.n_blocks, self.rho, self.window) == (other.kind, other.n_blocks, other.rho, other.window)
+        return same and all(
+            (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+            for a, b in ((self.noise_var, other.noise_var), (self.signal_var, other.signal_var)))
+
+    __hash__ = None  # arrays inside
 
     def smooth(self, seq: np.ndarray) -> np.ndarray:
         """The filter applied to a perturbation ``seq`` (blocks, 2K+1, m) of the coefficients (zero outside)."""
@@ -82,7 +94,7 @@ class TrajectorySmoother:
         return smoothed.reshape(seq.shape)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True)
 class ThermalForce:
     """The lever's thermal force as the fit knows it (its configuration): ``fit.temperature`` and the calibrated
     lever, and the filter that makes the trajectory the library is evaluated on; present only where
