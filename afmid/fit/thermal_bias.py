@@ -10,7 +10,8 @@ lever's response to it, ``delta x(t) = integral_{s<t} h(t - s) xi(s) ds`` (h: di
     E[A_l e] = -2 c k_B T integral psi(t) [df_l/dx(t) G(t) + df_l/dv(t) G'(t)] dt,
     G(t) = integral_{s<t} psi(s) h(t - s) ds,   G'(t) = integral_{s<t} psi(s) h'(t - s) ds
 
-(to first order in the thermal motion). The least-squares estimate is then biased by
+(for Gaussian thermal motion the derivatives are those averaged over it: Stein's lemma, below). The
+least-squares estimate is then biased by
 ``(A^T W A)^-1 E[A^T W e]``: h'(0+) = 1 / m > 0, so a damping term (df/dv > 0) reads low in liquid (Q 2-4),
 where c k_B T is large; in air (Q 250) c is ~100x smaller.
 
@@ -318,7 +319,8 @@ def remove_thermal_bias(T_blocks: np.ndarray, bias: np.ndarray, row_sigma: np.nd
     their normal equations: the data of every window moved by the same ``A_w v`` inside the span of the columns,
     ``z_w <- z_w + R_w v`` with ``A^T W A v = -b`` (A^T W A = R^T R of all windows combined; b = sum over windows
     and rows of ``bias`` / sigma_r^2, ``bias`` (W, rows, p) for the first p columns; the others, the drive's, are
-    not random). Every subset S of the columns then solves ``A_S^T W A_S c = A_S^T W y - b_S`` (the rows S of
+    not random; with ``fit.cantilever: free`` the lever's own stiffness and damping columns are, and are not
+    corrected). Every subset S of the columns then solves ``A_S^T W A_S c = A_S^T W y - b_S`` (the rows S of
     ``A^T W A v``), and the full model's residual is unchanged. One shift for all windows, not one per window:
     a window's own R is near-singular for collinear terms (the powers of a Lennard-Jones library), and per-window
     shifts ``R_w^-T b_w`` differ from window to window by far more than the bias, which the residual then counts.
