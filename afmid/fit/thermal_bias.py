@@ -164,10 +164,12 @@ class BiasKernels:
 
 
 #: The kernels' harmonics are kept up to where the rest holds less than this share of the rows' weighted sum
-#: of |kernel| (weights 1 / sigma^2 of the rows): the kernels fall off as the lever's response does and the
-#: rows' weights as the detector noise through the operator grows. On the 50-period traces of
-#: scripts/liquid_velocity_bias.py (K 60) 28 (Q 4) and 36 (Q 2) harmonics are kept, and the bias b differs from
-#: all 60's by 6e-5 and 8e-5 of itself (bias rows 7.1 -> 5.1 and 7.6 -> 5.9 ms per evaluation; session 13).
+#: of |kernel| (weights 1 / sigma^2 of the rows), judged on the kernels of the lever's motion before the fit's
+#: per-period fits and smoother (which only take from the high harmonics: the cut errs on the side of more):
+#: the kernels fall off as the lever's response does and the rows' weights as the detector noise through the
+#: operator grows. On the 50-period traces of scripts/liquid_velocity_bias.py (K 60) this keeps 33 (Q 4) and
+#: 41 (Q 2) harmonics, and the bias b differs from all 60's by 2e-5 and 3e-5 of itself; 12 in air
+#: (tests/configs/dmt.yaml, Q 250).
 KERNEL_TAIL = 1e-4
 
 
@@ -175,14 +177,19 @@ def bias_kernels(windows, blocks, force: ThermalForce, row_variance: np.ndarray)
     """:class:`BiasKernels` of the weak form's test functions (``windows``, on ``blocks``); ``row_variance``
     (2K+1,) the rows' noise variance (the weights 1 / sigma^2 that decide how many harmonics are kept)."""
     L, dt = blocks.L, blocks.dt
-    rows = blocks.n_coef
-    K = (rows - 1) // 2
+    K = blocks.K
     ringing = int(min(MAX_RINGING_PERIODS, math.ceil(force.quality_factor / math.pi * math.log(1e4)),
                       max(blocks.n_blocks - 2, 0)))
     span = (ringing + 2) * L  # the window's two blocks and the ringing after them, on the data's samples
-    G = window_responses(windows.psi, force, span, dt)
-    # ... as the fit sees it: per-period Fourier coefficients (n, 2K+1, functions), in the window's frame
-    local = np.einsum("cl,jkl->kcj", blocks.projector, G.reshape(rows, ringing + 2, L))
+    # The harmonics needed, from the motion itself in the window on the data's samples (psi holds the weight dt).
+    in_window = window_responses(windows.psi, force, 2 * L + 1, dt)
+    kept = max(_harmonics_needed(_pairs(windows.psi, in_window, K), row_variance),
+               _harmonics_needed(_pairs(windows.psi, np.gradient(in_window, dt, axis=1), K), row_variance))
+    functions = 2 * kept + 1  # the test functions of those harmonics: the first rows
+    G = window_responses(windows.psi[:functions], force, span, dt)
+    # ... as the fit sees the motion: per-period Fourier coefficients (n, 2K+1, functions), in the window's frame
+    per_period = G[:functions].reshape(functions * (ringing + 2), L) @ blocks.projector.T
+    local = per_period.reshape(functions, ringing + 2, -1).transpose(1, 2, 0)
     starts = np.arange(ringing + 2) * L * dt
     framed = rotate_to_global(local, starts, blocks.omega)
     # smoothed across periods, the window in the middle of zeros before it (the smoother looks both ways)
@@ -193,33 +200,34 @@ def bias_kernels(windows, blocks, force: ThermalForce, row_variance: np.ndarray)
     position = np.concatenate([fine @ back[0], fine @ back[1]]).T  # (functions, 2 L U)
     speed = blocks.derivative(back, 1)
     velocity = np.concatenate([fine @ speed[0], fine @ speed[1]]).T
-    psi_fine = windows.psi_fine
-
-    def pairs(conv: np.ndarray) -> np.ndarray:
-        cos, sin = slice(1, rows, 2), slice(2, rows, 2)
-        n = conv.shape[1]
-        out = np.empty((3 * K + 1, n))
-        out[0] = psi_fine[0] * conv[0]
-        out[1:K + 1] = psi_fine[cos] * conv[cos]
-        out[K + 1:2 * K + 1] = psi_fine[sin] * conv[sin]
-        out[2 * K + 1:] = psi_fine[cos] * conv[sin] + psi_fine[sin] * conv[cos]
-        half = n // 2
-        return np.concatenate([out[:, :half], out[:, half:]], axis=0)  # the halves' layout
-
-    position, velocity = pairs(position), pairs(velocity)
-    kept = max(_harmonics_needed(position, row_variance), _harmonics_needed(velocity, row_variance))
-    rows3 = 3 * K + 1
-    keep = np.concatenate([[0], np.arange(1, kept + 1), K + np.arange(1, kept + 1), 2 * K + np.arange(1, kept + 1)])
-    keep = np.concatenate([keep, rows3 + keep])  # both halves
-    return BiasKernels(np.ascontiguousarray(position[keep]), np.ascontiguousarray(velocity[keep]), kept)
+    psi_fine = windows.psi_fine[:functions]
+    return BiasKernels(_halves(_pairs(psi_fine, position, kept)), _halves(_pairs(psi_fine, velocity, kept)), kept)
 
 
-def _harmonics_needed(kernel_halves: np.ndarray, row_variance: np.ndarray) -> int:
-    """The highest harmonic whose kernel rows (:class:`BiasKernels` layout) the bias needs: beyond it the rows'
+def _pairs(psi: np.ndarray, conv: np.ndarray, K: int) -> np.ndarray:
+    """The kernel rows (3K+1, n) of :class:`BiasKernels` from test functions ``psi`` and their responses ``conv``
+    (rows 0, cos 1, sin 1, ... up to harmonic K, on one grid)."""
+    rows = 2 * K + 1
+    cos, sin = slice(1, rows, 2), slice(2, rows, 2)
+    out = np.empty((3 * K + 1, conv.shape[1]))
+    out[0] = psi[0] * conv[0]
+    out[1:K + 1] = psi[cos] * conv[cos]
+    out[K + 1:2 * K + 1] = psi[sin] * conv[sin]
+    out[2 * K + 1:] = psi[cos] * conv[sin] + psi[sin] * conv[cos]
+    return out
+
+
+def _halves(kernel: np.ndarray) -> np.ndarray:
+    """(rows, 2 L U) -> the halves' layout (2 rows, L U): the rows over the first block, then over the second."""
+    half = kernel.shape[1] // 2
+    return np.ascontiguousarray(np.concatenate([kernel[:, :half], kernel[:, half:]], axis=0))
+
+
+def _harmonics_needed(kernel: np.ndarray, row_variance: np.ndarray) -> int:
+    """The highest harmonic whose kernel rows (3K+1, n; :func:`_pairs`) the bias needs: beyond it the rows'
     weighted sum of |kernel| is below :data:`KERNEL_TAIL` of the whole."""
-    rows3 = kernel_halves.shape[0] // 2
-    K = (rows3 - 1) // 3
-    size = np.abs(kernel_halves[:rows3]).sum(axis=1) + np.abs(kernel_halves[rows3:]).sum(axis=1)
+    K = (kernel.shape[0] - 1) // 3
+    size = np.abs(kernel).sum(axis=1)
     per_harmonic = np.empty(K + 1)
     per_harmonic[0] = size[0] / row_variance[0]
     per_harmonic[1:] = (size[1:K + 1] + size[K + 1:2 * K + 1] + size[2 * K + 1:]) / row_variance[1::2]
