@@ -3,10 +3,10 @@
 A free lever in liquid (the soft Q 2 lever of scripts/liquid_velocity_bias.py: k 0.3 N/m, f0 15 kHz; the
 sample 30 nm away, no contact) fitted with an extra damping term ``xdot`` whose true coefficient is 0: the
 thermal force drives the velocity inside the window whose equation error it is, and without the correction
-the term reads as a negative damping (session 13, seeds 1-6: -0.45 to -0.91 c; corrected -0.23 to +0.17 c). Seeds 21-26 were chosen before
-this test was run. The tolerance is the seeds' own scatter: |mean| < 4.03 sd / sqrt(6), the two-sided 1 % point
-of Student's t with 5 degrees of freedom; the uncorrected factors of the same traces must fail it (measured:
-corrected +0.04 c, t +0.66; uncorrected -0.62 c, t -14.3).
+the term reads as a negative damping (session 13, seeds 1-6: -0.45 to -0.91 c; corrected -0.23 to +0.17 c).
+Seeds 21-26 were chosen before this test was run. The tolerance is the seeds' own scatter: |mean| < 4.03 sd /
+sqrt(6), the two-sided 1 % point of Student's t with 5 degrees of freedom; the uncorrected factors of the same
+traces must fail it (measured: corrected +0.04 c, t +0.66; uncorrected -0.62 c, t -14.3).
 
 Where the fit knows no thermal force (``fit.thermal_noise: false``) the factors are those of the plain
 whitened columns, bit for bit.
