@@ -64,7 +64,8 @@ class ShapeSearch:
             mine = build_system(prep, own_library, trial)
             theta = np.concatenate([fixed.theta, mine.theta], axis=2)
             # the thermal force's bias rows in the same column order as theta (None without a thermal force)
-            bias = None if mine.thermal_bias is None else np.concatenate([fixed.thermal_bias, mine.thermal_bias], axis=2)
+            bias = (None if mine.thermal_bias is None
+                    else np.concatenate([fixed.thermal_bias, mine.thermal_bias], axis=2))
             # columns in any order: rss only
             return residual_sum_squares(build_system(prep, library, trial, theta=theta, thermal_bias=bias))
 

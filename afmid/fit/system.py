@@ -72,8 +72,8 @@ def library_thermal_bias(prep: Prepared, library: Library, params: dict) -> np.n
     strong)."""
     if prep.thermal_force is None or prep.form != "weak":
         return None
-    return thermal_bias_rows(fine_chunks(prep, overlap=1), prep.windows, prep.blocks, library, params, prep.thermal_force,
-                             prep.drive.amplitude, prep.drive.omega, prep.base_variance)
+    return thermal_bias_rows(fine_chunks(prep, overlap=1), prep.windows, prep.blocks, library, params,
+                             prep.thermal_force, prep.drive.amplitude, prep.drive.omega, prep.base_variance)
 
 
 def library_columns(prep: Prepared, library: Library, params: dict) -> np.ndarray:

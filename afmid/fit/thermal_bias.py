@@ -69,7 +69,8 @@ class TrajectorySmoother:
         """The same filter: kind, periods, variances, rho and window (the savgol function is the window's)."""
         if not isinstance(other, TrajectorySmoother):
             return NotImplemented
-        same = (self.kind, self.n_blocks, self.rho, self.window) == (other.kind, other.n_blocks, other.rho, other.window)
+        same = ((self.kind, self.n_blocks, self.rho, self.window)
+                == (other.kind, other.n_blocks, other.rho, other.window))
         return same and all(
             (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
             for a, b in ((self.noise_var, other.noise_var), (self.signal_var, other.signal_var)))

@@ -93,8 +93,8 @@ def test_without_thermal_force_the_factors_are_unchanged(tmp_path):
     prep, _, _, system, _, _ = _free_lever_system(
         tmp_path, 21, ["simulate.noise.thermal=false", "fit.thermal_noise=false", "simulate.periods=12"])
     assert prep.thermal_force is None and system.thermal_bias is None
-    plain = regression.factor_blocks(np.concatenate([system.theta, prep.nuisance], axis=2) / prep.row_sigma[None, :, None],
-                                     prep.Y / prep.row_sigma[None, :])
+    columns = np.concatenate([system.theta, prep.nuisance], axis=2)
+    plain = regression.factor_blocks(columns / prep.row_sigma[None, :, None], prep.Y / prep.row_sigma[None, :])
     assert np.array_equal(system.T_blocks, plain)
 
 
