@@ -57,12 +57,17 @@ class ShapeSearch:
         params["d"] = config.sample.separation
         own = [t for t in library.terms if t.effect == effect]
         rest = [t for t in library.terms if t.effect != effect]
-        fixed_theta = build_system(prep, replace(library, terms=rest), params).theta if rest else None
+        fixed = build_system(prep, replace(library, terms=rest), params) if rest else None
         own_library = replace(library, terms=own)
 
         def composed(trial: dict) -> float:
-            theta = np.concatenate([fixed_theta, build_system(prep, own_library, trial).theta], axis=2)
-            return residual_sum_squares(build_system(prep, library, trial, theta=theta))  # columns in any order: rss only
+            mine = build_system(prep, own_library, trial)
+            theta = np.concatenate([fixed.theta, mine.theta], axis=2)
+            # the thermal force's bias rows in the same column order as theta (None without a thermal force)
+            bias = (None if mine.thermal_bias is None
+                    else np.concatenate([fixed.thermal_bias, mine.thermal_bias], axis=2))
+            # columns in any order: rss only
+            return residual_sum_squares(build_system(prep, library, trial, theta=theta, thermal_bias=bias))
 
         def full(trial: dict) -> float:
             return residual_sum_squares(build_system(prep, library, trial))

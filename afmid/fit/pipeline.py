@@ -346,8 +346,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
 
     def factors_at(p: Prepared):  # the profile library's columns at the current parameters, held
         trial = dict(params, **extra)
-        theta = library_columns(p, physics, trial)
-        return lambda q: build_system(q, physics, trial, theta=theta).T_blocks
+        held = build_system(p, physics, trial)
+        return lambda q: build_system(q, physics, trial, theta=held.theta, thermal_bias=held.thermal_bias).T_blocks
 
     def estimate_again(p: Prepared) -> None:
         nonlinear.update(estimate_nonlinear(p, library, config, params, physics=(physics, extra)))
@@ -360,7 +360,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
     # Weights that include the regressors' own noise (from a first support's stiffness), then the selection.
     coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
     prep = with_regressor_noise(prep, library, params, coef0)
-    system = build_system(prep, library, params, theta=system.theta)  # same columns, new row weights
+    system = build_system(prep, library, params, theta=system.theta,  # same columns, new row weights
+                          thermal_bias=system.thermal_bias)
     selection = settings.select(system)
     chosen = selection.best.mask
     # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the

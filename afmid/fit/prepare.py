@@ -8,6 +8,7 @@ reconstructs the trajectory the library is evaluated on (smoothed across periods
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -28,7 +29,8 @@ from afmid.preprocess.periods import (
     estimate_drive,
     amplitude_per_block,
     harmonic_blocks,
-    ou_smooth,
+    ou_smooth_given,
+    ou_smooth_variance,
     steadiness,
     weak_windows,
 )
@@ -36,6 +38,7 @@ from afmid.preprocess.differentiation import differentiate
 from afmid.preprocess.harmonics import transient_limit
 from afmid.preprocess.motion import classify as classify_motion
 from afmid.fit.forces import CHUNK_BLOCKS
+from afmid.fit.thermal_bias import ThermalForce, TrajectorySmoother
 from afmid.threads import map_in_order
 
 log = logging.getLogger(__name__)
@@ -89,6 +92,10 @@ class Prepared:
     #: the trajectory on the fine grid kept for repeated library evaluations (:func:`with_fine_grid`; None: made
     #: afresh by every :func:`fine_chunks` pass)
     fine_grid: "FineGrid | None" = None
+    #: the lever's thermal force as the fit's configuration has it (``fit.thermal_noise``, ``fit.temperature``):
+    #: its bias of the weak-form regression is taken out of the factors (:mod:`afmid.fit.thermal_bias`); None
+    #: without a thermal force, or in the strong form
+    thermal_force: ThermalForce | None = None
 
 
 def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None = None) -> Prepared:
@@ -236,10 +243,16 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
     if fit.smooth_periods is not None:
         X_traj = smooth_across_blocks(X, fit.smooth_periods)
         residual_var = smoothing_variance_factor(blocks.n_blocks, fit.smooth_periods)
+        smoother = TrajectorySmoother("savgol", blocks.n_blocks, window=fit.smooth_periods,
+                                      across_blocks=functools.partial(smooth_across_blocks, window=fit.smooth_periods))
     elif motion is not None and motion.non_periodic:  # no one orbit to smooth towards: each period as it is
         X_traj, residual_var = X, 1.0
+        smoother = TrajectorySmoother("none", blocks.n_blocks)
     else:
-        X_s, post_var = ou_smooth(X[..., 0], noise_var, rho)
+        signal_var = ou_smooth_variance(X[..., 0], noise_var)
+        X_s, post_var = ou_smooth_given(X[..., 0], noise_var, signal_var, rho)
+        smoother = TrajectorySmoother("ou", blocks.n_blocks, noise_var=noise_var * np.ones(rows),
+                                      signal_var=signal_var, rho=rho)
         if views.amplifies_noise:  # a declared detector: the amplified noise kept out of the trajectory
             X_s = restore_trajectory(X_s, noise_var, blocks.harmonics)
         X_traj = X_s[..., None]
@@ -258,6 +271,7 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
         X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X),
         transient_limit=transient_limit(float(np.mean(amplitude_per_block(X))), thermal_variance), removed=removed,
         form=fit.form, strong=strong, motion=motion, x_restored=x_restored,
+        thermal_force=ThermalForce(k, w0, Q, fit.temperature, smoother) if (thermal and weak) else None,
     )
 
 

@@ -17,6 +17,7 @@ from afmid.fit.forces import CHUNK_BLOCKS
 log = logging.getLogger(__name__)
 
 from afmid.fit.prepare import Prepared, fine_chunks, map_fine_chunks
+from afmid.fit.thermal_bias import remove_thermal_bias, thermal_bias_rows
 from afmid.kernels.switching import cell_subsamples, switching_cells
 from afmid.preprocess.periods import fine_support
 
@@ -28,6 +29,9 @@ class System:
     T_blocks: np.ndarray  # per-block factors of the whitened [Theta N | Y]
     protected: np.ndarray  # bool (p + n_nu)
     names: list[str]
+    #: (W, rows, p) E[theta e], the thermal force's correlation with the columns, taken out of ``T_blocks``
+    #: (:mod:`afmid.fit.thermal_bias`); None without a thermal force
+    thermal_bias: np.ndarray | None = None
 
     @property
     def n_rows(self) -> int:
@@ -35,13 +39,19 @@ class System:
         return int(self.theta.shape[0] * self.theta.shape[1])
 
 
-def build_system(prep: Prepared, library: Library, params: dict, theta: np.ndarray | None = None) -> System:
-    """Library columns in the regression's form, whitened and factored per window (chunk by chunk).
+def build_system(prep: Prepared, library: Library, params: dict, theta: np.ndarray | None = None,
+                 thermal_bias: np.ndarray | None = None) -> System:
+    """Library columns in the regression's form, whitened and factored per window (chunk by chunk), with the
+    thermal force's bias taken out of each window's factor where the fit knows a thermal force
+    (:func:`remove_thermal_bias`).
 
-    ``theta`` reuses the columns of an earlier system at the same parameters (only the row weights changed).
+    ``theta`` reuses the columns of an earlier system at the same parameters (only the row weights changed), and
+    ``thermal_bias`` its bias rows (:attr:`System.thermal_bias`; None: evaluated here, in ``library``'s order).
     """
     if theta is None:
         theta = library_columns(prep, library, params)
+    if thermal_bias is None:
+        thermal_bias = library_thermal_bias(prep, library, params)
     T_blocks = np.concatenate([
         regression.factor_blocks(
             np.concatenate([theta[i:i + CHUNK_BLOCKS], prep.nuisance[i:i + CHUNK_BLOCKS]], axis=2)
@@ -49,9 +59,21 @@ def build_system(prep: Prepared, library: Library, params: dict, theta: np.ndarr
             prep.Y[i:i + CHUNK_BLOCKS] / prep.row_sigma[None, :])
         for i in range(0, theta.shape[0], CHUNK_BLOCKS)
     ])
+    if thermal_bias is not None:
+        T_blocks = remove_thermal_bias(T_blocks, thermal_bias, prep.row_sigma)
     protected = np.zeros(theta.shape[2] + prep.nuisance.shape[2], dtype=bool)
     protected[theta.shape[2]:] = True
-    return System(dict(params), theta, T_blocks, protected, library.names + prep.nuisance_names)
+    return System(dict(params), theta, T_blocks, protected, library.names + prep.nuisance_names, thermal_bias)
+
+
+def library_thermal_bias(prep: Prepared, library: Library, params: dict) -> np.ndarray | None:
+    """E[theta e] (W, rows, p) of the library's weak-form columns with the thermal force in the equation error
+    (:func:`afmid.fit.thermal_bias.thermal_bias_rows`); None where the fit knows no thermal force (or the form is
+    strong)."""
+    if prep.thermal_force is None or prep.form != "weak":
+        return None
+    return thermal_bias_rows(fine_chunks(prep, overlap=1), prep.windows, prep.blocks, library, params,
+                             prep.thermal_force, prep.drive.amplitude, prep.drive.omega, prep.base_variance)
 
 
 def library_columns(prep: Prepared, library: Library, params: dict) -> np.ndarray:

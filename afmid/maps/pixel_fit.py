@@ -209,7 +209,7 @@ class SharedSupportFit:
         system = build_system(prep, library, params)
         coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
         weighted = with_regressor_noise(prep, library, params, coef0)
-        system = build_system(weighted, library, params, theta=system.theta)
+        system = build_system(weighted, library, params, theta=system.theta, thermal_bias=system.thermal_bias)
         support = np.asarray(settings.select(system).best.mask, bool)
         self.support = support.copy()
         self.coef = np.asarray(regression.subset_fit(regression.combine(system.T_blocks), support)[0], float)

@@ -488,9 +488,21 @@ def ou_smooth(coef: np.ndarray, noise_var: np.ndarray, rho: float) -> tuple[np.n
     variance is estimated from the block-to-block scatter. Returns the smoothed
     coefficients (B, n) and their posterior variance (B, n).
     """
+    return ou_smooth_given(coef, noise_var, ou_smooth_variance(coef, noise_var), rho)
+
+
+def ou_smooth_variance(coef: np.ndarray, noise_var: np.ndarray) -> np.ndarray:
+    """The process variance :func:`ou_smooth` estimates from the block-to-block scatter of ``coef`` (B, n)."""
+    return np.maximum(coef.var(axis=0) - noise_var, 1e-6 * noise_var)
+
+
+def ou_smooth_given(coef: np.ndarray, noise_var: np.ndarray, signal_var: np.ndarray, rho: float,
+                    mean: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`ou_smooth` with the process variance ``signal_var`` (n,) given: linear in ``coef`` (for fixed
+    variances), so it also smooths a perturbation of the coefficients as the trajectory's smoother does
+    (:mod:`afmid.fit.thermal_bias`). ``mean`` (n,): the mean taken out and put back (None: ``coef``'s)."""
     B, n = coef.shape
-    mean = coef.mean(axis=0)
-    signal_var = np.maximum(coef.var(axis=0) - noise_var, 1e-6 * noise_var)
+    mean = coef.mean(axis=0) if mean is None else mean
     q = signal_var * (1 - rho**2)
     m_f = np.empty((B, n))
     p_f = np.empty((B, n))
