@@ -38,7 +38,7 @@ from afmid.preprocess.differentiation import differentiate
 from afmid.preprocess.harmonics import transient_limit
 from afmid.preprocess.motion import classify as classify_motion
 from afmid.fit.forces import CHUNK_BLOCKS
-from afmid.fit.thermal_bias import ThermalForce, TrajectorySmoother
+from afmid.fit.thermal_bias import ThermalForce, TrajectorySmoother, corrects_thermal_bias
 from afmid.threads import map_in_order
 
 log = logging.getLogger(__name__)
@@ -271,7 +271,8 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
         X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X),
         transient_limit=transient_limit(float(np.mean(amplitude_per_block(X))), thermal_variance), removed=removed,
         form=fit.form, strong=strong, motion=motion, x_restored=x_restored,
-        thermal_force=ThermalForce(k, w0, Q, fit.temperature, smoother) if (thermal and weak) else None,
+        thermal_force=(ThermalForce(k, w0, Q, fit.temperature, smoother)
+                       if thermal and weak and corrects_thermal_bias(fit.thermal_bias, Q) else None),
     )
 
 

@@ -48,6 +48,22 @@ from afmid.preprocess.periods import NARROW_SUPPORT, fine_support, ou_smooth_giv
 #: Relative step of the central differences of the terms (of the amplitude, and of the amplitude times w).
 DERIVATIVE_STEP = 1e-4
 
+#: ``fit.thermal_bias: auto`` corrects levers of this quality factor or lower. The bias scales with the lever's
+#: damping c = k / (Q w0): measured (session 13, scripts/liquid_velocity_bias.py) eta -2.5 % on a Q 4 lever and
+#: -5.3 % on a Q 2 lever in liquid (1000-period records), while on air levers (k 40 N/m, 300 kHz, Q 250;
+#: c 15-19x smaller) the correction moves E* by -0.08 %, H by +0.9 % and eta by +0.01 %, below their
+#: statistical errors, at 2.4x the fit's CPU (a map pixel 35 -> 58 ms). Liquid levers have Q 1-10, air levers
+#: 100-600 (shared/notes: real experiments).
+AUTO_MAX_QUALITY_FACTOR = 20.0
+
+
+def corrects_thermal_bias(setting: str | bool, quality_factor: float) -> bool:
+    """Whether the fit takes the thermal force's bias out (``fit.thermal_bias``: true, false, or "auto": at a
+    quality factor <= :data:`AUTO_MAX_QUALITY_FACTOR`)."""
+    if setting == "auto":
+        return quality_factor <= AUTO_MAX_QUALITY_FACTOR
+    return setting is True
+
 
 @dataclass(frozen=True, eq=False)  # equality below: the variances are arrays
 class TrajectorySmoother:

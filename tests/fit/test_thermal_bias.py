@@ -126,3 +126,24 @@ def test_lever_response_solves_the_free_lever(quality_factor):
         h[i + 1] = state[0]
     exact = lever_response(force, np.arange(steps + 1) * dt)
     assert np.max(np.abs(exact - h)) < 1e-9 * np.max(np.abs(h))
+
+
+@pytest.mark.parametrize("setting, quality_factor, corrected", [
+    ("auto", 2.0, True), ("auto", 20.0, True), ("auto", 250.0, False),
+    ("true", 250.0, True), ("false", 2.0, False)])
+def test_the_correction_applies_to_low_q_levers_unless_set(tmp_path, setting, quality_factor, corrected):
+    """``fit.thermal_bias``: auto corrects a lever of Q <= 20 (liquid), not an air lever (where it moves the
+    read-outs by < 1 % of themselves at 2.4x the CPU); true and false say so for any lever; no thermal force,
+    no correction."""
+    from afmid.config import apply_overrides, build_config, parse_override, read_yaml
+    from afmid.fit.prepare import prepare
+    from afmid.simulate.driver import simulate
+
+    raw = apply_overrides(read_yaml(TEST_CONFIGS / "hidden_clean.yaml"),
+                          [parse_override(o) for o in ("simulate.periods=10", f"fit.thermal_bias={setting}")])
+    config = build_config(raw, source=TEST_CONFIGS / "hidden_clean.yaml", base_dir=tmp_path)
+    trace = simulate(config)
+    trace.cantilever.quality_factor = quality_factor  # the fit's calibration decides, not the simulation
+    assert (prepare(trace, config.fit).thermal_force is not None) is corrected
+    config.fit.thermal_noise = False
+    assert prepare(trace, config.fit).thermal_force is None
