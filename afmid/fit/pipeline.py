@@ -80,7 +80,8 @@ from afmid.fit.prepare import (  # noqa: E402,F401
     with_fine_grid,
     with_regressor_noise,
 )
-from afmid.fit.system import System, build_system, library_columns, residual_sum_squares  # noqa: E402,F401
+from afmid.fit.system import (System, build_system, library_columns, library_thermal_bias,  # noqa: E402,F401
+                              residual_sum_squares)
 
 
 # --------------------------------------------------------------------------- nonlinear search
@@ -346,8 +347,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
 
     def factors_at(p: Prepared):  # the profile library's columns at the current parameters, held
         trial = dict(params, **extra)
-        held = build_system(p, physics, trial)
-        return lambda q: build_system(q, physics, trial, theta=held.theta, thermal_bias=held.thermal_bias).T_blocks
+        theta, bias = library_columns(p, physics, trial), library_thermal_bias(p, physics, trial)
+        return lambda q: build_system(q, physics, trial, theta=theta, thermal_bias=bias).T_blocks
 
     def estimate_again(p: Prepared) -> None:
         nonlinear.update(estimate_nonlinear(p, library, config, params, physics=(physics, extra)))
