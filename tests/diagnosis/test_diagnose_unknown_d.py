@@ -58,15 +58,9 @@ def test_hidden_effect_is_named_with_the_separation_unknown(tmp_path, case):
     assert top["error_after"] <= 1.5 * top["noise_floor_after"], verdict
 
 
-@pytest.mark.parametrize("below_beyond_touch", [-2e-9, 0.5e-9, 5e-9])
-def test_a_candidate_with_an_implausible_separation_starts_inside_the_window_above_a0(tmp_path, below_beyond_touch):
-    """A run whose separation is not above zero restarts each candidate on fit.separation_window around first
-    contact, its part above sample.a0 only: a window reaching below a0 (first contact closer than the window's
-    lower reach) must not centre the candidate at a separation <= 0 (it then failed and dropped out)."""
-    from types import SimpleNamespace
-
+def _clean_prepared(tmp_path):
+    """(config, prepared trace, first contact in m) of hidden_clean.yaml simulated for 20 periods."""
     from afmid.config import build_config
-    from afmid.diagnosis.candidate_refit import separation_starts
     from afmid.fit.pipeline import first_contact, prepare
     from afmid.simulate.driver import simulate
 
@@ -75,7 +69,20 @@ def test_a_candidate_with_an_implausible_separation_starts_inside_the_window_abo
     raw["simulate"]["periods"] = 20
     config = build_config(raw, source=source, base_dir=tmp_path)
     prepared = prepare(simulate(config), config.fit)
-    touch, a0 = first_contact(prepared, config.sample.a0), config.sample.a0
+    return config, prepared, first_contact(prepared, config.sample.a0)
+
+
+@pytest.mark.parametrize("below_beyond_touch", [-2e-9, 0.5e-9, 5e-9])
+def test_a_candidate_with_an_implausible_separation_starts_inside_the_window_above_a0(tmp_path, below_beyond_touch):
+    """A run whose separation is not above zero restarts each candidate on fit.separation_window around first
+    contact, its part above sample.a0 only: a window reaching below a0 (first contact closer than the window's
+    lower reach) must not centre the candidate at a separation <= 0 (it then failed and dropped out)."""
+    from types import SimpleNamespace
+
+    from afmid.diagnosis.candidate_refit import separation_starts
+
+    config, prepared, touch = _clean_prepared(tmp_path)
+    a0 = config.sample.a0
     above = 3e-9
     config.fit.separation_window = [touch + below_beyond_touch, above]
     starts, low, high = separation_starts(SimpleNamespace(separation=-0.5e-9), prepared, config)
@@ -90,17 +97,9 @@ def test_a_candidates_separation_search_reaches_the_fits_window_and_starts_twice
     +- SEPARATION_WINDOW, and starts its shape search from the run's estimate and from the middle of that span."""
     from types import SimpleNamespace
 
-    from afmid.config import build_config
     from afmid.diagnosis.candidate_refit import SEPARATION_WINDOW, separation_starts
-    from afmid.fit.pipeline import first_contact, prepare
-    from afmid.simulate.driver import simulate
 
-    source = REPO_ROOT / "tests" / "configs" / "hidden_clean.yaml"
-    raw = read_yaml(source)
-    raw["simulate"]["periods"] = 20
-    config = build_config(raw, source=source, base_dir=tmp_path)
-    prepared = prepare(simulate(config), config.fit)
-    touch = first_contact(prepared, config.sample.a0)
+    config, prepared, touch = _clean_prepared(tmp_path)
     below, above = config.fit.separation_window
     far = touch + above + 1e-9  # beyond the fit's own window
     starts, low, high = separation_starts(SimpleNamespace(separation=far), prepared, config)
