@@ -48,6 +48,7 @@ class ShapeSearch:
         from afmid.errors import AfmidError
         from afmid.fit.pipeline import build_system, library_parameters, residual_sum_squares
         from afmid.fit.search import search_range
+        from afmid.fit.system import library_columns, library_thermal_bias
         from afmid.physics.library import build_library
         from afmid.physics.tips import tip_geometry
 
@@ -57,15 +58,16 @@ class ShapeSearch:
         params["d"] = config.sample.separation
         own = [t for t in library.terms if t.effect == effect]
         rest = [t for t in library.terms if t.effect != effect]
-        fixed = build_system(prep, replace(library, terms=rest), params) if rest else None
-        own_library = replace(library, terms=own)
+        # The columns (and thermal-bias rows) alone: a whole system would also factor them, for nothing.
+        rest_library, own_library = replace(library, terms=rest), replace(library, terms=own)
+        fixed_theta = library_columns(prep, rest_library, params) if rest else None
+        fixed_bias = library_thermal_bias(prep, rest_library, params) if rest else None
 
         def composed(trial: dict) -> float:
-            mine = build_system(prep, own_library, trial)
-            theta = np.concatenate([fixed.theta, mine.theta], axis=2)
+            theta = np.concatenate([fixed_theta, library_columns(prep, own_library, trial)], axis=2)
             # the thermal force's bias rows in the same column order as theta (None without a thermal force)
-            bias = (None if mine.thermal_bias is None
-                    else np.concatenate([fixed.thermal_bias, mine.thermal_bias], axis=2))
+            own_bias = library_thermal_bias(prep, own_library, trial)
+            bias = None if own_bias is None else np.concatenate([fixed_bias, own_bias], axis=2)
             # columns in any order: rss only
             return residual_sum_squares(build_system(prep, library, trial, theta=theta, thermal_bias=bias))
 
