@@ -46,6 +46,7 @@ from afmid.fit.forces import force_cv_error, per_sample_forces, period_curves, r
 from afmid.fit.search import NonlinearEstimate, search_1d, search_range
 from afmid.fit.profile import GroupedProfile, ProfileResult, robust_profile
 from afmid.fit.joint_profile import other_valley
+from afmid.fit.valleys import cover_other_valleys
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
 from afmid.fit.declared_drive import declared_drive, propagate_drive_calibration, with_declared_drive
@@ -368,11 +369,11 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
     # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the
     # profile's width is their uncertainty (propagated into the read-out below).
     if nonlinear:
-        def profile(name, est, mask):
+        def profile(name, est, mask, jackknife=uncertainty):
             # A preset is profiled with all the terms of its catalog effects.
             return profile_parameter(prep, physics, dict(params, **extra), name, est.bounds,
                                      whole_effects(library, mask) if physics is library else None,
-                                     jackknife=uncertainty)
+                                     jackknife=jackknife)
 
         profiled = {}
         for name, est in nonlinear.items():
@@ -390,6 +391,7 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
                 same = np.array_equal(chosen, support) or physics is not library
                 found = profiled[name] if same else profile(name, est, chosen)
                 est.sigma, est.sigma_width, est.sigma_jackknife = found.sigma, found.sigma_width, found.sigma_jackknife
+                profiled[name] = found
         if uncertainty and "d" in nonlinear and len(nonlinear) > 1:  # d and a decay length: a second valley?
             moved, warning = other_valley(prep, physics, extra, params, nonlinear, system.n_rows,
                                           whole_effects(library, chosen) if physics is library else None,
@@ -400,6 +402,13 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
                 chosen = selection.best.mask
             if warning:
                 warnings.append("warning: " + warning)
+        if uncertainty:
+            for name, est in nonlinear.items():
+                if cover_other_valleys(name, est, profiled[name], params,
+                                       lambda name, est: profile(name, est, chosen), warnings):
+                    system = build_system(prep, library, params)
+                    selection = settings.select(system)
+                    chosen = selection.best.mask
     T = regression.combine(system.T_blocks)
     coef, _ = regression.subset_fit(T, chosen)
     bagging = None

@@ -65,6 +65,7 @@ class ProfileResult:
     grid: np.ndarray = field(default_factory=lambda: np.zeros(0))  # every evaluated value, sorted
     values: np.ndarray = field(default_factory=lambda: np.zeros(0))  # residual sum of squares there
     evaluations: int = 0
+    s2: float = math.nan  # the residual variance of one chi-square unit the profile was read with
 
 
 class GroupedProfile:
@@ -283,7 +284,7 @@ def robust_profile(profile: GroupedProfile, center: float, half_width: float, s2
     sigma = max(width, sigma_jk) if math.isfinite(sigma_jk) else width
     sigma = math.hypot(sigma, resolution if kinked else 0.0)
     x, y = profile.points()
-    return ProfileResult(best, sigma, width, sigma_jk, resolution, x, y, x.size)
+    return ProfileResult(best, sigma, width, sigma_jk, resolution, x, y, x.size, s2)
 
 
 def _jackknife(profile: GroupedProfile, best: float, width: float, s2: float, lo: float, hi: float) -> float:

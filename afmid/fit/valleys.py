@@ -1,0 +1,171 @@
+"""A nonlinear parameter's other valleys: an interval from its profile over the whole searched window.
+
+The profile of a nonlinear parameter (a decay length, the rest separation) is refined around the lowest point
+of the outer search's grid (:func:`afmid.fit.pipeline.estimate_nonlinear`), and its sigma is the width of that
+one valley (:func:`afmid.fit.profile.robust_profile`). When the residual has a second valley elsewhere in the
+window that the data cannot tell from the first, that sigma is confidently wrong: measured on a liquid record
+(Q 4, hydration 0.3 nN over 0.5 nm, separation given) the hydration length's profile had valleys at 0.084 nm
+and 0.51 nm, 0.8 chi-square units apart; the fit reported 0.077 +- 0.021 nm, 20 sigma from the truth.
+
+Here every local minimum of the outer grid that rises less than :data:`REACH` effective chi-square units above
+the lowest point and is cut off from the fit's valley by a rise of more than one unit (so the fit's own
+chi-square interval did not reach it) is refined on the fit's support; then
+
+- if it is lower than the fit's minimum by more than one effective unit, the fit moves there (the caller
+  profiles again);
+- otherwise the 1-sigma grows so that the other valley sits at sqrt(delta chi-square) sigmas: at one sigma
+  when the two are equally good, at two sigmas when it is 4 units higher (the profile-likelihood interval
+  over the whole window, read at its valleys), and the run warns, naming both valleys.
+
+"Effective" units: the rows of the weak form are correlated (overlapping windows, the smoother across
+periods), so one chi-square unit of the residual is worth less than one of independent rows. The profile
+measures that: its reported sigma (the block jackknife's where larger) over its chi-square width squared is
+the inflation of the chi-square scale, never taken below 1.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from afmid.fit.profile import ProfileResult
+
+#: Valleys rising more than this many effective chi-square units above the lowest are not considered (a 3-sigma
+#: reach: beyond it the other valley would sit outside any interval afmid reports).
+REACH = 9.0
+
+
+@dataclass(frozen=True)
+class Valley:
+    """One refined valley of a profile (SI, the parameter's unit): its minimum, its residual, and its rise above
+    the fit's minimum in effective chi-square units (negative: lower than the fit's)."""
+
+    value: float
+    rss: float
+    rise: float
+
+
+def chi2_inflation(found: ProfileResult) -> float:
+    """How much wider the profile's reported sigma is than its chi-square width, squared (>= 1)."""
+    if not (math.isfinite(found.sigma) and math.isfinite(found.sigma_width) and found.sigma_width > 0):
+        return 1.0
+    return max(1.0, (found.sigma / found.sigma_width) ** 2)
+
+
+def separated_minima(grid: np.ndarray, values: np.ndarray, best: float, level: float, barrier: float) -> list[float]:
+    """Grid points of the local minima of ``values`` that lie at or below ``level`` and are separated from the
+    valley holding ``best`` by a point above ``barrier`` (both in the units of ``values``), lowest first.
+
+    An end point of the grid counts as a minimum when it is below its one neighbour (the valley may continue
+    beyond the searched window: its value there is what the data allow inside it)."""
+    grid, values = np.asarray(grid, float), np.asarray(values, float)
+    finite = np.isfinite(values)
+    grid, values = grid[finite], values[finite]
+    if grid.size < 3:
+        return []
+    order = np.argsort(grid)
+    grid, values = grid[order], values[order]
+    home = int(np.argmin(np.abs(grid - best)))
+    found = []
+    for j in range(grid.size):
+        left = values[j - 1] if j > 0 else math.inf
+        right = values[j + 1] if j < grid.size - 1 else math.inf
+        lowest_here = values[j] <= left and values[j] <= right and (values[j] < left or values[j] < right)
+        if not (lowest_here and values[j] <= level):  # a flat stretch is no minimum of its own
+            continue
+        lo, hi = sorted((j, home))
+        if hi - lo < 2 or float(np.max(values[lo:hi + 1])) <= barrier:
+            continue
+        found.append((values[j], float(grid[j])))
+    return [g for _, g in sorted(found)]
+
+
+def other_valleys(found: ProfileResult, grid: np.ndarray, values: np.ndarray, s2: float,
+                  refine: Callable[[float], ProfileResult | None]) -> list[Valley]:
+    """The refined other valleys of a profile within :data:`REACH` effective units, lowest first.
+
+    ``found`` is the fit's profile (its minimum's residual is the lowest of its values); ``grid``/``values`` the
+    outer search's coarse profile over the whole window (any library: only its shape is used to find the
+    valleys); ``s2`` the residual variance of one chi-square unit; ``refine(start)`` profiles the parameter
+    again from ``start`` on the fit's support (None where it cannot be evaluated)."""
+    if not (math.isfinite(found.value) and s2 > 0 and np.size(grid) >= 3):
+        return []
+    here = float(np.min(found.values)) if np.size(found.values) else math.nan
+    if not math.isfinite(here):
+        return []
+    unit = s2 * chi2_inflation(found)
+    coarse = np.asarray(values, float)
+    lowest = float(np.min(coarse[np.isfinite(coarse)])) if np.isfinite(coarse).any() else math.nan
+    if not math.isfinite(lowest):
+        return []
+    starts = separated_minima(grid, coarse, found.value, lowest + REACH * unit, lowest + unit)
+    valleys: list[Valley] = []
+    for start in starts:
+        other = refine(start)
+        if other is None or not math.isfinite(other.value) or not np.size(other.values):
+            continue
+        rss = float(np.min(other.values))
+        if not math.isfinite(rss) or abs(other.value - found.value) <= max(found.sigma, 0.0):
+            continue  # refined back into the fit's own valley, or inside its interval already
+        rise = (rss - here) / unit
+        if rise <= REACH:
+            valleys.append(Valley(other.value, rss, rise))
+    return sorted(valleys, key=lambda v: v.rss)
+
+
+def covering_sigma(value: float, sigma: float, valleys: list[Valley]) -> float:
+    """The 1-sigma that puts each other valley at sqrt(rise) sigmas from ``value`` (at one sigma when it is as
+    good or better), never below ``sigma``."""
+    needed = [abs(v.value - value) / max(1.0, math.sqrt(max(v.rise, 0.0))) for v in valleys]
+    return max([sigma if math.isfinite(sigma) else 0.0, *needed])
+
+
+def describe(name: str, unit: str, value: float, sigma: float, valleys: list[Valley]) -> str:
+    """The warning of a parameter whose interval was widened to cover other valleys (nm for lengths)."""
+    scale, shown = (1e9, "nm") if unit == "m" else (1.0, unit)
+    others = "; ".join(f"{scale * v.value:.3g} {shown} ({max(v.rise, 0.0):.2g} effective chi-square units higher)"
+                       for v in valleys)
+    return (f"{name}: the residual has another valley the data cannot rule out: {others}, besides the fit's "
+            f"{scale * value:.3g} {shown}; its 1-sigma now covers them ({scale * sigma:.3g} {shown}), and so do the "
+            "read-outs that depend on it")
+
+
+def cover_other_valleys(name: str, est, found: ProfileResult, params: dict,
+                        profile: Callable[[str, object], ProfileResult], warnings: list[str]) -> bool:
+    """Check the fit's profile of nonlinear parameter ``name`` against the other valleys of its outer search.
+
+    ``est`` is its :class:`afmid.fit.search.NonlinearEstimate` (the outer grid, value and sigma: updated in
+    place), ``found`` its profile on the fit's support, ``params`` the fit's parameters (updated in place when
+    the fit moves), ``profile(name, est)`` profiles it again at the current ``params`` on the fit's support
+    (with its jackknife). Appends a warning when the sigma grows. Returns True when the fit moved to a lower
+    valley (the caller selects the support again)."""
+    s2 = found.s2
+    moved = False
+
+    def refine(start: float) -> ProfileResult | None:
+        held = params[name]
+        params[name] = start
+        try:
+            return profile(name, est)
+        finally:
+            params[name] = held
+
+    valleys = other_valleys(found, est.grid, est.objective, s2, refine)
+    if valleys and valleys[0].rise < -1.0:  # a lower valley: the fit moves there and looks again
+        params[name] = valleys[0].value
+        found = profile(name, est)
+        params[name] = found.value
+        est.value, est.sigma = found.value, found.sigma
+        est.sigma_width, est.sigma_jackknife = found.sigma_width, found.sigma_jackknife
+        moved = True
+        valleys = other_valleys(found, est.grid, est.objective, found.s2, refine)
+    if not valleys:
+        return moved
+    sigma = covering_sigma(est.value, est.sigma, valleys)
+    if sigma > (est.sigma if math.isfinite(est.sigma) else 0.0):
+        est.sigma = sigma
+        warnings.append("warning: " + describe(name, est.unit, est.value, sigma, valleys))
+    return moved

@@ -1,0 +1,125 @@
+"""A nonlinear parameter's other valleys (afmid.fit.valleys): the interval covers what the data cannot rule out."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from afmid.fit.profile import ProfileResult
+from afmid.fit.search import NonlinearEstimate
+from afmid.fit.valleys import (chi2_inflation, cover_other_valleys, covering_sigma, other_valleys,
+                               separated_minima, Valley)
+
+S2 = 1.0  # one chi-square unit of the residual
+WIDTH = 0.02e-9  # each valley's 1-sigma half-width, m
+HOME, AWAY = 0.08e-9, 0.5e-9  # the fit's valley and the other one, m
+BASE = 4800.0
+
+
+def double_well(rise: float):
+    """A residual with valleys at HOME (BASE) and AWAY (BASE + rise chi-square units), a barrier between."""
+    def rss(value: float) -> float:
+        home = ((value - HOME) / WIDTH) ** 2
+        away = ((value - AWAY) / WIDTH) ** 2 + rise
+        return BASE + S2 * min(home, away, 40.0)
+    return rss
+
+
+def fake_profile(rss):
+    """``profile(name, est)`` of the fit: the minimum of the valley holding params[name], its chi-square width."""
+    def profile_at(params: dict, name: str) -> ProfileResult:
+        centre = HOME if abs(params[name] - HOME) < abs(params[name] - AWAY) else AWAY
+        grid = np.linspace(centre - 3 * WIDTH, centre + 3 * WIDTH, 61)
+        values = np.array([rss(g) for g in grid])
+        return ProfileResult(centre, WIDTH, WIDTH, math.nan, grid[1] - grid[0], grid, values, grid.size, S2)
+    return profile_at
+
+
+def estimate(rss) -> NonlinearEstimate:
+    grid = np.geomspace(0.02e-9, 1.5e-9, 25)
+    return NonlinearEstimate("hydration_length", HOME, WIDTH, "m", True, grid, np.array([rss(g) for g in grid]),
+                             (0.02e-9, 1.5e-9), WIDTH, math.nan)
+
+
+def run(rise: float):
+    rss = double_well(rise)
+    est, params, warnings = estimate(rss), {"hydration_length": HOME}, []
+    profile_at = fake_profile(rss)
+    found = profile_at(params, "hydration_length")
+    moved = cover_other_valleys("hydration_length", est, found, params,
+                                lambda name, est: profile_at(params, name), warnings)
+    return est, params, warnings, moved
+
+
+def test_an_equally_good_valley_is_covered_at_one_sigma():
+    est, params, warnings, moved = run(rise=0.5)
+    assert not moved and params["hydration_length"] == HOME
+    # sqrt(0.5) < 1: the other valley sits at one sigma
+    assert est.sigma == pytest.approx(AWAY - HOME)
+    assert len(warnings) == 1 and "0.5 nm" in warnings[0] and "hydration_length" in warnings[0]
+
+
+def test_a_valley_four_units_higher_sits_at_two_sigmas():
+    est, _, warnings, moved = run(rise=4.0)
+    assert not moved
+    assert est.sigma == pytest.approx((AWAY - HOME) / 2.0)
+    assert warnings
+
+
+def test_a_valley_beyond_the_reach_changes_nothing():
+    est, _, warnings, moved = run(rise=12.0)
+    assert not moved and est.sigma == WIDTH and not warnings
+
+
+def test_a_lower_valley_moves_the_fit_and_covers_the_first():
+    est, params, warnings, moved = run(rise=-3.0)
+    assert moved and params["hydration_length"] == AWAY and est.value == AWAY
+    # the fit's first valley is now 3 units higher: at sqrt(3) sigmas
+    assert est.sigma == pytest.approx((AWAY - HOME) / math.sqrt(3.0))
+    assert warnings and "0.08 nm" in warnings[0]
+
+
+def test_a_shoulder_without_a_barrier_is_no_second_valley():
+    grid = np.linspace(0.0, 1.0, 21)
+    values = np.where(grid < 0.5, 0.0, 0.3)  # flat within one unit: one wide valley, the profile's interval
+    values = values + 0.01 * grid
+    assert separated_minima(grid, values, 0.0, 9.0, 1.0) == []
+
+
+def test_separated_minima_lowest_first_and_ends_count():
+    grid = np.linspace(0.0, 10.0, 11)
+    values = np.array([2.0, 5.0, 0.0, 5.0, 5.0, 1.0, 5.0, 5.0, 5.0, 5.0, 3.0])
+    assert separated_minima(grid, values, 2.0, 9.0, 1.0) == [5.0, 0.0, 10.0]
+    assert separated_minima(grid, values, 2.0, 2.5, 1.0) == [5.0, 0.0]
+
+
+def test_inflation_from_the_jackknife():
+    found = ProfileResult(1.0, 0.3, 0.1, 0.3, 0.0, np.zeros(1), np.zeros(1), 1, 1.0)
+    assert chi2_inflation(found) == pytest.approx(9.0)
+    found = ProfileResult(1.0, 0.1, 0.2, math.nan, 0.0, np.zeros(1), np.zeros(1), 1, 1.0)
+    assert chi2_inflation(found) == 1.0  # never below one
+
+
+def test_the_inflation_scales_the_rise():
+    """With correlated rows (jackknife sigma 2x the chi-square width) a valley 4 raw units higher is 1 unit."""
+    rss = double_well(4.0)
+    profile_at = fake_profile(rss)
+    params = {"x": HOME}
+    found = profile_at(params, "x")
+    found = ProfileResult(found.value, 2 * WIDTH, WIDTH, 2 * WIDTH, found.resolution, found.grid, found.values,
+                          found.evaluations, S2)
+    est = estimate(rss)
+
+    def refine(start):
+        return profile_at({"x": start}, "x")
+
+    valleys = other_valleys(found, est.grid, est.objective, S2, refine)
+    assert len(valleys) == 1 and valleys[0].rise == pytest.approx(1.0, rel=1e-6)
+    assert covering_sigma(HOME, 2 * WIDTH, valleys) == pytest.approx(AWAY - HOME)
+
+
+def test_covering_sigma_never_shrinks():
+    assert covering_sigma(0.0, 5.0, [Valley(1.0, 0.0, 0.0)]) == 5.0
+    assert covering_sigma(0.0, math.nan, [Valley(1.0, 0.0, 9.0)]) == pytest.approx(1.0 / 3.0)
