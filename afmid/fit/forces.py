@@ -198,7 +198,7 @@ def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) 
             lo, hi = (np.percentile(arr, [2.5, 97.5]) if arr.size > 2 else (math.nan, math.nan))
             key = q.name if q.name not in out else f"{effect_name}.{q.name}"
             out[key] = {"value": value, "error": err, "ci_low": float(lo), "ci_high": float(hi), "unit": q.unit,
-                        "effect": effect_name, "doc": q.doc}
+                        "effect": effect_name, "doc": q.doc, "tip_radius": float(ctx["R"])}
     return out
 
 

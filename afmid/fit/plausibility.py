@@ -131,6 +131,17 @@ def plausible_range(name: str, effect: str | None = None) -> tuple[float, float,
     return low, high, q.unit
 
 
+def tip_scaled_range(name: str, effect: str | None, tip_radius: float) -> tuple[float, float, str] | None:
+    """The declared range of a force that grows with the tip (``Quantity.high_per_radius``), its upper bound
+    lowered to what a tip of radius ``tip_radius`` (m) can give; None when the quantity declares no such bound
+    or the radius is unknown (the plain :func:`plausible_range` then holds)."""
+    eff, q = _declaring_effect(name, effect)
+    if q is None or q.high_per_radius is None or not (math.isfinite(tip_radius) and tip_radius > 0):
+        return None
+    low, high = quantity_range(eff, q)
+    return low, min(high, q.high_per_radius * tip_radius), q.unit
+
+
 def _field(q, key: str) -> float:
     try:
         return float(q.get(key, math.nan))
@@ -162,9 +173,13 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
     shown = f"{label} = {display(value, unit)}"
     has_interval = math.isfinite(ci_low) and math.isfinite(ci_high)
     interval = f"[{display(ci_low, unit)}, {display(ci_high, unit)}]" if has_interval else ""
+    tip_radius = _field(q, "tip_radius")
+    tip_range = tip_scaled_range(name, q.get("effect") or None, tip_radius)
     if declared is not None:
-        low, high, _ = declared
+        low, high, _ = tip_range or declared
         allowed = range_words(low, high, unit)
+        if tip_range is not None:
+            allowed += f" for the declared tip radius {display(tip_radius, 'm')}"
         if not (low <= value <= high):
             if value == 0:
                 return Verdict(False, f"{shown}: not identified (its term was not selected), while a physical "

@@ -84,6 +84,10 @@ class Quantity:
     doc: str
     low: float | None = None
     high: float | None = None
+    #: For a force that grows with the tip (adhesion 4 pi R gamma, a meniscus 4 pi R gamma_w cos theta): its
+    #: largest physical value per metre of tip radius, in ``unit`` / m. A read-out above it for the declared
+    #: ``cantilever.tip_radius`` is implausible even inside [low, high] (:mod:`afmid.fit.plausibility`).
+    high_per_radius: float | None = None
 
 
 @dataclass(frozen=True)
@@ -295,9 +299,12 @@ def _validate_quantity_range(effect: Effect, q: Quantity) -> None:
     low, high = quantity_range(effect, q)
     if not (math.isfinite(low) and math.isfinite(high) and low < high):
         raise DefinitionError(f"quantity {q.name}: plausible range [{low}, {high}] needs finite low < high")
+    if q.high_per_radius is not None and not (math.isfinite(q.high_per_radius) and q.high_per_radius > 0):
+        raise DefinitionError(f"quantity {q.name}: high_per_radius {q.high_per_radius} must be finite and > 0")
     for other in EFFECTS:  # one name, one meaning: the same unit and range wherever it is reported
         for o in other.quantities:
-            if o.name == q.name and (parse_unit(o.unit) != unit or quantity_range(other, o) != (low, high)):
+            if o.name == q.name and (parse_unit(o.unit) != unit or quantity_range(other, o) != (low, high)
+                                     or o.high_per_radius != q.high_per_radius):
                 raise DefinitionError(f"quantity {q.name}: unit or range differs from effect {other.name}'s "
                                       f"({o.unit} [{quantity_range(other, o)}])")
 

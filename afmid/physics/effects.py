@@ -72,11 +72,17 @@ def _dmt_like_readout(adhesion_per_energy: float):
 _ADHESION_FORCE_MAX = 1e-4  # N
 #: gamma, as the JKR parameter (adhesion energy per area; water 0.072, metals up to a few J/m^2).
 _SURFACE_ENERGY_RANGE = (1e-4, 5.0)  # J/m^2
+#: The largest adhesion per metre of tip radius, N/m: 4 pi R gamma (DMT) at the largest surface energy above
+#: (JKR's 3 pi R gamma is smaller). An 8 nm tip: 0.5 uN; a reading of 33 uN there is a calibration error.
+_ADHESION_PER_RADIUS_MAX = 4.0 * math.pi * _SURFACE_ENERGY_RANGE[1]
+#: A meniscus: 4 pi R gamma_w cos(theta) at the largest surface tension the capillary effect accepts (1 N/m).
+_MENISCUS_PER_RADIUS_MAX = 4.0 * math.pi * 1.0
 
 _CONTACT_QUANTITIES = (
     Quantity("hamaker", "J", "Hamaker constant from the van der Waals tail"),
     Quantity("E_star", "Pa", "reduced Young's modulus from the Hertz term"),
-    Quantity("adhesion_force", "N", "adhesion force in contact (positive number)", 0.0, _ADHESION_FORCE_MAX),
+    Quantity("adhesion_force", "N", "adhesion force in contact (positive number)", 0.0, _ADHESION_FORCE_MAX,
+             _ADHESION_PER_RADIUS_MAX),
 )
 
 EFFECTS.register(
@@ -260,7 +266,8 @@ EFFECTS.register(
                 coefficient_unit="N",
             ),
         ),
-        quantities=(Quantity("capillary_force", "N", "meniscus force (positive number)", 0.0, _ADHESION_FORCE_MAX),),
+        quantities=(Quantity("capillary_force", "N", "meniscus force (positive number)", 0.0, _ADHESION_FORCE_MAX,
+                             _MENISCUS_PER_RADIUS_MAX),),
         readout=lambda c, ctx: {"capillary_force": -c["meniscus"]},
         states=(StateGate("meniscus", on="z <= a0", off="z > a0 + rupture_distance"),),
         references=("Zitzler, Herminghaus, Mugele, Phys. Rev. B 66, 155436 (2002)",),

@@ -95,6 +95,32 @@ def test_check_plausibility(name, quantity, plausible, fragments):
         assert "\n" not in verdict.reason and verdict.reason.count(". ") == 0  # one sentence
 
 
+# --------------------------------------------------------------------------- forces that grow with the tip
+@pytest.mark.parametrize("name, effect, value, radius, plausible", [
+    # 4 pi R gamma at gamma = 5 J/m^2: 0.503 uN for an 8 nm tip
+    ("adhesion_force", "dmt", 33.11e-6, 8e-9, False),  # a real record read with a wrong calibration
+    ("adhesion_force", "dmt", 0.49e-6, 8e-9, True),
+    ("adhesion_force", "dmt", 0.52e-6, 8e-9, False),
+    ("adhesion_force", "dmt", 33.11e-6, 5e-6, True),  # a 5 um colloidal probe can adhere with 33 uN
+    ("adhesion_force", "dmt", 33.11e-6, math.nan, True),  # no radius known: the plain range only
+    ("capillary_force", "capillary", 0.1e-6, 8e-9, True),  # 4 pi R (1 N/m): 0.10053 uN
+    ("capillary_force", "capillary", 0.11e-6, 8e-9, False),
+])
+def test_a_force_that_grows_with_the_tip_is_judged_against_the_declared_radius(name, effect, value, radius,
+                                                                                plausible):
+    verdict = judge(name, {"value": value, "unit": "N", "effect": effect, "tip_radius": radius})
+    assert verdict.plausible is plausible, verdict.reason
+    if not plausible:
+        assert "for the declared tip radius 8 nm" in verdict.reason
+
+
+def test_high_per_radius_must_agree_across_effects_and_be_positive():
+    with pytest.raises(DefinitionError, match="high_per_radius"):
+        EFFECTS.register(_effect("tip_bound_negative", Quantity("pulled_force", "N", "a force", 0.0, 1e-6, -1.0)))
+    with pytest.raises(DefinitionError, match="adhesion_force"):
+        EFFECTS.register(_effect("tip_bound_other", Quantity("adhesion_force", "N", "adhesion", 0.0, 1e-4, 1.0)))
+
+
 def test_the_range_bounds_themselves_are_plausible():
     for effect in EFFECTS:
         for q in effect.quantities:
