@@ -494,8 +494,7 @@ def load_trace(config) -> Trace:
     if data.sample_rate is not None:
         if sample_rate is not None and not np.isclose(sample_rate, data.sample_rate, rtol=1e-9):
             overridden.append("data.sample_rate")
-            log.warning("%s: data.sample_rate %g Hz overrides the file's %g Hz (%s)", path, data.sample_rate,
-                        sample_rate, sources.get("sample_rate", "file"))
+        file_rate, file_rate_source = sample_rate, sources.get("sample_rate", "file")
         sample_rate = data.sample_rate
         sources["sample_rate"] = "config:data.sample_rate"
         from afmid.io.readers.base import rate_from_time
@@ -509,6 +508,10 @@ def load_trace(config) -> Trace:
                 file=config.source,
                 key="data.sample_rate",
             )
+        if file_rate is not None and not np.isclose(file_rate, data.sample_rate, rtol=0.01):
+            # A rate the file states, contradicted (beyond a rounding): say so. A time column's is an error above.
+            log.warning("%s: data.sample_rate %g Hz overrides the file's %g Hz (%s)", path, data.sample_rate,
+                        file_rate, file_rate_source)
     if sample_rate is None:
         if time is not None:  # a time column that gives no rate: say what is wrong with it
             defects.report(defects.check_time(time), path)
