@@ -332,3 +332,17 @@ def test_header_end_is_looked_for_in_a_bounded_prefix(tmp_path):
     path = tmp_path / "endless.hsdc"
     path.write_bytes(b"\\*File list\r\n" + b"\\Note: x\r\n" * (MAX_HEADER_BYTES // 10 + 10))
     assert "no end marker" in str(error_of(path))
+
+
+# --------------------------------------------------------------------------- the commands take the file directly
+def test_inspect_and_init_config_commands_on_a_contradicting_capture(tmp_path, run_cli):
+    path = write_hsdc(tmp_path / "x.hsdc", channel_rate="2.5e+005", number_of_samples=N // 8)
+    code, out, err = run_cli("inspect", path)
+    assert code == 0 and "sample rate:  2 MHz" in out and "nominal drive 50 kHz" in out
+    (warning,) = err.splitlines()
+    assert warning.startswith("afmid: warning: ") and "using 2 MHz" in warning
+    code, out, err = run_cli("init-config", "--from", path, "-o", tmp_path / "run.yaml")
+    assert code == 0
+    written = yaml.safe_load((tmp_path / "run.yaml").read_text())
+    assert written["data"]["path"] == "x.hsdc" and written["data"]["sample_rate"] == RATE
+    assert written["drive"]["frequency"] == DRIVE and written["data"]["invols"] is None
