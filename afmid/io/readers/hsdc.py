@@ -246,9 +246,9 @@ def _stated_rates(header: _Header, channel: _Channel, count: int) -> list[tuple[
                           "'High Speed Data Channel Rate'"))
     merged: list[tuple[float, str]] = []
     for rate, where in found:
-        same = next((i for i, (r, _) in enumerate(merged) if math.isclose(r, rate, rel_tol=1e-9)), None)
         if rate <= 0:
             continue
+        same = next((i for i, (r, _) in enumerate(merged) if math.isclose(r, rate, rel_tol=1e-9)), None)
         if same is None:
             merged.append((rate, where))
         else:
