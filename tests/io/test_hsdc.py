@@ -220,10 +220,17 @@ def test_rates_of_which_none_fits_the_drive_ask_for_data_sample_rate(tmp_path):
     assert trace.sample_rate == user_rate and trace.sources["sample_rate"] == "config:data.sample_rate"
 
 
-def test_rate_tolerance_is_the_fits_drive_search_band():
-    # Candidates differ by factors (8 in the example), so any tolerance well below that decides; the fit's drive
-    # search spans +-5 % of drive.frequency, and a rate is accepted exactly when the fit could then find the drive.
+@pytest.mark.parametrize("offset, accepted", [(-0.04, True), (0.04, True), (-0.06, False), (0.06, False)])
+def test_a_rate_fits_when_it_puts_the_oscillation_inside_the_fits_drive_search_band(tmp_path, offset, accepted):
+    """RATE_TOLERANCE is the fit's own drive search band (+-5 % of drive.frequency): a rate is accepted when the
+    fit could then find the drive. 1 % of the drive either side of the edge is 2 bins of the 8000-sample FFT
+    (250 Hz each), and the interpolated peak of a pure tone is within a small fraction of a bin of it."""
     assert RATE_TOLERANCE == 0.05
+    path = write_hsdc(tmp_path / "t.hsdc", channels={"Vertical Deflection": counts(frequency=DRIVE * (1 + offset))},
+                      channel_rate="2.5e+005")
+    trace = read_trace(path)
+    assert (trace.sample_rate == RATE) is accepted
+    assert ("sample_rate_problem" in trace.metadata) is not accepted
 
 
 def test_contradicting_rates_without_a_declared_drive_ask_for_data_sample_rate(tmp_path):
