@@ -111,7 +111,7 @@ class DataConfig(StrictModel):
     paths: list[Path] | None = Field(
         None, description="several trace files of one sample and one tip (e.g. set-points), fitted jointly: one "
         "force law, a separation per trace (afmid.fit.joint); instead of data.path")
-    format: str = Field("auto", description="auto (from the suffix), csv, npy, hdf5, mat, ibw, tdms")
+    format: str = Field("auto", description="auto (from the suffix), csv, npy, hdf5, mat, ibw, tdms, hsdc")
     column: Annotated[str | int | None, _Column] = Field(
         None, description="CSV column / HDF5 dataset path / MAT variable (or a 0-based column index)")
     time_column: Annotated[str | int | None, _Column] = Field(None, description="optional time column (s)")

@@ -45,7 +45,11 @@ class FileSummary:
     is_afmid: bool = False
     simulated: str | None = None  # afmid trace files with /truth: the simulator's model
     cantilever: dict = field(default_factory=dict)  # afmid trace files: k, f0, Q, R
-    drive_frequency: float | None = None  # afmid trace files: nominal drive, Hz
+    drive_frequency: float | None = None  # afmid trace files, or an instrument file's header: nominal drive, Hz
+    stated: dict = field(default_factory=dict)  # config key -> SI value an instrument file states (readers' 'stated')
+    stated_where: dict = field(default_factory=dict)  # config key -> where in the file
+    acquisition: str | None = None  # an instrument file's instrument, mode, set-point and scan, one line
+    rate_problem: str | None = None  # why the file's stated rates could not be settled
     values: np.ndarray | None = None  # metres if the units are a length, else file units
     display_units: str | None = None  # 'm', the file's units, or None when unknown
     analysed: tuple[int, int] | None = None  # (start, length) of the samples analysed
@@ -108,6 +112,7 @@ def describe(path: str | Path, column: str | None = None, sample_rate: float | N
     summary.units = normalise_units(raw.units)
     summary.units_source = raw.source.get("units")
     summary.sample_rate, summary.rate_source = raw.sample_rate, raw.source.get("sample_rate")
+    summary.rate_problem = meta.get("sample_rate_problem")
     if sample_rate is not None:
         summary.sample_rate, summary.rate_source = float(sample_rate), "command line: --sample-rate"
     if summary.is_afmid:
@@ -121,9 +126,17 @@ def describe(path: str | Path, column: str | None = None, sample_rate: float | N
 
             truth = read_truth(path)  # InputError naming the file if /truth is damaged
             summary.simulated = truth.model if truth is not None and truth.model else "?"
+    else:
+        summary.stated, summary.stated_where = dict(meta.get("stated") or {}), dict(meta.get("stated_where") or {})
+        summary.drive_frequency = summary.stated.get("drive.frequency")
+        if "cantilever.spring_constant" in summary.stated:
+            summary.cantilever = {"spring_constant": summary.stated["cantilever.spring_constant"]}
+        summary.acquisition = raw.source.get("acquisition", "").removeprefix("file:") or None
 
     if summary.units in _LENGTH_UNITS:
         summary.values, summary.display_units = values * _LENGTH_UNITS[summary.units], "m"
+    elif summary.units == "V" and "data.invols" in summary.stated:  # the file's calibrated sensitivity
+        summary.values, summary.display_units = values * summary.stated["data.invols"], "m"
     else:
         summary.values, summary.display_units = values, summary.units
 
@@ -196,6 +209,8 @@ def inspect_file(file: str | Path, column: str | None = None, sample_rate: float
     if s.sample_rate:
         rows.append(("sample rate", f"{defects.frequency(s.sample_rate)} ({s.rate_source or 'file'}); "
                                     f"duration {s.n_samples / s.sample_rate:.4g} s"))
+    elif s.rate_problem:
+        rows.append(("sample rate", f"unknown: {s.rate_problem}"))
     else:
         rows.append(("sample rate", "unknown: the file does not say; pass --sample-rate or set data.sample_rate"))
     units = s.units or "unknown"
@@ -203,7 +218,10 @@ def inspect_file(file: str | Path, column: str | None = None, sample_rate: float
         units += ": the file does not say; set data.units (m, nm, pm, um, V, raw)"
     else:
         units += f" ({s.units_source or 'file'})"
-        if s.units == "V":
+        if s.units == "V" and "data.invols" in s.stated:
+            units += (f"; the file's deflection sensitivity {s.stated['data.invols'] * 1e9:.5g} nm/V converts to "
+                      "metres")
+        elif s.units == "V":
             units += "; set data.invols (m/V) to convert to metres"
         elif s.units not in _LENGTH_UNITS:
             units += "; not a length: set data.units (raw needs data.scale)"
@@ -221,6 +239,8 @@ def inspect_file(file: str | Path, column: str | None = None, sample_rate: float
         nominal = ""
         if s.drive_frequency:
             nominal = f"; nominal drive {defects.frequency(s.drive_frequency)} (file)"
+            if "drive.frequency" in s.stated_where:
+                nominal = nominal[:-1] + f": {s.stated_where['drive.frequency'].removeprefix('file:')})"
         rows.append(("oscillation", f"{freq}{a.spp:.2f} samples per period, {a.periods:.1f} periods{nominal}"))
         rows.append(("amplitude", f"{_quantity(a.amplitude, s.display_units)} (first harmonic, mean over periods)"))
         noise = f"{_quantity(a.noise_rms, s.display_units)} rms"
@@ -237,6 +257,10 @@ def inspect_file(file: str | Path, column: str | None = None, sample_rate: float
         rows.append(("harmonics", _harmonics(a)))
         rows.append(("interaction", _interaction(a, s)))
         rows.append(("instrument", _instrument(a, s)))
+    if s.acquisition:
+        rows.append(("acquisition", s.acquisition))
+    if s.stated or s.acquisition:
+        rows.append(("calibration", _stated_calibration(s)))
     if s.is_afmid:
         cl = s.cantilever
         parts = [f"{name} = {value}" for name, value in (
@@ -256,6 +280,22 @@ def inspect_file(file: str | Path, column: str | None = None, sample_rate: float
         required = "  # REQUIRED" if value is None and comment and "REQUIRED" in comment else ""
         text += f"  data.{key}: {_yaml_value(value)}{required}\n"
     return text
+
+
+def _stated_calibration(s: FileSummary) -> str:
+    """What an instrument file states of the calibration, and what the config must still give."""
+    parts = []
+    if "cantilever.spring_constant" in s.stated:
+        parts.append(f"k = {s.stated['cantilever.spring_constant']:g} N/m "
+                     f"({s.stated_where.get('cantilever.spring_constant', 'file').removeprefix('file:')})")
+    if "data.invols" in s.stated:
+        parts.append(f"deflection sensitivity {s.stated['data.invols'] * 1e9:.5g} nm/V "
+                     f"({s.stated_where.get('data.invols', 'file').removeprefix('file:')})")
+    missing = [key for key, present in (("data.invols", "data.invols" in s.stated or s.units != "V"),
+                                        ("cantilever.spring_constant", "cantilever.spring_constant" in s.stated))
+               if not present]
+    missing += ["cantilever.resonance_frequency", "cantilever.quality_factor", "cantilever.tip_radius"]
+    return ", ".join(parts + [f"not in the file: {', '.join(missing)} (set them in the config)"])
 
 
 def _table(rows: list[tuple[str, str]]) -> str:
@@ -342,7 +382,10 @@ def _data_values(s: FileSummary, config_dir: Path | None) -> list[tuple[str, obj
         ("sample_rate", float(s.sample_rate) if s.sample_rate else None, rate_note),
         ("units", units, units_note),
     ]
-    if units == "V":
+    if units == "V" and "data.invols" in s.stated:
+        values.append(("invols", float(s.stated["data.invols"]),
+                       f"# m/V, {s.stated_where.get('data.invols', 'file')}"))
+    elif units == "V":
         values.append(("invols", None, "# REQUIRED for units V: m/V, inverse optical lever sensitivity"))
     elif units == "raw":
         values.append(("scale", None, "# REQUIRED for units raw: metres per count"))
@@ -425,13 +468,20 @@ def prefill_config(path: str | Path, template_text: str, config_dir: str | Path 
         if s.drive_frequency:
             _set(lines, "drive", "frequency", float(s.drive_frequency), "# Hz, from the trace file")
     else:
-        if s.frequency:
+        if s.drive_frequency:
+            _set(lines, "drive", "frequency", float(s.drive_frequency),
+                 f"# Hz, {s.stated_where.get('drive.frequency', 'file')}")
+        elif s.frequency:
             _set(lines, "drive", "frequency", float(f"{s.frequency:.7g}"),
                  "# Hz, measured from the data by afmid inspect")
+        if "cantilever.spring_constant" in s.stated:
+            _set(lines, "cantilever", "spring_constant", float(s.stated["cantilever.spring_constant"]),
+                 f"# N/m, {s.stated_where.get('cantilever.spring_constant', 'file')}")
         bounds = _section_bounds(lines, "cantilever")
         if bounds:
-            lines.insert(bounds[0], f"# CHECK the cantilever values: they are the template's examples, not read "
-                                    f"from {s.path.name}")
+            read = " (but spring_constant)" if "cantilever.spring_constant" in s.stated else ""
+            lines.insert(bounds[0], f"# CHECK the cantilever values{read}: they are the template's examples, not "
+                                    f"read from {s.path.name}")
     header = [f"# Pre-filled from {s.path} by `afmid init-config --from` (`afmid inspect` shows the details)."]
     if s.simulated:
         header.append(f"# The file is SIMULATED (ground truth in /truth, model {s.simulated}), not a measurement.")

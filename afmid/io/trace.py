@@ -407,7 +407,8 @@ def _read_truth(path: str | Path) -> Truth | None:
 
 
 # --------------------------------------------------------------------------- loading
-def _convert_units(values: np.ndarray, units: str | None, config, file: Path) -> np.ndarray:
+def _convert_units(values: np.ndarray, units: str | None, config, file: Path, invols: float | None) -> np.ndarray:
+    """``values`` in metres; ``invols`` (m/V) is data.invols or the file's calibrated sensitivity."""
     data = config.data
     if units is None:
         raise ConfigError(
@@ -419,9 +420,9 @@ def _convert_units(values: np.ndarray, units: str | None, config, file: Path) ->
     if units in _UNIT_SCALE:
         return np.multiply(values, _UNIT_SCALE[units], out=values)
     if units == "V":
-        if data.invols is None:
+        if invols is None:
             raise ConfigError("units V needs data.invols (m/V) to convert to metres", file=config.source, key="data.invols")
-        return np.multiply(values, data.invols, out=values)
+        return np.multiply(values, invols, out=values)
     if units == "raw":
         if data.scale is None:
             raise ConfigError("units raw needs data.scale (m per count)", file=config.source, key="data.scale")
@@ -460,6 +461,9 @@ def load_trace(config) -> Trace:
     overridden: list[str] = []
     meta = raw.metadata or {}
     is_afmid = meta.get("format") == TRACE_FORMAT
+    # Config values an instrument file states (SI; a NanoScope header's drive frequency, sensitivity, k).
+    stated = {} if is_afmid else dict(meta.get("stated") or {})
+    stated_where = dict(meta.get("stated_where") or {})
 
     values = np.asarray(raw.values, dtype=np.float64)
     import afmid.io.defects as defects
@@ -472,7 +476,16 @@ def load_trace(config) -> Trace:
             overridden.append("data.units")
         units = data.units
         sources["units"] = "config:data.units"
-    deflection = _convert_units(values, units, config, path)
+    invols = data.invols
+    if units == "V" and "data.invols" in stated:
+        if invols is None:
+            invols = stated["data.invols"]
+            sources["invols"] = stated_where.get("data.invols", "file")
+            log.info("%s: deflection sensitivity %.5g nm/V from the file (%s)", path, invols * 1e9,
+                     sources["invols"].removeprefix("file:"))
+        elif not _isclose(invols, stated["data.invols"]):
+            overridden.append("data.invols")
+    deflection = _convert_units(values, units, config, path, invols)
     if data.positive == "away_from_sample":
         deflection = -deflection
 
@@ -481,6 +494,7 @@ def load_trace(config) -> Trace:
     if data.sample_rate is not None:
         if sample_rate is not None and not np.isclose(sample_rate, data.sample_rate, rtol=1e-9):
             overridden.append("data.sample_rate")
+        file_rate, file_rate_source = sample_rate, sources.get("sample_rate", "file")
         sample_rate = data.sample_rate
         sources["sample_rate"] = "config:data.sample_rate"
         from afmid.io.readers.base import rate_from_time
@@ -494,20 +508,33 @@ def load_trace(config) -> Trace:
                 file=config.source,
                 key="data.sample_rate",
             )
+        if file_rate is not None and not np.isclose(file_rate, data.sample_rate, rtol=0.01):
+            # A rate the file states, contradicted (beyond a rounding): say so. A time column's is an error above.
+            log.warning("%s: data.sample_rate %g Hz overrides the file's %g Hz (%s)", path, data.sample_rate,
+                        file_rate, file_rate_source)
     if sample_rate is None:
         if time is not None:  # a time column that gives no rate: say what is wrong with it
             defects.report(defects.check_time(time), path)
+        if meta.get("sample_rate_problem"):  # the file states rates that contradict each other and the data
+            raise InputError(meta["sample_rate_problem"], file=path, key="data.sample_rate")
         raise ConfigError(
             "the file has no time axis or sample rate; set data.sample_rate (Hz) or data.time_column",
             file=config.source,
             key="data.sample_rate",
         )
 
-    cantilever = _merge_cantilever(config, meta.get("cantilever", {}) if is_afmid else {}, sources, overridden)
-    drive_meta = meta.get("drive", {}) if is_afmid else {}
+    stated_cantilever = {"spring_constant": stated["cantilever.spring_constant"]} \
+        if "cantilever.spring_constant" in stated else {}
+    cantilever = _merge_cantilever(config, meta.get("cantilever", {}) if is_afmid else stated_cantilever, sources,
+                                   overridden)
+    drive_meta = meta.get("drive", {}) if is_afmid else {"frequency": stated.get("drive.frequency")}
     drive_frequency = _merged_value(
         config, "drive.frequency", config.drive.frequency, drive_meta.get("frequency"), sources, overridden
     )
+    for key in ("cantilever.spring_constant", "drive.frequency"):  # say where in the file, not only "file"
+        name = key.split(".")[-1]
+        if sources.get(name) == "file" and key in stated_where:
+            sources[name] = stated_where[key]
     force_amplitude = config.drive.force_amplitude
     file_amplitude = drive_meta.get("force_amplitude")
     if force_amplitude is not None:

@@ -21,6 +21,8 @@ import yaml
 from tests.conftest import CANTILEVER, DRIVE_FREQUENCY, SAMPLE_RATE, sinusoid
 from corpus import Case, check_case, corpus_params
 from tests.cli.test_corpus_config import base_config, fit_case, fit_workspace
+from tests.io.test_hsdc import counts as hsdc_counts
+from tests.io.test_hsdc import write_hsdc
 from tests.io.test_readers import write_mat73
 from repo_paths import REPO_ROOT
 
@@ -252,6 +254,15 @@ SECRET = "hunter2-" + "s3cr3t" * 30
 LONG_NAME = "deflection_" + "x" * 500
 
 
+def hsdc_file(**header):
+    """A NanoScope high-speed capture trace.hsdc (tests/io/test_hsdc.py) with ``header`` changes."""
+    return lambda folder: write_hsdc(folder / "trace.hsdc", **header)
+
+
+#: A capture's config: volts (the header's hard scale) with an invols, the rate and drive left to the header.
+HSDC_CONFIG = {"data.units": None, "data.sample_rate": None, "data.invols": 5e-8, "drive.frequency": None}
+
+
 # --------------------------------------------------------------------------- the cases
 CASES = [
     # 1. seeds
@@ -295,6 +306,15 @@ CASES = [
                  "not a readable HDF5 file"),
     data_case("mat73-struct-heap-bit-flipped", mat73_with_damaged_group, 1, "data.path", "not a readable MATLAB file",
               data_path="trace.mat", **{"data.units": "m"}),
+    data_case("hsdc-block-beyond-the-file", hsdc_file(lengths=[10**9, 16000]), 1, "data.path",
+              "not a readable NanoScope HSDC file", "ends at byte", data_path="trace.hsdc", **HSDC_CONFIG),
+    # Rates of 2 MHz and 250 kHz, an oscillation at 30 kHz of a declared 50 kHz drive: no rate fits.
+    data_case("hsdc-no-stated-rate-fits-the-drive",
+              hsdc_file(channels={"Vertical Deflection": hsdc_counts(frequency=30e3)}, channel_rate="2.5e+005"), 1,
+              "data.sample_rate", "none puts the oscillation", "set data.sample_rate", data_path="trace.hsdc",
+              **HSDC_CONFIG),
+    command_case("inspect-hsdc-without-header-end", ("inspect",), hsdc_file(end_marker=False),
+                 "not a readable NanoScope HSDC file", "no end marker", target="trace.hsdc"),
     command_case("inspect-truncated-tdms-one-line", ("inspect",), truncated_tdms, "not a readable TDMS file",
                  target="trace.tdms", skip_unless=nptdms_missing),
     # 5. FIFOs and devices are never opened

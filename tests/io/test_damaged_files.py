@@ -17,6 +17,7 @@ import pytest
 
 from afmid.errors import InputError
 from afmid.io.readers import list_channels, read_trace
+from tests.io.test_hsdc import write_hsdc
 from tests.io.test_readers import SIGNAL, write_afmid_trace, write_ibw5, write_mat73, write_tdms
 
 DAMAGES_PER_FILE = 60
@@ -53,6 +54,9 @@ BUILDERS = {
     "trace.h5": write_afmid_trace,
     "trace.ibw": lambda path: write_ibw5(path, SIGNAL, step=5e-7, data_units=b"m", x_units=b"s"),
     "trace.tdms": lambda path: write_tdms(path, {("AFM", "deflection"): (SIGNAL, {"wf_increment": 5e-7})}),
+    # A short header (bit flips near the start hit it) and contradicting rates (the flips may hit the drive, the
+    # rates or the block positions the resolution depends on).
+    "trace.hsdc": lambda path: write_hsdc(path, channel_rate="2.5e+005", header_size=1280),
 }
 
 

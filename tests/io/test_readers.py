@@ -152,7 +152,7 @@ def write_tdms(path, channels: dict[tuple[str, str], tuple[np.ndarray, dict]], f
 
 # --------------------------------------------------------------------------- registry
 def test_registry_declares_every_format():
-    assert READERS.names() == ["csv", "npy", "hdf5", "mat", "ibw", "tdms"]
+    assert READERS.names() == ["csv", "npy", "hdf5", "mat", "ibw", "tdms", "hsdc"]
     for reader in READERS:
         assert reader.title and reader.references and reader.suffixes
         assert all(s.startswith(".") and s == s.lower() for s in reader.suffixes)
@@ -163,7 +163,7 @@ def test_registry_declares_every_format():
 @pytest.mark.parametrize(
     "name, expected",
     [("a.csv", "csv"), ("a.TSV", "csv"), ("a.dat", "csv"), ("a.npz", "npy"), ("a.hdf", "hdf5"),
-     ("a.mat", "mat"), ("a.ibw", "ibw"), ("a.tdms", "tdms")],
+     ("a.mat", "mat"), ("a.ibw", "ibw"), ("a.tdms", "tdms"), ("a.HSDC", "hsdc")],
 )
 def test_reader_for_suffix(tmp_path, name, expected):
     assert reader_for(tmp_path / name).name == expected

@@ -23,6 +23,7 @@ from afmid.io.files import check_input_file
 from afmid.registry import Registry
 import afmid.io.readers.csv as csv
 import afmid.io.readers.hdf5 as hdf5
+import afmid.io.readers.hsdc as hsdc
 import afmid.io.readers.igor as igor
 import afmid.io.readers.matlab as matlab
 import afmid.io.readers.numpy as numpy
@@ -46,7 +47,7 @@ def _check(reader: Reader) -> None:
 
 
 READERS: Registry[Reader] = Registry("file format", validate=_check)
-for _module in (csv, numpy, hdf5, matlab, igor, tdms):
+for _module in (csv, numpy, hdf5, matlab, igor, tdms, hsdc):
     READERS.register(_module.READER)
 
 
@@ -81,7 +82,7 @@ _DAMAGED_FILE_ERRORS = (
     zipfile.BadZipFile,
 )
 #: The kind of file named in "not a readable ... file" messages, by reader name.
-_KINDS = {"csv": "text", "npy": "NumPy", "hdf5": "HDF5", "mat": "MATLAB", "ibw": "Igor binary wave", "tdms": "TDMS"}
+_KINDS = {"csv": "text", "npy": "NumPy", "hdf5": "HDF5", "mat": "MATLAB", "ibw": "Igor binary wave", "tdms": "TDMS", "hsdc": "NanoScope HSDC"}
 
 
 @contextlib.contextmanager

@@ -59,6 +59,12 @@ class RawTrace:
     ``values`` are in the file's units (``units``, e.g. 'm', 'nm', 'V'); ``time``
     is in seconds; ``sample_rate`` in Hz. ``source`` says where each of
     ``values``, ``units``, ``sample_rate`` and ``time`` came from.
+
+    An instrument file's reader may also fill ``metadata['stated']`` (config key ->
+    SI value the file states: 'drive.frequency', 'cantilever.spring_constant',
+    'data.invols'), ``metadata['stated_where']`` (config key -> where in the file)
+    and ``metadata['sample_rate_problem']`` (why its stated rates give no rate);
+    :func:`afmid.io.trace.load_trace` and ``afmid inspect`` / ``init-config --from`` use them.
     """
 
     values: np.ndarray
