@@ -10,7 +10,7 @@ from afmid.version import __version__
 
 #: The front door's names (:mod:`afmid.api`), loaded on first access (PEP 562).
 _FRONT_DOOR = ("Cantilever", "Diagnosis", "Fit", "ForceCurve", "ForceModel", "HigherMode", "Parameter", "Parameters",
-               "Trace", "load", "read", "simulate")
+               "Trace", "load", "read", "simulate_trace")
 
 __all__ = ["__version__", *_FRONT_DOOR]
 

@@ -2,7 +2,7 @@
 
 One name per step of the loop, each the call the command line makes:
 
-- :class:`Trace` (``Trace.from_array``), :func:`read`, :func:`simulate`: a checked trace (SI, positive toward the
+- :class:`Trace` (``Trace.from_array``), :func:`read`, :func:`simulate_trace`: a checked trace (SI, positive toward the
   sample) with its :class:`Cantilever`;
 - :class:`ForceModel`: the effects to fit (``.add`` for the refit); ``.fit(trace)`` gives a :class:`Fit`;
 - :class:`Fit`: ``.print()``, ``.parameters``, ``.force_curve()``, ``.predict()``, ``.diagnose()``,
@@ -13,10 +13,10 @@ imported by the command line), so none of them imports it.
 """
 
 from afmid.api.fit import Fit, load
-from afmid.api.model import ForceModel, read, simulate
+from afmid.api.model import ForceModel, read, simulate_trace
 from afmid.api.tables import Diagnosis, ForceCurve, Parameter, Parameters
 from afmid.io.cantilever import Cantilever, HigherMode
 from afmid.io.trace import Trace
 
 __all__ = ["Cantilever", "Diagnosis", "Fit", "ForceCurve", "ForceModel", "HigherMode", "Parameter", "Parameters",
-           "Trace", "load", "read", "simulate"]
+           "Trace", "load", "read", "simulate_trace"]

@@ -153,10 +153,12 @@ class Fit:
         return self._diagnosis
 
     def report(self, folder: str | Path, *, compare: list["Fit"] | tuple["Fit", ...] = (), overwrite: bool = False,
-               suggest: bool = True, progress: bool = False) -> str:
+               suggest: bool = True, progress: bool = False, allow_different_traces: bool = False) -> str:
         """Write ``afmid report``'s folder for this fit (``compare``: earlier fits of the same trace, drawn first,
-        as ``afmid report run1.h5 run2.h5``); return the summary it prints."""
+        as ``afmid report run1.h5 run2.h5``; of different traces only with ``allow_different_traces``, and the
+        report says so); return the summary it prints."""
         from afmid.report.page import write_report
+        from afmid.runcheck import check_same_traces
 
         fits = [*compare, self]
         names = [f.name for f in fits]
@@ -164,12 +166,19 @@ class Fit:
             raise ConfigError(f"two fits are named alike ({names}); give them distinct names (fit(trace, name=...))",
                               file=Path(folder), key="compare")
         traces = [f.trace for f in fits]
-        if any(t is not traces[0] and t is not None and traces[0] is not None
-               and not np.array_equal(t.deflection, traces[0].deflection) for t in traces):
+        runs = [f.run for f in fits]
+        notes = check_same_traces(runs, allow_different_traces)  # the input files' SHA-256
+        arrays_differ = any(t is not traces[0] and t is not None and traces[0] is not None
+                            and not np.array_equal(t.deflection, traces[0].deflection) for t in traces)
+        if arrays_differ and not allow_different_traces:  # arrays have no SHA-256 in the run: their samples
             raise ConfigError("the fits are of different traces: comparing them compares the traces, not the "
-                              "models", file=Path(folder), key="compare")
-        return write_report([f.run for f in fits], Path(folder), overwrite, suggest, progress,
-                            names=names, traces=traces)
+                              "models; pass allow_different_traces=True to do that on purpose", file=Path(folder),
+                              key="compare")
+        if arrays_differ and not notes:
+            notes = ["the runs were fitted on different traces: their errors and parameters compare the traces as "
+                     "much as the models"]
+        return write_report(runs, Path(folder), overwrite, suggest, progress, notes=notes, names=names,
+                            traces=traces)
 
     def save(self, path: str | Path, overwrite: bool = False) -> Path:
         """Write the run file (the same file as ``afmid fit -o PATH``); the fit is then named after it."""

@@ -1,7 +1,7 @@
 """The front door's inputs: a trace from a file or a simulation, and the force model to fit to it.
 
 :func:`read` goes through the readers and checks of ``afmid fit`` (:func:`afmid.io.trace.load_trace`);
-:func:`simulate` through ``afmid simulate``'s driver; :class:`ForceModel` builds the same run config the command
+:func:`simulate_trace` through ``afmid simulate``'s driver; :class:`ForceModel` builds the same run config the command
 line builds from a YAML file (:func:`afmid.config.build_config`) and :meth:`ForceModel.fit` calls the same
 pipeline (:func:`afmid.fit.pipeline.run_fit`). The cantilever is the trace's (given once: with the array, in the
 file's metadata or to :func:`read`); the model holds what belongs to the sample and the fit.
@@ -38,14 +38,14 @@ def read(path: str | Path, *, cantilever: Cantilever | None = None, drive_freque
     return load_trace(build_config(raw, source=Path(path)))
 
 
-def simulate(config: str | Path | dict | RunConfig, progress: bool = False) -> Trace:
+def simulate_trace(config: str | Path | dict | RunConfig, progress: bool = False) -> Trace:
     """A simulated trace with its ground truth, as ``afmid simulate`` makes it: ``config`` a run config (a YAML
     file, a mapping of its sections or a :class:`afmid.config.RunConfig`) whose ``simulate:`` section describes
     the sample; checked as a loaded trace is."""
     from afmid.simulate.driver import simulate as run_simulation
 
     if isinstance(config, dict):
-        config = build_config(config, source=Path("afmid.simulate"))
+        config = build_config(config, source=Path("afmid.simulate_trace"))
     elif not isinstance(config, RunConfig):
         config = load_config(config)
     return check_trace(run_simulation(config, progress=progress), config)

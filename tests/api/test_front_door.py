@@ -25,7 +25,7 @@ SIMULATION = {"cantilever": LEVER, "drive": {"frequency": 3.0e5, "free_amplitude
 
 @pytest.fixture(scope="module")
 def simulated():
-    return afmid.simulate(SIMULATION)
+    return afmid.simulate_trace(SIMULATION)
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def test_import_afmid_loads_no_heavy_module():
 
 
 def test_the_package_lists_its_front_door():
-    assert set(afmid.__all__) >= {"Trace", "Cantilever", "ForceModel", "Fit", "read", "load", "simulate"}
+    assert set(afmid.__all__) >= {"Trace", "Cantilever", "ForceModel", "Fit", "read", "load", "simulate_trace"}
     assert set(afmid.__all__) <= set(dir(afmid))
     assert afmid.Trace is afmid.api.Trace and afmid.Cantilever is afmid.io.trace.Cantilever
     with pytest.raises(AttributeError, match="no attribute 'Trcae'"):
@@ -171,3 +171,47 @@ def test_force_model_checks_its_keys_and_adds_effects():
         afmid.ForceModel(fit={"bootstrap": -1})
     with pytest.raises(ConfigError, match="--remove jkr: not in model.effects"):
         model.remove("jkr")
+
+
+def test_only_the_command_line_and_the_package_import_the_front_door():
+    """afmid.api is the top layer: the stages below it never import it (they would then depend on it)."""
+    import ast
+
+    package = REPO_ROOT / "afmid"
+    importers = set()
+    for path in package.rglob("*.py"):
+        if path.parent.name == "api":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            if any(n == "afmid.api" or n.startswith("afmid.api.") for n in names):
+                importers.add(str(path.relative_to(package)))
+    assert importers == {"__init__.py", "cli.py"}
+
+
+def test_a_loaded_fit_of_an_array_needs_its_trace_to_be_diagnosed(dmt_fit, tmp_path):
+    """The run file of an array has no input file to refit the candidates on: one line says so (load(path,
+    trace=...) gives the trace back)."""
+    path = dmt_fit.save(tmp_path / "array.h5")
+    with pytest.raises(InputError, match="array.h5: input_path: the run's input trace is not available"):
+        afmid.load(path).diagnose()
+    assert afmid.load(path, trace=dmt_fit.trace).trace is dmt_fit.trace
+
+
+def test_a_report_refuses_fits_of_different_arrays(dmt_fit, simulated, tmp_path):
+    lever = afmid.Cantilever(**LEVER)
+    other = afmid.Trace.from_array(simulated.deflection * 1.01, simulated.sample_rate, cantilever=lever)
+    refit = afmid.ForceModel(["dmt"], fit={"bootstrap": 0}).fit(other, name="other")
+    with pytest.raises(ConfigError, match="compare: the fits are of different traces"):
+        refit.report(tmp_path / "report", compare=[dmt_fit])
+    assert not (tmp_path / "report").exists()
+
+
+def test_no_front_door_name_is_a_subpackage():
+    """Importing afmid.X binds X on the package: a front-door name equal to a module's would be replaced by it
+    (``afmid.simulate`` once became the simulator's package after its first use)."""
+    modules = {path.stem if path.name != "__init__.py" else path.parent.name
+               for path in (REPO_ROOT / "afmid").glob("*") if path.suffix == ".py" or (path / "__init__.py").exists()}
+    modules |= {path.name for path in (REPO_ROOT / "afmid").iterdir() if (path / "__init__.py").exists()}
+    assert not set(afmid.__all__) & modules
