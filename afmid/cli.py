@@ -18,7 +18,7 @@ limit_native_threads()
 
 import click  # noqa: E402
 
-from afmid import __version__  # noqa: E402
+from afmid.version import __version__  # noqa: E402
 
 log = logging.getLogger("afmid")
 _state = {"verbose": 0, "quiet": False}
@@ -149,8 +149,7 @@ def fit(
     joint_paths = {cfg.resolve_path(p): f"a trace file, data.paths[{i}]" for i, p in enumerate(cfg.data.paths or [])}
     check_output_path(output, overwrite, inputs={config: "the run config", trace_path: "the trace file, data.path",
                                                  **joint_paths})
-    from afmid.fit.pipeline import apply_effect_changes, run_fit
-    from afmid.runfile import write_run
+    from afmid.fit.pipeline import apply_effect_changes
 
     apply_effect_changes(cfg, add_effects, remove_effects)
     if cfg.data.paths is not None:  # several traces, one force law (afmid.fit.joint)
@@ -158,17 +157,18 @@ def fit(
 
         fit_joint(cfg, output, overwrite, quiet=_state["quiet"], verbose=_state["verbose"] > 0)
         return
-    result = run_fit(cfg, progress=not _state["quiet"])
-    write_run(output, result, cfg, overwrite=overwrite)
+    from afmid.api import Fit  # the Python front door's calls (docs/python.md)
+
+    fitted = Fit.from_config(cfg, progress=not _state["quiet"])
+    fitted.save(output, overwrite=overwrite)
+    result = fitted.result
     from afmid.fit.plausibility import check_run, violations
 
     implausible = violations(check_run(result.quantities, result.nonlinear))
     flagged = f"; {len(implausible)} read-out(s) implausible, flagged in the file (see the warnings)" if implausible else ""
     log.info("wrote %s: %s%s", output, result.summary_line(), flagged)
     if not _state["quiet"]:  # the read-out is the command's result: stdout (afmid.report.fit_text builds it)
-        from afmid.report.fit_text import fit_text
-
-        click.echo(fit_text(result, verbose=_state["verbose"] > 0))
+        click.echo(fitted.text(verbose=_state["verbose"] > 0))
     # The fit's own warnings (model-limited, non-periodic motion); the trace's findings were logged on loading.
     prep = getattr(result, "prep", None)
     loaded = {f"{f.severity}: {f.message}" for f in getattr(getattr(prep, "trace", None), "findings", [])}

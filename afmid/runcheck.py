@@ -28,7 +28,7 @@ ALLOW_DIFFERENT_TRACES = "--allow-different-traces"
 
 def check_version(attrs, path: Path) -> None:
     """InputError unless the file's ``format_version`` is one this afmid reads."""
-    from afmid import __version__
+    from afmid.version import __version__
 
     version = attrs.get("format_version")
     try:

@@ -103,157 +103,188 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
     path = check_output_path(path, overwrite)
     trace = result.prep.trace
     inputs = {str(trace.path): trace.sha256} if trace.path else {}
-    p = result.n_library
-    units = [t.coefficient_unit for t in result.library.terms]
     with atomic_hdf5(path, RUN_FORMAT, dump_config(config), inputs) as h5:
-        h5.attrs["cv_error"] = result.cv_error
         for name, value in (root_attrs or {}).items():
             h5.attrs[name] = value
-        h5.attrs["overridden"] = list(trace.overridden) or [""]
-        h5.attrs["value_sources"] = "; ".join(f"{k}: {v}" for k, v in trace.sources.items())
-        cg = h5.create_group("cantilever")
-        cl = trace.cantilever
-        cg.attrs["spring_constant"] = cl.spring_constant
-        cg.attrs["resonance_frequency"] = cl.resonance_frequency
-        cg.attrs["quality_factor"] = cl.quality_factor
-        cg.attrs["tip_radius"] = np.nan if cl.tip_radius is None else cl.tip_radius
-        cg.attrs["units"] = "spring_constant: N/m; resonance_frequency: Hz; quality_factor: 1; tip_radius: m"
-        m = h5.create_group("model")
-        write_dataset(m, "terms", np.array(result.library.names), "1")
-        write_dataset(m, "expressions", np.array([t.expression for t in result.library.terms]), "1")
-        write_dataset(m, "units", np.array(units), "1")
-        write_dataset(m, "coefficients", np.where(result.selected[:p], result.coef[:p], 0.0), "see /model/units")
-        write_dataset(m, "coefficients_errors", result.coef_std[:p], "see /model/units", meaning="bootstrap std, 1 sigma")
-        write_dataset(m, "coefficients_ci_low", result.ci_low[:p], "see /model/units", meaning="lower end of the 95 % bootstrap interval (2.5 % percentile)")
-        write_dataset(m, "coefficients_ci_high", result.ci_high[:p], "see /model/units", meaning="upper end of the 95 % bootstrap interval (97.5 % percentile)")
-        write_dataset(m, "selected", result.selected[:p], "1")
-        write_dataset(m, "inclusion_probability", result.inclusion[:p], "1")
-        write_dataset(m, "effects", np.array(list(result.library.effects) or [""]), "1")
-        m.attrs["library"] = result.library.source
-        dg = m.create_group("drive")
-        nu = result.coef[p:]
-        declared = result.prep.declared_drive
-        # F_drive = cos * cos(w t) + sin * sin(w t) in the trace's time base (the fit's columns are -F_drive)
-        drive_cos, drive_sin = (declared.cos, declared.sin) if declared is not None else (-nu[0], -nu[1])
-        write_dataset(dg, "force_amplitude", float(np.hypot(drive_cos, drive_sin)), "N")
-        write_dataset(dg, "cos", float(drive_cos), "N")
-        write_dataset(dg, "sin", float(drive_sin), "N")
-        dg.attrs["source"] = DRIVE_CALIBRATED if declared is not None else DRIVE_FITTED
-        if declared is not None:  # afmid.fit.declared_drive: given, not fitted
-            write_dataset(dg, "phase", declared.phase, "rad", meaning="F_drive = F0 cos(2 pi f t + phase)")
-            write_dataset(dg, "force_amplitude_uncertainty", declared.force_amplitude_uncertainty, "1",
-                          meaning="relative, 1 sigma (0: not given)")
-            write_dataset(dg, "phase_uncertainty", declared.phase_uncertainty, "rad", meaning="1 sigma (0: not given)")
-            dg.attrs["force_amplitude_source"] = declared.amplitude_source
-        write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
-        write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
-        found = getattr(result, "drive_search", None)
-        if found is not None:  # a transient record: the regression chose the drive frequency (afmid.fit.drive_search)
-            write_dataset(dg, "frequency_sigma", found.sigma, "Hz", meaning="1 sigma")
-            write_dataset(dg, "response_frequency", found.response_frequency, "Hz",
-                          meaning="spectral peak of the deflection, replaced by the searched drive frequency")
-        dg.attrs["frequency_source"] = (
-            "nominal (calibrated drive, drive.phase)" if declared is not None
-            else "regression search (record not in steady state)" if found is not None
-            else "nominal (fit.drive_frequency: nominal)" if config.fit.drive_frequency == "nominal"
-            else "spectral peak of the deflection")
-        if "offset" in result.system.names:
-            write_dataset(dg, "offset_force", float(nu[result.system.names.index("offset") - p]), "N")
-        if "drift" in result.system.names:  # fit.detrend: linear
-            write_dataset(dg, "baseline_drift", baseline_drift(result), "m/s",
-                          meaning="slope of the deflection baseline estimated with the force law (afmid.preprocess.baseline)")
-        if config.fit.cantilever == "free":
-            write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
-            write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
-        pg = m.create_group("parameters")
-        verdicts = plausibility.check_run(result.quantities, result.nonlinear)  # a value outside its range is flagged
-        for name, q in result.quantities.items():
-            parts = {k: q[k] for k in ("error_statistical", "error_calibration") if k in q}
-            parts.update(undetermined_attributes(q))
-            write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
-                          effect=q["effect"], description=q["doc"], model_limited=bool(q.get("model_limited", False)),
-                          **ERROR_ATTRS, **parts, **plausibility.attributes(verdicts[name]))
-        ng = m.create_group("nonlinear")
-        for name, est in result.nonlinear.items():
-            write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated,
-                          error_kind=ERROR_LABEL)
-        fixed_d = config.sample.separation
-        separation_verdict = verdicts.get(plausibility.SEPARATION)
-        write_dataset(m, "separation", result.system.params["d"], "m", estimated=fixed_d is None,
-                      error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0, error_kind=ERROR_LABEL,
-                      **(plausibility.attributes(separation_verdict) if separation_verdict else {}))
-        fg = h5.create_group("force")
-        separation_share = float(getattr(result, "force_separation_uncertainty", math.nan))
-        write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive",
-                      calibration_relative_uncertainty=result.force_calibration_uncertainty, error_kind=ERROR_LABEL,
-                      separation_relative_uncertainty=separation_share,
-                      statistical_relative_uncertainty=float(getattr(result, "force_statistical_uncertainty", math.nan)),
-                      selection_relative_uncertainty=float(getattr(result, "force_selection_uncertainty", math.nan)),
-                      total_relative_uncertainty=float(getattr(result, "force_total_uncertainty", math.nan)),
-                      meaning="model force; calibration_relative_uncertainty: its relative 1-sigma share of the "
-                              "declared k and Q uncertainties; separation_relative_uncertainty: the RMS of its "
-                              "1-sigma change with the estimated rest separation, relative to the peak |force| "
-                              "(NaN: the separation was given); statistical_relative_uncertainty: the RMS of its "
-                              "bootstrap standard deviation, relative to the peak (NaN: no bootstrap); "
-                              "selection_relative_uncertainty: half the RMS change with the dropped terms of "
-                              "the selected effects forced in; total_relative_uncertainty: the shares in "
-                              "quadrature (1 sigma)")
-        write_dataset(fg, "inverted", result.force_inverted, "N", positive="repulsive", drive=drive_kind(declared),
-                      meaning=inverted_force_meaning(declared is not None))
-        write_dataset(fg, "time", result.prep.t, "s")
-        write_dataset(fg, "deflection", result.prep.x, "m", positive="toward_sample")
-        pgp = h5.create_group("periods")
-        if isinstance(result.periods, PeriodCurves):
-            result.periods.write(pgp, PERIOD_UNITS)  # the long curves chunk by chunk
-        else:
-            for name, arr in result.periods.items():
-                write_dataset(pgp, name, arr, PERIOD_UNITS[name])
-        dg = h5.create_group("diagnostics")
-        write_dataset(dg, "cv_error", result.cv_error, "1", definition="normalised cross-validated force error")
-        write_dataset(dg, "cv_error_folds", result.cv_error_folds, "1")
-        write_dataset(dg, "cv_error_noise_floor", result.cv_error_noise_floor, "1",
-                      definition="expected cv_error of a perfect model at the estimated noise")
-        write_dataset(dg, "model_limited", bool(result.model_limited), "1",
-                      definition=f"cv_error above {FLOOR_FACTOR} x cv_error_noise_floor: the parameters are biased "
-                                 "by a missing effect beyond their error bars")
-        best = result.selection.best
-        write_dataset(dg, "bic", best.bic, "1", definition="n ln(rss/n) + k ln n over whitened rows")
-        write_dataset(dg, "rss", best.rss, "1", definition="whitened residual sum of squares")
-        write_dataset(dg, "n_rows", result.system.n_rows, "1")
-        write_dataset(dg, "chi2_reduced", best.rss / max(result.system.n_rows - int(best.mask.sum()), 1), "1",
-                      definition="rss / (n - k); about 1 when the model explains the data to the predicted noise")
-        residual = create_dataset(dg, "residual", result.force_inverted.shape, np.float64, "N")
-        for lo in range(0, residual.shape[0], 1 << 20):  # chunk by chunk: no third per-sample array
-            piece = slice(lo, lo + (1 << 20))
-            residual[piece] = result.force_inverted[piece] - result.force_estimate[piece]
-        write_dataset(dg, "noise_rms", result.prep.noise_rms, "m")
-        write_dataset(dg, "steadiness", result.prep.steadiness, "1")
-        write_dataset(dg, "harmonics", result.prep.blocks.harmonics, "1")
-        write_dataset(dg, "row_sigma", result.prep.row_sigma, "N*s", meaning="noise of each weak-form row")
-        write_dataset(dg, "signal_rows", result.signal_rows, "1")
-        path_g = dg.create_group("path")
-        cands = result.selection.candidates
-        write_dataset(path_g, "masks", np.array([c.mask[:p] for c in cands]), "1")
-        write_dataset(path_g, "n_terms", np.array([c.n_free for c in cands]), "1")
-        write_dataset(path_g, "rss", np.array([c.rss for c in cands]), "1", meaning="whitened residual sum of squares")
-        write_dataset(path_g, "bic", np.array([c.bic for c in cands]), "1")
-        write_dataset(path_g, "cv_rss", np.array([c.cv_rss for c in cands]), "1")
-        path_g.attrs["chosen"] = result.selection.chosen
-        path_g.attrs["criterion"] = result.selection.criterion
-        path_g.attrs["scope"] = result.config.fit.selection_scope
-        if result.selection.votes is not None:
-            write_dataset(path_g, "votes", np.asarray(result.selection.votes[:p], dtype=float), "1",
-                          meaning="fraction of the period groups whose own selection used each term")
-        if result.warnings:
-            dg.attrs["warnings"] = result.warnings
-        implausible = plausibility.violations(verdicts)
-        dg.attrs["n_implausible"] = len(implausible)
-        if implausible:
-            dg.attrs["implausible"] = implausible
+        verdicts = write_run_contents(h5, result, config)
         if extra is not None:
             extra(h5)
     plausibility.warn(verdicts)
     return path
+
+
+def run_data(result: FitResult, config: RunConfig, name: str = "fit") -> RunData:
+    """The :class:`RunData` that :func:`load_run` gives for the run file of ``result``, without a file: the run is
+    written by :func:`write_run`'s own code into an HDF5 file held in memory and read back by :func:`load_run`'s,
+    so a fit in memory and its saved file hold the same values. ``name`` stands for the file's name (``path``);
+    the ground truth is the fitted trace's own."""
+    import io
+
+    import h5py
+
+    trace = result.prep.trace
+    path = Path(name)
+    config_text = dump_config(config)
+    with h5py.File(io.BytesIO(), "w") as h5:
+        h5.attrs["config"] = config_text
+        if trace.path:  # as atomic_hdf5 stores the input
+            h5.attrs["input_path"] = str(Path(trace.path).resolve())
+            h5.attrs["input_sha256"] = trace.sha256 or ""
+        write_run_contents(h5, result, config)
+        data = _read_run(RunReader(h5, path), path, stored_config(config_text, path))
+    data.truth = trace.truth
+    return data
+
+
+def write_run_contents(h5, result: FitResult, config: RunConfig) -> dict:
+    """Everything of a run file below its provenance (docs/file-formats.md) into the open HDF5 file ``h5``;
+    returns the read-outs' plausibility verdicts (:func:`afmid.fit.plausibility.check_run`)."""
+    trace = result.prep.trace
+    p = result.n_library
+    units = [t.coefficient_unit for t in result.library.terms]
+    h5.attrs["cv_error"] = result.cv_error
+    h5.attrs["overridden"] = list(trace.overridden) or [""]
+    h5.attrs["value_sources"] = "; ".join(f"{k}: {v}" for k, v in trace.sources.items())
+    cg = h5.create_group("cantilever")
+    cl = trace.cantilever
+    cg.attrs["spring_constant"] = cl.spring_constant
+    cg.attrs["resonance_frequency"] = cl.resonance_frequency
+    cg.attrs["quality_factor"] = cl.quality_factor
+    cg.attrs["tip_radius"] = np.nan if cl.tip_radius is None else cl.tip_radius
+    cg.attrs["units"] = "spring_constant: N/m; resonance_frequency: Hz; quality_factor: 1; tip_radius: m"
+    m = h5.create_group("model")
+    write_dataset(m, "terms", np.array(result.library.names), "1")
+    write_dataset(m, "expressions", np.array([t.expression for t in result.library.terms]), "1")
+    write_dataset(m, "units", np.array(units), "1")
+    write_dataset(m, "coefficients", np.where(result.selected[:p], result.coef[:p], 0.0), "see /model/units")
+    write_dataset(m, "coefficients_errors", result.coef_std[:p], "see /model/units", meaning="bootstrap std, 1 sigma")
+    write_dataset(m, "coefficients_ci_low", result.ci_low[:p], "see /model/units", meaning="lower end of the 95 % bootstrap interval (2.5 % percentile)")
+    write_dataset(m, "coefficients_ci_high", result.ci_high[:p], "see /model/units", meaning="upper end of the 95 % bootstrap interval (97.5 % percentile)")
+    write_dataset(m, "selected", result.selected[:p], "1")
+    write_dataset(m, "inclusion_probability", result.inclusion[:p], "1")
+    write_dataset(m, "effects", np.array(list(result.library.effects) or [""]), "1")
+    m.attrs["library"] = result.library.source
+    dg = m.create_group("drive")
+    nu = result.coef[p:]
+    declared = result.prep.declared_drive
+    # F_drive = cos * cos(w t) + sin * sin(w t) in the trace's time base (the fit's columns are -F_drive)
+    drive_cos, drive_sin = (declared.cos, declared.sin) if declared is not None else (-nu[0], -nu[1])
+    write_dataset(dg, "force_amplitude", float(np.hypot(drive_cos, drive_sin)), "N")
+    write_dataset(dg, "cos", float(drive_cos), "N")
+    write_dataset(dg, "sin", float(drive_sin), "N")
+    dg.attrs["source"] = DRIVE_CALIBRATED if declared is not None else DRIVE_FITTED
+    if declared is not None:  # afmid.fit.declared_drive: given, not fitted
+        write_dataset(dg, "phase", declared.phase, "rad", meaning="F_drive = F0 cos(2 pi f t + phase)")
+        write_dataset(dg, "force_amplitude_uncertainty", declared.force_amplitude_uncertainty, "1",
+                      meaning="relative, 1 sigma (0: not given)")
+        write_dataset(dg, "phase_uncertainty", declared.phase_uncertainty, "rad", meaning="1 sigma (0: not given)")
+        dg.attrs["force_amplitude_source"] = declared.amplitude_source
+    write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
+    write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
+    found = getattr(result, "drive_search", None)
+    if found is not None:  # a transient record: the regression chose the drive frequency (afmid.fit.drive_search)
+        write_dataset(dg, "frequency_sigma", found.sigma, "Hz", meaning="1 sigma")
+        write_dataset(dg, "response_frequency", found.response_frequency, "Hz",
+                      meaning="spectral peak of the deflection, replaced by the searched drive frequency")
+    dg.attrs["frequency_source"] = (
+        "nominal (calibrated drive, drive.phase)" if declared is not None
+        else "regression search (record not in steady state)" if found is not None
+        else "nominal (fit.drive_frequency: nominal)" if config.fit.drive_frequency == "nominal"
+        else "spectral peak of the deflection")
+    if "offset" in result.system.names:
+        write_dataset(dg, "offset_force", float(nu[result.system.names.index("offset") - p]), "N")
+    if "drift" in result.system.names:  # fit.detrend: linear
+        write_dataset(dg, "baseline_drift", baseline_drift(result), "m/s",
+                      meaning="slope of the deflection baseline estimated with the force law (afmid.preprocess.baseline)")
+    if config.fit.cantilever == "free":
+        write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
+        write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
+    pg = m.create_group("parameters")
+    verdicts = plausibility.check_run(result.quantities, result.nonlinear)  # a value outside its range is flagged
+    for name, q in result.quantities.items():
+        parts = {k: q[k] for k in ("error_statistical", "error_calibration") if k in q}
+        parts.update(undetermined_attributes(q))
+        write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
+                      effect=q["effect"], description=q["doc"], model_limited=bool(q.get("model_limited", False)),
+                      **ERROR_ATTRS, **parts, **plausibility.attributes(verdicts[name]))
+    ng = m.create_group("nonlinear")
+    for name, est in result.nonlinear.items():
+        write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated,
+                      error_kind=ERROR_LABEL)
+    fixed_d = config.sample.separation
+    separation_verdict = verdicts.get(plausibility.SEPARATION)
+    write_dataset(m, "separation", result.system.params["d"], "m", estimated=fixed_d is None,
+                  error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0, error_kind=ERROR_LABEL,
+                  **(plausibility.attributes(separation_verdict) if separation_verdict else {}))
+    fg = h5.create_group("force")
+    separation_share = float(getattr(result, "force_separation_uncertainty", math.nan))
+    write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive",
+                  calibration_relative_uncertainty=result.force_calibration_uncertainty, error_kind=ERROR_LABEL,
+                  separation_relative_uncertainty=separation_share,
+                  statistical_relative_uncertainty=float(getattr(result, "force_statistical_uncertainty", math.nan)),
+                  selection_relative_uncertainty=float(getattr(result, "force_selection_uncertainty", math.nan)),
+                  total_relative_uncertainty=float(getattr(result, "force_total_uncertainty", math.nan)),
+                  meaning="model force; calibration_relative_uncertainty: its relative 1-sigma share of the "
+                          "declared k and Q uncertainties; separation_relative_uncertainty: the RMS of its "
+                          "1-sigma change with the estimated rest separation, relative to the peak |force| "
+                          "(NaN: the separation was given); statistical_relative_uncertainty: the RMS of its "
+                          "bootstrap standard deviation, relative to the peak (NaN: no bootstrap); "
+                          "selection_relative_uncertainty: half the RMS change with the dropped terms of "
+                          "the selected effects forced in; total_relative_uncertainty: the shares in "
+                          "quadrature (1 sigma)")
+    write_dataset(fg, "inverted", result.force_inverted, "N", positive="repulsive", drive=drive_kind(declared),
+                  meaning=inverted_force_meaning(declared is not None))
+    write_dataset(fg, "time", result.prep.t, "s")
+    write_dataset(fg, "deflection", result.prep.x, "m", positive="toward_sample")
+    pgp = h5.create_group("periods")
+    if isinstance(result.periods, PeriodCurves):
+        result.periods.write(pgp, PERIOD_UNITS)  # the long curves chunk by chunk
+    else:
+        for name, arr in result.periods.items():
+            write_dataset(pgp, name, arr, PERIOD_UNITS[name])
+    dg = h5.create_group("diagnostics")
+    write_dataset(dg, "cv_error", result.cv_error, "1", definition="normalised cross-validated force error")
+    write_dataset(dg, "cv_error_folds", result.cv_error_folds, "1")
+    write_dataset(dg, "cv_error_noise_floor", result.cv_error_noise_floor, "1",
+                  definition="expected cv_error of a perfect model at the estimated noise")
+    write_dataset(dg, "model_limited", bool(result.model_limited), "1",
+                  definition=f"cv_error above {FLOOR_FACTOR} x cv_error_noise_floor: the parameters are biased "
+                             "by a missing effect beyond their error bars")
+    best = result.selection.best
+    write_dataset(dg, "bic", best.bic, "1", definition="n ln(rss/n) + k ln n over whitened rows")
+    write_dataset(dg, "rss", best.rss, "1", definition="whitened residual sum of squares")
+    write_dataset(dg, "n_rows", result.system.n_rows, "1")
+    write_dataset(dg, "chi2_reduced", best.rss / max(result.system.n_rows - int(best.mask.sum()), 1), "1",
+                  definition="rss / (n - k); about 1 when the model explains the data to the predicted noise")
+    residual = create_dataset(dg, "residual", result.force_inverted.shape, np.float64, "N")
+    for lo in range(0, residual.shape[0], 1 << 20):  # chunk by chunk: no third per-sample array
+        piece = slice(lo, lo + (1 << 20))
+        residual[piece] = result.force_inverted[piece] - result.force_estimate[piece]
+    write_dataset(dg, "noise_rms", result.prep.noise_rms, "m")
+    write_dataset(dg, "steadiness", result.prep.steadiness, "1")
+    write_dataset(dg, "harmonics", result.prep.blocks.harmonics, "1")
+    write_dataset(dg, "row_sigma", result.prep.row_sigma, "N*s", meaning="noise of each weak-form row")
+    write_dataset(dg, "signal_rows", result.signal_rows, "1")
+    path_g = dg.create_group("path")
+    cands = result.selection.candidates
+    write_dataset(path_g, "masks", np.array([c.mask[:p] for c in cands]), "1")
+    write_dataset(path_g, "n_terms", np.array([c.n_free for c in cands]), "1")
+    write_dataset(path_g, "rss", np.array([c.rss for c in cands]), "1", meaning="whitened residual sum of squares")
+    write_dataset(path_g, "bic", np.array([c.bic for c in cands]), "1")
+    write_dataset(path_g, "cv_rss", np.array([c.cv_rss for c in cands]), "1")
+    path_g.attrs["chosen"] = result.selection.chosen
+    path_g.attrs["criterion"] = result.selection.criterion
+    path_g.attrs["scope"] = result.config.fit.selection_scope
+    if result.selection.votes is not None:
+        write_dataset(path_g, "votes", np.asarray(result.selection.votes[:p], dtype=float), "1",
+                      meaning="fraction of the period groups whose own selection used each term")
+    if result.warnings:
+        dg.attrs["warnings"] = result.warnings
+    implausible = plausibility.violations(verdicts)
+    dg.attrs["n_implausible"] = len(implausible)
+    if implausible:
+        dg.attrs["implausible"] = implausible
+    return verdicts
 
 
 def baseline_drift(result: FitResult) -> float:
@@ -310,7 +341,8 @@ class RunData:
     force_calibration_uncertainty: float = 0.0  # relative 1 sigma of the force from the declared k / Q
     force_separation_uncertainty: float = math.nan  # RMS 1 sigma of the force from the estimated d, / peak
     force_statistical_uncertainty: float = math.nan  # RMS bootstrap 1 sigma of the force, / peak
-    force_total_uncertainty: float = math.nan  # the three shares in quadrature (afmid.fit.force_band), 1 sigma
+    force_selection_uncertainty: float = math.nan  # half the force's change with dropped terms forced in, / peak
+    force_total_uncertainty: float = math.nan  # the shares in quadrature (afmid.fit.force_band), 1 sigma
     cv_error_folds: np.ndarray | None = None  # the cross-validated error of each fold (cv_error is their mean)
     #: A joint fit's traces (/joint, data.paths), in order: path, separation and its 1 sigma (m; sigma 0 when
     #: given), cv error, noise floor, model-limited. None for a single trace. The rest of RunData is trace 0's.
@@ -451,6 +483,8 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
                                                                              math.nan)),
         force_statistical_uncertainty=float(h5["force"]["estimate"].attrs.get("statistical_relative_uncertainty",
                                                                               math.nan)),
+        force_selection_uncertainty=float(h5["force"]["estimate"].attrs.get("selection_relative_uncertainty",
+                                                                            math.nan)),
         force_total_uncertainty=float(h5["force"]["estimate"].attrs.get("total_relative_uncertainty", math.nan)),
         joint=read_joint_traces(h5["joint"]) if "joint" in h5 else None,
     )

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from afmid import __version__
+from afmid.version import __version__
 from afmid.batch.summary import SUMMARY_CSV, SUMMARY_H5, attr_text
 from afmid.errors import ConfigError, InputError
 

@@ -190,8 +190,11 @@ def _implausible(effect: str, quantities: dict, run: RunData) -> list[str]:
     return reasons
 
 
-def suggest(run: RunData, progress: bool = False) -> dict:
+def suggest(run: RunData, progress: bool = False, trace=None) -> dict:
     """Try each missing catalog effect; return the diagnosis and the ranked suggestions.
+
+    The candidates are refitted on ``trace`` (an :class:`afmid.io.trace.Trace`: the run's own trace, held in
+    memory by a fit of the Python front door) or, when it is None, on the run's input file read again.
 
     Returns (pinned keys first): ``missing_effect`` (the data show physics the
     model lacks: an accepted catalog effect or a significant residual nothing
@@ -202,9 +205,9 @@ def suggest(run: RunData, progress: bool = False) -> dict:
     if run.config.model.library is not None:
         return {"missing_effect": False, "suggestions": [], "tried": [],
                 "note": "suggestions need a model built from effects (model.effects), not a preset library"}
-    if run.input_path is None or not run.input_path.exists():
+    if trace is None and (run.input_path is None or not run.input_path.exists()):
         raise InputError("the run's input trace is not available for refitting", file=run.path, key="input_path")
-    if run.input_sha256 and sha256_file(run.input_path) != run.input_sha256:
+    if trace is None and run.input_sha256 and sha256_file(run.input_path) != run.input_sha256:
         # Refits of another trace would be compared with this run's fit: no suggestion can come of that.
         log.warning("%s changed since the run was made (SHA-256 differs); no effects are suggested", run.input_path)
         return {"missing_effect": False, "suggestions": [], "tried": [],
@@ -218,7 +221,7 @@ def suggest(run: RunData, progress: bool = False) -> dict:
         log.warning("the run's rest separation estimate (%.3g nm) is not physical: each candidate effect is refitted "
                     "with the separation searched over the fit's whole window", run.separation * 1e9)
     with _one_blas_thread():
-        return _diagnose(run, progress)
+        return _diagnose(run, progress, trace)
 
 
 def _one_blas_thread():
@@ -236,7 +239,7 @@ def _one_blas_thread():
     return threadpool_limits(limits=1, user_api="blas")
 
 
-def _diagnose(run: RunData, progress: bool) -> dict:
+def _diagnose(run: RunData, progress: bool, trace) -> dict:
     from afmid.fit.pipeline import prepare
     from afmid.preprocess.instrument import from_config as instrument_from_config
     from afmid.io.trace import load_trace
@@ -245,7 +248,8 @@ def _diagnose(run: RunData, progress: bool) -> dict:
     local = localize(run)
     base_config = refit_config(run, run.effects)
     # Every refit below differs from this one only in its library and fixed parameters: one preparation.
-    prepared = prepare(load_trace(base_config), base_config.fit, instrument_from_config(base_config))
+    prepared = prepare(load_trace(base_config) if trace is None else trace, base_config.fit,
+                       instrument_from_config(base_config))
     base_result = _fit_quick(base_config, prepared)
     chi2, limit, n_rows = _chi2(base_result)
     base = _Base(base_result.cv_error, base_result.cv_error_noise_floor, base_result.selection.best.bic,

@@ -24,8 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from afmid import __version__
+from afmid.version import __version__
 from afmid.errors import ConfigError, InputError, OutputError
+# The lever's type lives in afmid.io.cantilever; `from afmid.io.trace import Cantilever` keeps working.
+from afmid.io.cantilever import Cantilever
 from afmid.io.files import check_input_file, check_output_target
 from afmid.preprocess.harmonics import MIN_PERIODS  # the least a trace must hold (the harmonic analysis needs it too)
 
@@ -36,24 +38,6 @@ RUN_FORMAT = "afmid-run"
 FORMAT_VERSION = 1
 
 _UNIT_SCALE = {"m": 1.0, "nm": 1e-9, "pm": 1e-12, "um": 1e-6}
-
-
-@dataclass
-class Cantilever:
-    spring_constant: float  # N/m
-    resonance_frequency: float  # Hz
-    quality_factor: float
-    tip_radius: float | None = None  # m
-
-    @property
-    def omega0(self) -> float:
-        """Angular resonance frequency, rad/s."""
-        return 2.0 * np.pi * self.resonance_frequency
-
-    @property
-    def mass(self) -> float:
-        """Effective mass m = k / w0^2, kg."""
-        return self.spring_constant / self.omega0**2
 
 
 @dataclass
@@ -89,6 +73,21 @@ class Trace:
     #: afmid.preprocess.harmonics.MeasuredDrive: the drive measured on loading (by the defect checks, as the fit measures it)
     drive: Any = None
     first_sample: int = 0  # index in the file of the first sample kept (data.start, or the onset of the motion)
+    #: the config's ``data:`` keys the trace was read with (empty for an array): a fit of it stores how to read it
+    reading: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_array(cls, deflection, sample_rate: float, *, cantilever: Cantilever | None = None,
+                   drive_frequency: float | None = None, units: str = "m", positive: str = "toward_sample",
+                   drive_force_amplitude: float | None = None) -> "Trace":
+        """A trace from an array of deflection samples, checked as a file's trace is on loading (:func:`check_trace`).
+
+        ``deflection`` in ``units`` (m, nm, pm or um), its sign ``positive`` toward_sample or away_from_sample;
+        ``sample_rate`` in Hz; ``cantilever`` the lever (:class:`Cantilever`, required); ``drive_frequency`` in Hz
+        (default: the lever's resonance frequency); ``drive_force_amplitude`` in N, if known.
+        """
+        return trace_from_array(deflection, sample_rate, cantilever, drive_frequency, units, positive,
+                                drive_force_amplitude)
 
     def drive_for(self, detrend: str):
         """The drive measured on loading (an :class:`afmid.preprocess.harmonics.DriveEstimate`), if it holds for a fit with
@@ -527,6 +526,7 @@ def load_trace(config) -> Trace:
         if "cantilever.spring_constant" in stated else {}
     cantilever = _merge_cantilever(config, meta.get("cantilever", {}) if is_afmid else stated_cantilever, sources,
                                    overridden)
+    reading = {**config.data.model_dump(mode="json", exclude_none=True), "path": str(path)}
     drive_meta = meta.get("drive", {}) if is_afmid else {"frequency": stated.get("drive.frequency")}
     drive_frequency = _merged_value(
         config, "drive.frequency", config.drive.frequency, drive_meta.get("frequency"), sources, overridden
@@ -558,6 +558,7 @@ def load_trace(config) -> Trace:
         sources=sources,
         overridden=overridden,
         drive_force_amplitude=None if force_amplitude is None else float(force_amplitude),
+        reading=reading,
     )
     if data.start is not None or data.stop is not None:
         trace = _cropped_by_config(trace, config)
@@ -628,7 +629,40 @@ def _merge_cantilever(config, meta: dict, sources: dict, overridden: list) -> Ca
         if file_radius is not None and np.isfinite(file_radius) and not _isclose(radius, file_radius):
             overridden.append("cantilever.tip_radius")
         sources["tip_radius"] = "config:cantilever.tip_radius"
-    return Cantilever(tip_radius=radius, **values)
+    return Cantilever.from_config(c, tip_radius=radius, **values)
+
+
+def trace_from_array(deflection, sample_rate: float, cantilever: Cantilever | None, drive_frequency: float | None,
+                     units: str = "m", positive: str = "toward_sample",
+                     drive_force_amplitude: float | None = None) -> Trace:
+    """:meth:`Trace.from_array`: the arguments as a run config's data, cantilever and drive keys would give them
+    (validated by the same schema, so a bad value is the same one-line error naming the key)."""
+    from afmid.config import build_config
+
+    where = "Trace.from_array"
+    if not isinstance(cantilever, Cantilever):
+        raise ConfigError(f"expected an afmid.Cantilever (k, f0, Q of the lever), got {type(cantilever).__name__}",
+                          file=where, key="cantilever")
+    if units not in _UNIT_SCALE:
+        raise ConfigError(f"expected one of {', '.join(_UNIT_SCALE)}, got {units!r}", file=where, key="units")
+    values = np.array(deflection, dtype=np.float64)  # a copy: the caller's array is never changed
+    if values.ndim != 1:
+        raise InputError(f"expected a 1-D array of deflection samples, got shape {values.shape}", file=where,
+                         key="deflection")
+    drive = {"frequency": cantilever.resonance_frequency if drive_frequency is None else drive_frequency}
+    if drive_force_amplitude is not None:
+        drive["force_amplitude"] = drive_force_amplitude
+    config = build_config({"data": {"sample_rate": sample_rate, "units": units, "positive": positive},
+                           "cantilever": cantilever.config_section(), "drive": drive}, source=Path(where))
+    import afmid.io.defects as defects
+
+    defects.report(defects.check_values(values), Path(where))  # NaN/inf runs: where, and the longest clean part
+    values *= _UNIT_SCALE[units] * (-1.0 if positive == "away_from_sample" else 1.0)
+    trace = Trace(deflection=values, sample_rate=float(config.data.sample_rate),
+                  cantilever=Cantilever.from_config(config.cantilever), drive_frequency=float(config.drive.frequency),
+                  drive_force_amplitude=config.drive.force_amplitude,
+                  sources={"sample_rate": where, "units": where, "cantilever": where})
+    return check_trace(trace, config)
 
 
 def check_trace(trace: Trace, config) -> Trace:

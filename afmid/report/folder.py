@@ -22,7 +22,7 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-from afmid import __version__
+from afmid.version import __version__
 from afmid.errors import OutputError
 from afmid.interrupts import raise_if_pending
 from afmid.io.trace import lies_inside, now_iso, refuse_input_as_output

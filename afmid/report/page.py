@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from afmid import __version__
+from afmid.version import __version__
 import afmid.fit.plausibility as plausibility
 from afmid.diagnosis.diagnose import BIC_EVIDENCE, describe_residual, energy_check, localize, suggest
 from afmid.report.energy_rows import energy_caveat, energy_rows, inverted_force_name
@@ -332,17 +332,31 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
     inputs: see :mod:`afmid.report.folder`. Runs of different traces are refused unless
     ``allow_different_traces`` (then the report says so).
     """
-    output = Path(output)
     runs = [load_run(p) for p in paths]
     notes = check_same_traces(runs, allow_different_traces)
-    inputs = {**{p: "a run file" for p in paths}, **{r.input_path: f"the trace of {r.path}" for r in runs}}
+    return write_report(runs, output, overwrite, suggest_effects, progress, notes=notes, names=list(paths),
+                        inputs={p: "a run file" for p in paths})
+
+
+def write_report(runs: list[RunData], output: Path, overwrite: bool = False, suggest_effects: bool = True,
+                 progress: bool = False, notes: list[str] | None = None, names: list | None = None,
+                 inputs: dict | None = None, traces: list | None = None) -> str:
+    """:func:`make_report` of runs already read (or made in memory, :func:`afmid.runfile.run_data`); return the
+    terminal summary table. ``names``: each run as summary.json names it (default: its path); ``inputs``: further
+    input files the folder must not hold (path -> what it is), besides the runs' traces; ``traces``: each run's
+    trace in memory for its diagnosis (None: read again from its input file, :func:`afmid.diagnosis.diagnose.suggest`).
+    """
+    output = Path(output)
+    notes = notes or []
+    traces = traces or [None] * len(runs)
+    inputs = {**(inputs or {}), **{r.input_path: f"the trace of {r.path}" for r in runs}}
     with report_folder(output, overwrite, inputs) as tmp:
         last = runs[-1]
         local = localize(last)
         energy = energy_check(last)
-        result = suggest(last, progress=progress) if suggest_effects else None
-        diagnoses = diagnose_runs(runs, result, local, suggest_effects, progress)
-        summary = {"runs": [run_entry(p, r, d) for p, r, d in zip(paths, runs, diagnoses)]}
+        result = suggest(last, progress=progress, trace=traces[-1]) if suggest_effects else None
+        diagnoses = diagnose_runs(runs, result, local, suggest_effects, progress, traces)
+        summary = {"runs": [run_entry(p, r, d) for p, r, d in zip(names or [r.path for r in runs], runs, diagnoses)]}
         if len(runs) > 1:
             summary["loop"] = loop_steps(runs, diagnoses)
         if notes:

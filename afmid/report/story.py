@@ -88,16 +88,16 @@ def run_diagnosis(run: RunData, result: dict | None, local: dict | None = None) 
 
 
 def diagnose_runs(runs: list[RunData], last_result: dict | None, last_local: dict, suggest_effects: bool,
-                  progress: bool = False) -> list[dict]:
+                  progress: bool = False, traces: list | None = None) -> list[dict]:
     """Each run's own diagnosis, in order. The last run's ``suggest`` result and localisation are reused; a
     run file given twice is diagnosed once; the refits of each :func:`suggest` try only the effects that run
-    lacks."""
+    lacks. ``traces``: each run's trace held in memory (None: read from its input file), as :func:`suggest` takes."""
     done: dict[Path, dict] = {runs[-1].path.resolve(): run_diagnosis(runs[-1], last_result, last_local)}
     out = []
-    for run in runs:
+    for run, trace in zip(runs, traces or [None] * len(runs)):
         key = run.path.resolve()
         if key not in done:
-            done[key] = run_diagnosis(run, suggest(run, progress=progress) if suggest_effects else None)
+            done[key] = run_diagnosis(run, suggest(run, progress=progress, trace=trace) if suggest_effects else None)
         out.append(done[key])
     return out
 

@@ -354,7 +354,9 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
         units=parameter_units(law),
         extra=extra,
     )
-    cantilever = Cantilever(osc.spring_constant, osc.resonance_frequency, osc.quality_factor, setup.tip_radius)
+    # The config's lever (tip shape, declared uncertainties, higher modes) with the simulated calibration.
+    cantilever = Cantilever.from_config(config.cantilever, spring_constant=osc.spring_constant, tip_radius=setup.tip_radius,
+                                        resonance_frequency=osc.resonance_frequency, quality_factor=osc.quality_factor)
     return Trace(deflection=deflection, sample_rate=grid.sample_rate, cantilever=cantilever,
                  drive_frequency=osc.drive_frequency, truth=truth, drive_force_amplitude=osc.drive_force)
 
@@ -414,6 +416,22 @@ def _record(integrator: Integrator, grid: Grid, osc: Oscillator, noise, rng, bar
 
 
 # =========================================================================== re-simulation of a fit
+def identified_law(run):
+    """The identified force law of a run (:class:`afmid.runfile.RunData`) as a simulator's
+    :class:`afmid.physics.effects.ForceLaw`: the selected terms with their coefficients (SI), the run's nonlinear
+    parameters, the fixed ones, a0 and the tip radius, and the states its terms use."""
+    from afmid.physics.effects import EFFECTS, ForceLaw
+
+    params = {"a0": run.config.sample.a0, "R": run.cantilever.get("tip_radius", math.nan)}
+    params.update(run.config.model.parameters)  # fixed nonlinear parameters (e.g. a Debye length of sample.ionic_strength)
+    params.update({k: v["value"] for k, v in run.nonlinear.items() if k != "d"})
+    terms = tuple(("fit", name, expression, float(c))
+                  for name, expression, c, s in zip(run.terms, run.expressions, run.coefficients, run.selected) if s)
+    states = tuple(g for e in run.effects if e in EFFECTS for g in EFFECTS.get(e).states
+                   if any(g.name in t[2] for t in terms))
+    return ForceLaw(tuple(run.effects), params, terms, states)
+
+
 def resimulate_run(run, steps_per_period: int = 2000) -> dict:
     """Steady periodic motion of an identified model (a :class:`afmid.diagnosis.diagnose.RunData`), for the report.
 
@@ -423,20 +441,11 @@ def resimulate_run(run, steps_per_period: int = 2000) -> dict:
     (N), and the first-harmonic amplitude (m). The drive phase is irrelevant for
     phase portraits and is not reproduced.
     """
-    from afmid.physics.effects import EFFECTS, ForceLaw
-
     cl = run.cantilever
     force_amplitude = math.hypot(run.drive["cos"], run.drive["sin"])
     oscillator = Oscillator(cl["spring_constant"], cl["resonance_frequency"], cl["quality_factor"],
                             run.drive["frequency"], force_amplitude)
-    params = {"a0": run.config.sample.a0, "R": cl.get("tip_radius", math.nan)}
-    params.update(run.config.model.parameters)  # fixed nonlinear parameters (e.g. a Debye length of sample.ionic_strength)
-    params.update({k: v["value"] for k, v in run.nonlinear.items() if k != "d"})
-    terms = tuple(("fit", name, expression, float(c))
-                  for name, expression, c, s in zip(run.terms, run.expressions, run.coefficients, run.selected) if s)
-    states = tuple(g for e in run.effects if e in EFFECTS for g in EFFECTS.get(e).states
-                   if any(g.name in t[2] for t in terms))
-    law = ForceLaw(tuple(run.effects), params, terms, states)
+    law = identified_law(run)
     integrator = Integrator(oscillator, compile_force_law(law), run.separation)
     x0, v0 = oscillator.free_state(0.0)
     integrator.start(x0, v0, 0.0)

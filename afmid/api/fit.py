@@ -1,0 +1,199 @@
+"""A fit as a Python object: :class:`Fit` (made by :meth:`afmid.api.model.ForceModel.fit`, or read back by :func:`load`).
+
+A Fit holds the pipeline's :class:`afmid.fit.pipeline.FitResult` (a fresh fit) and always the run as the run file
+holds it (:class:`afmid.runfile.RunData`: made in memory by :func:`afmid.runfile.run_data` with the run file's own
+writer and reader, or read by :func:`afmid.runfile.load_run`), so a fit and its saved file give the same table.
+The diagnosis and the report run on that RunData with the trace held in memory (no temporary file); a fit loaded
+without its trace refits the candidates on the run's input file, as ``afmid report`` does.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from afmid.api.tables import Diagnosis, ForceCurve, Parameters
+from afmid.errors import ConfigError
+
+
+class Fit:
+    """An identified force law with its parameters, forces, diagnosis and run file (SI throughout)."""
+
+    def __init__(self, result, config, *, trace=None, name: str | None = None, run=None):
+        self._result = result
+        self.config = config
+        self._trace = trace
+        self.name = name or "+".join(config.model.effects) or (config.model.library or "fit")
+        self._run = run
+        self._diagnosis: Diagnosis | None = None
+
+    @classmethod
+    def from_config(cls, config, progress: bool = False, name: str | None = None) -> "Fit":
+        """The fit of a run config's own trace (``data.path``), as ``afmid fit CONFIG`` makes it."""
+        from afmid.fit.pipeline import run_fit
+
+        return cls(run_fit(config, progress=progress), config, name=name)
+
+    # ------------------------------------------------------------------ what the run holds
+    @property
+    def result(self):
+        """The pipeline's :class:`afmid.fit.pipeline.FitResult` (None for a fit loaded from a run file)."""
+        return self._result
+
+    @property
+    def trace(self):
+        """The fitted :class:`afmid.io.trace.Trace` (of a loaded fit: the one given to :func:`load`, or None)."""
+        if self._trace is None and self._result is not None:
+            return self._result.prep.trace
+        return self._trace
+
+    @property
+    def run(self):
+        """The run as its run file holds it (:class:`afmid.runfile.RunData`)."""
+        if self._run is None:
+            from afmid.runfile import run_data
+
+            self._run = run_data(self._result, self.config, self.name)
+        return self._run
+
+    @property
+    def effects(self) -> list[str]:
+        return list(self.run.effects)
+
+    @property
+    def terms(self) -> list[str]:
+        """The selected terms of the identified law."""
+        return list(self.run.selected_terms)
+
+    @property
+    def cv_error(self) -> float:
+        """The cross-validated relative force error (1: no better than zero)."""
+        return float(self.run.cv_error)
+
+    @property
+    def noise_floor(self) -> float:
+        """The cross-validated error a perfect model would show at this noise."""
+        return float(self.run.cv_error_noise_floor)
+
+    @property
+    def model_limited(self) -> bool:
+        """The error stands above its noise floor: the parameters are biased beyond their error bars."""
+        return bool(self.run.model_limited)
+
+    @property
+    def parameters(self) -> Parameters:
+        """The physical parameters: value, 1 sigma, unit (SI), 95 % interval, flags."""
+        return Parameters.of_run(self.run)
+
+    # ------------------------------------------------------------------ text
+    def text(self, verbose: bool = False) -> str:
+        """What ``afmid fit`` prints (:func:`afmid.report.fit_text.fit_text`); ``verbose`` as ``afmid fit -v``."""
+        from afmid.report.fit_text import fit_text
+
+        if self._result is not None:
+            return fit_text(self._result, verbose=verbose)
+        if verbose:
+            raise ConfigError("the candidate supports of a loaded fit are in its run file's /diagnostics/path, not "
+                              "printed; verbose text needs the fit itself", file=self.run.path, key="verbose")
+        from afmid.api.readout import RunReadout
+
+        return fit_text(RunReadout(self.run))
+
+    def print(self, verbose: bool = False) -> None:
+        print(self.text(verbose))
+
+    def __repr__(self) -> str:
+        limited = "model-limited" if self.model_limited else "at the noise floor"
+        return (f"<afmid.Fit {self.name!r}: effects {self.effects}, terms {self.terms}; cv error "
+                f"{self.cv_error:.3f}, noise floor {self.noise_floor:.3f} ({limited}); "
+                f"{len(self.parameters)} parameters>")
+
+    # ------------------------------------------------------------------ forces
+    def force_curve(self) -> ForceCurve:
+        """The force against separation over one period, averaged over the periods (:class:`ForceCurve`)."""
+        periods = self.run.periods
+        separation, model, inverted = (np.asarray(periods[k], dtype=float)
+                                       for k in ("separation", "force_model", "force_inverted"))
+        n = separation.shape[0]
+        force = model.mean(axis=0)
+        total = float(self.run.force_total_uncertainty)
+        sigma = np.full(force.shape, total * float(np.max(np.abs(force))) if math.isfinite(total) else math.nan)
+        mean_separation = separation.mean(axis=0)
+        spread = inverted.std(axis=0, ddof=1) / math.sqrt(n) if n > 1 else np.full(force.shape, math.nan)
+        phase = np.asarray(periods["phase"], dtype=float)
+        return ForceCurve(phase if phase.ndim == 1 else phase[0], mean_separation, force, sigma,
+                          inverted.mean(axis=0), spread, np.gradient(mean_separation) < 0, n)
+
+    def predict(self, separation, velocity=0.0) -> np.ndarray:
+        """The identified law's force on the tip (N, positive = repulsive) at ``separation`` z (m) moving at
+        ``velocity`` dz/dt (m/s; arrays broadcast). A law with a state (hysteresis, relaxation) depends on the
+        path, not on (z, dz/dt): refused, see :meth:`force_curve`."""
+        from afmid.simulate.driver import identified_law
+        from afmid.simulate.model import compile_force_law, force_numpy
+
+        compiled = compile_force_law(identified_law(self.run))
+        if compiled.n_gates:
+            raise ConfigError("the identified law has a state (its force depends on the path, not only on z and "
+                              "dz/dt); use force_curve()", file=self.run.path, key="predict")
+        z, v = np.broadcast_arrays(np.asarray(separation, dtype=float), np.asarray(velocity, dtype=float))
+        d = float(self.run.separation)
+        force = force_numpy(compiled, (d - z).ravel(), -v.ravel(), np.zeros(z.size), d, np.zeros(0))
+        return np.broadcast_to(force, (z.size,)).reshape(z.shape)
+
+    # ------------------------------------------------------------------ diagnosis, report, file
+    def diagnose(self, progress: bool = False) -> Diagnosis:
+        """Where the model fails and which catalog effect is missing (``afmid report``'s diagnosis): each missing
+        effect refitted on this fit's trace."""
+        if self._diagnosis is None:
+            from afmid.diagnosis.diagnose import suggest
+
+            self._diagnosis = Diagnosis.of(suggest(self.run, progress=progress, trace=self.trace))
+        return self._diagnosis
+
+    def report(self, folder: str | Path, *, compare: list["Fit"] | tuple["Fit", ...] = (), overwrite: bool = False,
+               suggest: bool = True, progress: bool = False, allow_different_traces: bool = False) -> str:
+        """Write ``afmid report``'s folder for this fit (``compare``: earlier fits of the same trace, drawn first,
+        as ``afmid report run1.h5 run2.h5``; of different traces only with ``allow_different_traces``, and the
+        report says so); return the summary it prints."""
+        from afmid.report.page import write_report
+        from afmid.runcheck import check_same_traces
+
+        fits = [*compare, self]
+        names = [f.name for f in fits]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"two fits are named alike ({names}); give them distinct names (fit(trace, name=...))",
+                              file=Path(folder), key="compare")
+        traces = [f.trace for f in fits]
+        runs = [f.run for f in fits]
+        notes = check_same_traces(runs, allow_different_traces)  # the input files' SHA-256
+        arrays_differ = any(t is not traces[0] and t is not None and traces[0] is not None
+                            and not np.array_equal(t.deflection, traces[0].deflection) for t in traces)
+        if arrays_differ and not allow_different_traces:  # arrays have no SHA-256 in the run: their samples
+            raise ConfigError("the fits are of different traces: comparing them compares the traces, not the "
+                              "models; pass allow_different_traces=True to do that on purpose", file=Path(folder),
+                              key="compare")
+        if arrays_differ and not notes:
+            notes = ["the runs were fitted on different traces: their errors and parameters compare the traces as "
+                     "much as the models"]
+        return write_report(runs, Path(folder), overwrite, suggest, progress, notes=notes, names=names,
+                            traces=traces)
+
+    def save(self, path: str | Path, overwrite: bool = False) -> Path:
+        """Write the run file (the same file as ``afmid fit -o PATH``); the fit is then named after it."""
+        from afmid.runfile import write_run
+
+        if self._result is None:
+            raise ConfigError("a loaded fit is its run file already; copy the file", file=Path(path), key="save")
+        written = write_run(Path(path), self._result, self.config, overwrite=overwrite)
+        return written
+
+
+def load(path: str | Path, trace=None) -> Fit:
+    """The :class:`Fit` of a run file (``afmid fit -o``, :meth:`Fit.save`); ``trace``: its trace in memory, for
+    the diagnosis of a fit of an array (otherwise the run's input file is read again)."""
+    from afmid.runfile import load_run
+
+    run = load_run(path)
+    return Fit(None, run.config, trace=trace, name=run.path.name, run=run)

@@ -1,0 +1,67 @@
+"""A run read from its file, seen as :func:`afmid.report.fit_text.fit_text` reads a fit's result.
+
+``afmid fit`` prints its text from the pipeline's result; a fit loaded from its run file has only what the file
+holds (:class:`afmid.runfile.RunData`). :class:`RunReadout` presents that under the result's names, so the loaded
+fit prints the same lines (the run file does not hold the number of periods, so the clause on how long a record
+would bring the force band to its target is left out).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class StoredTerm:
+    """A library term as the run file names it."""
+
+    name: str
+    expression: str
+    coefficient_unit: str
+
+
+@dataclass(frozen=True)
+class StoredEstimate:
+    """A nonlinear parameter as the run file holds it (value and its profile's 1 sigma, SI)."""
+
+    value: float
+    sigma: float
+    unit: str
+    estimated: bool = True
+
+
+class StoredLibrary:
+    def __init__(self, run):
+        self.terms = [StoredTerm(n, e, u) for n, e, u in zip(run.terms, run.expressions, run.units)]
+        self.names = list(run.terms)
+
+
+class RunReadout:
+    """A :class:`afmid.runfile.RunData` under the names of :class:`afmid.fit.pipeline.FitResult` that the fit's
+    text uses."""
+
+    prep = None  # not stored
+    config = None
+
+    def __init__(self, run):
+        self.library = StoredLibrary(run)
+        self.n_library = len(run.terms)
+        self.selected = np.asarray(run.selected, dtype=bool)
+        self.coef = np.asarray(run.coefficients, dtype=float)
+        self.coef_std = np.asarray(run.errors, dtype=float)
+        self.quantities = run.quantities
+        self.nonlinear = {name: StoredEstimate(q["value"], q["error"], q["unit"]) for name, q in run.nonlinear.items()}
+        self.cv_error = run.cv_error
+        self.cv_error_noise_floor = run.cv_error_noise_floor
+        self.cv_error_folds = run.cv_error_folds if run.cv_error_folds is not None else np.zeros(0)
+        self.model_limited = run.model_limited
+        self.force_calibration_uncertainty = run.force_calibration_uncertainty
+        self.force_separation_uncertainty = run.force_separation_uncertainty
+        self.force_statistical_uncertainty = run.force_statistical_uncertainty
+        self.force_selection_uncertainty = run.force_selection_uncertainty
+        self.force_total_uncertainty = run.force_total_uncertainty
+
+    def selected_terms(self) -> list[str]:
+        return [n for n, s in zip(self.library.names, self.selected) if s]

@@ -1,0 +1,83 @@
+"""The cantilever a trace was recorded with: one type for the trace, the run config and the Python front door.
+
+:class:`Cantilever` holds the calibration (k, f0, Q), the tip (radius, shape, half-angle), the relative 1-sigma
+calibration uncertainties of k and Q and the higher flexural modes; it converts to and from the run config's
+``cantilever:`` section (:meth:`Cantilever.config_section`, :meth:`Cantilever.from_config`), which is what the fit
+reads. Other cantilever views remain inside their stages (the simulator's ``Oscillator``, the report's observables'
+lever): they are built from these values.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class HigherMode:
+    """A higher flexural mode of the lever, seen at the tip (``cantilever.higher_modes``)."""
+
+    resonance_frequency: float  # Hz
+    quality_factor: float  # 1
+    spring_constant: float  # N/m
+
+
+@dataclass
+class Cantilever:
+    """The lever: ``spring_constant`` k (N/m), ``resonance_frequency`` f0 (Hz), ``quality_factor`` Q (1),
+    ``tip_radius`` R (m, None: unknown), ``tip_shape`` (``afmid effects --tips``), ``tip_half_angle`` (rad, cones
+    and pyramids), ``spring_constant_uncertainty`` / ``quality_factor_uncertainty`` (relative 1 sigma, 0.1 = 10 %,
+    propagated into every read-out; None: not declared) and ``higher_modes`` (:class:`HigherMode`)."""
+
+    spring_constant: float  # N/m
+    resonance_frequency: float  # Hz
+    quality_factor: float
+    tip_radius: float | None = None  # m
+    tip_shape: str = "sphere"
+    tip_half_angle: float | None = None  # rad
+    spring_constant_uncertainty: float | None = None  # relative, 1 sigma
+    quality_factor_uncertainty: float | None = None  # relative, 1 sigma
+    higher_modes: tuple[HigherMode, ...] = field(default_factory=tuple)
+
+    @property
+    def omega0(self) -> float:
+        """Angular resonance frequency, rad/s."""
+        return 2.0 * math.pi * self.resonance_frequency
+
+    @property
+    def mass(self) -> float:
+        """Effective mass m = k / w0^2, kg."""
+        return self.spring_constant / self.omega0**2
+
+    @property
+    def damping(self) -> float:
+        """Damping coefficient c = m w0 / Q, kg/s."""
+        return self.mass * self.omega0 / self.quality_factor
+
+    def config_section(self) -> dict[str, Any]:
+        """The run config's ``cantilever:`` section for this lever (SI; keys left out where not declared)."""
+        section: dict[str, Any] = {"spring_constant": self.spring_constant,
+                                   "resonance_frequency": self.resonance_frequency,
+                                   "quality_factor": self.quality_factor, "tip_shape": self.tip_shape}
+        for key in ("tip_radius", "tip_half_angle", "spring_constant_uncertainty", "quality_factor_uncertainty"):
+            if getattr(self, key) is not None:
+                section[key] = getattr(self, key)
+        if self.higher_modes:
+            section["higher_modes"] = [{"resonance_frequency": m.resonance_frequency,
+                                        "quality_factor": m.quality_factor,
+                                        "spring_constant": m.spring_constant} for m in self.higher_modes]
+        return section
+
+    @classmethod
+    def from_config(cls, section, **calibration: float) -> "Cantilever":
+        """The lever of a validated ``cantilever:`` section (:class:`afmid.config.CantileverConfig`);
+        ``calibration`` (spring_constant, resonance_frequency, quality_factor, tip_radius) replaces the section's
+        values, e.g. with those merged from a trace file's metadata."""
+        values = {"spring_constant": section.spring_constant, "resonance_frequency": section.resonance_frequency,
+                  "quality_factor": section.quality_factor, "tip_radius": section.tip_radius, **calibration}
+        modes = tuple(HigherMode(m.resonance_frequency, m.quality_factor, m.spring_constant)
+                      for m in section.higher_modes)
+        return cls(tip_shape=section.tip_shape, tip_half_angle=section.tip_half_angle,
+                   spring_constant_uncertainty=section.spring_constant_uncertainty,
+                   quality_factor_uncertainty=section.quality_factor_uncertainty, higher_modes=modes, **values)
