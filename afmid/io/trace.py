@@ -28,6 +28,7 @@ from afmid.version import __version__
 from afmid.errors import ConfigError, InputError, OutputError
 # The lever's type lives in afmid.io.cantilever; `from afmid.io.trace import Cantilever` keeps working.
 from afmid.io.cantilever import Cantilever
+from afmid.io.file_values import check_file_instrument_value, merge_cantilever, merged_value, same_value
 from afmid.io.files import check_input_file, check_output_target
 from afmid.preprocess.harmonics import MIN_PERIODS  # the least a trace must hold (the harmonic analysis needs it too)
 
@@ -482,7 +483,7 @@ def load_trace(config) -> Trace:
             sources["invols"] = stated_where.get("data.invols", "file")
             log.info("%s: deflection sensitivity %.5g nm/V from the file (%s)", path, invols * 1e9,
                      sources["invols"].removeprefix("file:"))
-        elif not _isclose(invols, stated["data.invols"]):
+        elif not same_value(invols, stated["data.invols"]):
             overridden.append("data.invols")
     deflection = _convert_units(values, units, config, path, invols)
     if data.positive == "away_from_sample":
@@ -524,11 +525,11 @@ def load_trace(config) -> Trace:
 
     stated_cantilever = {"spring_constant": stated["cantilever.spring_constant"]} \
         if "cantilever.spring_constant" in stated else {}
-    cantilever = _merge_cantilever(config, meta.get("cantilever", {}) if is_afmid else stated_cantilever, sources,
+    cantilever = merge_cantilever(config, meta.get("cantilever", {}) if is_afmid else stated_cantilever, sources,
                                    overridden)
     reading = {**config.data.model_dump(mode="json", exclude_none=True), "path": str(path)}
     drive_meta = meta.get("drive", {}) if is_afmid else {"frequency": stated.get("drive.frequency")}
-    drive_frequency = _merged_value(
+    drive_frequency = merged_value(
         config, "drive.frequency", config.drive.frequency, drive_meta.get("frequency"), sources, overridden
     )
     for key in ("cantilever.spring_constant", "drive.frequency"):  # say where in the file, not only "file"
@@ -538,11 +539,11 @@ def load_trace(config) -> Trace:
     force_amplitude = config.drive.force_amplitude
     file_amplitude = drive_meta.get("force_amplitude")
     if force_amplitude is not None:
-        if file_amplitude is not None and not _isclose(force_amplitude, file_amplitude):
+        if file_amplitude is not None and not same_value(force_amplitude, file_amplitude):
             overridden.append("drive.force_amplitude")
         sources["force_amplitude"] = "config:drive.force_amplitude"
     elif file_amplitude is not None:
-        _check_file_instrument_value(config, "drive.force_amplitude", file_amplitude)
+        check_file_instrument_value(config, "drive.force_amplitude", file_amplitude)
         force_amplitude = file_amplitude
         sources["force_amplitude"] = "file"
 
@@ -580,56 +581,6 @@ def _cropped_by_config(trace: Trace, config) -> Trace:
     trace = crop(trace, first, stop)
     trace.sources["crop"] = f"config: samples {first} to {first + trace.n_samples} of the file"
     return trace
-
-
-def _merged_value(config, key: str, from_config, from_file, sources: dict, overridden: list):
-    """Config value if given (recording an override of the file's), else the file's, else an error."""
-    name = key.split(".")[-1]
-    if from_config is not None:
-        if from_file is not None and not _isclose(from_config, from_file):
-            overridden.append(key)
-        sources[name] = f"config:{key}"
-        return from_config
-    if from_file is not None and not (isinstance(from_file, float) and np.isnan(from_file)):
-        _check_file_instrument_value(config, key, from_file)
-        sources[name] = "file"
-        return from_file
-    raise ConfigError("required key is missing (not in the config nor in the trace file)", file=config.source, key=key)
-
-
-def _check_file_instrument_value(config, key: str, value) -> None:
-    """The config's instrument limits hold for a trace file's metadata too (InputError naming the file)."""
-    from afmid.config import instrument_value_problem
-
-    problem = instrument_value_problem(key, value)
-    if problem:
-        raise InputError(f"the trace file's {key.split('.')[-1]} {problem}; set {key} in the config if the file "
-                         f"is wrong", file=config.resolve_path(config.data.path), key=key)
-
-
-def _isclose(a, b) -> bool:
-    try:
-        return bool(np.isclose(float(a), float(b), rtol=1e-12, atol=0))
-    except (TypeError, ValueError):
-        return a == b
-
-
-def _merge_cantilever(config, meta: dict, sources: dict, overridden: list) -> Cantilever:
-    c = config.cantilever
-    values = {}
-    for name in ("spring_constant", "resonance_frequency", "quality_factor"):
-        values[name] = float(_merged_value(config, f"cantilever.{name}", getattr(c, name), meta.get(name), sources, overridden))
-    radius = c.tip_radius
-    file_radius = meta.get("tip_radius")
-    if radius is None and file_radius is not None and np.isfinite(file_radius):
-        _check_file_instrument_value(config, "cantilever.tip_radius", file_radius)
-        radius = float(file_radius)
-        sources["tip_radius"] = "file"
-    elif radius is not None:
-        if file_radius is not None and np.isfinite(file_radius) and not _isclose(radius, file_radius):
-            overridden.append("cantilever.tip_radius")
-        sources["tip_radius"] = "config:cantilever.tip_radius"
-    return Cantilever.from_config(c, tip_radius=radius, **values)
 
 
 def trace_from_array(deflection, sample_rate: float, cantilever: Cantilever | None, drive_frequency: float | None,
