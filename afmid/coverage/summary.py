@@ -79,12 +79,18 @@ def quantity_names(draws: list[dict]) -> list[str]:
     return [n for n in (SEPARATION,) if n in names] + middle + [n for n in (FORCE_CURVE,) if n in names]
 
 
+def _with_nan(number: dict) -> dict:
+    """A draw's record with null (NaN in a JSON file) read back as NaN."""
+    return {k: (math.nan if v is None and k in ("estimate", "sigma", "truth", "z") else v) for k, v in number.items()}
+
+
 def summarize(draws: list[dict], unflagged_only: bool = False) -> list[QuantitySummary]:
-    """Per quantity over the fitted draws (status ok); ``unflagged_only``: over the numbers no flag marked."""
+    """Per quantity over the fitted draws (status ok); ``unflagged_only``: over the numbers no flag marked. The
+    draws as :func:`afmid.coverage.task.run_draw` returns them, or as read back from the JSON output."""
     fitted = [d for d in draws if d["status"] == "ok"]
     out = []
     for name in quantity_names(fitted):
-        rows = [(d["index"], d["seed"], d["numbers"][name]) for d in fitted if name in d["numbers"]]
+        rows = [(d["index"], d["seed"], _with_nan(d["numbers"][name])) for d in fitted if name in d["numbers"]]
         if unflagged_only:
             rows = [r for r in rows if not r[2]["flags"]]
         finite = [r for r in rows if math.isfinite(r[2]["z"])]

@@ -161,3 +161,14 @@ def test_a_scale_without_a_value_to_scale_names_the_key(tmp_path):
     with pytest.raises(ConfigError) as info:
         _draws(_config(raw, tmp_path), [0])
     assert info.value.key == "coverage.vary.data.detector.bandwidth" and "mode: absolute" in info.value.message
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in (REPO_ROOT / "configs" / "coverage").glob("*.yaml")))
+def test_shipped_distributions_validate_and_their_draws_build(name):
+    from afmid.coverage.run import prepare_draws
+
+    config = load_config(REPO_ROOT / "configs" / "coverage" / name)
+    assert config.coverage is not None and config.fit.bootstrap > 0
+    tasks = prepare_draws(config, [0, 1])  # the first draw's simulation and fit configs are validated
+    assert [t["index"] for t in tasks] == [0, 1] and tasks[0]["seed"] != tasks[1]["seed"]
+    assert tasks[0]["fit"]["sample"]["separation"] is None  # every shipped distribution estimates d
