@@ -116,6 +116,33 @@ def set_value(raw: dict, key: str, value: Any) -> None:
     node[parts[-1]] = value
 
 
+#: Config mappings whose keys are free (a model's parameter names), so a drawn key may be new there.
+FREE_MAPPINGS = ("simulate.parameters", "model.parameters")
+
+
+def check_keys(config: RunConfig, raw: dict) -> None:
+    """Refuse a varied key that is no key of the config (``raw``: its merged mapping), naming
+    ``coverage.vary.KEY``: a typo would otherwise be reported as the config's own unknown key, or not at all."""
+    for key in distributions(config):
+        parts = key.split(".")
+        parent, node = ".".join(parts[:-1]), raw
+        for i, part in enumerate(parts[:-1]):
+            if isinstance(node, list) and part.isdecimal() and int(part) < len(node):
+                node = node[int(part)]
+            elif isinstance(node, dict) and part in node:
+                node = node[part]
+            else:
+                node = False  # a missing section or list item
+                break
+            if node is None:  # an optional section not given (data.detector): the drawn value creates it
+                break
+        known = (node is None or parent in FREE_MAPPINGS
+                 or (isinstance(node, dict) and parts[-1] in node))
+        if not known:
+            raise ConfigError(f"{key} is not a key of the run config (see afmid init-config for the keys)",
+                              file=config.source, key=f"coverage.vary.{key}")
+
+
 # --------------------------------------------------------------------------- one draw
 @dataclass(frozen=True)
 class Draw:

@@ -20,7 +20,7 @@ import yaml
 from afmid import __version__
 from afmid.config import RunConfig, build_config, dump_config
 from afmid.coverage.config import CoverageConfig
-from afmid.coverage.draws import Draw, apply_draw, distributions, draw, set_options
+from afmid.coverage.draws import Draw, apply_draw, check_keys, distributions, draw, set_options
 from afmid.coverage.summary import QuantitySummary, summarize, table_text
 from afmid.coverage.task import draw_task, run_draw
 from afmid.errors import ConfigError
@@ -99,6 +99,7 @@ def prepare_draws(config: RunConfig, indices: list[int]) -> list[dict]:
     """The task of every draw in ``indices`` (:func:`afmid.coverage.task.draw_task`). The first draw's configs are
     validated here, so that a config the simulation or the fit refuses stops with its one line before any work."""
     raw = yaml.safe_load(dump_config(config))
+    check_keys(config, raw)
     given = config.coverage.separation == "given"
     tasks = []
     for index in indices:

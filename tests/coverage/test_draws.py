@@ -172,3 +172,20 @@ def test_shipped_distributions_validate_and_their_draws_build(name):
     tasks = prepare_draws(config, [0, 1])  # the first draw's simulation and fit configs are validated
     assert [t["index"] for t in tasks] == [0, 1] and tasks[0]["seed"] != tasks[1]["seed"]
     assert tasks[0]["fit"]["sample"]["separation"] is None  # every shipped distribution estimates d
+
+
+@pytest.mark.parametrize("key, ok", [("cantilever.quality_facter", False), ("simulate.noise.detector_rms", True),
+                                     ("sample.separation.x", False), ("cantilever.higher_modes.0.quality_factor",
+                                                                      False),
+                                     ("simulate.parameters.debye_length", True), ("data.detector.bandwidth", True)])
+def test_a_varied_key_must_be_a_key_of_the_config(tmp_path, key, ok):
+    from afmid.coverage.draws import check_keys
+
+    config = _config(_air_raw(vary={key: {"uniform": [1.0, 2.0], "mode": "absolute"}}), tmp_path)
+    raw = yaml.safe_load(dump_config(config))
+    if ok:
+        check_keys(config, raw)
+        return
+    with pytest.raises(ConfigError) as info:
+        check_keys(config, raw)
+    assert info.value.key == f"coverage.vary.{key}" and "not a key of the run config" in info.value.message
