@@ -119,13 +119,14 @@ def _fraction_cell(count: int, n: int) -> str:
 
 def table_text(summaries: list[QuantitySummary], title: str) -> str:
     """The coverage table as ``afmid coverage`` prints it (one row per quantity)."""
-    header = (f"{'quantity':<18} {'n':>4} {'flag':>4} {'miss':>4}  {'|z|<=1 (68 %)':<18} {'|z|<=2 (95 %)':<18} "
+    width = max([18] + [len(s.name) for s in summaries])
+    header = (f"{'quantity':<{width}} {'n':>4} {'flag':>4} {'miss':>4}  {'|z|<=1 (68 %)':<18} {'|z|<=2 (95 %)':<18} "
               f"{'in 95% CI':>9} {'rms z':>6} {'med|z|':>6} {'>5 unfl':>7}  worst (draw/seed: z)")
     lines = [title, header]
     for s in summaries:
         ci = f"{s.in_ci95 / s.n_ci95:.2f}" if s.n_ci95 else "-"
         worst = ", ".join(f"#{d}/{seed}: {z:+.2f}" for d, seed, z in s.worst)
-        lines.append(f"{s.name:<18} {s.n:>4} {s.flagged:>4} {s.missing:>4}  {_fraction_cell(s.within_1, s.n):<18} "
+        lines.append(f"{s.name:<{width}} {s.n:>4} {s.flagged:>4} {s.missing:>4}  {_fraction_cell(s.within_1, s.n):<18} "
                      f"{_fraction_cell(s.within_2, s.n):<18} {ci:>9} {s.rms_z:>6.2f} {s.median_abs_z:>6.2f} "
                      f"{s.beyond_5_unflagged:>7}  {worst}")
     return "\n".join(lines)
