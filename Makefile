@@ -90,6 +90,7 @@ test-kernels: $(STAMP)
 # configs/coverage/ (air, liquid, poor instrument, instrument in the model), COVERAGE_DRAWS draws each on COVERAGE_JOBS
 # worker processes; the tables and every draw go to $(COVERAGE_OUT)/NAME.txt / NAME.json. The test asserts issue 28's
 # target (2-sigma coverage >= 90 % per quantity, no |z| > 5 without a flag); `make test` runs a small version.
+# Cost measured at 200 draws: air 151 s, liquid 302 s, poor 98 s of CPU; instrument ~13 s per draw (~45 min of CPU).
 COVERAGE_DRAWS ?= 200
 COVERAGE_JOBS ?= 2
 COVERAGE_OUT ?= coverage_results
