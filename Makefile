@@ -12,7 +12,7 @@ BATCH_JOBS ?= 2
 # Test processes (pytest-xdist): the suite's tests are independent; 2 matches the CI machine's cores.
 TEST_JOBS ?= 2
 
-.PHONY: help venv demo demo-map test test-kernels batch bench clean
+.PHONY: help venv demo demo-map test test-kernels coverage batch bench clean
 .DEFAULT_GOAL := help
 
 help:
@@ -20,6 +20,8 @@ help:
 	@echo "make demo-map - a force map with hidden viscoelasticity: map with [dmt] (which effect is missing where), refit with --add viscoelastic, reports before/after"
 	@echo "make test   - set up .venv with test extras and run the test suite"
 	@echo "make test-kernels - the BLAS-sensitive tests again under two other OpenBLAS kernels of this CPU (and without NumPy's AVX-512 code)"
+	@echo "make coverage - the full coverage run (issue 28): every configs/coverage/*.yaml, COVERAGE_DRAWS=200 draws on COVERAGE_JOBS=2 workers,"
+	@echo "              tables in $(COVERAGE_OUT)/; fails where 2-sigma coverage < 90 % or an unflagged |z| > 5 (docs/coverage.md)"
 	@echo "make batch  - fit every config in configs/ (simulated first where it has no data) into $(RESULTS)/ (BATCH_JOBS=N workers)"
 	@echo "make bench  - benchmarks in one table (afmid vs SciPy / PySINDy, scaling, start-up, batch);"
 	@echo "              BENCH_ARGS=--quick for a smoke run"
@@ -84,6 +86,19 @@ test-kernels: $(STAMP)
 	NPY_DISABLE_CPU_FEATURES="$$features" $(PY) -m pytest -q -p no:cacheprovider -n $(TEST_JOBS) -m "not slow" \
 		tests/kernels tests/simulate tests/physics || exit 1
 
+# Simulation-based calibration (issue 28, docs/coverage.md): `afmid coverage` on every distribution in
+# configs/coverage/ (air, liquid, poor instrument, instrument in the model), COVERAGE_DRAWS draws each on COVERAGE_JOBS
+# worker processes; the tables and every draw go to $(COVERAGE_OUT)/NAME.txt / NAME.json. The test asserts issue 28's
+# target (2-sigma coverage >= 90 % per quantity, no |z| > 5 without a flag); `make test` runs a small version.
+# Cost measured at 200 draws: air 151 s, liquid 302 s, poor 98 s of CPU; instrument ~13 s per draw (~45 min of CPU).
+COVERAGE_DRAWS ?= 200
+COVERAGE_JOBS ?= 2
+COVERAGE_OUT ?= coverage_results
+coverage: $(STAMP)
+	AFMID_COVERAGE_FULL=1 AFMID_COVERAGE_DRAWS=$(COVERAGE_DRAWS) AFMID_COVERAGE_JOBS=$(COVERAGE_JOBS) \
+		AFMID_COVERAGE_OUT=$(COVERAGE_OUT) $(PY) -m pytest -q -p no:xdist -p no:cacheprovider \
+		tests/coverage/test_coverage_run.py -k full_coverage
+
 # Every config in configs/ with its own cantilever and model, in BATCH_JOBS worker processes:
 # a config with data.path fits that file; one without is simulated first into
 # $(RESULTS)/NAME.trace.h5, then fitted into $(RESULTS)/NAME.run.h5 (as `afmid simulate` +
@@ -98,4 +113,4 @@ bench: $(STAMP)
 	$(PY) bench/run_all.py $(BENCH_ARGS)
 
 clean:
-	rm -rf $(DEMO_DIR) $(RESULTS) .pytest_cache
+	rm -rf $(DEMO_DIR) $(RESULTS) $(COVERAGE_OUT) .pytest_cache

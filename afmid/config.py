@@ -25,6 +25,7 @@ from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Fi
 import afmid.config_messages as config_messages
 from afmid.errors import ConfigError
 from afmid.io.files import check_input_file
+from afmid.coverage.config import CoverageConfig
 from afmid.maps.config import MapSimulation
 from afmid.registry import closest, unknown_name_message
 
@@ -460,6 +461,8 @@ class RunConfig(StrictModel):
     model: ModelConfig = Field(default_factory=ModelConfig)
     fit: FitConfig = Field(default_factory=FitConfig)
     simulate: SimulateConfig = Field(default_factory=SimulateConfig)
+    coverage: CoverageConfig | None = Field(
+        None, description="experiments `afmid coverage` draws around this config (afmid.coverage.config)")
 
     @model_validator(mode="after")
     def _usable_terms(self) -> "RunConfig":

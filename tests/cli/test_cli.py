@@ -20,7 +20,7 @@ import yaml
 
 from afmid.physics.effects import EFFECTS, MODELS
 
-SUBCOMMANDS = ["simulate", "fit", "batch", "report", "effects", "init-config", "inspect"]
+SUBCOMMANDS = ["simulate", "fit", "batch", "report", "effects", "init-config", "inspect", "coverage"]
 
 
 # --------------------------------------------------------------------------- help

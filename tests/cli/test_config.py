@@ -211,7 +211,7 @@ def test_wrong_types(raw, key, expected):
          "spring_constant, resonance_frequency, quality_factor, tip_radius, tip_shape, tip_half_angle, "
          "spring_constant_uncertainty, "
          "quality_factor_uncertainty, higher_modes"),
-        ({"datum": {}}, "datum", "data", "data, cantilever, drive, sample, model, fit, simulate"),
+        ({"datum": {}}, "datum", "data", "data, cantilever, drive, sample, model, fit, simulate, coverage"),
         ({"simulate": {"noise": {"temprature": 300}}}, "simulate.noise.temprature", "temperature",
          "detector_rms, detector_density, thermal, temperature, adc_step"),
     ],
