@@ -204,23 +204,26 @@ def mode_evidence(trace, drive_frequency: float, mode: Mode) -> ModeEvidence:
     stiffness = mode.spring_constant / cantilever.spring_constant
     peak, floor, needed, segments = spectral_peak(trace.deflection, trace.sample_rate, drive_frequency,
                                                   mode.resonance_frequency)
-    from afmid.io.trace_analysis import analyse
+    from afmid.io.trace_analysis import DETECT_SIGMA, analyse
 
     analysis = analyse(trace.deflection, cycles_per_sample=drive_frequency / trace.sample_rate)
-    bump = math.nan if analysis is None else harmonic_bump(analysis.harmonic_amplitudes(), analysis.above_noise,
-                                                          mode.resonance_frequency / drive_frequency)
+    bump = math.nan if analysis is None else harmonic_bump(
+        analysis.harmonic_amplitudes(), DETECT_SIGMA * analysis.harmonic_sigma(), analysis.above_noise,
+        mode.resonance_frequency / drive_frequency)
     return ModeEvidence(mode.resonance_frequency, ratio, stiffness, peak, floor, needed, segments, bump)
 
 
-def harmonic_bump(amplitudes: np.ndarray, above_noise: list[int], at: float) -> float:
+def harmonic_bump(amplitudes: np.ndarray, floor: np.ndarray, above_noise: list[int], at: float) -> float:
     """The product, for the two drive harmonics n, n + 1 bracketing ``at`` (f_2 / f), of each one's amplitude over
-    the geometric mean of the harmonics two away (:func:`harmonic_resonance`'s statistic at f_2); NaN unless the
-    six harmonics n - 2 .. n + 3 stand above the noise."""
+    the geometric mean of the harmonics two away (:func:`harmonic_resonance`'s statistic at f_2), those taken at
+    least at their noise ``floor`` (a harmonic lost in the noise can only lower the product); NaN unless n and
+    n + 1 stand above the noise."""
     n = int(math.floor(at))
-    if n < 3 or not set(range(n - 2, n + 4)) <= set(above_noise) or n + 3 >= len(amplitudes):
-        return math.nan
     A = np.asarray(amplitudes, dtype=float)
-    return float(np.prod([A[k] / math.sqrt(A[k - 2] * A[k + 2]) for k in (n, n + 1)]))
+    if n < 3 or n + 3 >= A.size or not {n, n + 1} <= set(above_noise):
+        return math.nan
+    low = np.maximum(A, np.asarray(floor, dtype=float))
+    return float(np.prod([A[k] / math.sqrt(low[k - 2] * low[k + 2]) for k in (n, n + 1)]))
 
 
 def spectral_peak(x: np.ndarray, sample_rate: float, drive_frequency: float, frequency: float

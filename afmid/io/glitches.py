@@ -248,8 +248,8 @@ def _edge(residual: np.ndarray, zone: int, sigma: float, limit: float, relevant:
     """(samples to cut, largest deviation) at the start of ``residual`` (a record, or its reverse): within the first
     ``zone`` samples, deviations from the straight line through the next ``zone`` samples beyond ``limit`` x
     ``sigma`` and :data:`EDGE_NULL_FACTOR` times the 99th percentile of the same statistic in every later window
-    of the record and ``relevant``, the first within :data:`EDGE_SAMPLES` of the edge; cut up to the first sample back within
-    that percentile and :data:`SETTLED_SIGMA` x ``sigma``. (0, 0) when none."""
+    of the record and ``relevant``, the first within :data:`EDGE_SAMPLES` of the edge; cut up to the first sample
+    back within that percentile and :data:`SETTLED_SIGMA` x ``sigma``. (0, 0) when none."""
     windows = (residual.size - 2 * zone) // zone + 1
     if zone < 2 * EDGE_SAMPLES or windows < 100:
         return 0, 0.0
@@ -324,13 +324,13 @@ def describe(found: Scan, n_samples: int, units: str | None, done: bool, offset:
     parts = []
     if found.head:
         action = ("kept: data.start chose the start" if not kept[0] else "cut" if done else "a fit cuts them")
-        parts.append(f"{_samples(offset, found.head)} at the start leave the periodic motion by up to "
-                     f"{length(found.head_size, units)} (an edge transient: a filter or the acquisition settling; "
-                     f"{action})")
+        parts.append(f"{_samples(offset, found.head)} at the start {_leave(found.head)} the periodic motion by "
+                     f"up to {length(found.head_size, units)} (an edge transient: a filter or the acquisition "
+                     f"settling; {action})")
     if found.tail:
         first = offset + n_samples - found.tail
         action = ("kept: data.stop chose the end" if not kept[1] else "cut" if done else "a fit cuts them")
-        parts.append(f"{_samples(first, found.tail)} at the end leave it by up to "
+        parts.append(f"{_samples(first, found.tail)} at the end {_leave(found.tail)} it by up to "
                      f"{length(found.tail_size, units)} (an edge transient; {action})")
     if found.glitches.size:
         listed = ", ".join(str(offset + int(k)) for k in found.glitches[:5])
@@ -342,6 +342,10 @@ def describe(found: Scan, n_samples: int, units: str | None, done: bool, offset:
     return ("; ".join(parts) + f" (outliers beyond {found.threshold:.2g} x the noise of "
             f"{length(found.sigma, units)} rms, none other within a period); set data.start / data.stop to choose "
             "the part to fit instead")
+
+
+def _leave(count: int) -> str:
+    return "leaves" if count == 1 else "leave"
 
 
 def _samples(first: int, count: int) -> str:
