@@ -49,6 +49,7 @@ from afmid.preprocess.harmonics import (  # the engine the fit uses too
     strongest_peak,
     changes_like_a_transient,
 )
+from afmid.io.glitches import check_glitches
 from afmid.io.oscillation import check_drive_line
 from afmid.io.onset import check_onset, find_onset
 from afmid.preprocess.periods import detrend
@@ -257,6 +258,7 @@ def check_signal(x: np.ndarray, settings: Settings, analysis: Analysis | None = 
     findings += check_steady(analysis, settings)
     findings += check_offset_and_drift(analysis, settings)
     findings += check_contact(analysis, settings)
+    findings += check_glitches(x, analysis, settings.units)  # edge transients and isolated glitches
     strongest = analysis.cycles_per_sample * settings.sample_rate if settings.sample_rate else None
     return check_drive_line(x, settings, strongest) + findings  # the first error is the one reported
 

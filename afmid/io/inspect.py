@@ -252,8 +252,9 @@ def inspect_file(file: str | Path, column: str | None = None, sample_rate: float
             noise += "; inflated by the non-periodic motion (see motion), not only detector noise"
         rows.append(("noise floor", f"{noise} (residual of per-period fits with {a.K} harmonics)"))
         if a.motion is not None:
-            rows.append(("motion", a.motion.words() if a.motion.non_periodic else
-                         "periodic (consecutive periods agree to the noise)"))
+            plain = not (a.motion.non_periodic or a.motion.modulation or a.motion.incoherent)
+            rows.append(("motion", "periodic (consecutive periods agree to the noise)" if plain else
+                         a.motion.words(s.frequency)))
         rows.append(("harmonics", _harmonics(a)))
         rows.append(("interaction", _interaction(a, s)))
         rows.append(("instrument", _instrument(a, s)))

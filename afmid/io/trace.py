@@ -654,5 +654,13 @@ def check_trace(trace: Trace, config) -> Trace:
                              f"{MIN_PERIODS}", file=path, key="data.start")
         trace.findings, trace.drive = defects.check_loaded(trace, config)
         trace.findings.insert(0, replace(onset, severity="repaired"))
+    glitches = next((f for f in trace.findings if f.name == "glitches" and f.severity == "warning"), None)
+    if glitches is not None and not any(f.severity == "error" for f in trace.findings):
+        from afmid.io.glitches import cleaned  # edge transients cut, isolated glitches replaced: one finding
+
+        earlier = [f for f in trace.findings if f.name == "onset"]
+        trace, done = cleaned(trace, config, glitches)
+        trace.findings, trace.drive = defects.check_loaded(trace, config)
+        trace.findings = earlier + [done] + trace.findings
     defects.report(trace.findings, path)
     return trace
