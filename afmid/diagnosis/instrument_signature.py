@@ -188,7 +188,7 @@ class ModeEvidence:
             lines = (f"; the drive harmonics around it stand {self.bump:.2g}x out of their neighbours, a resonance "
                      f"{HARMONIC_BUMP_EVIDENCE:g}x" if math.isfinite(self.bump) else "")
             parts.append(f"the spectrum shows no peak there (off the drive harmonics, the largest within "
-                         f"{100 * PEAK_WINDOW:g} % of it is {self.peak / max(self.floor, 1e-300):.2g}x the local floor "
+                         f"{100 * PEAK_WINDOW:g} % of it is {self.peak / max(self.floor, 1e-300):.3g}x the local floor "
                          f"of {math.sqrt(self.floor):.2g} m/sqrt(Hz), a peak needs {self.needed:.2g}x{lines})")
         if not self.beam_consistent:
             parts.append(f"f2/f1 = {self.ratio:.3g} and k2/k1 = {self.stiffness_ratio:.3g} are not a lever's "
