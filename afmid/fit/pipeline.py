@@ -47,11 +47,13 @@ from afmid.fit.search import NonlinearEstimate, search_1d, search_range
 from afmid.fit.profile import GroupedProfile, ProfileResult, robust_profile
 from afmid.fit.joint_profile import other_valley
 from afmid.fit.valleys import cover_other_valleys
+from afmid.fit.contact_probe import check_contact_law
+from afmid.fit.plausibility import unphysical
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
 from afmid.fit.declared_drive import declared_drive, propagate_drive_calibration, with_declared_drive
 from afmid.preprocess.motion import fit_warning as motion_warning
-from afmid.fit.uncertainty import add_largest_shift, finish as finish_uncertainty, widen_interval
+from afmid.fit.uncertainty import add_largest_shift, finish as finish_uncertainty, mark_model_limited, widen_interval
 from afmid.fit.undetermined import mark as mark_undetermined
 from afmid.fit.undetermined import whole_effects
 from afmid.progress import Progress
@@ -437,12 +439,29 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
     force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,
                                                     trace, config, cv_error, noise_floor, read_out, uncertainty)
+    if uncertainty:
+        def select_with(extra_terms: list[str]):
+            model = config.model.model_copy(update={"terms": [*config.model.terms, *extra_terms]})
+            probed = build_library(model, config.source, library.tip)
+            probed_settings = SelectionSettings.for_library(fit, probed, len(prep.nuisance_names))
+            return probed, probed_settings.select(build_system(prep, probed, params)).best.mask
+
+        probe = check_contact_law(library, chosen, list(config.model.terms), config.model.library, select_with)
+        if probe is not None and probe.failed:
+            mark_model_limited(quantities, True)
+            warnings.append("warning: " + probe.warning())
+            limited = True
     if uncertainty:  # a calibrated drive's declared uncertainty, like k's and Q's
         propagate_drive_calibration(quantities, prep, library, system, coef, chosen, params, trace, read_out)
     # A read-out whose term was not selected is "not determined" (never 0 +- 0); terms the resamples select
     # only sometimes widen the error bars they affect (afmid.fit.undetermined).
     mark_undetermined(quantities, library, system, coef, chosen, params, trace, inclusion,
                       fit.bootstrap if uncertainty else 0, fit.seed, read_out, warnings)
+    impossible = [name for name, q in quantities.items() if unphysical(name, q)]
+    if impossible:  # the law fits only with an impossible parameter: the others are biased by what it stands for
+        mark_model_limited(quantities, True)
+        warnings.append("warning: " + UNPHYSICAL_TEXT.format(names=", ".join(impossible)))
+        limited = True
     force_estimate, force_inverted = per_sample_forces(prep, library, system, coef, rows)
     share = SHARE_NOT_COMPUTED
     if uncertainty and "d" in nonlinear and config.sample.separation is None:
@@ -463,6 +482,13 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_inverted, periods,
                      warnings, drive_search, force_calibration, limited, share, statistical, selection_doubt)
+
+
+#: The warning of a fit whose law needs an unphysical parameter (afmid.fit.plausibility.unphysical).
+UNPHYSICAL_TEXT = ("model-limited: the model fits the record only with an unphysical {names} (the whole 95 % "
+                   "interval outside the physical range): the force the data ask for is not this law with physical "
+                   "parameters, so every parameter is biased beyond its error bar (or the calibration is wrong: "
+                   "data.invols, data.positive, cantilever.spring_constant, cantilever.tip_radius)")
 
 
 def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:

@@ -215,6 +215,24 @@ def check_plausibility(quantities: Mapping[str, Mapping | float]) -> dict[str, V
     return {name: judge(name, q) for name, q in quantities.items()}
 
 
+def unphysical(name: str, quantity: Mapping) -> bool:
+    """True when a determined read-out and its whole 95 % interval lie outside the physical range (for a force
+    that grows with the tip, the declared tip's): no value the data allow is physical, so the model fits the
+    record only with an impossible parameter. Noise alone puts a small term's interval across a bound, never
+    wholly beyond it (that is 2 sigma at least); a read-out without an interval is no evidence either way."""
+    if quantity.get("determined", True) is False:
+        return False
+    value, ci_low, ci_high = (_field(quantity, k) for k in ("value", "ci_low", "ci_high"))
+    if not (math.isfinite(value) and math.isfinite(ci_low) and math.isfinite(ci_high)):
+        return False
+    effect = quantity.get("effect") or None
+    declared = tip_scaled_range(name, effect, _field(quantity, "tip_radius")) or plausible_range(name, effect)
+    if declared is None:
+        return False
+    low, high, _ = declared
+    return not (low <= value <= high) and (ci_high < low or ci_low > high)
+
+
 def judge_separation(value: float, sigma: float) -> Verdict:
     """The verdict on an estimated rest separation ``value`` +- ``sigma`` (1 sigma), m.
 

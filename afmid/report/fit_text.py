@@ -157,9 +157,12 @@ def error_lines(result) -> list[str]:
     if not (math.isfinite(error) and math.isfinite(floor) and floor > 0):
         return [line + ": not compared (no finite floor)"]
     ratio = error / floor
-    if model_limited(error, floor) or getattr(result, "model_limited", False):
+    if model_limited(error, floor):
         verdict = (f"MODEL-LIMITED: x{ratio:.2g} the floor (more than x{FLOOR_FACTOR:g}); the model misses part "
                    "of the force (afmid report RUN names what is missing)")
+    elif getattr(result, "model_limited", False):
+        verdict = (f"MODEL-LIMITED at x{ratio:.2g} the floor: the model fails a test of its law's shape (see the "
+                   "warnings), so its parameters are biased beyond their error bars")
     else:
         verdict = f"at the noise floor (x{ratio:.2g}, limit x{FLOOR_FACTOR:g}): the model explains the force"
     return [line, f"verdict: {verdict}"]
