@@ -82,8 +82,9 @@ def _calibration(run, trace, candidate_findings: dict[str, list[str]]) -> dict:
     if trace.cantilever.tip_radius is not None:
         values.append(f"R = {format_value(trace.cantilever.tip_radius, 'm', 3)}")
         keys.append("cantilever.tip_radius")
+    # A value outside its physical range points at the calibration; a term not selected does not.
     evidence = [f"{run.path.name}: {q['plausibility']}" for q in run.quantities.values()
-                if not q.get("plausible", True) and q.get("plausibility")]
+                if not q.get("plausible", True) and q.get("plausibility") and q.get("determined", True) is not False]
     if math.isfinite(run.separation) and run.config.sample.separation is None:
         sigma = run.nonlinear.get("d", {}).get("error", math.nan)
         verdict = plausibility.judge_separation(run.separation, sigma)

@@ -217,6 +217,15 @@ def no_contact_note(run: RunData) -> str:
             f"{run.config.sample.a0 * NM:.3g} nm, so only the attractive (non-contact) branch is drawn")
 
 
+def separation_window(run: RunData) -> tuple[float, float]:
+    """The force-vs-separation panels' range, nm: from 0.2 nm below the closest approach to
+    :data:`SEPARATION_WINDOW` above the contact distance a0, or, when the fit has no contact (a0 below the whole
+    orbit, where that range would be empty), above the closest approach."""
+    z_min = float(np.nanmin(run.periods["separation"]))
+    top = z_min if contact_gap(run) > 0 else run.config.sample.a0
+    return z_min * NM - 0.2, (top + SEPARATION_WINDOW) * NM
+
+
 def fig_force_separation(run: RunData, folder: Path) -> str:
     """Approach and retraction in separate panels: inverted-force mean with its noise band, model, truth. From
     just below the closest approach to :data:`SEPARATION_WINDOW` above the contact distance; a fit without
@@ -244,14 +253,11 @@ def fig_force_separation(run: RunData, folder: Path) -> str:
         ax.set(xlabel="separation z (nm)", title=title)
     axes[0].set_ylabel(FORCE_LABEL)
     axes[0].legend(fontsize=6.5, loc="lower right")
-    z_min, a0 = float(np.nanmin(P["separation"])), run.config.sample.a0
     note = no_contact_note(run)
     for ax in axes:
-        if note:  # the contact distance lies below the whole orbit: the window starts at the closest approach
-            ax.set_xlim(z_min * NM - 0.2, (z_min + SEPARATION_WINDOW) * NM)
-        else:
-            _contact_line(ax, a0)
-            ax.set_xlim(z_min * NM - 0.2, (a0 + SEPARATION_WINDOW) * NM)
+        if not note:
+            _contact_line(ax, run.config.sample.a0)
+        ax.set_xlim(*separation_window(run))
     if note:
         fig.suptitle(note, fontsize=7, y=1.02)
     return _save(fig, folder, "force_separation")
