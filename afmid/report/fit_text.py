@@ -36,7 +36,7 @@ def intervals_lines(result) -> list[str]:
     config = getattr(result, "config", None)
     if config is None or calibration_declared(config):
         return []
-    return ["intervals: " + STATISTICAL_ONLY_TEXT]
+    return ["note: " + STATISTICAL_ONLY_TEXT]
 
 
 def force_lines(result) -> list[str]:
