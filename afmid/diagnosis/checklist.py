@@ -31,8 +31,10 @@ from afmid.errors import AfmidError
 from afmid.io import defects
 from afmid.report.quantity_text import format_value
 
-#: Defect findings (afmid.io.findings.Finding.message) that speak of a record that changes over time.
-_UNSTEADY_WORDS = ("drift", "steady", "amplitude changes", "transient", "jump", "glitch")
+#: Defect findings (afmid.io.findings.Finding.name) of a record that changes over time: an amplitude not in steady
+#: state and a drifting mean deflection (removed by fit.detrend, but a drifting lever may change more than its mean).
+#: An edge transient the fit cut (glitches) is not: the part fitted no longer holds it.
+UNSTEADY_FINDINGS = ("not_steady", "drift", "phase_jump")
 
 
 def unexplained(summary: dict) -> bool:
@@ -129,7 +131,7 @@ def _stationarity(prepared) -> dict:
     if motion is not None and (motion.non_periodic or motion.modulation is not None or motion.incoherent):
         evidence.append("the motion: " + motion.words(prepared.drive.frequency))
     evidence.extend(f.message for f in prepared.trace.findings
-                    if f.severity != "error" and any(word in f.message for word in _UNSTEADY_WORDS))
+                    if f.severity != "error" and f.name in UNSTEADY_FINDINGS)
     what = ("that the record is stationary: the fit takes every period as the same orbit; a scanning tip, a "
             "feedback at work or a drifting lever changes it (fit a steady part: data.start, data.stop).")
     return {"check": "non-stationarity", "keys": ["data.start", "data.stop"], "what": what, "evidence": evidence}
