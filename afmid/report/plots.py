@@ -7,6 +7,7 @@ Forces are shown in nN, separations and deflections in nm (the page's units); th
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -221,9 +222,10 @@ def separation_window(run: RunData) -> tuple[float, float]:
     """The force-vs-separation panels' range, nm: from 0.2 nm below the closest approach to
     :data:`SEPARATION_WINDOW` above the contact distance a0, or, when the fit has no contact (a0 below the whole
     orbit, where that range would be empty), above the closest approach."""
-    z_min = float(np.nanmin(run.periods["separation"]))
-    top = z_min if contact_gap(run) > 0 else run.config.sample.a0
-    return z_min * NM - 0.2, (top + SEPARATION_WINDOW) * NM
+    if contact_gap(run) > 0:  # from the period-mean closest approach: where the drawn (period-mean) curves start
+        z_min = float(np.nanmin(run.periods["separation"].mean(axis=0)))
+        return z_min * NM - 0.2, (z_min + SEPARATION_WINDOW) * NM
+    return float(np.nanmin(run.periods["separation"])) * NM - 0.2, (run.config.sample.a0 + SEPARATION_WINDOW) * NM
 
 
 def fig_force_separation(run: RunData, folder: Path) -> str:
@@ -259,7 +261,8 @@ def fig_force_separation(run: RunData, folder: Path) -> str:
             _contact_line(ax, run.config.sample.a0)
         ax.set_xlim(*separation_window(run))
     if note:
-        fig.suptitle(note, fontsize=7, y=1.02)
+        axes[0].text(0.02, 0.98, textwrap.fill(note, 60), transform=axes[0].transAxes, fontsize=6.5, va="top",
+                     ha="left")
     return _save(fig, folder, "force_separation")
 
 

@@ -69,7 +69,7 @@ def test_force_separation_window_holds_the_curves_without_contact(no_contact, tm
 
 
 def test_force_separation_window_with_contact_starts_below_contact():
-    """With contact the window is unchanged: 0.2 nm below the closest approach to 4 nm above a0."""
+    """With contact the window is unchanged: 0.2 nm below the closest approach of any period to 4 nm above a0."""
     from afmid.report.plots import separation_window
 
     a0 = 0.165e-9
