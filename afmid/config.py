@@ -121,6 +121,9 @@ class DataConfig(StrictModel):
         None, description="units of the samples in the file; V needs invols, raw needs scale"
     )
     invols: PositiveFloat | None = Field(None, description="inverse optical lever sensitivity, m/V")
+    invols_uncertainty: RelativeUncertainty | None = Field(
+        None, description="relative 1-sigma uncertainty of the deflection sensitivity (0.05 = 5 %): it scales every "
+        "deflection, so it is propagated into every read-out (afmid.fit.invols_share)")
     scale: FiniteFloat | None = Field(None, description="for units: raw, metres per count")
     offset: FiniteFloat = Field(0.0, description="subtracted from the samples before scaling (file units)")
     positive: Literal["toward_sample", "away_from_sample"] = Field(

@@ -34,7 +34,7 @@ from afmid.errors import ConfigError, InputError
 from afmid.io.files import check_input_file
 from afmid.fit.forces import PeriodCurves
 from afmid.io.trace import RUN_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
-from afmid.fit.uncertainty import ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR
+from afmid.fit.uncertainty import ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR, intervals_kind
 from afmid.runcheck import RunReader, check_version, input_unchanged, stored_config
 
 if TYPE_CHECKING:  # afmid.fit.pipeline re-exports write_run: importing it here would be a cycle
@@ -143,6 +143,7 @@ def write_run_contents(h5, result: FitResult, config: RunConfig) -> dict:
     p = result.n_library
     units = [t.coefficient_unit for t in result.library.terms]
     h5.attrs["cv_error"] = result.cv_error
+    h5.attrs["intervals"] = intervals_kind(config)  # statistical only unless a calibration uncertainty is declared
     h5.attrs["overridden"] = list(trace.overridden) or [""]
     h5.attrs["value_sources"] = "; ".join(f"{k}: {v}" for k, v in trace.sources.items())
     cg = h5.create_group("cantilever")

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+import afmid.diagnosis.checklist as checklist
 import afmid.diagnosis.decide as decide
 import afmid.diagnosis.instrument_signature as instrument_signature
 import afmid.diagnosis.rival_truth as rival_truth
@@ -360,7 +361,9 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
         summary["suggestions"] = []
         summary["diagnosis"]["verdict"] = decide.verdict(good[0], undecided)
         summary["diagnosis"]["explained_by_catalog"] = False
-    return summary if finding is None else instrument_signature.name_instrument(summary, finding)
+    summary = summary if finding is None else instrument_signature.name_instrument(summary, finding)
+    # Unexplained: what the user should check (calibration, channel, stationarity), never a fix without evidence.
+    return checklist.with_what_to_check(summary, run, prepared, {t.effect: t.implausible for t in trials if t.implausible})
 
 
 

@@ -347,7 +347,8 @@ def _run_joint_fit(config: RunConfig, bar: Progress, uncertainty: bool) -> Joint
     mark_model_limited(quantities, any(t.model_limited for t in traces))
     if uncertainty:
         declared = [k for k in ("spring_constant_uncertainty", "quality_factor_uncertainty")
-                    if getattr(config.cantilever, k, None)]
+                    if getattr(config.cantilever, k, None)] + (["data.invols_uncertainty"]
+                                                                if config.data.invols_uncertainty else [])
         if declared:
             warnings.append("warning: the declared calibration uncertainties (" + ", ".join(declared) + ") are not "
                             "propagated into a joint fit's parameters: their intervals are statistical only")

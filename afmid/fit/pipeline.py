@@ -53,6 +53,7 @@ from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
 from afmid.fit.declared_drive import declared_drive, propagate_drive_calibration, with_declared_drive
 from afmid.preprocess.motion import fit_warning as motion_warning
+from afmid.fit.invols_share import propagate_invols
 from afmid.fit.uncertainty import add_largest_shift, finish as finish_uncertainty, mark_model_limited, widen_interval
 from afmid.fit.undetermined import mark as mark_undetermined
 from afmid.fit.undetermined import whole_effects
@@ -439,6 +440,16 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
     force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,
                                                     trace, config, cv_error, noise_floor, read_out, uncertainty)
+    if uncertainty:  # the deflection sensitivity's share, beside k's and Q's (refits on the scaled deflection)
+        def resettle(scaled: Prepared, trial: dict) -> dict:  # the nonlinear parameters searched on the scaled record
+            for name, est in nonlinear.items():
+                trial[name] = profile_parameter(scaled, physics, dict(trial, **extra), name, est.bounds,
+                                                whole_effects(library, chosen) if physics is library else None,
+                                                jackknife=False).value
+            return trial
+
+        force_calibration = math.hypot(force_calibration, propagate_invols(
+            quantities, prep, library, config, coef, chosen, params, nonlinear, read_out, resettle))
     if uncertainty:
         def select_with(extra_terms: list[str]):
             model = config.model.model_copy(update={"terms": [*config.model.terms, *extra_terms]})

@@ -50,6 +50,15 @@ INTERVAL_LABEL = "95 %"
 #: The attributes that say so on every stored value with an error and an interval.
 ERROR_ATTRS = {"error_kind": ERROR_LABEL, "interval": INTERVAL_LABEL}
 
+#: What a fit's intervals hold when no calibration uncertainty is declared: said once by ``afmid fit`` and the
+#: report, and stored as the run file's ``intervals`` attribute (:func:`intervals_kind`).
+STATISTICAL_ONLY_TEXT = ("the intervals are statistical only (noise), not calibration: declare "
+                         "cantilever.spring_constant_uncertainty, cantilever.quality_factor_uncertainty, "
+                         "data.invols_uncertainty to include it")
+#: The run file's ``intervals`` attribute: without and with a declared calibration uncertainty.
+INTERVALS_STATISTICAL = "statistical only (noise)"
+INTERVALS_WITH_CALIBRATION = "statistical and calibration"
+
 #: Warning text of a model-limited fit (the numbers are filled in).
 MODEL_LIMITED_TEXT = ("model-limited: the cross-validated error {error:.3g} stands above its noise floor {floor:.3g} "
                       "(x{ratio:.2g}): the model misses part of the force, so its parameters are biased by more than "
@@ -95,6 +104,21 @@ class Calibration:
     @property
     def declared(self) -> bool:
         return self.spring_constant > 0 or self.quality_factor > 0
+
+
+def calibration_declared(config) -> bool:
+    """True when a run config (:class:`afmid.config.RunConfig`) declares any calibration uncertainty (k, Q or the
+    deflection sensitivity) that the fit propagates into its intervals."""
+    cl = config.cantilever
+    return bool(cl.spring_constant_uncertainty or cl.quality_factor_uncertainty or config.data.invols_uncertainty)
+
+
+def intervals_kind(config) -> str:
+    """What the intervals of a fit with ``config`` hold: :data:`INTERVALS_STATISTICAL` or
+    :data:`INTERVALS_WITH_CALIBRATION` (a joint fit of ``data.paths`` does not propagate the calibration:
+    afmid.fit.joint warns so; its intervals are statistical)."""
+    joint = bool(getattr(config.data, "paths", None))
+    return INTERVALS_WITH_CALIBRATION if calibration_declared(config) and not joint else INTERVALS_STATISTICAL
 
 
 def damping_integrals(prep) -> np.ndarray:

@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from afmid.fit.plausibility import judge, judge_separation
-from afmid.fit.uncertainty import FLOOR_FACTOR, model_limited
+from afmid.fit.uncertainty import FLOOR_FACTOR, STATISTICAL_ONLY_TEXT, calibration_declared, model_limited
 from afmid.report.quantity_text import format_delta_bic, format_interval, format_measurement, format_value
 
 #: Candidate supports listed by ``-v`` (best by the criterion first).
@@ -24,10 +24,19 @@ VERBOSE_CANDIDATES = 8
 
 def fit_text(result, verbose: bool = False) -> str:
     """The read-out of a finished fit (:class:`afmid.fit.pipeline.FitResult`) as lines of text."""
-    lines = law_lines(result) + parameter_lines(result) + force_lines(result) + error_lines(result)
+    lines = (law_lines(result) + parameter_lines(result) + intervals_lines(result) + force_lines(result)
+             + error_lines(result))
     if verbose:
         lines += selection_lines(result)
     return "\n".join(lines)
+
+
+def intervals_lines(result) -> list[str]:
+    """One line when no calibration uncertainty is declared: the intervals above cover the noise only."""
+    config = getattr(result, "config", None)
+    if config is None or calibration_declared(config):
+        return []
+    return ["note: " + STATISTICAL_ONLY_TEXT]
 
 
 def force_lines(result) -> list[str]:

@@ -27,10 +27,12 @@ from afmid.report.energy_rows import energy_caveat, energy_rows, inverted_force_
 from afmid.io.trace import now_iso
 from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import effect_for, tip_geometry
+from afmid.diagnosis.checklist import check_lines
+from afmid.fit.uncertainty import INTERVALS_STATISTICAL, STATISTICAL_ONLY_TEXT, calibration_declared, intervals_kind
 from afmid.report.figures import figure_html
 from afmid.report.folder import report_folder
 from afmid.report.observables import summarize as summarize_observables
-from afmid.report.plots import (bandwidth_text, fig_coefficients, fig_error_runs, fig_force_separation,
+from afmid.report.plots import (bandwidth_text, fig_coefficients, fig_error_runs, fig_force_separation, no_contact_note,
                                 fig_force_time, fig_observables, fig_periods, fig_phase_portraits, fig_residual,
                                 fig_suggestions)
 from afmid.report.quantity_text import format_delta_bic, format_measurement, format_value
@@ -149,6 +151,11 @@ def _verdict_box(summary: dict, last_name: str | None = None) -> str:
         head = "No effect is missing: the model explains the data to the noise level"
         body = "<p>No catalog effect improves the fit with strong evidence; see 'Effects tried'.</p>"
         cls = ""
+    if summary.get("what_to_check"):  # afmid.diagnosis.checklist: the inputs to check, not a fix
+        body += ("<p><b>What to check</b> before trusting any force law on this record (no effect or instrument "
+                 "declaration is suggested without evidence):</p><ul>"
+                 + "".join(f"<li>{html.escape(line)}</li>" for line in check_lines(summary["what_to_check"]))
+                 + "</ul>")
     if last_name:
         head = f"The last run, {html.escape(last_name)}: {head[0].lower()}{head[1:]}"
     return f"<div class='verdict {cls}'><h2>{head}</h2>{body}<p>{html.escape(facts)}</p></div>"
@@ -205,9 +212,13 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
         rows.append(row)
     parts.append(_table(["quantity"] + [r.path.name for r in runs] + (["truth"] if truth_q else []), rows))
     parts.append("<p>Errors are 1 σ: the bootstrap over periods (and the nonlinear parameters' profiles), plus, "
-                 "where <code>cantilever.spring_constant_uncertainty</code> / <code>quality_factor_uncertainty</code> "
-                 "are declared, the calibration's share in quadrature (shown as stat / cal). 95 % intervals are in "
+                 "where <code>cantilever.spring_constant_uncertainty</code> / <code>quality_factor_uncertainty</code> / "
+                 "<code>data.invols_uncertainty</code> are declared, the calibration's share in quadrature (shown as stat / cal). 95 % intervals are in "
                  "the run file (<code>ci_low</code>, <code>ci_high</code>).</p>")
+    statistical = [r.path.name for r in runs if not calibration_declared(r.config)]
+    if statistical:
+        parts.append(f"<p><b>Statistical only</b> ({html.escape(', '.join(statistical))}): "
+                     f"{html.escape(STATISTICAL_ONLY_TEXT)}.</p>")
     limited = [r.path.name for r in runs if r.model_limited]
     if limited:
         parts.append(f"<p><b>Model-limited</b>: {html.escape(', '.join(limited))}: the cross-validated error stands "
@@ -226,7 +237,8 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     parts.append(_img(folder, figures["force_separation"],
                       "Force vs separation, approach (left) and retraction (right) drawn separately: the inverted "
                       "force averaged over periods (band: ±2σ of that average), the model on the same harmonics and "
-                      "at full bandwidth" + (", and the true force of the simulation" if last.truth is not None else "")))
+                      "at full bandwidth" + (", and the true force of the simulation" if last.truth is not None else "")
+                      + (f". The fit has {no_contact_note(last)}" if no_contact_note(last) else "")))
     parts.append(_img(folder, figures["force_time"],
                       "Force vs time over three consecutive steady periods: the inverted force and the identified "
                       f"model on the same bandwidth ({bandwidth_text(last)}; solid), the model at full bandwidth "
@@ -364,6 +376,7 @@ def write_report(runs: list[RunData], output: Path, overwrite: bool = False, sug
         if result is not None:
             summary.update(result)
         summary["energy"] = energy
+        summary["intervals"] = intervals_kind(last.config)  # the last run's: statistical only, or with calibration
         summary["afmid_version"] = __version__
         resim = resimulate(last)
         summary["observables"] = summarize_observables(last, resim)
@@ -431,12 +444,17 @@ def terminal_summary(summary: dict, output: Path) -> str:
             lines.append(f"  {summary['suggestions'][0]['evidence']}")
         elif summary["missing_effect"]:
             lines.append(f"  residual: {diag.get('description', '')}")
+        if summary.get("what_to_check"):  # unexplained: the inputs to check, with their evidence
+            lines.append("  what to check:")
+            lines.extend(f"    {line}" for line in check_lines(summary["what_to_check"]))
     elif summary.get("note"):
         lines.append(summary["note"])
     parameters = summary["runs"][-1]["parameters"]
     if parameters:
         lines.append(f"parameters of {Path(summary['runs'][-1]['run']).name} (± 1σ):")
         lines.extend(f"  {name} = {parameter_text(q, name)}" for name, q in parameters.items())
+        if summary.get("intervals") == INTERVALS_STATISTICAL:
+            lines.append(f"  {STATISTICAL_ONLY_TEXT}")
     lines.extend(f"note: {note}" for note in summary.get("notes", []))
     lines.append(f"report: {output / 'report.html'}")
     return "\n".join(lines)

@@ -7,6 +7,7 @@ Forces are shown in nN, separations and deflections in nm (the page's units); th
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -197,8 +198,40 @@ def _branch_curves(run: RunData, force: np.ndarray, approach: bool):
     return z[sel][order] * NM, mean * NN, spread * NN
 
 
+#: How far above the contact distance (or, without contact, above the closest approach) the force-vs-separation
+#: panels reach, m: the range where tip-sample forces are strong.
+SEPARATION_WINDOW = 4e-9
+
+
+def contact_gap(run: RunData) -> float:
+    """How far the period-mean closest approach stays above the contact distance a0, m (<= 0: the tip reaches
+    contact)."""
+    return float(np.nanmin(run.periods["separation"].mean(axis=0)) - run.config.sample.a0)
+
+
+def no_contact_note(run: RunData) -> str:
+    """The sentence the force-vs-separation figure carries when the fit has no contact ("" when it has)."""
+    gap = contact_gap(run)
+    if not gap > 0:
+        return ""
+    return (f"no contact: the closest approach stays {gap * NM:.3g} nm above the contact distance a0 = "
+            f"{run.config.sample.a0 * NM:.3g} nm, so only the attractive (non-contact) branch is drawn")
+
+
+def separation_window(run: RunData) -> tuple[float, float]:
+    """The force-vs-separation panels' range, nm: from 0.2 nm below the closest approach to
+    :data:`SEPARATION_WINDOW` above the contact distance a0, or, when the fit has no contact (a0 below the whole
+    orbit, where that range would be empty), above the closest approach."""
+    if contact_gap(run) > 0:  # from the period-mean closest approach: where the drawn (period-mean) curves start
+        z_min = float(np.nanmin(run.periods["separation"].mean(axis=0)))
+        return z_min * NM - 0.2, (z_min + SEPARATION_WINDOW) * NM
+    return float(np.nanmin(run.periods["separation"])) * NM - 0.2, (run.config.sample.a0 + SEPARATION_WINDOW) * NM
+
+
 def fig_force_separation(run: RunData, folder: Path) -> str:
-    """Approach and retraction in separate panels: inverted-force mean with its noise band, model, truth."""
+    """Approach and retraction in separate panels: inverted-force mean with its noise band, model, truth. From
+    just below the closest approach to :data:`SEPARATION_WINDOW` above the contact distance; a fit without
+    contact is drawn from its closest approach up, with the note of :func:`no_contact_note` on the figure."""
     plt = _plt()
     P = run.periods
     band = band_limit(P["force_model"], run)
@@ -219,13 +252,17 @@ def fig_force_separation(run: RunData, folder: Path) -> str:
             ax.plot(truth.separation[moving][::step] * NM, truth.force[moving][::step] * NN, ",", color=TRUTH,
                     alpha=0.5, rasterized=True)  # thousands of points: an image inside the SVG
             ax.plot([], [], ".", color=TRUTH, ms=3, label="true force (simulation)")
-        _contact_line(ax, run.config.sample.a0)
         ax.set(xlabel="separation z (nm)", title=title)
     axes[0].set_ylabel(FORCE_LABEL)
     axes[0].legend(fontsize=6.5, loc="lower right")
-    z = P["separation"]
+    note = no_contact_note(run)
     for ax in axes:
-        ax.set_xlim(z.min() * NM - 0.2, (run.config.sample.a0 + 4e-9) * NM)
+        if not note:
+            _contact_line(ax, run.config.sample.a0)
+        ax.set_xlim(*separation_window(run))
+    if note:
+        axes[0].text(0.02, 0.98, textwrap.fill(note, 60), transform=axes[0].transAxes, fontsize=6.5, va="top",
+                     ha="left")
     return _save(fig, folder, "force_separation")
 
 

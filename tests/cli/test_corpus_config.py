@@ -97,6 +97,7 @@ BAD_VALUES = [
     ("q-uncertainty-negative", "cantilever.quality_factor_uncertainty", -0.1, "must be >= 0"),
     ("q-uncertainty-yaml-bool", "cantilever.quality_factor_uncertainty", True, "expected a number"),
     ("k-uncertainty-nan", "cantilever.spring_constant_uncertainty", float("nan"), "got nan"),
+    ("invols-uncertainty-as-percent", "data.invols_uncertainty", 5, "must be < 1"),
     ("drive-frequency-zero", "drive.frequency", 0, "must be > 0"),
     ("drive-amplitude-negative", "drive.force_amplitude", -1e-9, "must be > 0"),
     ("separation-negative", "sample.separation", -8e-9, "must be > 0"),

@@ -110,3 +110,26 @@ def test_quantity_line_flags_an_implausible_read_out():
     assert "IMPLAUSIBLE: viscosity" in line and "wrong sign" in line
     q_nan = dict(q, value=math.nan)
     assert "IMPLAUSIBLE" in quantity_line("viscosity", q_nan)
+
+
+def test_fit_says_once_that_intervals_are_statistical_only_without_a_declared_calibration(traces, run_cli):
+    """Issue 29: without k, Q or invols uncertainties the read-out and the run file say the intervals hold noise
+    only; with one declared (here invols, on a config that has none) neither says it."""
+    import h5py
+
+    from afmid.fit.uncertainty import INTERVALS_STATISTICAL, INTERVALS_WITH_CALIBRATION, STATISTICAL_ONLY_TEXT
+
+    out, _ = _fit(run_cli, traces, "dmt.yaml", ["dmt"], "dmt.h5")
+    assert out.count(STATISTICAL_ONLY_TEXT) == 1
+    assert "declare cantilever.spring_constant_uncertainty, cantilever.quality_factor_uncertainty, " \
+           "data.invols_uncertainty to include it" in STATISTICAL_ONLY_TEXT
+    with h5py.File(traces / "dmt_dmt.run.h5") as h5:
+        assert h5.attrs["intervals"] == INTERVALS_STATISTICAL
+    config = _short_config(traces, "dmt.yaml", ["dmt"], "dmt.h5")
+    code, out, err = run_cli("fit", config, "-o", traces / "dmt_dmt.run.h5", "--overwrite",
+                             "--set", "data.invols_uncertainty=0.03")
+    assert code == 0, err
+    assert STATISTICAL_ONLY_TEXT not in out
+    assert "calibration" in _parameter(out, "E_star")  # the share shown beside the statistical part
+    with h5py.File(traces / "dmt_dmt.run.h5") as h5:
+        assert h5.attrs["intervals"] == INTERVALS_WITH_CALIBRATION
