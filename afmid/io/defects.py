@@ -51,7 +51,7 @@ from afmid.preprocess.harmonics import (  # the engine the fit uses too
 )
 from afmid.io.glitches import check_glitches
 from afmid.io.oscillation import check_drive_line
-from afmid.io.onset import check_onset, find_onset
+from afmid.io.onset import check_build_up, check_onset, jump_check_start
 from afmid.preprocess.periods import detrend
 from afmid.io.resolution import check_quantization
 from afmid.io.trace_analysis import MAX_HARMONIC, MIN_ANALYSABLE_SPP, Analysis, analyse
@@ -254,11 +254,14 @@ def check_signal(x: np.ndarray, settings: Settings, analysis: Analysis | None = 
     findings += check_drive_frequency(analysis, settings)
     findings += check_sampling(analysis, settings)
     findings += check_onset(analysis, settings)
+    build_up = check_build_up(analysis, settings, smallest_jump(analysis, settings))
+    findings += build_up
     findings += check_jumps(analysis, settings)
     findings += check_steady(analysis, settings)
     findings += check_offset_and_drift(analysis, settings)
     findings += check_contact(analysis, settings)
-    findings += check_glitches(x, analysis, settings.units)  # edge transients and isolated glitches
+    findings += check_glitches(x, analysis, settings.units,  # edge transients (not a build-up from rest), glitches
+                               head_is_motion=any(f.numbers["first_block"] == 0 for f in build_up))
     strongest = analysis.cycles_per_sample * settings.sample_rate if settings.sample_rate else None
     return check_drive_line(x, settings, strongest) + findings  # the first error is the one reported
 
@@ -398,9 +401,8 @@ def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
     With the lever known (``s``: spring constant and Q), a step must also stand out of the thermal phase
     noise (:func:`thermal_phase_step`): on a soft lever in liquid it is ~1 deg per period, a sample's worth.
     """
-    # Before the onset of a record that starts at rest the phase is that of noise: only the motion is read.
-    onset = find_onset(a)
-    first = 0 if onset is None else onset + 2  # from where a fit uses the record (afmid.io.onset.check_onset)
+    # Before the onset the phase is that of noise, and a fast build-up from rest settles its phase: both are left.
+    first = jump_check_start(a, s.quality_factor if s else None, smallest_jump(a, s))
     B = a.n_blocks - first
     if B < 9:
         return []
@@ -408,8 +410,7 @@ def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
     res = np.where(np.abs(path) < np.abs(trend), path, trend)  # what neither model of smooth motion explains
     mad = float(np.median(np.abs(trend - np.median(trend))))
     one = 2 * np.pi / a.spp  # phase of one sample
-    threshold = max(0.5 * one, JUMP_SIGMA * 1.4826 * mad,
-                    THERMAL_JUMP_SIGMA * thermal_phase_step(s, float(np.median(a.block_amplitude))))
+    threshold = max(smallest_jump(a, s), JUMP_SIGMA * 1.4826 * mad)
     hits = np.flatnonzero(np.abs(res) > threshold)
     if hits.size == 0:
         return []
@@ -425,6 +426,12 @@ def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
         f"{f' and at {len(peaks) - 1} more places' if len(peaks) > 1 else ''}: "
         f"samples were {kind} (or the drive was re-locked); crop the trace to one side of the jump",
         "data.path", {"jumps": len(peaks), "first_sample": sample, "samples": sizes[0]})]
+
+
+def smallest_jump(a: Analysis, s: Settings | None) -> float:
+    """The smallest phase step (rad) :func:`check_jumps` reports: half a sample, and out of the thermal noise."""
+    thermal = THERMAL_JUMP_SIGMA * thermal_phase_step(s, float(np.median(a.block_amplitude)))
+    return max(np.pi / a.spp, thermal)
 
 
 #: Offsets (blocks) of the neighbours that predict a two-block change; -1..1 are left out, since samples

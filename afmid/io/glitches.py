@@ -138,11 +138,13 @@ def periodic_prediction(x: np.ndarray, cycles_per_sample: float) -> np.ndarray |
 _AROUND = np.array([-3, -2, 2, 3])
 
 
-def scan(x: np.ndarray, cycles_per_sample: float) -> Scan | None:
+def scan(x: np.ndarray, cycles_per_sample: float, head_is_motion: bool = False) -> Scan | None:
     """Edge transients and isolated glitches of ``x`` (see the module docstring); None when the record is too
     short to predict or its residual has no spread. With an edge transient found, the record without it is
-    scanned again for the glitches (a transient disturbs the prediction of the samples one and two periods on)."""
-    first = _scan_once(np.asarray(x, dtype=np.float64), cycles_per_sample)
+    scanned again for the glitches (a transient disturbs the prediction of the samples one and two periods on).
+    ``head_is_motion``: the record starts with a build-up from rest (:func:`afmid.io.onset.find_build_up`), which
+    its neighbouring periods do not predict: its start is motion the fit uses, not an edge transient."""
+    first = _scan_once(np.asarray(x, dtype=np.float64), cycles_per_sample, head_is_motion)
     if first is None or not (first.head or first.tail):
         return first
     stop = x.size - first.tail
@@ -154,7 +156,7 @@ def scan(x: np.ndarray, cycles_per_sample: float) -> Scan | None:
                 max(first.tail_size, again.tail_size), again.glitch_size)
 
 
-def _scan_once(x: np.ndarray, cycles_per_sample: float) -> Scan | None:
+def _scan_once(x: np.ndarray, cycles_per_sample: float, head_is_motion: bool = False) -> Scan | None:
     """One pass of :func:`scan`.
 
     Both are judged against what remains of the motion's wander after the neighbouring periods' prediction
@@ -185,6 +187,8 @@ def _scan_once(x: np.ndarray, cycles_per_sample: float) -> Scan | None:
     # outliers of the comparison with the samples around within the edge zone belong to the edge (the line test
     # missed a transient that crosses the motion): cut through them
     early = outliers[(outliers < zone) & (outliers >= head + 3)]  # (the 3 after a cut are its echoes)
+    if head_is_motion:
+        head, head_size, early = 0, 0.0, early[:0]
     if early.size:
         head = int(early[-1]) + 1
         head_size = max(head_size, float(np.max(np.abs(sharp[:head]))))
@@ -294,11 +298,11 @@ def _without_slow_misfit(residual: np.ndarray, cycles_per_sample: float) -> np.n
     return residual - blended_series(glob, residual.size, cycles_per_sample, L, start)
 
 
-def check_glitches(x: np.ndarray, analysis, units: str | None) -> list[Finding]:
+def check_glitches(x: np.ndarray, analysis, units: str | None, head_is_motion: bool = False) -> list[Finding]:
     """The finding for ``x`` analysed as ``analysis`` (an :class:`afmid.io.trace_analysis.Analysis`): a warning
     that says what a fit cuts and repairs (numbers: head, tail, glitches, replacement), or an error when the
-    glitches are too many to repair; none when nothing is found."""
-    found = scan(x, analysis.cycles_per_sample)
+    glitches are too many to repair; none when nothing is found. ``head_is_motion``: as for :func:`scan`."""
+    found = scan(x, analysis.cycles_per_sample, head_is_motion)
     if found is None or not found.found:
         return []
     numbers = {"head": found.head, "tail": found.tail, "glitches": found.glitches.tolist(),

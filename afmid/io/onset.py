@@ -9,6 +9,12 @@ record before the onset must not be fitted. :func:`find_onset` finds the first
 period from which the first-harmonic amplitude stays far above what noise
 gives; :func:`crop` cuts a loaded trace (deflection, time, truth) to a part of
 it, keeping the file's time base (``Trace.first_sample``).
+
+A record whose drive starts at its first sample (or at the onset) begins with the build-up from rest: the
+lever's free response, started against the drive, rings down in Q / pi periods while the tip starts to touch and
+the phase settles. On a lever of low Q (in liquid, Q 2-8) that takes a few periods, faster than the phase-jump
+check's models of smooth motion follow: :func:`find_build_up` says how many periods of the build-up the check
+must leave out (physics, not a defect); the fit uses them (its drive columns hold from the first sample).
 """
 
 from __future__ import annotations
@@ -20,6 +26,13 @@ import numpy as np
 
 from afmid.io.findings import Finding
 
+#: A build-up from rest: the first checked period's amplitude lies at least this fraction below the settled one
+#: (a period's amplitude scatters by 1-2 % with the thermal motion of a soft lever in liquid: 72 pm rms at 5 nm).
+BUILD_UP_DEFICIT = 0.1
+#: The phase-jump check's models of smooth motion reach this many periods either side (a quadratic through
+#: neighbours 2..5 periods away; a running median of 7): a lever ringing down in Q / pi periods or more is
+#: followed by them (measured: a Q 250 record from rest), a faster one is not (Q 2-8: steps of 5-25 deg read).
+FOLLOWED_RING_DOWN = 5.0
 #: A period moves when its first-harmonic amplitude exceeds this many times the amplitude noise alone gives.
 ONSET_SNR = 10.0
 
@@ -65,6 +78,73 @@ def check_onset(a, settings) -> list[Finding]:
         f"{a.n_blocks} (the drive switched on mid-record): the fit uses the record from sample {sample}{when} on, "
         "where the drive is on throughout (set data.start to choose another start)",
         "data.start", {"block": first, "sample": sample})]
+
+
+@dataclasses.dataclass(frozen=True)
+class BuildUp:
+    """The build-up from rest at the start of the checked blocks: ``first`` (block where it starts), ``periods``
+    (blocks from ``first`` until its rotation falls below the smallest step the phase-jump check reports),
+    ``deficit`` (1 - the first block's amplitude over the settled one) and the lever's ``quality_factor``."""
+
+    first: int
+    periods: int
+    deficit: float
+    quality_factor: float
+
+
+def find_build_up(a, quality_factor: float | None, smallest_step: float) -> BuildUp | None:
+    """The build-up from rest of an :class:`afmid.io.trace_analysis.Analysis` whose lever (``quality_factor``)
+    rings down faster than the phase-jump check follows, or None.
+
+    It starts at the onset (+2 blocks, where a fit starts) or at block 0, when that block's amplitude lies
+    :data:`BUILD_UP_DEFICIT` or more below the settled one (median of the last half). The free response that
+    makes up the deficit decays as exp(-pi n / Q) per period and turns the oscillation's complex amplitude by at
+    most its relative size (rad), so after n = Q / pi ln(deficit / ``smallest_step``) periods (``smallest_step``
+    in rad) it turns less than any step the check reports; one period more for the block's own averaging.
+    """
+    if not quality_factor or quality_factor / math.pi > FOLLOWED_RING_DOWN:
+        return None
+    onset = find_onset(a)
+    first = 0 if onset is None else onset + 2
+    amplitude = a.block_amplitude[first:]
+    if amplitude.size < 4:
+        return None
+    settled = float(np.median(amplitude[amplitude.size // 2:]))
+    deficit = 1.0 - float(amplitude[0]) / settled if settled > 0 else 0.0
+    if deficit < BUILD_UP_DEFICIT or smallest_step <= 0:
+        return None
+    periods = math.ceil(quality_factor / math.pi * math.log(deficit / smallest_step)) + 1
+    return BuildUp(first, max(periods, 1), deficit, float(quality_factor))
+
+
+def jump_check_start(a, quality_factor: float | None, smallest_step: float) -> int:
+    """The first block the phase-jump check reads: after the quiet start (the onset + 2, where a fit starts) and
+    after a fast build-up from rest (:func:`find_build_up`)."""
+    build_up = find_build_up(a, quality_factor, smallest_step)
+    if build_up is not None:
+        return build_up.first + build_up.periods
+    onset = find_onset(a)
+    return 0 if onset is None else onset + 2
+
+
+def check_build_up(a, settings, smallest_step: float) -> list[Finding]:
+    """A warning saying what a fast build-up from rest changes: the phase-jump check starts after it, the fit
+    uses the whole record (the transient is fitted). ``smallest_step``: rad, as for :func:`find_build_up`."""
+    build_up = find_build_up(a, settings.quality_factor, smallest_step)
+    if build_up is None:
+        return []
+    end = build_up.first + build_up.periods
+    sample = int(a.start + end * a.L)
+    checked = "" if a.n_blocks - end >= 9 else " (fewer than 9 periods remain: no phase-jump check)"
+    return [Finding(
+        "build_up", "warning",
+        f"the oscillation builds up from rest over the first {build_up.periods} periods (Q {build_up.quality_factor:.3g}:"
+        f" {100 * build_up.deficit:.0f} % below its settled amplitude at the start, a ring-down of "
+        f"{build_up.quality_factor / math.pi:.2g} periods): the phase-jump check reads the record from sample "
+        f"{sample} on{checked}, where the settling phase turns less than a step it reports; the fit uses the whole "
+        "record (a transient from rest)",
+        "data.start", {"first_block": build_up.first, "periods": build_up.periods, "sample": sample,
+                       "deficit": build_up.deficit})]
 
 
 def crop(trace, first: int, stop: int | None = None):
