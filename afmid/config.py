@@ -27,6 +27,7 @@ from afmid.errors import ConfigError
 from afmid.io.files import check_input_file
 from afmid.coverage.config import CoverageConfig
 from afmid.maps.config import MapSimulation
+from afmid.simulate.scan_config import ScanSimulation
 from afmid.registry import closest, unknown_name_message
 
 
@@ -333,6 +334,8 @@ class SimulateConfig(StrictModel):
     seed: Seed = Field(0, description=f"random seed, 0 to {MAX_SEED}")
     map: MapSimulation | None = Field(None, description="a force map over phases (afmid.maps.config); afmid simulate "
                                       "then writes a map file")
+    scan: ScanSimulation | None = Field(None, description="a record taken while scanning a surface under amplitude "
+                                        "feedback (afmid.simulate.scan_config)")
 
     @field_validator("effects")
     @classmethod
