@@ -8,11 +8,12 @@ import copy
 import h5py
 import numpy as np
 import pytest
+import yaml
 
 from afmid.config import build_config
 from afmid.errors import ConfigError
-from afmid.fit.separation_track import block_periods_for, cut_blocks, fit_separation_track, write_track_run
-from afmid.io.trace import check_trace
+from afmid.fit.separation_track import block_periods_for, cut_blocks, fit_separation_track
+from afmid.io.trace import check_trace, read_truth, write_trace_file
 from afmid.simulate.driver import simulate
 
 RAW = {"cantilever": {"spring_constant": 40.0, "resonance_frequency": 3e5, "quality_factor": 250.0, "tip_radius": 1e-8},
@@ -61,22 +62,45 @@ def test_a_track_needs_blocks_long_enough_and_an_unknown_separation():
         fit_separation_track(simulated, trace, 2500.0)
 
 
+def _files(tmp_path, periods=240, given_separation=False):
+    simulated, fitting = configs(periods=periods)
+    trace_path = write_trace_file(tmp_path / "scan.h5", simulate(simulated), "")
+    raw = fitting.model_dump(mode="json", exclude_none=True)
+    raw["data"] = {"path": str(trace_path)}
+    if given_separation:
+        raw["sample"]["separation"] = 8e-9
+    config = tmp_path / "track.yaml"
+    config.write_text(yaml.safe_dump(raw))
+    return trace_path, config
+
+
+def test_a_track_with_a_given_separation_is_one_line(tmp_path, run_cli):
+    _, config = _files(tmp_path, periods=130, given_separation=True)
+    out_path = tmp_path / "run.h5"
+    code, out, err = run_cli("fit", config, "-o", out_path)
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    assert code in (1, 2) and len(lines) == 1 and "Traceback" not in err, err
+    assert "sample.separation" in lines[0] and not out_path.exists()
+
+
 @pytest.mark.slow
-def test_a_step_in_d_is_tracked_block_by_block(tmp_path):
-    """Four 60-period blocks over a 0.4 nm drop of d: each block's d within 2 sigma of its mean truth
-    (or 3 sigma for the block holding the edge, whose d is a mixture), and one force law for all."""
-    simulated, fitting = configs()
-    trace = check_trace(simulate(simulated), fitting)
-    track = fit_separation_track(fitting, trace, 2500.0)
-    d = trace.truth.tracks["rest_separation"][0]
-    truth = np.array([d[a:b].mean() for a, b in zip(track.first_sample, track.stop_sample)])
-    z = (track.separation - truth) / track.sigma
-    assert track.separation.size == 4
-    assert np.all(np.abs(z) <= 2.0), (z, track.sigma)
-    assert track.separation[0] - track.separation[-1] == pytest.approx(0.4e-9, abs=3 * np.hypot(*track.sigma[[0, -1]]))
-    path, _ = write_track_run(tmp_path / "run.h5", track)
-    with h5py.File(path, "r") as h5:
+def test_a_step_in_d_is_tracked_block_by_block(tmp_path, run_cli):
+    """``afmid fit`` with fit.separation_track on 240 periods over a 0.4 nm drop of d (4 blocks of 60 periods):
+    each block's d within 2 sigma of its mean truth, the track in /model/separation_track with units."""
+    trace_path, config = _files(tmp_path)
+    run = tmp_path / "run.h5"
+    code, out, err = run_cli("fit", config, "-o", run)
+    assert code == 0, err
+    assert "separation track at 2500 Hz (4 blocks" in out
+    d = read_truth(trace_path).tracks["rest_separation"][0]
+    with h5py.File(run, "r") as h5:
         group = h5["model/separation_track"]
         assert group["separation"].attrs["units"] == "m" and group["separation_error"].attrs["units"] == "m"
         assert group["time"].attrs["units"] == "s" and group.attrs["bandwidth"] == 2500.0
-        np.testing.assert_array_equal(group["separation"][...], track.separation)
+        separation, sigma = group["separation"][...], group["separation_error"][...]
+        first, stop = group["first_sample"][...], group["stop_sample"][...]
+        assert h5["joint"].attrs["n_traces"] == 4
+    truth = np.array([d[a:b].mean() for a, b in zip(first, stop)])
+    z = (separation - truth) / sigma
+    assert np.all(np.abs(z) <= 2.0), (z, sigma)
+    assert separation[0] - separation[-1] == pytest.approx(0.4e-9, abs=3 * np.hypot(sigma[0], sigma[-1]))
