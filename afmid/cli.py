@@ -152,6 +152,11 @@ def fit(
     from afmid.fit.pipeline import apply_effect_changes
 
     apply_effect_changes(cfg, add_effects, remove_effects)
+    if cfg.fit.separation_track is not None:  # d(t) per block of one record, one force law
+        from afmid.fit.separation_track import fit_track
+
+        fit_track(cfg, output, overwrite, quiet=_state["quiet"], verbose=_state["verbose"] > 0)
+        return
     if cfg.data.paths is not None:  # several traces, one force law (afmid.fit.joint)
         from afmid.fit.joint_output import fit_joint
 

@@ -26,7 +26,9 @@ import afmid.config_messages as config_messages
 from afmid.errors import ConfigError
 from afmid.io.files import check_input_file
 from afmid.coverage.config import CoverageConfig
+from afmid.fit.separation_track_config import SeparationTrackConfig
 from afmid.maps.config import MapSimulation
+from afmid.simulate.scan_config import ScanSimulation
 from afmid.registry import closest, unknown_name_message
 
 
@@ -336,6 +338,8 @@ class SimulateConfig(StrictModel):
     seed: Seed = Field(0, description=f"random seed, 0 to {MAX_SEED}")
     map: MapSimulation | None = Field(None, description="a force map over phases (afmid.maps.config); afmid simulate "
                                       "then writes a map file")
+    scan: ScanSimulation | None = Field(None, description="a record taken while scanning a surface under amplitude "
+                                        "feedback (afmid.simulate.scan_config)")
 
     @field_validator("effects")
     @classmethod
@@ -412,6 +416,9 @@ class FitConfig(StrictModel):
         description="m below / above first contact searched when sample.separation is absent",
     )
     phase_points: Annotated[int, Field(ge=16, le=8192)] = 256
+    separation_track: SeparationTrackConfig | None = Field(
+        None, description="a slowly varying rest separation d(t) (a record taken while scanning) estimated per block "
+        "of periods with one force law (afmid.fit.separation_track); needs sample.separation absent")
 
     @field_validator("thermal_bias", mode="before")
     @classmethod

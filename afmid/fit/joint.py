@@ -234,21 +234,29 @@ class _Columns:
 
 def run_joint_fit(config: RunConfig, progress: bool | Progress = False, uncertainty: bool = True) -> JointResult:
     """Fit the traces of ``config.data.paths`` jointly: one shared force law, a separation per trace."""
+    configs = trace_configs(config)
+    return fit_traces_jointly(config, configs, load_traces(configs), progress, uncertainty)
+
+
+def fit_traces_jointly(config: RunConfig, configs: list[RunConfig], traces_in: list[Trace],
+                       progress: bool | Progress = False, uncertainty: bool = True) -> JointResult:
+    """The joint fit of traces already in memory (checked), each with its own config (its ``sample.separation``,
+    None: estimated): one shared force law, a separation per trace. A record cut into blocks of periods is such
+    a set of traces (afmid.fit.separation_track)."""
     bar = progress if isinstance(progress, Progress) else Progress("fit", enabled=progress)
     try:
-        return _run_joint_fit(config, bar, uncertainty)
+        return _run_joint_fit(config, configs, traces_in, bar, uncertainty)
     finally:
         if bar is not progress:
             bar.close()
 
 
-def _run_joint_fit(config: RunConfig, bar: Progress, uncertainty: bool) -> JointResult:
+def _run_joint_fit(config: RunConfig, configs: list[RunConfig], traces_in: list[Trace], bar: Progress,
+                   uncertainty: bool) -> JointResult:
     fit = config.fit
     if fit.form == "strong":
         raise ConfigError("a joint fit (data.paths) stacks the weak form's rows; use fit.form: weak",
                           file=config.source, key="fit.form")
-    configs = trace_configs(config)
-    traces_in = load_traces(configs)
     library = build_library(config.model, config.source, tip_geometry(config.cantilever))
     if len(library) == 0:
         raise ConfigError("the library is empty: list effects, a preset or terms", file=config.source, key="model")

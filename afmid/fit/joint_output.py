@@ -67,9 +67,9 @@ def trace_result(result: JointResult, i: int) -> FitResult:
                      t.single.drive_search, 0.0, t.model_limited)
 
 
-def write_joint_run(path, result: JointResult, overwrite: bool = False) -> tuple[Path, list[FitResult]]:
-    """Write the joint run file (the first trace in the single layout, plus ``/joint``); returns the path and
-    every trace's :func:`trace_result`."""
+def write_joint_run(path, result: JointResult, overwrite: bool = False, more=None) -> tuple[Path, list[FitResult]]:
+    """Write the joint run file (the first trace in the single layout, plus ``/joint``; ``more(h5)`` adds more
+    inside the same atomic write); returns the path and every trace's :func:`trace_result`."""
     from afmid.runfile import PERIOD_UNITS, write_run
 
     per_trace = [trace_result(result, i) for i in range(len(result.traces))]
@@ -105,6 +105,8 @@ def write_joint_run(path, result: JointResult, overwrite: bool = False) -> tuple
             pg = tg.create_group("periods")
             r.periods.write(pg, PERIOD_UNITS)  # afmid.fit.forces.PeriodCurves, chunk by chunk
         h5["model"].attrs["joint"] = f"shared by the {len(traces)} traces of /joint"
+        if more is not None:
+            more(h5)
 
     written = write_run(path, per_trace[0], per_trace[0].config, overwrite=overwrite, extra=add_joint)
     return written, per_trace

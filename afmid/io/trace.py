@@ -53,6 +53,9 @@ class Truth:
     parameters: dict[str, float]  # SI
     units: dict[str, str]
     extra: dict[str, Any] = field(default_factory=dict)  # drive force amplitude, separation, ...
+    #: Per-sample truth beyond the tip's: name -> (array, unit); a scanning record's rest separation d(t), surface
+    #: height, z piezo, lateral position (afmid.simulate.scan). Stored as /truth/tracks/NAME.
+    tracks: dict[str, tuple[np.ndarray, str]] = field(default_factory=dict)
 
 
 @dataclass
@@ -355,6 +358,10 @@ def write_trace_file(path: str | Path, trace: Trace, config_text: str, overwrite
             pg.attrs["units"] = "; ".join(f"{k}: {v}" for k, v in t.units.items())
             for name, value in t.extra.items():
                 tg.attrs[name] = value
+            if t.tracks:
+                track_group = tg.create_group("tracks")
+                for name, (values, unit) in t.tracks.items():
+                    write_dataset(track_group, name, values, unit)
     return path
 
 
@@ -403,6 +410,8 @@ def _read_truth(path: str | Path) -> Truth | None:
             parameters={k: float(_attr(pg, k)) for k in pg.attrs if k != "units"},
             units=units,
             extra=extra,
+            tracks={name: (ds[...], str(_attr(ds, "units"))) for name, ds in tg["tracks"].items()}
+            if "tracks" in tg else {},
         )
 
 

@@ -306,7 +306,12 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
             extra["transient_start"] = sim.transient_start
 
         bar.stage("recording", total=round(grid.n_samples * osc.drive_frequency / grid.sample_rate))
-        if declared.detector is None:
+        scanned = None
+        if sim.scan is not None:
+            scanned = _record_scanning(integrator, grid, setup, config, d, extra, rng, bar, declared)
+            record = scanned.segment
+            deflection = record.x.copy()
+        elif declared.detector is None:
             record = _record(integrator, grid, osc, noise, rng, bar)
             deflection = record.x.copy()
         else:
@@ -344,7 +349,15 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
     )
     if not declared.ideal:
         extra["instrument"] = declared.describe()
+    tracks = {}
+    if scanned is not None:
+        d = scanned.rest_separation
+        extra.update(separation=float(np.mean(d)), scan_setpoint_amplitude=scanned.setpoint_amplitude)
+        tracks = {"rest_separation": (d, "m"), "surface_height": (scanned.surface, "m"),
+                  "piezo": (scanned.piezo, "m"), "lateral_position": (scanned.lateral, "m"),
+                  "feedback_amplitude": (scanned.amplitude, "m")}
     truth = Truth(
+        tracks=tracks,
         force=record.force,
         separation=d - record.x,
         velocity=record.v,
@@ -359,6 +372,30 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
                                         resonance_frequency=osc.resonance_frequency, quality_factor=osc.quality_factor)
     return Trace(deflection=deflection, sample_rate=grid.sample_rate, cantilever=cantilever,
                  drive_frequency=osc.drive_frequency, truth=truth, drive_force_amplitude=osc.drive_force)
+
+
+def _record_scanning(integrator, grid: Grid, setup: Setup, config: RunConfig, d: float, extra: dict, rng,
+                     bar: _Progress, declared):
+    """:func:`afmid.simulate.scan.record_scanning` from the settled state at separation d (m); the feedback holds
+    scan.feedback.setpoint, else simulate.setpoint, else the settled amplitude (times A0)."""
+    from afmid.simulate.scan import record_scanning
+
+    sim = config.simulate
+    if sim.mode != "steady" or declared.detector is not None:
+        raise ConfigError("a scanning record starts from the settled oscillation with an ideal detector: use "
+                          "simulate.mode: steady and no data.detector", file=config.source, key="simulate.scan")
+    A0 = setup.free_amplitude
+    start_amplitude = float(extra["steady_amplitude"])
+    feedback = sim.scan.feedback
+    if feedback is not None and feedback.setpoint is not None:
+        setpoint = feedback.setpoint * A0
+    elif sim.setpoint is not None:
+        setpoint = sim.setpoint * A0
+    else:
+        setpoint = start_amplitude
+    osc = setup.oscillator
+    sigma = thermal_force_std(osc, sim.noise.temperature, grid.step) if sim.noise.thermal else 0.0
+    return record_scanning(integrator, grid, osc, sim.scan, d, start_amplitude, setpoint, sigma, rng, bar, sim.seed)
 
 
 def _record_detected(integrator, grid: Grid, osc: Oscillator, noise, rng, bar: _Progress, detector, steady: bool,

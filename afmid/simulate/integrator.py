@@ -110,6 +110,11 @@ class Integrator:
         self.x, self.v = float(x), float(v)
         self.gates = initial_gates(self.compiled, x, v, t, self.separation) if gates is None else np.array(gates, float)
 
+    def set_separation(self, separation: float) -> None:
+        """Move the rest separation d (m) for the following runs (a scanning record's d(t), held over each run)."""
+        self.separation = float(separation)
+        self.dyn[5] = self.separation
+
     def run(self, t0: float, h: float, n_steps: int, n_sub: int, thermal: np.ndarray | None = None,
             out: Segment | None = None) -> Segment:
         """Integrate n_steps steps of h (s) from the current state at time t0 (s).

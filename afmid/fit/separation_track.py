@@ -1,0 +1,158 @@
+"""A slowly varying rest separation d(t), estimated jointly with the force law: the topography track of a record
+taken while scanning (issue 29 item 2).
+
+While the tip scans, d(t) = z_piezo(t) - h(x_lat(t)) follows the topography and the amplitude feedback
+(afmid.simulate.scan makes such records). One separation for the whole record then mixes periods recorded at
+different d into one force curve. Here the record is cut into consecutive blocks of whole drive periods, each
+short against the time d takes to change (a block lasts 1 / (2 bandwidth): a piecewise-constant track sampled at
+the Nyquist rate of ``bandwidth``), and the blocks are fitted as the traces of a joint fit
+(:func:`afmid.fit.joint.fit_traces_jointly`): one force law, a separation (and drive) per block. The track is the
+blocks' separations with their 1 sigma (each its own profile's and the common shift's, in quadrature), at the
+blocks' middle times.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from afmid.config import RunConfig
+from afmid.errors import ConfigError
+from afmid.fit.joint import JointResult, fit_traces_jointly
+from afmid.io.onset import crop
+from afmid.io.trace import Trace, check_trace
+
+#: The fewest drive periods a block may hold: its own first fit cross-validates over 5 folds and the default
+#: selection votes over groups of 6 periods (afmid.fit.selection_strategies), so 30 gives every fold a group.
+MIN_BLOCK_PERIODS = 30
+
+
+@dataclass
+class SeparationTrack:
+    """The rest separation per block of a record (SI): what /model/separation_track holds."""
+
+    time: np.ndarray  # s, each block's middle, from the record's first sample
+    first_sample: np.ndarray  # index of each block's first sample in the record
+    stop_sample: np.ndarray  # one past each block's last sample
+    separation: np.ndarray  # m, d of each block
+    sigma: np.ndarray  # m, its 1 sigma
+    bandwidth: float  # Hz, the track's bandwidth (block duration 1 / (2 bandwidth))
+    joint: JointResult  # the joint fit of the blocks (the shared law, each block's forces)
+
+
+def block_periods_for(bandwidth: float, drive_frequency: float) -> int:
+    """Whole drive periods per block for a track of ``bandwidth`` (Hz): f / (2 bandwidth), rounded down."""
+    return int(math.floor(drive_frequency / (2.0 * bandwidth)))
+
+
+def cut_blocks(trace: Trace, block_periods: int) -> list[Trace]:
+    """``trace`` cut into consecutive blocks of ``block_periods`` whole periods (the last block takes the rest of
+    the record when that is shorter than a block); a simulation's truth is cut with it, its ``separation``
+    attribute set to the mean rest separation of the block when the record has a d(t) track."""
+    per_period = trace.sample_rate / trace.drive_frequency
+    n_blocks = max(1, int(trace.n_samples // (block_periods * per_period)))
+    edges = [round(k * block_periods * per_period) for k in range(n_blocks)] + [trace.n_samples]
+    blocks = []
+    for first, stop in zip(edges[:-1], edges[1:]):
+        block = crop(trace, first, stop)
+        truth = trace.truth
+        if truth is not None and truth.tracks:
+            tracks = {name: (values[first:stop], unit) for name, (values, unit) in truth.tracks.items()}
+            extra = dict(truth.extra)
+            if "rest_separation" in tracks:
+                extra["separation"] = float(np.mean(tracks["rest_separation"][0]))
+            block = dataclasses.replace(block, truth=dataclasses.replace(block.truth, tracks=tracks, extra=extra))
+        blocks.append(block)
+    return blocks
+
+
+def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, progress=False,
+                         uncertainty: bool = True) -> SeparationTrack:
+    """The force law and the track d(t) of ``trace`` (checked, :func:`afmid.io.trace.check_trace`) at
+    ``bandwidth`` (Hz). ConfigError naming ``fit.separation_track.bandwidth`` when a block would be shorter than
+    the fit needs, or when ``sample.separation`` is given (then there is nothing to track)."""
+    key = "fit.separation_track.bandwidth"
+    if config.sample.separation is not None:
+        raise ConfigError("a separation track estimates d(t); leave sample.separation out", file=config.source,
+                          key="sample.separation")
+    periods = block_periods_for(bandwidth, trace.drive_frequency)
+    if periods < MIN_BLOCK_PERIODS:
+        raise ConfigError(f"a bandwidth of {bandwidth:g} Hz gives blocks of {periods} drive periods, need at least "
+                          f"{MIN_BLOCK_PERIODS}: lower it", file=config.source, key=key)
+    blocks = [check_trace(block, config) for block in cut_blocks(trace, periods)]
+    if len(blocks) < 2:
+        raise ConfigError(f"the record ({trace.n_periods:.0f} periods) holds one block of {periods} periods: a "
+                          "track needs two; raise the bandwidth or fit it with one separation", file=config.source,
+                          key=key)
+    joint = fit_traces_jointly(config, [config] * len(blocks), blocks, progress, uncertainty)
+    first = np.array([b.first_sample - trace.first_sample for b in blocks])
+    stop = first + np.array([b.n_samples for b in blocks])
+    separation = np.array([t.separation.value for t in joint.traces])
+    sigma = np.array([t.separation.sigma for t in joint.traces])
+    return SeparationTrack(0.5 * (first + stop) / trace.sample_rate, first, stop, separation, sigma, bandwidth, joint)
+
+
+#: /model/separation_track's format: what a reader of the group can rely on.
+TRACK_LAYOUT = "afmid separation track 1"
+
+
+def write_track(group, track: SeparationTrack) -> None:
+    """``track`` into HDF5 ``group`` (/model/separation_track): per block its middle time (s), sample range, d (m)
+    and 1 sigma (m); the bandwidth (Hz) as an attribute."""
+    from afmid.io.trace import write_dataset
+
+    group.attrs["layout"] = TRACK_LAYOUT
+    group.attrs["bandwidth"] = float(track.bandwidth)
+    group.attrs["units"] = "bandwidth: Hz"
+    group.attrs["meaning"] = ("the rest separation d(t) (topography under feedback) per block of whole drive periods, "
+                              "fitted jointly with one force law; block i is /joint/trace_<i>")
+    write_dataset(group, "time", track.time, "s", definition="each block's middle, from the record's first sample")
+    write_dataset(group, "first_sample", track.first_sample, "1")
+    write_dataset(group, "stop_sample", track.stop_sample, "1", definition="one past the block's last sample")
+    write_dataset(group, "separation", track.separation, "m", definition="rest separation d of the block")
+    write_dataset(group, "separation_error", track.sigma, "m", error_kind="1 sigma")
+
+
+def write_track_run(path, track: SeparationTrack, overwrite: bool = False):
+    """The joint run file of the blocks (afmid.fit.joint_output.write_joint_run) with /model/separation_track;
+    returns the path and every block's result."""
+    from afmid.fit.joint_output import write_joint_run
+
+    return write_joint_run(path, track.joint, overwrite=overwrite,
+                           more=lambda h5: write_track(h5["model"].create_group("separation_track"), track))
+
+
+def track_table(track: SeparationTrack) -> str:
+    """The track, one line per block: time (ms) and d +- 1 sigma (nm)."""
+    lines = [f"separation track at {track.bandwidth:g} Hz ({len(track.separation)} blocks, one force law):"]
+    for t, d, s in zip(track.time, track.separation, track.sigma):
+        lines.append(f"  t = {t * 1e3:8.3f} ms: d = {d * 1e9:.3f} ± {s * 1e9:.3f} nm (1σ)")
+    return "\n".join(lines)
+
+
+def fit_track(config: RunConfig, output, overwrite: bool, quiet: bool, verbose: bool) -> None:
+    """``afmid fit`` of a config with ``fit.separation_track``: the track, its run file, its read-out on stdout."""
+    import logging
+
+    import click
+
+    from afmid.io.trace import load_trace
+    from afmid.report.fit_text import fit_text
+
+    log = logging.getLogger("afmid.cli")
+    if config.data.path is None:
+        raise ConfigError("a separation track is fitted on one record: give data.path", file=config.source,
+                          key="data.path")
+    trace = check_trace(load_trace(config), config)
+    track = fit_separation_track(config, trace, config.fit.separation_track.bandwidth, progress=not quiet)
+    _, per_block = write_track_run(output, track, overwrite=overwrite)
+    log.info("wrote %s: %d blocks, one force law; terms: %s", output, len(track.separation),
+             ", ".join(track.joint.selected_terms()) or "none")
+    if not quiet:
+        click.echo(fit_text(per_block[0], verbose=verbose))
+        click.echo(track_table(track))
+    for line in track.joint.warnings:
+        log.warning("%s: %s", output, line.removeprefix("warning: "))

@@ -1,0 +1,106 @@
+"""``fit.separation_track``: a record cut into blocks of whole periods, fitted as a joint fit (one force law, a
+separation per block), the track written to /model/separation_track."""
+
+from __future__ import annotations
+
+import copy
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+from afmid.config import build_config
+from afmid.errors import ConfigError
+from afmid.fit.separation_track import block_periods_for, cut_blocks, fit_separation_track
+from afmid.io.trace import check_trace, read_truth, write_trace_file
+from afmid.simulate.driver import simulate
+
+RAW = {"cantilever": {"spring_constant": 40.0, "resonance_frequency": 3e5, "quality_factor": 250.0, "tip_radius": 1e-8},
+       "drive": {"frequency": 3e5, "free_amplitude": 1e-8}, "sample": {"a0": 0.165e-9, "separation": 8.5e-9},
+       "model": {"effects": ["dmt"]}, "fit": {"bootstrap": 10, "seed": 0},
+       "simulate": {"model": "dmt", "parameters": {"E_star": 2e9, "hamaker": 5e-20}, "periods": 240,
+                    "samples_per_period": 100, "steps_per_period": 2000, "setpoint": 0.85,
+                    "noise": {"thermal": True, "detector_rms": 1e-12}, "seed": 61}}
+#: No feedback: the piezo holds still and d(t) drops by the step, 0.4 nm, mid-record (120 periods = 0.4 ms in,
+#: at 4 um/s: 1.6 nm of travel), over 0.1 nm of travel (~8 periods).
+STEP_SCAN = {"speed": 4e-6, "start": -1.6e-9, "step": {"height": 0.4e-9, "position": 0.0, "width": 0.1e-9}}
+
+
+def configs(scan=STEP_SCAN, periods=240, bandwidth=2500.0):
+    raw = copy.deepcopy(RAW)
+    raw["simulate"].update(periods=periods, scan=scan)
+    fit_raw = copy.deepcopy(raw)
+    del fit_raw["sample"]["separation"]
+    fit_raw["fit"]["separation_track"] = {"bandwidth": bandwidth}
+    return build_config(raw), build_config(fit_raw)
+
+
+def test_blocks_are_whole_periods_and_carry_their_truth():
+    simulated, _ = configs(periods=40)
+    trace = simulate(simulated)
+    blocks = cut_blocks(trace, 12)
+    assert [b.n_samples for b in blocks] == [1200, 1200, 1600]  # the rest joins the last block
+    assert [b.first_sample for b in blocks] == [0, 1200, 2400]
+    d = trace.truth.tracks["rest_separation"][0]
+    for block in blocks:
+        part = slice(block.first_sample, block.first_sample + block.n_samples)
+        np.testing.assert_array_equal(block.deflection, trace.deflection[part])
+        np.testing.assert_array_equal(block.truth.force, trace.truth.force[part])
+        assert block.truth.extra["separation"] == pytest.approx(d[part].mean(), rel=1e-12)
+    assert block_periods_for(2500.0, 3e5) == 60
+
+
+def test_a_track_needs_blocks_long_enough_and_an_unknown_separation():
+    simulated, fitting = configs(periods=40, bandwidth=6000.0)  # 25-period blocks
+    trace = check_trace(simulate(simulated), fitting)
+    with pytest.raises(ConfigError, match="fit.separation_track.bandwidth"):
+        fit_separation_track(fitting, trace, 6000.0)
+    with pytest.raises(ConfigError, match="one block"):
+        fit_separation_track(fitting, trace, 2500.0)  # 60-period blocks in 40 periods
+    with pytest.raises(ConfigError, match="sample.separation"):
+        fit_separation_track(simulated, trace, 2500.0)
+
+
+def _files(tmp_path, periods=240, given_separation=False):
+    simulated, fitting = configs(periods=periods)
+    trace_path = write_trace_file(tmp_path / "scan.h5", simulate(simulated), "")
+    raw = fitting.model_dump(mode="json", exclude_none=True)
+    raw["data"] = {"path": str(trace_path)}
+    if given_separation:
+        raw["sample"]["separation"] = 8e-9
+    config = tmp_path / "track.yaml"
+    config.write_text(yaml.safe_dump(raw))
+    return trace_path, config
+
+
+def test_a_track_with_a_given_separation_is_one_line(tmp_path, run_cli):
+    _, config = _files(tmp_path, periods=130, given_separation=True)
+    out_path = tmp_path / "run.h5"
+    code, out, err = run_cli("fit", config, "-o", out_path)
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    assert code in (1, 2) and len(lines) == 1 and "Traceback" not in err, err
+    assert "sample.separation" in lines[0] and not out_path.exists()
+
+
+@pytest.mark.slow
+def test_a_step_in_d_is_tracked_block_by_block(tmp_path, run_cli):
+    """``afmid fit`` with fit.separation_track on 240 periods over a 0.4 nm drop of d (4 blocks of 60 periods):
+    each block's d within 2 sigma of its mean truth, the track in /model/separation_track with units."""
+    trace_path, config = _files(tmp_path)
+    run = tmp_path / "run.h5"
+    code, out, err = run_cli("fit", config, "-o", run)
+    assert code == 0, err
+    assert "separation track at 2500 Hz (4 blocks" in out
+    d = read_truth(trace_path).tracks["rest_separation"][0]
+    with h5py.File(run, "r") as h5:
+        group = h5["model/separation_track"]
+        assert group["separation"].attrs["units"] == "m" and group["separation_error"].attrs["units"] == "m"
+        assert group["time"].attrs["units"] == "s" and group.attrs["bandwidth"] == 2500.0
+        separation, sigma = group["separation"][...], group["separation_error"][...]
+        first, stop = group["first_sample"][...], group["stop_sample"][...]
+        assert h5["joint"].attrs["n_traces"] == 4
+    truth = np.array([d[a:b].mean() for a, b in zip(first, stop)])
+    z = (separation - truth) / sigma
+    assert np.all(np.abs(z) <= 2.0), (z, sigma)
+    assert separation[0] - separation[-1] == pytest.approx(0.4e-9, abs=3 * np.hypot(sigma[0], sigma[-1]))
