@@ -1,4 +1,5 @@
-"""The poor instrument's separation (issue 28): no confident wrong d.
+"""The estimated separation on the poor instrument and on a barely touching liquid record (issue 28): no
+confident wrong d.
 
 Draws 31 and 132 of configs/coverage/poor.yaml (seed 2803; 18-20 pm of detector noise, 50 samples per period, 50
 periods). Before: draw 31's d profile stayed within 0.04 chi-square units of its minimum down to the searched
@@ -10,6 +11,12 @@ change at d +- 1 sigma only: z -4.1. Now the one-sided interval reaches the wind
 at 2 sigma of d (afmid.fit.pipeline.propagate_nonlinear). Each draw must come out with a finite d sigma, its d,
 E* and force curve within 2 reported sigma of the truth (a 2-sigma miss of one draw happens 5 % of the time for an
 honest sigma; these two were |z| 72 and 4.1), and flagged separation-limited (the record cannot locate d).
+
+Draw 9 of configs/coverage/liquid.yaml (seed 2802; Q 7.4, d 4.05 nm at A0 4.65 nm, 0.5 nm indentation of a 53 MPa
+sample, reported "the tip never touches"): the d profile has a broad valley at 3.1 nm (E* and H < 0) and the
+truth's, 6.6 pm wide and ~650 chi-square units lower, which the outer search's 0.375 nm grid stepped over. The
+fit refined the broad one and reported its local width: d 3.15 +- 0.039 nm, z -23, unflagged. afmid.fit.valleys
+(the other minima of the outer grid refined, a lower one moves the fit) finds the truth's valley: z +0.14.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from afmid.coverage.run import run_coverage
 pytestmark = [pytest.mark.numerics, pytest.mark.slow]
 
 POOR = REPO_ROOT / "configs" / "coverage" / "poor.yaml"
+LIQUID = REPO_ROOT / "configs" / "coverage" / "liquid.yaml"
 
 
 @pytest.fixture(scope="module")
@@ -49,3 +57,12 @@ def test_a_separation_the_record_does_not_locate_gets_an_interval_and_a_flag(dra
 def test_the_open_side_of_the_separation_is_named(draws):
     warnings = draws[31]["warnings"]
     assert any("d undetermined on one side" in w and "lower edge" in w for w in warnings), warnings
+
+
+def test_a_barely_touching_liquid_record_is_fitted_in_the_truths_valley():
+    config = build_config(yaml.safe_load(LIQUID.read_text()), source=LIQUID)
+    draw = run_coverage(config, only=[9]).draws[0]
+    assert draw["status"] == "ok", draw["error"]
+    for name in ("separation", "E_star", "hamaker", "force_curve"):
+        number = draw["numbers"][name]
+        assert abs(number["z"]) <= 2.0, (name, number)
