@@ -66,6 +66,9 @@ class ProfileResult:
     values: np.ndarray = field(default_factory=lambda: np.zeros(0))  # residual sum of squares there
     evaluations: int = 0
     s2: float = math.nan  # the residual variance of one chi-square unit the profile was read with
+    #: where the chi-square interval runs to a searched bound instead of closing: "" (closed), "below",
+    #: "above" or "both" (the profile is flatter than one unit over the whole window: not located)
+    open_side: str = ""
 
 
 class GroupedProfile:
@@ -221,8 +224,10 @@ def robust_profile(profile: GroupedProfile, center: float, half_width: float, s2
     while the profile is flatter than one chi-square unit across it), zooms in on the lowest point until the
     grid step is below RESOLUTION_FRACTION of the chi-square half-width (or ``min_step``), reads the interval
     where the chi-square rises by 1 (extending the points outwards until it does), and with ``jackknife``
-    measures the spread of the minimum over the block jackknife. sigma is NaN when the profile has no
-    minimum inside [lo, hi] (the data do not determine the parameter).
+    measures the spread of the minimum over the block jackknife. Where the interval runs to a bound instead
+    of closing (``open_side``), the 1-sigma is the larger of its halves with the open one reaching the bound
+    (the whole window's half when both do: the data do not locate the parameter); NaN only when a side neither
+    closes nor reaches a finite bound, or the profile cannot be evaluated.
     """
     center = min(max(center, lo), hi)
     full_span = hi - lo
@@ -277,14 +282,57 @@ def robust_profile(profile: GroupedProfile, center: float, half_width: float, s2
     best, sigma_parabola, kinked = estimate_minimum(x, y, s2)
     resolution = float(max(x[i] - x[max(i - 1, 0)], x[min(i + 1, x.size - 1)] - x[i]))
     lower, upper = chi2_interval(x, y, s2)
-    if not (math.isfinite(lower) and math.isfinite(upper)):  # no minimum inside [lo, hi]
+    open_side = _open_side(x, lower, upper, lo, hi)
+    if open_side is None:  # the interval neither closes nor reaches a bound (an unbounded search)
         return ProfileResult(best, math.nan, resolution=resolution, grid=x, values=y, evaluations=x.size)
-    width = 0.5 * (upper - lower) if kinked else sigma_parabola
+    if open_side == "both":  # flatter than one unit over the whole window: the data do not locate it
+        sigma = max(best - lo, hi - best)
+        return ProfileResult(best, sigma, sigma, math.nan, resolution, x, y, x.size, s2, open_side)
+    if open_side:
+        # One-sided: the interval runs to the bound on the open side, so the open side's half is at least the
+        # distance to the bound; the symmetric 1-sigma is the larger half (a tight sigma from the closed side
+        # alone, or NaN, would report a parameter the data do not bound as located: poor instrument, d's
+        # profile within 0.04 units of its minimum down to the window's edge, sigma NaN, d 3.2 nm off).
+        width = max(best - (lo if open_side == "below" else lower), (hi if open_side == "above" else upper) - best)
+    else:
+        width = 0.5 * (upper - lower) if kinked else sigma_parabola
     sigma_jk = _jackknife(profile, best, width, s2, lo, hi) if jackknife else math.nan
     sigma = max(width, sigma_jk) if math.isfinite(sigma_jk) else width
     sigma = math.hypot(sigma, resolution if kinked else 0.0)
     x, y = profile.points()
-    return ProfileResult(best, sigma, width, sigma_jk, resolution, x, y, x.size, s2)
+    return ProfileResult(best, sigma, width, sigma_jk, resolution, x, y, x.size, s2, open_side)
+
+
+def open_side_warning(name: str, unit: str, found: ProfileResult, bounds: tuple[float, float]) -> str | None:
+    """The warning of a profile whose chi-square interval runs to a searched bound (None when it closed): the
+    data do not bound the parameter on that side inside the window, so its 1-sigma reaches the bound."""
+    if not found.open_side:
+        return None
+    scale, shown = (1e9, "nm") if unit == "m" else (1.0, unit)
+    if found.open_side == "both":
+        where = (f"over the whole searched window {scale * bounds[0]:.3g} .. {scale * bounds[1]:.3g} {shown}: the "
+                 "data do not locate it")
+    else:
+        edge = bounds[0] if found.open_side == "below" else bounds[1]
+        where = (f"up to the searched window's {'lower' if found.open_side == 'below' else 'upper'} edge "
+                 f"{scale * edge:.3g} {shown}: the data do not bound it on that side")
+    return (f"{name} undetermined on one side: " if found.open_side != "both" else f"{name} undetermined: ") + (
+        f"its profile stays within one chi-square unit of its minimum {where}; its 1-sigma "
+        f"({scale * found.sigma:.3g} {shown}) spans that side, and so do the read-outs that depend on it")
+
+
+def _open_side(x: np.ndarray, lower: float, upper: float, lo: float, hi: float) -> str | None:
+    """Which side of the chi-square interval (``lower``, ``upper``: NaN where it did not close within the points
+    ``x``) runs to the searched bound ``lo`` / ``hi``: "", "below", "above", "both"; None when a side neither
+    closes nor reaches a finite bound."""
+    sides = []
+    for closed, edge, bound, name in ((lower, x[0], lo, "below"), (upper, x[-1], hi, "above")):
+        if math.isfinite(closed):
+            continue
+        if not (math.isfinite(bound) and edge == bound):
+            return None
+        sides.append(name)
+    return "both" if len(sides) == 2 else (sides[0] if sides else "")
 
 
 def _jackknife(profile: GroupedProfile, best: float, width: float, s2: float, lo: float, hi: float) -> float:

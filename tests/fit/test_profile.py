@@ -74,11 +74,57 @@ def test_interval_of_a_parabolic_profile_is_its_sigma():
     assert found.value == pytest.approx(x0, abs=0.05 * sigma)
 
 
-def test_profile_without_a_minimum_inside_the_bounds_has_no_sigma():
+def test_profile_falling_to_a_bound_gets_a_one_sided_sigma_reaching_it():
+    """The minimum on the lower bound: the chi-square (s2 = 1) rises by one unit at 1e-3 above it and never
+    closes below it. The interval is [0, 1e-3], one-sided: sigma 1e-3 (was NaN: nothing was flagged)."""
     curve = _Curve(lambda x: 1e3 * x)  # falls towards the lower bound
     found = robust_profile(curve, 0.5, 0.1, 1.0, lo=0.0, hi=1.0, jackknife=False)
-    assert math.isnan(found.sigma)
     assert found.value == pytest.approx(0.0, abs=1e-9)
+    assert found.open_side == "below"
+    assert found.sigma_width == pytest.approx(1e-3, rel=0.02)  # the closed side's crossing, linear interpolation
+    assert found.sigma >= found.sigma_width
+
+
+def test_a_profile_flat_down_to_the_window_edge_gets_a_sigma_reaching_the_edge():
+    """The poor instrument's d profile (draw 31 of configs/coverage/poor.yaml): within 0.04 chi-square units of
+    its minimum down to the searched window's lower edge, rising steeply above it. Here: minimum at 0.3, one
+    unit reached 0.1 above it, and only 0.42 units at the bound -1.0 (1.3 below). The closed side alone (0.1)
+    would be a tight wrong interval; the 1-sigma must reach the bound: 1.3 (+ the grid's resolution, at most a
+    tenth of the 0.1-wide closed side, in quadrature: < 0.4 % of 1.3)."""
+    curve = _Curve(lambda x: ((x - 0.3) / 0.1) ** 2 if x > 0.3 else ((x - 0.3) / 2.0) ** 2)
+    found = robust_profile(curve, 0.35, 0.1, 1.0, lo=-1.0, hi=3.0, jackknife=False)
+    assert found.open_side == "below"
+    assert found.value == pytest.approx(0.3, abs=0.01)
+    assert found.sigma == pytest.approx(1.3, rel=0.01)
+
+
+def test_a_profile_flatter_than_one_unit_over_the_window_is_not_located():
+    """0.1 x^2 on [-1, 2] with s2 = 1 stays below one unit everywhere: the data do not locate the parameter, and
+    its 1-sigma is the larger distance from the estimate (0) to an edge of the window: 2."""
+    curve = _Curve(lambda x: 0.1 * x * x)
+    found = robust_profile(curve, 0.5, 0.1, 1.0, lo=-1.0, hi=2.0, jackknife=False)
+    assert found.open_side == "both"
+    assert found.sigma == pytest.approx(2.0 - found.value, abs=1e-9)
+    assert abs(found.value) < 0.1
+
+
+def test_a_profile_falling_without_a_bound_has_no_sigma():
+    """No finite bound on the open side: no interval can be given, the sigma stays NaN."""
+    curve = _Curve(lambda x: 1e3 * x)
+    found = robust_profile(curve, 0.5, 0.1, 1.0, jackknife=False)
+    assert math.isnan(found.sigma)
+
+
+def test_the_open_side_is_warned_naming_the_edge():
+    from afmid.fit.profile import open_side_warning
+
+    curve = _Curve(lambda x: ((x - 0.3e-9) / 0.1e-9) ** 2 if x > 0.3e-9 else ((x - 0.3e-9) / 2e-9) ** 2)
+    found = robust_profile(curve, 0.35e-9, 0.1e-9, 1.0, lo=-1e-9, hi=3e-9, jackknife=False)
+    text = open_side_warning("d", "m", found, (-1e-9, 3e-9))
+    assert "lower edge -1 nm" in text and "d undetermined on one side" in text
+    closed = robust_profile(_Curve(lambda x: ((x - 1e-9) / 0.1e-9) ** 2), 0.9e-9, 0.3e-9, 1.0, lo=-1e-9, hi=3e-9,
+                            jackknife=False)
+    assert closed.open_side == "" and open_side_warning("d", "m", closed, (-1e-9, 3e-9)) is None
 
 
 def test_local_minimum_stays_between_the_neighbours():
