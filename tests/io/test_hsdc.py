@@ -256,7 +256,9 @@ def test_uncalibrated_sensitivity_needs_data_invols(tmp_path):
 
 
 def test_calibrated_sensitivity_and_spring_constant_are_used_and_prefilled(tmp_path, caplog):
-    caplog.set_level(logging.INFO)
+    # On the 'afmid' logger itself: a CLI run earlier in the same worker may have stopped its propagation.
+    caplog.set_level(logging.INFO, logger="afmid")
+    logging.getLogger("afmid").addHandler(caplog.handler)
     path = write_hsdc(tmp_path / "k.hsdc", sensitivity="45.30000 nm/V", spring_constant="0.4")
     stated = read_trace(path).metadata["stated"]
     assert stated["data.invols"] == pytest.approx(45.3e-9, rel=1e-12)
