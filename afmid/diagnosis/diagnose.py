@@ -166,7 +166,16 @@ def _fit_quick(config: RunConfig, prepared):
     """
     from afmid.fit.pipeline import run_fit
 
+    _REFITS[0] += 1
     return run_fit(config, prepared=prepared, uncertainty=False)
+
+
+_REFITS = [0]  # refits made by diagnoses in this process: a reused diagnosis makes none (tests count them)
+
+
+def refits_made() -> int:
+    """How many refits (the base model, each candidate, sets, instrument) diagnoses made in this process so far."""
+    return _REFITS[0]
 
 
 def _chi2(result) -> tuple[float, float, int]:
