@@ -45,8 +45,11 @@ def _without_times(summary: dict) -> dict:
 def test_a_report_of_two_runs_refits_only_the_run_not_diagnosed_before(runs, tmp_path, monkeypatch):  # noqa: F811
     from afmid.runfile import load_run
 
+    from afmid.io.trace import sha256_file
+
     monkeypatch.setenv("AFMID_DIAGNOSIS_CACHE", str(tmp_path / "cache"))
     run1, run2 = runs
+    inputs = {p: sha256_file(p) for p in runs}
     first, single = _report([run1], tmp_path / "r1")
     assert first > 0 and single["suggestions"][0]["effect"] == "viscoelastic"
     paired, pair = _report([run1, run2], tmp_path / "pair")
@@ -63,6 +66,8 @@ def test_a_report_of_two_runs_refits_only_the_run_not_diagnosed_before(runs, tmp
     fresh, pair_fresh = _report([run1, run2], tmp_path / "pair_fresh")
     assert fresh == first + paired
     assert _without_times(pair_fresh) == _without_times(pair)
+    assert {p: sha256_file(p) for p in runs} == inputs  # the kept diagnoses are not written into the run files
+    assert len(list((tmp_path / "cache").glob("*.json"))) == 2  # one per run diagnosed
 
 
 def test_the_key_is_the_run_contents_not_its_name(runs, tmp_path):  # noqa: F811
