@@ -231,7 +231,7 @@ def diagnosed(run, progress: bool = False, trace=None) -> dict:
     kept = read_group(run.path, key) if Path(run.path).is_file() else None
     where = f"{run.path}'s /diagnosis"
     if kept is None:
-        kept, where = cached(key), "the diagnosis cache"
+        kept, where = cached(key), f"the diagnosis cache ({cache_folder()})"
     if kept is not None:
         log.info("%s: the diagnosis kept in %s is reused (no candidate refit)", run.path.name, where)
         return kept
