@@ -151,6 +151,15 @@ def run_cli(capsys):
     return run
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _diagnosis_cache_of_the_session(tmp_path_factory):
+    """afmid report keeps diagnoses in a cache folder (afmid.diagnosis.stored): the tests use their own, so a test
+    run never reuses the diagnoses of an earlier run or fills the user's ~/.cache."""
+    import os
+
+    os.environ["AFMID_DIAGNOSIS_CACHE"] = str(tmp_path_factory.mktemp("diagnosis_cache"))
+
+
 @pytest.fixture(autouse=True)
 def _restore_afmid_logging():
     """The CLI replaces the 'afmid' logger's handler and stops propagation; undo it after each test."""

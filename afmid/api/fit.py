@@ -147,9 +147,11 @@ class Fit:
         """Where the model fails and which catalog effect is missing (``afmid report``'s diagnosis): each missing
         effect refitted on this fit's trace."""
         if self._diagnosis is None:
-            from afmid.diagnosis.diagnose import suggest
+            from afmid.diagnosis.stored import diagnosed
 
-            self._diagnosis = Diagnosis.of(suggest(self.run, progress=progress, trace=self.trace))
+            # A loaded run file's /diagnosis (written by save() below) or a cached one is reused when made for
+            # this very run (afmid.diagnosis.stored)
+            self._diagnosis = Diagnosis.of(diagnosed(self.run, progress=progress, trace=self.trace))
         return self._diagnosis
 
     def report(self, folder: str | Path, *, compare: list["Fit"] | tuple["Fit", ...] = (), overwrite: bool = False,
@@ -181,13 +183,19 @@ class Fit:
                             traces=traces)
 
     def save(self, path: str | Path, overwrite: bool = False) -> Path:
-        """Write the run file (the same file as ``afmid fit -o PATH``); the fit is then named after it."""
+        """Write the run file (the same file as ``afmid fit -o PATH``); after :meth:`diagnose` it also holds the
+        diagnosis (/diagnosis, docs/file-formats.md), which ``afmid report`` then reuses instead of refitting."""
         from afmid.runfile import write_run
 
         if self._result is None:
             raise ConfigError("a loaded fit is its run file already; copy the file", file=Path(path), key="save")
-        written = write_run(Path(path), self._result, self.config, overwrite=overwrite)
-        return written
+        if self._diagnosis is None:
+            return write_run(Path(path), self._result, self.config, overwrite=overwrite)
+        from afmid.diagnosis.stored import diagnosis_key, write_group
+
+        answer, key = self._diagnosis.details, diagnosis_key(self.run)
+        return write_run(Path(path), self._result, self.config, overwrite=overwrite,
+                         extra=lambda h5: write_group(h5, answer, key))
 
 
 def load(path: str | Path, trace=None) -> Fit:

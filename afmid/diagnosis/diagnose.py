@@ -167,7 +167,16 @@ def _fit_quick(config: RunConfig, prepared):
     """
     from afmid.fit.pipeline import run_fit
 
+    _REFITS[0] += 1
     return run_fit(config, prepared=prepared, uncertainty=False)
+
+
+_REFITS = [0]  # refits made by diagnoses in this process: a reused diagnosis makes none (tests count them)
+
+
+def refits_made() -> int:
+    """How many refits (the base model, each candidate, sets, instrument) diagnoses made in this process so far."""
+    return _REFITS[0]
 
 
 def _chi2(result) -> tuple[float, float, int]:
@@ -242,15 +251,17 @@ def _one_blas_thread():
 
 def _diagnose(run: RunData, progress: bool, trace) -> dict:
     from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import with_fine_grid
     from afmid.preprocess.instrument import from_config as instrument_from_config
     from afmid.io.trace import load_trace
 
     started = time.perf_counter()
     local = localize(run)
     base_config = refit_config(run, run.effects)
-    # Every refit below differs from this one only in its library and fixed parameters: one preparation.
-    prepared = prepare(load_trace(base_config) if trace is None else trace, base_config.fit,
-                       instrument_from_config(base_config))
+    # Every refit below differs from this one only in its library and fixed parameters: one preparation, and its
+    # trajectory on the fine grid made once for all the refits' and shape searches' library evaluations.
+    prepared = with_fine_grid(prepare(load_trace(base_config) if trace is None else trace, base_config.fit,
+                                      instrument_from_config(base_config)))
     base_result = _fit_quick(base_config, prepared)
     chi2, limit, n_rows = _chi2(base_result)
     base = _Base(base_result.cv_error, base_result.cv_error_noise_floor, base_result.selection.best.bic,

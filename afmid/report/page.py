@@ -22,7 +22,8 @@ import numpy as np
 
 from afmid.version import __version__
 import afmid.fit.plausibility as plausibility
-from afmid.diagnosis.diagnose import BIC_EVIDENCE, describe_residual, energy_check, localize, suggest
+from afmid.diagnosis.diagnose import BIC_EVIDENCE, describe_residual, energy_check, localize
+from afmid.diagnosis.stored import diagnosed
 from afmid.report.energy_rows import energy_caveat, energy_rows, inverted_force_name
 from afmid.io.trace import now_iso
 from afmid.physics.effects import EFFECTS
@@ -366,7 +367,7 @@ def write_report(runs: list[RunData], output: Path, overwrite: bool = False, sug
         last = runs[-1]
         local = localize(last)
         energy = energy_check(last)
-        result = suggest(last, progress=progress, trace=traces[-1]) if suggest_effects else None
+        result = diagnosed(last, progress=progress, trace=traces[-1]) if suggest_effects else None
         diagnoses = diagnose_runs(runs, result, local, suggest_effects, progress, traces)
         summary = {"runs": [run_entry(p, r, d) for p, r, d in zip(names or [r.path for r in runs], runs, diagnoses)]}
         if len(runs) > 1:

@@ -2,7 +2,8 @@
 
 ``afmid report run1.h5 run2.h5`` compares runs; a comparison that diagnosed only the last run lost where
 run1 failed and what was suggested. Here every run gets its own diagnosis (:func:`diagnose_runs`: the
-public :func:`afmid.diagnosis.diagnose.suggest` per run, the last run's result reused) and the runs are
+public :func:`afmid.diagnosis.diagnose.suggest` per run through :func:`afmid.diagnosis.stored.diagnosed`, which
+reuses a diagnosis kept for the run; the last run's result reused) and the runs are
 read in order as the loop (:func:`loop_steps`): run1 failed here (region, character, error vs its noise
 floor) -> suggestion (effect, ΔBIC) -> run2 = run1 + effect -> error fell from x to y (floor z) -> what is
 left. A run that was not the follow-up of a suggestion is told as what it is.
@@ -19,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from afmid.diagnosis.diagnose import describe_residual, localize, suggest
+from afmid.diagnosis.diagnose import describe_residual, localize
+from afmid.diagnosis.stored import diagnosed
 from afmid.fit.uncertainty import ERROR_LABEL, FLOOR_FACTOR
 from afmid.report.quantity_text import format_delta_bic, format_measurement, format_value
 from afmid.runfile import RunData
@@ -97,7 +99,7 @@ def diagnose_runs(runs: list[RunData], last_result: dict | None, last_local: dic
     for run, trace in zip(runs, traces or [None] * len(runs)):
         key = run.path.resolve()
         if key not in done:
-            done[key] = run_diagnosis(run, suggest(run, progress=progress, trace=trace) if suggest_effects else None)
+            done[key] = run_diagnosis(run, diagnosed(run, progress=progress, trace=trace) if suggest_effects else None)
         out.append(done[key])
     return out
 

@@ -23,6 +23,9 @@ OPTIONAL = {  # written only with non-default settings
     # a joint fit (data.paths): tests/fit/test_joint_cli.py writes and checks them
     "/joint/paths", "/joint/sha256", "/joint/separation", "/joint/separation_error", "/joint/cv_error",
     "/joint/cv_error_noise_floor", "/joint/model_limited",
+    # the diagnosis kept by the front door's save() after diagnose(): tests/diagnosis/test_stored.py writes and checks it
+    "/diagnosis/answer", "/diagnosis/tried_effect", "/diagnosis/tried_delta_bic", "/diagnosis/tried_error_after",
+    "/diagnosis/suggested", "/diagnosis/verdict",
 }
 
 
