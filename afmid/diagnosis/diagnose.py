@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import afmid.diagnosis.checklist as checklist
+from afmid.diagnosis.refit_count import count_refit
 import afmid.diagnosis.decide as decide
 import afmid.diagnosis.instrument_signature as instrument_signature
 import afmid.diagnosis.rival_truth as rival_truth
@@ -167,16 +168,8 @@ def _fit_quick(config: RunConfig, prepared):
     """
     from afmid.fit.pipeline import run_fit
 
-    _REFITS[0] += 1
+    count_refit()
     return run_fit(config, prepared=prepared, uncertainty=False)
-
-
-_REFITS = [0]  # refits made by diagnoses in this process: a reused diagnosis makes none (tests count them)
-
-
-def refits_made() -> int:
-    """How many refits (the base model, each candidate, sets, instrument) diagnoses made in this process so far."""
-    return _REFITS[0]
 
 
 def _chi2(result) -> tuple[float, float, int]:

@@ -1,5 +1,5 @@
 """A diagnosis kept (afmid.diagnosis.stored): a report of several runs redoes no run's diagnosis that was made
-before, counted in refits (afmid.diagnosis.diagnose.refits_made), not timed.
+before, counted in refits (afmid.diagnosis.refit_count.refits_made), not timed.
 
 The runs are tests/report/test_report.py's pair (a glassy polymer, 30 periods: run1 [dmt] misses viscoelasticity,
 run2 [dmt, viscoelastic]). Checked: a first report of run1 makes refits; the pair's report after it refits only
@@ -17,7 +17,8 @@ import shutil
 import h5py
 import pytest
 
-from afmid.diagnosis.diagnose import candidate_effects, refits_made
+from afmid.diagnosis.diagnose import candidate_effects
+from afmid.diagnosis.refit_count import refits_made
 from tests.report.test_report import runs  # noqa: F401  (the module-scoped pair of run files)
 
 pytestmark = pytest.mark.slow
