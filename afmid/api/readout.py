@@ -43,9 +43,9 @@ class RunReadout:
     text uses."""
 
     prep = None  # not stored
-    config = None
 
     def __init__(self, run):
+        self.config = run.config  # the merged config the run was fitted with (its calibration, for the notes)
         self.library = StoredLibrary(run)
         self.n_library = len(run.terms)
         self.selected = np.asarray(run.selected, dtype=bool)

@@ -336,7 +336,7 @@ class SharedSupportFit:
         if not search.propagate(quantities, found, lambda c, d: read_out(library, c, None, dict(params, d=d), support,
                                                                           trace), support):
             nonlinear = {"d": NonlinearEstimate("d", found.value, found.sigma, "m", True)}
-            counter["builds"] += 4  # d +-1 and +-2 sigma
+            counter["builds"] += 2
             propagate_nonlinear(quantities, nonlinear, prep, library, params, support, trace)
         for q in quantities.values():
             q["error_kind"] = "1 sigma (least-squares covariance)"
