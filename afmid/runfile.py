@@ -344,6 +344,8 @@ class RunData:
     force_statistical_uncertainty: float = math.nan  # RMS bootstrap 1 sigma of the force, / peak
     force_selection_uncertainty: float = math.nan  # half the force's change with dropped terms forced in, / peak
     force_total_uncertainty: float = math.nan  # the shares in quadrature (afmid.fit.force_band), 1 sigma
+    separation_error: float = math.nan  # 1 sigma of the rest separation (m); 0 when it was given
+    separation_estimated: bool = True  # False when the config gave sample.separation
     cv_error_folds: np.ndarray | None = None  # the cross-validated error of each fold (cv_error is their mean)
     #: A joint fit's traces (/joint, data.paths), in order: path, separation and its 1 sigma (m; sigma 0 when
     #: given), cv error, noise floor, model-limited. None for a single trace. The rest of RunData is trace 0's.
@@ -462,6 +464,8 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         quantities=quantities,
         nonlinear=nonlinear,
         separation=float(m["separation"][()]),
+        separation_error=float(m["separation"].attrs.get("error", math.nan)),
+        separation_estimated=bool(m["separation"].attrs.get("estimated", True)),
         cv_error=float(d["cv_error"][()]),
         cv_error_noise_floor=float(d["cv_error_noise_floor"][()]),
         bic=float(d["bic"][()]),

@@ -37,7 +37,8 @@ from afmid.report.plots import (bandwidth_text, fig_coefficients, fig_error_runs
                                 fig_force_time, fig_observables, fig_periods, fig_phase_portraits, fig_residual,
                                 fig_suggestions)
 from afmid.report.quantity_text import format_delta_bic, format_measurement, format_value
-from afmid.report.story import diagnose_runs, error_text, fold_spread, loop_html, loop_lines, loop_steps, run_entry
+from afmid.report.story import (band_words, diagnose_runs, error_text, fold_spread, loop_html, loop_lines, loop_steps,
+                                run_entry)
 from afmid.runcheck import check_same_traces
 from afmid.runfile import RunData, load_run
 
@@ -126,6 +127,9 @@ def _verdict_box(summary: dict, last_name: str | None = None) -> str:
                 + html.escape(summary.get("note", "suggestions were not requested (--no-suggest)")) + "</p></div>")
     facts = (f"Current model: error {_fmt(diag.get('error'))} (noise floor {_fmt(diag.get('noise_floor'))}), "
              f"reduced χ² {_fmt(diag.get('chi2_reduced'))} (significant above {_fmt(diag.get('chi2_limit'))}).")
+    band = band_words(summary["runs"][-1]) if summary.get("runs") else ""
+    if band:  # how well the force itself is known, next to the verdict on its law
+        facts += f" {band[0].upper()}{band[1:]}."
     if sugg and diag.get("explained_by_catalog", False):
         top = sugg[0]
         head = f"Missing effect: <code>{html.escape(top['effect'])}</code>"
@@ -441,6 +445,9 @@ def terminal_summary(summary: dict, output: Path) -> str:
     if "missing_effect" in summary and diag:
         verdict = diag.get("verdict") or ("missing effect" if summary["missing_effect"] else "no effect is missing")
         lines.append(f"last run ({last}): {verdict}" if last else verdict)
+        band = band_words(summary["runs"][-1])
+        if band:
+            lines.append(f"  {band}")
         if summary.get("suggestions"):
             lines.append(f"  {summary['suggestions'][0]['evidence']}")
         elif summary["missing_effect"]:

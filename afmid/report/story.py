@@ -104,9 +104,48 @@ def diagnose_runs(runs: list[RunData], last_result: dict | None, last_local: dic
     return out
 
 
+def force_band(run: RunData) -> dict:
+    """The force's uncertainty band of a run (summary.json ``runs[*].force_band``): each share and their total in
+    quadrature, relative to the peak |force|, 1 sigma (afmid.fit.force_band); None where a share was not computed
+    (the separation given: no separation share; no bootstrap: no statistical share). ``separation_fraction`` is the
+    separation's part of the total's variance (its share squared over the total squared)."""
+    total, separation = run.force_total_uncertainty, run.force_separation_uncertainty
+    fraction = (separation / total) ** 2 if total > 0 and math.isfinite(separation) else math.nan
+    return {"total": total, "separation": separation, "statistical": run.force_statistical_uncertainty,
+            "selection": run.force_selection_uncertainty, "calibration": run.force_calibration_uncertainty,
+            "separation_fraction": fraction, "unit": "1 (relative to the peak |force|)", "error_kind": "1 sigma"}
+
+
+def separation_entry(run: RunData) -> dict:
+    """The rest separation of a run with its 1 sigma (m) and whether it was estimated."""
+    return {"value": run.separation, "error": run.separation_error if run.separation_estimated else 0.0,
+            "estimated": run.separation_estimated, "unit": "m", "error_kind": "1 sigma"}
+
+
+def band_words(entry: dict) -> str:
+    """"force known to 4.1 % of the peak (1σ), 62 % of its variance from the estimated separation 8.1 ± 0.4 nm (1σ)" from a
+    summary.json run entry; "" for a run file without a force band (written before the band existed)."""
+    band, sep = entry.get("force_band") or {}, entry.get("separation") or {}
+    total = band.get("total")
+    if total is None or not math.isfinite(total):
+        return ""
+    words = f"force known to {100 * total:.2g} % of the peak (1σ)"
+    value = sep.get("value")
+    if value is not None and math.isfinite(value):
+        if sep.get("estimated"):
+            fraction = band.get("separation_fraction")
+            share = (f"{100 * fraction:.0f} % of its variance from" if fraction is not None
+                     and math.isfinite(fraction) else "with")
+            words += f", {share} the estimated separation {format_measurement(value, sep.get('error', math.nan), 'm')}"
+        else:
+            words += f", the separation {format_value(value, 'm')} given"
+    return words
+
+
 def run_entry(path: Path, run: RunData, diagnosis: dict) -> dict:
     """One entry of summary.json's ``runs``."""
     return {"run": str(path), "effects": run.effects, "error": run.cv_error,
+            "force_band": force_band(run), "separation": separation_entry(run),
             "error_fold_sd": diagnosis["error_fold_sd"], "error_spread_kind": diagnosis["error_spread_kind"],
             "noise_floor": run.cv_error_noise_floor, "n_terms": run.n_terms, "terms": run.selected_terms,
             "chi2_reduced": run.chi2_reduced, "model_limited": run.model_limited,

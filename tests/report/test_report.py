@@ -319,3 +319,4 @@ def test_error_text_gives_the_spread_over_folds():
     assert error_text(0.0433, 0.0041, 5) == "0.043 ± 0.004 (sd over 5 folds)"  # PDG: 41 -> one digit
     assert error_text(0.447, 0.0123, 5) == "0.447 ± 0.012 (sd over 5 folds)"  # 123 -> two digits
     assert error_text(0.0433, float("nan"), 1) == "0.0433"
+
