@@ -14,6 +14,9 @@ Example (every key optional)::
         data.detector.bandwidth: {log_uniform: [3, 30], of: cantilever.resonance_frequency}  # 3 .. 30 f0
         simulate.periods: {choice: [50, 200, 1000], mode: absolute}
         simulate.noise.detector_rms: null                                       # drop a default: keep the value
+      hidden:                    # the blind loop (afmid.coverage.loop): one entry hidden per draw
+        viscoelastic: {viscosity: {log_uniform: [50, 400], mode: absolute}}
+        none: {}                 # nothing hidden: a false alarm if an effect is named
 
 A distribution is one of ``uniform: [low, high]``, ``log_uniform: [low, high]`` (both > 0) or ``choice: [...]``
 (equally likely), and ``mode`` says what the drawn number is: ``scale`` (default; a factor on the base value),
@@ -106,6 +109,16 @@ class CoverageConfig(_Strict):
                            "(afmid.coverage.draws.default_distributions); vary adds to and overrides them")
     vary: dict[str, Distribution | None] = Field(
         default_factory=dict, description="config key (dotted) -> distribution; null drops a default")
+    diagnose: bool = Field(False, description="run the blind loop on every draw: diagnose the fit, add the top "
+                           "suggestion, refit (afmid.coverage.loop); implied by hidden")
+    hidden: dict[str, dict[str, Distribution]] = Field(
+        default_factory=dict, description="effect the fit's model lacks -> a distribution (mode absolute) per "
+        "parameter of it; each draw hides one entry, equally likely; 'none': a draw with nothing hidden")
+
+    @property
+    def loop(self) -> bool:
+        """True when the draws run the blind loop (afmid.coverage.loop)."""
+        return self.diagnose or bool(self.hidden)
 
     @model_validator(mode="after")
     def _keys_are_paths(self) -> "CoverageConfig":
@@ -120,4 +133,9 @@ class CoverageConfig(_Strict):
                                  "section (and nothing of coverage) describe a simulated experiment")
             if dist is not None and dist.of is not None and dist.of == key:
                 raise ValueError(f"coverage.vary.{key}: of names the key itself")
+        for effect, params in self.hidden.items():
+            for name, dist in params.items():
+                if dist.mode != "absolute":
+                    raise ValueError(f"coverage.hidden.{effect}.{name}: a hidden effect's parameter has no value in "
+                                     "the config to scale or shift; give mode: absolute")
         return self

@@ -8,6 +8,8 @@ flags, the summary per quantity and the provenance (merged config, afmid version
     /numbers/NAME/estimate, sigma (1 sigma), truth, z, ci95_low, ci95_high   (NaN where the draw has none)
     /numbers/NAME/in_ci95 (1 inside, 0 outside, -1 no interval), flags (comma-separated)
     /summary/NAME         attributes: n, flagged, within_1, within_2, fractions and their 95 % Wilson intervals, ...
+    /loop/hidden, suggested, error_before, error_after, named_first, raised, false_alarm, ...   the blind loop's
+                          rows (afmid.coverage.loop), its counts as JSON in the attribute ``summary``
 
 Both are written to a temporary name and renamed into place when complete (afmid.io.trace.atomic_path).
 """
@@ -56,6 +58,7 @@ def document(result) -> dict:
         "distributions": result.distributions, "seconds": result.seconds,
         "summary": [s.as_dict() for s in result.summaries],
         "summary_unflagged": [s.as_dict() for s in result.unflagged],
+        "loop": result.loop,
         "draws": result.draws,
     })
 
@@ -116,8 +119,29 @@ def _write_hdf5(path: Path, result) -> None:
             write_dataset(group, "in_ci95", inside.astype(np.int8), "1", description="1 inside, 0 outside, -1 none")
             write_dataset(group, "flags", np.array([",".join(d["numbers"].get(name, {}).get("flags", []))
                                                     for d in draws]), "")
+        if result.loop is not None:
+            _write_loop(h5.create_group("loop"), draws, result.loop)
         summary_group = h5.create_group("summary")
         for summary in result.summaries:
             group = summary_group.create_group(summary.name)
             for key, value in _plain(summary.as_dict()).items():
                 group.attrs[key] = json.dumps(value) if isinstance(value, (list, dict)) or value is None else value
+
+
+def _write_loop(group, draws: list[dict], summary: dict) -> None:
+    """/loop: one row per draw (hidden effect, suggestion, errors before and after, verdicts) and the counts."""
+    loops = [d.get("loop") or {} for d in draws]
+    write_dataset(group, "hidden", np.array([str(d.get("hidden", "")) for d in draws]), "",
+                  description="the effect hidden in the simulation ('none': nothing hidden)")
+    write_dataset(group, "suggested", np.array([str(one.get("suggested") or "") for one in loops]), "",
+                  description="the diagnosis's top suggestion ('' none)")
+    for name in ("error_before", "error_after", "noise_floor_before", "noise_floor_after"):
+        write_dataset(group, name, _column(loops, lambda one, n=name: one[n]), "1",
+                      description="cross-validated relative RMS force error (NaN: no refit)")
+    write_dataset(group, "delta_bic", _column(loops, lambda one: one["delta_bic"]), "1",
+                  description="BIC change of the top suggestion (NaN: none)")
+    for name in ("named_first", "raised", "false_alarm", "residual_alarm", "undecided"):
+        flags = _column(loops, lambda one, n=name: int(one[n]), fill=-1)
+        write_dataset(group, name, flags.astype(np.int8), "1", description="1 yes, 0 no, -1 no loop record")
+    group.attrs["summary"] = json.dumps(_plain(summary))
+

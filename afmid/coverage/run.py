@@ -20,7 +20,9 @@ import yaml
 from afmid import __version__
 from afmid.config import RunConfig, build_config, dump_config
 from afmid.coverage.config import CoverageConfig
-from afmid.coverage.draws import Draw, apply_draw, check_keys, distributions, draw, set_options
+from afmid.coverage.draws import Draw, apply_draw, check_keys, distributions, draw, set_options, yaml_text
+from afmid.coverage.loop import (NOTHING_HIDDEN, check_hidden, draw_hidden, hidden_distributions, hide, loop_summary,
+                                 loop_text)
 from afmid.coverage.summary import QuantitySummary, summarize, table_text
 from afmid.coverage.task import draw_task, run_draw
 from afmid.errors import ConfigError
@@ -43,6 +45,7 @@ class CoverageResult:
     summaries: list[QuantitySummary]
     unflagged: list[QuantitySummary]
     seconds: float
+    loop: dict | None = None  # the blind loop's counts (afmid.coverage.loop.loop_summary) when it ran
     created: str = field(default_factory=now_iso)
     version: str = __version__
 
@@ -57,8 +60,12 @@ class CoverageResult:
         one = next(d for d in self.draws if d["index"] == index)
         given = self.section.separation == "given"
         own = " ".join(f"--set {shlex.quote(o)}" for o in overrides)
-        drawn = " ".join(f"--set {shlex.quote(o)}"
-                         for o in set_options(Draw(one["index"], one["seed"], one["values"]), given))
+        options = set_options(Draw(one["index"], one["seed"], one["values"]), given)
+        if one.get("hidden", NOTHING_HIDDEN) != NOTHING_HIDDEN:  # the blind loop's hidden effect, simulated only
+            effects = [*(self.config.simulate.effects or []), one["hidden"]]
+            options += [f"simulate.effects={yaml_text(effects)}"]
+            options += [f"simulate.parameters.{k}={yaml_text(v)}" for k, v in one["hidden_parameters"].items()]
+        drawn = " ".join(f"--set {shlex.quote(o)}" for o in options)
         config = " ".join(p for p in (shlex.quote(str(config_path)), own) if p)
         fit_sets = "--set data.path=draw{0}.h5".format(index) + ("" if given else " --set sample.separation=null")
         return (f"afmid coverage {config} --seed {self.section.seed} --draw {index}\n"
@@ -79,6 +86,10 @@ class CoverageResult:
         lines.append(table_text(self.summaries, title))
         if any(s.flagged for s in self.summaries):
             lines.append(table_text(self.unflagged, "\nthe same over the numbers no flag marked:"))
+        if self.loop is not None:
+            lines.append("hidden: " + "; ".join(f"{k} {v}" for k, v in hidden_distributions(self.section).items())
+                         if self.section.hidden else "hidden: nothing (every draw a null draw)")
+            lines.append(loop_text(self.loop))
         for one in failed:
             lines.append(f"failed: draw {one['index']} (seed {one['seed']}) in {one['stage']}: {one['error']}")
         worst = max((s.worst[0] for s in self.summaries if s.worst), key=lambda w: abs(w[2]), default=None)
@@ -100,17 +111,30 @@ def prepare_draws(config: RunConfig, indices: list[int]) -> list[dict]:
     validated here, so that a config the simulation or the fit refuses stops with its one line before any work."""
     raw = yaml.safe_load(dump_config(config))
     check_keys(config, raw)
-    given = config.coverage.separation == "given"
+    section = config.coverage
+    given = section.separation == "given"
+    if section.loop:
+        from afmid.physics.effects import EFFECTS
+
+        check_hidden(section, EFFECTS, config.source)
     tasks = []
     for index in indices:
         one = draw(config, raw, index)
         simulated, fitted = apply_draw(raw, one, given)
-        tasks.append(draw_task(index, one.seed, one.values, simulated, fitted, config.source, given))
+        task = draw_task(index, one.seed, one.values, simulated, fitted, config.source, given)
+        if section.loop:
+            effect, parameters = draw_hidden(section, index)
+            task.update(simulate=hide(simulated, effect, parameters), loop=True, hidden=effect,
+                        hidden_parameters=parameters)
+        tasks.append(task)
     if tasks:
         from afmid.simulate.model import resolve_setup
 
         resolve_setup(build_config(tasks[0]["simulate"], source=config.source))
         build_config(tasks[0]["fit"], source=config.source)
+        # one task per hidden effect: its simulation config is checked before any work
+        for task in {t["hidden"]: t for t in tasks if t.get("loop")}.values():
+            resolve_setup(build_config(task["simulate"], source=config.source))
     return tasks
 
 
@@ -137,7 +161,8 @@ def run_coverage(config: RunConfig, draws: int | None = None, seed: int | None =
     results.sort(key=lambda d: d["index"])
     return CoverageResult(config, dump_config(config), section,
                           {k: d.describe() for k, d in distributions(config).items()}, results,
-                          summarize(results), summarize(results, unflagged_only=True), time.perf_counter() - started)
+                          summarize(results), summarize(results, unflagged_only=True), time.perf_counter() - started,
+                          loop=loop_summary(results) if section.loop else None)
 
 
 def _run(tasks: list[dict], jobs: int, progress: bool) -> list[dict]:

@@ -32,6 +32,8 @@ def run_draw(task: dict) -> dict:
     cv_error_noise_floor, warnings, seconds}."""
     out = {"index": task["index"], "seed": task["seed"], "values": task["values"], "status": "failed", "error": "",
            "stage": "simulate", "numbers": {}, "warnings": [], "seconds": {}}
+    if task.get("loop"):  # the effect hidden in the simulation, kept even if the draw fails
+        out.update(hidden=task["hidden"], hidden_parameters=task["hidden_parameters"])
     source = None if task.get("source") is None else Path(task["source"])
     quiet = logging.getLogger("afmid")
     level = quiet.level
@@ -57,6 +59,13 @@ def run_draw(task: dict) -> dict:
         out["seconds"]["fit"] = time.process_time() - started
         out["stage"] = "compare"
         out["numbers"] = compare(result, trace, tip_geometry(config.cantilever), task["separation_given"])
+        if task.get("loop"):  # the blind loop (afmid.coverage.loop): diagnose, add the top suggestion, refit
+            from afmid.coverage.loop import run_loop
+
+            out["stage"] = "diagnose"
+            started = time.process_time()
+            out["loop"] = run_loop(config, trace, result, task, source)
+            out["seconds"]["loop"] = time.process_time() - started
         out.update(status="ok", stage="", cv_error=float(result.cv_error),
                    cv_error_noise_floor=float(result.cv_error_noise_floor),
                    warnings=list(result.warnings))  # the trace's findings are among them
