@@ -108,6 +108,29 @@ def test_a_malformed_scheduler_address_is_one_line_before_connecting(address, ho
     assert took < 30.0, f"a malformed address took {took:.1f} s to refuse (it must not be connected to)"
 
 
+@pytest.mark.parametrize("address", ["tcp://127.0.0.1:8786", "tcp://[::1]:8786", "tls://scheduler.cluster:8786",
+                                     "tcp://node-07:1"])
+def test_a_well_formed_scheduler_address_is_taken_as_it_is(address, monkeypatch):
+    from afmid.batch.engine_dask import scheduler_address
+
+    monkeypatch.delenv("AFMID_SCHEDULER", raising=False)
+    assert scheduler_address(address) == address
+    monkeypatch.setenv("AFMID_SCHEDULER", address)
+    assert scheduler_address(None) == address
+
+
+def test_the_worker_timeout_and_its_default_are_in_the_help():
+    from click.testing import CliRunner
+
+    from afmid.batch.engine_dask import DEFAULT_WORKER_TIMEOUT
+    from afmid.cli import cli
+
+    for command in ("map", "batch"):
+        text = " ".join(CliRunner().invoke(cli, [command, "--help"]).output.split())
+        assert "--worker-timeout SECONDS" in text, command
+        assert f"(default: {DEFAULT_WORKER_TIMEOUT:g})" in text, command
+
+
 # --------------------------------------------------------------------------- servers that are not a scheduler
 @pytest.mark.parametrize("reply", [None, b"HTTP/1.0 200 OK\r\n\r\n" + b"garbage " * 512],
                          ids=["accepts-and-never-answers", "speaks-garbage"])
@@ -222,6 +245,29 @@ def test_all_workers_killed_mid_map_is_one_line_after_the_worker_timeout(cluster
     line = one_error_line(err)
     assert code == 1, err
     assert "no dask worker" in line and "--worker-timeout" in line and cluster.address in line, line
+    assert not (tmp_path / "out.h5").exists()
+    assert took < ENDS_WITHIN
+
+
+def test_a_scheduler_that_stops_answering_mid_map_is_one_line(cluster, map_file, tmp_path):
+    """The scheduler frozen (SIGSTOP) while the map's tasks are on it: its connections stay open and nothing
+    answers; the map's watch gets no answer within the connect timeout (10 s)."""
+    worker = cluster.add_worker()
+    cluster.wait_for_workers(1)
+    worker.send_signal(signal.SIGSTOP)  # no chunk finishes: the map is surely still running when the scheduler stops
+    proc = start_map(*map_args(map_file, "out.h5", cluster.address), cwd=tmp_path)
+    try:
+        wait_for_tasks(cluster, proc)
+        cluster.scheduler.send_signal(signal.SIGSTOP)
+        code, err, took = ended(proc, time.monotonic())
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        cluster.scheduler.kill()  # a stopped process dies too
+        worker.kill()
+    line = one_error_line(err)
+    assert code == 1, err
+    assert cluster.address in line and "--scheduler" in line, line
     assert not (tmp_path / "out.h5").exists()
     assert took < ENDS_WITHIN
 
