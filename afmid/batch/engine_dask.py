@@ -227,7 +227,9 @@ def _ask_scheduler(address: str, timeout: float, key: str) -> int:
         from distributed.comm import connect
         from distributed.security import Security
 
-        comm = await connect(address, timeout=timeout, **Security().get_connection_args("client"))
+        # dask's own bound is longer than this function's: a silent server is then told by asyncio.wait_for
+        # below ("did not answer"), and an error from dask's connect means a server that answered something else
+        comm = await connect(address, timeout=2 * timeout, **Security().get_connection_args("client"))
         try:
             await comm.write({"op": "identity", "reply": True})
             return await comm.read()
@@ -237,8 +239,11 @@ def _ask_scheduler(address: str, timeout: float, key: str) -> int:
     async def bounded() -> object:
         return await asyncio.wait_for(identity(), timeout)
 
-    try:
-        answer = asyncio.run(bounded())
+    from concurrent.futures import ThreadPoolExecutor
+
+    try:  # in a thread of its own: the caller's thread may already run an event loop (a notebook)
+        with ThreadPoolExecutor(1) as thread:
+            answer = thread.submit(asyncio.run, bounded()).result()
     except (asyncio.TimeoutError, TimeoutError):
         raise EngineError(f"the server at {address} accepted a connection but did not answer as a dask scheduler "
                           f"within {timeout:g} s", key=key) from None
