@@ -174,6 +174,8 @@ def test_a_batch_at_a_scheduler_with_no_worker_is_one_line(cluster, tmp_path):
     assert "Traceback" not in done.stderr
     assert len(lines) == 1 and lines[0].startswith("afmid: error: "), done.stderr
     assert "no dask worker" in lines[0] and "--worker-timeout" in lines[0], lines[0]
+    assert (tmp_path / "out" / "summary.csv").is_file(), "the summary of what finished was not written"
+    assert not list((tmp_path / "out").glob("*.run.h5"))
     assert took < ENDS_WITHIN
 
 
