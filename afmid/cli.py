@@ -26,6 +26,11 @@ _state = {"verbose": 0, "quiet": False}
 # readable=False: click's own check would print a four-line usage error; afmid.io.files.check_input_file says it in one.
 CONFIG_ARG = click.argument("config", type=click.Path(path_type=Path, readable=False))
 OVERWRITE = click.option("--overwrite", is_flag=True, help="Replace the output if it exists.")
+# None: afmid.batch.engine_dask.DEFAULT_WORKER_TIMEOUT (not imported here: `import afmid.cli` stays light)
+WORKER_TIMEOUT = click.option(
+    "--worker-timeout", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
+    help="With dask: end with an error (the finished part kept; run again to resume) when the cluster has had no "
+         "worker for this long, none joined or all lost (default: 60).")
 SET = click.option(
     "--set",
     "overrides",
@@ -203,9 +208,10 @@ def fit(
                    "afmid's own (afmid.batch.task.fit_task), e.g. a test's wrapper that injects a fault.")
 @click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
               help="Run the items on this dask cluster's workers (they must see the same paths).")
+@WORKER_TIMEOUT
 def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, configs: tuple[str, ...],
           output: Path, jobs: int | None, overrides: tuple[str, ...], force: bool, worker: str | None,
-          scheduler: str | None) -> None:
+          scheduler: str | None, worker_timeout: float | None) -> None:
     """Fit many traces with one CONFIG, or run many run configs, in parallel; resumable.
 
     \b
@@ -243,7 +249,7 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     if scheduler is not None:  # the items on an existing dask cluster (afmid.batch.engine_dask)
         from afmid.batch.engine_dask import DaskEngine, scheduler_address
 
-        engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
+        engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler), worker_timeout=worker_timeout)
         output = output.absolute()  # the workers run elsewhere: every path they get must be absolute
     try:
         result = run_batch(config, output, inputs=inputs, manifest=manifest, configs=configs, jobs=jobs,
@@ -471,11 +477,12 @@ def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
 @click.option("--diagnosis/--no-diagnosis", default=True, show_default=True,
               help="Diagnose each model-limited group of pixels (grouped by residual signature and parameters) with "
                    "the catalog, on a few representative pixels: which effect is missing where (/groups).")
+@WORKER_TIMEOUT
 @OVERWRITE
 @SET
 def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, scheduler: str | None,
                 chunk: int | None, pixel_fit: str, add_effects: tuple[str, ...], remove_effects: tuple[str, ...],
-                diagnosis: bool, overwrite: bool, overrides: tuple[str, ...]) -> None:
+                diagnosis: bool, worker_timeout: float | None, overwrite: bool, overrides: tuple[str, ...]) -> None:
     """Fit every pixel of a force map with CONFIG and write maps of the parameters.
 
     Each pixel's trace is fitted with CONFIG's model (the separation estimated per pixel:
@@ -488,7 +495,7 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     Exit code 1 if any pixel failed.
     """
     from afmid.config import dump_config, load_config
-    from afmid.batch.engine_dask import DaskEngine, scheduler_address
+    from afmid.batch.engine_dask import DaskEngine, scheduler_address, scheduler_key
     from afmid.fit.pipeline import apply_effect_changes
     from afmid.maps.run import run_map
 
@@ -497,7 +504,8 @@ def map_command(config: Path, input_path: Path, output: Path, jobs: int | None, 
     cfg = load_config(config, list(overrides))
     refuse_placeholders(config, cfg)
     apply_effect_changes(cfg, add_effects, remove_effects)
-    engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler))
+    engine = DaskEngine(jobs=jobs, scheduler=scheduler_address(scheduler), worker_timeout=worker_timeout,
+                        scheduler_key=scheduler_key(scheduler))
     counts = run_map(cfg, dump_config(cfg), input_path, output, engine, chunk=chunk, overwrite=overwrite,
                      pixel_fit=pixel_fit, diagnose=diagnosis)
     if counts["failed"]:  # the maps are written; the failed pixels are NaN there, flagged in /maps/status

@@ -46,5 +46,18 @@ class OutputError(AfmidError):
     exit_code = 1
 
 
+class EngineError(AfmidError):
+    """The engine that runs a map's chunks or a batch's items cannot go on: its dask scheduler cannot be reached,
+    does not answer, is not a dask scheduler or was lost mid-run, or it has had no worker for the worker timeout.
+
+    Raised by :class:`afmid.batch.engine_dask.DaskEngine` after it has reported every task that finished (the
+    others as unfinished); callers keep what finished (the map's chunks in its sidecar folder, the batch's run
+    files and summary), so that the same command, run again on any cluster, resumes. ``key`` names the option
+    (``--scheduler``, ``AFMID_SCHEDULER`` or ``--worker-timeout``) the user can act on.
+    """
+
+    exit_code = 1
+
+
 class DefinitionError(Exception):
     """A registry declaration is malformed. This is a programming error, not a user error."""

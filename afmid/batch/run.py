@@ -137,7 +137,7 @@ from afmid.batch.summary import (
     write_summary,
 )
 from afmid.batch.task import fit_task
-from afmid.errors import ConfigError, InputError, OutputError
+from afmid.errors import ConfigError, EngineError, InputError, OutputError
 
 __all__ = [
     "FIXED_COLUMNS", "QUANTITY_FIELDS", "RUN_SUFFIX", "STATUSES", "SUMMARY_CSV", "SUMMARY_FORMAT", "SUMMARY_H5",
@@ -327,6 +327,10 @@ def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: s
 
             engine.run(worker, [(item.index, _task(item, tmp_dir)) for item in todo], report, flush)
         flush(force_write=True)
+    except EngineError:  # the dask cluster cannot go on: the finished items' run files stay, and their summary
+        with _interrupts_held(reraise=False):
+            write_summary(output_dir, ordered(), batch_text)
+        raise
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (interrupts.Terminated)
         interrupted = exc
         interrupts.clear()  # handled here: the summary below must not be stopped by it again
