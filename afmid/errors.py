@@ -46,5 +46,12 @@ class OutputError(AfmidError):
     exit_code = 1
 
 
+class EngineError(AfmidError):
+    """An engine lost tasks it had been given (a lost or killed cluster, cancelled work): nothing is wrong with
+    the inputs, and a run that keeps its finished work (``afmid map``'s sidecar) resumes when run again."""
+
+    exit_code = 1
+
+
 class DefinitionError(Exception):
     """A registry declaration is malformed. This is a programming error, not a user error."""
