@@ -43,6 +43,10 @@ MARKER_TEXT = ("afmid map sidecar folder: the finished chunks of an unfinished `
                "run the same command again to resume it, or delete this folder to start anew\n")
 KEY_NAME = "key.json"
 CHUNK_GLOB = "chunk_*.npz"
+#: The command-line option a refusal names (the sidecar's path follows from ``afmid map -o``).
+OUTPUT_OPTION = "-o"
+LINK_REFUSAL = ("is a symbolic link; afmid keeps a map's finished chunks in a folder of this name and never follows "
+                "a link there: remove the link or choose another -o")
 #: What :func:`~afmid.batch.folder_lock.folder_lock` says a holder is.
 WRITER = "afmid map"
 #: Why a chunk file cannot be read as one (a truncated or foreign file).
@@ -151,7 +155,7 @@ def held_sidecar(folder: Path, key: dict, bounds: list[tuple[int, int]]) -> Iter
     from afmid.batch.folder_lock import folder_lock
 
     _claim(folder)
-    with folder_lock(folder, writer=WRITER):
+    with folder_lock(folder, key=OUTPUT_OPTION, writer=WRITER):
         _check_marker(folder)  # again, now that it is ours: the folder may have changed meanwhile
         sidecar = Sidecar(folder, key, bounds)
         remove = True
@@ -173,8 +177,7 @@ def _claim(folder: Path) -> None:
     except FileNotFoundError:
         mode = None
     if mode is not None and stat.S_ISLNK(mode):
-        raise OutputError("is a symbolic link; afmid keeps a map's finished chunks in a folder of this name and never "
-                          "follows a link there: remove the link or choose another -o", file=folder)
+        raise OutputError(LINK_REFUSAL, file=folder, key=OUTPUT_OPTION)
     if mode is not None:
         _check_marker(folder)
         return
@@ -184,7 +187,8 @@ def _claim(folder: Path) -> None:
         _claim(folder)
         return
     except OSError as exc:
-        raise OutputError(f"cannot create the map's sidecar folder: {exc.strerror or exc}", file=folder) from None
+        raise OutputError(f"cannot create the map's sidecar folder: {exc.strerror or exc}", file=folder,
+                          key=OUTPUT_OPTION) from None
     try:
         _write_atomically(folder / MARKER_NAME, MARKER_TEXT)
     except BaseException:
@@ -197,22 +201,21 @@ def _check_marker(folder: Path) -> None:
     """OutputError (nothing touched) unless ``folder`` is a real folder holding afmid's marker file."""
     mode = os.lstat(folder).st_mode
     if stat.S_ISLNK(mode):
-        raise OutputError("is a symbolic link; afmid keeps a map's finished chunks in a folder of this name and never "
-                          "follows a link there: remove the link or choose another -o", file=folder)
+        raise OutputError(LINK_REFUSAL, file=folder, key=OUTPUT_OPTION)
     refusal = ("exists and is not afmid's sidecar folder (no marker file " + MARKER_NAME + "); afmid keeps a map's "
                "finished chunks in a folder of this name: move or rename it, or choose another -o")
     if not stat.S_ISDIR(mode):
-        raise OutputError(refusal, file=folder)
+        raise OutputError(refusal, file=folder, key=OUTPUT_OPTION)
     try:
         fd = os.open(folder / MARKER_NAME, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
     except OSError:
-        raise OutputError(refusal, file=folder) from None
+        raise OutputError(refusal, file=folder, key=OUTPUT_OPTION) from None
     try:
         text = os.read(fd, len(MARKER_TEXT.encode()) + 1).decode("utf-8", "replace")
     finally:
         os.close(fd)
     if text != MARKER_TEXT:
-        raise OutputError(refusal, file=folder)
+        raise OutputError(refusal, file=folder, key=OUTPUT_OPTION)
 
 
 def _adopt_key(folder: Path, key: dict) -> None:
