@@ -41,6 +41,8 @@ MARKER_NAME = ".afmid-map-sidecar"
 #: The marker's first line: what the folder is (a person who finds it reads this).
 MARKER_TEXT = ("afmid map sidecar folder: the finished chunks of an unfinished `afmid map`; "
                "run the same command again to resume it, or delete this folder to start anew\n")
+#: What a marker must begin with (the rest of its text may change between versions).
+MARKER_WORDS = "afmid map sidecar folder"
 KEY_NAME = "key.json"
 CHUNK_GLOB = "chunk_*.npz"
 #: The command-line option a refusal names (the sidecar's path follows from ``afmid map -o``).
@@ -214,7 +216,7 @@ def _check_marker(folder: Path) -> None:
         text = os.read(fd, len(MARKER_TEXT.encode()) + 1).decode("utf-8", "replace")
     finally:
         os.close(fd)
-    if text != MARKER_TEXT:
+    if not text.startswith(MARKER_WORDS):
         raise OutputError(refusal, file=folder, key=OUTPUT_OPTION)
 
 

@@ -219,6 +219,22 @@ def test_a_chunk_of_another_config_is_discarded_and_fitted_again(workspace, whol
     assert_identical(whole, workspace / "mixed.h5")
 
 
+def test_a_linked_chunk_is_removed_not_followed_and_fitted_again(workspace, whole, tmp_path, caplog):
+    interrupted(workspace, "linkedchunk.h5", 2)
+    target = tmp_path / "elsewhere.npz"
+    shutil.copy(chunk_file(workspace, "linkedchunk.h5", 1), target)  # a valid chunk of this run, but behind a link
+    chunk_file(workspace, "linkedchunk.h5", 1).unlink()
+    chunk_file(workspace, "linkedchunk.h5", 1).symlink_to(target)
+    before = target.read_bytes()
+    engine = SerialEngine()
+    with caplog.at_level(logging.WARNING, logger="afmid"):
+        run(workspace, "linkedchunk.h5", engine)
+    assert engine.ran == [1, 2, 3, 4]
+    assert any("chunk_000001.npz is not a regular file" in r.getMessage() for r in caplog.records)
+    assert target.read_bytes() == before
+    assert_identical(whole, workspace / "linkedchunk.h5")
+
+
 # --------------------------------------------------------------------------- one run per output
 def test_a_second_run_on_the_same_output_refuses_naming_the_first(workspace, whole):
     refusals = []
@@ -236,6 +252,36 @@ def test_a_second_run_on_the_same_output_refuses_naming_the_first(workspace, who
     assert engine.ran == list(range(N_CHUNKS))
     assert not sidecar(workspace, "shared.h5").exists()
     assert_identical(whole, workspace / "shared.h5")
+
+
+def test_a_map_command_refuses_while_another_process_holds_the_output(workspace, capsys):
+    """Across processes, through the command line: the holder is a child process with the sidecar's lock."""
+    from afmid.cli import main
+
+    interrupted(workspace, "held.h5", 1)
+    folder = sidecar(workspace, "held.h5")
+    holder = subprocess.Popen([sys.executable, "-c",
+                               "import sys, time\nfrom pathlib import Path\nfrom afmid.batch.folder_lock import "
+                               "folder_lock\nwith folder_lock(Path(sys.argv[1]), writer='afmid map'):\n"
+                               "    print('held', flush=True)\n    time.sleep(600)\n", str(folder)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = snapshot(folder)
+        code = main(["map", str(CONFIG), "--input", str(workspace / "map.h5"), "-o", str(workspace / "held.h5"),
+                     "--chunk", str(CHUNK), "--set", "fit.seed=12345"])
+    finally:
+        holder.kill()
+        holder.wait()
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("afmid: error: ")]
+    assert code == 1 and len(lines) == 1, err
+    assert f"another afmid map is writing to this folder (pid {holder.pid} on host" in lines[0]
+    assert str(folder) in lines[0] and "Traceback" not in err
+    after = snapshot(folder)
+    assert {k: v for k, v in after.items() if k != ".afmid-batch.lock"} == \
+        {k: v for k, v in before.items() if k != ".afmid-batch.lock"}
+    assert not (workspace / "held.h5").exists()
 
 
 # --------------------------------------------------------------------------- a lost engine
