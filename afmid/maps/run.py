@@ -96,6 +96,7 @@ def _run_chunks(sidecar: Sidecar, source, config, config_text: str, output: Path
     log.info("map %dx%d (%d samples per pixel): %d chunks of %d pixels to fit on %s", source.rows, source.cols,
              source.samples, len(tasks), key["chunk"], where)
     progress = {"done": len(done)}
+    saved = set(done)
 
     def report(outcome) -> None:
         lo, hi = bounds[outcome.key]
@@ -103,6 +104,7 @@ def _run_chunks(sidecar: Sidecar, source, config, config_text: str, output: Path
             return  # stopped before it finished: fitted again on the next run
         result = outcome.result if outcome.result is not None else _crashed_chunk(lo, hi, outcome.crashed)
         sidecar.save(outcome.key, _chunk_arrays(result))
+        saved.add(outcome.key)
         progress["done"] += 1
         failed = int(np.count_nonzero(np.asarray(result["status"]) == STATUS_FAILED))
         log.info("chunk %d/%d: pixels %d-%d fitted (%d failed)", progress["done"], len(bounds), lo, hi - 1, failed)
@@ -117,6 +119,10 @@ def _run_chunks(sidecar: Sidecar, source, config, config_text: str, output: Path
         log.warning("the engine lost the map's tasks: %d of %d chunks are saved in %s; run the same command again "
                     "(on a working cluster) to resume", progress["done"], len(bounds), folder)
         raise
+    if len(saved) < len(bounds):  # an engine that gave up on tasks without raising: never a map with holes
+        raise EngineError(f"the engine finished without the results of {len(bounds) - len(saved)} of {len(bounds)} "
+                          f"chunks; the {len(saved)} finished ones are saved in {folder}: run the same command again "
+                          "to resume", file=output)
     return write_map_result(output, source, config, config_text, sidecar, diagnose=diagnose)
 
 

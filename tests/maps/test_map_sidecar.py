@@ -300,3 +300,35 @@ def test_a_lost_cluster_keeps_the_finished_chunks_and_the_same_command_resumes(w
     run(workspace, "lost.h5", engine)
     assert engine.ran == [2, 3, 4]
     assert_identical(whole, workspace / "lost.h5")
+
+
+class GivingUpEngine(SerialEngine):
+    """Fits the first ``fitted`` chunks, then reports the others with neither a result nor a crash and returns
+    (an engine that lost them without raising)."""
+
+    def __init__(self, fitted: int):
+        super().__init__()
+        self.fitted = fitted
+
+    def run(self, worker, tasks, report, tick) -> None:
+        for count, (key, task) in enumerate(tasks):
+            if count < self.fitted:
+                self.ran.append(key)
+                report(Outcome(key, worker(task)))
+            else:
+                report(Outcome(key))
+
+
+def test_an_engine_that_returns_without_every_chunk_gives_no_result_and_the_same_command_resumes(workspace, whole):
+    from afmid.errors import EngineError
+
+    with pytest.raises(EngineError) as exc:
+        run(workspace, "holes.h5", GivingUpEngine(fitted=3))
+    text = one_line_error(exc)
+    assert "2 of 5 chunks" in text and "resume" in text
+    assert not (workspace / "holes.h5").exists()
+    assert len(list(sidecar(workspace, "holes.h5").glob("chunk_*.npz"))) == 3
+    engine = SerialEngine()
+    run(workspace, "holes.h5", engine)
+    assert engine.ran == [3, 4]
+    assert_identical(whole, workspace / "holes.h5")
