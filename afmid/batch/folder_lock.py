@@ -26,13 +26,14 @@ LOCK_NAME = ".afmid-batch.lock"
 
 
 @contextlib.contextmanager
-def folder_lock(folder: Path, key: str | None = None) -> Iterator[Path]:
+def folder_lock(folder: Path, key: str | None = None, writer: str = "afmid batch") -> Iterator[Path]:
     """Hold the exclusive lock of ``folder`` (an existing folder) for the block; yields the lock file's path.
 
-    OutputError at once, naming the folder and the holder (pid, host, start time), if another process holds it.
+    OutputError at once, naming the folder and the holder (pid, host, start time), if another process holds it;
+    ``writer`` says what the holder is in that message (``afmid map`` locks its sidecar folder with it too).
     """
     path = Path(folder) / LOCK_NAME
-    fd = _acquire(path, Path(folder), key)
+    fd = _acquire(path, Path(folder), key, writer)
     try:
         try:
             os.ftruncate(fd, 0)
@@ -51,7 +52,7 @@ def folder_lock(folder: Path, key: str | None = None) -> Iterator[Path]:
         os.close(fd)
 
 
-def _acquire(path: Path, folder: Path, key: str | None) -> int:
+def _acquire(path: Path, folder: Path, key: str | None, writer: str) -> int:
     """Open and lock ``path``; a file descriptor holding the lock on the file that is now at ``path``."""
     while True:
         try:
@@ -65,7 +66,7 @@ def _acquire(path: Path, folder: Path, key: str | None) -> int:
             holder = _holder(fd)
             os.close(fd)
             if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise OutputError(f"another afmid batch is writing to this folder ({holder}); wait for it to finish "
+                raise OutputError(f"another {writer} is writing to this folder ({holder}); wait for it to finish "
                                   "or choose another output folder", file=folder, key=key) from None
             raise OutputError(f"cannot lock the folder: {exc.strerror or exc}", file=folder, key=key) from None
         try:

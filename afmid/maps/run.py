@@ -2,26 +2,26 @@
 
 The map is cut into chunks of pixels (row-major ranges), one engine task each (:func:`afmid.maps.task.fit_chunk`).
 Each finished chunk is saved as it arrives, atomically, in a sidecar folder beside the output
-(``RESULT.h5.afmid-map/``, with a ``key.json`` naming the input's SHA-256, the merged config and the chunking);
-a re-run of the same command with the same input and config skips the finished chunks (a Ctrl-C, a killed
-client or a lost cluster leave a resumable state, never a half-written ``RESULT.h5``). When every chunk is in,
-the result file is written atomically with its provenance and the sidecar removed.
+(``RESULT.h5.afmid-map/``, afmid's own: marker, lock, a ``key.json`` naming the input's SHA-256, the merged config
+and the chunking, each chunk carrying its identity: :mod:`afmid.maps.sidecar`); a re-run of the same command with
+the same input and config skips the finished chunks (a Ctrl-C, a killed client or a lost cluster
+(:class:`afmid.errors.EngineError`) leave a resumable state, never a half-written ``RESULT.h5``). When every chunk
+is in, the result file is written atomically with its provenance and the sidecar removed.
 """
 
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import math
-import shutil
 from pathlib import Path
 
 import numpy as np
 
-from afmid.errors import ConfigError, InputError
+from afmid.errors import ConfigError, EngineError, InputError
 from afmid.maps.group_diagnosis import write_groups
 from afmid.maps.pixel_fit import ROUTES
+from afmid.maps.sidecar import Sidecar, held_sidecar
 from afmid.maps.task import STATUS_FAILED, STATUS_NAMES, STATUS_OK, STATUS_SUSPECT, fit_chunk
 
 log = logging.getLogger(__name__)
@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 MAP_RESULT_FORMAT = "afmid-map-result"
 SIDECAR_SUFFIX = ".afmid-map"
 #: What a saved chunk holds (in the sidecar's key: chunks of an older layout are fitted again, not misread).
-CHUNK_LAYOUT = 2  # 2: with the residual signature (afmid.maps.residual)
+CHUNK_LAYOUT = 3  # 2: with the residual signature (afmid.maps.residual); 3: with its identity (afmid.maps.sidecar)
 #: Largest chunk (pixels) chosen by default: enough tasks to balance the workers, few enough to share the setup.
 MAX_DEFAULT_CHUNK = 128
 #: Smallest chunk chosen by default (unless the map is smaller): the shared pixel fit searches each chunk's first
@@ -77,8 +77,14 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
     key = {"input_sha256": sha256_file(source.path), "config_sha256": hashlib.sha256(config_text.encode()).hexdigest(),
            "shape": [source.rows, source.cols, source.samples], "chunk": chunk,
            "pixel_fit": pixel_fit or DEFAULT_PIXEL_FIT, "chunk_layout": CHUNK_LAYOUT}
-    folder = _open_sidecar(sidecar_for(output), key)  # made when the first chunk is saved
-    done = {i for i in range(len(bounds)) if (folder / _chunk_name(i)).is_file()}
+    with held_sidecar(sidecar_for(output), key, bounds) as sidecar:
+        return _run_chunks(sidecar, source, config, config_text, output, engine, diagnose)
+
+
+def _run_chunks(sidecar: Sidecar, source, config, config_text: str, output: Path, engine, diagnose: bool) -> dict:
+    """Fit the chunks not yet in the (claimed, locked) ``sidecar`` on ``engine``, then write ``output``."""
+    bounds, key, folder = sidecar.bounds, sidecar.key, sidecar.folder
+    done = sidecar.finished()
     if done:
         log.info("resuming: %d of %d chunks already fitted (%s)", len(done), len(bounds), folder)
     tasks = [(i, {"input": str(source.path.resolve()), "config": config_text,
@@ -88,16 +94,17 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
     where = (f"the dask cluster at {engine.scheduler}" if getattr(engine, "scheduler", None)
              else f"{engine.workers_for(len(tasks)) if tasks else 0} local workers")
     log.info("map %dx%d (%d samples per pixel): %d chunks of %d pixels to fit on %s", source.rows, source.cols,
-             source.samples, len(tasks), chunk, where)
+             source.samples, len(tasks), key["chunk"], where)
     progress = {"done": len(done)}
+    saved = set(done)
 
     def report(outcome) -> None:
         lo, hi = bounds[outcome.key]
         if outcome.result is None and not outcome.crashed:
             return  # stopped before it finished: fitted again on the next run
         result = outcome.result if outcome.result is not None else _crashed_chunk(lo, hi, outcome.crashed)
-        _make_sidecar(folder, key)
-        _save_chunk(folder / _chunk_name(outcome.key), result)
+        sidecar.save(outcome.key, _chunk_arrays(result))
+        saved.add(outcome.key)
         progress["done"] += 1
         failed = int(np.count_nonzero(np.asarray(result["status"]) == STATUS_FAILED))
         log.info("chunk %d/%d: pixels %d-%d fitted (%d failed)", progress["done"], len(bounds), lo, hi - 1, failed)
@@ -108,47 +115,19 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
         log.warning("interrupted: %d of %d chunks are saved in %s; run the same command again to resume",
                     progress["done"], len(bounds), folder)
         raise
-    counts = write_map_result(output, source, config, config_text, folder, len(bounds), key, diagnose=diagnose)
-    shutil.rmtree(folder, ignore_errors=True)
-    return counts
+    except EngineError:  # the cluster lost its tasks: they are not "failed pixels"; the same command resumes
+        log.warning("the engine lost the map's tasks: %d of %d chunks are saved in %s; run the same command again "
+                    "(on a working cluster) to resume", progress["done"], len(bounds), folder)
+        raise
+    if len(saved) < len(bounds):  # an engine that gave up on tasks without raising: never a map with holes
+        raise EngineError(f"the engine finished without the results of {len(bounds) - len(saved)} of {len(bounds)} "
+                          f"chunks; the {len(saved)} finished ones are saved in {folder}: run the same command again "
+                          "to resume", file=output)
+    return write_map_result(output, source, config, config_text, sidecar, diagnose=diagnose)
 
 
-def _chunk_name(index: int) -> str:
-    return f"chunk_{index:06d}.npz"
-
-
-def _open_sidecar(folder: Path, key: dict) -> Path:
-    """The sidecar folder for ``key``; one left by a run with another input, config or chunking is removed (the
-    map starts anew). Nothing is created here: :func:`_make_sidecar` makes it when the first chunk is saved, so a
-    run that fails before any chunk leaves nothing."""
-    if folder.is_dir():
-        try:
-            old = json.loads((folder / "key.json").read_text())
-        except (OSError, ValueError):
-            old = None
-        if old == key:
-            return folder
-        log.warning("%s holds chunks of another input, config or chunking: starting the map anew", folder)
-        shutil.rmtree(folder)
-    return folder
-
-
-def _make_sidecar(folder: Path, key: dict) -> None:
-    """Create the sidecar folder with its key (once)."""
-    from afmid.io.trace import atomic_path
-
-    key_file = folder / "key.json"
-    if key_file.is_file():
-        return
-    folder.mkdir(exist_ok=True)
-    with atomic_path(key_file) as tmp:
-        tmp.write_text(json.dumps(key))
-
-
-def _save_chunk(path: Path, result: dict) -> None:
-    """One finished chunk, written atomically (a Ctrl-C leaves it whole or absent)."""
-    from afmid.io.trace import atomic_path
-
+def _chunk_arrays(result: dict) -> dict[str, np.ndarray]:
+    """A chunk's result (afmid.maps.task.fit_chunk) as the arrays saved in the sidecar."""
     from afmid.maps.residual import SIGNATURE
 
     arrays = {k: np.asarray(result[k]) for k in ("status", "separation", "separation_sigma", "cv_error",
@@ -163,9 +142,7 @@ def _save_chunk(path: Path, result: dict) -> None:
     n = result["stop"] - result["first"]
     arrays["values"] = np.asarray(result["values"]) if result["values"] is not None else np.zeros((0, n))
     arrays["sigmas"] = np.asarray(result["sigmas"]) if result["sigmas"] is not None else np.zeros((0, n))
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
+    return arrays
 
 
 def _crashed_chunk(first: int, stop: int, why: str) -> dict:
@@ -181,31 +158,28 @@ def _crashed_chunk(first: int, stop: int, why: str) -> dict:
             "terms": [], "names": [], "units": [], "effects": [], "values": None, "sigmas": None}
 
 
-def _load_chunks(folder: Path, n_chunks: int) -> list[dict]:
-    chunks = []
-    for i in range(n_chunks):
-        with np.load(folder / _chunk_name(i), allow_pickle=False) as z:
-            chunk = {k: z[k] for k in z.files}
+def _load_chunks(sidecar: Sidecar) -> list[dict]:
+    chunks = sidecar.load_all()
+    for chunk in chunks:
         for k in ("terms", "names", "units", "effects"):
             chunk[k] = [str(v) for v in chunk[k] if str(v)]
-        chunks.append(chunk)
     return chunks
 
 
-def write_map_result(output: Path, source, config, config_text: str, folder: Path, n_chunks: int, key: dict,
-                     diagnose: bool = True) -> dict:
+def write_map_result(output: Path, source, config, config_text: str, sidecar: Sidecar, diagnose: bool = True) -> dict:
     """Assemble the saved chunks into ``output`` (atomically, with provenance), with the pixels' groups and their
     verdicts (``diagnose``: the catalog diagnosis of the model-limited groups); returns the pixel counts."""
     from afmid.io.trace import atomic_hdf5, write_dataset
     from afmid.maps.residual import CODED, SIGNATURE
 
-    chunks = _load_chunks(folder, n_chunks)
+    chunks = _load_chunks(sidecar)
+    key = sidecar.key
     shape = (source.rows, source.cols)
     n = source.n_pixels
     terms = next((c["terms"] for c in chunks if c["terms"]), [])
     if any(c["terms"] and c["terms"] != terms for c in chunks):
         raise InputError("chunks of this map were fitted with different libraries; remove the sidecar folder",
-                         file=folder)
+                         file=sidecar.folder)
     names, units, effects = [], {}, {}
     for c in chunks:
         for name, unit, effect in zip(c["names"], c["units"], c["effects"]):

@@ -47,6 +47,19 @@ SIM = dict(CONFIG, sample={"separation": 8e-9}, simulate={"model": "dmt", "param
 SIM_SETPOINT = dict(SIM, simulate=dict(SIM["simulate"], setpoint=0.9, map=dict(SIM["simulate"]["map"],
                                                                                  phases=[{"name": "m"}])))
 
+def with_sidecar_taken(link: bool):
+    """The map's files and, at the sidecar's path (``out.h5.afmid-map``), a user's folder or a link to one."""
+    def write(folder: Path) -> None:
+        files()(folder)
+        users = folder / ("elsewhere" if link else "out.h5.afmid-map")
+        users.mkdir()
+        (users / "notes.txt").write_text("my notes\n")
+        (users / "key.json").write_text("{}")
+        if link:
+            (folder / "out.h5.afmid-map").symlink_to(users, target_is_directory=True)
+    return write
+
+
 CASES = [
     case("map-input-missing", files(map_file=None), "--input", "not found", file="map.h5"),
     case("map-no-deflection-dataset", files(dataset="height"), "/deflection", "no dataset /deflection",
@@ -62,6 +75,10 @@ CASES = [
          argv=("map", "run.yaml", "--input", "map.h5", "-o", "map.h5"), file="map.h5"),
     case("map-scheduler-not-an-address", files(), "--scheduler", "tcp://HOST:PORT", exit_code=2, category="config",
          argv=MAP + ("--scheduler", "localhost")),
+    case("map-sidecar-name-taken-by-a-users-folder", with_sidecar_taken(link=False), "-o",
+         "is not afmid's sidecar folder", category="output", file="out.h5.afmid-map"),
+    case("map-sidecar-path-is-a-symlink", with_sidecar_taken(link=True), "-o", "is a symbolic link",
+         category="output", file="out.h5.afmid-map"),
     case("map-add-unknown-effect", files(), "model.effects", "--add: unknown effect", exit_code=2, category="config",
          argv=MAP + ("--add", "viscoelastik"), file="run.yaml"),
     case("simulate-map-domain-without-radius", files(config=SIM, map_file=None), "simulate.map", "radius",
