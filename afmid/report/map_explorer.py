@@ -121,7 +121,7 @@ def _maps_figure(result: dict, groups: dict | None, names: list[str], selected: 
     import plotly.graph_objects as go
     from plotly.subplots import make_subplots
 
-    from afmid.report.map_groups import group_label, missing_indices, verdict_colour
+    from afmid.report.map_groups import group_colours, group_label
 
     maps = result["maps"]
     status = maps["status"][0][::stride, ::stride]
@@ -133,8 +133,7 @@ def _maps_figure(result: dict, groups: dict | None, names: list[str], selected: 
     ends = [fig.layout[f"xaxis{'' if i == 0 else i + 1}"].domain[1] for i in range(3)]
     bar = {"len": 0.9, "thickness": 12}
     if groups is not None and groups["groups"]:
-        index = missing_indices(groups)
-        colours = [verdict_colour(g, index) for g in groups["groups"]]
+        colours = group_colours(groups)
         n = len(colours)
         scale_steps = []
         for i, colour in enumerate(colours):

@@ -19,6 +19,8 @@ from afmid.report.figures import save_figure
 #: Colours of the verdicts on the group map: a named missing effect, nothing missing, the rest.
 MISSING_COLOURS = ("#d62728", "#9467bd", "#8c564b", "#e377c2")
 NOTHING_COLOUR = "#c7e9c0"
+#: Further groups with nothing missing (two phases both at the floor): greens of other shades, told apart on the map.
+NOTHING_SHADES = (NOTHING_COLOUR, "#74c476", "#a1d99b", "#31a354")
 OTHER_COLOUR = "#ff7f0e"
 
 
@@ -96,11 +98,20 @@ def residual_figure(folder: Path, maps: dict, extent) -> tuple[str, str] | None:
             "(dissipative), and its rms over the noise of the average (afmid.diagnosis.localize per pixel)")
 
 
-def verdict_colour(group: dict, missing_index: dict) -> str:
-    """The colour of a group on the missing-effect map (``missing_index``: effect -> index, :func:`missing_indices`)."""
-    if group["effects"]:
-        return MISSING_COLOURS[missing_index[group["effects"]] % len(MISSING_COLOURS)]
-    return NOTHING_COLOUR if group["verdict"] == "nothing missing" else OTHER_COLOUR
+def group_colours(groups: dict) -> list[str]:
+    """The colour of each group on the missing-effect map: a named missing effect red (one colour per effect, the
+    same on every page), nothing missing green (a shade per such group), anything else orange."""
+    effects = sorted({g["effects"] for g in groups["groups"] if g["effects"]})
+    colours, calm = [], 0
+    for group in groups["groups"]:
+        if group["effects"]:
+            colours.append(MISSING_COLOURS[effects.index(group["effects"]) % len(MISSING_COLOURS)])
+        elif group["verdict"] == "nothing missing":
+            colours.append(NOTHING_SHADES[calm % len(NOTHING_SHADES)])
+            calm += 1
+        else:
+            colours.append(OTHER_COLOUR)
+    return colours
 
 
 def group_label(group: dict) -> str:
@@ -112,11 +123,6 @@ def group_label(group: dict) -> str:
     return f"{group['effects']} ({group['verdict'].split(':')[0]})"
 
 
-def missing_indices(groups: dict) -> dict:
-    """Each named effect's index into :data:`MISSING_COLOURS` (sorted by name: the same colour on every page)."""
-    return {e: i for i, e in enumerate(sorted({g["effects"] for g in groups["groups"] if g["effects"]}))}
-
-
 def groups_figure(folder: Path, groups: dict, extent) -> tuple[str, str] | None:
     """The group map, each group coloured by its verdict (a named effect red, nothing missing pale green)."""
     from matplotlib.colors import ListedColormap
@@ -124,8 +130,7 @@ def groups_figure(folder: Path, groups: dict, extent) -> tuple[str, str] | None:
     if not groups["groups"]:
         return None
     plt = _plt()
-    missing_index = missing_indices(groups)
-    colours = [verdict_colour(g, missing_index) for g in groups["groups"]]
+    colours = group_colours(groups)
     labels = groups["labels"].astype(float)
     n = len(colours)
     fig, ax = plt.subplots(figsize=(6.4, 4.2), layout="tight")
@@ -215,13 +220,13 @@ def groups_html(groups: dict | None, compared: dict | None, per_group: list[dict
     if figures and folder is not None:
         parts.append("".join(figure_html(folder, f, c) for f, c in figures))
     if groups is not None and groups["groups"]:
-        index = missing_indices(groups)
+        colours = group_colours(groups)
         values = {g["group"]: g["values"] for g in per_group or []}
         names = list(next(iter(values.values())).keys()) if values else []
         head = "".join(f"<th>{html.escape(n)}</th>" for n in names)
         rows = []
-        for g in groups["groups"]:
-            swatch = f"<span class='swatch' style='background:{verdict_colour(g, index)}'></span>"
+        for g, colour in zip(groups["groups"], colours):
+            swatch = f"<span class='swatch' style='background:{colour}'></span>"
             cells = "".join(f"<td>{html.escape(stats_text(values[g['group']][n]))}</td>" for n in names
                             if g["group"] in values)
             rows.append(f"<tr><td>{swatch}group {g['group']}</td><td>{html.escape(group_label(g))}</td>"
