@@ -68,9 +68,7 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
                           "of every pixel; leave drive.phase out", file=config.source, key="drive.phase")
     source = open_map(input_path, config)
     output = check_output_path(output, overwrite, inputs={config.source: "the config", input_path: "the map"})
-    # A config that also simulates the map (simulate.map) needs sample.separation for the simulation: no warning.
-    simulates_map = config.simulate is not None and getattr(config.simulate, "map", None) is not None
-    if config.sample.separation is not None and not simulates_map:
+    if separation_ignored(config):
         log.warning("sample.separation (%.4g m) is not used: the separation is estimated per pixel (topography)",
                     config.sample.separation)
     n = source.n_pixels
@@ -113,6 +111,14 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
     counts = write_map_result(output, source, config, config_text, folder, len(bounds), key, diagnose=diagnose)
     shutil.rmtree(folder, ignore_errors=True)
     return counts
+
+
+def separation_ignored(config) -> bool:
+    """Whether ``sample.separation`` is set for nothing: a map estimates the separation per pixel. A config that
+    also simulates the map (``simulate.map``) needs it for the simulation (the matrix's rest separation), so it is
+    not said to be unused there."""
+    simulates_map = config.simulate is not None and getattr(config.simulate, "map", None) is not None
+    return config.sample.separation is not None and not simulates_map
 
 
 def _chunk_name(index: int) -> str:
