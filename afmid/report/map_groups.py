@@ -51,17 +51,16 @@ def read_groups(path: Path) -> dict | None:
 
 
 def _plt():
-    import matplotlib
+    """pyplot with the single-trace report's publication style (afmid.report.figures.PAPER_STYLE)."""
+    from afmid.report.figures import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return pyplot()
 
 
 def _axes_labels(ax, extent) -> None:
     ax.set_xlabel(f"x [{extent[1]}]")
     ax.set_ylabel(f"y [{extent[1]}]")
+    ax.grid(False)  # the style's grid would be drawn over the pixels
 
 
 def residual_figure(folder: Path, maps: dict, extent) -> tuple[str, str] | None:

@@ -157,12 +157,10 @@ def _extent(shape: tuple[int, int], pixel_size: float | None):
 
 
 def _plt():
-    import matplotlib
+    """pyplot with the single-trace report's publication style (afmid.report.figures.PAPER_STYLE)."""
+    from afmid.report.figures import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return pyplot()
 
 
 def _map_figure(folder: Path, name: str, values: np.ndarray, sigma: np.ndarray | None, unit: str,
@@ -180,6 +178,7 @@ def _map_figure(folder: Path, name: str, values: np.ndarray, sigma: np.ndarray |
         ax.set_title(title)
         ax.set_xlabel(f"x [{axis_unit}]")
         ax.set_ylabel(f"y [{axis_unit}]")
+        ax.grid(False)  # the style's grid would be drawn over the pixels
         failed = np.argwhere(status >= 2)
         if failed.size:
             _mark(ax, failed, box, status.shape, "x", "red")
@@ -246,6 +245,7 @@ def _status_figure(folder: Path, status: np.ndarray, route, extent) -> tuple[str
         ax.set_title(title)
         ax.set_xlabel(f"x [{axis_unit}]")
         ax.set_ylabel(f"y [{axis_unit}]")
+        ax.grid(False)
     return save_figure(fig, folder, "map_status", dpi=90), "status per pixel (ok / suspect / failed) and how each pixel was fitted"
 
 
