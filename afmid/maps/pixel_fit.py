@@ -78,6 +78,7 @@ class PixelResult:
     evaluations: int = 0  # library evaluations (system builds) this pixel cost; 0 when not counted
     #: the residual's character (afmid.maps.residual.SIGNATURE names -> value); empty when not computed
     signature: dict = field(default_factory=dict)
+    curves: dict | None = None  # the force curves for the map explorer (afmid.maps.pixel_curves)
 
 
 class FullPixelFit:
@@ -99,15 +100,16 @@ class FullPixelFit:
 
         prep = prepare(trace, self.config.fit, from_config(self.config))
         result = fit_prepared(prep, self.library, self.config, uncertainty=self.config.fit.bootstrap > 0)
-        from afmid.maps.residual import ResidualView, signature_of
+        from afmid.maps.residual import ResidualView, view_signature
 
         est = result.nonlinear.get("d")
         view = ResidualView(result.periods, prep.blocks.harmonics, result.signal_rows, self.config,
                             {"frequency": prep.drive.frequency})
+        signature, curves = view_signature(view)
         return PixelResult(result.quantities, result.system.params["d"], est.sigma if est is not None else math.nan,
                            result.cv_error, result.cv_error_noise_floor,
                            np.asarray(result.selected[:len(self.library)], bool), list(result.warnings), ROUTE_FULL,
-                           signature=signature_of(view))
+                           signature=signature, curves=curves)
 
 
 class SharedSupportFit:
@@ -319,7 +321,7 @@ class SharedSupportFit:
         from afmid.fit.forces import force_cv_error, read_out, signal_rows
         from afmid.fit.search import NonlinearEstimate
         from afmid.fit.uncertainty import finish
-        from afmid.maps.residual import signature_of_fit
+        from afmid.maps.residual import fit_view, view_signature
 
         config, library, trace = self.config, self.library, prep.trace
         found = search.found
@@ -347,9 +349,10 @@ class SharedSupportFit:
             warnings.append(fit_warning(prep.motion, prep.noise_rms))
         finish(quantities, warnings, prep, library, system, coef, support, params, trace, config, cv_error, floor,
                read_out, True)
-        signature = signature_of_fit(prep, library, system, coef, params, rows, config)
+        signature, curves = view_signature(fit_view(prep, library, system, coef, params, rows, config))
         return PixelResult(quantities, found.value, found.sigma, cv_error, floor,
-                           np.asarray(support[:len(library)], bool), warnings, route, signature=signature), coef
+                           np.asarray(support[:len(library)], bool), warnings, route, signature=signature,
+                           curves=curves), coef
 
 
 @dataclass

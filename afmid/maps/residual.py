@@ -73,11 +73,39 @@ def signature_of(view: ResidualView) -> dict:
             "residual_snr": float(local["snr"]), "residual_dissipative_share": float(share)}
 
 
-def signature_of_fit(prep, library, system, coef, params: dict, rows: np.ndarray, config) -> dict:
-    """The residual signature of a fit in memory (prepared trace, library, system, coefficients, parameters with
-    ``d``, signal rows): the period curves on ``config.fit.phase_points`` and :func:`signature_of`."""
+def curves_of(view: ResidualView) -> dict:
+    """The pixel's force curves for the map explorer (afmid.maps.pixel_curves): the period averages over the settled
+    periods, as :func:`afmid.diagnosis.localize.localize` takes them, on the pixel's separation grid."""
+    from afmid.diagnosis.localize import band_limit
+    from afmid.maps.pixel_curves import pixel_curves
+    from afmid.preprocess.harmonics import settled_start
+
+    P = view.periods
+    first = settled_start(0.5 * (P["separation"].max(axis=1) - P["separation"].min(axis=1)))
+    inverted = P["force_inverted"][first:]
+    n_periods = inverted.shape[0]
+    sigma = (inverted.std(axis=0, ddof=1) / math.sqrt(n_periods) if n_periods > 1
+             else np.full(inverted.shape[1], np.nan))
+    residual = inverted - band_limit(P["force_model"], view)[first:]
+    return pixel_curves(P["separation"][first:].mean(axis=0), -P["velocity"][first:].mean(axis=0),
+                        {"force_inverted": inverted.mean(axis=0), "force_inverted_sigma": sigma,
+                         "force_model": P["force_model"][first:].mean(axis=0), "residual": residual.mean(axis=0)})
+
+
+def fit_view(prep, library, system, coef, params: dict, rows: np.ndarray, config) -> ResidualView:
+    """The :class:`ResidualView` of a fit in memory (prepared trace, library, system, coefficients, parameters
+    with ``d``, signal rows): its period curves on ``config.fit.phase_points``."""
     from afmid.fit.forces import period_curves
 
     periods = period_curves(prep, library, system, coef, params, rows, config.fit.phase_points, keep_curves=True)
-    return signature_of(ResidualView(periods, prep.blocks.harmonics, rows, config,
-                                     {"frequency": prep.drive.frequency}))
+    return ResidualView(periods, prep.blocks.harmonics, rows, config, {"frequency": prep.drive.frequency})
+
+
+def signature_of_fit(prep, library, system, coef, params: dict, rows: np.ndarray, config) -> dict:
+    """The residual signature of a fit in memory (arguments of :func:`fit_view`): :func:`signature_of`."""
+    return signature_of(fit_view(prep, library, system, coef, params, rows, config))
+
+
+def view_signature(view: ResidualView) -> tuple[dict, dict]:
+    """The residual signature (:func:`signature_of`) and the force curves (:func:`curves_of`) of ``view``."""
+    return signature_of(view), curves_of(view)

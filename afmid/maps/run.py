@@ -29,7 +29,9 @@ log = logging.getLogger(__name__)
 MAP_RESULT_FORMAT = "afmid-map-result"
 SIDECAR_SUFFIX = ".afmid-map"
 #: What a saved chunk holds (in the sidecar's key: chunks of an older layout are fitted again, not misread).
-CHUNK_LAYOUT = 3  # 2: with the residual signature (afmid.maps.residual); 3: with its identity (afmid.maps.sidecar)
+#: 2: with the residual signature (afmid.maps.residual); 3: with its identity (afmid.maps.sidecar); 4: with each
+#: pixel's force curves (afmid.maps.pixel_curves).
+CHUNK_LAYOUT = 4
 #: Largest chunk (pixels) chosen by default: enough tasks to balance the workers, few enough to share the setup.
 MAX_DEFAULT_CHUNK = 128
 #: Smallest chunk chosen by default (unless the map is smaller): the shared pixel fit searches each chunk's first
@@ -68,7 +70,7 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
                           "of every pixel; leave drive.phase out", file=config.source, key="drive.phase")
     source = open_map(input_path, config)
     output = check_output_path(output, overwrite, inputs={config.source: "the config", input_path: "the map"})
-    if config.sample.separation is not None:
+    if separation_ignored(config):
         log.warning("sample.separation (%.4g m) is not used: the separation is estimated per pixel (topography)",
                     config.sample.separation)
     n = source.n_pixels
@@ -126,13 +128,22 @@ def _run_chunks(sidecar: Sidecar, source, config, config_text: str, output: Path
     return write_map_result(output, source, config, config_text, sidecar, diagnose=diagnose)
 
 
+def separation_ignored(config) -> bool:
+    """Whether ``sample.separation`` is set for nothing: a map estimates the separation per pixel. A config that
+    also simulates the map (``simulate.map``) needs it for the simulation (the matrix's rest separation), so it is
+    not said to be unused there."""
+    simulates_map = config.simulate is not None and getattr(config.simulate, "map", None) is not None
+    return config.sample.separation is not None and not simulates_map
+
+
 def _chunk_arrays(result: dict) -> dict[str, np.ndarray]:
     """A chunk's result (afmid.maps.task.fit_chunk) as the arrays saved in the sidecar."""
     from afmid.maps.residual import SIGNATURE
+    from afmid.maps.pixel_curves import CHUNK_KEYS
 
     arrays = {k: np.asarray(result[k]) for k in ("status", "separation", "separation_sigma", "cv_error",
                                                  "cv_error_noise_floor", "selected", "route", "evaluations",
-                                                 *SIGNATURE)}
+                                                 *SIGNATURE, *CHUNK_KEYS)}
     arrays["message"] = np.array(result["message"], dtype=str)
     arrays["range"] = np.array([result["first"], result["stop"]])
     arrays["terms"] = np.array(result["terms"] or [""], dtype=str)
@@ -146,12 +157,14 @@ def _chunk_arrays(result: dict) -> dict[str, np.ndarray]:
 
 
 def _crashed_chunk(first: int, stop: int, why: str) -> dict:
+    from afmid.maps.pixel_curves import collect
     from afmid.maps.residual import SIGNATURE, empty_signature
 
     n = stop - first
     nan = np.full(n, np.nan)
     unfitted = empty_signature()
     return {"first": first, "stop": stop, "status": np.full(n, STATUS_FAILED, np.int8), "message": [why] * n,
+            **collect([None] * n),
             **{k: np.full(n, unfitted[k]) for k in SIGNATURE},
             "separation": nan, "separation_sigma": nan, "cv_error": nan, "cv_error_noise_floor": nan,
             "selected": np.zeros(n, np.int64), "route": np.full(n, -1, np.int8), "evaluations": np.zeros(n, np.int32),
@@ -170,6 +183,7 @@ def write_map_result(output: Path, source, config, config_text: str, sidecar: Si
     """Assemble the saved chunks into ``output`` (atomically, with provenance), with the pixels' groups and their
     verdicts (``diagnose``: the catalog diagnosis of the model-limited groups); returns the pixel counts."""
     from afmid.io.trace import atomic_hdf5, write_dataset
+    from afmid.maps.pixel_curves import merge_chunks, write_pixel_curves
     from afmid.maps.residual import CODED, SIGNATURE
 
     chunks = _load_chunks(sidecar)
@@ -245,6 +259,7 @@ def write_map_result(output: Path, source, config, config_text: str, sidecar: Si
                 data = np.where(np.isfinite(data), data, -1).astype(np.int8)
             write_dataset(maps, name, data, unit, meaning=meaning)
         write_groups(h5, grouping, verdicts)
+        write_pixel_curves(h5, merge_chunks(chunks), shape)
         model = h5.create_group("model")
         write_dataset(model, "terms", np.array(terms or [""]), "1")
         if source.x is not None:

@@ -34,6 +34,7 @@ def fit_chunk(task: dict) -> dict:
 
     Returns ``{"first", "stop", "status", "message", "separation", "separation_sigma", "cv_error",
     "cv_error_noise_floor", "selected" (bit mask per pixel), the residual signature (afmid.maps.residual.SIGNATURE),
+    "curve_NAME" (each pixel's force curves, pixels first: afmid.maps.pixel_curves.CURVES),
     "terms", "names", "units", "values", "sigmas", "seconds"}`` (values/sigmas: (n_quantities, n_pixels), SI, sigma = 1 sigma bootstrap).
     """
     import time
@@ -45,6 +46,7 @@ def fit_chunk(task: dict) -> dict:
     from afmid.physics.tips import tip_geometry
     from afmid.maps.pixel_fit import DEFAULT_PIXEL_FIT, PIXEL_FITS
     from afmid.maps.input_file import open_map, pixel_trace, read_pixels
+    from afmid.maps.pixel_curves import collect
     from afmid.maps.residual import SIGNATURE, empty_signature
 
     started = time.perf_counter()
@@ -73,6 +75,7 @@ def fit_chunk(task: dict) -> dict:
     if len(library.names) > 63:
         raise ValueError("the selected-term bit mask holds at most 63 terms")
     per_pixel: list[dict | None] = [None] * n
+    curves: list[dict | None] = [None] * n  # each pixel's force curves (afmid.maps.pixel_curves)
     strategy = PIXEL_FITS.get(task.get("pixel_fit") or DEFAULT_PIXEL_FIT)(config, library)
     failures = (ValueError, FloatingPointError, np.linalg.LinAlgError, ArithmeticError)
     traces: list = [None] * n  # the chunk's traces first: a strategy may use what they share (the drive)
@@ -103,6 +106,7 @@ def fit_chunk(task: dict) -> dict:
         finally:
             logger.setLevel(level)
         per_pixel[i] = result.quantities
+        curves[i] = result.curves
         out["separation"][i] = result.separation
         out["separation_sigma"][i] = result.separation_sigma
         out["cv_error"][i] = result.cv_error
@@ -139,6 +143,7 @@ def fit_chunk(task: dict) -> dict:
                 values[k, i] = q[name]["value"]
                 sigmas[k, i] = q[name]["error"]
     out["values"], out["sigmas"] = values, sigmas
+    out.update(collect(curves))
     out["seconds"] = time.perf_counter() - started
     return out
 

@@ -19,6 +19,8 @@ from afmid.report.figures import save_figure
 #: Colours of the verdicts on the group map: a named missing effect, nothing missing, the rest.
 MISSING_COLOURS = ("#d62728", "#9467bd", "#8c564b", "#e377c2")
 NOTHING_COLOUR = "#c7e9c0"
+#: Further groups with nothing missing (two phases both at the floor): greens of other shades, told apart on the map.
+NOTHING_SHADES = (NOTHING_COLOUR, "#74c476", "#a1d99b", "#31a354")
 OTHER_COLOUR = "#ff7f0e"
 
 
@@ -49,17 +51,16 @@ def read_groups(path: Path) -> dict | None:
 
 
 def _plt():
-    import matplotlib
+    """pyplot with the single-trace report's publication style (afmid.report.figures.PAPER_STYLE)."""
+    from afmid.report.figures import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return pyplot()
 
 
 def _axes_labels(ax, extent) -> None:
     ax.set_xlabel(f"x [{extent[1]}]")
     ax.set_ylabel(f"y [{extent[1]}]")
+    ax.grid(False)  # the style's grid would be drawn over the pixels
 
 
 def residual_figure(folder: Path, maps: dict, extent) -> tuple[str, str] | None:
@@ -96,13 +97,24 @@ def residual_figure(folder: Path, maps: dict, extent) -> tuple[str, str] | None:
             "(dissipative), and its rms over the noise of the average (afmid.diagnosis.localize per pixel)")
 
 
-def _verdict_colour(group: dict, missing_index: dict) -> str:
-    if group["effects"]:
-        return MISSING_COLOURS[missing_index[group["effects"]] % len(MISSING_COLOURS)]
-    return NOTHING_COLOUR if group["verdict"] == "nothing missing" else OTHER_COLOUR
+def group_colours(groups: dict) -> list[str]:
+    """The colour of each group on the missing-effect map: a named missing effect red (one colour per effect, the
+    same on every page), nothing missing green (a shade per such group), anything else orange."""
+    effects = sorted({g["effects"] for g in groups["groups"] if g["effects"]})
+    colours, calm = [], 0
+    for group in groups["groups"]:
+        if group["effects"]:
+            colours.append(MISSING_COLOURS[effects.index(group["effects"]) % len(MISSING_COLOURS)])
+        elif group["verdict"] == "nothing missing":
+            colours.append(NOTHING_SHADES[calm % len(NOTHING_SHADES)])
+            calm += 1
+        else:
+            colours.append(OTHER_COLOUR)
+    return colours
 
 
-def _label(group: dict) -> str:
+def group_label(group: dict) -> str:
+    """A group's verdict in a few words: ``viscoelastic missing``, ``nothing missing``."""
     if not group["effects"]:
         return group["verdict"]
     if group["verdict"].startswith("missing"):
@@ -117,16 +129,14 @@ def groups_figure(folder: Path, groups: dict, extent) -> tuple[str, str] | None:
     if not groups["groups"]:
         return None
     plt = _plt()
-    effects = sorted({g["effects"] for g in groups["groups"] if g["effects"]})
-    missing_index = {e: i for i, e in enumerate(effects)}
-    colours = [_verdict_colour(g, missing_index) for g in groups["groups"]]
+    colours = group_colours(groups)
     labels = groups["labels"].astype(float)
     n = len(colours)
     fig, ax = plt.subplots(figsize=(6.4, 4.2), layout="tight")
     image = ax.imshow(np.where(labels >= 0, labels, np.nan), extent=extent[0], cmap=ListedColormap(colours),
                       vmin=-0.5, vmax=n - 0.5, interpolation="nearest")
     bar = fig.colorbar(image, ax=ax, ticks=range(n))
-    bar.ax.set_yticklabels([f"group {g['group']}: " + _label(g) for g in groups["groups"]], fontsize=7)
+    bar.ax.set_yticklabels([f"group {g['group']}: " + group_label(g) for g in groups["groups"]], fontsize=7)
     ax.set_title("which effect is missing where")
     _axes_labels(ax, extent)
     return (save_figure(fig, folder, "map_missing_effect", dpi=90),
@@ -192,17 +202,53 @@ def comparison_lines(compared: dict) -> list[str]:
     return lines
 
 
-def groups_html(groups: dict | None, compared: dict | None) -> str:
-    """The section of the page: the map's verdict, one sentence per group, and the fall of the error."""
+def groups_html(groups: dict | None, compared: dict | None, per_group: list[dict] | None = None,
+                figures: list[tuple[str, str]] | None = None, folder: Path | None = None) -> str:
+    """The opening of the page: the map's verdict, the missing-effect map (and the error before and after), the
+    groups with their verdicts and parameter values (afmid.report.map_values), one sentence per group."""
+    from afmid.report.figures import figure_html
+    from afmid.report.map_values import stats_text
+
     parts = []
     if groups is not None:
+        found = any(g["effects"] and g["verdict"].startswith("missing") for g in groups["groups"])
+        other = any(not g["effects"] and g["verdict"] != "nothing missing" for g in groups["groups"])
+        kind = "found" if found else ("unexplained" if other else "")
+        parts.append(f"<h2>Which effect is missing where</h2><div class='verdict {kind}'><p><b>"
+                     f"{html.escape(groups['summary'])}</b></p></div>")
+    if figures and folder is not None:
+        parts.append("".join(figure_html(folder, f, c) for f, c in figures))
+    if groups is not None and groups["groups"]:
+        colours = group_colours(groups)
+        values = {g["group"]: g["values"] for g in per_group or []}
+        names = list(next(iter(values.values())).keys()) if values else []
+        head = "".join(f"<th>{html.escape(n)}</th>" for n in names)
+        rows = []
+        for g, colour in zip(groups["groups"], colours):
+            swatch = f"<span class='swatch' style='background:{colour}'></span>"
+            cells = "".join(f"<td>{html.escape(stats_text(values[g['group']][n]))}</td>" for n in names
+                            if g["group"] in values)
+            rows.append(f"<tr><td>{swatch}group {g['group']}</td><td>{html.escape(group_label(g))}</td>"
+                        f"<td>{g['pixels']} ({100 * g['fraction']:.0f} %)</td><td>{g['error_over_floor']:.2f}x</td>"
+                        f"{cells}</tr>")
+        parts.append("<table><tr><th>group</th><th>verdict</th><th>pixels</th><th>error / noise floor (median)</th>"
+                     f"{head}</tr>{''.join(rows)}</table><p><small>Values per group: median (16-84 %) over the "
+                     "group's fitted pixels (ok and suspect); a model-limited group's values carry the missing effect "
+                     "(refit with it before using them).</small></p>")
         items = "".join(f"<li>{html.escape(g['sentence'])}</li>" for g in groups["groups"])
-        parts.append(f"<h2>Which effect is missing where</h2><p><b>{html.escape(groups['summary'])}</b></p>"
-                     f"<ul>{items}</ul><p><small>{html.escape(groups['method'])}</small></p>")
+        parts.append(f"<ul>{items}</ul><p><small>{html.escape(groups['method'])}</small></p>")
     if compared is not None:
         items = "".join(f"<li>{html.escape(line)}</li>" for line in comparison_lines(compared))
         parts.append(f"<h2>Before and after</h2><ul>{items}</ul>")
     return "".join(parts)
+
+
+def group_value_lines(per_group: list[dict], names: list[str]) -> list[str]:
+    """The parameter values per group for the terminal."""
+    from afmid.report.map_values import stats_text
+
+    return [f"  group {g['group']}: " + "; ".join(f"{n} {stats_text(g['values'][n])}" for n in names)
+            for g in per_group]
 
 
 def groups_summary(groups: dict | None, compared: dict | None) -> dict:

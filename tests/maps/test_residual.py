@@ -75,3 +75,65 @@ def test_a_missing_viscous_force_is_dissipative_in_contact_and_the_complete_mode
     assert complete["residual_snr"] < COMPLETE_SNR and complete["residual_snr"] < missing["residual_snr"], (missing,
                                                                                                           complete)
     assert CHARACTERS[complete["residual_character"]] == "none" and math.isfinite(complete["residual_dissipative_share"])
+
+
+def test_the_stored_force_curves_are_the_period_averages_the_signature_breaks_down(fits):
+    """afmid.maps.pixel_curves (issue 33, the map explorer): the curves kept per pixel, from the fit in memory, equal
+    the same resampling of the run file's period curves; the grid spans the orbit's separation, dense at the turn;
+    the model of a conservative law ([dmt]) is the same on both branches, and the viscous force the [dmt] fit lacks
+    shows as a difference of the inverted force between approach and retraction in contact, many sigma wide."""
+    import numpy as np
+
+    from afmid.maps.pixel_curves import CURVE_POINTS
+    from afmid.maps.residual import curves_of, fit_view
+
+    stored = {}
+    for effects, (result, run, config) in fits.items():
+        memory = curves_of(fit_view(result.prep, result.library, result.system, result.coef, result.system.params,
+                                    result.signal_rows, config))
+        from_file = curves_of(run)  # a run file is a view too (what localize reads)
+        for name, value in memory.items():
+            scale = np.nanmax(np.abs(from_file[name]))
+            np.testing.assert_allclose(value, from_file[name], rtol=0, atol=1e-9 * scale, err_msg=name)
+        z = memory["separation"]
+        orbit = run.periods["separation"].mean(axis=0)
+        assert z.shape == (CURVE_POINTS,) and memory["force_inverted"].shape == (2, CURVE_POINTS)
+        # The grid's ends are the orbit's extremes over the settled periods (here every period: a steady record).
+        assert z[0] == pytest.approx(orbit.min(), abs=0.02 * (orbit.max() - orbit.min()))
+        assert z[-1] == pytest.approx(orbit.max(), abs=0.02 * (orbit.max() - orbit.min()))
+        assert np.all(np.diff(z) > 0) and (z[1] - z[0]) < (z[-1] - z[-2]) / 20  # quadratic: 1 vs 61 steps
+        stored[effects] = memory
+    dmt = stored[("dmt",)]
+    peak = np.max(np.abs(dmt["force_model"]))
+    contact = dmt["separation"] <= fits[("dmt",)][2].sample.a0
+    assert contact.sum() >= 3, dmt["separation"]
+    # Conservative law: each branch is interpolated linearly between its phase points, so at a grid point it is off
+    # the law by at most one step of the period-averaged model force between neighbouring phase points: the two
+    # branches differ by at most two such steps.
+    model = fits[("dmt",)][1].periods["force_model"].mean(axis=0)
+    step = np.max(np.abs(np.diff(np.r_[model, model[:1]])))
+    difference = np.max(np.abs(dmt["force_model"][0] - dmt["force_model"][1]))
+    assert difference <= 2 * step, (difference, step, peak)
+    gap = np.abs(dmt["force_inverted"][0] - dmt["force_inverted"][1])[contact]
+    sigma = np.hypot(dmt["force_inverted_sigma"][0], dmt["force_inverted_sigma"][1])[contact]
+    assert np.max(gap / sigma) > 5, (gap, sigma)
+    # The residual in contact falls when the missing effect is added.
+    complete = stored[("dmt", "viscoelastic")]
+    rms = {k: float(np.sqrt(np.mean(v["residual"][:, contact] ** 2))) for k, v in (("dmt", dmt), ("visco", complete))}
+    assert rms["visco"] < 0.5 * rms["dmt"], rms
+
+
+def test_the_demo_map_config_is_not_told_its_separation_is_unused():
+    """Issue 33: `make demo-map` warned "sample.separation is not used" for configs/maps/blend_hidden_viscous.yaml,
+    whose separation the simulation of the map needs; a config for measured data (no simulate.map) is still told."""
+    from afmid.config import build_config
+    from afmid.maps.run import separation_ignored
+    from repo_paths import REPO_ROOT
+
+    path = REPO_ROOT / "configs" / "maps" / "blend_hidden_viscous.yaml"
+    raw = yaml.safe_load(path.read_text())
+    assert not separation_ignored(build_config(raw, source=path))
+    del raw["simulate"]
+    assert separation_ignored(build_config(raw, source=path))
+    raw["sample"].pop("separation")
+    assert not separation_ignored(build_config(raw, source=path))

@@ -90,10 +90,35 @@ def test_map_report_page_is_self_contained_and_names_units_and_failed_pixels(rep
     assert len(sources) == len(list(out.glob("*.png")))
     assert not re.search(r"<(script|link|iframe)\b", page, flags=re.I)
     links = re.findall(r"""\bhref\s*=\s*["']([^"']*)""", page, flags=re.I)
-    assert links and all(re.fullmatch(r"[\w.-]+\.svg", link) for link in links)  # only the SVGs beside the page
+    # only the SVGs beside the page, and the map explorer (issue 33)
+    assert links and all(re.fullmatch(r"[\w.-]+\.svg", link) or link == "explorer.html" for link in links)
+    assert "explorer.html" in links
     check_report_svgs(out)
     assert "E_star [MPa]" in page and "[nm]" in page and "[zJ]" in page
     assert f"pixel (row {BAD_PIXEL[0]}, col {BAD_PIXEL[1]})" in page and "NaN" in page
+    assert "[]" not in page  # issue 33: a dimensionless map's caption had an empty unit
+
+
+@pytest.mark.slow
+def test_map_report_opens_with_the_missing_effect_map_and_values_per_group(report):
+    """Issue 33: the answer first (which effect is missing where, then each group's values), the maps after; the
+    values per group are the medians over the group's fitted pixels of the result file."""
+    ws, text = report
+    page = (ws / "rep" / "report.html").read_text(encoding="utf-8")
+    answer = page.index("Which effect is missing where")
+    assert answer < page.index('alt="E_star [MPa]') and answer < page.index("Over the whole map")
+    assert page.index("map_missing_effect.svg") < page.index('alt="E_star [MPa]')
+    summary = json.loads((ws / "rep" / "summary.json").read_text())
+    with h5py.File(ws / "result.h5", "r") as h5:
+        labels, status, e_star = h5["maps/group"][()], h5["maps/status"][()], h5["maps/E_star"][()]
+    groups = summary["parameters_per_group"]
+    assert [g["group"] for g in groups] == [g["group"] for g in summary["groups"]["groups"]]
+    for g in groups:
+        members = (labels == g["group"] - 1) & (status < 2)
+        e = g["values"]["E_star"]
+        assert e["pixels"] == int(members.sum()) and e["unit"] == "MPa"
+        np.testing.assert_allclose(e["median"], np.median(e_star[members]) * 1e-6, rtol=1e-12)
+        assert f"{e['median']:.4g} MPa" in page and f"group {g['group']}: E_star {e['median']:.4g} MPa" in text
 
 
 @pytest.mark.slow
