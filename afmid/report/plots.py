@@ -294,9 +294,9 @@ def compared_harmonics(local: dict) -> np.ndarray:
     return np.arange(min(top, spectrum.size - 1) + 1)
 
 
-def fig_residual(local: dict, folder: Path, a0: float | None = None) -> str:
+def fig_residual(local: dict, folder: Path, a0: float | None = None, name: str = "residual") -> str:
     """Systematic residual vs separation by direction, by region and direction, by harmonic (the axis runs over
-    the harmonics the comparison keeps)."""
+    the harmonics the comparison keeps); written as ``name`` (.png, .svg)."""
     plt = _plt()
     fig, axes = plt.subplots(1, 3, figsize=(FULL_WIDTH, 2.6), gridspec_kw={"width_ratios": [1.5, 1, 0.9]})
     z, r, noise, zdot = (local["mean_separation"], local["mean_residual"], local["mean_noise"], local["mean_rate"])
@@ -338,7 +338,7 @@ def fig_residual(local: dict, folder: Path, a0: float | None = None) -> str:
     axes[2].grid(axis="x", visible=False)
     axes[2].set(xlabel="harmonic of the drive", ylabel="residual amplitude (nN)",
                 title=f"(c) by harmonic (0–{top})")
-    return _save(fig, folder, "residual")
+    return _save(fig, folder, name)
 
 
 def fig_periods(run: RunData, local: dict, folder: Path, energy: dict | None = None) -> str:
@@ -449,9 +449,10 @@ def fig_error_runs(runs: list[RunData], folder: Path, summary: dict | None = Non
     return _save(fig, folder, "error_by_run")
 
 
-def fig_suggestions(summary: dict, folder: Path) -> str | None:
+def fig_suggestions(summary: dict, folder: Path, name: str = "suggestions") -> str | None:
     """Every candidate effect: the evidence for it (−ΔBIC, bars from 0 on a symlog axis: right = evidence for,
-    left = against) and the cross-validated error after adding it."""
+    left = against) and the cross-validated error after adding it; ``summary``: a diagnosis with ``tried`` and
+    ``diagnosis`` (its ``error``, ``noise_floor``); written as ``name`` (.png, .svg), None when nothing was tried."""
     tried = summary.get("tried") or []
     diag = summary.get("diagnosis") or {}
     if not tried:
@@ -486,4 +487,4 @@ def fig_suggestions(summary: dict, folder: Path) -> str | None:
     axes[1].grid(axis="y", visible=False)
     axes[1].set(xlabel="cross-validated error after adding it", title="error with the candidate added")
     axes[1].legend(fontsize=6.5, loc="upper right")
-    return _save(fig, folder, "suggestions")
+    return _save(fig, folder, name)
