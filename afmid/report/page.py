@@ -29,6 +29,7 @@ from afmid.io.trace import now_iso
 from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import effect_for, tip_geometry
 from afmid.diagnosis.checklist import check_lines
+from afmid.diagnosis.candidate_shapes import shape_words
 from afmid.fit.uncertainty import INTERVALS_STATISTICAL, STATISTICAL_ONLY_TEXT, calibration_declared, intervals_kind
 from afmid.report.figures import figure_html
 from afmid.report.folder import report_folder
@@ -293,13 +294,19 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
         rows = [[t["effect"], _fmt(t["error_after"], digits=3),
                  format_delta_bic(t["delta_bic"]) if t["delta_bic"] is not None else "–",
                  "yes" if t["significant"] else "no",
-                 ", ".join([f"{k} = {format_value(v['value'], v['unit'])}" for k, v in t["parameters"].items()
-                            if v["value"] is not None and math.isfinite(v["value"])]
-                           + [f"{k} = {format_value(v, 'm')}" for k, v in t.get("nonlinear", {}).items()]),
+                 fitted_text(t),
                  t["evidence"]] for t in summary["tried"]]
         parts.append(_table(["effect", "error after", "ΔBIC", "accepted", "fitted", "evidence"], rows))
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def fitted_text(tried: dict) -> str:
+    """A candidate's fitted values in the 'Effects tried' table: its read-outs and its shape parameters, each in
+    the display unit of its declared unit (a relaxation time in µs, a decay length in nm)."""
+    readouts = [f"{k} = {format_value(v['value'], v['unit'])}" for k, v in tried["parameters"].items()
+                if v["value"] is not None and math.isfinite(v["value"])]
+    return ", ".join(readouts + shape_words(tried["effect"], tried.get("nonlinear", {})))
 
 
 # --------------------------------------------------------------------------- main
