@@ -260,7 +260,9 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                       "measured period-to-period spread (±2σ): a model that misses an effect stands outside the band"))
     parts.append(_img(folder, figures["observables"],
                       "Tapping-mode observables per period, measured (dots) and as the identified model predicts "
-                      "(dashed; the model re-simulated)" + (", truth grey" if last.truth is not None else "") + ": "
+                      "(dashed; the model re-simulated)" + (", truth grey (the simulation's noise-free deflection through the "
+                      "same formulas, periods and drive as the measured dots: they differ by the detector noise)"
+                      if last.truth is not None else "") + ": "
                       "(a) amplitude A/A0 and (b) phase φ − φ0 of the deflection's first harmonic vs the free "
                       "oscillation (A0, φ0: the cantilever model k, f0, Q driven by the drive); (c) power dissipated "
                       "in the sample, π A (F0 sin φ − c ω A) f (Cleveland et al. 1998), and (d) the virial "

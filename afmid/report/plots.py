@@ -370,7 +370,7 @@ def fig_observables(run: RunData, folder: Path, resim: dict | None) -> str:
     lever = observables.run_lever(run)
     measured = observables.measured_observables(run, lever)
     model = observables.model_observables(resim, lever) if resim is not None else {}
-    truth = _truth_observables(run)
+    truth = {k: float(np.mean(v)) for k, v in observables.truth_observables(run, lever).items()}
     power_scale, power_unit = display_unit("W")
     energy_scale, energy_unit = display_unit("J")
     panels = (("amplitude_ratio", 1.0, "A / A0 (1)", "(a) amplitude vs the free oscillation"),
@@ -392,29 +392,6 @@ def fig_observables(run: RunData, folder: Path, resim: dict | None) -> str:
         ax.set_xlabel("period")
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncol=3, fontsize=6.5)
     return _save(fig, folder, "observables")
-
-
-def _truth_observables(run: RunData) -> dict[str, float]:
-    """Amplitude ratio, phase shift (from the simulator's steady state) and the dissipated power and virial (the
-    true force over the record's whole periods), for a simulated trace with the true drive; {} otherwise."""
-    truth = run.truth
-    if truth is None or "steady_amplitude" not in truth.extra or truth.force.size != run.force["time"].size:
-        return {}
-    ex = truth.extra
-    lever = observables.Cantilever(run.cantilever["spring_constant"], run.cantilever["resonance_frequency"],
-                                   run.cantilever["quality_factor"], ex["drive_frequency"],
-                                   ex["drive_force_amplitude"])
-    a0, phi0 = observables.free_oscillation(lever)
-    t = run.force["time"]
-    period = 1.0 / ex["drive_frequency"]
-    whole = int((t[-1] - t[0]) // period)
-    inside = t < t[0] + whole * period
-    x = ex["separation"] - truth.separation[inside]
-    force, velocity = truth.force[inside], truth.velocity[inside]
-    dt = float(t[1] - t[0])
-    return {"amplitude_ratio": ex["steady_amplitude"] / a0, "phase_shift": ex["steady_phase"] - phi0,
-            "dissipated_power": float(np.sum(force * velocity) * dt / (whole * period)),
-            "virial": float(-np.mean(force * (x - x.mean())))}
 
 
 def fig_error_runs(runs: list[RunData], folder: Path, summary: dict | None = None) -> str:
