@@ -246,15 +246,18 @@ def fig_force_separation(run: RunData, folder: Path) -> str:
         ax.plot(zb, mb, color=MODEL, lw=1.2, label="model, same harmonics")
         zf, mf, _ = _branch_curves(run, P["force_model"], approach)
         ax.plot(zf, mf, color=MODEL, lw=0.8, ls="--", label="model, full bandwidth")
-        if truth is not None and truth.force.size == truth.separation.size == truth.velocity.size:
-            moving = truth.velocity > 0 if approach else truth.velocity <= 0  # dz/dt = -dx/dt: approach has dx/dt > 0
-            step = max(1, truth.force.size // 20000)
-            ax.plot(truth.separation[moving][::step] * NM, truth.force[moving][::step] * NN, ",", color=TRUTH,
-                    alpha=0.5, rasterized=True)  # thousands of points: an image inside the SVG
-            ax.plot([], [], ".", color=TRUTH, ms=3, label="true force (simulation)")
+        true_curve = _true_branch(run, approach)
+        if true_curve is not None:  # a line, drawn last: single pixels of every sample were invisible
+            ax.plot(*true_curve, color=TRUTH, lw=1.0, label="true force (simulation, one steady period)", zorder=5)
         ax.set(xlabel="separation z (nm)", title=title)
     axes[0].set_ylabel(FORCE_LABEL)
     axes[0].legend(fontsize=6.5, loc="lower right")
+    kept = signal_harmonics(run)
+    if kept:  # the band-limited curves ring: attraction far out, a zero crossing below contact
+        axes[1].text(0.98, 0.98, textwrap.fill(f"solid: drive harmonics ≤ {max(kept)} only; their ripples (attraction "
+                                               "far from the sample, crossings below contact) are this bandwidth, "
+                                               "not the force; dashed and grey: full bandwidth", 48),
+                     transform=axes[1].transAxes, fontsize=6.2, va="top", ha="right", color="0.25")
     note = no_contact_note(run)
     for ax in axes:
         if not note:
@@ -264,6 +267,24 @@ def fig_force_separation(run: RunData, folder: Path) -> str:
         axes[0].text(0.02, 0.98, textwrap.fill(note, 60), transform=axes[0].transAxes, fontsize=6.5, va="top",
                      ha="left")
     return _save(fig, folder, "force_separation")
+
+
+def _true_branch(run: RunData, approach: bool) -> tuple[np.ndarray, np.ndarray] | None:
+    """(z nm, F nN) of the simulation's true force over one steady period in the middle of the record, on one
+    branch (approach: dz/dt < 0), sorted by separation; None without a truth aligned with the samples."""
+    truth, F = run.truth, run.force
+    if truth is None or not (truth.force.size == truth.separation.size == truth.velocity.size == F["time"].size):
+        return None
+    starts = run.periods["period_start_time"]
+    middle = starts[starts.size // 2]
+    period = 1.0 / run.drive["frequency"]
+    inside = (F["time"] >= middle) & (F["time"] < middle + period)
+    moving = truth.velocity > 0 if approach else truth.velocity <= 0  # dz/dt = -dx/dt: approach has dx/dt > 0
+    sel = inside & moving
+    if sel.sum() < 2:
+        return None
+    order = np.argsort(truth.separation[sel])
+    return truth.separation[sel][order] * NM, truth.force[sel][order] * NN
 
 
 def fig_coefficients(run: RunData, folder: Path, truth: dict[str, float]) -> str:
@@ -347,17 +368,17 @@ def fig_periods(run: RunData, local: dict, folder: Path, energy: dict | None = N
     fig, axes = plt.subplots(1, 3, figsize=(FULL_WIDTH, 2.3))
     k = np.arange(P["peak_force"].size)
     axes[0].plot(k, local["per_period_rms"] * NN, ".-", lw=0.8)
-    axes[0].set(xlabel="period", ylabel="residual rms (nN)", title="residual per period (incl. noise)")
+    axes[0].set(xlabel="period", ylabel="residual rms (nN, incl. noise)", title="residual per period")
     axes[1].plot(k, P["peak_force"] * NN, ".-", lw=0.8, label="peak repulsion")
     axes[1].plot(k, -P["adhesion_force"] * NN, ".-", lw=0.8, label="largest attraction (−)")
-    axes[1].set(xlabel="period", ylabel="model force (nN)", title="model force extremes per period")
+    axes[1].set(xlabel="period", ylabel="model force (nN)", title="model force extremes")
     axes[1].legend(fontsize=6.5)
     eV = 1.602176634e-19
     axes[2].plot(k, P["dissipated_energy_inverted"] / eV, ".-", lw=0.8, label="inverted force")
     axes[2].plot(k, P["dissipated_energy"] / eV, ".-", lw=0.8, label="model")
     if energy and "truth" in energy:
         axes[2].axhline(energy["truth"] / eV, color=TRUTH, lw=1, ls="--", label="truth (simulation, mean)")
-    axes[2].set(xlabel="period", ylabel="energy (eV)", title="energy dissipated per period (−∮F dz)")
+    axes[2].set(xlabel="period", ylabel="energy per period (eV)", title="dissipated, −∮F dz")
     axes[2].legend(fontsize=6.5)
     return _save(fig, folder, "periods")
 
