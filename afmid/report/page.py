@@ -256,8 +256,11 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                       "Phase portraits as in the paper's figures S1.1-S1.8: (a) the measured periods (transient ones "
                       "apart, when the record has them) and the identified model re-simulated with the fitted drive; "
                       "(b) zoom on the turn at the sample, where the tip-sample force bends the orbit; (c) the "
-                      "model's deflection minus the measured steady orbit over the drive phase, against the "
-                      "measured period-to-period spread (±2σ): a model that misses an effect stands outside the band"))
+                      "model's deflection minus the measured mean steady orbit over the drive phase with the first "
+                      "harmonic taken out (the amplitude and phase of a re-simulated orbit follow the drive and the "
+                      "calibration: their differences are printed in the panel, not judged), against ±2σ of the "
+                      "measured mean: a model that misses an effect bends the orbit's shape outside this band "
+                      "(the panel says whether this one does)"))
     parts.append(_img(folder, figures["observables"],
                       "Tapping-mode observables per period, measured (dots) and as the identified model predicts "
                       "(dashed; the model re-simulated)" + (", truth grey (the simulation's noise-free deflection through the "
