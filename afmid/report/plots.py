@@ -152,7 +152,8 @@ def fig_phase_portraits(run: RunData, folder: Path, resim: dict | None) -> str:
                              label=f"±2σ of the measured mean ({dev['periods']} periods)")
         axes[2].plot(deg, dev["shape"] * PM, color=MODEL, lw=1.1, label="model − measured, first harmonic out")
         axes[2].text(0.02, 0.98, "\n".join(textwrap.wrap(dev["words"], 44)), transform=axes[2].transAxes,
-                     fontsize=6.0, va="top", ha="left", color="0.2")
+                     fontsize=6.0, va="top", ha="left", color="0.2",
+                     bbox={"facecolor": "white", "alpha": 0.75, "edgecolor": "none", "pad": 1.5})
     axes[2].axhline(0, color="k", lw=0.6)
     axes[2].set(xlabel="drive phase (degrees)", ylabel="deflection difference (pm)",
                 title="(c) orbit shape: model − measured", xlim=(0, 360), xticks=[0, 90, 180, 270, 360])
@@ -292,10 +293,10 @@ def fig_force_separation(run: RunData, folder: Path) -> str:
     axes[0].legend(fontsize=6.5, loc="lower right")
     kept = signal_harmonics(run)
     if kept:  # the band-limited curves ring: attraction far out, a zero crossing below contact
-        axes[1].text(0.98, 0.98, textwrap.fill(f"solid: drive harmonics ≤ {max(kept)} only; their ripples (attraction "
+        axes[1].text(0.98, 0.03, textwrap.fill(f"solid: drive harmonics ≤ {max(kept)} only; their ripples (attraction "
                                                "far from the sample, crossings below contact) are this bandwidth, "
                                                "not the force; dashed and grey: full bandwidth", 48),
-                     transform=axes[1].transAxes, fontsize=6.2, va="top", ha="right", color="0.25")
+                     transform=axes[1].transAxes, fontsize=6.2, va="bottom", ha="right", color="0.25")
     note = no_contact_note(run)
     for ax in axes:
         if not note:
