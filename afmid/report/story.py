@@ -86,8 +86,9 @@ def run_diagnosis(run: RunData, result: dict | None, local: dict | None = None) 
         "undecided": [t["effect"] for t in (result or {}).get("undecided", [])],
         "error_after": diag.get("error_after"),
         "delta_bic_after": diag.get("delta_bic_after"),
-        # every candidate refitted for this run (the effects-tried figure of this run on the loop page)
-        "tried": list((result or {}).get("tried", [])),
+        # every candidate refitted for this run (the effects-tried figure of this run on the loop page); without
+        # the refits' wall times, which differ between a diagnosis made now and one reused
+        "tried": [{k: v for k, v in t.items() if k != "seconds"} for t in (result or {}).get("tried", [])],
     }
 
 
