@@ -651,7 +651,24 @@ def dump_config(config: RunConfig) -> str:
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
 
 
+#: With ``--simulate`` these template lines are switched on: ``afmid simulate`` needs a drive (A0) and a rest
+#: separation, so the config simulates as written (A0 = 10 nm at d = 8.5 nm: the tip taps the sample).
+_SIMULATE_LINES = {
+    "  # free_amplitude: 10.0e-9 ": "  free_amplitude: 10.0e-9   ",
+    "  # separation: 14.0e-9        # m, rest tip-sample distance d; estimated by the fit if absent":
+        "  separation: 8.5e-9           # m, rest tip-sample distance d of the simulation; the fit takes it as "
+        "given: comment it out to have d estimated",
+}
+
+
 def template_text(simulate: bool = False) -> str:
-    """The commented template written by ``afmid init-config`` (``simulate``: with a commented simulate section)."""
+    """The commented template written by ``afmid init-config`` (``simulate``: with a commented simulate section,
+    and the drive's A0 and the rest separation it needs switched on, :data:`_SIMULATE_LINES`)."""
     names = ["run_config.yaml"] + (["simulate_section.yaml"] if simulate else [])
-    return "".join((Path(__file__).parent / "templates" / n).read_text(encoding="utf-8") for n in names)
+    text = "".join((Path(__file__).parent / "templates" / n).read_text(encoding="utf-8") for n in names)
+    if simulate:
+        for commented, active in _SIMULATE_LINES.items():
+            if commented not in text:  # the template changed: fail loudly rather than write a config that fails
+                raise RuntimeError(f"template line not found: {commented.strip()!r}")
+            text = text.replace(commented, active, 1)
+    return text

@@ -33,7 +33,7 @@ from afmid.config import RunConfig, build_config, dump_config
 from afmid.errors import ConfigError, InputError
 from afmid.io.files import check_input_file
 from afmid.fit.forces import PeriodCurves
-from afmid.io.trace import RUN_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
+from afmid.io.trace import RUN_FORMAT, TRACE_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
 from afmid.fit.uncertainty import ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR, intervals_kind
 from afmid.runcheck import RunReader, check_version, input_unchanged, stored_config
 
@@ -360,6 +360,32 @@ class RunData:
         return [t for t, s in zip(self.terms, self.selected) if s]
 
 
+#: The signature an HDF5 file starts with (at byte 0, or at 512, 1024, ... after a user block).
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _not_hdf5_words(path: Path) -> str:
+    """Why a file h5py cannot open is no run file: not HDF5 at all (a trace given where a run was expected), or
+    an HDF5 file that is damaged."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        head = b""
+    if any(head[at:at + 8] == _HDF5_SIGNATURE for at in (0, 512, 1024, 2048)):
+        return "not a readable HDF5 file (truncated or corrupt?)"
+    return (f"expected a run file from afmid fit (HDF5), but this is not an HDF5 file; a trace "
+            f"({path.suffix or 'no suffix'}) is fitted first: afmid fit CONFIG -o RUN.h5")
+
+
+def _not_a_run_words(found) -> str:
+    """Why an HDF5 file of another kind (its ``format`` attribute) is no run file."""
+    if found == TRACE_FORMAT:
+        return ("expected a run file from afmid fit, but this is an afmid trace file (afmid simulate); fit it "
+                "first: afmid fit CONFIG -o RUN.h5")
+    return f"expected a run file from afmid fit: not an afmid run file (format attribute {found!r})"
+
+
 def load_run(path: str | Path) -> RunData:
     """Read a run file; one-line InputError if it is not one, is of a version this afmid does not read,
     or is damaged (a missing dataset or attribute, a stored config that is not valid, unreadable data)."""
@@ -369,11 +395,11 @@ def load_run(path: str | Path) -> RunData:
     try:
         h5 = h5py.File(path, "r")
     except OSError:
-        raise InputError("not a readable HDF5 file (truncated or corrupt?)", file=path) from None
+        raise InputError(_not_hdf5_words(path), file=path) from None
     try:
         with h5:
             if h5.attrs.get("format") != RUN_FORMAT:
-                raise InputError(f"not an afmid run file (format attribute {h5.attrs.get('format')!r})", file=path)
+                raise InputError(_not_a_run_words(h5.attrs.get("format")), file=path)
             check_version(h5.attrs, path)
             config_attr = h5.attrs.get("config")
             # decoded leniently: an undecodable byte shows up in the YAML error, not as an unreadable file

@@ -87,7 +87,8 @@ def attr_text(value) -> str:
 
 
 FIXED_COLUMNS = [  # (name, unit or None for text)
-    ("name", None), ("status", None), ("failure", None), ("config", None), ("input", None), ("run_file", None),
+    ("name", None), ("status", None), ("model_limited", "1"), ("failure", None), ("config", None), ("input", None),
+    ("run_file", None),
     ("input_sha256", None), ("effects", None), ("cv_error", "1"), ("cv_error_noise_floor", "1"),
     ("chi2_reduced", "1"), ("diagnosis", None), ("terms", None), ("separation", "m"), ("separation_sigma", "m"),
 ]
@@ -161,11 +162,26 @@ def _row_cells(row: Row, output_dir: Path) -> dict[str, Any]:
         "name": item.name, "status": row.status, "failure": row.failure,
         "config": "" if item.config_path is None else str(item.config_path),
         "input": "" if source is None else str(source),
-        "run_file": item.output.name if row.status != "failed" else "",
+        # absolute, as the input is (the summary said a bare name here and an absolute path beside it)
+        "run_file": str(Path(item.output).resolve()) if row.status != "failed" else "",
     }
     cells.update(row.values)
+    cells["model_limited"] = _model_limited_flag(row.values)
     cells.update(row.times)
     return cells
+
+
+def _model_limited_flag(values: dict):
+    """1 when the run's cv error stands above its noise floor by more than the factor afmid allows
+    (:func:`afmid.fit.uncertainty.model_limited`: its parameters are biased beyond their error bars), 0 when
+    not, None (empty / NaN) without a run file. The status says whether a run file was written: a status ``ok``
+    with model_limited 1 is a fit that worked and a model that does not explain the data."""
+    from afmid.fit.uncertainty import model_limited
+
+    error, floor = values.get("cv_error"), values.get("cv_error_noise_floor")
+    if error is None or floor is None or not (math.isfinite(error) and math.isfinite(floor)):
+        return None
+    return int(bool(model_limited(error, floor)))
 
 
 def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:

@@ -16,6 +16,8 @@ import math
 import numpy as np
 
 from afmid.config import RunConfig
+from afmid.physics.effects import parameter_unit
+from afmid.report.quantity_text import format_value
 
 log = logging.getLogger(__name__)
 
@@ -131,3 +133,11 @@ def minimise_bumpy(objective, lo: float, hi: float) -> float:
                 best = float(np.clip(-c1 / (2 * c2), a, b))
         half = (b - a) / 4
     return best
+
+
+def shape_words(effect: str, shape: dict) -> list[str]:
+    """``name = value`` of a candidate's fitted shape parameters (SI in ``shape``), each in the display unit of the
+    unit its effect declares (``relaxation_time = 104 µs``, ``damping_length = 1.2 nm``); a value the refit did
+    not determine said so."""
+    return [f"{k} = {format_value(v, parameter_unit(k, effect))}" if v is not None and math.isfinite(v)
+            else f"{k} = not determined" for k, v in shape.items()]

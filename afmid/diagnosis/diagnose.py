@@ -51,7 +51,7 @@ from afmid.errors import InputError
 from afmid.io.trace import sha256_file
 from afmid.diagnosis.candidate_refit import (SEPARATION_WINDOW, refit_candidate, search_separation,
                                              separation_estimated)
-from afmid.diagnosis.candidate_shapes import ShapeSearch
+from afmid.diagnosis.candidate_shapes import ShapeSearch, shape_words
 # Where the residual sits: afmid.diagnosis.localize (importable from here as before).
 from afmid.diagnosis.localize import NEAR_RANGE, band_limit, energy_check, localize  # noqa: F401
 import afmid.physics.medium as medium
@@ -629,7 +629,7 @@ def _evidence(t: Trial, local: dict, base: _Base, trials: list[Trial]) -> str:
         text += f"; {100 * (1 - (after / before) ** 2):.0f} % of the error variance above the noise removed"
     text += f") and the BIC by {format_delta_bic(t.delta_bic)} ({_strength(t.delta_bic)}); reduced chi-square {base.chi2:.3g} -> {t.chi2_after:.3g}"
     parts = [f"{k} = {_value_words(v['value'], v['unit'])}" for k, v in t.quantities.items()]
-    parts += [f"{k} = {_value_words(v, 'm')}" for k, v in t.shape.items()]
+    parts += shape_words(t.effect, t.shape)
     if parts:
         text += "; fitted " + ", ".join(parts)
     if t.significant:
@@ -666,7 +666,7 @@ def _value_words(value: float, unit: str) -> str:
 
 def _outside_words(t: Trial, top: Trial | None) -> str:
     eff = EFFECTS.get(t.effect)
-    shape = ", ".join(f"{k} = {v * 1e9:.3g} nm" for k, v in t.shape.items())
+    shape = ", ".join(shape_words(t.effect, t.shape))
     text = (f"the data prefer the shape of `{t.effect}` ({eff.formula}{'; ' + shape if shape else ''}) with values "
             f"no physical {t.effect} can have ({t.implausible[0]}; ΔBIC {format_delta_bic(t.delta_bic)}")
     text += f", {top.delta_bic - t.delta_bic:.0f} better than `{top.effect}`)" if top else ")"

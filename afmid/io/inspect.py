@@ -319,7 +319,7 @@ def _instrument(a: defects.Analysis, s: FileSummary) -> str:
     at = harmonic_resonance(a.harmonic_amplitudes(), a.above_noise)
     if at is None:
         return ("no resonance among the harmonics (a detector low-pass shows only against a force model: "
-                "afmid diagnose)")
+                "the diagnosis of afmid report)")
     where = f" = {defects.frequency(at * s.frequency)}" if s.frequency else ""
     return (f"a resonance near harmonic {at:.1f}{where}: a higher eigenmode of the lever? If the lever has one "
             "there, declare cantilever.higher_modes")

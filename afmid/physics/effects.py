@@ -433,3 +433,11 @@ def build_force_law(
         for term in effect.terms:
             terms.append((name, term.label, term.expression, float(term.coefficient(values))))
     return ForceLaw(tuple(effect_names), values, tuple(terms), tuple(states))
+
+
+def parameter_unit(name: str, effect: str | None = None) -> str:
+    """The declared SI unit of parameter ``name`` (of ``effect`` when given and declared there, else of the first
+    effect in the catalog that declares it); "" for a name no effect declares. A shape parameter is not always a
+    length (``relaxation_time`` is in s): the unit comes from the declaration, never from the parameter's role."""
+    owners = ([EFFECTS.get(effect)] if effect is not None and effect in EFFECTS else []) + list(EFFECTS)
+    return next((p.unit for e in owners for p in e.parameters if p.name == name), "")

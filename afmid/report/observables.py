@@ -159,6 +159,22 @@ def measured_observables(run, lever: Cantilever | None = None) -> dict[str, np.n
     return tapping_observables(amplitude, _wrap(phase_x - lever.drive_phase), lever)
 
 
+def truth_observables(run, lever: Cantilever | None = None) -> dict[str, np.ndarray]:
+    """Per period observables of a simulated run's TRUE deflection (x = d - z of the simulation's truth, no
+    detector noise), computed exactly as :func:`measured_observables` computes the measured ones: the same
+    periods, the same first-harmonic fit and the same lever and drive (the run's fitted drive unless ``lever`` is
+    given). Measured minus truth is then the detector noise alone (the thermal motion is in both), so the two
+    agree within the noise; {} for a run without a truth aligned with its samples."""
+    truth = run.truth
+    if truth is None or "separation" not in truth.extra or truth.separation.size != run.force["time"].size:
+        return {}
+    lever = run_lever(run) if lever is None else lever
+    deflection = truth.extra["separation"] - truth.separation  # x = d - z, positive toward the sample
+    amplitude, phase_x = first_harmonic_per_period(run.force["time"], deflection, run.periods["period_start_time"],
+                                                   lever.drive_frequency)
+    return tapping_observables(amplitude, _wrap(phase_x - lever.drive_phase), lever)
+
+
 def model_period(resimulated: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Drive phase (rad), deflection x (m) and velocity (m/s) of the identified model's steady period re-simulated
     with the drive F0 cos(w t) (:func:`afmid.simulate.driver.resimulate_run`, whose arrays run from t = 0 to
@@ -180,12 +196,13 @@ def model_observables(resimulated: dict, lever: Cantilever) -> dict[str, float]:
 
 def summarize(run, resimulated: dict | None) -> dict:
     """The ``observables`` entry of summary.json: the free oscillation, each observable's unit, the measured mean
-    and standard deviation over periods, the identified model's prediction (None without a re-simulation) and
-    what it depends on."""
+    and standard deviation over periods, the identified model's prediction (None without a re-simulation), for a
+    simulation the truth (:func:`truth_observables`, mean over periods) and what it depends on."""
     lever = run_lever(run)
     a0, phi0 = free_oscillation(lever)
     measured = measured_observables(run, lever)
     model = model_observables(resimulated, lever) if resimulated is not None else {}
+    truth = truth_observables(run, lever)
     out = {"free_oscillation": {"amplitude": a0, "phase": phi0, "unit_amplitude": "m", "unit_phase": "rad",
                                 "depends_on": "k, f0, Q and the drive (F0, f): the cantilever model, no tip force"},
            "drive": {"force_amplitude": lever.force_amplitude, "phase": lever.drive_phase, "frequency":
@@ -196,6 +213,8 @@ def summarize(run, resimulated: dict | None) -> dict:
         entry = {"unit": UNITS[name], "measured_mean": float(np.mean(values)),
                  "measured_sd": float(np.std(values, ddof=1)) if values.size > 1 else None,
                  "model": model.get(name)}
+        if name in truth:  # a simulation: the noise-free deflection through the same estimator and drive
+            entry["truth"] = float(np.mean(truth[name]))
         if name in DEPENDS_ON:
             entry["depends_on"] = DEPENDS_ON[name]
         out[name] = entry

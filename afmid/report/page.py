@@ -29,6 +29,7 @@ from afmid.io.trace import now_iso
 from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import effect_for, tip_geometry
 from afmid.diagnosis.checklist import check_lines
+from afmid.diagnosis.candidate_shapes import shape_words
 from afmid.fit.uncertainty import INTERVALS_STATISTICAL, STATISTICAL_ONLY_TEXT, calibration_declared, intervals_kind
 from afmid.report.figures import figure_html
 from afmid.report.folder import report_folder
@@ -36,6 +37,8 @@ from afmid.report.observables import summarize as summarize_observables
 from afmid.report.plots import (bandwidth_text, fig_coefficients, fig_error_runs, fig_force_separation, no_contact_note,
                                 fig_force_time, fig_observables, fig_periods, fig_phase_portraits, fig_residual,
                                 fig_suggestions)
+from afmid.report.loop_evidence import (REGION_HEADER, SUGGESTIONS_CAPTION, loop_figures, region_rows,
+                                        residual_caption, run_evidence_html)
 from afmid.report.quantity_text import format_delta_bic, format_measurement, format_value
 from afmid.report.story import (band_words, diagnose_runs, error_text, fold_spread, loop_html, loop_lines, loop_steps,
                                 run_entry)
@@ -43,7 +46,6 @@ from afmid.runcheck import check_same_traces
 from afmid.runfile import RunData, load_run
 
 log = logging.getLogger(__name__)
-NN = 1e9  # N -> nN for display
 
 
 # --------------------------------------------------------------------------- truth
@@ -115,7 +117,9 @@ th{background:#f3f3f3}figure{margin:1em 0}img{max-width:100%}figcaption{font-siz
 .verdict{padding:.8em 1em;border-left:6px solid #2a7;background:#f3fbf6;margin:1em 0}
 .verdict.found{border-color:#d80;background:#fff8ec}.verdict.unexplained{border-color:#c33;background:#fdf0f0}
 .verdict h2{border:none;margin:0 0 .3em 0;font-size:1.15em}.verdict p{margin:.3em 0}
-code{background:#f3f3f3;padding:0 .2em}"""
+code{background:#f3f3f3;padding:0 .2em}
+details.run-evidence{margin:.4em 0 1em;padding:.2em .6em;border-left:3px solid #ddd}
+details.run-evidence summary{cursor:pointer;color:#444}details.run-evidence h3{font-size:1em;margin:.6em 0 .2em}"""
 
 
 def _verdict_box(summary: dict, last_name: str | None = None) -> str:
@@ -166,7 +170,9 @@ def _verdict_box(summary: dict, last_name: str | None = None) -> str:
     return f"<div class='verdict {cls}'><h2>{head}</h2>{body}<p>{html.escape(facts)}</p></div>"
 
 
-def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: dict) -> str:
+def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: dict,
+                evidence: list[str] | None = None) -> str:
+    """The page; ``evidence``: each run's where-it-fails and effects-tried block for the loop (several runs)."""
     last = runs[-1]
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>afmid report</title><style>{CSS}</style></head><body>",
              f"<h1>afmid report</h1><p>{len(runs)} run(s); afmid {__version__}; made {now_iso()}. "
@@ -178,7 +184,7 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                 "this force's first harmonic (and the energy from it) depends on the model.") + "</p>"]
     diag = summary.get("diagnosis", {})
     if summary.get("loop"):  # several runs: the loop first, then the verdict on the last run
-        parts.append(loop_html(summary["loop"], _rich))
+        parts.append(loop_html(summary["loop"], _rich, evidence))
     parts.append(_verdict_box(summary, last.path.name if len(runs) > 1 else None))
     parts.extend(f"<p><b>Note:</b> {html.escape(note)}</p>" for note in summary.get("notes", []))
     parts.append("<h2>Runs</h2>")
@@ -254,11 +260,16 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                       "Phase portraits as in the paper's figures S1.1-S1.8: (a) the measured periods (transient ones "
                       "apart, when the record has them) and the identified model re-simulated with the fitted drive; "
                       "(b) zoom on the turn at the sample, where the tip-sample force bends the orbit; (c) the "
-                      "model's deflection minus the measured steady orbit over the drive phase, against the "
-                      "measured period-to-period spread (±2σ): a model that misses an effect stands outside the band"))
+                      "model's deflection minus the measured mean steady orbit over the drive phase with the first "
+                      "harmonic taken out (the amplitude and phase of a re-simulated orbit follow the drive and the "
+                      "calibration: their differences are printed in the panel, not judged), against ±2σ of the "
+                      "measured mean: a model that misses an effect bends the orbit's shape outside this band "
+                      "(the panel says whether this one does)"))
     parts.append(_img(folder, figures["observables"],
                       "Tapping-mode observables per period, measured (dots) and as the identified model predicts "
-                      "(dashed; the model re-simulated)" + (", truth grey" if last.truth is not None else "") + ": "
+                      "(dashed; the model re-simulated)" + (", truth grey (the simulation's noise-free deflection through the "
+                      "same formulas, periods and drive as the measured dots: they differ by the detector noise)"
+                      if last.truth is not None else "") + ": "
                       "(a) amplitude A/A0 and (b) phase φ − φ0 of the deflection's first harmonic vs the free "
                       "oscillation (A0, φ0: the cantilever model k, f0, Q driven by the drive); (c) power dissipated "
                       "in the sample, π A (F0 sin φ − c ω A) f (Cleveland et al. 1998), and (d) the virial "
@@ -268,17 +279,8 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     parts.append(_img(folder, figures["coefficients"], "Coefficients with bootstrap standard errors, 1 σ (truth when simulated)"))
     parts.append("<h2>Where the model fails</h2>")
     parts.append(f"<p>{_rich(diag.get('description', '') or describe_residual(local, last))}.</p>")
-    rows = [[k, f"{100 * v['fraction_of_time']:.0f} %", f"{100 * v['share_of_residual']:.0f} %", _fmt(v["rms"] * NN, "nN"),
-             _fmt(v["noise_rms"] * NN, "nN"), _fmt(v["rms_approach"] * NN, "nN"), _fmt(v["rms_retraction"] * NN, "nN"),
-             _fmt(v["rate_correlation"])] for k, v in local["by_region"].items()]
-    parts.append(_table(["region", "time", "share of residual", "rms", "noise", "approach", "retraction",
-                         "correlation with dz/dt"], rows))
-    limit = local.get("max_signal_harmonic")
-    parts.append(_img(folder, figures["residual"], "Systematic residual (inverted force − model, averaged over periods): "
-                                                   "vs separation for approach and retraction, by region, by harmonic. "
-                      + (f"Both forces keep only the drive harmonics up to {limit} (those above the noise), so a "
-                         "feature narrower in time than 1/" + str(2 * limit) + " of a period (e.g. a jump at contact) "
-                         "is smeared over the neighbouring separations and rings." if limit else "")))
+    parts.append(_table(REGION_HEADER, region_rows(local)))
+    parts.append(_img(folder, figures["residual"], residual_caption(local)))
     eV = 1.602176634e-19
     parts.append("<h2>Energy check (dissipated per period)</h2>")
     parts.append("<p>Energy the sample takes from the tip per period, estimated from the inverted force, from the "
@@ -297,17 +299,23 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                      f"more than {BIC_EVIDENCE:g} (counting nonlinear shape parameters), the effect's terms selected, "
                      "a lower cross-validated error and physically possible parameter values; ranked by BIC.</p>")
         if "suggestions" in figures:
-            parts.append(_img(folder, figures["suggestions"], "Candidates: BIC decrease (green = accepted) and error after adding each"))
+            parts.append(_img(folder, figures["suggestions"], SUGGESTIONS_CAPTION))
         rows = [[t["effect"], _fmt(t["error_after"], digits=3),
                  format_delta_bic(t["delta_bic"]) if t["delta_bic"] is not None else "–",
                  "yes" if t["significant"] else "no",
-                 ", ".join([f"{k} = {format_value(v['value'], v['unit'])}" for k, v in t["parameters"].items()
-                            if v["value"] is not None and math.isfinite(v["value"])]
-                           + [f"{k} = {format_value(v, 'm')}" for k, v in t.get("nonlinear", {}).items()]),
+                 fitted_text(t),
                  t["evidence"]] for t in summary["tried"]]
         parts.append(_table(["effect", "error after", "ΔBIC", "accepted", "fitted", "evidence"], rows))
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def fitted_text(tried: dict) -> str:
+    """A candidate's fitted values in the 'Effects tried' table: its read-outs and its shape parameters, each in
+    the display unit of its declared unit (a relaxation time in µs, a decay length in nm)."""
+    readouts = [f"{k} = {format_value(v['value'], v['unit'])}" for k, v in tried["parameters"].items()
+                if v["value"] is not None and math.isfinite(v["value"])]
+    return ", ".join(readouts + shape_words(tried["effect"], tried.get("nonlinear", {})))
 
 
 # --------------------------------------------------------------------------- main
@@ -372,7 +380,8 @@ def write_report(runs: list[RunData], output: Path, overwrite: bool = False, sug
         local = localize(last)
         energy = energy_check(last)
         result = diagnosed(last, progress=progress, trace=traces[-1]) if suggest_effects else None
-        diagnoses = diagnose_runs(runs, result, local, suggest_effects, progress, traces)
+        localized = [local if r is last else localize(r) for r in runs] if len(runs) > 1 else [local]
+        diagnoses = diagnose_runs(runs, result, local, suggest_effects, progress, traces, localized)
         summary = {"runs": [run_entry(p, r, d) for p, r, d in zip(names or [r.path for r in runs], runs, diagnoses)]}
         if len(runs) > 1:
             summary["loop"] = loop_steps(runs, diagnoses)
@@ -399,9 +408,14 @@ def write_report(runs: list[RunData], output: Path, overwrite: bool = False, sug
         suggestions_fig = fig_suggestions(summary, tmp)
         if suggestions_fig:
             figures["suggestions"] = suggestions_fig
+        evidence = None
+        if len(runs) > 1:  # the loop carries each run's own evidence (afmid.report.loop_evidence)
+            per_run = loop_figures(runs, diagnoses, localized, tmp, figures)
+            evidence = [run_evidence_html(r, d, loc, f, tmp, _table, _rich)
+                        for r, d, loc, f in zip(runs, diagnoses, localized, per_run)]
         truth_q = truth_quantities(last)
         (tmp / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2), encoding="utf-8")
-        (tmp / "report.html").write_text(render_html(runs, summary, figures, local, energy, tmp, truth_q),
+        (tmp / "report.html").write_text(render_html(runs, summary, figures, local, energy, tmp, truth_q, evidence),
                                          encoding="utf-8")
     return terminal_summary(summary, output)
 

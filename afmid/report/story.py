@@ -86,20 +86,27 @@ def run_diagnosis(run: RunData, result: dict | None, local: dict | None = None) 
         "undecided": [t["effect"] for t in (result or {}).get("undecided", [])],
         "error_after": diag.get("error_after"),
         "delta_bic_after": diag.get("delta_bic_after"),
+        # every candidate refitted for this run (the effects-tried figure of this run on the loop page); without
+        # the refits' wall times, which differ between a diagnosis made now and one reused
+        "tried": [{k: v for k, v in t.items() if k != "seconds"} for t in (result or {}).get("tried", [])],
     }
 
 
 def diagnose_runs(runs: list[RunData], last_result: dict | None, last_local: dict, suggest_effects: bool,
-                  progress: bool = False, traces: list | None = None) -> list[dict]:
+                  progress: bool = False, traces: list | None = None, localized: list | None = None) -> list[dict]:
     """Each run's own diagnosis, in order. The last run's ``suggest`` result and localisation are reused; a
     run file given twice is diagnosed once; the refits of each :func:`suggest` try only the effects that run
-    lacks. ``traces``: each run's trace held in memory (None: read from its input file), as :func:`suggest` takes."""
+    lacks (:func:`afmid.diagnosis.stored.diagnosed`: a diagnosis kept for the run is reused, not refitted).
+    ``traces``: each run's trace held in memory (None: read from its input file), as :func:`suggest` takes;
+    ``localized``: each run's :func:`localize` already made (None: made here)."""
     done: dict[Path, dict] = {runs[-1].path.resolve(): run_diagnosis(runs[-1], last_result, last_local)}
     out = []
-    for run, trace in zip(runs, traces or [None] * len(runs)):
+    for i, (run, trace) in enumerate(zip(runs, traces or [None] * len(runs))):
         key = run.path.resolve()
         if key not in done:
-            done[key] = run_diagnosis(run, diagnosed(run, progress=progress, trace=trace) if suggest_effects else None)
+            local = localized[i] if localized is not None else None
+            done[key] = run_diagnosis(run, diagnosed(run, progress=progress, trace=trace) if suggest_effects else None,
+                                      local)
         out.append(done[key])
     return out
 
@@ -241,9 +248,11 @@ def loop_steps(runs: list[RunData], diagnoses: list[dict]) -> list[dict]:
     return steps
 
 
-def loop_html(steps: list[dict], rich) -> str:
-    """The loop section of the page (``rich``: the page's escaper that turns `name` into code)."""
-    items = "".join(f"<li>{rich(s['text'])}</li>" for s in steps)
+def loop_html(steps: list[dict], rich, evidence: list[str] | None = None) -> str:
+    """The loop section of the page (``rich``: the page's escaper that turns `name` into code; ``evidence``: each
+    step's where-it-fails and effects-tried block, :func:`afmid.report.loop_evidence.run_evidence_html`)."""
+    evidence = evidence or [""] * len(steps)
+    items = "".join(f"<li>{rich(s['text'])}{block}</li>" for s, block in zip(steps, evidence))
     return ("<h2>The loop, run by run</h2><p>Each run is diagnosed on its own (the refits try the effects it "
             "lacks); the error is the cross-validated force error ± the standard deviation of its folds.</p>"
             f"<ol class='loop'>{items}</ol>")

@@ -312,7 +312,7 @@ def test_interrupted_batch_leaves_whole_files_and_a_valid_summary(traces, tmp_pa
     finished = sorted(p.name for p in out.glob(f"*{RUN_SUFFIX}"))
     rows = _summary(out)
     assert 1 <= len(finished) < len(names)
-    assert sorted(r["run_file"] for r in rows) == finished and all(r["status"] == "ok" for r in rows)
+    assert sorted(Path(r["run_file"]).name for r in rows) == finished and all(r["status"] == "ok" for r in rows)
     for name in finished:
         read_run_row(out / name)  # whole, readable run files
 
@@ -417,7 +417,7 @@ def test_config_summary_has_the_union_of_the_runs_quantities(config_dir, config_
     dmt, lj, measured = rows["dmt"], rows["lennard_jones"], rows["measured"]
     assert dmt["effects"] == "dmt" and lj["effects"] == "lennard_jones"
     assert dmt["config"] == str(config_dir / "dmt.yaml")
-    assert dmt["input"] == str((out / "dmt.trace.h5").resolve()) and dmt["run_file"] == "dmt.run.h5"
+    assert dmt["input"] == str((out / "dmt.trace.h5").resolve()) and dmt["run_file"] == str((out / "dmt.run.h5").resolve())
     assert measured["input"] == str((config_dir / "measured.h5").resolve())
     assert 1e9 < float(dmt["E_star [Pa]"]) < 3e9 and dmt["sigma [m]"] == "" and dmt["sigma_sigma [m]"] == ""
     assert 0.25e-9 < float(lj["sigma [m]"]) < 0.35e-9 and lj["E_star [Pa]"] == "" and lj["E_star_sigma [Pa]"] == ""
@@ -426,6 +426,14 @@ def test_config_summary_has_the_union_of_the_runs_quantities(config_dir, config_
     assert rows["bad"]["status"] == "failed" and "quality_factor: must be > 0" in rows["bad"]["failure"]
     assert rows["nodata"]["status"] == "failed" and "no data.path" in rows["nodata"]["failure"]
     assert rows["bad"]["run_file"] == rows["nodata"]["run_file"] == rows["nodata"]["input"] == ""
+    # issue 33: a model-limited run was listed 'ok' with nothing beside it saying so
+    from afmid.fit.uncertainty import FLOOR_FACTOR
+
+    assert "model_limited [1]" in header and rows["bad"]["model_limited [1]"] == ""
+    for row in (dmt, lj, measured):
+        limited = float(row["cv_error [1]"]) > FLOOR_FACTOR * float(row["cv_error_noise_floor [1]"])
+        assert row["model_limited [1]"] == str(int(limited)), row
+        assert row["diagnosis"].startswith("model-limited" if limited else "at the noise floor"), row
     with h5py.File(out / "summary.h5", "r") as h5:
         assert h5.attrs["config"] == "" and h5.attrs["n_ok"] == 3 and h5.attrs["n_failed"] == 2
         assert [s.decode() for s in h5["name"][...]] == list(rows)
@@ -489,7 +497,7 @@ def test_interrupted_config_batch_leaves_whole_traces_and_resumes(tmp_path):
     assert not _leftovers(out)
     finished = sorted(p.name for p in out.glob(f"*{RUN_SUFFIX}"))
     assert 1 <= len(finished) < 3
-    assert sorted(r["run_file"] for r in _summary(out)) == finished
+    assert sorted(Path(r["run_file"]).name for r in _summary(out)) == finished
     traces = {p.name: p.stat().st_mtime_ns for p in out.glob(f"*{TRACE_SUFFIX}")}
     for name in traces:  # whole trace files, each the one its config gives
         config = configs / (name[: -len(TRACE_SUFFIX)] + ".yaml")

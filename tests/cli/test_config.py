@@ -611,15 +611,19 @@ def test_init_config_simulate_writes_a_commented_simulate_section_that_runs(tmp_
     from afmid.config import SimulateConfig
 
     code, out, _ = run_cli("init-config", "--simulate")
-    assert code == 0 and out.startswith(template_text()) and out != template_text()
-    section = out[len(template_text()):]
+    assert code == 0 and out == template_text(simulate=True) and out != template_text()
+    section = out[out.index("\nsimulate:\n"):]
     raw = yaml.safe_load(out)
     assert raw["simulate"]["model"] == "dmt" and raw["simulate"]["parameters"] == {"E_star": 2.0e9, "hamaker": 5.0e-20}
     keys = set(re.findall(r"^  #? ?([a-z_]+):", section, re.M))
     assert keys and keys <= set(SimulateConfig.model_fields), keys - set(SimulateConfig.model_fields)
     assert {"setpoint", "effects", "transient_start", "map"} <= keys  # the optional ones are documented too
+    # issue 33: simulated as written (it failed on drive.free_amplitude, then sample.separation)
+    assert raw["drive"]["free_amplitude"] == 10.0e-9 and raw["sample"]["separation"] == 8.5e-9
     config = tmp_path / "sim.yaml"
-    config.write_text(out.replace("  frequency: 3.0e+5 ", "  free_amplitude: 10.0e-9\n  frequency: 3.0e+5 ")
-                      .replace("  # separation: 14.0e-9 ", "  separation: 8.5e-9 "))
+    config.write_text(out)
     code, _, err = run_cli("-q", "simulate", config, "-o", tmp_path / "trace.h5", "--set", "simulate.periods=6")
     assert code == 0, err
+    plain = yaml.safe_load(template_text())  # without --simulate both stay commented: the fit estimates d
+    assert "free_amplitude" not in plain["drive"] and "separation" not in plain["sample"]
+    assert "# free_amplitude: 10.0e-9" in template_text()

@@ -195,3 +195,22 @@ def test_a_voted_selection_records_its_votes(tmp_path):
         assert path["votes"].attrs["units"] == "1"
         assert votes.shape == (path["masks"].shape[1],)
         assert np.all((votes >= 0) & (votes <= 1))
+
+
+def test_a_trace_given_to_report_is_named_as_not_a_run_file(run_cli, write_csv, tmp_path):
+    """Issue 33: ``afmid report trace.csv`` said "not a readable HDF5 file (truncated or corrupt?)": the file is
+    fine, it is the wrong kind. One line naming the file and what was expected, exit 1, nothing written."""
+    import h5py
+
+    csv = write_csv("trace.csv")
+    trace_h5 = tmp_path / "trace.h5"
+    with h5py.File(trace_h5, "w") as h5:
+        h5.attrs["format"] = "afmid-trace"
+    for given, kind in ((csv, "not an HDF5 file"), (trace_h5, "an afmid trace file")):
+        code, out, err = run_cli("report", given, "-o", tmp_path / "rep", "--no-suggest")
+        assert code == 1 and "Traceback" not in err, err
+        line = err.strip()
+        assert "\n" not in line and str(given.name) in line, line
+        assert "expected a run file from afmid fit" in line and kind in line, line
+        assert "truncated or corrupt" not in line, line
+        assert not (tmp_path / "rep").exists()

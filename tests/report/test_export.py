@@ -149,7 +149,7 @@ EXPORT = ("export", "run.h5", "--what", "parameters", "-o", "out.csv")
 CASES = [
     Case("export-run-missing", "runfile", EXPORT, lambda folder: None, 1, "run.h5", None, ("not found",)),
     Case("export-not-hdf5", "runfile", EXPORT, text_file("run.h5", "time,deflection\n0,1\n"), 1, "run.h5", None,
-         ("not a readable HDF5 file",)),
+         ("expected a run file from afmid fit", "not an HDF5 file")),
     Case("export-not-a-run-file", "runfile", EXPORT, run_like("something-else"), 1, "run.h5", None,
          ("not an afmid run file",)),
     Case("export-map-result", "runfile", EXPORT, run_like("afmid-map-result"), 1, "run.h5", None,

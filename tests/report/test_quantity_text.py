@@ -89,3 +89,37 @@ def test_rounding_never_moves_the_value_by_more_than_half_its_last_digit():
         leading_digit = 10.0 ** math.floor(math.log10(sigma))
         assert abs(shown_value - value) <= 0.5 * leading_digit * (1 + 1e-9)
         assert abs(shown_sigma - sigma) <= 0.127 * sigma * (1 + 1e-9) + 1e-12
+
+
+def _catalog_parameters():
+    from afmid.physics.effects import EFFECTS
+
+    return [(e.name, p) for e in EFFECTS for p in e.parameters]
+
+
+@pytest.mark.parametrize("effect, parameter", _catalog_parameters(), ids=lambda x: getattr(x, "name", x))
+def test_every_catalog_parameter_prints_in_its_declared_unit(effect, parameter):
+    """Issue 33: shape parameters were printed as lengths ("relaxation_time = 104000 nm"). Every catalog parameter
+    goes through every formatter of the report and the diagnosis (the candidate's shape words of the evidence and
+    of 'Effects tried', a read-out cell, a plain value) and comes out in the display unit of its declared unit."""
+    from afmid.diagnosis.candidate_shapes import shape_words
+    from afmid.physics.effects import parameter_unit
+    from afmid.report.page import fitted_text, quantity_cell
+
+    assert parameter_unit(parameter.name, effect) == parameter.unit
+    value = parameter.default if parameter.default != 0 else max(parameter.low, 1e-3 * parameter.high)
+    factor, shown = display_unit(parameter.unit)
+    expected = format_value(value, parameter.unit)
+    assert expected.endswith(shown) and math.isfinite(value * factor)
+    texts = {
+        "shape words": shape_words(effect, {parameter.name: value})[0],
+        "effects tried": fitted_text({"effect": effect, "parameters": {}, "nonlinear": {parameter.name: value}}),
+        "effects tried, read-out": fitted_text({"effect": effect, "nonlinear": {},
+                                                "parameters": {parameter.name: {"value": value, "unit": parameter.unit}}}),
+    }
+    for where, text in texts.items():
+        assert text == f"{parameter.name} = {expected}", where
+    cell = quantity_cell({"value": value, "error": abs(value) / 10, "unit": parameter.unit})
+    assert re.search(rf"\d {re.escape(shown)} \(1σ\)$" if shown else r"\d\)? \(1σ\)$", cell), cell
+    if parameter.unit != "m":  # a length's display unit on anything else is the bug this test guards
+        assert not any(re.search(r"\bnm\b", t) for t in [*texts.values(), cell]), (texts, cell)
