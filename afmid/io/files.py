@@ -130,6 +130,40 @@ def check_output_target(path: str | Path) -> None:
                               file=path)
 
 
+def check_folder_writable(path: str | Path) -> None:
+    """OutputError unless a file can be made in the folder of output ``path`` (an existing folder).
+
+    Checked when the command starts, before minutes of fitting, so that a read-only file system or a folder the
+    user cannot write in is said at once; the write itself still turns a refusal into one line
+    (:func:`afmid.tempfiles.write_refused_error`). The check makes and removes an empty temporary file of this
+    process (``.afmid-tmp-*``), as the write will: permission bits alone do not tell (root ignores them, and
+    they say nothing of a read-only mount).
+    """
+    import tempfile
+
+    from afmid.tempfiles import is_write_refused, prefix_for, write_refused_error
+
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=prefix_for(path), dir=folder)
+    except OSError as exc:
+        if is_write_refused(exc):
+            raise write_refused_error(exc, path) from None
+        raise OutputError(f"cannot write in folder {folder}: {exc.strerror or exc}", file=path) from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def is_regular_file(path: str | Path) -> bool:
+    """Whether ``path`` is (or links to) a regular file, found without opening it: a FIFO would block the open
+    and a device (``/dev/zero``) never ends, so a stored path is checked with this before it is read."""
+    try:
+        return stat.S_ISREG(os.stat(path).st_mode)
+    except (OSError, ValueError):
+        return False
+
+
 # --------------------------------------------------------------------------- memory
 def available_memory() -> int | None:
     """Bytes of memory available to a new allocation without swapping (Linux MemAvailable), None if unknown."""
