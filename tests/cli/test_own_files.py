@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import resource
 import shutil
@@ -172,6 +173,21 @@ def test_fit_into_a_folder_that_cannot_be_written_is_one_line_before_fitting(fit
     assert_one_line(done, str(target), "cannot write in folder")
     assert "fit:" not in done.stderr  # no stage of the fit started
     assert not target.exists()
+
+
+@pytest.mark.parametrize("code, text", [(errno.EROFS, "read-only file system"), (errno.EFBIG, "file too large")])
+def test_a_write_refused_while_writing_is_one_line_and_leaves_nothing(tmp_path, code, text):
+    """The folder was writable when the command started (the mount turned read-only meanwhile, a limit reached):
+    the write's own error is one line naming the output, and its temporary file is removed."""
+    from afmid.errors import OutputError
+    from afmid.io.trace import atomic_path
+
+    with pytest.raises(OutputError, match=text) as caught:
+        with atomic_path(tmp_path / "out.h5") as tmp:
+            tmp.write_bytes(b"partial")
+            raise OSError(code, os.strerror(code))
+    assert caught.value.file == str(tmp_path / "out.h5")
+    assert list(tmp_path.iterdir()) == []
 
 
 # --------------------------------------------------------------------------- EFBIG
