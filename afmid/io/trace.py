@@ -30,14 +30,14 @@ from afmid.errors import ConfigError, InputError, OutputError
 # The lever's type lives in afmid.io.cantilever; `from afmid.io.trace import Cantilever` keeps working.
 from afmid.io.cantilever import Cantilever
 from afmid.io.file_values import check_file_instrument_value, merge_cantilever, merged_value, same_value
-from afmid.io.files import check_folder_writable, check_input_file, check_output_target, is_regular_file
+from afmid.io.files import (FORMAT_VERSION, check_folder_writable, check_input_file, check_output_target,
+                             is_regular_file)
 from afmid.preprocess.harmonics import MIN_PERIODS  # the least a trace must hold (the harmonic analysis needs it too)
 
 log = logging.getLogger(__name__)
 
 TRACE_FORMAT = "afmid-trace"
 RUN_FORMAT = "afmid-run"
-FORMAT_VERSION = 1
 
 _UNIT_SCALE = {"m": 1.0, "nm": 1e-9, "pm": 1e-12, "um": 1e-6}
 

@@ -133,6 +133,27 @@ def test_a_damaged_or_newer_map_result_is_refused_in_one_line(map_result, tmp_pa
     assert not (tmp_path / "rep").exists() and leftovers(tmp_path) == []
 
 
+def test_a_map_file_whose_x_has_the_wrong_length_is_refused_before_fitting(map_result, tmp_path):
+    edited = _edited(map_result.parent / "map.h5", tmp_path, _short_x)
+    done = afmid("map", MAP_CONFIG, "--input", edited, "-o", "result.h5", "-j", "1", "--no-diagnosis", cwd=tmp_path)
+    assert_one_line(done, str(edited), "/x", "(2,)", "(3,)")
+    assert not (tmp_path / "result.h5").exists() and "chunks of" not in done.stderr
+
+
+@pytest.mark.parametrize("what", ["map", "trace"])
+def test_afmids_own_input_of_a_newer_format_version_is_refused_with_the_version(map_result, fitted, tmp_path, what):
+    if what == "map":
+        edited = _edited(map_result.parent / "map.h5", tmp_path, _newer_version)
+        args = ["map", MAP_CONFIG, "--input", edited, "-o", "result.h5", "-j", "1", "--no-diagnosis"]
+    else:
+        done = afmid("-q", "simulate", MAP_CONFIG, "--set", "simulate.map=null", "-o", "trace.h5", cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+        edited = _edited(tmp_path / "trace.h5", tmp_path, _newer_version)
+        args = ["inspect", edited]
+    done = afmid(*args, cwd=tmp_path)
+    assert_one_line(done, str(edited), "format_version 2", "is not one this afmid")
+
+
 def test_the_untouched_map_result_reports(map_result, tmp_path):
     done = afmid("-q", "report", map_result, "-o", "rep", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
