@@ -18,6 +18,7 @@ limit_native_threads()
 
 import click  # noqa: E402
 
+from afmid.errors import escape_controls  # noqa: E402
 from afmid.version import __version__  # noqa: E402
 
 log = logging.getLogger("afmid")
@@ -41,19 +42,32 @@ SET = click.option(
 
 
 class _PlainFormatter(logging.Formatter):
-    """Progress messages as they are; warnings and errors marked, so they are not read as progress."""
+    """Progress messages as they are; warnings and errors marked, so they are not read as progress. Control
+    characters (of a name the user gave) are escaped (afmid.errors.escape_controls)."""
 
     def format(self, record: logging.LogRecord) -> str:
-        text = super().format(record)
+        text = escape_controls(super().format(record), keep="\n\t")
         if record.levelno >= logging.WARNING:
             return f"afmid: {record.levelname.lower()}: {text}"
         return text
 
 
+class _VerboseFormatter(logging.Formatter):
+    """``-v``: the level before each record (tracebacks included); control characters escaped as above."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return escape_controls(super().format(record), keep="\n\t")
+
+
+def _echo(text: str, err: bool = False) -> None:
+    """A command's result on stdout (or a line on stderr), a name's control characters escaped."""
+    click.echo(escape_controls(text, keep="\n\t"), err=err)
+
+
 def _setup_logging(verbose: int, quiet: bool) -> None:
     level = logging.WARNING if quiet else (logging.DEBUG if verbose > 1 else logging.INFO)
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s") if verbose else _PlainFormatter("%(message)s"))
+    handler.setFormatter(_VerboseFormatter("%(levelname)s: %(message)s") if verbose else _PlainFormatter("%(message)s"))
     root = logging.getLogger("afmid")
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -178,7 +192,7 @@ def fit(
     flagged = f"; {len(implausible)} read-out(s) implausible, flagged in the file (see the warnings)" if implausible else ""
     log.info("wrote %s: %s%s", output, result.summary_line(), flagged)
     if not _state["quiet"]:  # the read-out is the command's result: stdout (afmid.report.fit_text builds it)
-        click.echo(fitted.text(verbose=_state["verbose"] > 0))
+        _echo(fitted.text(verbose=_state["verbose"] > 0))
     # The fit's own warnings (model-limited, non-periodic motion); the trace's findings were logged on loading.
     prep = getattr(result, "prep", None)
     loaded = {f"{f.severity}: {f.message}" for f in getattr(getattr(prep, "trace", None), "findings", [])}
@@ -256,7 +270,7 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
                            overrides=overrides, force=force, progress=not _state["quiet"],
                            worker=fit_task if worker is None else load_worker(worker), engine=engine)
     except BatchInterrupted as exc:
-        click.echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
+        _echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
         from afmid.interrupts import Terminated
 
         raise (Terminated() if exc.terminated else KeyboardInterrupt()) from None  # main() reports it: 143 / 130
@@ -313,7 +327,7 @@ def coverage(config: Path, draws: int | None, jobs: int, output: Path | None, ov
         check_output_path(output, overwrite, inputs={config: "the config"})
     result = run_coverage(cfg, draws=draws, seed=seed, jobs=jobs, only=list(only) or None,
                           progress=not _state["quiet"])
-    click.echo(result.text(config, overrides))
+    _echo(result.text(config, overrides))
     if output is not None:
         from afmid.coverage.output import write_output
 
@@ -349,7 +363,7 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
     never replaced (docs/file-formats.md).
     """
     from afmid.report.maps import is_map_result
-    from afmid.tempfiles import disk_full_error, is_disk_full
+    from afmid.tempfiles import is_write_refused, write_refused_error
 
     tables = None
     if export_tables is not None:  # checked before the report's work
@@ -365,7 +379,7 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
                 raise ConfigError("is for run files; a force map's result has maps, not one run's tables",
                                   key="--export")
             # two: the earlier fit of the same map first (e.g. before afmid map --add EFFECT), drawn before / after
-            click.echo(make_map_report(runs[-1], output, overwrite=overwrite,
+            _echo(make_map_report(runs[-1], output, overwrite=overwrite,
                                        before=runs[0] if len(runs) == 2 else None))
             return
         from afmid.report.page import make_report
@@ -378,10 +392,10 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
             for name, rows in export_into_report(runs[-1], output, tables):
                 log.info("wrote %s (%d rows)", output / name, rows)
     except OSError as exc:  # the report's temporary folder is removed already
-        if is_disk_full(exc):
-            raise disk_full_error(exc, output) from None
+        if is_write_refused(exc):  # a full disk, a file-size limit, a read-only file system
+            raise write_refused_error(exc, output) from None
         raise
-    click.echo(summary)
+    _echo(summary)
 
 
 @cli.command()
@@ -455,7 +469,7 @@ def inspect(file: Path, column: str | None, sample_rate: float | None) -> None:
     """Show what afmid sees in a data file: channels, length, rate, drive, noise."""
     from afmid.io.inspect import inspect_file
 
-    click.echo(inspect_file(file, column=column, sample_rate=sample_rate))
+    _echo(inspect_file(file, column=column, sample_rate=sample_rate))
 
 
 @cli.command(name="map")
@@ -570,7 +584,7 @@ def _run(argv: list[str] | None) -> int:
     except click.UsageError as exc:  # one line, as every user error (click's own form takes four)
         command = exc.ctx.command_path if exc.ctx is not None else "afmid"
         message = " ".join(exc.format_message().split())
-        click.echo(f"afmid: error: {message} (see '{command} --help')", err=True)
+        _echo(f"afmid: error: {message} (see '{command} --help')", err=True)
         return exc.exit_code
     except click.ClickException as exc:
         exc.show()

@@ -22,6 +22,8 @@ import logging
 import sys
 import time
 
+from afmid.errors import escape_controls
+
 #: Terminal redraws at most this often, s (a kernel reporting every few periods would flood the terminal).
 REDRAW_INTERVAL = 0.1
 
@@ -86,7 +88,8 @@ class Progress:
 
     def text(self, plain: bool = False) -> str:
         """The line of the current stage: as the terminal shows it, or (``plain``) as a log line states it."""
-        head = f"{self.name}: {self.label}" if self.label else self.name
+        # escaped: a stage may name an item the user named (a batch's trace), and the line goes to a terminal
+        head = escape_controls(f"{self.name}: {self.label}" if self.label else self.name)
         if self.step is not None:
             return f"{head} ({self.step[0]}/{self.step[1]})"
         if plain:

@@ -16,6 +16,7 @@ from pathlib import Path
 import yaml
 
 from afmid.errors import ConfigError, InputError
+from afmid.io.files import check_format_version
 from afmid.io.trace import FORMAT_VERSION, sha256_file
 
 log = logging.getLogger(__name__)
@@ -28,17 +29,7 @@ ALLOW_DIFFERENT_TRACES = "--allow-different-traces"
 
 def check_version(attrs, path: Path) -> None:
     """InputError unless the file's ``format_version`` is one this afmid reads."""
-    from afmid.version import __version__
-
-    version = attrs.get("format_version")
-    try:
-        number = int(version)
-    except (TypeError, ValueError):
-        number = None
-    if number not in READABLE_VERSIONS:
-        readable = ", ".join(str(v) for v in READABLE_VERSIONS)
-        raise InputError(f"format_version {version!r} is not one this afmid ({__version__}) reads (it reads "
-                         f"{readable}); was it written by another afmid version?", file=path, key="format_version")
+    check_format_version(attrs, path, READABLE_VERSIONS)
 
 
 def stored_config(text: str | None, path: Path) -> dict:

@@ -31,7 +31,7 @@ import numpy as np
 import afmid.fit.plausibility as plausibility
 from afmid.config import RunConfig, build_config, dump_config
 from afmid.errors import ConfigError, InputError
-from afmid.io.files import check_input_file
+from afmid.io.files import check_input_file, is_regular_file
 from afmid.fit.forces import PeriodCurves
 from afmid.io.trace import RUN_FORMAT, TRACE_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
 from afmid.fit.uncertainty import ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR, intervals_kind
@@ -411,7 +411,11 @@ def load_run(path: str | Path) -> RunData:
     except (OSError, RuntimeError, ValueError, TypeError) as exc:  # h5py: unreadable chunks, wrong shapes/types
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise InputError(f"damaged run file: cannot read its contents ({first})", file=path) from None
-    if data.input_path is not None and data.input_path.exists():
+    if data.input_path is not None and data.input_path.exists() and not is_regular_file(data.input_path):
+        # a FIFO or a device (/dev/zero) at the stored path: reading it for the check would block or never end
+        log.warning("%s: its stored input %s is not a regular file; its SHA-256 is not checked and it is not read",
+                    path, data.input_path)
+    elif data.input_path is not None and data.input_path.exists():
         if input_unchanged(data.input_path, data.input_sha256):
             try:
                 data.truth = read_truth(data.input_path)

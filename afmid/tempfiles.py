@@ -6,7 +6,8 @@
   starts in the same folder. A file of a live process, of another host (a shared file system) or in the
   old unnamed form is never touched.
 - A full disk: :func:`disk_full_error` turns ENOSPC / EDQUOT into one :class:`afmid.errors.OutputError`
-  naming the output; :class:`ErrorHoldingFile` is the file object the HDF5 library writes through, so
+  naming the output (:func:`write_refused_error` also EFBIG, a file-size limit, and EROFS, a read-only file
+  system); :class:`ErrorHoldingFile` is the file object the HDF5 library writes through, so
   that a failed write never reaches it (measured: HDF5 1.14 via h5py 3.16 prints hundreds of lines of
   errors and then segfaults when a write fails at flush or close).
 """
@@ -33,6 +34,14 @@ _NAME_RE = re.compile(r"^\.afmid-tmp-(?P<name>.+)\.(?P<host>[A-Za-z0-9-]+)\.(?P<
 NO_SPACE_TEXT = "no space left on device"
 #: errno values that mean the output does not fit, and how the error line says it.
 _NO_SPACE = {errno.ENOSPC: NO_SPACE_TEXT, errno.EDQUOT: f"disk quota exceeded ({NO_SPACE_TEXT})"}
+#: Every errno of a write the place refuses, whatever the data (a full disk, a file-size limit, a read-only file
+#: system): (what happened, what to do), for one error line naming the output.
+_WRITE_REFUSED = {
+    **{code: (text, "free some space and run again") for code, text in _NO_SPACE.items()},
+    errno.EFBIG: ("file too large: the file system's or this process's file-size limit (ulimit -f) was reached",
+                  "write it where larger files are allowed, or raise the limit"),
+    errno.EROFS: ("read-only file system", "write it to a writable folder"),
+}
 
 
 def host_tag() -> str:
@@ -98,6 +107,17 @@ def is_disk_full(exc: BaseException) -> bool:
 def disk_full_error(exc: OSError, path: Path | str) -> OutputError:
     """The one-line error for output ``path`` that did not fit (``exc`` is ENOSPC or EDQUOT)."""
     return OutputError(f"{_NO_SPACE[exc.errno]}; nothing was written (free some space and run again)", file=path)
+
+
+def is_write_refused(exc: BaseException) -> bool:
+    """Whether ``exc`` is a write the place refused (full disk, quota, EFBIG, EROFS), not a bug of afmid."""
+    return isinstance(exc, OSError) and exc.errno in _WRITE_REFUSED
+
+
+def write_refused_error(exc: OSError, path: Path | str) -> OutputError:
+    """The one-line error for output ``path`` whose write ``exc`` (see :func:`is_write_refused`) was refused."""
+    what, advice = _WRITE_REFUSED[exc.errno]
+    return OutputError(f"{what}; nothing was written ({advice})", file=path)
 
 
 class ErrorHoldingFile(io.RawIOBase):

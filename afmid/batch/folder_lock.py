@@ -20,7 +20,7 @@ from pathlib import Path
 
 from afmid.errors import OutputError
 from afmid.io.trace import now_iso
-from afmid.tempfiles import disk_full_error, is_disk_full
+from afmid.tempfiles import is_write_refused, write_refused_error
 
 LOCK_NAME = ".afmid-batch.lock"
 
@@ -38,9 +38,9 @@ def folder_lock(folder: Path, key: str | None = None, writer: str = "afmid batch
         try:
             os.ftruncate(fd, 0)
             os.write(fd, f"pid {os.getpid()} on host {socket.gethostname()}, started {now_iso()}\n".encode())
-        except OSError as exc:  # a full disk: say so (the lock is released and its file removed below)
-            if is_disk_full(exc):
-                raise disk_full_error(exc, path) from None
+        except OSError as exc:  # a full disk, a size limit: say so (the lock is released and its file removed below)
+            if is_write_refused(exc):
+                raise write_refused_error(exc, path) from None
             raise OutputError(f"cannot write the lock file {LOCK_NAME}: {exc.strerror or exc}", file=folder,
                               key=key) from None
         yield path

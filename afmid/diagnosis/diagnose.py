@@ -48,6 +48,7 @@ from afmid.progress import counted
 import afmid.fit.plausibility as plausibility
 from afmid.config import RunConfig
 from afmid.errors import InputError
+from afmid.io.files import is_regular_file
 from afmid.io.trace import sha256_file
 from afmid.diagnosis.candidate_refit import (SEPARATION_WINDOW, refit_candidate, search_separation,
                                              separation_estimated)
@@ -210,6 +211,10 @@ def suggest(run: RunData, progress: bool = False, trace=None) -> dict:
                 "note": "suggestions need a model built from effects (model.effects), not a preset library"}
     if trace is None and (run.input_path is None or not run.input_path.exists()):
         raise InputError("the run's input trace is not available for refitting", file=run.path, key="input_path")
+    if trace is None and not is_regular_file(run.input_path):  # a FIFO or a device: never read (it would hang)
+        note = f"no suggestions: the stored input {run.input_path} is not a regular file"
+        log.warning("%s: %s", run.path, note)
+        return {"missing_effect": False, "suggestions": [], "tried": [], "note": note}
     if trace is None and run.input_sha256 and sha256_file(run.input_path) != run.input_sha256:
         # Refits of another trace would be compared with this run's fit: no suggestion can come of that.
         log.warning("%s changed since the run was made (SHA-256 differs); no effects are suggested", run.input_path)

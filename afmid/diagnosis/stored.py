@@ -222,9 +222,10 @@ def diagnosed(run, progress: bool = False, trace=None) -> dict:
     """:func:`afmid.diagnosis.diagnose.suggest`'s answer for ``run``: the one its run file or the cache keeps for
     this run's key, else made now (and cached). ``trace`` as :func:`suggest` takes it."""
     from afmid.diagnosis.diagnose import suggest
+    from afmid.io.files import is_regular_file
     from afmid.io.trace import sha256_file
 
-    if trace is None and run.input_path is not None and run.input_path.exists() and run.input_sha256 \
+    if trace is None and run.input_path is not None and is_regular_file(run.input_path) and run.input_sha256 \
             and sha256_file(run.input_path) != run.input_sha256:
         return suggest(run, progress=progress, trace=trace)  # it says the input changed; nothing to reuse
     key = diagnosis_key(run)

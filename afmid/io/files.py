@@ -30,6 +30,8 @@ from pathlib import Path
 
 from afmid.errors import AfmidError, InputError, OutputError
 
+#: Layout version of the HDF5 files afmid writes (trace, run, map, map result; docs/file-formats.md).
+FORMAT_VERSION = 1
 #: Longest excerpt of a file shown in a message (characters).
 EXCERPT_CHARS = 60
 
@@ -128,6 +130,59 @@ def check_output_target(path: str | Path) -> None:
         if is_kind(mode):
             raise OutputError(f"not a regular file ({kind}); afmid never replaces a special file with its output",
                               file=path)
+
+
+def check_format_version(attrs, path: str | Path, readable: tuple[int, ...] = (FORMAT_VERSION,)) -> None:
+    """InputError unless the ``format_version`` attribute of afmid's own HDF5 file ``path`` is ``readable`` here: a
+    file of a newer afmid is refused with its version named, not read as if its layout were this one's."""
+    from afmid.version import __version__
+
+    version = attrs.get("format_version")
+    try:
+        number = int(version)
+    except (TypeError, ValueError):
+        number = None
+    if number not in readable:
+        known = ", ".join(str(v) for v in readable)
+        shown = number if number is not None else repr(version)  # 2, not np.int64(2)
+        why = ("written by a newer afmid: update afmid to read it" if number is not None and number > max(readable)
+               else "was it written by another afmid version?")
+        raise InputError(f"format_version {shown} is not one this afmid ({__version__}) reads (it reads {known}); "
+                         f"{why}", file=path, key="format_version")
+
+
+def check_folder_writable(path: str | Path) -> None:
+    """OutputError unless a file can be made in the folder of output ``path`` (an existing folder).
+
+    Checked when the command starts, before minutes of fitting, so that a read-only file system or a folder the
+    user cannot write in is said at once; the write itself still turns a refusal into one line
+    (:func:`afmid.tempfiles.write_refused_error`). The check makes and removes an empty temporary file of this
+    process (``.afmid-tmp-*``), as the write will: permission bits alone do not tell (root ignores them, and
+    they say nothing of a read-only mount).
+    """
+    import tempfile
+
+    from afmid.tempfiles import is_write_refused, prefix_for, write_refused_error
+
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=prefix_for(path), dir=folder)
+    except OSError as exc:
+        if is_write_refused(exc):
+            raise write_refused_error(exc, path) from None
+        raise OutputError(f"cannot write in folder {folder}: {exc.strerror or exc}", file=path) from None
+    os.close(fd)
+    os.unlink(probe)
+
+
+def is_regular_file(path: str | Path) -> bool:
+    """Whether ``path`` is (or links to) a regular file, found without opening it: a FIFO would block the open
+    and a device (``/dev/zero``) never ends, so a stored path is checked with this before it is read."""
+    try:
+        return stat.S_ISREG(os.stat(path).st_mode)
+    except (OSError, ValueError):
+        return False
 
 
 # --------------------------------------------------------------------------- memory

@@ -16,6 +16,7 @@ import datetime as _dt
 import hashlib
 import logging
 import os
+import stat
 import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
@@ -29,14 +30,14 @@ from afmid.errors import ConfigError, InputError, OutputError
 # The lever's type lives in afmid.io.cantilever; `from afmid.io.trace import Cantilever` keeps working.
 from afmid.io.cantilever import Cantilever
 from afmid.io.file_values import check_file_instrument_value, merge_cantilever, merged_value, same_value
-from afmid.io.files import check_input_file, check_output_target
+from afmid.io.files import (FORMAT_VERSION, check_folder_writable, check_input_file, check_output_target,
+                             is_regular_file)
 from afmid.preprocess.harmonics import MIN_PERIODS  # the least a trace must hold (the harmonic analysis needs it too)
 
 log = logging.getLogger(__name__)
 
 TRACE_FORMAT = "afmid-trace"
 RUN_FORMAT = "afmid-run"
-FORMAT_VERSION = 1
 
 _UNIT_SCALE = {"m": 1.0, "nm": 1e-9, "pm": 1e-12, "um": 1e-6}
 
@@ -123,8 +124,16 @@ class Trace:
 
 # --------------------------------------------------------------------------- helpers
 def sha256_file(path: str | Path) -> str:
+    """The SHA-256 of regular file ``path`` (InputError for anything else: a FIFO or a device is never read)."""
+    if not is_regular_file(path):
+        raise InputError("not a regular file (a FIFO, a device, a folder or missing): its SHA-256 is not taken",
+                         file=path)
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # non-blocking: a FIFO swapped in after the check cannot block
+    if not stat.S_ISREG(os.fstat(fd).st_mode):  # replaced between the check and the open
+        os.close(fd)
+        raise InputError("not a regular file: its SHA-256 is not taken", file=path)
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
+    with os.fdopen(fd, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
@@ -200,6 +209,7 @@ def check_output_path(path: str | Path, overwrite: bool, inputs: dict[str | Path
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.exists():
         raise OutputError(f"output folder {parent} does not exist", file=path)
+    check_folder_writable(path)  # now, not after the work (a read-only place)
     return path
 
 
@@ -224,8 +234,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         fd, tmp = tempfile.mkstemp(prefix=tempfiles.prefix_for(path), dir=folder)
     except OSError as exc:  # unwritable or vanished folder: the user's environment, not a bug
         held.close()
-        if tempfiles.is_disk_full(exc):
-            raise tempfiles.disk_full_error(exc, path) from None
+        if tempfiles.is_write_refused(exc):
+            raise tempfiles.write_refused_error(exc, path) from None
         raise OutputError(f"cannot write in folder {path.parent}: {exc.strerror or exc}", file=path) from exc
     os.close(fd)
     tmp_path = Path(tmp)
@@ -241,8 +251,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         os.replace(tmp_path, path)
     except BaseException as exc:
         tmp_path.unlink(missing_ok=True)
-        if tempfiles.is_disk_full(exc):
-            raise tempfiles.disk_full_error(exc, path) from None
+        if tempfiles.is_write_refused(exc):
+            raise tempfiles.write_refused_error(exc, path) from None
         raise
 
 
@@ -288,9 +298,9 @@ def atomic_hdf5(path: str | Path, file_format: str, config_text: str, inputs: di
 def _raise_held(error: BaseException, path: Path | str) -> None:
     """Raise what went wrong while the HDF5 library wrote ``path``: an interrupt as it is, a full disk for
     :func:`atomic_path` to report, any other failed write as one error line naming the output."""
-    from afmid.tempfiles import is_disk_full
+    from afmid.tempfiles import is_write_refused
 
-    if isinstance(error, OSError) and not is_disk_full(error):
+    if isinstance(error, OSError) and not is_write_refused(error):
         raise OutputError(f"cannot write: {error.strerror or error}", file=path) from error
     raise error
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from afmid.errors import ConfigError, InputError
-from afmid.io.files import check_input_file
+from afmid.io.files import check_format_version, check_input_file
 from afmid.io.trace import Cantilever, Trace, check_trace
 
 #: Metres per unit of the deflection samples (V and raw are converted with data.invols / data.scale).
@@ -91,6 +91,12 @@ def open_map(path: str | Path, config) -> MapSource:
     shape, ds_attrs, root, x, y = _attrs(path)
     if len(shape) != 3 or min(shape) < 1:
         raise InputError(f"the map must have shape (rows, cols, samples), got {shape}", file=path, key="/deflection")
+    if _text(root.get("format", "")) == "afmid-map":  # afmid's own map file (afmid simulate): a version it reads
+        check_format_version(root, path)
+    for axis, values, length, what in (("x", x, shape[1], "column"), ("y", y, shape[0], "row")):
+        if values is not None and values.shape != (length,):  # the result's axes would be drawn from it
+            raise InputError(f"has shape {values.shape}, expected ({length},): one position per {what} of "
+                             f"/deflection", file=path, key=f"/{axis}")
     sources: dict[str, str] = {}
 
     def merged(key: str, from_config, *names):

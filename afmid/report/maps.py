@@ -16,11 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from afmid.errors import InputError
 from afmid.report.figures import figure_html, save_figure
+from afmid.report.map_result import MAP_RESULT_FORMAT, read_map_result  # the layout and version checked there
 from afmid.report.quantity_text import display_unit
 
-MAP_RESULT_FORMAT = "afmid-map-result"
 #: Pixels listed by name in the HTML (all of them are in summary.json).
 MAX_LISTED = 50
 STATUS_COLOURS = ("#2ca02c", "#ff7f0e", "#d62728")
@@ -38,22 +37,6 @@ def is_map_result(path: Path) -> bool:
             return h5.attrs.get("format") == MAP_RESULT_FORMAT
     except OSError:
         return False
-
-
-def read_map_result(path: Path) -> dict:
-    import h5py
-
-    with h5py.File(path, "r") as h5:
-        if h5.attrs.get("format") != MAP_RESULT_FORMAT:
-            raise InputError(f"not a map result (format {h5.attrs.get('format')!r})", file=path, key="format")
-        maps = {name: (ds[()], str(ds.attrs.get("units", "")), str(ds.attrs.get("meaning", "")))
-                for name, ds in h5["maps"].items()}
-        attrs = {k: h5.attrs[k] for k in h5.attrs}
-        pixel_size = None
-        if "x" in h5 and h5["x"].size > 1:
-            x = np.asarray(h5["x"][()]).ravel()
-            pixel_size = float(abs(x[1] - x[0]))
-    return {"maps": maps, "attrs": attrs, "pixel_size": pixel_size}
 
 
 def parameter_names(maps: dict) -> list[str]:

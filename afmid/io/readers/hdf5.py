@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from afmid.io.files import check_format_version
 from afmid.io.readers.base import (
     RawTrace,
     Reader,
@@ -123,6 +124,8 @@ def list_channels(path: Path) -> list[str]:
 def read(path: Path, channel: str | None = None, time_channel: str | None = None) -> RawTrace:
     """Read one dataset (file units) and optionally a time dataset (s)."""
     with _open(path) as h5:
+        if plain(h5.attrs.get("format")) == TRACE_FORMAT:  # afmid's own trace: a newer one is refused, named
+            check_format_version(h5.attrs, path)
         datasets = _datasets(h5)
         names = list(datasets)
         channels = [name for name, ds in datasets.items() if _is_channel(ds)]
