@@ -119,6 +119,28 @@ def check_values(values: np.ndarray, spp: float | None = None) -> list[Finding]:
     return [Finding("nan", "error", message, "data.column", numbers)]
 
 
+#: Time values whose float64 spacing exceeds this fraction of the sampling step cannot be uniform to the 0.1 % the
+#: jitter check asks: the step itself is rounded to the spacing.
+_TIME_RESOLUTION_FRACTION = 1e-3
+
+
+def _time_resolution(time: np.ndarray) -> Finding | None:
+    """The finding for a time column float64 cannot resolve: absolute (Unix-epoch) seconds, ~1.7e9 s, are spaced
+    2^-22 s = 2.4e-7 s apart there, coarser than a 17 ns step, so the steps come out 0 or 2.4e-7 s (before, this
+    read 'duplicated or reordered samples', which named no cause). None when the values resolve the step."""
+    largest = float(np.max(np.abs(time)))
+    step = float(time[-1] - time[0]) / (time.size - 1)
+    resolution = float(np.spacing(largest))
+    if not (math.isfinite(step) and step > 0) or resolution <= _TIME_RESOLUTION_FRACTION * step:
+        return None
+    return Finding("time_resolution", "error",
+                   f"the time column's values reach {largest:.3g} s, where float64 resolves only {resolution:.3g} s, "
+                   f"coarser than the sampling step {step:.3g} s allows (its steps must be uniform to 0.1 %): "
+                   "absolute (e.g. Unix-epoch) times? subtract the start time (a relative time column) or remove "
+                   "data.time_column and give data.sample_rate", "data.time_column",
+                   {"largest": largest, "resolution": resolution, "step": step})
+
+
 def check_time(time: np.ndarray) -> list[Finding]:
     """Gaps (dropped samples), short steps (duplicated samples) and jitter in a time column.
 
@@ -130,6 +152,8 @@ def check_time(time: np.ndarray) -> list[Finding]:
     steps = np.diff(time)
     if steps.size == 0:
         return []
+    if (resolution := _time_resolution(time)) is not None:
+        return [resolution]
     if np.any(steps <= 0):
         first = int(np.argmax(steps <= 0)) + 1
         return [Finding("time_order", "error",
