@@ -234,7 +234,7 @@ def test_an_epoch_time_column_names_float64_resolution_as_the_cause(load):
     spacing = np.spacing(1.7e9)
     assert spacing == 2.0**-22 and spacing > 1 / RATE  # the arithmetic the message states
     err = refused(load, x, "data.time_column", "the time column's values reach 1.7e+09 s, where float64 resolves "
-                  "only 2.38e-07 s, coarser than the sampling step", "subtract the start time (a relative time "
+                  "only 2.38e-07 s, coarser than a thousandth of the sampling step 3.33e-08 s", "subtract the start time (a relative time "
                   "column) or remove data.time_column and give data.sample_rate", time=epoch)
     assert "duplicated or reordered" not in err.message
     # A relative time column of the same record is fine, and so is an offset float64 still resolves to 1e-3 steps.
