@@ -307,13 +307,15 @@ class ModelConfig(StrictModel):
 class NoiseConfig(StrictModel):
     """Instrument noise added by the simulator."""
 
-    detector_rms: NonNegativeFloat = Field(0.0, description="white detector noise, m rms")
-    detector_density: NonNegativeFloat | None = Field(
+    # Upper bounds beyond any AFM detector, as for the instrument values (free_amplitude <= 1e-4 m): 1e300 m rms
+    # made a trace of +-3e300 m (issue 32). 1e-7 m/sqrt(Hz) is 1e-4 m rms over a 1 MHz band.
+    detector_rms: Annotated[NonNegativeFloat, Field(le=1e-4)] = Field(0.0, description="white detector noise, m rms")
+    detector_density: Annotated[NonNegativeFloat, Field(le=1e-7)] | None = Field(
         None, description="white detector noise density, m/sqrt(Hz) (overrides detector_rms)"
     )
     thermal: bool = Field(True, description="thermal force noise consistent with k_B T and the damping")
     temperature: PositiveFloat = Field(300.0, description="K")
-    adc_step: NonNegativeFloat = Field(0.0, description="ADC quantization step, m; 0 = none")
+    adc_step: Annotated[NonNegativeFloat, Field(le=1e-4)] = Field(0.0, description="ADC quantization step, m; 0 = none")
 
 
 class SimulateConfig(StrictModel):

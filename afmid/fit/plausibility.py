@@ -211,8 +211,96 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
 
 
 def check_plausibility(quantities: Mapping[str, Mapping | float]) -> dict[str, Verdict]:
-    """Verdicts on the fit's read-outs, by name (``FitResult.quantities`` or ``{name: value}`` in SI)."""
-    return {name: judge(name, q) for name, q in quantities.items()}
+    """Verdicts on the fit's read-outs, by name (``FitResult.quantities`` or ``{name: value}`` in SI).
+
+    When one factor on the spring constant brings every read-out into its range, the implausible ones say so
+    (:func:`spring_constant_cause`) instead of the general advice on the calibration."""
+    verdicts = {name: judge(name, q) for name, q in quantities.items()}
+    cause = spring_constant_cause(quantities)
+    if cause is None:
+        return verdicts
+    return {name: Verdict(False, f"{v.finding}; {cause}", v.finding) if name in cause.explained else v
+            for name, v in verdicts.items()}
+
+
+def spring_power(unit: str) -> float:
+    """How a read-out in ``unit`` scales with the declared spring constant k, at fixed lengths and times.
+
+    Every force the fit reports is k times a deflection (m = k / w0^2 and c = k / (Q w0) too), so a read-out
+    made of forces, lengths and times scales with k to the power of its mass dimension: E* (Pa), H (J), gamma
+    (J/m^2), a viscosity (Pa s) as k. A unit with current or temperature (a voltage: V^2 eps0 is a force) is not
+    such a read-out: 0 (unknown, not used)."""
+    from afmid.physics.units import parse_unit
+
+    try:
+        kg, _, _, ampere, kelvin = parse_unit(unit).dims
+    except ValueError:
+        return 0.0
+    return 0.0 if ampere or kelvin else float(kg)
+
+
+class SpringConstantCause(str):
+    """The likely-cause clause (a str) and the read-outs it explains (``explained``)."""
+
+    explained: frozenset[str]
+
+
+def _factor_words(factor: float) -> str:
+    return f"{_short(float(f'{factor:.2g}'))}x"
+
+
+def spring_constant_cause(quantities: Mapping[str, Mapping | float]) -> SpringConstantCause | None:
+    """The clause naming a spring constant off by a factor as the likely cause, or None.
+
+    Each read-out v that scales as k^p (:func:`spring_power`) is physical for a true k = k_declared / f only when
+    low <= v / f^p <= high: an interval of f. When some read-out is outside its range by magnitude (positive, not
+    of the wrong sign, determined) and the intervals of all of them intersect away from f = 1, a spring constant
+    off by a factor in the intersection explains them all; the clause gives the interval and, at the power of ten
+    nearest its middle (in log), what the flagged read-outs and E* would be. A wrong sign or an empty intersection
+    is no such cause (then None), and so is a single read-out (any factor brings one value in)."""
+    lo, hi = -math.inf, math.inf  # log10 f
+    scaled: dict[str, tuple[float, float, str]] = {}  # name -> (value, power, unit)
+    flagged = set()
+    for name, q in quantities.items():
+        q = q if isinstance(q, Mapping) else {"value": q}
+        value, effect = _field(q, "value"), q.get("effect") or None
+        declared = tip_scaled_range(name, effect, _field(q, "tip_radius")) or plausible_range(name, effect)
+        if declared is None or q.get("determined", True) is False or not (math.isfinite(value) and value > 0):
+            continue
+        low, high, unit = declared
+        power = spring_power(str(q.get("unit") or unit))
+        if power <= 0:
+            continue
+        scaled[name] = (value, power, str(q.get("unit") or unit))
+        lo = max(lo, math.log10(value / high) / power)
+        hi = min(hi, math.log10(value / low) / power if low > 0 else math.inf)
+        if not (low <= value <= high):
+            flagged.add(name)
+    # One read-out alone allows any factor that brings it in (E* 10 TPa: 10x to 1e11x) and is as well a wrong
+    # data.units: the cause is named only when two or more read-outs agree on a factor.
+    if not flagged or len(scaled) < 2 or lo > hi or lo <= 0.0 <= hi:
+        return None
+    larger = lo > 0.0  # f > 1: the declared k is too large
+    direction = "large" if larger else "small"
+    near, far = (lo, hi) if larger else (-hi, -lo)
+    if math.isfinite(far):  # the power of ten nearest the middle (in log), inside the interval if one is
+        example = round((near + far) / 2.0)
+        if math.ceil(near) <= math.floor(far):
+            example = min(max(example, math.ceil(near)), math.floor(far))
+        span = f"{_factor_words(10 ** near)} to {_factor_words(10 ** far)}"
+    else:
+        example, span = math.ceil(near), f"{_factor_words(10 ** near)} or more"
+    example = max(example, 1)  # f = 1 is the declared k
+    shown = [n for n in scaled if n in flagged] + [n for n in scaled if n == "E_star" and n not in flagged]
+    f = 10.0 ** (example if larger else -example)
+    at = " and ".join(f"{n.split('.')[-1]} would be {display(scaled[n][0] / f ** scaled[n][1], scaled[n][2])}"
+                      if i == 0 else f"{n.split('.')[-1]} {display(scaled[n][0] / f ** scaled[n][1], scaled[n][2])}"
+                      for i, n in enumerate(shown))
+    cause = SpringConstantCause(
+        f"a spring constant {span} too {direction} would explain it, since every force read-out is proportional "
+        f"to it (at {_factor_words(10.0 ** example)} too {direction}: {at}): check cantilever.spring_constant")
+    cause.explained = frozenset(flagged)
+    return cause
 
 
 def unphysical(name: str, quantity: Mapping) -> bool:

@@ -39,6 +39,7 @@ import numpy as np
 
 from afmid.errors import InputError
 from afmid.io.findings import SEVERITIES, Finding, frequency, length, yaml_number  # noqa: F401 (re-exported)
+from afmid.io.time_column import TIME_JITTER, check_time  # noqa: F401 (re-exported: the checks on load)
 from afmid.preprocess.harmonics import (  # the engine the fit uses too
     DRIVE_SEARCH,
     MIN_SAMPLES_PER_PERIOD,
@@ -72,8 +73,6 @@ OFFSET_FORCE_MULTIPLE = 3.0
 #: A drift is reported when it exceeds this fraction of the amplitude over the trace and is significant.
 DRIFT_FRACTION = 2e-3
 DRIFT_SIGMA = 5.0
-#: Time steps may jitter by this fraction of the mean step (as afmid.fit.pipeline requires).
-TIME_JITTER = 1e-3
 #: A phase step counts as a jump above this many robust standard deviations and half a sample.
 JUMP_SIGMA = 8.0
 #: ... and above this many standard deviations of the thermal phase noise (a known scale, not estimated).
@@ -117,65 +116,6 @@ def check_values(values: np.ndarray, spp: float | None = None) -> list[Finding]:
     numbers = {"n_bad": int(bad.sum()), "first": first, "runs": len(starts), "longest_run": int(lengths[longest]),
                "clean_start": clean_start, "clean_length": clean_len}
     return [Finding("nan", "error", message, "data.column", numbers)]
-
-
-def check_time(time: np.ndarray) -> list[Finding]:
-    """Gaps (dropped samples), short steps (duplicated samples) and jitter in a time column.
-
-    Every problem is an error: the fit needs uniformly spaced samples.
-    """
-    key = "data.time_column"
-    if not np.all(np.isfinite(time)):
-        return [Finding("time_nan", "error", "the time column has NaN/inf values", key)]
-    steps = np.diff(time)
-    if steps.size == 0:
-        return []
-    if np.any(steps <= 0):
-        first = int(np.argmax(steps <= 0)) + 1
-        return [Finding("time_order", "error",
-                        f"time is not strictly increasing (sample {first}); duplicated or reordered samples", key,
-                        {"first": first})]
-    step = float(np.median(steps))
-    long_ = steps > 1.5 * step
-    short = steps < 0.5 * step
-    findings = []
-    # Regular parts: split between the samples around each irregular step.
-    breaks = np.flatnonzero(long_ | short)
-    starts = np.concatenate([[0], breaks + 1])
-    ends = np.concatenate([breaks + 1, [time.size]])
-    best = int(np.argmax(ends - starts))
-    clean_start, clean_len = int(starts[best]), int(ends[best] - starts[best])
-    crop = f"crop the trace to a regular part (the longest is samples {clean_start}-{clean_start + clean_len - 1})"
-    if long_.any():
-        first = int(np.argmax(long_))
-        largest = float(steps.max() / step)
-        findings.append(Finding(
-            "time_gaps", "error",
-            f"the time column has {int(long_.sum())} gap{'s' if long_.sum() > 1 else ''} (the largest "
-            f"{largest:.3g} sampling steps, the first after sample {first} at t = {time[first]:.6g} s): samples "
-            f"were dropped; {crop} or resample it onto a uniform grid",
-            key, {"n_gaps": int(long_.sum()), "first": first, "largest_steps": largest, "step": step,
-                  "clean_start": clean_start, "clean_length": clean_len}))
-    if short.any():
-        first = int(np.argmax(short))
-        findings.append(Finding(
-            "time_duplicates", "error",
-            f"the time column has {int(short.sum())} step{'s' if short.sum() > 1 else ''} shorter than half the "
-            f"sampling step (the first after sample {first}): duplicated or inserted samples; remove them or {crop}",
-            key, {"n_short": int(short.sum()), "first": first, "step": step,
-                  "clean_start": clean_start, "clean_length": clean_len}))
-    if findings:
-        return findings
-    mean = float((time[-1] - time[0]) / steps.size)
-    jitter = float(np.max(np.abs(steps - mean)) / mean)
-    if jitter > TIME_JITTER:
-        findings.append(Finding(
-            "time_jitter", "error",
-            f"the time steps vary by up to {100 * jitter:.2g} % of the step (rounded time values or an irregular "
-            f"clock), the fit needs them uniform to {100 * TIME_JITTER:.1g} %: remove data.time_column and give "
-            f"data.sample_rate ({1 / mean:.6g} Hz on average)",
-            key, {"jitter": jitter, "mean_rate": 1 / mean}))
-    return findings
 
 
 # --------------------------------------------------------------------------- signal checks

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 import afmid.io.defects as defects
-from afmid.errors import InputError
+from afmid.errors import ConfigError, InputError
 
 _LENGTH_UNITS = {"m": 1.0, "nm": 1e-9, "pm": 1e-12, "um": 1e-6}
 
@@ -76,8 +76,12 @@ def _time_candidates(channels: list[str], chosen: str | None) -> list[str]:
 def describe(path: str | Path, column: str | None = None, sample_rate: float | None = None) -> FileSummary:
     """Read ``path`` as a run would and measure what is in it (see the module docstring).
 
-    Raises InputError for a missing or unreadable file, or a ``column`` it does not have.
+    Raises InputError for a missing or unreadable file, or a ``column`` it does not have, and ConfigError for a
+    ``sample_rate`` that is not a positive finite number of Hz (``--sample-rate nan`` printed "nan Hz").
     """
+    if sample_rate is not None and not (math.isfinite(sample_rate) and sample_rate > 0):
+        raise ConfigError(f"{sample_rate:g} is not a sample rate: expected a positive number of Hz",
+                          key="--sample-rate")
     from afmid.io.trace import TRACE_FORMAT, normalise_units
     from afmid.io.readers import list_channels, read_trace, reader_for
 

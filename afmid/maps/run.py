@@ -22,7 +22,7 @@ from afmid.errors import ConfigError, EngineError, InputError
 from afmid.maps.group_diagnosis import write_groups
 from afmid.maps.pixel_fit import ROUTES
 from afmid.maps.sidecar import Sidecar, held_sidecar
-from afmid.maps.task import STATUS_FAILED, STATUS_NAMES, STATUS_OK, STATUS_SUSPECT, fit_chunk
+from afmid.maps.task import STATUS_FAILED, STATUS_NAMES, STATUS_OK, STATUS_SUSPECT, fit_chunk, spring_constant_summary
 
 log = logging.getLogger(__name__)
 
@@ -268,6 +268,8 @@ def write_map_result(output: Path, source, config, config_text: str, sidecar: Si
             write_dataset(h5, "y", source.y, "m")
     log.info("wrote %s: %d pixels ok, %d suspect, %d failed", output, counts["ok"], counts["suspect"],
              counts["failed"])
+    if (calibration := spring_constant_summary(message)) is not None:
+        log.warning("%s: %s", output, calibration)
     return counts
 
 

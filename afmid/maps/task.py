@@ -147,3 +147,23 @@ def fit_chunk(task: dict) -> dict:
     out["seconds"] = time.perf_counter() - started
     return out
 
+
+#: The end of a read-out's reason when a spring constant off by a factor explains it (afmid.fit.plausibility).
+_SPRING_CONSTANT_ADVICE = "check cantilever.spring_constant"
+
+
+def spring_constant_summary(messages) -> str | None:
+    """The map's one warning when pixels' read-outs are implausible in a way a spring constant off by a factor
+    explains (:func:`afmid.fit.plausibility.spring_constant_cause`): how many pixels, and the first one's clause
+    (the factor's interval and what the read-outs would be); None when no pixel says so. A wrong k spoils every
+    pixel alike, so the count and one pixel's numbers are the summary."""
+    flat = [str(m) for m in np.asarray(messages, dtype=object).ravel()]
+    hits = [i for i, m in enumerate(flat) if _SPRING_CONSTANT_ADVICE in m]
+    if not hits:
+        return None
+    first = flat[hits[0]]
+    end = first.index(_SPRING_CONSTANT_ADVICE) + len(_SPRING_CONSTANT_ADVICE)
+    start = first.rfind("a spring constant ", 0, end)
+    return (f"implausible read-outs in {len(hits)} of {len(flat)} pixels (suspect); at pixel {hits[0]}: "
+            f"{first[max(start, 0):end]}")
+

@@ -36,6 +36,8 @@ from afmid.physics.term_parser import (
     children,
     free_names,
     strip_gates,
+    unparse,
+    walk,
 )
 
 
@@ -158,9 +160,34 @@ def fold(node):
     return type(node)(node.op, *args)
 
 
+def _is_literal(node) -> bool:
+    """True for a tree of numbers and operations only (no variable, parameter, state or gate)."""
+    return not any(isinstance(n, (Name, StateRef, Gate)) for n in walk(node))
+
+
+def check_constants(node: Node, text: str) -> None:
+    """Every constant part of ``node`` (a subtree of numbers only: ``1/0``, ``log(0)``) must be a finite number.
+
+    Folded, ``[1/0 > 0]`` becomes a gate that is always true and ``z * (1/(2 - 2))`` a column of inf; either is a
+    typing error the user should see, named, rather than a term that fits (issue 32). Constants are evaluated
+    with the same float64 operations as the folding (:func:`apply_numpy`)."""
+    if isinstance(node, Num):
+        return
+    if isinstance(node, (Neg, BinOp, Call)) and _is_literal(node):
+        with np.errstate(all="ignore"):
+            value = float(numpy_value(node, np.empty((0, 0))))
+        if not math.isfinite(value):
+            raise ExpressionError(f"the constant {unparse(node)} is not finite ({value}); the constant parts of a "
+                                  "term must be numbers", text, getattr(node, "pos", -1))
+        return
+    for child in children(node):
+        check_constants(child, text)
+
+
 def param_values(node: Node, text: str, params: Mapping, states: tuple[str, ...]) -> dict[str, float]:
-    """Check the names in ``node``; return the values of the parameters it uses, by name."""
+    """Check the names and constants in ``node``; return the values of the parameters it uses, by name."""
     check_names(node, text, params, states)
+    check_constants(node, text)
     values = {}
     for name in sorted(free_names(node) - set(states)):
         try:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afmid.physics.term_lowering import apply_numpy
+from afmid.physics.term_lowering import apply_numpy, check_constants
 from afmid.physics.term_parser import (
     VARIABLE_UNITS,
     VARIABLES,
@@ -73,6 +73,7 @@ def expression_units(text: str, param_units: Mapping[str, Unit | str], states: t
     node = parse(text)
     states = tuple(states)
     check_names(node, text, param_units, states)
+    check_constants(node, text)  # a term's units are its first check (model.terms): 1/0 is refused here already
     units = dict(VARIABLE_UNITS)
     units.update({s: DIMENSIONLESS for s in states})
     for name, unit in param_units.items():

@@ -125,11 +125,16 @@ BAD_VALUES = [
     ("simulate-mode-unknown", "simulate.mode", "pulsed", "steady"),
     ("setpoint-above-one", "simulate.setpoint", 1.5, "must be < 1"),
     ("noise-negative", "simulate.noise.detector_rms", -1e-12, "must be >= 0"),
+    # Beyond any detector: 1e300 m rms gave a trace of +-3e300 m (issue 32).
+    ("noise-beyond-any-detector", "simulate.noise.detector_rms", 1e300, "must be <= 0.0001"),
+    ("noise-density-beyond-any-detector", "simulate.noise.detector_density", 1e300, "must be <= 1e-07"),
+    ("adc-step-beyond-any-detector", "simulate.noise.adc_step", 1e300, "must be <= 0.0001"),
 ]
 
 #: (id, custom term, fragment of the message): the term language is parsed, never evaluated as Python.
 BAD_TERMS = [
     ("python-call", "__import__('os').system('ls')", "unexpected character"),
+    ("gate-dividing-by-zero", "[1/0 > 0] * z", "the constant 1/0 is not finite"),
     ("lambda", "lambda: 1", "unexpected character ':'"),
     ("matmul-operator", "z @ 2", "unexpected character '@'"),
     ("dangling-operator", "delta^1.5 +", "found end of expression"),
@@ -175,6 +180,10 @@ CASES += [
     Case(id="option-not-a-number", category="request", argv=("inspect", "trace.csv", "--sample-rate", "abc"),
          files=fit_workspace(base_config()), exit_code=2, file=None, key="--sample-rate",
          fragments=("not a valid float", "see 'afmid inspect --help'")),
+    *[Case(id=f"option-sample-rate-{shown}", category="request", argv=("inspect", "trace.csv", "--sample-rate", word),
+           files=fit_workspace(base_config()), exit_code=2, file=None, key="--sample-rate",
+           fragments=(f"{shown} is not a sample rate: expected a positive number of Hz",))
+      for word, shown in (("nan", "nan"), ("inf", "inf"), ("-6e7", "-6e+07"), ("0", "0"))],
     Case(id="missing-output-option", category="request", argv=("fit", "run.yaml"), files=fit_workspace(base_config()),
          exit_code=2, file=None, key="'-o'", fragments=("Missing option",)),
     Case(id="unknown-option", category="request", argv=("fit", "run.yaml", "-o", "out.h5", "--bootstrap", "5"),

@@ -147,7 +147,6 @@ def test_map_touches_no_file_outside_its_outputs(map_workspace):
     _map(map_workspace, result, "--overwrite")
 
 
-@pytest.mark.xfail(strict=True, reason="sidecar fix in flight")
 def test_a_map_whose_sidecar_path_is_a_link_to_a_foreign_folder_leaves_that_folder_alone(map_workspace):
     """The sidecar's path (RESULT.h5.afmid-map) planted as a link to the foreign folder: the map may refuse it or
     write elsewhere, but never into (or out of) the folder it points to."""
@@ -159,7 +158,6 @@ def test_a_map_whose_sidecar_path_is_a_link_to_a_foreign_folder_leaves_that_fold
     assert_unchanged(before, snapshot(map_workspace / "foreign", []), "map with a linked sidecar")
 
 
-@pytest.mark.xfail(strict=True, reason="sidecar fix in flight")
 def test_a_folder_of_the_users_at_the_sidecar_path_is_not_deleted(map_workspace):
     """A folder the user made at RESULT.h5.afmid-map (no key.json of afmid's in it) is not afmid's to remove."""
     sidecar = map_workspace / "out" / "mine_result.h5.afmid-map"

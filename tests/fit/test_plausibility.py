@@ -95,6 +95,52 @@ def test_check_plausibility(name, quantity, plausible, fragments):
         assert "\n" not in verdict.reason and verdict.reason.count(". ") == 0  # one sentence
 
 
+# --------------------------------------------------------------------------- a spring constant off by a factor
+#: The read-outs of configs/dmt.yaml's trace (E* 2 GPa, H 5e-20 J, 10 nm tip) fitted with cantilever.spring_constant
+#: 100x too large and 100x too small (measured with afmid fit; every force read-out scales with k). Before issue
+#: 32 both read as plausible: E* 200 GPa and 20 MPa are moduli of real materials.
+_K_TIMES_100 = {"hamaker": 5.06e-18, "E_star": 2.0e11, "adhesion_force": 3.10e-7, "surface_energy": 2.46}
+_K_OVER_100 = {"hamaker": 4.93e-22, "E_star": 1.98e7, "adhesion_force": 3.02e-11, "surface_energy": 2.40e-4}
+_UNITS = {"hamaker": "J", "E_star": "Pa", "adhesion_force": "N", "surface_energy": "J/m^2"}
+
+
+def _dmt_quantities(values: dict) -> dict:
+    return {name: {"value": v, "error": 0.04 * v, "ci_low": 0.92 * v, "ci_high": 1.08 * v, "unit": _UNITS[name],
+                   "effect": "dmt", "tip_radius": 10e-9} for name, v in values.items()}
+
+
+@pytest.mark.parametrize("values, direction, span, example", [
+    # H in [1e-21, 1e-18] J: 5.06e-18 J needs k 5.06x to 5060x smaller; the power of ten in the middle is 100.
+    (_K_TIMES_100, "large", "5.1x to 5100x", "at 100x too large: hamaker would be 5.06e-20 J and E_star 2 GPa"),
+    # 4.93e-22 J needs k 2.03x (1e-21 / 4.93e-22) to 2030x larger; surface_energy 2.4e-4 J/m^2 allows 2.4e-4/1e-4.
+    (_K_OVER_100, "small", "2x to 2000x", "at 100x too small: hamaker would be 4.93e-20 J and E_star 1.98 GPa"),
+], ids=["k-100x-too-large", "k-100x-too-small"])
+def test_a_spring_constant_off_by_a_factor_is_named_as_the_likely_cause(values, direction, span, example):
+    verdicts = check_plausibility(_dmt_quantities(values))
+    assert not verdicts["hamaker"].plausible
+    reason = verdicts["hamaker"].reason
+    assert reason.startswith("hamaker = ") and "outside the plausible range" in reason
+    assert f"a spring constant {span} too {direction} would explain it" in reason, reason
+    assert example in reason and reason.endswith("check cantilever.spring_constant")
+    assert "\n" not in reason and reason.count(". ") == 0
+    # The finding (the reason without the advice) is unchanged: a trial model's read-out says no more.
+    assert "spring constant" not in verdicts["hamaker"].finding
+
+
+def test_no_spring_constant_cause_when_no_single_factor_explains_the_read_outs():
+    """H 100x too large with E* 150 Pa: H needs k at least 5.06x too large, E* (floor 100 Pa) at most 1.5x, so no
+    single factor on k brings both into range: the general advice on the calibration stays."""
+    values = {**_K_TIMES_100, "E_star": 150.0}
+    reason = check_plausibility(_dmt_quantities(values))["hamaker"].reason
+    assert "cantilever.spring_constant" in reason and "would explain it" not in reason
+
+
+def test_read_outs_in_range_give_no_cause():
+    verdicts = check_plausibility(_dmt_quantities({"hamaker": 5.0e-20, "E_star": 2.0e9, "adhesion_force": 3.1e-9,
+                                                   "surface_energy": 0.0246}))
+    assert all(v.plausible and v.reason == "" for v in verdicts.values())
+
+
 # --------------------------------------------------------------------------- forces that grow with the tip
 @pytest.mark.parametrize("name, effect, value, radius, plausible", [
     # 4 pi R gamma at gamma = 5 J/m^2: 0.503 uN for an 8 nm tip
@@ -201,6 +247,22 @@ def test_fit_flags_implausible_read_outs(workspace, run_cli, overrides, flagged,
         assert any(reason in line for line in warnings)
     for n in set(params) - implausible:
         assert params[n]["plausibility"] == ""
+
+
+@pytest.mark.parametrize("spring_constant, direction", [(4000.0, "large"), (0.4, "small")])
+def test_fit_names_a_spring_constant_off_by_100x(workspace, run_cli, spring_constant, direction):
+    """configs/dmt.yaml's trace fitted with k = 40 N/m declared 100x too large or too small: before issue 32, exit 0
+    and every read-out plausible (E* 200 GPa or 20 MPa). Now flagged in the file and the warnings, with the cause."""
+    out = workspace / f"run-k{spring_constant:g}.h5"
+    code, _, err = run_cli("-q", "fit", workspace / "run.yaml", "-o", out, "--overwrite",
+                           "--set", f"cantilever.spring_constant={spring_constant}")
+    assert code == 0, err
+    params, count, reasons = _parameters(out)
+    assert not params["hamaker"]["plausible"] and count >= 1
+    reason = params["hamaker"]["plausibility"]
+    assert f"too {direction} would explain it" in reason and reason.endswith("check cantilever.spring_constant")
+    assert f"at 100x too {direction}: hamaker would be" in reason, reason
+    assert any(reason in line for line in err.splitlines() if line.startswith("afmid: warning: implausible"))
 
 
 def test_report_marks_implausible_values(workspace, run_cli):

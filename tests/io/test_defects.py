@@ -226,6 +226,22 @@ def test_gaps_and_duplicates_in_a_time_column_are_errors(load):
     refused(load, x, "data.time_column", "time is not strictly increasing (sample 5)", time=t_back)
 
 
+def test_an_epoch_time_column_names_float64_resolution_as_the_cause(load):
+    """Unix-epoch seconds (~1.7e9 s) cannot resolve a sampling step of 1/RATE: float64's spacing there is
+    2.4e-7 s (2^-22 s), so the steps come out 0 or 2.4e-7 s. Before: 'duplicated or reordered samples'."""
+    x = tapping()
+    epoch = 1.7e9 + np.arange(x.size) / RATE
+    spacing = np.spacing(1.7e9)
+    assert spacing == 2.0**-22 and spacing > 1 / RATE  # the arithmetic the message states
+    err = refused(load, x, "data.time_column", "the time column's values reach 1.7e+09 s, where float64 resolves "
+                  "only 2.38e-07 s, coarser than a thousandth of the sampling step 3.33e-08 s", "subtract the start time (a relative time "
+                  "column) or remove data.time_column and give data.sample_rate", time=epoch)
+    assert "duplicated or reordered" not in err.message
+    # A relative time column of the same record is fine, and so is an offset float64 still resolves to 1e-3 steps.
+    load(x, time=np.arange(x.size) / RATE)
+    load(x, time=100.0 + np.arange(x.size) / RATE)
+
+
 @pytest.mark.parametrize("edit, sign, kind", [(lambda x: np.delete(x, 1234), "+1", "dropped"),
                                               (lambda x: np.insert(x, 1234, x[1234]), "-1", "repeated")])
 def test_dropped_or_repeated_samples_without_a_time_column(load, edit, sign, kind):

@@ -188,3 +188,16 @@ def test_volts_ask_for_invols(tmp_path):
     text = prefill_config(path, template_text())
     assert re.search(r"^  invols: null +# REQUIRED for units V: m/V", text, re.M)
     assert "set data.invols (m/V) to convert to metres" in inspect_file(path)
+
+
+@pytest.mark.parametrize("rate", [float("nan"), float("inf"), -3e7, 0.0])
+def test_a_sample_rate_option_that_is_not_a_positive_number_is_refused(tmp_path, rate):
+    """``afmid inspect --sample-rate nan`` printed 'nan Hz' (issue 32); now one line naming the option."""
+    from afmid.errors import ConfigError
+
+    path = tmp_path / "t.csv"
+    write_csv(path, motion(), time=False)
+    with pytest.raises(ConfigError) as info:
+        inspect_file(path, sample_rate=rate)
+    assert info.value.key == "--sample-rate"
+    assert f"{rate:g} is not a sample rate: expected a positive number of Hz" in info.value.message

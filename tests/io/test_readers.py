@@ -46,12 +46,12 @@ def write_csv(path, columns: dict[str, np.ndarray], delimiter=",", header=True, 
     return path
 
 
-def write_ibw5(path, data, step=1.0, data_units=b"", x_units=b"", name=b"wave0", labels=None):
+def write_ibw5(path, data, step=1.0, data_units=b"", x_units=b"", name=b"wave0", labels=None, note=b""):
     """A minimal Igor binary wave, version 5, little-endian, float64 data.
 
     Layout (TN003, igor2.binarywave): version (int16), BinHeader5 (62 bytes),
     WaveHeader5 (320 bytes), data (column-major), then the optional sections,
-    of which only the dimension labels (32 bytes each) are written here.
+    of which only the wave note and the dimension labels (32 bytes each) are written here.
     """
     data = np.asarray(data, dtype="<f8")
     dims = list(data.shape) + [0] * (4 - data.ndim)
@@ -71,12 +71,13 @@ def write_ibw5(path, data, step=1.0, data_units=b"", x_units=b"", name=b"wave0",
         + b"\0" * 12  # units of dimensions 1-3
     )
     wave_header = wave_header.ljust(320, b"\0")
-    bin_header = struct.pack("<hhiiii4i4iiii", 5, 0, 320 + len(wdata), 0, 0, 0, 0, 0, 0, 0, *label_sizes, 0, 0, 0)
+    bin_header = struct.pack("<hhiiii4i4iiii", 5, 0, 320 + len(wdata), 0, len(note), 0, 0, 0, 0, 0, *label_sizes,
+                             0, 0, 0)
     # The checksum makes the int16 sum of both headers zero.
     head = bytearray(bin_header + wave_header)
     checksum = -sum(struct.unpack(f"<{len(head) // 2}h", head)) % 65536
     head[2:4] = struct.pack("<H", checksum)
-    path.write_bytes(bytes(head) + wdata + label_bytes)
+    path.write_bytes(bytes(head) + wdata + note + label_bytes)  # the note precedes the labels (TN003)
     return path
 
 
@@ -405,6 +406,32 @@ def test_csv_empty_value_and_decimal_comma(tmp_path):
     assert err.key == "data.column" and "decimal commas" in err.message
 
 
+@pytest.mark.parametrize("rows", [
+    ["1,234", "-0,5", "0,0625", "2,75"],  # one column: comma-split, it looked like two integer columns
+    ["1,234 5,678", "0,05 -1,5", "2,5 3,25"],  # spaces between the values
+    ["1,234\t5,678", "0,05\t-1,5", "2,5\t3,25"],  # tabs
+    ["1,234;5,678", "0,05;-1,5", "2,5;3,25"],  # semicolons
+    ["1,5e-09", "2,25e-09", "-3,125e-09"],  # exponents
+])
+def test_csv_headerless_decimal_commas_are_refused_as_such(tmp_path, rows):
+    """A headerless file written with decimal commas: before, the integer part was read as the trace (issue 32).
+    The reader refuses it whatever the delimiter (docs/file-formats.md: decimal commas are not read)."""
+    path = tmp_path / "dec.csv"
+    path.write_text("\n".join(rows) + "\n")
+    err = error_of(path)
+    assert "decimal commas" in err.message and "export with '.' as the decimal separator" in err.message
+    assert err.message.count("\n") == 0
+
+
+def test_csv_headerless_integer_columns_stay_columns(tmp_path):
+    """Two integer columns (a sample counter and ADC counts) are not decimal commas: no leading zero after the
+    comma, no exponent, no '-0' before it."""
+    path = tmp_path / "ints.csv"
+    path.write_text("1,234\n2,250\n3,-17\n4,1234\n")
+    trace = read_trace(path, channel=1)
+    np.testing.assert_array_equal(trace.values, [234, 250, -17, 1234])
+
+
 def test_csv_ragged_row(tmp_path):
     path = tmp_path / "ragged.csv"
     path.write_text("a,b,c\n1,2,3\n4,5\n")
@@ -715,6 +742,32 @@ def test_ibw_units_and_scaling(tmp_path):
     unscaled = read_trace(write_ibw5(tmp_path / "u.ibw", SIGNAL))
     assert unscaled.sample_rate is None and unscaled.units is None
     assert error_of(path, time_channel="t").key == "data.time_column"
+
+
+def test_ibw_note_rate_contradicting_the_x_scaling_is_stated(tmp_path, caplog):
+    """An Asylum-style wave note declaring twice the x scaling's rate: before, the x scaling was used without a
+    word (issue 32). Now one warning and the value source name both rates, which is used and why."""
+    pytest.importorskip("igor2")
+    note = b"ScanRate: 1\rNumPtsPerSec: 4000000\rSpringConstant: 40\r"
+    path = write_ibw5(tmp_path / "w.ibw", SIGNAL, step=1 / RATE, x_units=b"s", data_units=b"m", note=note)
+    with caplog.at_level("WARNING", logger="afmid"):
+        trace = read_trace(path)
+    assert trace.sample_rate == pytest.approx(RATE)
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert str(path) in warning
+    assert "the wave note's NumPtsPerSec says 4 MHz, the x scaling (5e-07 s) 2 MHz" in warning
+    assert "using the x scaling's 2 MHz" in warning and "data.sample_rate" in warning
+    assert "not the note's NumPtsPerSec 4 MHz" in trace.source["sample_rate"]
+    # A note that agrees (to the x scaling's float rounding) is no contradiction.
+    caplog.clear()
+    agreeing = write_ibw5(tmp_path / "a.ibw", SIGNAL, step=1 / RATE, x_units=b"s", note=b"NumPtsPerSec: 2000000\r")
+    with caplog.at_level("WARNING", logger="afmid"):
+        assert read_trace(agreeing).sample_rate == pytest.approx(RATE)
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+    # Without an x scaling, the note's rate is the rate.
+    unscaled = write_ibw5(tmp_path / "n.ibw", SIGNAL, note=b"NumPtsPerSec: 2000000\r")
+    trace = read_trace(unscaled)
+    assert trace.sample_rate == pytest.approx(RATE) and "NumPtsPerSec" in trace.source["sample_rate"]
 
 
 def test_ibw_corrupt(tmp_path):

@@ -282,6 +282,24 @@ def test_a_batch_runs_on_the_dask_cluster_as_on_the_local_pool(workspace, dask_c
 
 
 # --------------------------------------------------------------------------- pieces, in process
+def test_a_spring_constant_100x_too_large_makes_every_pixel_suspect_and_is_named(workspace, tmp_path):
+    """The clean map fitted with cantilever.spring_constant 4000 N/m (truth 40): before issue 32 every pixel was ok
+    (E* 200 GPa and H 5e-18 J were inside their ranges). Now every pixel is suspect with the cause, and the map
+    says it once in a warning."""
+    config = tmp_path / "map_k.yaml"
+    config.write_text(CONFIG.read_text().replace("spring_constant: 40.0", "spring_constant: 4000.0"))
+    assert "spring_constant: 4000.0" in config.read_text()
+    done = afmid("map", str(config), "--input", str(workspace / "clean.h5"), "-o", str(tmp_path / "k.h5"),
+                 "-j", "1", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr  # suspect pixels are results, flagged, not failures
+    with h5py.File(tmp_path / "k.h5", "r") as h5:
+        assert (h5.attrs["n_ok"], h5.attrs["n_suspect"], h5.attrs["n_failed"]) == (0, 9, 0)
+        messages = [m.decode() if isinstance(m, bytes) else str(m) for m in h5["maps/message"][()].ravel()]
+    assert all("too large would explain it" in m and "check cantilever.spring_constant" in m for m in messages)
+    warnings = [line for line in done.stderr.splitlines() if "implausible read-outs in 9 of 9 pixels" in line]
+    assert len(warnings) == 1 and "at 100x too large: hamaker would be" in warnings[0], done.stderr
+
+
 def test_phases_are_drawn_as_round_domains_over_the_matrix():
     from afmid.config import load_config
     from afmid.maps.simulate import phase_map

@@ -213,10 +213,21 @@ def test_syntax_errors(text, message):
         ("[menisk]", "unknown state 'menisk' (did you mean 'meniscus'?)"),
         ("z / [z > a0]", "a gate [...] cannot be a divisor"),
         ("z / (2 * [z > a0])", "a gate [...] cannot be a divisor"),
+        # A constant part that is not a number would be taken as a gate that is always true (or a column of inf).
+        ("[1/0 > 0] * z", "the constant 1/0 is not finite (inf)"),
+        ("z * (1/(2 - 2))", "the constant 1/(2 - 2) is not finite (inf)"),
+        ("[z > log(0)] * z", "the constant log(0) is not finite (-inf)"),
+        ("z * 0^(-1)", "the constant 0^-1 is not finite (inf)"),
     ],
 )
 def test_semantic_errors(text, message):
     assert message in str(error_of(compile_expression, text, PARAMS, STATES))
+
+
+def test_finite_constants_are_accepted():
+    """Constant parts that are numbers stay terms as before: the check refuses only a non-finite constant."""
+    for text in ("z / 2", "[z > 1/2 * a0] * z", "z * log(2)", "z * 0^2", "z * (2 - 2 + 1)"):
+        compile_expression(text, PARAMS, STATES)
 
 
 @pytest.mark.parametrize(
@@ -505,13 +516,14 @@ HAND_WRITTEN = [
 
 
 def random_programs(rng, count: int, depth: int) -> tuple[list[str], list[Program]]:
-    """HAND_WRITTEN and ``count`` random expressions, compiled (those dividing by a gate are rejected)."""
+    """HAND_WRITTEN and ``count`` random expressions, compiled (those dividing by a gate or with a constant part
+    that is not finite, such as 3.25/0, are rejected)."""
     texts, programs = [], []
     for text in HAND_WRITTEN + [random_expression(rng, depth) for _ in range(count)]:
         try:
             programs.append(compile_expression(text, PARAMS, STATES))
         except ExpressionError as exc:
-            assert "cannot be a divisor" in str(exc)
+            assert "cannot be a divisor" in str(exc) or "is not finite" in str(exc)
             continue
         texts.append(text)
     assert len(texts) > 0.8 * count

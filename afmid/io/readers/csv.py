@@ -17,7 +17,11 @@ Layout rules:
   ``metadata['header_fields']``; ``sample_rate`` (Hz) or ``dt``/``time_step`` (s)
   among them set the sample rate;
 - units come from the column name: ``deflection_nm``, ``deflection [nm]``,
-  ``time (s)``.
+  ``time (s)``;
+- numbers written with decimal commas are refused, not guessed at: rows of
+  ``1,234`` values separated by tabs, ``;`` or spaces, and a lone ``a,b`` per
+  row when a leading zero after the comma, an exponent or ``-0,`` shows it is
+  no pair of integers (a headerless file of two integer columns is still read).
 
 Columns are chosen by name or by 0-based index (an int or a digit string).
 Files without a header name their columns '0', '1', ...
@@ -54,6 +58,12 @@ _SAMPLE_ROWS = 50  # rows inspected to detect the layout
 _ENCODING_PROBE = 1 << 16  # bytes inspected to choose the text encoding
 _FIELD_LINE = re.compile(r"^[#%]+\s*(?P<key>[A-Za-z][\w .-]*?)\s*[:=]\s*(?P<value>.*?)\s*$")
 _DECIMAL_COMMA = re.compile(r"^[-+]?\d+,\d*(?:[eE][-+]?\d+)?$")
+_DECIMAL_COMMA_NUMBER = r"[-+]?\d+,\d+(?:[eE][-+]?\d+)?"
+#: A row of decimal-comma numbers, separated by tabs, semicolons or spaces (or one number alone).
+_DECIMAL_COMMA_ROW = re.compile(rf"^{_DECIMAL_COMMA_NUMBER}(?:\s*[;\t ]\s*{_DECIMAL_COMMA_NUMBER})*$")
+#: In "a,b" alone, what an integer pair never is: a fraction with a leading zero ("0,05"), an exponent ("1,5e-09"),
+#: a signed zero before the comma ("-0,5").
+_DECIMAL_COMMA_EVIDENCE = re.compile(r"^(?:[-+]0,\d+|[-+]?\d+,0\d+|[-+]?\d+,\d+[eE][-+]?\d+)$")
 _VALUE_CHARS = 20  # longest excerpt of a bad value in a message
 _DELIMITER_NAMES = {"\t": "tab", ";": "semicolon", ",": "comma", None: "whitespace"}
 
@@ -139,6 +149,26 @@ def _require_numbers(path: Path, rows: list[tuple[int, str]], delimiter: str | N
     )
 
 
+def _refuse_decimal_commas(path: Path, rows: list[tuple[int, str]]) -> None:
+    """Refuse a file whose numbers are written with decimal commas (a header row above them allowed).
+
+    Split on its commas, a headerless single-column file "1,234" read as two integer columns, and the integer
+    part was fitted as the trace (issue 32). Values separated by tabs, semicolons or spaces make the comma a
+    decimal comma without doubt; "a,b" alone only with evidence an integer pair never shows
+    (:data:`_DECIMAL_COMMA_EVIDENCE`), so a headerless file of two integer columns is still read.
+    """
+    data = [text for _, text in rows]
+    if data and not _DECIMAL_COMMA_ROW.match(data[0]):
+        data = data[1:]  # a header
+    if not data or not all(_DECIMAL_COMMA_ROW.match(text) for text in data):
+        return
+    separated = any(re.search(r"[;\t ]", text) for text in data)
+    if separated or any(_DECIMAL_COMMA_EVIDENCE.match(text) for text in data):
+        raise InputError(f"the numbers are written with decimal commas ({_excerpt(data[0])}), but afmid reads '.' "
+                         "as the decimal separator and ',' as a delimiter; export with '.' as the decimal separator",
+                         file=path, key=COLUMN_KEY)
+
+
 def _layout(path: Path) -> _Layout:
     encoding = _encoding(path)
     preamble: list[tuple[int, str]] = []  # comment lines before the first row
@@ -159,6 +189,7 @@ def _layout(path: Path) -> _Layout:
                 break
     if not rows:
         raise InputError("no data rows (empty, or only comments)", file=path)
+    _refuse_decimal_commas(path, rows)
 
     delimiter = _sniff_delimiter([text for _, text in rows[1:]] or [rows[0][1]])
     if len(rows) > 1:  # a single row is a header without data, reported below

@@ -5,13 +5,20 @@
   Asylum Research force curves label them: 'Raw', 'Defl', 'ZSnsr') or by
   0-based index; a column can also serve as the time channel.
 - Sample rate: from the x scaling (``sfA``, ``hsA`` before version 5) when the
-  x units are a time unit, or unset with a step other than Igor's default 1.
+  x units are a time unit, or unset with a step other than Igor's default 1;
+  else from the wave note (``NumPtsPerSec: 2000000``, as Asylum Research
+  writes it, or ``SampleRate``). Where the note and the x scaling disagree, the
+  x scaling is used and one warning names both (as the HSDC reader does for its
+  header's rates): a contradiction is stated, never resolved in silence.
 - Units: the wave's data units (extended units if present). The wave note is
   kept in ``metadata['note']``.
 """
 
 from __future__ import annotations
 
+import logging
+import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +26,7 @@ import numpy as np
 
 from afmid.errors import InputError
 from afmid.io.files import memory_shortfall
+from afmid.io.findings import frequency
 from afmid.io.readers.base import (
     TIME_UNITS,
     RawTrace,
@@ -28,11 +36,19 @@ from afmid.io.readers.base import (
     missing_package,
     no_time_channel,
     not_readable,
+    rate_from_fields,
     settle_rate,
     time_axis,
 )
 
+log = logging.getLogger("afmid")
+
 _IGOR_DEFAULT_STEP = 1.0  # x scaling of a wave nobody scaled
+#: Wave-note keys that state the acquisition rate in Hz (compared without case, spaces and underscores).
+_NOTE_RATE_KEYS = ("numptspersec", "samplerate")
+_NOTE_LINE = re.compile(r"^\s*(?P<key>[A-Za-z][\w ]*?)\s*[:=]\s*(?P<value>.*?)\s*$")
+#: Rates within this of each other agree: the x scaling is a float64 step, 1/step rounds in the last digits.
+_RATE_TOLERANCE = 1e-3
 
 
 def _text(raw: Any) -> str:
@@ -94,6 +110,39 @@ def _wave(path: Path) -> tuple[np.ndarray, dict, list[str]]:
     return data, info, names
 
 
+def note_rate(note: str) -> tuple[float, str] | None:
+    """(Hz, key) of the acquisition rate an (Asylum Research) wave note states, None without a usable one."""
+    for line in re.split(r"[\r\n]+", note):
+        match = _NOTE_LINE.match(line)
+        if not match or re.sub(r"[\s_]", "", match["key"]).lower() not in _NOTE_RATE_KEYS:
+            continue
+        try:
+            stated = rate_from_fields({"sample_rate": match["value"]}, lambda _: match["key"], file=Path("note"))
+        except InputError:  # a note's text we cannot read as a rate: the note is a comment, not the data
+            continue
+        if stated is not None:
+            return stated[0], match["key"]
+    return None
+
+
+def _settle_with_note(stated: tuple[float, str] | None, x_scaling: str, info: dict,
+                      path: Path) -> tuple[float, str] | None:
+    """The x scaling's (rate, source), else the note's; a note that contradicts the x scaling said in one warning
+    and in the source (the x scaling is what Igor plots the wave against, and what afmid always used)."""
+    found = note_rate(info["note"])
+    if found is None:
+        return stated
+    rate, key = found
+    if stated is None:
+        return rate, f"file:wave note ({key}: {frequency(rate)})"
+    if math.isclose(rate, stated[0], rel_tol=_RATE_TOLERANCE):
+        return stated
+    log.warning("%s: the wave note's %s says %s, the x scaling (%s) %s: using the x scaling's %s; if the note is "
+                "right, set data.sample_rate (Hz)", path, key, frequency(rate), x_scaling, frequency(stated[0]),
+                frequency(stated[0]))
+    return stated[0], f"{stated[1]} {frequency(stated[0])}, not the note's {key} {frequency(rate)}"
+
+
 def list_channels(path: Path) -> list[str]:
     """Column labels (or indices) of a 2-D wave; the wave name for a 1-D wave."""
     return _wave(path)[2]
@@ -123,10 +172,12 @@ def read(path: Path, channel: str | int | None = None, time_channel: str | int |
         source["units"] = "file:wave data units"
     step, x_units = info["x_step"], info["x_units"]
     stated = None
+    x_scaling = f"{step:g} {x_units}" if x_units else f"{step:g}, no units, taken as s"
     if x_units in TIME_UNITS and step > 0:
-        stated = 1.0 / (step * TIME_UNITS[x_units]), f"file:x scaling ({step:g} {x_units})"
+        stated = 1.0 / (step * TIME_UNITS[x_units]), f"file:x scaling ({x_scaling})"
     elif not x_units and step > 0 and step != _IGOR_DEFAULT_STEP:
-        stated = 1.0 / step, f"file:x scaling ({step:g}, no units, taken as s)"
+        stated = 1.0 / step, f"file:x scaling ({x_scaling})"
+    stated = _settle_with_note(stated, x_scaling, info, path)
     sample_rate = settle_rate(stated, time, t_name, source)
     return RawTrace(values, time, sample_rate, units, names[index], names, info, source)
 
