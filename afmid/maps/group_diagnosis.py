@@ -2,8 +2,8 @@
 
 For each group of :mod:`afmid.maps.groups` whose typical pixel is model-limited (median cross-validated error above
 :data:`afmid.fit.uncertainty.FLOOR_FACTOR` x its noise floor), up to :data:`REPRESENTATIVES` pixels nearest the
-group's centre are diagnosed as single traces: the pixel's trace written to a temporary trace file, fitted as
-``afmid fit`` fits it (no bootstrap), and :func:`afmid.diagnosis.diagnose.suggest` run on that run (every catalog
+group's centre are diagnosed as single traces, in memory: the pixel's trace fitted as ``afmid fit`` fits it (no
+bootstrap), and :func:`afmid.diagnosis.diagnose.suggest` run on that run (every catalog
 effect the model lacks refitted, BIC with the per-period evidence of afmid.diagnosis.decide). The group's verdict
 is what more than half of its representatives say, in this order:
 
@@ -26,9 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
-import tempfile
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -222,31 +220,28 @@ def leading_candidate(summary: dict) -> dict | None:
 
 
 def diagnose_pixel(pixel: int, source, config_text: str, config_source: str | None) -> dict:
-    """The single-trace diagnosis of one pixel: its trace written to a temporary trace file, fitted without
-    bootstrap (the separation estimated), the run file written there and :func:`suggest` run on it."""
-    from afmid.config import DataConfig
+    """The single-trace diagnosis of one pixel, in memory: its trace (read and checked as the map's fit reads it)
+    fitted without bootstrap (the separation estimated), the run made by :func:`afmid.runfile.run_data` (the
+    values a run file would hold, no file) and :func:`suggest` run on it with the pixel's trace for the candidates'
+    refits. No temporary trace or run file (issue 30: before, both were written and read back; issue 31 measured
+    what that cost)."""
     from afmid.diagnosis.diagnose import suggest
     from afmid.fit.pipeline import run_fit
-    from afmid.io.trace import write_trace_file
     from afmid.maps.input_file import pixel_trace, read_pixels
     from afmid.maps.task import map_config
-    from afmid.runfile import load_run, write_run
+    from afmid.runfile import run_data
 
     config = map_config(config_text, config_source)
     trace = pixel_trace(source, read_pixels(source, pixel, pixel + 1)[0], config, pixel)
+    config.fit.bootstrap = 0
     logger = logging.getLogger("afmid")
     level = logger.level
-    with tempfile.TemporaryDirectory(prefix="afmid-pixel-") as folder:
-        trace_path = write_trace_file(Path(folder) / "pixel.h5", trace, config_text)
-        config.data = DataConfig(path=trace_path, detector=config.data.detector)  # the trace file is SI
-        config.fit.bootstrap = 0
-        logger.setLevel(logging.ERROR)  # the pixel's own warnings are the map's (status, messages)
-        try:
-            result = run_fit(config, uncertainty=False)
-            run_path = write_run(Path(folder) / "pixel_run.h5", result, config)
-            return suggest(load_run(run_path))
-        finally:
-            logger.setLevel(level)
+    logger.setLevel(logging.ERROR)  # the pixel's own warnings are the map's (status, messages)
+    try:
+        result = run_fit(config, trace=trace, uncertainty=False)
+        return suggest(run_data(result, config, name=f"pixel {divmod(pixel, source.cols)}"), trace=trace)
+    finally:
+        logger.setLevel(level)
 
 
 def write_groups(h5, grouping, verdicts: list[GroupVerdict]) -> None:
