@@ -155,3 +155,25 @@ def test_on_a_pseudo_terminal_the_bar_names_the_candidate_and_an_eta():
     assert " done (" not in text  # the pipe's lines are not written to a terminal
     assert text.replace("\r\n", "\n").rstrip("\n").endswith("\rdone")  # the terminal turns \n into \r\n
     assert "\r" + " " * 20 in text  # the line erased before the command's output
+
+
+def test_report_on_a_pipe_says_each_candidate_when_it_is_done(tmp_path, run_cli, monkeypatch):
+    """issue 31: `afmid report`'s diagnosis on a pipe (stderr captured): the stage line with the number of
+    candidates, then exactly one line per candidate effect when its refit is done, no carriage return."""
+    monkeypatch.setenv("AFMID_DIAGNOSIS_CACHE", str(tmp_path / "diagnoses"))  # diagnosed here, not reused
+    config = short_dmt_viscoelastic_config(tmp_path)
+    code, _, err = run_cli("-q", "simulate", config, "-o", tmp_path / "trace.h5")
+    assert code == 0, err
+    code, _, err = run_cli("-q", "fit", config, "-o", tmp_path / "run.h5", "--remove", "viscoelastic")
+    assert code == 0, err
+    code, _, err = run_cli("report", tmp_path / "run.h5", "-o", tmp_path / "report")
+    assert code == 0, err
+    assert "\r" not in err
+    stage = [line for line in err.splitlines() if line.startswith("report: trying effects (")]
+    assert len(stage) == 1, err
+    total = int(re.match(r"report: trying effects \((\d+) effects\)", stage[0]).group(1))
+    done = [line for line in err.splitlines() if line.startswith("report: trying effects: ")]
+    assert len(done) == total >= 2, err
+    for k, line in enumerate(done, start=1):
+        assert re.fullmatch(rf"report: trying effects: [a-z_]+ done \({k}/{total} effects, [0-9]+\.[0-9] s\)", line)
+    assert "report: trying effects: viscoelastic done" in err  # the effect the run lacks is among them
