@@ -6,7 +6,9 @@
    process (everything imported, kernels loaded): the difference is what a new
    process adds (interpreter, imports, loading the cached kernels).
 3. The first ever run: the same command with ``NUMBA_CACHE_DIR`` pointing at an
-   empty folder, so every kernel is compiled.
+   empty folder, so every kernel is compiled (issue 31's target: <= 5 s).
+4. The first run after ``python -m afmid.kernels.warm`` (what ``make venv`` runs) into
+   another empty folder: only the kernels generated per library structure compile.
 
 Workload: the 50-period DMT trace of configs/dmt.yaml (10,000 samples), fitted
 with configs/dmt.yaml (defaults: 100 bootstrap resamples). One BLAS thread.
@@ -27,7 +29,7 @@ from common import CONFIGS, SINGLE_THREAD, cached_trace, machine, median, row, r
 
 CONFIG = CONFIGS / "dmt.yaml"
 AFMID = [sys.executable, "-m", "afmid.cli"]  # what the `afmid` script runs, without depending on PATH
-HELP_TARGET, FIRST_FIT_TARGET = 0.5, 2.0
+HELP_TARGET, FIRST_FIT_TARGET, FIRST_EVER_TARGET = 0.5, 2.0, 5.0
 
 WARM_CODE = """
 import json, sys, time
@@ -59,8 +61,11 @@ def run(quick: bool = False) -> list[dict]:
         warm = run_python(WARM_CODE.format(config=str(CONFIG), trace=trace, out=str(out), repeat=2 if quick else 5),
                           env)
         with tempfile.TemporaryDirectory(prefix="afmid-numba-cache-") as cache:
-            cold = wall(fit_cmd, dict(env, NUMBA_CACHE_DIR=cache))
+            cold, cold_cpu = timed(fit_cmd, dict(env, NUMBA_CACHE_DIR=cache))
             cold_again = wall(fit_cmd, dict(env, NUMBA_CACHE_DIR=cache))  # the cache that run filled
+        with tempfile.TemporaryDirectory(prefix="afmid-numba-cache-") as cache:
+            warm_step, warm_step_cpu = timed([sys.executable, "-m", "afmid.kernels.warm"], dict(env, NUMBA_CACHE_DIR=cache))
+            after_warm, after_warm_cpu = timed(fit_cmd, dict(env, NUMBA_CACHE_DIR=cache))
     help_s = median(helps)
     first_s = median(firsts)
     extra = first_s - warm["warm"]
@@ -74,9 +79,14 @@ def run(quick: bool = False) -> list[dict]:
             f"(its own first call {warm['first_in_process']:.2f} s); CPU: command {median([c for _, c in firsts_cpu]):.2f} s, "
             f"warm fit + write {warm['warm_cpu']:.2f} s; 10,000 samples, bootstrap 100"),
         row("cold start: first-ever afmid fit (empty numba cache: every kernel compiled)", cold, warm["warm"],
-            cold - warm["warm"], "report only", None,
-            f"'ratio' column = seconds added ({cold - warm['warm']:.1f} s); the next run with that cache "
-            f"{cold_again:.2f} s"),
+            cold - warm["warm"], f"<= {FIRST_EVER_TARGET} s", cold <= FIRST_EVER_TARGET,
+            f"'ratio' column = seconds added ({cold - warm['warm']:.1f} s); CPU {cold_cpu:.2f} s; the next run with "
+            f"that cache {cold_again:.2f} s"),
+        row("cold start: first afmid fit after `python -m afmid.kernels.warm` (make venv runs it)", after_warm,
+            cold, cold / after_warm if after_warm else None, f"<= {FIRST_EVER_TARGET} s",
+            after_warm <= FIRST_EVER_TARGET,
+            f"'ratio' column = first-ever / this; CPU {after_warm_cpu:.2f} s; the warm step itself {warm_step:.2f} s "
+            f"(CPU {warm_step_cpu:.2f} s); left to compile: the library's generated term kernels"),
     ]
 
 

@@ -5,7 +5,7 @@ Each bench/bench_*.py exposes ``run(quick) -> list[dict]`` with rows holding
 benchmarks with a target, ``target`` and ``met``. The table is printed and
 also written to bench/results/table.md and bench/results/bench.json.
 
-Run: python bench/run_all.py [--quick] [--only simulate,fit,selection,scaling,coldstart,batch,map,report]
+Run: python bench/run_all.py [--quick] [--only simulate,fit,selection,scaling,coldstart,batch,map,group_diagnosis,report]
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import RESULTS, load_average, machine  # noqa: E402  (sets the BLAS thread count first)
 
-BENCHES = ["simulate", "fit", "selection", "scaling", "coldstart", "batch", "map", "report"]
+BENCHES = ["simulate", "fit", "selection", "scaling", "coldstart", "batch", "map", "group_diagnosis", "report"]
 
 
 def _seconds(value) -> str:

@@ -16,7 +16,56 @@ handing the ill-conditioned and rank-deficient subsets to :func:`subset_lstsq`.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+import numba.np.linalg as numba_linalg
+from numba import njit, types
+
+# LAPACK's dgelsd (SVD least squares) through numba's own LAPACK bridge, as ``np.linalg.lstsq`` calls it inside
+# numba, but without that overload's checks: their error-message formatting (strings, shape contexts) made up
+# ~6 of the ~8 s it took to compile :func:`subset_rss` in a new install (issue 31: the first-ever ``afmid fit``).
+# The arguments are those of numba's ``lstsq`` (Fortran copy of A, lda = m, B in a max(m, n) x 1 column,
+# rcond), so the solution is the same bits (tests/kernels/test_sparse_lstsq.py checks it against np.linalg.lstsq).
+_LAPACK_INT = numba_linalg.F_INT_nptype
+_GELSD = types.ExternalFunction("numba_ez_gelsd", types.intc(
+    types.char, types.intp, types.intp, types.intp, types.CPointer(types.float64), types.intp,
+    types.CPointer(types.float64), types.intp, types.CPointer(types.float64), types.float64,
+    types.CPointer(numba_linalg.F_INT_nbtype)))
+_DOUBLE = ord("d")  # LAPACK kind: real double precision
+
+
+@njit(cache=True)
+def lstsq_solution(A, b, rcond):
+    """The minimum-norm least-squares solution of ``A x ~ b`` (A m x n, b length m; any unit) by LAPACK's dgelsd
+    with singular values below ``rcond`` x the largest cut (negative: machine precision): the ``x`` of
+    ``np.linalg.lstsq(A, b, rcond)`` in numba, bit for bit."""
+    m, n = A.shape
+    if m == 0 or n == 0:
+        raise np.linalg.LinAlgError("Arrays cannot be empty")
+    for i in range(m):
+        if not np.isfinite(b[i]):
+            raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+        for j in range(n):
+            if not np.isfinite(A[i, j]):
+                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+    big = max(m, n)
+    a_fortran = np.empty((n, m)).T  # dgelsd overwrites A: a column-major copy
+    for j in range(n):
+        for i in range(m):
+            a_fortran[i, j] = A[i, j]
+    b_column = np.zeros((1, big)).T  # B in, the solution out (rows n..: residual components)
+    for i in range(m):
+        b_column[i, 0] = b[i]
+    singular = np.empty(min(m, n))
+    rank = np.empty(1, dtype=_LAPACK_INT)
+    info = _GELSD(_DOUBLE, m, n, 1, a_fortran.ctypes, m, b_column.ctypes, big, singular.ctypes, rcond, rank.ctypes)
+    if info != 0:
+        raise ValueError("Internal algorithm failed to converge.")
+    x = np.empty(n)
+    for j in range(n):
+        x[j] = b_column[j, 0]
+    # the work arrays stay alive until LAPACK is done with them (their last use is here)
+    if a_fortran.size + singular.size + rank.size < 0:
+        x[0] = np.nan
+    return x
 
 
 @njit(cache=True)
@@ -42,10 +91,11 @@ def subset_lstsq(T, active):
             nrm = np.sqrt(np.sum(T[:, j] ** 2))
             if nrm > 0.0:
                 norms[m] = nrm
-            sub[:, m] = T[:, j] / norms[m]
+            for i in range(T.shape[0]):  # element by element: a slice assignment compiles its error text
+                sub[i, m] = T[i, j] / norms[m]
             m += 1
     rhs = T[:, p].copy()
-    sol, _, _, _ = np.linalg.lstsq(sub, rhs, -1.0)
+    sol = lstsq_solution(sub, rhs, -1.0)
     resid = rhs - sub @ sol
     m = 0
     for j in range(p):

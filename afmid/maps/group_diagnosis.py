@@ -2,8 +2,8 @@
 
 For each group of :mod:`afmid.maps.groups` whose typical pixel is model-limited (median cross-validated error above
 :data:`afmid.fit.uncertainty.FLOOR_FACTOR` x its noise floor), up to :data:`REPRESENTATIVES` pixels nearest the
-group's centre are diagnosed as single traces: the pixel's trace written to a temporary trace file, fitted as
-``afmid fit`` fits it (no bootstrap), and :func:`afmid.diagnosis.diagnose.suggest` run on that run (every catalog
+group's centre are diagnosed as single traces, in memory: the pixel's trace fitted as ``afmid fit`` fits it (no
+bootstrap), and :func:`afmid.diagnosis.diagnose.suggest` run on that run (every catalog
 effect the model lacks refitted, BIC with the per-period evidence of afmid.diagnosis.decide). The group's verdict
 is what more than half of its representatives say, in this order:
 
@@ -17,6 +17,10 @@ is what more than half of its representatives say, in this order:
   or a significant residual left); every representative's verdict is kept and said;
 - ``undecided``: the representatives disagree (each one's verdict is kept).
 
+The representatives are diagnosed one after another, and those left are skipped once the verdict cannot change
+(the first two of three agree on the verdict and the leading candidate: :func:`_settled`); the group's record then
+holds the pixels diagnosed ("2 of 2 representative pixels").
+
 A group whose median error is within the model-limited rule (at most FLOOR_FACTOR x the floor) is not refitted:
 its verdict is ``nothing missing`` by the error rule, and says so ("not diagnosed"). The cost is a few single-trace
 diagnoses per model-limited group, never one per pixel.
@@ -26,9 +30,7 @@ from __future__ import annotations
 
 import logging
 import math
-import tempfile
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -175,6 +177,8 @@ def _diagnose(verdict: GroupVerdict, pixels: np.ndarray, source, config_text: st
 
     verdict.diagnosed = True
     for pixel in pixels:
+        if verdict_settled(verdict.pixel_verdicts, verdict.leading, len(pixels)):
+            break  # the pixels left cannot change the group's verdict: each one is a whole diagnosis (seconds)
         try:
             summary = diagnose_pixel(int(pixel), source, config_text, config_source)
         except KeyboardInterrupt:
@@ -199,18 +203,37 @@ def _diagnose(verdict: GroupVerdict, pixels: np.ndarray, source, config_text: st
     if not verdict.representatives:
         verdict.verdict = UNDECIDED
         return
-    texts, leads = verdict.pixel_verdicts, [e for e in verdict.leading if e]
+    verdict.verdict, verdict.effects = majority(verdict.pixel_verdicts, verdict.leading)
+
+
+def majority(texts: list[str], leading: list[str]) -> tuple[str, list[str]]:
+    """The group's (verdict, effects) from its representatives' verdicts and leading candidates ("" none), by the
+    rules of the module docstring."""
+    leads = [e for e in leading if e]
     n = len(texts)
     top = max(set(texts), key=lambda t: (texts.count(t), t))
     first = max(set(leads), key=lambda e: (leads.count(e), e)) if leads else ""
     if texts.count(top) * 2 > n and top.startswith("missing: "):
-        verdict.verdict, verdict.effects = top, top[len("missing: "):].split(" + ")
-    elif first and leads.count(first) * 2 > n:
-        verdict.verdict, verdict.effects = LEADING + first, [first]
-    elif texts.count(top) * 2 > n:
-        verdict.verdict = top
-    else:
-        verdict.verdict = UNDECIDED
+        return top, top[len("missing: "):].split(" + ")
+    if first and leads.count(first) * 2 > n:
+        return LEADING + first, [first]
+    if texts.count(top) * 2 > n:
+        return top, []
+    return UNDECIDED, []
+
+
+def verdict_settled(texts: list[str], leads: list[str], chosen: int) -> bool:
+    """Whether the majority rule of :func:`_diagnose` gives the same group verdict whatever the remaining of the
+    ``chosen`` representatives say: one verdict holds a strict majority of all ``chosen`` and its pixels share
+    one leading candidate (then rule 1 ``missing: ...`` holds; or the leading candidate has that majority, rule
+    2; or no other leading candidate can reach a majority and rule 3 gives that verdict). With 3 representatives:
+    the first two agree (verdict and leading candidate), and the third is not diagnosed (issue 31: a diagnosis is
+    ~3-9 s of CPU per pixel, most of a map's group diagnosis)."""
+    for text in set(texts):
+        agreeing = [lead for t, lead in zip(texts, leads) if t == text]
+        if 2 * len(agreeing) > chosen and len(set(agreeing)) == 1:
+            return True
+    return False
 
 
 def leading_candidate(summary: dict) -> dict | None:
@@ -222,31 +245,28 @@ def leading_candidate(summary: dict) -> dict | None:
 
 
 def diagnose_pixel(pixel: int, source, config_text: str, config_source: str | None) -> dict:
-    """The single-trace diagnosis of one pixel: its trace written to a temporary trace file, fitted without
-    bootstrap (the separation estimated), the run file written there and :func:`suggest` run on it."""
-    from afmid.config import DataConfig
+    """The single-trace diagnosis of one pixel, in memory: its trace (read and checked as the map's fit reads it)
+    fitted without bootstrap (the separation estimated), the run made by :func:`afmid.runfile.run_data` (the
+    values a run file would hold, no file) and :func:`suggest` run on it with the pixel's trace for the candidates'
+    refits. No temporary trace or run file (issue 30: before, both were written and read back; issue 31 measured
+    what that cost)."""
     from afmid.diagnosis.diagnose import suggest
     from afmid.fit.pipeline import run_fit
-    from afmid.io.trace import write_trace_file
     from afmid.maps.input_file import pixel_trace, read_pixels
     from afmid.maps.task import map_config
-    from afmid.runfile import load_run, write_run
+    from afmid.runfile import run_data
 
     config = map_config(config_text, config_source)
     trace = pixel_trace(source, read_pixels(source, pixel, pixel + 1)[0], config, pixel)
+    config.fit.bootstrap = 0
     logger = logging.getLogger("afmid")
     level = logger.level
-    with tempfile.TemporaryDirectory(prefix="afmid-pixel-") as folder:
-        trace_path = write_trace_file(Path(folder) / "pixel.h5", trace, config_text)
-        config.data = DataConfig(path=trace_path, detector=config.data.detector)  # the trace file is SI
-        config.fit.bootstrap = 0
-        logger.setLevel(logging.ERROR)  # the pixel's own warnings are the map's (status, messages)
-        try:
-            result = run_fit(config, uncertainty=False)
-            run_path = write_run(Path(folder) / "pixel_run.h5", result, config)
-            return suggest(load_run(run_path))
-        finally:
-            logger.setLevel(level)
+    logger.setLevel(logging.ERROR)  # the pixel's own warnings are the map's (status, messages)
+    try:
+        result = run_fit(config, trace=trace, uncertainty=False)
+        return suggest(run_data(result, config, name=f"pixel {divmod(pixel, source.cols)}"), trace=trace)
+    finally:
+        logger.setLevel(level)
 
 
 def write_groups(h5, grouping, verdicts: list[GroupVerdict]) -> None:

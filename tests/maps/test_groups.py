@@ -132,3 +132,27 @@ def test_the_leading_candidate_when_no_verdict_has_a_majority():
     assert "viscoelastic the leading candidate (3 of 3 representative pixels rank it first" in sentence
     assert "cannot decide: viscoelastic or contact_damping" in sentence and UNEXPLAINED in sentence
     assert summary_sentence([v]).startswith("viscoelastic the leading candidate in group 2 (33 % of the pixels)")
+
+
+def test_a_settled_group_verdict_is_the_verdict_of_all_three_representatives():
+    """issue 31: the third representative is skipped when the first two settle the verdict. Over every outcome of
+    three representatives (verdicts and leading candidates from the kinds a diagnosis gives), wherever
+    verdict_settled says the first two settle it, majority() of the two equals majority() of the three."""
+    import itertools
+
+    from afmid.maps.group_diagnosis import NOTHING, UNEXPLAINED, majority, verdict_settled
+
+    outcomes = [("missing: viscoelastic", "viscoelastic"), ("missing: capillary", "capillary"),
+                ("missing: viscoelastic + capillary", "viscoelastic"), (NOTHING, ""), (UNEXPLAINED, ""),
+                (UNEXPLAINED, "viscoelastic"), ("cannot decide: viscoelastic or contact_damping", "viscoelastic"),
+                ("cannot decide: viscoelastic or contact_damping", "contact_damping"), ("instrument: filter", "")]
+    settled = 0
+    for a, b, c in itertools.product(outcomes, repeat=3):
+        if verdict_settled([a[0], b[0]], [a[1], b[1]], 3):
+            settled += 1
+            assert majority([a[0], b[0]], [a[1], b[1]]) == majority([a[0], b[0], c[0]], [a[1], b[1], c[1]]), (a, b, c)
+        else:
+            assert not (a == b), "two identical outcomes settle a group of three"
+    assert settled == len(outcomes) * len(outcomes)  # exactly the 9 pairs a == b, each with any of the 9 thirds
+    assert not verdict_settled(["missing: viscoelastic"], ["viscoelastic"], 3)  # one of three is no majority
+    assert verdict_settled(["missing: viscoelastic"], ["viscoelastic"], 1)
