@@ -17,7 +17,7 @@ from pathlib import Path
 
 import yaml
 
-from afmid import __version__
+from afmid.version import __version__
 from afmid.config import RunConfig, build_config, dump_config
 from afmid.coverage.config import CoverageConfig
 from afmid.coverage.draws import Draw, apply_draw, check_keys, distributions, draw, set_options
