@@ -3,7 +3,7 @@
 :func:`reference_integrate` runs the same RK4 + event algorithm as
 :func:`afmid.kernels.integrate.integrate` without numba, evaluating the force
 with :func:`afmid.physics.expr.evaluate_numpy`; :func:`reference_drive` reproduces the
-kernel's drive. Part of :mod:`afmid.simulate.driver` (the facade).
+kernel's drive. Above :mod:`afmid.simulate` in the layers (it uses :mod:`afmid.simulate.model`).
 """
 
 from __future__ import annotations

@@ -24,11 +24,10 @@ from afmid.simulate.driver import (
     compile_force_law,
     drive_force_for_amplitude,
     force_numpy,
-    reference_drive,
-    reference_integrate,
     resolve_setup,
     simulate,
 )
+from afmid.testing.reference import reference_drive, reference_integrate
 
 pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 
