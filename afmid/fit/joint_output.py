@@ -124,14 +124,16 @@ def joint_table(result: JointResult, per_trace: list[FitResult]) -> str:
     return "\n".join(lines)
 
 
-def fit_joint(config, output, overwrite: bool, quiet: bool, verbose: bool) -> None:
-    """``afmid fit`` of a config with ``data.paths``: the joint fit, its run file, its read-out on stdout."""
+def fit_joint(config, output, overwrite: bool, quiet: bool, read_out) -> None:
+    """``afmid fit`` of a config with ``data.paths``: the joint fit, its run file, its read-out on stdout.
+
+    ``read_out(run_data) -> str`` writes the first trace's result (the caller passes the report's ``fit_text``:
+    the fit does not import the report above it, docs/architecture.md, Layers)."""
     import logging
 
     import click
 
     from afmid.fit.joint import run_joint_fit
-    from afmid.report.fit_text import fit_text
 
     log = logging.getLogger("afmid.cli")
     result = run_joint_fit(config, progress=not quiet)
@@ -139,7 +141,7 @@ def fit_joint(config, output, overwrite: bool, quiet: bool, verbose: bool) -> No
     log.info("wrote %s: joint fit of %d traces; terms: %s", output, len(result.traces),
              ", ".join(result.selected_terms()) or "none")
     if not quiet:
-        click.echo(fit_text(per_trace[0], verbose=verbose))
+        click.echo(read_out(per_trace[0]))
         click.echo(joint_table(result, per_trace))
     for line in result.warnings:
         log.warning("%s: %s", output, line.removeprefix("warning: "))

@@ -133,14 +133,16 @@ def track_table(track: SeparationTrack) -> str:
     return "\n".join(lines)
 
 
-def fit_track(config: RunConfig, output, overwrite: bool, quiet: bool, verbose: bool) -> None:
-    """``afmid fit`` of a config with ``fit.separation_track``: the track, its run file, its read-out on stdout."""
+def fit_track(config: RunConfig, output, overwrite: bool, quiet: bool, read_out) -> None:
+    """``afmid fit`` of a config with ``fit.separation_track``: the track, its run file, its read-out on stdout.
+
+    ``read_out(run_data) -> str`` writes the first block's result (the caller passes the report's ``fit_text``:
+    the fit does not import the report above it, docs/architecture.md, Layers)."""
     import logging
 
     import click
 
     from afmid.io.trace import load_trace
-    from afmid.report.fit_text import fit_text
 
     log = logging.getLogger("afmid.cli")
     if config.data.path is None:
@@ -152,7 +154,7 @@ def fit_track(config: RunConfig, output, overwrite: bool, quiet: bool, verbose: 
     log.info("wrote %s: %d blocks, one force law; terms: %s", output, len(track.separation),
              ", ".join(track.joint.selected_terms()) or "none")
     if not quiet:
-        click.echo(fit_text(per_block[0], verbose=verbose))
+        click.echo(read_out(per_block[0]))
         click.echo(track_table(track))
     for line in track.joint.warnings:
         log.warning("%s: %s", output, line.removeprefix("warning: "))
