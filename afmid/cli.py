@@ -158,12 +158,12 @@ def fit(
         def read_out(run_data):
             return fit_text(run_data, verbose=_state["verbose"] > 0)
     if cfg.fit.separation_track is not None:  # d(t) per block of one record, one force law
-        from afmid.fit.separation_track import fit_track
+        from afmid.joint_runfile import fit_track
 
         fit_track(cfg, output, overwrite, quiet=_state["quiet"], read_out=read_out)
         return
     if cfg.data.paths is not None:  # several traces, one force law (afmid.fit.joint)
-        from afmid.fit.joint_output import fit_joint
+        from afmid.joint_runfile import fit_joint
 
         fit_joint(cfg, output, overwrite, quiet=_state["quiet"], read_out=read_out)
         return

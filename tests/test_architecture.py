@@ -124,7 +124,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("simulate",),
     ("testing",),
     ("fit",),
-    ("runcheck", "runfile"),
+    ("runcheck", "runfile", "joint_runfile"),
     ("diagnosis",),
     ("batch", "maps"),
     ("report",),
@@ -143,7 +143,6 @@ KNOWN_UPWARD: dict[tuple[str, str], str] = {
                        "selection_strategies",
     ("config", "maps"): "config.RunConfig holds the map: section, declared in maps.config",
     ("config", "simulate"): "config.RunConfig holds the simulate.scan section, declared in simulate.scan_config",
-    ("fit", "runfile"): "fit.pipeline and fit.joint_output read and write run data through runfile",
     ("io", "config"): "io.file_values and Trace.from_array validate against the config's schema",
     ("kernels", "physics"): "the kernels run the term language (opcodes, programs) that lives in physics.expr",
 }
@@ -153,8 +152,8 @@ KNOWN_UPWARD: dict[tuple[str, str], str] = {
 KNOWN_MODULE_CYCLES: dict[tuple[str, ...], str] = {
     ("afmid.batch.plan", "afmid.batch.summary"): "plan and summary read each other's helpers",
     ("afmid.fit.force_band", "afmid.fit.forces", "afmid.fit.invols_share", "afmid.fit.joint_profile",
-     "afmid.fit.pipeline", "afmid.fit.prepare", "afmid.fit.separation_share", "afmid.fit.system",
-     "afmid.runfile"): "fit.pipeline is imported back lazily by the steps it calls; runfile <-> fit.pipeline",
+     "afmid.fit.pipeline", "afmid.fit.prepare", "afmid.fit.separation_share", "afmid.fit.system"):
+        "fit.pipeline is imported back (lazily, or for its FitResult type) by the steps it calls",
 }
 KNOWN_FOLDER_CYCLES: dict[tuple[str, ...], str] = {
     ("batch", "config", "coverage", "diagnosis", "fit", "io", "maps", "runcheck", "runfile",

@@ -53,7 +53,8 @@ SIGMAS = 4.0
 
 def _simulated_run(tmp_path, name: str, seed: int, thermal: bool = True):
     from afmid.config import build_config, dump_config, read_yaml
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.io.trace import write_trace_file
     from afmid.runfile import load_run
     from afmid.simulate.driver import simulate
