@@ -25,6 +25,7 @@ from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Fi
 import afmid.config_messages as config_messages
 from afmid.errors import ConfigError
 from afmid.io.files import check_input_file
+from afmid.io.instrument_limits import INSTRUMENT_LIMITS, instrument_value_problem  # noqa: F401 (config's names)
 from afmid.coverage.config import CoverageConfig
 from afmid.fit.separation_track_config import SeparationTrackConfig
 from afmid.maps.config import MapSimulation
@@ -153,20 +154,6 @@ class DataConfig(StrictModel):
         return self
 
 
-#: Largest instrument values afmid accepts, far beyond any AFM (so that a typo or a corrupt file is refused,
-#: not fitted into absurd read-outs): the stiffest sensors (length-extension resonators) ~1e6 N/m, the
-#: fastest probes ~100 MHz, Q up to ~1e6 in cold UHV, colloidal probes up to ~50 um, amplitudes of nm to um.
-INSTRUMENT_LIMITS = {
-    "cantilever.spring_constant": 1e6,  # N/m
-    "cantilever.resonance_frequency": 1e9,  # Hz
-    "cantilever.quality_factor": 1e7,  # 1
-    "cantilever.tip_radius": 1e-3,  # m
-    "drive.frequency": 1e9,  # Hz
-    "drive.free_amplitude": 1e-4,  # m
-    "drive.force_amplitude": 1.0,  # N
-}
-
-
 def _instrument(key: str):
     """A positive, finite float no larger than the key's limit."""
     limit = INSTRUMENT_LIMITS[key]
@@ -177,22 +164,6 @@ def _instrument(key: str):
         return value
 
     return Annotated[float, _Number, Field(gt=0, allow_inf_nan=False), AfterValidator(at_most)]
-
-
-def instrument_value_problem(key: str, value: Any) -> str | None:
-    """What is wrong with an instrument value (``key`` of :data:`INSTRUMENT_LIMITS`) that did not come through
-    the config, e.g. from a trace file's metadata; None if it is a possible value (or not a limited key)."""
-    if key not in INSTRUMENT_LIMITS:
-        return None
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        return f"expected a number, got {config_messages.format_value(value)}"
-    if not math.isfinite(number):
-        return f"must be a finite number, got {config_messages.format_value(number)}"
-    if not 0 < number <= INSTRUMENT_LIMITS[key]:
-        return f"must be > 0 and <= {INSTRUMENT_LIMITS[key]:g}, got {config_messages.format_value(number)}"
-    return None
 
 
 class ModeConfig(StrictModel):

@@ -142,7 +142,7 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
     x, x_equation = views.tip, views.equation
     cl = trace.cantilever
     k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
-    m, c = k / w0**2, k / (Q * w0)
+    m, c = cl.mass, cl.damping
     fixed = fit.cantilever == "fixed"
 
     columns = BaselineColumns(drive.omega, float(t[0]), float(t[-1]), fit.baseline == "free", fit.detrend == "linear")

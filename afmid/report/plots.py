@@ -401,7 +401,7 @@ def _truth_observables(run: RunData) -> dict[str, float]:
     if truth is None or "steady_amplitude" not in truth.extra or truth.force.size != run.force["time"].size:
         return {}
     ex = truth.extra
-    lever = observables.Cantilever(run.cantilever["spring_constant"], run.cantilever["resonance_frequency"],
+    lever = observables.DrivenLever(run.cantilever["spring_constant"], run.cantilever["resonance_frequency"],
                                    run.cantilever["quality_factor"], ex["drive_frequency"],
                                    ex["drive_force_amplitude"])
     a0, phi0 = observables.free_oscillation(lever)
