@@ -22,11 +22,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 from afmid.config import RunConfig
 from afmid.errors import ConfigError
 from afmid.io.cantilever import Cantilever, lever_damping, lever_mass
-from afmid.physics.kinematics import contact_kinematics
+from afmid.terms.kinematics import contact_kinematics
 import afmid.physics.medium as medium
 from afmid.physics.effect_types import RelaxingState
 from afmid.physics.effects import CONTEXT_UNITS, MODELS, ForceLaw, build_force_law, effect_parameter_names

@@ -16,7 +16,7 @@ import math
 import numpy as np
 import pytest
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 import afmid.fit.regression as regression
 from afmid.config import ModelConfig
 from afmid.errors import ConfigError
@@ -26,7 +26,7 @@ from afmid.physics.library import build_library, trajectory_variables
 from afmid.physics.presets import PRESETS
 from afmid.physics.effects import EFFECTS
 from afmid.preprocess.periods import estimate_drive, harmonic_blocks, weak_windows
-from afmid.physics.units import parse_unit
+from afmid.terms.units import parse_unit
 
 # floating-point results compared; blas_sensitive: make test-kernels runs these again (BLAS/LAPACK on the path)
 pytestmark = [pytest.mark.numerics, pytest.mark.blas_sensitive]

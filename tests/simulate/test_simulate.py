@@ -358,7 +358,7 @@ def _evaluate(module, law, compiled, x, v, t, dyn, gates):
 
 def test_generated_law_is_the_vm_law_bit_for_bit():
     """Every effect, every model and a law using every opcode: generated code == VM == NumPy twin."""
-    from afmid.physics.expr import evaluate_numpy
+    from afmid.terms.expr import evaluate_numpy
     from afmid.kernels import integrate as vm_kernel
 
     d = 20e-9
