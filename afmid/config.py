@@ -26,10 +26,10 @@ import afmid.config_messages as config_messages
 from afmid.errors import ConfigError
 from afmid.io.files import check_input_file
 from afmid.io.instrument_limits import INSTRUMENT_LIMITS, instrument_value_problem  # noqa: F401 (config's names)
-from afmid.coverage.config import CoverageConfig
-from afmid.fit.separation_track_config import SeparationTrackConfig
-from afmid.maps.config import MapSimulation
-from afmid.simulate.scan_config import ScanSimulation
+from afmid.sections.coverage import CoverageConfig
+from afmid.sections.separation_track import SeparationTrackConfig
+from afmid.sections.map_simulation import MapSimulation
+from afmid.sections.scan import ScanSimulation
 from afmid.registry import closest, unknown_name_message
 
 
@@ -307,10 +307,10 @@ class SimulateConfig(StrictModel):
     )
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
     seed: Seed = Field(0, description=f"random seed, 0 to {MAX_SEED}")
-    map: MapSimulation | None = Field(None, description="a force map over phases (afmid.maps.config); afmid simulate "
+    map: MapSimulation | None = Field(None, description="a force map over phases (afmid.sections.map_simulation); afmid simulate "
                                       "then writes a map file")
     scan: ScanSimulation | None = Field(None, description="a record taken while scanning a surface under amplitude "
-                                        "feedback (afmid.simulate.scan_config)")
+                                        "feedback (afmid.sections.scan)")
 
     @field_validator("effects")
     @classmethod
@@ -443,7 +443,7 @@ class RunConfig(StrictModel):
     fit: FitConfig = Field(default_factory=FitConfig)
     simulate: SimulateConfig = Field(default_factory=SimulateConfig)
     coverage: CoverageConfig | None = Field(
-        None, description="experiments `afmid coverage` draws around this config (afmid.coverage.config)")
+        None, description="experiments `afmid coverage` draws around this config (afmid.sections.coverage)")
 
     @model_validator(mode="after")
     def _usable_terms(self) -> "RunConfig":

@@ -19,7 +19,7 @@ import yaml
 
 from afmid.version import __version__
 from afmid.config import RunConfig, build_config, dump_config
-from afmid.coverage.config import CoverageConfig
+from afmid.sections.coverage import CoverageConfig
 from afmid.coverage.draws import Draw, apply_draw, check_keys, distributions, draw, set_options
 from afmid.coverage.summary import QuantitySummary, summarize, table_text
 from afmid.coverage.task import draw_task, run_draw
