@@ -219,8 +219,11 @@ class DriveConfig(StrictModel):
     phase_uncertainty: NonNegativeFloat | None = Field(None, description="1-sigma uncertainty of drive.phase, rad")
     @model_validator(mode="after")
     def _calibrated(self) -> "DriveConfig":
-        from afmid.fit.declared_drive import check_declaration  # lazy: `import afmid.cli` stays light
-        return check_declaration(self)
+        # The uncertainties of a calibrated drive (afmid.fit.declared_drive) without the drive they belong to.
+        for name in ("force_amplitude_uncertainty", "phase_uncertainty"):
+            if getattr(self, name) is not None and self.phase is None:
+                raise ValueError(f"drive.{name}: belongs to a calibrated drive, which needs drive.phase (rad)")
+        return self
 
 
 class SampleConfig(StrictModel):

@@ -139,18 +139,14 @@ RANK = {unit: rank for rank, units in enumerate(LAYERS) for unit in units}
 # Upward imports not yet removed, each with why it is still there. The test fails on a new one AND on a listed
 # one that is gone, so the list only shrinks (issue 30: the aim is an empty list).
 KNOWN_UPWARD: dict[tuple[str, str], str] = {
-    ("config", "fit"): "config checks drive.phase with fit.declared_drive and fit.selection_scope against "
-                       "fit.selection_strategies.SELECTION_SCOPES (the registries live with the code they name)",
+    ("config", "fit"): "config checks fit.selection_scope against fit.selection_strategies.SELECTION_SCOPES "
+                       "(a registry of the strategy objects themselves, so it lives with them)",
     ("io", "config"): "Trace.from_array (the front door's) validates its arguments with the config's schema",
 }
 
 # Module-level and folder-level import cycles not yet broken (each a sorted strongly connected component), with
 # why. Kept exact like KNOWN_UPWARD.
-KNOWN_MODULE_CYCLES: dict[tuple[str, ...], str] = {
-    ("afmid.fit.force_band", "afmid.fit.forces", "afmid.fit.invols_share", "afmid.fit.joint_profile",
-     "afmid.fit.pipeline", "afmid.fit.prepare", "afmid.fit.separation_share", "afmid.fit.system"):
-        "fit.pipeline is imported back (lazily, or for its FitResult type) by the steps it calls",
-}
+KNOWN_MODULE_CYCLES: dict[tuple[str, ...], str] = {}
 KNOWN_FOLDER_CYCLES: dict[tuple[str, ...], str] = {
     ("config", "fit", "io"): "closed by the upward imports config -> fit and io -> config of KNOWN_UPWARD",
 }
@@ -238,6 +234,47 @@ def test_no_module_imports_another_modules_private_names():
                 for name, path in MODULES.items() for line, source, imported in _imports(name, path)
                 if imported and imported.startswith("_") and not imported.startswith("__") and source != name]
     assert offences == []
+
+
+def _module_aliases(tree: ast.Module) -> dict[str, str]:
+    """Local name -> afmid module it names, for every ``import afmid...`` and ``from afmid... import module``."""
+    aliases = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("afmid"):
+                    aliases[alias.asname or "afmid"] = alias.name if alias.asname else "afmid"
+        elif isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").startswith("afmid"):
+            for alias in node.names:
+                if f"{node.module}.{alias.name}" in MODULES:
+                    aliases[alias.asname or alias.name] = f"{node.module}.{alias.name}"
+    return aliases
+
+
+def _private_reads(name: str, tree: ast.Module) -> list[tuple[int, str]]:
+    """(line, ``module._name``) for every private attribute of another afmid module read in ``tree``."""
+    aliases, found = _module_aliases(tree), []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+            head, _, rest = ast.unparse(node.value).partition(".")
+            module = aliases.get(head, "") + (f".{rest}" if rest and head in aliases else "")
+            if module in MODULES and module != name:
+                found.append((node.lineno, f"{module}.{node.attr}"))
+    return found
+
+
+def test_no_module_reads_another_modules_private_attributes():
+    """``other_module._name`` is reaching into its privates as much as importing ``_name`` is (issue 30)."""
+    offences = [f"{path.relative_to(PACKAGE.parent)}:{line} reads {what}"
+                for name, path in MODULES.items() for line, what in _private_reads(name, _tree(path))]
+    assert offences == []
+
+
+def test_the_private_reads_check_sees_every_import_form():
+    probe = ast.parse("import afmid.fit.pipeline\nimport afmid.fit.forces as f\nfrom afmid.fit import system\n"
+                      "x = afmid.fit.pipeline._a + f._b + system._c + f.__doc__ + f.public\n")
+    assert sorted(_private_reads("afmid.probe", probe)) == [
+        (4, "afmid.fit.forces._b"), (4, "afmid.fit.pipeline._a"), (4, "afmid.fit.system._c")]
 
 
 def test_no_module_assigns_attributes_of_another_module():

@@ -84,15 +84,6 @@ def drive_from_free_oscillation(spring_constant: float, resonance_frequency: flo
     return free_amplitude * math.hypot(real, imaginary), free_phase + math.atan2(imaginary, real)
 
 
-def check_declaration(drive):
-    """``drive`` (the config's DriveConfig) if its keys make sense together; ValueError (the config's one-line
-    error) for uncertainties without the drive they belong to."""
-    for name in ("force_amplitude_uncertainty", "phase_uncertainty"):
-        if getattr(drive, name) is not None and drive.phase is None:
-            raise ValueError(f"drive.{name}: belongs to a calibrated drive, which needs drive.phase (rad)")
-    return drive
-
-
 def declared_drive(config, trace) -> DeclaredDrive | None:
     """The calibrated drive of ``config`` (a RunConfig) for ``trace``, or None when ``drive.phase`` is not given
     (the drive is then fitted). Raises ConfigError (one line) when the declaration cannot be used."""

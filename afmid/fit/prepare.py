@@ -37,9 +37,12 @@ from afmid.preprocess.periods import (
 from afmid.preprocess.differentiation import differentiate
 from afmid.preprocess.harmonics import transient_limit
 from afmid.preprocess.motion import classify as classify_motion
-from afmid.fit.forces import CHUNK_BLOCKS
 from afmid.fit.thermal_bias import ThermalForce, TrajectorySmoother, corrects_thermal_bias
 from afmid.threads import map_in_order
+
+#: Blocks (periods) per chunk when the fine grid is evaluated (the system's columns, the forces): bounds memory
+#: for long traces.
+CHUNK_BLOCKS = 256
 
 log = logging.getLogger(__name__)
 
