@@ -14,7 +14,6 @@ output file.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -25,7 +24,7 @@ from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Fi
 import afmid.config_messages as config_messages
 from afmid.errors import ConfigError
 from afmid.io.files import check_input_file
-from afmid.io.instrument_limits import INSTRUMENT_LIMITS, instrument_value_problem  # noqa: F401 (config's names)
+from afmid.io.instrument_limits import INSTRUMENT_LIMITS
 from afmid.sections.coverage import CoverageConfig
 from afmid.sections.separation_track import SeparationTrackConfig
 from afmid.sections.map_simulation import MapSimulation
