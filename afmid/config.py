@@ -14,7 +14,6 @@ output file.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -25,10 +24,11 @@ from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Fi
 import afmid.config_messages as config_messages
 from afmid.errors import ConfigError
 from afmid.io.files import check_input_file
-from afmid.coverage.config import CoverageConfig
-from afmid.fit.separation_track_config import SeparationTrackConfig
-from afmid.maps.config import MapSimulation
-from afmid.simulate.scan_config import ScanSimulation
+from afmid.io.instrument_limits import INSTRUMENT_LIMITS
+from afmid.sections.coverage import CoverageConfig
+from afmid.sections.separation_track import SeparationTrackConfig
+from afmid.sections.map_simulation import MapSimulation
+from afmid.sections.scan import ScanSimulation
 from afmid.registry import closest, unknown_name_message
 
 
@@ -153,20 +153,6 @@ class DataConfig(StrictModel):
         return self
 
 
-#: Largest instrument values afmid accepts, far beyond any AFM (so that a typo or a corrupt file is refused,
-#: not fitted into absurd read-outs): the stiffest sensors (length-extension resonators) ~1e6 N/m, the
-#: fastest probes ~100 MHz, Q up to ~1e6 in cold UHV, colloidal probes up to ~50 um, amplitudes of nm to um.
-INSTRUMENT_LIMITS = {
-    "cantilever.spring_constant": 1e6,  # N/m
-    "cantilever.resonance_frequency": 1e9,  # Hz
-    "cantilever.quality_factor": 1e7,  # 1
-    "cantilever.tip_radius": 1e-3,  # m
-    "drive.frequency": 1e9,  # Hz
-    "drive.free_amplitude": 1e-4,  # m
-    "drive.force_amplitude": 1.0,  # N
-}
-
-
 def _instrument(key: str):
     """A positive, finite float no larger than the key's limit."""
     limit = INSTRUMENT_LIMITS[key]
@@ -177,22 +163,6 @@ def _instrument(key: str):
         return value
 
     return Annotated[float, _Number, Field(gt=0, allow_inf_nan=False), AfterValidator(at_most)]
-
-
-def instrument_value_problem(key: str, value: Any) -> str | None:
-    """What is wrong with an instrument value (``key`` of :data:`INSTRUMENT_LIMITS`) that did not come through
-    the config, e.g. from a trace file's metadata; None if it is a possible value (or not a limited key)."""
-    if key not in INSTRUMENT_LIMITS:
-        return None
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        return f"expected a number, got {config_messages.format_value(value)}"
-    if not math.isfinite(number):
-        return f"must be a finite number, got {config_messages.format_value(number)}"
-    if not 0 < number <= INSTRUMENT_LIMITS[key]:
-        return f"must be > 0 and <= {INSTRUMENT_LIMITS[key]:g}, got {config_messages.format_value(number)}"
-    return None
 
 
 class ModeConfig(StrictModel):
@@ -248,8 +218,11 @@ class DriveConfig(StrictModel):
     phase_uncertainty: NonNegativeFloat | None = Field(None, description="1-sigma uncertainty of drive.phase, rad")
     @model_validator(mode="after")
     def _calibrated(self) -> "DriveConfig":
-        from afmid.fit.declared_drive import check_declaration  # lazy: `import afmid.cli` stays light
-        return check_declaration(self)
+        # The uncertainties of a calibrated drive (afmid.fit.declared_drive) without the drive they belong to.
+        for name in ("force_amplitude_uncertainty", "phase_uncertainty"):
+            if getattr(self, name) is not None and self.phase is None:
+                raise ValueError(f"drive.{name}: belongs to a calibrated drive, which needs drive.phase (rad)")
+        return self
 
 
 class SampleConfig(StrictModel):
@@ -338,10 +311,10 @@ class SimulateConfig(StrictModel):
     )
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
     seed: Seed = Field(0, description=f"random seed, 0 to {MAX_SEED}")
-    map: MapSimulation | None = Field(None, description="a force map over phases (afmid.maps.config); afmid simulate "
+    map: MapSimulation | None = Field(None, description="a force map over phases (afmid.sections.map_simulation); afmid simulate "
                                       "then writes a map file")
     scan: ScanSimulation | None = Field(None, description="a record taken while scanning a surface under amplitude "
-                                        "feedback (afmid.simulate.scan_config)")
+                                        "feedback (afmid.sections.scan)")
 
     @field_validator("effects")
     @classmethod
@@ -474,7 +447,7 @@ class RunConfig(StrictModel):
     fit: FitConfig = Field(default_factory=FitConfig)
     simulate: SimulateConfig = Field(default_factory=SimulateConfig)
     coverage: CoverageConfig | None = Field(
-        None, description="experiments `afmid coverage` draws around this config (afmid.coverage.config)")
+        None, description="experiments `afmid coverage` draws around this config (afmid.sections.coverage)")
 
     @model_validator(mode="after")
     def _usable_terms(self) -> "RunConfig":

@@ -37,7 +37,7 @@ from afmid.io.trace import RUN_FORMAT, TRACE_FORMAT, Truth, atomic_hdf5, check_o
 from afmid.fit.uncertainty import ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR, intervals_kind
 from afmid.runcheck import RunReader, check_version, input_unchanged, stored_config
 
-if TYPE_CHECKING:  # afmid.fit.pipeline re-exports write_run: importing it here would be a cycle
+if TYPE_CHECKING:  # an annotation only: the run file is written from a fit's result (fit is a layer below)
     from afmid.fit.pipeline import FitResult
 
 log = logging.getLogger(__name__)

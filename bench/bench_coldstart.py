@@ -34,7 +34,8 @@ HELP_TARGET, FIRST_FIT_TARGET, FIRST_EVER_TARGET = 0.5, 2.0, 5.0
 WARM_CODE = """
 import json, sys, time
 from afmid.config import load_config
-from afmid.fit.pipeline import run_fit, write_run
+from afmid.fit.pipeline import run_fit
+from afmid.runfile import write_run
 cfg = load_config({config!r}, ["data.path={trace}"])
 def once():
     result = run_fit(cfg)

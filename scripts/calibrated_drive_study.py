@@ -43,7 +43,8 @@ def run_one(tmp: Path, raw: dict, drive: tuple, d_given: bool, effects: list[str
     from afmid.config import build_config
     from afmid.diagnosis.diagnose import load_run
     from afmid.diagnosis.localize import energy_check
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.io.trace import load_trace
 
     label, rel, dphi = drive

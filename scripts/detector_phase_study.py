@@ -44,7 +44,8 @@ def main(argv=None) -> int:
     from afmid.config import build_config
     from afmid.diagnosis.localize import energy_check
     from afmid.fit.declared_drive import drive_from_free_oscillation
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.simulate.driver import simulate
     from afmid.preprocess.periods import estimate_drive
     from afmid.runfile import load_run

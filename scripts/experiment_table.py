@@ -162,7 +162,8 @@ def _raw(case: Case, with_instrument: bool) -> dict:
 def measure(case: Case, folder: Path) -> dict:
     import afmid.diagnosis.diagnose as diagnose
     from afmid.config import build_config, dump_config
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.io.trace import write_trace_file
     from afmid.simulate.driver import simulate
 

@@ -59,7 +59,8 @@ def force_error(result, trace) -> float:
 def measure(effect: str, variant: str, overrides: list[str], folder: Path) -> dict:
     import afmid.diagnosis.diagnose as diagnose
     from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.io.trace import write_trace_file
     from afmid.simulate.driver import simulate
 

@@ -57,7 +57,8 @@ def measure(name: str, overrides: list[str], seed: int, folder: Path, diagnose_t
 
     import afmid.diagnosis.diagnose as diagnose
     from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.io.trace import write_trace_file
     from afmid.simulate.driver import simulate
 

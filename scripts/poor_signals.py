@@ -107,7 +107,8 @@ def fit_entry(key: str, config, trace, truth: dict, result) -> dict:
 
 def measure(key: str, config_name: str, overrides: list[str], expected, folder: Path, diagnose_too: bool) -> dict:
     import afmid.diagnosis.diagnose as diagnose
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
 
     trace, config, truth = simulated(config_name, overrides, key, folder)
     started = time.perf_counter()

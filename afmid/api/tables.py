@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from afmid.report.quantity_text import format_measurement, format_value
+from afmid.quantity_text import format_measurement, format_value
 
 #: The kind of interval of every ``sigma`` in the table: one standard deviation.
 ONE_SIGMA = "1 sigma"

@@ -18,11 +18,13 @@ from pathlib import Path
 from typing import Any
 
 from afmid.version import __version__
-from afmid.batch.summary import SUMMARY_CSV, SUMMARY_H5, attr_text
 from afmid.errors import ConfigError, InputError
 
 RUN_SUFFIX = ".run.h5"
 TRACE_SUFFIX = ".trace.h5"
+#: The batch's summary files in its output folder (written by :mod:`afmid.batch.summary`; never an input).
+SUMMARY_CSV = "summary.csv"
+SUMMARY_H5 = "summary.h5"
 
 
 @dataclass
@@ -371,13 +373,15 @@ def trace_is_current(path: Path, sim_text: str) -> bool:
     """Whether ``path`` is the afmid trace file ``afmid simulate`` would write now from config text ``sim_text``."""
     import h5py
 
+    from afmid.runfile import text  # an HDF5 string attribute (bytes or str) as str
+
     if not path.is_file():
         return False
     try:
         with h5py.File(path, "r") as h5:
-            return (attr_text(h5.attrs.get("format", "")) == "afmid-trace"
-                    and attr_text(h5.attrs.get("afmid_version", "")) == __version__
-                    and attr_text(h5.attrs.get("config", "")) == sim_text
+            return (text(h5.attrs.get("format", "")) == "afmid-trace"
+                    and text(h5.attrs.get("afmid_version", "")) == __version__
+                    and text(h5.attrs.get("config", "")) == sim_text
                     and "deflection" in h5)
     except (OSError, KeyError):
         return False

@@ -11,13 +11,10 @@ import io as _io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-if TYPE_CHECKING:
-    from afmid.batch.plan import Item
+from afmid.batch.plan import SUMMARY_CSV, SUMMARY_H5, Item
 
-SUMMARY_CSV = "summary.csv"
-SUMMARY_H5 = "summary.h5"
 SUMMARY_FORMAT = "afmid-batch-summary"
 #: ok: fitted now; suspect: a run file exists (fitted now or up to date) but a read-out is implausible
 #: (afmid.fit.plausibility); failed: no run file; skipped: up to date from an earlier batch.

@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 
 from afmid.config import MAX_SEED, RunConfig
-from afmid.coverage.config import Distribution
+from afmid.sections.coverage import Distribution
 from afmid.errors import ConfigError
 
 #: Default spreads around the config's own values (chosen before any coverage was measured, issue 28):

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from afmid.coverage.config import CoverageConfig
+from afmid.sections.coverage import CoverageConfig
 from afmid.coverage.draws import draw_number
 from afmid.coverage.summary import binomial_interval
 

@@ -17,9 +17,7 @@ from pathlib import Path
 
 import yaml
 
-from afmid import __version__
 from afmid.config import RunConfig, build_config, dump_config
-from afmid.coverage.config import CoverageConfig
 from afmid.coverage.draws import Draw, apply_draw, check_keys, distributions, draw, set_options, yaml_text
 from afmid.coverage.loop import (NOTHING_HIDDEN, check_hidden, draw_hidden, hidden_distributions, hide, loop_summary,
                                  loop_text)
@@ -28,6 +26,8 @@ from afmid.coverage.task import draw_task, run_draw
 from afmid.errors import ConfigError
 from afmid.io.trace import now_iso
 from afmid.progress import Progress
+from afmid.sections.coverage import CoverageConfig
+from afmid.version import __version__
 
 log = logging.getLogger(__name__)
 

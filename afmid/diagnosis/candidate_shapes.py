@@ -17,7 +17,7 @@ import numpy as np
 
 from afmid.config import RunConfig
 from afmid.physics.effects import parameter_unit
-from afmid.report.quantity_text import format_value
+from afmid.quantity_text import format_value
 
 log = logging.getLogger(__name__)
 

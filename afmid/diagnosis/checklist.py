@@ -29,7 +29,7 @@ import math
 import afmid.fit.plausibility as plausibility
 from afmid.errors import AfmidError
 from afmid.io import defects
-from afmid.report.quantity_text import format_value
+from afmid.quantity_text import format_value
 
 #: Defect findings (afmid.io.findings.Finding.name) of a record that changes over time: an amplitude not in steady
 #: state and a drifting mean deflection (removed by fit.detrend, but a drifting lever may change more than its mean).

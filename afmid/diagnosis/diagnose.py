@@ -58,7 +58,7 @@ from afmid.diagnosis.localize import NEAR_RANGE, band_limit, energy_check, local
 import afmid.physics.medium as medium
 from afmid.physics.effects import EFFECTS
 # BIC differences as a person reads them (no -0, no 7e-13): the one formatter of afmid's numbers.
-from afmid.report.quantity_text import format_delta_bic, format_value
+from afmid.quantity_text import format_delta_bic, format_value
 # A cross-validated error within FLOOR_FACTOR of its noise floor counts as the noise level (one constant with
 # the fit's model-limited mark).
 from afmid.fit.uncertainty import FLOOR_FACTOR, at_noise_floor
@@ -662,7 +662,7 @@ def _evidence(t: Trial, local: dict, base: _Base, trials: list[Trial]) -> str:
 
 
 def _value_words(value: float, unit: str) -> str:
-    """A candidate's fitted value in its display unit (afmid.report.quantity_text: nm, nN, Pa s, zJ); a value the
+    """A candidate's fitted value in its display unit (afmid.quantity_text: nm, nN, Pa s, zJ); a value the
     refit could not determine (its term was not selected) said in words."""
     if not math.isfinite(value):
         return "not determined (term not selected)"

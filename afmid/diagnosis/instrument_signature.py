@@ -215,9 +215,9 @@ def mode_evidence(trace, drive_frequency: float, mode: Mode) -> ModeEvidence:
 
 def harmonic_bump(amplitudes: np.ndarray, floor: np.ndarray, above_noise: list[int], at: float) -> float:
     """The product, for the two drive harmonics n, n + 1 bracketing ``at`` (f_2 / f), of each one's amplitude over
-    the geometric mean of the harmonics two away (:func:`harmonic_resonance`'s statistic at f_2), those taken at
-    least at their noise ``floor`` (a harmonic lost in the noise can only lower the product); NaN unless n and
-    n + 1 stand above the noise."""
+    the geometric mean of the harmonics two away (the statistic of
+    :func:`afmid.preprocess.instrument.harmonic_resonance` at f_2), those taken at least at their noise ``floor``
+    (a harmonic lost in the noise can only lower the product); NaN unless n and n + 1 stand above the noise."""
     n = int(math.floor(at))
     A = np.asarray(amplitudes, dtype=float)
     if n < 3 or n + 3 >= A.size or not {n, n + 1} <= set(above_noise):
@@ -567,25 +567,3 @@ def name_instrument(summary: dict, finding: Finding) -> dict:
                      instrument=finding.record(), explained_by_catalog=False,
                      error_after=finding.error_after, delta_bic_after=finding.delta_bic)
     return {**summary, "missing_effect": True, "diagnosis": diagnosis, "suggestions": []}
-
-
-#: ``afmid inspect``: a bump in the harmonic amplitudes counts as a resonance when, at two neighbouring
-#: harmonics n, n+1, the products of their ratios to the geometric mean of the harmonics two away exceed this.
-#: (Measured: a second mode at 6.27 f gives 44-54; the lobes of plain contact spectra stay below 9.)
-RESONANCE_BUMP = 20.0
-
-
-def harmonic_resonance(amplitudes: np.ndarray, above_noise: list[int]) -> float | None:
-    """Where the harmonic amplitudes (index = harmonic number) show a resonance bump, in units of the drive
-    frequency, or None: a higher eigenmode between two harmonics amplifies both (no fit needed)."""
-    A = np.asarray(amplitudes, dtype=float)
-    ok = set(above_noise)
-    best = (0.0, None)
-    for n in range(3, A.size - 3):
-        if not {n - 2, n - 1, n, n + 1, n + 2, n + 3} <= ok:
-            continue
-        ratio = [A[k] / math.sqrt(A[k - 2] * A[k + 2]) for k in (n, n + 1)]
-        product = ratio[0] * ratio[1]
-        if product > best[0]:
-            best = (product, n + ratio[1] / (ratio[0] + ratio[1]))
-    return best[1] if best[0] >= RESONANCE_BUMP else None

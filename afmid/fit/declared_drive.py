@@ -29,6 +29,7 @@ import numpy as np
 
 from afmid.errors import ConfigError
 from afmid.fit.drive_search import with_drive_frequency
+from afmid.io.cantilever import lever_damping, lever_mass
 
 #: The nuisance columns of the drive (afmid.preprocess.baseline.BaselineColumns): first, in this order.
 DRIVE_COLUMNS = ("drive_cos", "drive_sin")
@@ -77,19 +78,10 @@ def drive_from_free_oscillation(spring_constant: float, resonance_frequency: flo
     of magnitude more, docs/calibrated-drive.md)."""
     omega = 2.0 * math.pi * drive_frequency
     omega0 = 2.0 * math.pi * resonance_frequency
-    mass = spring_constant / omega0**2
-    damping = spring_constant / (quality_factor * omega0)
+    mass = lever_mass(spring_constant, omega0)
+    damping = lever_damping(spring_constant, omega0, quality_factor)
     real, imaginary = spring_constant - mass * omega**2, damping * omega
     return free_amplitude * math.hypot(real, imaginary), free_phase + math.atan2(imaginary, real)
-
-
-def check_declaration(drive):
-    """``drive`` (the config's DriveConfig) if its keys make sense together; ValueError (the config's one-line
-    error) for uncertainties without the drive they belong to."""
-    for name in ("force_amplitude_uncertainty", "phase_uncertainty"):
-        if getattr(drive, name) is not None and drive.phase is None:
-            raise ValueError(f"drive.{name}: belongs to a calibrated drive, which needs drive.phase (rad)")
-    return drive
 
 
 def declared_drive(config, trace) -> DeclaredDrive | None:

@@ -19,15 +19,15 @@ from afmid.io.trace import Trace, create_dataset, write_dataset
 from afmid.physics.library import Library
 from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import shaped_effect
+from afmid.fit.prepare import CHUNK_BLOCKS
 from afmid.threads import map_in_order
 
-if TYPE_CHECKING:  # annotations only: afmid.fit.pipeline imports this module
-    from afmid.fit.pipeline import Prepared, System
+if TYPE_CHECKING:  # annotations only
+    from afmid.fit.prepare import Prepared
+    from afmid.fit.system import System
 
 #: A harmonic counts as signal in the error metric when its mean exceeds this many noise sigmas per block.
 SIGNAL_SNR = 1.0
-#: Blocks (periods) per chunk when the fine grid is evaluated: bounds memory for long traces.
-CHUNK_BLOCKS = 256
 
 
 # --------------------------------------------------------------------------- error metric

@@ -63,8 +63,6 @@ from afmid.fit.force_band import selection_share, statistical_share, total_share
 # Kept importable from afmid.fit.pipeline, where they were defined before (bench/bench_fit.py uses term_penalties).
 from afmid.fit.forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from afmid.fit.selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
-# The run-file writer lives in afmid.runfile; `from afmid.fit.pipeline import write_run` keeps working.
-from afmid.runfile import PERIOD_UNITS, write_run  # noqa: F401
 
 log = logging.getLogger(__name__)
 

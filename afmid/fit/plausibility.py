@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 from afmid.physics.effect_tags import Character
 from afmid.physics.effects import EFFECTS, quantity_range
+from afmid.quantity_text import range_words, unit_words
 
 log = logging.getLogger("afmid")
 
@@ -75,19 +76,6 @@ class Verdict:
             object.__setattr__(self, "finding", self.reason)
 
 
-def _short(x: float) -> str:
-    """A number as a person writes a bound: 0, 1e5, 1e-22, 0.05, 5."""
-    if x == 0 or 1e-3 <= abs(x) < 1e4:
-        return f"{x:g}"
-    mantissa, exponent = f"{x:.3e}".split("e")
-    return f"{mantissa.rstrip('0').rstrip('.')}e{int(exponent)}"
-
-
-def unit_words(unit: str) -> str:
-    """A unit as written in prose: ``Pa*s`` -> ``Pa s``."""
-    return unit.replace("*", " ")
-
-
 def display(value: float, unit: str) -> str:
     """A value in the unit a scientist reads (24 kPa s, 3.2 nN, 1.5 GPa, 1e-19 J), 3 significant digits."""
     if not math.isfinite(value):
@@ -103,11 +91,6 @@ def display(value: float, unit: str) -> str:
             mantissa = value / 10.0**power
         return f"{mantissa:.3g} {_PREFIXES[power]}{unit_words(unit)}"
     return f"{value:.3g} {unit_words(unit)}"
-
-
-def range_words(low: float, high: float, unit: str) -> str:
-    """``[0, 1e5] Pa s``: the declared range in SI, as the registry and `afmid effects` state it."""
-    return f"[{_short(low)}, {_short(high)}] {unit_words(unit)}"
 
 
 def _declaring_effect(name: str, effect: str | None):
@@ -230,7 +213,7 @@ def spring_power(unit: str) -> float:
     made of forces, lengths and times scales with k to the power of its mass dimension: E* (Pa), H (J), gamma
     (J/m^2), a viscosity (Pa s) as k. A unit with current or temperature (a voltage: V^2 eps0 is a force) is not
     such a read-out: 0 (unknown, not used)."""
-    from afmid.physics.units import parse_unit
+    from afmid.terms.units import parse_unit
 
     try:
         kg, _, _, ampere, kelvin = parse_unit(unit).dims

@@ -37,9 +37,12 @@ from afmid.preprocess.periods import (
 from afmid.preprocess.differentiation import differentiate
 from afmid.preprocess.harmonics import transient_limit
 from afmid.preprocess.motion import classify as classify_motion
-from afmid.fit.forces import CHUNK_BLOCKS
 from afmid.fit.thermal_bias import ThermalForce, TrajectorySmoother, corrects_thermal_bias
 from afmid.threads import map_in_order
+
+#: Blocks (periods) per chunk when the fine grid is evaluated (the system's columns, the forces): bounds memory
+#: for long traces.
+CHUNK_BLOCKS = 256
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +145,7 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
     x, x_equation = views.tip, views.equation
     cl = trace.cantilever
     k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
-    m, c = k / w0**2, k / (Q * w0)
+    m, c = cl.mass, cl.damping
     fixed = fit.cantilever == "fixed"
 
     columns = BaselineColumns(drive.omega, float(t[0]), float(t[-1]), fit.baseline == "free", fit.detrend == "linear")

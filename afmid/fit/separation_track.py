@@ -116,43 +116,9 @@ def write_track(group, track: SeparationTrack) -> None:
     write_dataset(group, "separation_error", track.sigma, "m", error_kind="1 sigma")
 
 
-def write_track_run(path, track: SeparationTrack, overwrite: bool = False):
-    """The joint run file of the blocks (afmid.fit.joint_output.write_joint_run) with /model/separation_track;
-    returns the path and every block's result."""
-    from afmid.fit.joint_output import write_joint_run
-
-    return write_joint_run(path, track.joint, overwrite=overwrite,
-                           more=lambda h5: write_track(h5["model"].create_group("separation_track"), track))
-
-
 def track_table(track: SeparationTrack) -> str:
     """The track, one line per block: time (ms) and d +- 1 sigma (nm)."""
     lines = [f"separation track at {track.bandwidth:g} Hz ({len(track.separation)} blocks, one force law):"]
     for t, d, s in zip(track.time, track.separation, track.sigma):
         lines.append(f"  t = {t * 1e3:8.3f} ms: d = {d * 1e9:.3f} ± {s * 1e9:.3f} nm (1σ)")
     return "\n".join(lines)
-
-
-def fit_track(config: RunConfig, output, overwrite: bool, quiet: bool, verbose: bool) -> None:
-    """``afmid fit`` of a config with ``fit.separation_track``: the track, its run file, its read-out on stdout."""
-    import logging
-
-    import click
-
-    from afmid.io.trace import load_trace
-    from afmid.report.fit_text import fit_text
-
-    log = logging.getLogger("afmid.cli")
-    if config.data.path is None:
-        raise ConfigError("a separation track is fitted on one record: give data.path", file=config.source,
-                          key="data.path")
-    trace = check_trace(load_trace(config), config)
-    track = fit_separation_track(config, trace, config.fit.separation_track.bandwidth, progress=not quiet)
-    _, per_block = write_track_run(output, track, overwrite=overwrite)
-    log.info("wrote %s: %d blocks, one force law; terms: %s", output, len(track.separation),
-             ", ".join(track.joint.selected_terms()) or "none")
-    if not quiet:
-        click.echo(fit_text(per_block[0], verbose=verbose))
-        click.echo(track_table(track))
-    for line in track.joint.warnings:
-        log.warning("%s: %s", output, line.removeprefix("warning: "))

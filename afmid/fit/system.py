@@ -12,11 +12,10 @@ import numpy as np
 import afmid.fit.regression as regression
 from afmid.errors import AfmidError
 from afmid.physics.library import Library
-from afmid.fit.forces import CHUNK_BLOCKS
 
 log = logging.getLogger(__name__)
 
-from afmid.fit.prepare import Prepared, fine_chunks, map_fine_chunks
+from afmid.fit.prepare import CHUNK_BLOCKS, Prepared, fine_chunks, map_fine_chunks
 from afmid.fit.thermal_bias import remove_thermal_bias, thermal_bias_rows
 from afmid.kernels.switching import cell_subsamples, switching_cells
 from afmid.preprocess.periods import fine_support

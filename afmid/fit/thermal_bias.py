@@ -40,6 +40,7 @@ from typing import Callable
 import numpy as np
 
 import afmid.fit.regression as regression
+from afmid.io.cantilever import lever_damping, lever_mass
 from afmid.physics.effects import BOLTZMANN
 from afmid.physics.library import Library
 from afmid.preprocess.harmonics import rotate_to_global
@@ -126,13 +127,13 @@ class ThermalForce:
 
     @property
     def mass(self) -> float:
-        """kg, the effective mass k / w0^2."""
-        return self.spring_constant / self.omega0**2
+        """kg, the effective mass k / w0^2 (afmid.io.cantilever.lever_mass)."""
+        return lever_mass(self.spring_constant, self.omega0)
 
     @property
     def damping(self) -> float:
-        """N s/m, c = k / (Q w0)."""
-        return self.spring_constant / (self.quality_factor * self.omega0)
+        """N s/m, c = k / (Q w0) (afmid.io.cantilever.lever_damping)."""
+        return lever_damping(self.spring_constant, self.omega0, self.quality_factor)
 
     @property
     def strength(self) -> float:

@@ -3,8 +3,9 @@
 :class:`Cantilever` holds the calibration (k, f0, Q), the tip (radius, shape, half-angle), the relative 1-sigma
 calibration uncertainties of k and Q and the higher flexural modes; it converts to and from the run config's
 ``cantilever:`` section (:meth:`Cantilever.config_section`, :meth:`Cantilever.from_config`), which is what the fit
-reads. Other cantilever views remain inside their stages (the simulator's ``Oscillator``, the report's observables'
-lever): they are built from these values.
+reads. The lever's effective mass and damping are computed here only (:func:`lever_mass`, :func:`lever_damping`):
+the stages' views of the lever with a drive or a temperature (the simulator's ``Oscillator``, the fit's
+``ThermalForce``, the report's ``DrivenLever``) and the fit's equation of motion call them.
 """
 
 from __future__ import annotations
@@ -12,6 +13,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from typing import Any
+
+
+def lever_mass(spring_constant: float, omega0: float) -> float:
+    """The first mode's effective mass m = k / w0^2, kg (k in N/m, w0 in rad/s)."""
+    return spring_constant / omega0**2
+
+
+def lever_damping(spring_constant: float, omega0: float, quality_factor: float) -> float:
+    """The first mode's viscous damping c = m w0 / Q = k / (Q w0), kg/s (k in N/m, w0 in rad/s, Q in 1)."""
+    return lever_mass(spring_constant, omega0) * omega0 / quality_factor
 
 
 @dataclass(frozen=True)
@@ -48,12 +59,12 @@ class Cantilever:
     @property
     def mass(self) -> float:
         """Effective mass m = k / w0^2, kg."""
-        return self.spring_constant / self.omega0**2
+        return lever_mass(self.spring_constant, self.omega0)
 
     @property
     def damping(self) -> float:
         """Damping coefficient c = m w0 / Q, kg/s."""
-        return self.mass * self.omega0 / self.quality_factor
+        return lever_damping(self.spring_constant, self.omega0, self.quality_factor)
 
     def config_section(self) -> dict[str, Any]:
         """The run config's ``cantilever:`` section for this lever (SI; keys left out where not declared)."""

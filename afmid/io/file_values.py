@@ -11,6 +11,7 @@ import numpy as np
 
 from afmid.errors import ConfigError, InputError
 from afmid.io.cantilever import Cantilever
+from afmid.io.instrument_limits import instrument_value_problem
 
 
 def merged_value(config, key: str, from_config, from_file, sources: dict, overridden: list):
@@ -30,8 +31,6 @@ def merged_value(config, key: str, from_config, from_file, sources: dict, overri
 
 def check_file_instrument_value(config, key: str, value) -> None:
     """The config's instrument limits hold for a trace file's metadata too (InputError naming the file)."""
-    from afmid.config import instrument_value_problem
-
     problem = instrument_value_problem(key, value)
     if problem:
         raise InputError(f"the trace file's {key.split('.')[-1]} {problem}; set {key} in the config if the file "

@@ -317,8 +317,8 @@ def _harmonics(a: defects.Analysis) -> str:
 
 
 def _instrument(a: defects.Analysis, s: FileSummary) -> str:
-    """A higher eigenmode seen as a resonance bump in the harmonics (afmid.diagnosis.instrument_signature)."""
-    from afmid.diagnosis.instrument_signature import harmonic_resonance
+    """A higher eigenmode seen as a resonance bump in the harmonics (afmid.preprocess.instrument)."""
+    from afmid.preprocess.instrument import harmonic_resonance
 
     at = harmonic_resonance(a.harmonic_amplitudes(), a.above_noise)
     if at is None:

@@ -7,7 +7,7 @@ import numpy as np
 from numba import njit
 
 from afmid.kernels.integrate import next_gate_state_at, next_relaxation_state_at
-from afmid.physics.kinematics import relaxation_weights
+from afmid.terms.kinematics import relaxation_weights
 
 
 @njit(cache=True)

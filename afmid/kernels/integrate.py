@@ -35,7 +35,7 @@ with the stack VM (:mod:`afmid.kernels.vm`), for any force law without
 compiling anything new. ``law`` is ``(force, full, coef, cond)``: ``force``
 holds the n terms, ``full`` the same n terms followed by the switching
 functions, ``cond`` the gates' on/off conditions (bundles are 4-tuples ``(code,
-code_offsets, consts, const_offsets)`` as in :class:`afmid.physics.expr.ProgramSet`).
+code_offsets, consts, const_offsets)`` as in :class:`afmid.terms.expr.ProgramSet`).
 
 The drive F0 cos(w t) is evaluated exactly (``math.cos``) at every
 DRIVE_ANCHOR_STEPS-th step start and wherever an event splits a step; at the
@@ -83,7 +83,7 @@ MAX_EVENTS_PER_STEP = 64
 EVENT_TOLERANCE = 1e-12
 # Regula falsi iterations per crossing; Illinois converges in ~10.
 MAX_ROOT_ITERATIONS = 100
-# The variable slots of the force programs (afmid.physics.expr.VARIABLES); gates follow.
+# The variable slots of the force programs (afmid.terms.expr.VARIABLES); gates follow.
 N_VARIABLES = 7
 # Steps between exact evaluations of cos(w t), sin(w t) for the drive; between
 # them the drive at the RK4 stage times comes from the angle-addition formula.
@@ -97,7 +97,7 @@ _inline = njit(cache=True, error_model="numpy", inline="always")
 @_inline
 def contact_kinematics_at(x, v, separation, a0):
     """(z, zdot, delta, deltadot) at deflection x (m), velocity v (m/s): the numba twin of
-    afmid.physics.kinematics.contact_kinematics (rest separation and a0 in m)."""
+    afmid.terms.kinematics.contact_kinematics (rest separation and a0 in m)."""
     z = separation - x
     if z <= a0:
         return z, -v, a0 - z, v  # deltadot = -zdot in contact
@@ -107,7 +107,7 @@ def contact_kinematics_at(x, v, separation, a0):
 @_inline
 def next_gate_state_at(state, on, off):
     """The gate (0.0 or 1.0) after a sample with conditions on/off (non-zero: true): the numba twin of
-    afmid.physics.kinematics.next_gate_state."""
+    afmid.terms.kinematics.next_gate_state."""
     if state == 0.0:
         return 1.0 if on != 0.0 else 0.0
     return 0.0 if off != 0.0 else state
@@ -120,7 +120,7 @@ RELAXATION_SERIES_BELOW = 1e-4
 @_inline
 def next_relaxation_state_at(state, source_start, source_end, dt, time):
     """A relaxing state after dt (s) with time constant ``time`` (s), the source linear from source_start to
-    source_end over dt: the numba twin of afmid.physics.kinematics.next_relaxation_state."""
+    source_end over dt: the numba twin of afmid.terms.kinematics.next_relaxation_state."""
     u = dt / time
     gain = -math.expm1(-u)
     if u < RELAXATION_SERIES_BELOW:

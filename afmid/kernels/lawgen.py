@@ -48,17 +48,17 @@ from pathlib import Path
 
 import numpy as np
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 
 #: Bump when the translation changes in a way the generated text would not show.
 GENERATOR_VERSION = 1
 _ALGORITHM_BEGIN = "# >>> algorithm"
 _ALGORITHM_END = "# <<< algorithm"
-#: The program variable slots (afmid.physics.expr.VARIABLES) as locals of the generated functions
+#: The program variable slots (afmid.terms.expr.VARIABLES) as locals of the generated functions
 #: (xdot is the parameter v), computed as afmid.kernels.integrate.fill_variables does.
 _SLOT_NAMES = ("z", "zdot", "delta", "deltadot", "x", "v", "t")
 if expr.VARIABLES != ("z", "zdot", "delta", "deltadot", "x", "xdot", "t"):  # pragma: no cover
-    raise ImportError("afmid.physics.expr.VARIABLES changed: update afmid.kernels.lawgen._variables and fill_variables")
+    raise ImportError("afmid.terms.expr.VARIABLES changed: update afmid.kernels.lawgen._variables and fill_variables")
 
 _lock = threading.Lock()
 _loaded: dict[str, object] = {}  # text hash -> module

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 from afmid.kernels.lawgen import GenerationError, SourceWriter, load_module, translate_program, variables_read
 
 #: Bump when the generated text changes in a way the text itself would not show.

@@ -1,7 +1,7 @@
 """The numba stack VM that evaluates compiled force-library terms.
 
-Programs come from :func:`afmid.physics.expr.compile_expression`; the opcodes are
-defined in :mod:`afmid.physics.expr` (so the compiler stays free of numba) and
+Programs come from :func:`afmid.terms.expr.compile_expression`; the opcodes are
+defined in :mod:`afmid.terms.expr` (so the compiler stays free of numba) and
 re-exported here. The kernels are compiled once, never per expression:
 changing an expression or a parameter only changes the data they are given.
 
@@ -29,7 +29,7 @@ from collections.abc import Mapping
 import numpy as np
 from numba import njit
 
-from afmid.physics.expr import (
+from afmid.terms.expr import (
     Program,
     ProgramSet,
     check_variables,

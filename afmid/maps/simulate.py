@@ -1,4 +1,4 @@
-"""A simulated force map (``simulate.map``, :mod:`afmid.maps.config`): a trace per pixel over a sample of phases.
+"""A simulated force map (``simulate.map``, :mod:`afmid.sections.map_simulation`): a trace per pixel over a sample of phases.
 
 Each pixel is simulated by :func:`afmid.simulate.driver.simulate` with its phase's parameters (merged over
 ``simulate.parameters``), its rest separation ``sample.separation - height`` and its own seed

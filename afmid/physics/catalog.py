@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import json
 
-from afmid.fit.plausibility import range_words
 from afmid.physics.effect_tags import TERM_ROLES
 from afmid.physics.effect_types import RelaxingState
 from afmid.physics.effects import EFFECTS, MODELS, coefficient_unit, quantity_range, term_unit
 from afmid.physics.tips import TIP_SHAPES
+from afmid.quantity_text import range_words
 from afmid.registry import unknown_name_message
 from afmid.errors import ConfigError
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 
 #: Probe values of every variable: 0 and +- 10^-15 .. 10^3 (SI), wide enough for any unit of the variables
 #: (m, m/s, s) so that a gate that is true somewhere in a physical range is true at some probe point.

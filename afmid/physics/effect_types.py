@@ -11,11 +11,11 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 from afmid.physics.effect_tags import Character, Region, Role, check_member, check_roles
 from afmid.errors import DefinitionError
 from afmid.registry import Registry
-from afmid.physics.units import Unit, parse_unit
+from afmid.terms.units import Unit, parse_unit
 
 EPSILON_0 = 8.8541878128e-12  # F/m, vacuum permittivity
 BOLTZMANN = 1.380649e-23  # J/K
@@ -112,7 +112,7 @@ class RelaxingState:
         d(state)/dt = (source - state) / time
 
     e.g. the relaxing part of a standard linear solid's contact force. Scanned along a trajectory with the source
-    taken linear in time between samples (exact for that; :func:`afmid.physics.kinematics.next_relaxation_state`);
+    taken linear in time between samples (exact for that; :func:`afmid.terms.kinematics.next_relaxation_state`);
     it starts relaxed (state = source) where no earlier value is known.
     """
 

@@ -2,7 +2,7 @@
 
 One source of truth for the simulator and the fit. An :class:`Effect` is a force
 contribution written as a sum of *terms* in afmid's term language
-(:mod:`afmid.physics.expr`), each multiplied by a coefficient that follows from the
+(:mod:`afmid.terms.expr`), each multiplied by a coefficient that follows from the
 effect's physical parameters. The simulator evaluates ``sum(coefficient * term)``;
 the fit uses the same terms as library columns and turns fitted coefficients
 back into physical quantities with the effect's ``readout``.

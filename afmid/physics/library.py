@@ -1,7 +1,7 @@
 """The library of candidate force terms.
 
 A :class:`Library` is an ordered list of :class:`LibraryTerm` (expressions in the
-term language of :mod:`afmid.physics.expr`), built from the effect catalog
+term language of :mod:`afmid.terms.expr`), built from the effect catalog
 (``model.effects``), from a preset (the seed's tables I-IV in :mod:`afmid.physics.presets`, ``model.library``),
 and from custom terms in the config (``model.terms``). Each term knows its SI
 units and, where it comes from an effect, which effect coefficient it is, so
@@ -18,16 +18,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 from afmid.errors import ConfigError
-from afmid.physics.kinematics import contact_kinematics, next_gate_state, next_relaxation_state
+from afmid.terms.kinematics import contact_kinematics, next_gate_state, next_relaxation_state
 from afmid.physics.effect_tags import SELECTION_RULES, Role
 from afmid.physics.effect_types import RelaxingState, State, state_expressions
 from afmid.physics.effects import CONTEXT_UNITS, EFFECTS, coefficient_unit, effect_parameter_names, term_unit
 from afmid.physics.presets import PRESETS
 from afmid.physics.tips import SPHERE, SPHERE_POWER, TipGeometry, shaped_effect
 from afmid.registry import unknown_name_message
-from afmid.physics.units import parse_unit
+from afmid.terms.units import parse_unit
 
 NEWTON = parse_unit("N")
 
@@ -88,7 +88,7 @@ class Library:
         return rules
 
     def compile(self, params: Mapping[str, float]):
-        """A :class:`afmid.physics.expr.ProgramSet` of the terms and the state-gate conditions (cached per parameter set:
+        """A :class:`afmid.terms.expr.ProgramSet` of the terms and the state-gate conditions (cached per parameter set:
         the fit evaluates the same library at the same parameters many times)."""
         # Keyed by the parameters the programs use (not the separation d, say, a variable's offset passed to the
         # kernels at run time): a search over d compiles once, not at every trial value.
@@ -192,7 +192,7 @@ class Library:
     def reads_velocity(self) -> bool:
         """Whether a term or state reads a velocity (zdot, deltadot, xdot): if not, the columns do not depend on
         the velocity passed with the trajectory (only on x and t)."""
-        from afmid.physics.term_parser import walk
+        from afmid.terms.term_parser import walk
 
         velocities = {"zdot", "deltadot", "xdot"}
         texts = [t.expression for t in self.terms] + [state_expressions(gate) for gate in self.states]

@@ -15,12 +15,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 from afmid.physics.effect_tags import Role, check_roles
 from afmid.errors import DefinitionError
 from afmid.physics.effects import CONTEXT_UNITS, EFFECTS, Effect, Term
 from afmid.registry import Registry
-from afmid.physics.units import Unit, parse_unit
+from afmid.terms.units import Unit, parse_unit
 
 NEWTON = parse_unit("N")
 
@@ -31,7 +31,7 @@ class PresetTerm:
     neither; a term with none is a distractor, penalised by the selection's prior)."""
 
     name: str  # display name, the column's name in the fit's output
-    expression: str  # term language (afmid.physics.expr); SI units follow from the names it uses
+    expression: str  # term language (afmid.terms.expr); SI units follow from the names it uses
     effect: str | None = None
     label: str | None = None
     roles: tuple[Role, ...] = ()  # what the term is to the selection rules

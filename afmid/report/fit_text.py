@@ -1,7 +1,7 @@
 """What ``afmid fit`` prints when it is done: the identified law, the physical parameters, the verdicts.
 
 A plain function of the fit's result (:func:`fit_text`), so tests read the same text the user reads; the CLI
-only prints it. Numbers are in human units with labelled intervals (:mod:`afmid.report.quantity_text`): every ±
+only prints it. Numbers are in human units with labelled intervals (:mod:`afmid.quantity_text`): every ±
 says ``(1σ)``, every interval ``(95 %)``. A read-out whose term was not selected says "not determined", never
 ``0 ± 0``; a fit whose error stands above its noise floor says MODEL-LIMITED on every parameter it biases.
 ``verbose`` adds how the terms were selected: the criterion, the candidate supports with their criterion values
@@ -16,7 +16,7 @@ import numpy as np
 
 from afmid.fit.plausibility import judge, judge_separation
 from afmid.fit.uncertainty import FLOOR_FACTOR, STATISTICAL_ONLY_TEXT, calibration_declared, model_limited
-from afmid.report.quantity_text import format_delta_bic, format_interval, format_measurement, format_value
+from afmid.quantity_text import format_delta_bic, format_interval, format_measurement, format_value
 
 #: Candidate supports listed by ``-v`` (best by the criterion first).
 VERBOSE_CANDIDATES = 8

@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afmid.io.cantilever import lever_damping, lever_mass
+
 #: What each observable depends on (said in summary.json and the figure's caption).
 DEPENDS_ON = {
     "amplitude_ratio": "the deflection's first harmonic; A0 from the cantilever model (k, f0, Q) and the drive (F0, f)",
@@ -49,8 +51,9 @@ UNITS = {"amplitude": "m", "phase": "rad", "amplitude_ratio": "1", "phase_shift"
 
 
 @dataclass(frozen=True)
-class Cantilever:
-    """The point-mass model of the cantilever's first mode and its drive (SI)."""
+class DrivenLever:
+    """The point-mass model of the cantilever's first mode and its drive (SI): the lever of a run file's
+    ``cantilever`` with the drive; mass and damping as :class:`afmid.io.cantilever.Cantilever` computes them."""
 
     spring_constant: float  # k, N/m
     resonance_frequency: float  # f0, Hz
@@ -71,16 +74,16 @@ class Cantilever:
 
     @property
     def mass(self) -> float:
-        """m = k / w0^2, kg."""
-        return self.spring_constant / self.omega0 ** 2
+        """m = k / w0^2, kg (afmid.io.cantilever.lever_mass)."""
+        return lever_mass(self.spring_constant, self.omega0)
 
     @property
     def damping(self) -> float:
-        """c = m w0 / Q, kg/s."""
-        return self.mass * self.omega0 / self.quality_factor
+        """c = m w0 / Q, kg/s (afmid.io.cantilever.lever_damping)."""
+        return lever_damping(self.spring_constant, self.omega0, self.quality_factor)
 
 
-def free_oscillation(lever: Cantilever) -> tuple[float, float]:
+def free_oscillation(lever: DrivenLever) -> tuple[float, float]:
     """Amplitude A0 (m) and phase lag phi0 (rad, behind the drive) of the free linear steady state."""
     stiffness = lever.spring_constant - lever.mass * lever.omega ** 2
     loss = lever.damping * lever.omega
@@ -97,7 +100,7 @@ def first_harmonic(curves: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, n
     return np.hypot(a, b), np.arctan2(b, a)
 
 
-def tapping_observables(amplitude, lag, lever: Cantilever) -> dict[str, np.ndarray]:
+def tapping_observables(amplitude, lag, lever: DrivenLever) -> dict[str, np.ndarray]:
     """The observables for first-harmonic amplitudes ``amplitude`` (m) and lags ``lag`` behind the drive (rad):
     ``amplitude_ratio`` (1), ``phase_shift`` = lag - phi0 (rad), ``dissipated_energy`` per period (J),
     ``dissipated_power`` (W), ``virial`` (J); formulas in the module's docstring."""
@@ -115,11 +118,11 @@ def _wrap(angle):
     return np.remainder(np.asarray(angle) + math.pi, 2.0 * math.pi) - math.pi
 
 
-def run_lever(run, force_amplitude: float | None = None, drive_phase: float | None = None) -> Cantilever:
+def run_lever(run, force_amplitude: float | None = None, drive_phase: float | None = None) -> DrivenLever:
     """The cantilever model and drive of a run (:class:`afmid.runfile.RunData`): its calibration and its fitted
     drive (``cos``, ``sin``: F_drive = cos cos(w t) + sin sin(w t)), unless a drive is given."""
     cl, drive = run.cantilever, run.drive
-    return Cantilever(cl["spring_constant"], cl["resonance_frequency"], cl["quality_factor"], drive["frequency"],
+    return DrivenLever(cl["spring_constant"], cl["resonance_frequency"], cl["quality_factor"], drive["frequency"],
                       math.hypot(drive["cos"], drive["sin"]) if force_amplitude is None else force_amplitude,
                       math.atan2(drive["sin"], drive["cos"]) if drive_phase is None else drive_phase)
 
@@ -149,7 +152,7 @@ def first_harmonic_per_period(time: np.ndarray, deflection: np.ndarray, starts: 
     return np.hypot(coef[:, 1], coef[:, 2]), np.arctan2(coef[:, 2], coef[:, 1])
 
 
-def measured_observables(run, lever: Cantilever | None = None) -> dict[str, np.ndarray]:
+def measured_observables(run, lever: DrivenLever | None = None) -> dict[str, np.ndarray]:
     """Per period observables of a run from its recorded deflection (``/force/deflection`` at ``/force/time``)
     over the run's periods (``/periods/period_start_time``), with the run's fitted drive unless ``lever`` is
     given. (Not from the smoothed per-period Fourier curves of ``/periods``: those are the fit's trajectory.)"""
@@ -184,12 +187,12 @@ def model_period(resimulated: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return 2.0 * math.pi * np.arange(x.size) / x.size, x, v
 
 
-def model_observables(resimulated: dict, lever: Cantilever) -> dict[str, float]:
+def model_observables(resimulated: dict, lever: DrivenLever) -> dict[str, float]:
     """The observables of the identified model's steady period re-simulated with the drive F0 cos(w t)
     (``resimulated`` as :func:`afmid.simulate.driver.resimulate_run` returns it: see :func:`model_period`)."""
     phase, x, _ = model_period(resimulated)
     amplitude, lag = first_harmonic(x, phase)
-    free_drive = Cantilever(lever.spring_constant, lever.resonance_frequency, lever.quality_factor,
+    free_drive = DrivenLever(lever.spring_constant, lever.resonance_frequency, lever.quality_factor,
                             lever.drive_frequency, lever.force_amplitude, 0.0)
     return {k: float(v[0]) for k, v in tapping_observables(amplitude, lag, free_drive).items()}
 

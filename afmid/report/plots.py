@@ -15,7 +15,7 @@ import numpy as np
 from afmid.diagnosis.diagnose import BIC_EVIDENCE, band_limit
 from afmid.report import observables
 from afmid.report.figures import FULL_WIDTH, log_axis, pyplot, save_figure
-from afmid.report.quantity_text import display_unit, format_delta_bic
+from afmid.quantity_text import display_unit, format_delta_bic
 from afmid.runfile import RunData
 
 NN = 1e9  # N -> nN for display

@@ -23,7 +23,7 @@ import numpy as np
 from afmid.diagnosis.diagnose import describe_residual, localize
 from afmid.diagnosis.stored import diagnosed
 from afmid.fit.uncertainty import ERROR_LABEL, FLOOR_FACTOR
-from afmid.report.quantity_text import format_delta_bic, format_measurement, format_value
+from afmid.quantity_text import format_delta_bic, format_measurement, format_value
 from afmid.runfile import RunData
 
 #: Keys of a suggestion kept in each run's diagnosis (summary.json ``runs[*].diagnosis.suggestions``).

@@ -33,8 +33,10 @@ the names of
 - :mod:`afmid.simulate.model` -- :class:`Oscillator`, :class:`NondimensionalForm`,
   :func:`resolve_setup` (config to checked :class:`Setup`), :func:`compile_force_law`;
 - :mod:`afmid.simulate.integrator` -- :class:`Integrator` (runs the kernel),
-  :func:`first_harmonic`, :func:`settle`;
-- :mod:`afmid.testing.reference` -- the plain-Python twin of the kernel for the tests.
+  :func:`first_harmonic`, :func:`settle`.
+
+The plain-Python twin of the kernel for the tests is :mod:`afmid.testing.reference` (a layer above
+this one: it is imported from there, not re-exported here).
 """
 
 from __future__ import annotations
@@ -78,7 +80,6 @@ from afmid.simulate.model import (  # noqa: F401 (re-exported)
     program_variables,
     resolve_setup,
 )
-from afmid.testing.reference import reference_drive, reference_integrate  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
 

@@ -22,10 +22,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 from afmid.config import RunConfig
 from afmid.errors import ConfigError
-from afmid.physics.kinematics import contact_kinematics
+from afmid.io.cantilever import Cantilever, lever_damping, lever_mass
+from afmid.terms.kinematics import contact_kinematics
 import afmid.physics.medium as medium
 from afmid.physics.effect_types import RelaxingState
 from afmid.physics.effects import CONTEXT_UNITS, MODELS, ForceLaw, build_force_law, effect_parameter_names
@@ -38,7 +39,8 @@ _DELTA_RE = re.compile(r"\bdelta(dot)?\b")
 # =========================================================================== the oscillator
 @dataclass(frozen=True)
 class Oscillator:
-    """The cantilever's first mode as a driven, damped point mass (SI)."""
+    """The cantilever's first mode as a driven, damped point mass (SI): the lever's calibration
+    (:class:`afmid.io.cantilever.Cantilever`, :meth:`of`) with the drive; mass and damping computed as there."""
 
     spring_constant: float  # k, N/m
     resonance_frequency: float  # f0, Hz
@@ -58,13 +60,19 @@ class Oscillator:
 
     @property
     def mass(self) -> float:
-        """Effective mass m = k / w0^2, kg."""
-        return self.spring_constant / self.omega0**2
+        """Effective mass m = k / w0^2, kg (afmid.io.cantilever.lever_mass)."""
+        return lever_mass(self.spring_constant, self.omega0)
 
     @property
     def damping(self) -> float:
-        """Viscous damping c = m w0 / Q, kg/s."""
-        return self.mass * self.omega0 / self.quality_factor
+        """Viscous damping c = m w0 / Q, kg/s (afmid.io.cantilever.lever_damping)."""
+        return lever_damping(self.spring_constant, self.omega0, self.quality_factor)
+
+    @classmethod
+    def of(cls, cantilever: Cantilever, drive_frequency: float, drive_force: float) -> "Oscillator":
+        """The first mode of ``cantilever`` driven at ``drive_frequency`` (Hz) with ``drive_force`` (N)."""
+        return cls(cantilever.spring_constant, cantilever.resonance_frequency, cantilever.quality_factor,
+                   drive_frequency, drive_force)
 
     @property
     def period(self) -> float:
@@ -193,7 +201,8 @@ def resolve_setup(config: RunConfig) -> Setup:
         raise ConfigError(f"the simulator drives with F0 cos(2 pi f t), t = 0 at the first sample (phase 0), got "
                           f"{drive.phase!r} rad; drive.phase is for fitting a calibrated drive",
                           file=config.source, key="drive.phase")
-    oscillator = Oscillator(k, f0, Q, f, F0)
+    lever = Cantilever.from_config(c, spring_constant=k, resonance_frequency=f0, quality_factor=Q, tip_radius=R)
+    oscillator = Oscillator.of(lever, f, F0)
 
     if sim.setpoint is None:
         d = _required(config, "sample.separation", config.sample.separation, "rest separation d, m, or simulate.setpoint")

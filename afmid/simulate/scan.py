@@ -3,7 +3,7 @@
 The tip moves laterally at the scan speed, x_lat(t) = start + speed t, over a surface of height h(x_lat) (m,
 positive = toward the tip; :func:`surface_height`). The z piezo holds the lever's rest position z_piezo(t), so the
 rest separation is d(t) = z_piezo(t) - h(x_lat(t)). An integral amplitude feedback
-(:class:`afmid.simulate.scan_config.AmplitudeFeedback`) demodulates the first harmonic of the tip's deflection over
+(:class:`afmid.sections.scan.AmplitudeFeedback`) demodulates the first harmonic of the tip's deflection over
 each drive period (a lock-in on the recorded samples of that period; the detector noise is not in it), low-passes
 it at its bandwidth (first order, once per period) and moves the piezo as dz/dt = -gain (A_filtered - A_set).
 
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from afmid.simulate.integrator import Segment
-from afmid.simulate.scan_config import ScanSimulation
+from afmid.sections.scan import ScanSimulation
 
 #: tanh(u) = 0.8 at u = atanh(0.8): a step's 10-90 % width spans 2 atanh(0.8) of the tanh's argument.
 _TANH_10_90 = 2.0 * math.atanh(0.8)

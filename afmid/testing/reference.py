@@ -2,8 +2,8 @@
 
 :func:`reference_integrate` runs the same RK4 + event algorithm as
 :func:`afmid.kernels.integrate.integrate` without numba, evaluating the force
-with :func:`afmid.physics.expr.evaluate_numpy`; :func:`reference_drive` reproduces the
-kernel's drive. Part of :mod:`afmid.simulate.driver` (the facade).
+with :func:`afmid.terms.expr.evaluate_numpy`; :func:`reference_drive` reproduces the
+kernel's drive. Above :mod:`afmid.simulate` in the layers (it uses :mod:`afmid.simulate.model`).
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import math
 
 import numpy as np
 
-import afmid.physics.expr as expr
-from afmid.physics.kinematics import next_gate_state
+import afmid.terms.expr as expr
+from afmid.terms.kinematics import next_gate_state
 from afmid.simulate.model import CompiledForceLaw, Oscillator, force_numpy, initial_gates, program_variables
 
 
@@ -49,7 +49,7 @@ def reference_integrate(compiled: CompiledForceLaw, oscillator: Oscillator, sepa
     Same algorithm as :func:`afmid.kernels.integrate.integrate` and
     :func:`~afmid.kernels.integrate.event_step` (drive included, see
     :func:`reference_drive`), written without numba and evaluating the force
-    with :func:`afmid.physics.expr.evaluate_numpy`. Returns arrays x (m), v (m/s) and
+    with :func:`afmid.terms.expr.evaluate_numpy`. Returns arrays x (m), v (m/s) and
     gates at t0 + i h, i = 0..n_steps, and the number of events.
     """
     from afmid.kernels.integrate import EVENT_TOLERANCE, MAX_EVENTS_PER_STEP, MAX_ROOT_ITERATIONS

@@ -63,7 +63,8 @@ def _run_bytes() -> bytes:
     import tempfile
 
     from afmid.config import build_config
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
 
     with tempfile.TemporaryDirectory() as folder:
         (Path(folder) / "trace.h5").write_bytes(trace_file_bytes())

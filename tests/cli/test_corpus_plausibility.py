@@ -2,7 +2,7 @@
 override or a trace file's metadata (see tests/corpus.py for the contract every case must meet).
 
 A resonance frequency of 1e308 Hz or a Q of 1e12 is no AFM: afmid refuses it before fitting, instead of
-writing read-outs computed from it. The limits are afmid.config.INSTRUMENT_LIMITS.
+writing read-outs computed from it. The limits are afmid.io.instrument_limits.INSTRUMENT_LIMITS.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""What ``afmid coverage`` draws (afmid.coverage.draws, afmid.coverage.config): the same (seed, index) gives the
+"""What ``afmid coverage`` draws (afmid.coverage.draws, afmid.sections.coverage): the same (seed, index) gives the
 same experiment whatever else is drawn, each mode puts the drawn number where its docstring says, whole-number
 keys stay whole, the reproduce options read back as the drawn values, and a bad section is one line naming the
 key."""
@@ -13,7 +13,7 @@ import yaml
 from repo_paths import REPO_ROOT
 
 from afmid.config import apply_overrides, build_config, dump_config, load_config, parse_override
-from afmid.coverage.config import Distribution
+from afmid.sections.coverage import Distribution
 from afmid.coverage.draws import (apply_draw, default_distributions, distributions, draw, draw_number,
                                   draw_streams, get_value, set_options)
 from afmid.errors import ConfigError

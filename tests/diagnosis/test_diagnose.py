@@ -374,7 +374,7 @@ def _record(entry: dict) -> None:
 @pytest.fixture(scope="session")
 def experiment(tmp_path_factory):
     """``experiment(key, sim_config, fit_raw=None, register=())`` -> (run, suggest summary, seconds), cached."""
-    from afmid.fit.pipeline import write_run
+    from afmid.runfile import write_run
     from afmid.io.trace import write_trace_file
     from afmid.physics.effects import EFFECTS
     from afmid.simulate.driver import simulate
@@ -581,7 +581,7 @@ def test_energy_estimates_agree_for_a_dissipative_model(experiment, tmp_path):
     Tolerance: 15 % of the true dissipated energy and 1 % of the drive work per period (measured: model-free
     and balance agree to < 0.1 %, model vs model-free 1-10 %, model vs truth 1-3 %).
     """
-    from afmid.fit.pipeline import write_run
+    from afmid.runfile import write_run
 
     run0, _, _ = experiment("viscoelastic-a", _hidden_raw("viscoelastic", "a"))
     config = refit_config(run0, ["dmt", "viscoelastic"])

@@ -60,7 +60,8 @@ def simulated(folder, raw: dict):
 def fitted(folder, raw: dict, *, phase=None, amplitude=None, effects=("dmt",), d_given=True, name="run.h5"):
     """(fit result, energy_check of its run file)."""
     from afmid.diagnosis.localize import energy_check
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.runfile import load_run
 
     raw = copy.deepcopy(raw)

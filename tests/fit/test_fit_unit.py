@@ -16,7 +16,7 @@ import math
 import numpy as np
 import pytest
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 import afmid.fit.regression as regression
 from afmid.config import ModelConfig
 from afmid.errors import ConfigError
@@ -26,7 +26,7 @@ from afmid.physics.library import build_library, trajectory_variables
 from afmid.physics.presets import PRESETS
 from afmid.physics.effects import EFFECTS
 from afmid.preprocess.periods import estimate_drive, harmonic_blocks, weak_windows
-from afmid.physics.units import parse_unit
+from afmid.terms.units import parse_unit
 
 # floating-point results compared; blas_sensitive: make test-kernels runs these again (BLAS/LAPACK on the path)
 pytestmark = [pytest.mark.numerics, pytest.mark.blas_sensitive]
@@ -880,6 +880,7 @@ def test_period_curves_are_evaluated_in_chunks_and_written_as_whole_arrays(monke
     import h5py
 
     import afmid.fit.pipeline as fit_mod
+    from afmid.runfile import PERIOD_UNITS
     import afmid.fit.forces as forces
     from afmid.config import FitConfig
     from afmid.io.trace import write_dataset
@@ -894,7 +895,7 @@ def test_period_curves_are_evaluated_in_chunks_and_written_as_whole_arrays(monke
     whole = dict(fit_mod.period_curves(prep, lib, system, coef, params, rows, 64))  # evaluated in one chunk
     monkeypatch.setattr(forces, "PERIOD_CHUNK", 8)
     chunked = fit_mod.period_curves(prep, lib, system, coef, params, rows, 64)
-    assert list(whole) == list(chunked) == list(fit_mod.PERIOD_UNITS)
+    assert list(whole) == list(chunked) == list(PERIOD_UNITS)
     # the eager formulas of the curves
     blocks, phase = prep.blocks, whole["phase"]
     Xc = prep.X[..., None]
@@ -921,17 +922,17 @@ def test_period_curves_are_evaluated_in_chunks_and_written_as_whole_arrays(monke
     for name in whole:
         np.testing.assert_allclose(chunked_values[name], whole[name], rtol=0, atol=tolerance[name], err_msg=name)
     with h5py.File(tmp_path / "streamed.h5", "w") as h5:
-        chunked.write(h5.create_group("periods"), fit_mod.PERIOD_UNITS)
+        chunked.write(h5.create_group("periods"), PERIOD_UNITS)
         small = h5.create_group("small_chunks")  # HDF5 chunks of 3 periods: pieces of 8 written as 6 + 2 + ...
         monkeypatch.setattr(forces, "create_dataset", lambda g, n, shape, dtype, units: g.create_dataset(
             n, shape=shape, dtype=dtype, chunks=(3, shape[1]), compression="gzip"))
-        chunked.write(small, fit_mod.PERIOD_UNITS)
+        chunked.write(small, PERIOD_UNITS)
         for name in forces.PeriodCurves.CURVES:  # the same chunked evaluation, stored in other HDF5 chunks: same bits
             np.testing.assert_array_equal(small[name][()], chunked_values[name], err_msg=name)
     with h5py.File(tmp_path / "eager.h5", "w") as h5:
         g = h5.create_group("periods")
         for name, arr in whole.items():
-            write_dataset(g, name, arr, fit_mod.PERIOD_UNITS[name])
+            write_dataset(g, name, arr, PERIOD_UNITS[name])
     with h5py.File(tmp_path / "streamed.h5") as a, h5py.File(tmp_path / "eager.h5") as b:
         for name in whole:
             da, db = a["periods"][name], b["periods"][name]

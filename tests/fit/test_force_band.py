@@ -94,7 +94,8 @@ def test_record_length_for_the_band_scales_the_periods_shares_and_keeps_the_cali
 
 def test_fit_stores_and_prints_the_band_and_claims_nothing_without_a_bootstrap(tmp_path):
     from afmid.config import build_config
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.report.fit_text import force_lines
     from afmid.runfile import load_run
 

@@ -75,7 +75,8 @@ def test_an_effect_whose_term_is_not_selected_reads_out_as_not_determined(tmp_pa
     with a 95 % interval from the fit with the term forced in that holds the truth 0; E* stays a number."""
     import afmid.diagnosis.diagnose as diagnose
     import afmid.fit.plausibility as plausibility
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.report.page import quantity_cell
     from afmid.runfile import read_summary
     from afmid.report.fit_text import quantity_line
@@ -121,7 +122,8 @@ def test_a_read_out_that_moves_with_a_dropped_term_of_its_effect_holds_both_mode
     undecided with the tail named, a warning says so, and its 95 % interval (the union of the two models')
     holds the truth; the run file keeps the marks."""
     import afmid.diagnosis.diagnose as diagnose
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
 
     overrides = POOR + ["simulate.parameters.E_star=3.0e9", "simulate.parameters.hamaker=4.0e-20",
                         "simulate.seed=62", "fit.bootstrap=100"]
@@ -175,7 +177,8 @@ def test_liquid_readouts_are_numbers_or_not_determined_and_nothing_is_named(tmp_
     """Every read-out is a number with an error or "not determined"; the diagnosis names no effect (the
     trace is plain DMT); where the tip touches, E* within 3 sigma of the truth."""
     import afmid.diagnosis.diagnose as diagnose
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
 
     trace, config, truth = _simulate_and_config(
         tmp_path, "liquid", [f"sample.separation={d}", f"simulate.seed={seed}", "simulate.periods=30",
@@ -202,7 +205,8 @@ POOR_CLEAN = {  # tests/diagnosis/test_diagnose.py's CLEAN variants at the poor 
 @pytest.mark.parametrize("variant", list(POOR_CLEAN))
 def test_poor_instrument_clean_trace_names_nothing_and_reads_out_honestly(tmp_path, variant):
     import afmid.diagnosis.diagnose as diagnose
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
 
     trace, config, truth = _simulate_and_config(tmp_path, "hidden_clean", POOR + POOR_CLEAN[variant] +
                                                 ["fit.bootstrap=20"], f"poor{variant}")

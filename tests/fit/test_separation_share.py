@@ -127,7 +127,7 @@ def test_the_share_is_what_full_refits_at_d_plus_minus_sigma_give(case):
 
 @pytest.mark.slow
 def test_given_separation_and_a_long_ideal_record_raise_no_warning(tmp_path):
-    from afmid.fit.pipeline import write_run
+    from afmid.runfile import write_run
     from afmid.runfile import load_run
 
     raw = _raw("hidden_clean", ["simulate.periods=150", "simulate.seed=236", "fit.bootstrap=0"])

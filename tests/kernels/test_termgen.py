@@ -5,7 +5,7 @@ its values must be the VM kernel's (afmid.kernels.trajectory_eval.eval_rows) bit
 (row-major and the weak form's sample-major view, which the kernel walks in tiles) and at special values (a
 sample at z = 0, NaN and infinite deflections, -0.0). The plain-NumPy twin is the term language's NumPy evaluator
 on the (7, N) variables array: equal to rounding (POW_HALVES may differ from ``**`` in the last bits: rtol 1e-12,
-as tests/physics/test_expr.py).
+as tests/terms/test_expr.py).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from tapping_rows import tapping_rows
 
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 from afmid.config import ModelConfig
 from afmid.kernels.termgen import TILE, module_source, term_kernel
 from afmid.kernels.trajectory_eval import eval_rows as vm_eval_rows

@@ -2,7 +2,7 @@
 
 eval_rows forms the term-language variables per block inside the kernel and writes into any layout; the values
 must be the VM's own (Library.evaluate on the same trajectory) bit for bit, the NumPy evaluator's to rounding
-(POW_HALVES may differ from ``**`` in the last bits: rtol 1e-12, as tests/physics/test_expr.py), and the weak-form
+(POW_HALVES may differ from ``**`` in the last bits: rtol 1e-12, as tests/terms/test_expr.py), and the weak-form
 columns built through it (fit_system.library_columns) the same bits as the evaluate-then-transpose path.
 """
 
@@ -13,7 +13,7 @@ import pytest
 from tapping_rows import tapping_rows
 
 from afmid.config import ModelConfig
-import afmid.physics.expr as expr
+import afmid.terms.expr as expr
 from afmid.physics.library import build_library, trajectory_variables
 from repo_paths import REPO_ROOT
 

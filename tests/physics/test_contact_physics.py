@@ -44,7 +44,7 @@ def test_contact_damping_is_a_repulsive_dashpot_in_contact_only():
     """F = c_d deltadot: pushes the tip back while it indents (x growing), pulls while it withdraws, 0 outside."""
     from afmid.physics.effects import EFFECTS, build_force_law
     from afmid.physics.library import trajectory_variables
-    import afmid.physics.expr as expr
+    import afmid.terms.expr as expr
 
     law = build_force_law(["contact_damping"], {"contact_damping": 2e-7}, {"R": 10e-9, "a0": 0.165e-9})
     (_, label, text, coefficient), = law.terms
@@ -77,7 +77,7 @@ def test_elastic_term_follows_the_tip_shape(shape, effect_name):
     from afmid.physics.effects import build_force_law
     from afmid.physics.library import build_library, trajectory_variables
     from afmid.physics.tips import TipGeometry, effect_for
-    import afmid.physics.expr as expr
+    import afmid.terms.expr as expr
 
     half_angle = 0.35 if shape in ("cone", "pyramid") else None
     tip = TipGeometry(shape, half_angle)

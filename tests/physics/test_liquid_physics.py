@@ -48,7 +48,7 @@ def test_double_layer_term_is_butts_formula():
     """F = 4 pi R lambda sigma_t sigma_s / (eps_r eps0) exp(-z / lambda) out of contact, held at z = a0 inside."""
     from afmid.physics.effects import EFFECTS, build_force_law
     from afmid.physics.library import trajectory_variables
-    import afmid.physics.expr as expr
+    import afmid.terms.expr as expr
 
     R, a0, eps_r, product, length = 12e-9, 0.165e-9, 78.3, 3e-4, 2.5e-9
     law = build_force_law(["double_layer"], {"surface_charge_product": product, "debye_length": length},

@@ -10,7 +10,7 @@ import pytest
 from afmid.physics.effect_tags import Character, Region, Role
 from afmid.errors import DefinitionError
 from afmid.physics.effects import EFFECTS, Effect, Parameter, Quantity, Term, coefficient_unit
-from afmid.physics.units import parse_unit
+from afmid.terms.units import parse_unit
 
 
 def test_every_declared_coefficient_unit_matches_its_term():

@@ -24,7 +24,7 @@ R, A0 = 10e-9, 0.165e-9
 def test_relaxation_step_is_exact_for_a_linear_source():
     """d q/dt = (g - q) / tau with g = c t from q(0) = 0: q = c (t - tau (1 - e^(-t/tau))), for any step size
     (also below the series threshold): the step is exact for a source linear over it."""
-    from afmid.physics.kinematics import next_relaxation_state
+    from afmid.terms.kinematics import next_relaxation_state
 
     tau, c = 2e-7, 3.0e6
     for steps in (np.full(50, 1e-9), np.full(50, 1e-13), np.geomspace(1e-12, 1e-7, 40)):
@@ -41,7 +41,7 @@ def test_relaxation_kernels_match_their_numpy_twins():
     their twins: the same recursion (the twin's product form rounds differently: a few 1e-13 relative)."""
     from afmid.kernels.hysteresis import scan_relaxation, scan_relaxation_numpy
     from afmid.kernels.integrate import next_relaxation_state_at
-    from afmid.physics.kinematics import next_relaxation_state
+    from afmid.terms.kinematics import next_relaxation_state
 
     rng = np.random.default_rng(5)
     for u in (1e-7, 5e-5, 1e-4, 2e-4, 0.01, 0.5, 3.0, 40.0):

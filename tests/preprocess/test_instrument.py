@@ -342,7 +342,8 @@ def test_declared_instrument_fits_to_one_percent(instrument, seed):
 def _diagnose(tmp_path: Path, name: str, sim_overrides: list[str], fit_overrides: list[str]) -> dict:
     import afmid.diagnosis.diagnose as diagnose
     from afmid.config import dump_config
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.io.trace import write_trace_file
     from afmid.simulate.driver import simulate
 

@@ -53,7 +53,8 @@ SIGMAS = 4.0
 
 def _simulated_run(tmp_path, name: str, seed: int, thermal: bool = True):
     from afmid.config import build_config, dump_config, read_yaml
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.io.trace import write_trace_file
     from afmid.runfile import load_run
     from afmid.simulate.driver import simulate
@@ -128,7 +129,7 @@ def test_observables_match_the_simulators_truth(tmp_path, name, seed, thermal):
 
     run = _simulated_run(tmp_path, name, seed, thermal)
     ex = run.truth.extra
-    lever = observables.Cantilever(run.cantilever["spring_constant"], run.cantilever["resonance_frequency"],
+    lever = observables.DrivenLever(run.cantilever["spring_constant"], run.cantilever["resonance_frequency"],
                                    run.cantilever["quality_factor"], ex["drive_frequency"],
                                    ex["drive_force_amplitude"], 0.0)
     measured = observables.measured_observables(run, lever)
@@ -171,11 +172,11 @@ def test_observables_match_the_simulators_truth(tmp_path, name, seed, thermal):
 
 def test_free_oscillation_is_the_simulators_free_response():
     """A0, phi0 of the report's cantilever model = the simulator's Oscillator.free_response (two codes)."""
-    from afmid.report.observables import Cantilever, free_oscillation
+    from afmid.report.observables import DrivenLever, free_oscillation
     from afmid.simulate.model import Oscillator
 
     for f0, f, Q in ((300e3, 300e3, 250.0), (70e3, 69.5e3, 3.0), (1.2e6, 1.25e6, 600.0)):
-        lever = Cantilever(40.0, f0, Q, f, 2.4e-9)
+        lever = DrivenLever(40.0, f0, Q, f, 2.4e-9)
         a0, phi0 = free_oscillation(lever)
         b0, psi0 = Oscillator(40.0, f0, Q, f, 2.4e-9).free_response()
         assert a0 == pytest.approx(b0, rel=1e-12) and phi0 == pytest.approx(psi0, abs=1e-12)
@@ -183,9 +184,9 @@ def test_free_oscillation_is_the_simulators_free_response():
 
 def test_free_oscillation_dissipates_nothing():
     """At the free amplitude and phase, drive work = viscous loss (E = 0) and V = 0: the balance of the formulas."""
-    from afmid.report.observables import Cantilever, free_oscillation, tapping_observables
+    from afmid.report.observables import DrivenLever, free_oscillation, tapping_observables
 
-    lever = Cantilever(2.0, 70e3, 3.0, 71e3, 1e-10)
+    lever = DrivenLever(2.0, 70e3, 3.0, 71e3, 1e-10)
     a0, phi0 = free_oscillation(lever)
     out = tapping_observables([a0], [phi0], lever)
     drive_work = math.pi * lever.force_amplitude * a0 * math.sin(phi0)

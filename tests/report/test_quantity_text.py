@@ -1,4 +1,4 @@
-"""Human-unit formatting (afmid.report.quantity_text): the PDG rounding rule, display units, labels, no -0."""
+"""Human-unit formatting (afmid.quantity_text): the PDG rounding rule, display units, labels, no -0."""
 
 import math
 import re
@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from afmid.report.quantity_text import (display_unit, format_delta_bic, format_interval, format_measurement,
+from afmid.quantity_text import (display_unit, format_delta_bic, format_interval, format_measurement,
                                         format_value, pdg_error_digits)
 
 

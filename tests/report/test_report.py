@@ -31,7 +31,7 @@ def runs(tmp_path_factory):
     """(run1 path, run2 path) fitted from one simulated trace."""
     from afmid.config import build_config, dump_config, read_yaml
     from afmid.diagnosis.diagnose import _fit_quick
-    from afmid.fit.pipeline import write_run
+    from afmid.runfile import write_run
     from afmid.io.trace import write_trace_file
     from afmid.simulate.driver import simulate
 

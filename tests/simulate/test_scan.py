@@ -14,7 +14,7 @@ from afmid.io.trace import read_truth, write_trace_file
 from afmid.physics.effects import BOLTZMANN
 from afmid.simulate.driver import simulate
 from afmid.simulate.scan import surface_height
-from afmid.simulate.scan_config import ScanSimulation
+from afmid.sections.scan import ScanSimulation
 
 pytestmark = pytest.mark.numerics
 

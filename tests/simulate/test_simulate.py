@@ -24,11 +24,10 @@ from afmid.simulate.driver import (
     compile_force_law,
     drive_force_for_amplitude,
     force_numpy,
-    reference_drive,
-    reference_integrate,
     resolve_setup,
     simulate,
 )
+from afmid.testing.reference import reference_drive, reference_integrate
 
 pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 
@@ -359,7 +358,7 @@ def _evaluate(module, law, compiled, x, v, t, dyn, gates):
 
 def test_generated_law_is_the_vm_law_bit_for_bit():
     """Every effect, every model and a law using every opcode: generated code == VM == NumPy twin."""
-    from afmid.physics.expr import evaluate_numpy
+    from afmid.terms.expr import evaluate_numpy
     from afmid.kernels import integrate as vm_kernel
 
     d = 20e-9

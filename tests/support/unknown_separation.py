@@ -23,7 +23,8 @@ def diagnose_simulated(folder: Path, raw: dict, separation_given: bool, stem: st
     ``sample.separation`` absent; the run file ``stem``.run.h5 is written and diagnosed from that file."""
     import afmid.diagnosis.diagnose as diagnose
     from afmid.config import build_config, dump_config
-    from afmid.fit.pipeline import run_fit, write_run
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import write_run
     from afmid.io.trace import write_trace_file
     from afmid.simulate.driver import simulate
 

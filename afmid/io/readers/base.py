@@ -326,11 +326,11 @@ def _unit_factor(unit: str, unit_scales: Mapping[str, float], dimension: str) ->
     """The factor to SI of ``unit`` (a rate: s^-1, or a step: s), else None.
 
     The older table first (case-insensitive: "mhz" has always meant MHz in afmid), then the unit parsed with SI
-    prefixes (afmid.physics.units.parse_scaled_unit), counts of samples allowed: "MS/s", "kSa/s", "s^-1", "µs".
+    prefixes (afmid.terms.units.parse_scaled_unit), counts of samples allowed: "MS/s", "kSa/s", "s^-1", "µs".
     """
     if unit.lower() in unit_scales:
         return unit_scales[unit.lower()]
-    from afmid.physics.units import DIMENSIONLESS, parse_scaled_unit, parse_unit
+    from afmid.terms.units import DIMENSIONLESS, parse_scaled_unit, parse_unit
 
     try:
         factor, parsed = parse_scaled_unit(unit, {name: DIMENSIONLESS for name in SAMPLE_COUNT_SYMBOLS})

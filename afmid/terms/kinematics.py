@@ -1,6 +1,6 @@
 """The kinematics of the tip and the rule of a history gate: the one NumPy definition of each.
 
-The term language (:mod:`afmid.physics.expr`) sees the deflection x (m, towards the
+The term language (:mod:`afmid.terms.expr`) sees the deflection x (m, towards the
 sample positive) and its velocity xdot (m/s) through the separation
 ``z = d - x`` (d: the rest separation, m), ``zdot = -xdot``, the indentation
 ``delta = a0 - z`` in contact (``z <= a0``) and 0 outside, and
@@ -11,7 +11,7 @@ while it is off, and off where its ``off`` condition holds while it is on.
 
 The compiled kernels use numba twins of both
 (:func:`afmid.kernels.integrate.contact_kinematics_at`,
-:func:`afmid.kernels.integrate.next_gate_state_at`); tests/physics/test_kinematics.py
+:func:`afmid.kernels.integrate.next_gate_state_at`); tests/terms/test_kinematics.py
 holds them equal bit for bit. No numba here: the fit's and the CLI's start-up
 import this module.
 """

@@ -6,7 +6,7 @@ parameter values, and pulls the gates of a product out into a
 turn inf into nan); :func:`fold` then constant-folds the tree. The NumPy
 operations here (:func:`apply_numpy`, :func:`numpy_value`) follow the float64
 semantics of the VM in :mod:`afmid.kernels.vm` exactly; the compiler
-(:mod:`afmid.physics.term_compile`) emits bytecode for the same lowered tree.
+(:mod:`afmid.terms.term_compile`) emits bytecode for the same lowered tree.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afmid.physics.term_parser import (
+from afmid.terms.term_parser import (
     VARIABLES,
     BinOp,
     BoolOp,

@@ -1,4 +1,4 @@
-"""The kinematics and the gate rule (afmid.physics.kinematics) equal their numba twins bit for bit."""
+"""The kinematics and the gate rule (afmid.terms.kinematics) equal their numba twins bit for bit."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from numba import njit
 
 from afmid.kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy
 from afmid.kernels.integrate import contact_kinematics_at, next_gate_state_at
-from afmid.physics.kinematics import contact_kinematics, next_gate_state
+from afmid.terms.kinematics import contact_kinematics, next_gate_state
 
 
 @njit(cache=False)

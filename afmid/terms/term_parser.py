@@ -1,6 +1,6 @@
 """The term language's syntax: tokenizer, recursive-descent parser, AST, names.
 
-The grammar and semantics are described in :mod:`afmid.physics.expr` (the public facade
+The grammar and semantics are described in :mod:`afmid.terms.expr` (the public facade
 of the term language). This module turns text into an AST (:func:`parse`),
 back into canonical text (:func:`unparse`), walks trees (:func:`children`,
 :func:`walk`, :func:`free_names`) and checks the names a tree uses against
@@ -21,7 +21,7 @@ import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 
-from afmid.physics.units import Unit, parse_unit
+from afmid.terms.units import Unit, parse_unit
 
 # The variable slots of every program, in this order (a contract with the
 # callers that fill the variable arrays). States follow in slots 7, 8, ...

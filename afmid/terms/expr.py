@@ -32,19 +32,19 @@ its opcodes from here; :func:`afmid.kernels.vm.evaluate_numba` evaluates one
 expression with it).
 
 Layout: the term language lives in four modules, re-exported here (the public
-facade; callers import from :mod:`afmid.physics.expr`):
+facade; callers import from :mod:`afmid.terms.expr`):
 
-- :mod:`afmid.physics.term_parser` -- variables, tokenizer, parser, AST, unparse, name checks;
-- :mod:`afmid.physics.term_units` -- :func:`expression_units`, the dimensional check;
-- :mod:`afmid.physics.term_lowering` -- names to slots and values, gates pulled out of
+- :mod:`afmid.terms.term_parser` -- variables, tokenizer, parser, AST, unparse, name checks;
+- :mod:`afmid.terms.term_units` -- :func:`expression_units`, the dimensional check;
+- :mod:`afmid.terms.term_lowering` -- names to slots and values, gates pulled out of
   products, constant folding, NumPy operations with the VM's float64 semantics;
-- :mod:`afmid.physics.term_compile` -- opcodes, :class:`Program`, :func:`compile_expression`,
+- :mod:`afmid.terms.term_compile` -- opcodes, :class:`Program`, :func:`compile_expression`,
   :func:`switching_programs`, :class:`ProgramSet`, :func:`evaluate_numpy`.
 """
 
 from __future__ import annotations
 
-from afmid.physics.term_compile import (  # noqa: F401 (re-exported)
+from afmid.terms.term_compile import (  # noqa: F401 (re-exported)
     ABS,
     ADD,
     AND,
@@ -81,7 +81,7 @@ from afmid.physics.term_compile import (  # noqa: F401 (re-exported)
     evaluate_numpy,
     switching_programs,
 )
-from afmid.physics.term_parser import (  # noqa: F401 (re-exported)
+from afmid.terms.term_parser import (  # noqa: F401 (re-exported)
     COMPARISONS,
     FUNCTIONS,
     KEYWORDS,
@@ -105,4 +105,4 @@ from afmid.physics.term_parser import (  # noqa: F401 (re-exported)
     parse,
     unparse,
 )
-from afmid.physics.term_units import expression_units  # noqa: F401 (re-exported)
+from afmid.terms.term_units import expression_units  # noqa: F401 (re-exported)

@@ -1,9 +1,9 @@
 """Units of term-language expressions: the dimensional check of :func:`expression_units`.
 
 A term's SI unit follows from the units of the names it uses (variables:
-:data:`afmid.physics.term_parser.VARIABLE_UNITS`, parameters: given by the caller,
+:data:`afmid.terms.term_parser.VARIABLE_UNITS`, parameters: given by the caller,
 states: dimensionless). Literal sub-expressions are evaluated with the same
-float64 semantics as the VM (:func:`afmid.physics.term_lowering.apply_numpy`), so a
+float64 semantics as the VM (:func:`afmid.terms.term_lowering.apply_numpy`), so a
 literal 0 or an exponent like 3/2 is recognised exactly.
 """
 
@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afmid.physics.term_lowering import apply_numpy, check_constants
-from afmid.physics.term_parser import (
+from afmid.terms.term_lowering import apply_numpy, check_constants
+from afmid.terms.term_parser import (
     VARIABLE_UNITS,
     VARIABLES,
     BinOp,
@@ -36,7 +36,7 @@ from afmid.physics.term_parser import (
     unparse,
     walk,
 )
-from afmid.physics.units import DIMENSIONLESS, Unit, as_unit
+from afmid.terms.units import DIMENSIONLESS, Unit, as_unit
 
 
 def _literal_value(node) -> float | None:

@@ -1,12 +1,12 @@
 """Compilation of term-language expressions to bytecode for the numba stack VM, and its NumPy twin.
 
-:func:`compile_expression` lowers an expression (:mod:`afmid.physics.term_lowering`)
+:func:`compile_expression` lowers an expression (:mod:`afmid.terms.term_lowering`)
 and emits a :class:`Program` for :mod:`afmid.kernels.vm`;
 :func:`switching_programs` compiles the functions whose sign changes mark
 non-smooth instants; :class:`ProgramSet` concatenates programs for one kernel
 call; :func:`evaluate_numpy` evaluates an expression with NumPy to test the VM.
 The opcodes are defined here, not in the kernel, so that compiling does not
-import numba (the VM imports them from :mod:`afmid.physics.expr`).
+import numba (the VM imports them from :mod:`afmid.terms.expr`).
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afmid.physics.term_lowering import Gated, VarSlot, lower, numpy_value, param_values, resolve
-from afmid.physics.term_parser import (
+from afmid.terms.term_lowering import Gated, VarSlot, lower, numpy_value, param_values, resolve
+from afmid.terms.term_parser import (
     VARIABLES,
     BinOp,
     Call,

@@ -1,4 +1,4 @@
-"""Tests for the force-term expression language (afmid.physics.expr) and its numba VM (afmid.kernels.vm)."""
+"""Tests for the force-term expression language (afmid.terms.expr) and its numba VM (afmid.kernels.vm)."""
 
 import re
 import subprocess
@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from afmid.physics.expr import (
+from afmid.terms.expr import (
     STACK_SIZE,
     VARIABLES,
     BinOp,
@@ -30,7 +30,7 @@ from afmid.physics.expr import (
     unparse,
 )
 from afmid.kernels.vm import evaluate_numba
-from afmid.physics.units import parse_unit
+from afmid.terms.units import parse_unit
 
 pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 
@@ -606,20 +606,20 @@ def test_evaluate_numpy_reuses_program_params():
 
 
 def test_importing_expr_does_not_import_numba():
-    code = "import sys, afmid.physics.expr; assert 'numba' not in sys.modules, 'numba was imported'"
+    code = "import sys, afmid.terms.expr; assert 'numba' not in sys.modules, 'numba was imported'"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
 
 
 def test_no_eval_of_user_text():
     # The facade and every module of the term language it re-exports.
-    import afmid.physics.term_compile  # noqa: F401 (looked up in sys.modules below)
-    import afmid.physics.term_lowering  # noqa: F401 (looked up in sys.modules below)
-    import afmid.physics.term_parser  # noqa: F401 (looked up in sys.modules below)
-    import afmid.physics.term_units  # noqa: F401 (looked up in sys.modules below)
+    import afmid.terms.term_compile  # noqa: F401 (looked up in sys.modules below)
+    import afmid.terms.term_lowering  # noqa: F401 (looked up in sys.modules below)
+    import afmid.terms.term_parser  # noqa: F401 (looked up in sys.modules below)
+    import afmid.terms.term_units  # noqa: F401 (looked up in sys.modules below)
 
     forbidden = r"(?<![\w.])(eval|exec|compile)\(|^\s*(import|from) ast\b|ast\.parse\("
-    for module in ("afmid.physics.expr", "afmid.physics.term_parser", "afmid.physics.term_units", "afmid.physics.term_lowering", "afmid.physics.term_compile"):
+    for module in ("afmid.terms.expr", "afmid.terms.term_parser", "afmid.terms.term_units", "afmid.terms.term_lowering", "afmid.terms.term_compile"):
         with open(sys.modules[module].__file__) as f:
             source = f.read()
         assert not re.search(forbidden, source, re.M), module

@@ -1,10 +1,10 @@
-"""Tests for the SI dimension system in afmid.physics.units."""
+"""Tests for the SI dimension system in afmid.terms.units."""
 
 import re
 
 import pytest
 
-from afmid.physics.units import DIMENSIONLESS, SYMBOLS, Unit, as_unit, parse_scaled_unit, parse_unit
+from afmid.terms.units import DIMENSIONLESS, SYMBOLS, Unit, as_unit, parse_scaled_unit, parse_unit
 
 pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 
