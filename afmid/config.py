@@ -281,7 +281,7 @@ class NoiseConfig(StrictModel):
     """Instrument noise added by the simulator."""
 
     # Upper bounds beyond any AFM detector, as for the instrument values (free_amplitude <= 1e-4 m): 1e300 m rms
-    # made a trace of +-3e300 m (issue 32). 1e-7 m/sqrt(Hz) is 1e-4 m rms over a 1 MHz band.
+    # made a trace of +-3e300 m. 1e-7 m/sqrt(Hz) is 1e-4 m rms over a 1 MHz band.
     detector_rms: Annotated[NonNegativeFloat, Field(le=1e-4)] = Field(0.0, description="white detector noise, m rms")
     detector_density: Annotated[NonNegativeFloat, Field(le=1e-7)] | None = Field(
         None, description="white detector noise density, m/sqrt(Hz) (overrides detector_rms)"

@@ -19,7 +19,7 @@ from collections.abc import Callable, Iterable, MutableMapping
 #: :data:`MAX_TRACE_THREADS`, as many as the process may use cores).
 TRACE_THREADS_ENV = "AFMID_TRACE_THREADS"
 #: At most this many threads work on one trace: each holds a chunk's temporaries (memory grows with them), and
-#: the issue-14 target machine has two cores.
+#: the machine afmid is sized for has two cores.
 MAX_TRACE_THREADS = 2
 
 #: Environment variables that cap the thread pools of BLAS/OpenMP/numba, each at one thread, and afmid's own

@@ -11,6 +11,7 @@ import counts: module level, inside a function (a lazy import still ties the two
 from __future__ import annotations
 
 import ast
+import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -322,3 +323,25 @@ def test_the_tests_mirror_the_packages():
         elif not (path.parent / "__init__.py").exists():
             offences.append(f"tests/{folder} has no __init__.py")
     assert offences == []
+
+
+#: What dates a comment instead of explaining it: an issue number, a work session, the work log. The history of a
+#: measurement belongs in docs/lab/ or the changelog; the code keeps the reason and the number.
+HISTORY_REFERENCE = re.compile(r"[Ii]ssue[ -]?#?[0-9]+|[Ss]ession [0-9]+|[Ww]ork ?log")
+
+
+def _history_references(text: str) -> list[int]:
+    """The 1-based lines of ``text`` that cite an issue, a session or the work log."""
+    return [number for number, line in enumerate(text.splitlines(), 1) if HISTORY_REFERENCE.search(line)]
+
+
+def test_no_comment_cites_an_issue_a_session_or_the_work_log():
+    offences = [f"{path.relative_to(PACKAGE.parent)}:{line}" for path in MODULES.values()
+                for line in _history_references(path.read_text())]
+    assert offences == []
+
+
+def test_the_history_check_sees_every_form():
+    text = "ok\n# measured (issue 13)\n# see issue #28\n# the issue-14 machine\n# session 11\n# work log\n# Worklog\n"
+    assert _history_references(text) == [2, 3, 4, 5, 6, 7]
+    assert _history_references("# the issue is the lever\n# a sessions file\n") == []

@@ -3,7 +3,7 @@
 dask's nanny starts every worker with ``MALLOC_TRIM_THRESHOLD_=65536`` (``distributed.nanny.pre-spawn-environ``,
 to return memory to the OS promptly). Setting any of glibc's thresholds switches off its dynamic mmap threshold:
 every array above 128 kB is then mapped fresh from the OS and unmapped when freed, so each of the fit's
-megabyte-sized temporaries costs page faults on every use. Measured (session 11, 16x16 bench map, 9,984-sample
+megabyte-sized temporaries costs page faults on every use. Measured (16x16 bench map, 9,984-sample
 pixels, one process): 61 ms of CPU per pixel without the variable, 101 ms with it (sys time 2 s -> 11 s over 256
 pixels); a map on the local cluster ran at the slower rate.
 

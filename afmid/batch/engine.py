@@ -4,7 +4,7 @@ implementation, :class:`LocalPoolEngine` (``spawn``-ed worker processes on this 
 An engine gets a module-level worker function (:func:`afmid.batch.task.fit_task` or a wrapper of it) and the
 task dicts, runs ``worker(task)`` for each somewhere, and reports each :class:`Outcome` back to the caller as it
 completes; what the items are, what their results mean and the summary stay with :mod:`afmid.batch.run`. Another
-engine (e.g. dask.distributed, issue 14) implements the same :meth:`Engine.run` and is passed as
+engine (e.g. dask.distributed) implements the same :meth:`Engine.run` and is passed as
 ``run_batch(engine=...)``.
 
 :class:`LocalPoolEngine`: each worker imports afmid once and loads the numba kernels from numba's on-disk

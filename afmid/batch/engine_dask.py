@@ -10,7 +10,7 @@ Tasks are submitted at once (``pure=False``); outcomes are reported as they comp
 A worker that dies is survived: dask reruns its tasks elsewhere; a task that kills workers repeatedly is reported
 as crashed (``KilledWorker``). Ctrl-C cancels what is in flight and reports it as unfinished.
 
-It never waits silently (issue 32): the address is checked before connecting (:func:`scheduler_address`); the
+It never waits silently: the address is checked before connecting (:func:`scheduler_address`); the
 scheduler must accept a TCP connection and answer dask's ``identity`` request within ``connect_timeout`` (a port
 that accepts and never answers, or a server that speaks something else, is refused in one line); while tasks are
 pending the scheduler is asked every :data:`WATCH_INTERVAL` s how many workers it has, and a cluster without a

@@ -1,4 +1,4 @@
-"""Simulation-based calibration of afmid's error bars (``afmid coverage``, issue 28).
+"""Simulation-based calibration of afmid's error bars (``afmid coverage``).
 
 Draw experiments from a declared distribution around a run config (:mod:`afmid.sections.coverage`,
 :mod:`afmid.coverage.draws`), simulate each with :func:`afmid.simulate.driver.simulate`, fit it with

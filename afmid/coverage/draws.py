@@ -21,7 +21,7 @@ from afmid.config import MAX_SEED, RunConfig
 from afmid.sections.coverage import Distribution
 from afmid.errors import ConfigError
 
-#: Default spreads around the config's own values (chosen before any coverage was measured, issue 28):
+#: Default spreads around the config's own values (chosen before any coverage was measured):
 #: a physical parameter within x 0.5 .. 2 (log-uniform), the rest separation within -15 % .. +10 % (further
 #: out of contact than that the tip of a typical setpoint no longer reaches the sample), a setpoint +- 0.05,
 #: the free amplitude +- 20 %, the detector noise x 0.5 .. 2, and the instrument the config declares within

@@ -19,7 +19,7 @@ from afmid.coverage.compare import FORCE_CURVE, SEPARATION
 #: The fraction of a normal variable within 1 and 2 sigma (erf(1 / sqrt 2), erf(2 / sqrt 2)).
 EXPECTED_1 = math.erf(1 / math.sqrt(2))
 EXPECTED_2 = math.erf(2 / math.sqrt(2))
-#: |z| above this in a number that carries no flag is what issue 28 counts as "confidently wrong".
+#: |z| above this in a number that carries no flag is what the coverage run counts as "confidently wrong".
 CONFIDENTLY_WRONG = 5.0
 #: Worst draws listed per quantity.
 WORST = 3

@@ -1,4 +1,4 @@
-"""What to check on a record no catalog model explains (issue 29): the calibration, the channel, stationarity.
+"""What to check on a record no catalog model explains: the calibration, the channel, stationarity.
 
 When the diagnosis ends with "not explained by the catalog" (a significant residual no catalog effect removes,
 or one that only removes part of it), the honest next step is not another effect: the inputs the force law is

@@ -1,4 +1,4 @@
-"""When the data cannot decide between candidate effects (issue 13 part 4: poor signals).
+"""When the data cannot decide between candidate effects (poor signals).
 
 On a poor trace (10 pm of detector noise, 50 samples per period) several catalog effects can each explain a
 residual to its noise floor: a hidden viscoelastic sample was read as "missing effect: capillary" because the
@@ -21,7 +21,7 @@ candidate needs (ln n per parameter, fixed). The best candidate is told apart fr
   prediction D_b within that spread.
 
 Otherwise (the rival is as simple or simpler, and the fits are within :data:`VUONG_SIGMAS`) the diagnosis says
-that the data cannot decide between them and names none. Measured on issue 13's table with the separation not
+that the data cannot decide between them and names none. Measured on the poor-signal table with the separation not
 given: a hidden viscoelastic sample against exponential damping (chi-square 1.4 in favour of exponential
 damping over 49 periods, 0.4 sigma, with one parameter more) and hydration against capillary (7.6 in favour of
 hydration, 0.7 sigma, one more) are decided by parsimony; the penalised statistic alone (BIC gap / sd: 1.9 and

@@ -270,7 +270,7 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
     shapes = ShapeSearch(prepared)
     trials: list[Trial] = []
     for effect in counted(candidate_effects(run.effects, run.config.sample.medium), "report", "trying effects", "effects",
-                          progress, named=True):  # the candidate named, an ETA (issue 31)
+                          progress, named=True):  # the candidate named, an ETA
         t0 = time.perf_counter()
         config = refit_config(run, run.effects + [effect])
         shape_names = [p.name for p in EFFECTS.get(effect).parameters

@@ -129,7 +129,7 @@ def _hz(f: float) -> str:
 
 
 #: Beam theory of a uniform rectangular lever: f_2 / f_1 = (4.694 / 1.875)^2 = 6.27 and, with equal modal masses,
-#: k_2 / k_1 = (f_2 / f_1)^2 = 39.3. A tip mass, a taper or a V shape moves f_2 / f_1 within this range (the issue's
+#: k_2 / k_1 = (f_2 / f_1)^2 = 39.3. A tip mass, a taper or a V shape moves f_2 / f_1 within this range (the accepted
 #: tolerance for real levers; the diagnosis tests' levers: 6.27 and 5.6).
 MODE_RATIO_RANGE = (5.5, 7.0)
 #: ... and k_2 / (k_1 (f_2 / f_1)^2) (the ratio of the modal masses) within this factor of 1.

@@ -8,7 +8,7 @@ support selected again per resample where the selection does so) at the fitted n
 separation share is the force's change along the separation's valley (d +- sigma, coefficients refitted), so
 the two are distinct parts and add in quadrature, as does the calibration (a common scale of every force).
 
-Why it matters (issue 13, measured on the poor instrument, 10 pm detector noise, 50 samples per period, 50
+Why it matters (measured on the poor instrument, 10 pm detector noise, 50 samples per period, 50
 periods, d unknown): the force error was 1.1-9.8 % of the peak where the separation share alone said 5-10 %;
 on seeds where d came out within 10 pm of the truth the error (6.5-9 %) was the coefficients' own (E* and H
 from 50 noisy periods), which no stated number covered. The total is what the force curve is known to.

@@ -1,4 +1,4 @@
-"""Several traces of one sample and one tip, one force law: the joint fit of ``data.paths`` (issue 16 part 5).
+"""Several traces of one sample and one tip, one force law: the joint fit of ``data.paths``.
 
 The paper's Fig. 4 records the same blend at four set-points; each trace alone pins the force law only over
 the separations its tip visits. Here every trace is prepared and fitted on its own first (its drive, its noise

@@ -283,7 +283,7 @@ def _release_free_memory() -> None:
     """Hand the heap pages freed by a chunked pass back to the OS (glibc keeps freed chunk-sized temporaries
     resident: ~0.2 GB after a pass over a 1e7-sample trace). A no-op elsewhere. Called only after passes of more
     than one chunk: after a short trace's pass (a map pixel, a batch item) the next trace reuses those pages at
-    once, and trimming them cost ~2,900 page faults (~5 ms) per 10^4-sample pixel (session 11)."""
+    once, and trimming them cost ~2,900 page faults (~5 ms) per 10^4-sample pixel."""
     global _MALLOC_TRIM
     if _MALLOC_TRIM is None:
         _MALLOC_TRIM = False

@@ -67,7 +67,7 @@ class SelectionSettings:
 
         The weights take one number from it, the model's mean squared stiffness along the trajectory, which the
         distractors a long record's criterion may add hardly move (they fit the same data); the strategy's own
-        selection (a vote of period groups) would cost as much as the final one (bench_selection, issue 17).
+        selection (a vote of period groups) would cost as much as the final one (bench_selection).
         """
         return regression.pick_support(regression.combine(system.T_blocks), system.protected, self.method,
                                        regression.resample_key(self.criterion), self.thresholds, system.n_rows,

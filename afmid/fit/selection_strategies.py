@@ -29,7 +29,7 @@ from afmid.registry import Registry
 
 @dataclass(frozen=True)
 class RecordSelection:
-    """The support chosen by the criterion on all periods at once (afmid before issue 17)."""
+    """The support chosen by the criterion on all periods at once (afmid's original selection)."""
 
     name: str = "record"
     title: str = "one selection on the whole record (BIC / AICc / CV over all periods)"
@@ -162,7 +162,7 @@ class PeriodVote:
             drawn = rng.integers(0, len(groups), len(groups))
             # The record the physical terms are chosen on is resampled too (blocks drawn with replacement, as
             # the record's own bootstrap): their inclusion is then a real frequency, not the whole record's one
-            # verdict repeated (issue 13 part 4: a Hertz term the data barely support shows it).
+            # verdict repeated (on poor signals a Hertz term the data barely support shows it).
             multiplicity = rng.multinomial(n_blocks, np.full(n_blocks, 1.0 / n_blocks)).astype(float)
             T = regression.combine(system.T_blocks, multiplicity)
             mask = self._vote(settings, system, T, picks[drawn])

@@ -1,5 +1,5 @@
 """A slowly varying rest separation d(t), estimated jointly with the force law: the topography track of a record
-taken while scanning (issue 29 item 2).
+taken while scanning.
 
 While the tip scans, d(t) = z_piezo(t) - h(x_lat(t)) follows the topography and the amplitude feedback
 (afmid.simulate.scan makes such records). One separation for the whole record then mixes periods recorded at

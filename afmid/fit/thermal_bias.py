@@ -26,7 +26,7 @@ use of the factors (selection, cross-validation, bootstrap over windows) sees th
 Assumes: the thermal force white, on the first mode (higher modes and a declared detector's restoration are
 not followed); the lever's response that of the free lever (in contact the sample's stiffness and damping
 change it for part of each period: on the Q 2 lever of scripts/liquid_velocity_bias.py, the response
-linearised about the fitted contact moved eta by 0.04 %, session 13); the thermal motion Gaussian, so that
+linearised about the fitted contact moved eta by 0.04 %); the thermal motion Gaussian, so that
 E[f(x) e] = E[f'(x)] Cov(x, e) holds beyond first order (Stein's lemma): the derivatives are taken on the
 trajectory as it is (one draw of the motion), which is what makes the average over windows right.
 """
@@ -50,7 +50,7 @@ from afmid.preprocess.periods import NARROW_SUPPORT, fine_support, ou_smooth_giv
 DERIVATIVE_STEP = 1e-4
 
 #: ``fit.thermal_bias: auto`` corrects levers of this quality factor or lower. The bias scales with the lever's
-#: damping c = k / (Q w0): measured (session 13, scripts/liquid_velocity_bias.py) eta -2.5 % on a Q 4 lever and
+#: damping c = k / (Q w0): measured (scripts/liquid_velocity_bias.py) eta -2.5 % on a Q 4 lever and
 #: -5.3 % on a Q 2 lever in liquid (1000-period records), while on air levers (k 40 N/m, 300 kHz, Q 250;
 #: c 15-19x smaller) the correction moves E* by -0.08 %, H by +0.9 % and eta by +0.01 %, below their
 #: statistical errors, at 2.4x the fit's CPU (a map pixel 35 -> 58 ms). Liquid levers have Q 1-10, air levers
@@ -154,7 +154,7 @@ def lever_response(force: ThermalForce, t: np.ndarray) -> np.ndarray:
 
 #: Periods after a window over which the lever's ringing from its thermal force is followed (e^-pi n / Q: 1e-4
 #: after 2.9 Q periods). Capped for air (Q 250: 733 periods): on a 300-period trace of tests/configs/dmt.yaml, b
-#: with 64 periods differs from b with all 296 by < 1e-4 of itself (16: 7e-4; session 13).
+#: with 64 periods differs from b with all 296 by < 1e-4 of itself (16: 7e-4).
 MAX_RINGING_PERIODS = 64
 
 

@@ -1,4 +1,4 @@
-"""Read-outs the data do not determine, and terms the data cannot decide on (issue 13, part 4: poor signals).
+"""Read-outs the data do not determine, and terms the data cannot decide on (poor signals).
 
 A physical quantity is read out from its effect's selected terms. When a term it needs was not selected (the
 Hertz term of a lever in liquid that barely touches, the van der Waals tail at 10 pm of detector noise), the

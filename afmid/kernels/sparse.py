@@ -21,7 +21,7 @@ from numba import njit, types
 
 # LAPACK's dgelsd (SVD least squares) through numba's own LAPACK bridge, as ``np.linalg.lstsq`` calls it inside
 # numba, but without that overload's checks: their error-message formatting (strings, shape contexts) made up
-# ~6 of the ~8 s it took to compile :func:`subset_rss` in a new install (issue 31: the first-ever ``afmid fit``).
+# ~6 of the ~8 s it took to compile :func:`subset_rss` in a new install (the first-ever ``afmid fit``).
 # The arguments are those of numba's ``lstsq`` (Fortran copy of A, lda = m, B in a max(m, n) x 1 column,
 # rcond), so the solution is the same bits (tests/kernels/test_sparse_lstsq.py checks it against np.linalg.lstsq).
 _LAPACK_INT = numba_linalg.F_INT_nptype

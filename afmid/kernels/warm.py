@@ -1,4 +1,4 @@
-"""Compile the library-independent numba kernels ahead of the first fit (issue 31): ``python -m afmid.kernels.warm``.
+"""Compile the library-independent numba kernels ahead of the first fit: ``python -m afmid.kernels.warm``.
 
 numba compiles a kernel on its first call and keeps it in its on-disk cache (``cache=True``; ``NUMBA_CACHE_DIR``
 if set, else ``__pycache__`` beside the module or a user-wide folder). In a new install the first ``afmid fit``

@@ -1,4 +1,4 @@
-"""The catalog diagnosis per group of pixels: which effect is missing where (issue 14 part 3).
+"""The catalog diagnosis per group of pixels: which effect is missing where.
 
 For each group of :mod:`afmid.maps.groups` whose typical pixel is model-limited (median cross-validated error above
 :data:`afmid.fit.uncertainty.FLOOR_FACTOR` x its noise floor), up to :data:`REPRESENTATIVES` pixels nearest the
@@ -227,7 +227,7 @@ def verdict_settled(texts: list[str], leads: list[str], chosen: int) -> bool:
     ``chosen`` representatives say: one verdict holds a strict majority of all ``chosen`` and its pixels share
     one leading candidate (then rule 1 ``missing: ...`` holds; or the leading candidate has that majority, rule
     2; or no other leading candidate can reach a majority and rule 3 gives that verdict). With 3 representatives:
-    the first two agree (verdict and leading candidate), and the third is not diagnosed (issue 31: a diagnosis is
+    the first two agree (verdict and leading candidate), and the third is not diagnosed (a diagnosis is
     ~3-9 s of CPU per pixel, most of a map's group diagnosis)."""
     for text in set(texts):
         agreeing = [lead for t, lead in zip(texts, leads) if t == text]
@@ -248,8 +248,8 @@ def diagnose_pixel(pixel: int, source, config_text: str, config_source: str | No
     """The single-trace diagnosis of one pixel, in memory: its trace (read and checked as the map's fit reads it)
     fitted without bootstrap (the separation estimated), the run made by :func:`afmid.runfile.run_data` (the
     values a run file would hold, no file) and :func:`suggest` run on it with the pixel's trace for the candidates'
-    refits. No temporary trace or run file (issue 30: before, both were written and read back; issue 31 measured
-    what that cost)."""
+    refits. No temporary trace or run file (writing both and reading them back cost measurable time
+    per group)."""
     from afmid.diagnosis.diagnose import suggest
     from afmid.fit.pipeline import run_fit
     from afmid.maps.input_file import pixel_trace, read_pixels

@@ -1,4 +1,4 @@
-"""Pixels of a force map grouped by their residual signature and their parameters (issue 14 part 3).
+"""Pixels of a force map grouped by their residual signature and their parameters.
 
 Each fitted pixel (ok or suspect) is described by a few features, each in units of the smallest difference that
 means something (so that a feature that only carries noise does not weigh as much as one that tells phases apart,

@@ -1,4 +1,4 @@
-"""Each pixel's force curve, kept in the map result for the map explorer (issue 33).
+"""Each pixel's force curve, kept in the map result for the map explorer.
 
 At fit time a pixel's period curves are already evaluated for its residual signature (:mod:`afmid.maps.residual`:
 the model and inverted forces on the fit's phase grid, averaged over the settled periods). This module resamples

@@ -1,4 +1,4 @@
-"""The residual's character at one pixel of a force map (issue 14 part 3: the missing-effect map).
+"""The residual's character at one pixel of a force map (for the missing-effect map).
 
 After a pixel's fit, the residual between the inverted and the model force is broken down exactly as the single-trace
 diagnosis does it (:func:`afmid.diagnosis.localize.localize`: period average at equal drive phase, band-limited to the

@@ -41,7 +41,7 @@ __all__ = ["BOLTZMANN", "CHECK_CONTEXT", "CONTEXT_UNITS", "EFFECTS", "EPSILON_0"
 # =========================================================================== effects
 #: Hamaker constants of condensed phases: 0.4-5e-19 J across vacuum or air (metals the largest), down to ~1e-21 J
 #: across water (Israelachvili, Intermolecular and Surface Forces, 3rd ed., ch. 13). Beyond these bounds a read-out
-#: is a calibration error (issue 32: a spring constant 100x off gave 5e-18 or 5e-22 J, both inside the old
+#: is a calibration error (a spring constant 100x off gave 5e-18 or 5e-22 J, both inside the old
 #: [1e-22, 1e-17]).
 _HAMAKER = Parameter("hamaker", "J", 1.0e-19, 1e-21, 1e-18,
                      "Hamaker constant H (tip-sample; 1e-21 J: weak, across water; 1e-18 J: twice a metal's)")

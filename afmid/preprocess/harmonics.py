@@ -401,7 +401,7 @@ def harmonic_cos_sin(phase: np.ndarray, K: int, out_cos: np.ndarray | None = Non
     Harmonics 1..B and every multiple of B (B = :data:`HARMONIC_ANCHOR`) are evaluated directly; harmonic
     j B + m as cos(j B phase + m phase) by one angle addition of two direct values (error a few units in the
     last place of 1, as small as the rounding of the argument n phase itself), with ~4x fewer trigonometric
-    calls: the Fourier designs and weak-form test functions of a fit were ~8 % of its time in them (issue 17).
+    calls: the Fourier designs and weak-form test functions of a fit were ~8 % of its time in them.
     """
     phase = np.asarray(phase, dtype=float)
     c = np.empty((K, phase.size)) if out_cos is None else out_cos

@@ -24,7 +24,7 @@ periods apart agree (their median squared difference is below
 :data:`PERIOD_TWO_RATIO` of the one-period difference); otherwise the motion
 is non-periodic (chaotic or of a longer period).
 
-Two checks keep a noisy or slowly modulated record from being called chaos (issue 29: a real record, whose
+Two checks keep a noisy or slowly modulated record from being called chaos (a real record, whose
 per-period amplitude wanders by 0.75 % with a lag-1 autocorrelation of 0.74 under the amplitude feedback of a
 scanning tip, was "chaos: no two periods repeat"):
 

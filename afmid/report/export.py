@@ -1,7 +1,7 @@
 """``afmid export RUN.h5 --what force-curves|parameters|periods -o FILE.csv``: a run file's tables as CSV.
 
 For other tools (a spreadsheet, pandas, Origin, MATLAB): one header line of column names, the unit at the end
-of each name (``separation_m``, ``force_N``; pinned, issue 15), then one row per record, numbers in SI written
+of each name (``separation_m``, ``force_N``; pinned), then one row per record, numbers in SI written
 with Python's shortest round-trip form (the CSV's numbers are the run file's, bit for bit), an empty field
 where the run file has no finite value, ``true``/``false`` for flags. Layout in docs/file-formats.md.
 

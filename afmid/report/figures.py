@@ -1,6 +1,6 @@
 """A report figure on disk and on the page: PNG for the page, SVG beside it for publication.
 
-Every figure a report writes is saved twice with the same stem (pinned, issue 15): ``STEM.png`` (embedded in
+Every figure a report writes is saved twice with the same stem (pinned): ``STEM.png`` (embedded in
 ``report.html``, so the page opens offline on its own) and ``STEM.svg`` (vector, for a paper or a poster),
 linked under the figure as "SVG". The SVG carries no creation date, so the same figure gives the same file.
 Point clouds that would make an SVG heavy are drawn with ``rasterized=True`` by their figure (the rest of the

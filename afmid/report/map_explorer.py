@@ -1,4 +1,4 @@
-"""The map explorer (issue 33): one self-contained HTML page beside a force map's report (``explorer.html``).
+"""The map explorer: one self-contained HTML page beside a force map's report (``explorer.html``).
 
 Three maps side by side (which effect is missing where, the error over its noise floor, a parameter chosen from a
 menu); hovering a pixel shows its force curve, residual and diagnosis beside them, a click keeps that pixel shown
@@ -148,7 +148,7 @@ def _maps_figure(result: dict, groups: dict | None, names: list[str], selected: 
                                                ticktext=[f"group {g['group']}" for g in groups["groups"]])),
                       row=1, col=1)
     else:
-        # No groups (a result written before issue 14 part 3): the pixels' status instead.
+        # No groups (a result written before maps had groups): the pixels' status instead.
         fig.add_trace(go.Heatmap(z=_grid(status, 1), x=xs, y=ys, colorscale="Viridis",
                                  hovertemplate="status %{z}<extra></extra>", colorbar=dict(bar, x=ends[0] + 0.005)),
                       row=1, col=1)

@@ -1,4 +1,4 @@
-"""The missing-effect map in a force map's report (issue 14 part 3): which effect is missing where.
+"""The missing-effect map in a force map's report: which effect is missing where.
 
 Reads what ``afmid map`` wrote (afmid.maps.residual, afmid.maps.groups, afmid.maps.group_diagnosis): the per-pixel
 residual character (region, conservative / dissipative, size over the noise) as maps, the groups of pixels coloured
@@ -30,7 +30,7 @@ def _text(value) -> str:
 
 def read_groups(path: Path) -> dict | None:
     """The groups of a map result: summary, per group (verdict, effects, sentence, fraction, error_over_floor) and
-    the group map; None when the result has none (written before issue 14 part 3)."""
+    the group map; None when the result has none (written before maps had groups)."""
     import h5py
 
     with h5py.File(path, "r") as h5:

@@ -1,4 +1,4 @@
-"""A force map's parameter values per group of pixels, and where a parameter's term was not selected (issue 33).
+"""A force map's parameter values per group of pixels, and where a parameter's term was not selected.
 
 A map over a blend of phases has one value per phase, not one per map: a median over all pixels of a bimodal E*
 (matrix 2 GPa, soft domains 0.35 GPa) is neither. The groups of pixels (afmid.maps.groups: by residual signature

@@ -169,7 +169,7 @@ def check_constants(node: Node, text: str) -> None:
     """Every constant part of ``node`` (a subtree of numbers only: ``1/0``, ``log(0)``) must be a finite number.
 
     Folded, ``[1/0 > 0]`` becomes a gate that is always true and ``z * (1/(2 - 2))`` a column of inf; either is a
-    typing error the user should see, named, rather than a term that fits (issue 32). Constants are evaluated
+    typing error the user should see, named, rather than a term that fits. Constants are evaluated
     with the same float64 operations as the folding (:func:`apply_numpy`)."""
     if isinstance(node, Num):
         return

@@ -153,7 +153,7 @@ def _refuse_decimal_commas(path: Path, rows: list[tuple[int, str]]) -> None:
     """Refuse a file whose numbers are written with decimal commas (a header row above them allowed).
 
     Split on its commas, a headerless single-column file "1,234" read as two integer columns, and the integer
-    part was fitted as the trace (issue 32). Values separated by tabs, semicolons or spaces make the comma a
+    part was fitted as the trace. Values separated by tabs, semicolons or spaces make the comma a
     decimal comma without doubt; "a,b" alone only with evidence an integer pair never shows
     (:data:`_DECIMAL_COMMA_EVIDENCE`), so a headerless file of two integer columns is still read.
     """
