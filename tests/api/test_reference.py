@@ -180,7 +180,8 @@ def reference_problems(text: str) -> list[str]:
         if attribute:  # a heading of a member (Trace.from_array) documents it
             members_of.setdefault(owner_name, set()).add(attribute)
         elif entry["args"]:  # a constructor's arguments document the fields they set
-            members_of.setdefault(owner_name, set()).update(name for name, _, _ in _documented_parameters(entry["args"]))
+            arguments = _documented_parameters(entry["args"])
+            members_of.setdefault(owner_name, set()).update(name for name, _, _ in arguments)
         where = f"docs/python.md:{entry['line']}: afmid.{entry['name']}"
         try:
             obj = _resolve(entry["name"])
