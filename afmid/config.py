@@ -414,7 +414,7 @@ class FitConfig(StrictModel):
     @field_validator("selection_scope")
     @classmethod
     def _known_selection_scope(cls, name: str) -> str:
-        from afmid.fit.selection_strategies import SELECTION_SCOPES
+        from afmid.sections.selection_scopes import SELECTION_SCOPES
 
         if name not in SELECTION_SCOPES:
             raise ValueError(unknown_name_message("selection scope", name, SELECTION_SCOPES.names()))
