@@ -14,11 +14,9 @@ import ast
 from collections import defaultdict
 from pathlib import Path
 
-import pytest
 
 TESTS = Path(__file__).resolve().parent
 PACKAGE = TESTS.parent / "afmid"
-MAX_LINES = 700
 
 
 def _modules() -> dict[str, Path]:
@@ -276,12 +274,6 @@ def test_no_module_assigns_attributes_of_another_module():
                     and node.args and isinstance(node.args[0], ast.Name) and node.args[0].id in imported_modules):
                 offences.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno} setattr on {node.args[0].id}")
     assert offences == []
-
-
-@pytest.mark.parametrize("name", sorted(MODULES))
-def test_no_module_is_longer_than_the_limit(name):
-    lines = MODULES[name].read_text().count("\n")
-    assert lines <= MAX_LINES, f"{MODULES[name].relative_to(PACKAGE.parent)} has {lines} lines"
 
 
 def test_the_tests_mirror_the_packages():
