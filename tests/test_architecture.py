@@ -121,7 +121,6 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("io",),
     ("config", "sections", "placeholders"),
     ("simulate",),
-    ("testing",),
     ("fit",),
     ("runcheck", "runfile", "joint_runfile"),
     ("diagnosis",),
