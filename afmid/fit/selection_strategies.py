@@ -100,9 +100,10 @@ class PeriodVote:
     def _picks(self, settings, system, groups) -> np.ndarray:
         # select() and bag() of one system ask for the same picks (thousands of groups on a long record): the
         # last ones are kept on the system itself, with the settings and group sizes they were made for.
+        # Every system (afmid.fit.system.System, afmid.fit.joint.JointSystem) has a __dict__.
         sizes = tuple(g.size for g in groups)
-        memo = getattr(system, "__dict__", None)  # None: a stand-in system without attributes, nothing kept
-        kept = memo.get(_PICKS_MEMO) if memo is not None else None
+        memo = vars(system)
+        kept = memo.get(_PICKS_MEMO)
         if kept is not None and kept[0] is settings and kept[1] == sizes:
             return kept[2].copy()
         key = regression.resample_key(settings.criterion)
@@ -111,8 +112,7 @@ class PeriodVote:
                                          [max(int(system.n_rows * g.size / n_blocks), 1) for g in groups],
                                          system.protected, settings.method, key, settings.thresholds,
                                          settings.penalty, settings.rules)
-        if memo is not None:
-            memo[_PICKS_MEMO] = (settings, sizes, picks.copy())
+        memo[_PICKS_MEMO] = (settings, sizes, picks.copy())
         return picks
 
     def _vote(self, settings, system, T: np.ndarray, picks: np.ndarray) -> np.ndarray:
