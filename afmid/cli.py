@@ -222,15 +222,12 @@ def fit(
               help="Worker processes (default: the usable CPU cores).")
 @SET
 @click.option("--force", is_flag=True, help="Simulate and fit everything again, even what is up to date.")
-@click.option("--worker", "worker", default=None, hidden=True,
-              help="MODULE:FUNCTION (MODULE a name or a .py file) that each worker runs per item instead of "
-                   "afmid's own (afmid.batch.task.fit_task), e.g. a test's wrapper that injects a fault.")
 @click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
               help="Run the items on this dask cluster's workers (they must see the same paths).")
 @WORKER_TIMEOUT
 def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, configs: tuple[str, ...],
-          output: Path, jobs: int | None, overrides: tuple[str, ...], force: bool, worker: str | None,
-          scheduler: str | None, worker_timeout: float | None) -> None:
+          output: Path, jobs: int | None, overrides: tuple[str, ...], force: bool, scheduler: str | None,
+          worker_timeout: float | None) -> None:
     """Fit many traces with one CONFIG, or run many run configs, in parallel; resumable.
 
     \b
@@ -254,7 +251,7 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     items alone exit 0: their run files are written and flagged), 130 if interrupted.
     One batch at a time per OUTPUT (lock file OUTPUT/.afmid-batch.lock).
     """
-    from afmid.batch.run import BatchInterrupted, fit_task, load_worker, run_batch
+    from afmid.batch.run import BatchInterrupted, run_batch
     from afmid.errors import AfmidError
 
     if config is not None and not configs and config.is_file():  # the shared config (the usage checks are run_batch's)
@@ -272,8 +269,7 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
         output = output.absolute()  # the workers run elsewhere: every path they get must be absolute
     try:
         result = run_batch(config, output, inputs=inputs, manifest=manifest, configs=configs, jobs=jobs,
-                           overrides=overrides, force=force, progress=not _state["quiet"],
-                           worker=fit_task if worker is None else load_worker(worker), engine=engine)
+                           overrides=overrides, force=force, progress=not _state["quiet"], engine=engine)
     except BatchInterrupted as exc:
         _echo(f"afmid: batch stopped with {exc.result.line()}; run the same command again to resume", err=True)
         from afmid.interrupts import Terminated

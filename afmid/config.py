@@ -1,7 +1,8 @@
 """Run configuration: schema, validation and layering, in one place.
 
 A run config is a YAML file (one per run). It is validated once, here, against a
-pydantic schema that rejects unknown keys. Every error names the file, the key
+pydantic schema that rejects unknown keys (the record's sections ``data``, ``cantilever`` and ``drive`` are
+declared in :mod:`afmid.io.sections`, the rest here). Every error names the file, the key
 path and what was expected, e.g.::
 
     configs/x.yaml: cantilever.quality_factor: must be > 0, got -3
@@ -18,13 +19,14 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator,
-                      model_validator)
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 import afmid.config_messages as config_messages
 from afmid.errors import ConfigError
 from afmid.io.files import check_input_file
-from afmid.io.instrument_limits import INSTRUMENT_LIMITS
+# The record's sections (data, cantilever, drive) are io's (afmid.io.sections): Trace.from_array validates with them.
+from afmid.io.sections import (CantileverConfig, DataConfig, DriveConfig, FiniteFloat, NonNegativeFloat, NumberNotBool,
+                               PositiveFloat, StrictModel)
 from afmid.sections.coverage import CoverageConfig
 from afmid.sections.separation_track import SeparationTrackConfig
 from afmid.sections.map_simulation import MapSimulation
@@ -32,197 +34,10 @@ from afmid.sections.scan import ScanSimulation
 from afmid.registry import closest, unknown_name_message
 
 
-
-def _not_bool(value: Any) -> Any:
-    """Refuse YAML booleans (``yes``, ``on``, ``true``) where a number is expected; pydantic would take them as 1/0."""
-    if isinstance(value, bool):
-        raise ValueError(f"expected a number, got {value!r}")
-    return value
-
-
-_Number = BeforeValidator(_not_bool)
-
-
-def _column_not_bool(value: Any) -> Any:
-    """Refuse YAML booleans where a column is named: ``column: no`` is False, which pydantic takes as index 0."""
-    if isinstance(value, bool):
-        word = "yes/no/on/off/true/false"
-        raise ValueError(f"expected a column name or a 0-based column index, got the YAML boolean {value!r} "
-                         f"({word} unquoted); quote a column named like that, e.g. 'no'")
-    return value
-
-
-_Column = BeforeValidator(_column_not_bool)
-PositiveFloat = Annotated[float, _Number, Field(gt=0, allow_inf_nan=False)]
-NonNegativeFloat = Annotated[float, _Number, Field(ge=0, allow_inf_nan=False)]
-FiniteFloat = Annotated[float, _Number, Field(allow_inf_nan=False)]
-#: A relative 1-sigma uncertainty: 0.1 = 10 % (a percentage written as 10 is an error, not a 1000 % error bar).
-RelativeUncertainty = Annotated[float, _Number, Field(ge=0, lt=1, allow_inf_nan=False)]
 #: Largest random seed: numpy's generators take any non-negative integer, but a seed is stored in the
 #: output files as an HDF5 attribute and is conventionally 32-bit.
 MAX_SEED = 2**32 - 1
-Seed = Annotated[int, _Number, Field(ge=0, le=MAX_SEED)]
-
-
-#: A frequency in Hz (positive, finite, at most 1e10: beyond any detector).
-_instrument_hz = Annotated[float, _Number, Field(gt=0, le=1e10, allow_inf_nan=False)]
-
-
-class StrictModel(BaseModel):
-    """Base for config sections: unknown keys are errors, values are re-validated on assignment."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
-
-
-# --------------------------------------------------------------------------- data
-class DetectorConfig(StrictModel):
-    """The detector / anti-alias low-pass between the deflection and the samples (afmid.preprocess.instrument)."""
-
-    bandwidth: _instrument_hz = Field(..., description="-3 dB frequency, Hz")
-    filter: str = Field("butterworth", description="butterworth, bessel or first_order")
-    order: Annotated[int, _Number, Field(ge=1, le=12)] | None = Field(
-        None, description="filter order (poles); default 2 (butterworth, bessel) or 1 (first_order)")
-
-    @field_validator("filter")
-    @classmethod
-    def _known_filter(cls, name: str) -> str:
-        from afmid.preprocess.instrument import FILTERS
-
-        if name not in FILTERS:
-            raise ValueError(unknown_name_message("detector filter", name, FILTERS.names()))
-        return name
-
-    @model_validator(mode="after")
-    def _order_fits_filter(self) -> "DetectorConfig":
-        from afmid.preprocess.instrument import FILTERS
-
-        kind = FILTERS.get(self.filter)
-        if self.order is not None and self.order > kind.max_order:
-            raise ValueError(f"data.detector.order: a {self.filter} filter has at most order {kind.max_order}, "
-                             f"got {self.order}")
-        return self
-
-    @property
-    def resolved_order(self) -> int:
-        return self.order if self.order is not None else (1 if self.filter == "first_order" else 2)
-
-
-class DataConfig(StrictModel):
-    """Where the deflection trace is and how to read it."""
-
-    path: Path | None = Field(None, description="trace file, relative to the config file")
-    paths: list[Path] | None = Field(
-        None, description="several trace files of one sample and one tip (e.g. set-points), fitted jointly: one "
-        "force law, a separation per trace (afmid.fit.joint); instead of data.path")
-    format: str = Field("auto", description="auto (from the suffix), csv, npy, hdf5, mat, ibw, tdms, hsdc")
-    column: Annotated[str | int | None, _Column] = Field(
-        None, description="CSV column / HDF5 dataset path / MAT variable (or a 0-based column index)")
-    time_column: Annotated[str | int | None, _Column] = Field(None, description="optional time column (s)")
-    sample_rate: PositiveFloat | None = Field(None, description="Hz; required if there is no time column")
-    units: Literal["m", "nm", "pm", "um", "V", "raw"] | None = Field(
-        None, description="units of the samples in the file; V needs invols, raw needs scale"
-    )
-    invols: PositiveFloat | None = Field(None, description="inverse optical lever sensitivity, m/V")
-    invols_uncertainty: RelativeUncertainty | None = Field(
-        None, description="relative 1-sigma uncertainty of the deflection sensitivity (0.05 = 5 %): it scales every "
-        "deflection, so it is propagated into every read-out (afmid.fit.invols_share)")
-    scale: FiniteFloat | None = Field(None, description="for units: raw, metres per count")
-    offset: FiniteFloat = Field(0.0, description="subtracted from the samples before scaling (file units)")
-    positive: Literal["toward_sample", "away_from_sample"] = Field(
-        "toward_sample", description="sign convention of the deflection in the file"
-    )
-    start: NonNegativeFloat | None = Field(
-        None, description="s from the first sample: fit the record from here on; default: from the first sample, "
-        "or after the onset of the oscillation when the record starts at rest (the drive switched on mid-record)")
-    stop: PositiveFloat | None = Field(None, description="s from the first sample: fit the record up to here")
-    detector: DetectorConfig | None = Field(
-        None, description="detector low-pass {bandwidth, filter, order}; absent: an ideal detector")
-
-    @model_validator(mode="after")
-    def _distinct_columns(self) -> "DataConfig":
-        if self.column is not None and self.column == self.time_column:
-            raise ValueError(f"data.time_column: names the same column as data.column ({self.column!r}): the "
-                             "deflection cannot be its own time axis")
-        if self.paths is not None:  # afmid.fit.joint
-            if self.path is not None:
-                raise ValueError("data.paths: give data.path (one trace) or data.paths (a joint fit), not both")
-            if not self.paths:
-                raise ValueError("data.paths: the list is empty; give the trace files to fit jointly")
-        if self.start is not None and self.stop is not None and self.stop <= self.start:
-            raise ValueError(f"data.stop: {self.stop:g} s is not after data.start ({self.start:g} s)")
-        return self
-
-
-def _instrument(key: str):
-    """A positive, finite float no larger than the key's limit."""
-    limit = INSTRUMENT_LIMITS[key]
-
-    def at_most(value: float) -> float:
-        if value > limit:
-            raise ValueError(f"must be <= {limit:g} (beyond any AFM), got {value:g}")
-        return value
-
-    return Annotated[float, _Number, Field(gt=0, allow_inf_nan=False), AfterValidator(at_most)]
-
-
-class ModeConfig(StrictModel):
-    """A higher flexural mode of the lever, seen at the tip (afmid.preprocess.instrument.Mode)."""
-
-    resonance_frequency: _instrument("cantilever.resonance_frequency") = Field(..., description="f_i, Hz")
-    quality_factor: _instrument("cantilever.quality_factor") = Field(..., description="Q_i")
-    spring_constant: _instrument("cantilever.spring_constant") = Field(..., description="k_i, N/m")
-
-
-class CantileverConfig(StrictModel):
-    spring_constant: _instrument("cantilever.spring_constant") | None = Field(None, description="k, N/m")
-    resonance_frequency: _instrument("cantilever.resonance_frequency") | None = Field(None, description="f0, Hz")
-    quality_factor: _instrument("cantilever.quality_factor") | None = Field(None, description="Q")
-    tip_radius: _instrument("cantilever.tip_radius") | None = Field(None, description="R, m")
-    tip_shape: str = Field("sphere", description="sphere | cone | pyramid | flat_punch (`afmid effects --tips`)")
-    tip_half_angle: FiniteFloat | None = Field(None, description="half-opening angle of a cone or pyramid, rad")
-    spring_constant_uncertainty: RelativeUncertainty | None = Field(
-        None, description="relative 1-sigma uncertainty of k (0.1 = 10 %), propagated into every read-out")
-    quality_factor_uncertainty: RelativeUncertainty | None = Field(
-        None, description="relative 1-sigma uncertainty of Q (0.1 = 10 %), propagated into every read-out")
-    higher_modes: list[ModeConfig] = Field(
-        default_factory=list, description="higher flexural modes [{resonance_frequency, quality_factor, "
-        "spring_constant}]; the tip is the sum of the modes")
-
-    @model_validator(mode="after")
-    def _known_tip(self) -> "CantileverConfig":
-        from afmid.physics.tips import check_tip
-
-        check_tip(self.tip_shape, self.tip_half_angle)
-        return self
-
-    @model_validator(mode="after")
-    def _modes_above_first(self) -> "CantileverConfig":
-        f0 = self.resonance_frequency
-        for i, mode in enumerate(self.higher_modes):
-            if f0 is not None and mode.resonance_frequency <= f0:
-                raise ValueError(f"cantilever.higher_modes[{i}].resonance_frequency: must be above the first "
-                                 f"mode's {f0:g} Hz, got {mode.resonance_frequency:g}")
-        return self
-
-
-class DriveConfig(StrictModel):
-    frequency: _instrument("drive.frequency") | None = Field(None, description="drive frequency, Hz")
-    free_amplitude: _instrument("drive.free_amplitude") | None = Field(
-        None, description="A0, free oscillation amplitude, m")
-    force_amplitude: _instrument("drive.force_amplitude") | None = Field(
-        None, description="F0, drive force amplitude, N (with drive.phase: a calibrated drive the fit does not fit)")
-    phase: FiniteFloat | None = Field(None, description="phi, rad: F_drive = F0 cos(2 pi f t + phi), t = 0 at the "
-                                      "trace's time zero; given, the drive is calibrated, not fitted (fit.declared_drive)")
-    force_amplitude_uncertainty: RelativeUncertainty | None = Field(
-        None, description="relative 1-sigma uncertainty of drive.force_amplitude (0.02 = 2 %)")
-    phase_uncertainty: NonNegativeFloat | None = Field(None, description="1-sigma uncertainty of drive.phase, rad")
-    @model_validator(mode="after")
-    def _calibrated(self) -> "DriveConfig":
-        # The uncertainties of a calibrated drive (afmid.fit.declared_drive) without the drive they belong to.
-        for name in ("force_amplitude_uncertainty", "phase_uncertainty"):
-            if getattr(self, name) is not None and self.phase is None:
-                raise ValueError(f"drive.{name}: belongs to a calibrated drive, which needs drive.phase (rad)")
-        return self
+Seed = Annotated[int, NumberNotBool, Field(ge=0, le=MAX_SEED)]
 
 
 class SampleConfig(StrictModel):
@@ -414,7 +229,7 @@ class FitConfig(StrictModel):
     @field_validator("selection_scope")
     @classmethod
     def _known_selection_scope(cls, name: str) -> str:
-        from afmid.fit.selection_strategies import SELECTION_SCOPES
+        from afmid.sections.selection_scopes import SELECTION_SCOPES
 
         if name not in SELECTION_SCOPES:
             raise ValueError(unknown_name_message("selection scope", name, SELECTION_SCOPES.names()))

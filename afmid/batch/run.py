@@ -143,7 +143,7 @@ __all__ = [
     "FIXED_COLUMNS", "QUANTITY_FIELDS", "RUN_SUFFIX", "STATUSES", "SUMMARY_CSV", "SUMMARY_FORMAT", "SUMMARY_H5",
     "TIME_COLUMNS", "TMP_PREFIX", "TRACE_SUFFIX", "BatchInterrupted", "BatchResult", "Engine", "Entry", "Item",
     "LocalPoolEngine", "Outcome", "Row", "assign_names", "batch_key", "default_jobs", "expand_configs",
-    "expand_inputs", "fit_task", "load_worker", "plan", "read_manifest", "read_run_row", "refuse_outputs_on_inputs",
+    "expand_inputs", "fit_task", "plan", "read_manifest", "read_run_row", "refuse_outputs_on_inputs",
     "run_batch", "run_file_row", "run_key", "trace_is_current", "write_summary",
 ]
 
@@ -369,30 +369,6 @@ def _remove_stale_tmp(output_dir: Path) -> None:
             shutil.rmtree(path, ignore_errors=True)
         except PermissionError:
             continue
-
-
-def load_worker(spec: str) -> Callable[[dict], dict]:
-    """The worker function named by ``spec``, ``MODULE:FUNCTION`` with MODULE a module name or a path to a .py
-    file (whose folder then goes first on ``sys.path``, so that spawned workers import it by name too); for
-    ``run_batch(worker=...)``. ConfigError (of ``--worker``) if it cannot be loaded."""
-    import importlib
-    import sys
-
-    module_name, _, function = spec.rpartition(":")
-    if not module_name or not function:
-        raise ConfigError(f"expected MODULE:FUNCTION, got {spec!r}", key="--worker")
-    if module_name.endswith(".py"):
-        path = Path(module_name).expanduser().resolve()
-        if str(path.parent) not in sys.path:
-            sys.path.insert(0, str(path.parent))
-        module_name = path.stem
-    try:
-        worker = getattr(importlib.import_module(module_name), function)
-    except (ImportError, AttributeError) as exc:
-        raise ConfigError(f"cannot load the worker {spec!r}: {exc}", key="--worker") from None
-    if not callable(worker):
-        raise ConfigError(f"{spec!r} is not a function", key="--worker")
-    return worker
 
 
 def _task(item: Item, tmp_dir: Path) -> dict:

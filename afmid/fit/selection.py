@@ -15,7 +15,7 @@ import numpy as np
 
 import afmid.fit.regression as regression
 from afmid.physics.library import Library
-from afmid.fit.selection_strategies import SELECTION_SCOPES, RecordSelection
+from afmid.fit.selection_strategies import RecordSelection, strategy_for
 
 #: Libraries up to this many terms are searched exhaustively (2^14 small least-squares problems).
 EXHAUSTIVE_MAX_TERMS = 14
@@ -55,7 +55,7 @@ class SelectionSettings:
         thresholds = np.asarray(fit.thresholds) if fit.thresholds else regression.default_thresholds()
         return cls(method, fit.selection, thresholds, fit.folds,
                    term_penalties(library, n_nuisance, fit.distractor_odds), library.selection_rules(n_nuisance),
-                   SELECTION_SCOPES.get(fit.selection_scope).configured(fit), fit.periods_per_block)
+                   strategy_for(fit.selection_scope).configured(fit), fit.periods_per_block)
 
     def select(self, system) -> regression.Selection:
         """The sparsity path of ``system`` (an afmid.fit.pipeline.System) scored and the support chosen by the strategy."""

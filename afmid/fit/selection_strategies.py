@@ -2,8 +2,10 @@
 
 Both strategies are objects with the protocol ``select(settings, system) -> Selection`` and
 ``bag(settings, system, chosen, n_boot, rng) -> Bagging`` (``settings`` is the fit's
-:class:`afmid.fit.selection.SelectionSettings`: method, criterion, penalties, rules). They are declared in
-:data:`SELECTION_SCOPES` and chosen by ``fit.selection_scope``.
+:class:`afmid.fit.selection.SelectionSettings`: method, criterion, penalties, rules). Their names, titles and
+references are declared in :data:`afmid.sections.selection_scopes.SELECTION_SCOPES` (below the config, which
+checks ``fit.selection_scope`` against them); here each declared name gets its object (:data:`SELECTION_STRATEGIES`,
+:func:`strategy_for`).
 
 Why a vote (docs/accuracy.md, "Selection as the record grows"): the weak-form rows of a tapping trace carry a
 systematic misfit that does not average out over periods (the thermal motion seen through the stiff
@@ -24,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import afmid.fit.regression as regression
-from afmid.registry import Registry
+from afmid.errors import DefinitionError
+from afmid.sections.selection_scopes import SELECTION_SCOPES
 
 
 @dataclass(frozen=True)
@@ -32,8 +35,6 @@ class RecordSelection:
     """The support chosen by the criterion on all periods at once (afmid's original selection)."""
 
     name: str = "record"
-    title: str = "one selection on the whole record (BIC / AICc / CV over all periods)"
-    references: tuple[str, ...] = ("Schwarz, Ann. Stat. 6, 461 (1978)",)
 
     def configured(self, fit) -> RecordSelection:
         return self
@@ -88,9 +89,6 @@ class PeriodVote:
 
     periods: int = 6  # fit.vote_periods' default (docs/accuracy.md: 6 rather than 10, measured)
     name: str = "vote"
-    title: str = "majority vote of the selections on groups of fit.vote_periods periods (default)"
-    references: tuple[str, ...] = ("Meinshausen & Buehlmann, J. R. Stat. Soc. B 72, 417 (2010) (stability "
-                                   "selection; here over contiguous period groups of fixed length)",)
 
     def configured(self, fit) -> PeriodVote:
         return PeriodVote(periods=fit.vote_periods)
@@ -102,9 +100,10 @@ class PeriodVote:
     def _picks(self, settings, system, groups) -> np.ndarray:
         # select() and bag() of one system ask for the same picks (thousands of groups on a long record): the
         # last ones are kept on the system itself, with the settings and group sizes they were made for.
+        # Every system (afmid.fit.system.System, afmid.fit.joint.JointSystem) has a __dict__.
         sizes = tuple(g.size for g in groups)
-        memo = getattr(system, "__dict__", None)  # None: a stand-in system without attributes, nothing kept
-        kept = memo.get(_PICKS_MEMO) if memo is not None else None
+        memo = vars(system)
+        kept = memo.get(_PICKS_MEMO)
         if kept is not None and kept[0] is settings and kept[1] == sizes:
             return kept[2].copy()
         key = regression.resample_key(settings.criterion)
@@ -113,8 +112,7 @@ class PeriodVote:
                                          [max(int(system.n_rows * g.size / n_blocks), 1) for g in groups],
                                          system.protected, settings.method, key, settings.thresholds,
                                          settings.penalty, settings.rules)
-        if memo is not None:
-            memo[_PICKS_MEMO] = (settings, sizes, picks.copy())
+        memo[_PICKS_MEMO] = (settings, sizes, picks.copy())
         return picks
 
     def _vote(self, settings, system, T: np.ndarray, picks: np.ndarray) -> np.ndarray:
@@ -172,6 +170,23 @@ class PeriodVote:
         return regression.Bagging(counts / n_boot, coef_samples, n_boot, supports)
 
 
-SELECTION_SCOPES: Registry = Registry("selection scope")
-SELECTION_SCOPES.register(PeriodVote())
-SELECTION_SCOPES.register(RecordSelection())
+def strategies_by_declared_name(*strategies) -> dict:
+    """The strategy objects keyed by their declared scope names; a declared name without an object, or an object
+    whose name is not declared, fails at import (a definition error, caught by the tests)."""
+    by_name = {strategy.name: strategy for strategy in strategies}
+    declared = set(SELECTION_SCOPES.names())
+    if set(by_name) != declared:
+        raise DefinitionError(f"selection scopes declared {sorted(declared)} but strategies given for "
+                              f"{sorted(by_name)} (afmid.sections.selection_scopes)")
+    return by_name
+
+
+#: Declared scope name -> the strategy object that runs it.
+SELECTION_STRATEGIES: dict = strategies_by_declared_name(PeriodVote(), RecordSelection())
+
+
+def strategy_for(name: str):
+    """The strategy object of the declared scope ``name``; an unknown name raises KeyError with the registry's
+    did-you-mean message."""
+    SELECTION_SCOPES.get(name)
+    return SELECTION_STRATEGIES[name]

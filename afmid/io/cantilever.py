@@ -82,7 +82,7 @@ class Cantilever:
 
     @classmethod
     def from_config(cls, section, **calibration: float) -> "Cantilever":
-        """The lever of a validated ``cantilever:`` section (:class:`afmid.config.CantileverConfig`);
+        """The lever of a validated ``cantilever:`` section (:class:`afmid.io.sections.CantileverConfig`);
         ``calibration`` (spring_constant, resonance_frequency, quality_factor, tip_radius) replaces the section's
         values, e.g. with those merged from a trace file's metadata."""
         values = {"spring_constant": section.spring_constant, "resonance_frequency": section.resonance_frequency,

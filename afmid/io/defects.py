@@ -137,19 +137,21 @@ class Settings:
 
 
 def settings_for(trace, config) -> Settings:
-    """Settings for a loaded :class:`afmid.io.trace.Trace` and its run config."""
+    """Settings for a loaded :class:`afmid.io.trace.Trace` and its run config (or the record's sections alone,
+    :class:`afmid.io.sections.RecordSections`, whose ``fit`` is None: then :class:`Settings`' own defaults, which
+    are the fit section's, tests/io/test_record_sections.py)."""
     fit = config.fit
+    lever = dict(units="m", sample_rate=trace.sample_rate, nominal_frequency=trace.drive_frequency,
+                 resonance_frequency=trace.cantilever.resonance_frequency,
+                 quality_factor=trace.cantilever.quality_factor, spring_constant=trace.cantilever.spring_constant,
+                 positive=config.data.positive)
+    if fit is None:
+        return Settings(**lever)
     return Settings(
-        units="m",
-        sample_rate=trace.sample_rate,
-        nominal_frequency=trace.drive_frequency,
-        resonance_frequency=trace.cantilever.resonance_frequency,
-        quality_factor=trace.cantilever.quality_factor,
-        spring_constant=trace.cantilever.spring_constant,
+        **lever,
         detrend=fit.detrend,
         baseline=fit.baseline,
-        differentiation=fit.differentiation if getattr(fit, "form", None) == "strong" else None,
-        positive=config.data.positive,
+        differentiation=fit.differentiation if fit.form == "strong" else None,
         temperature=fit.temperature,
     )
 
@@ -590,7 +592,7 @@ def check_loaded(trace, config) -> tuple[list[Finding], MeasuredDrive | None]:
     peak = strongest_peak(x)
     drive = None
     if peak is not None and abs(peak.cycles_per_sample * trace.sample_rate / trace.drive_frequency - 1) <= DRIVE_SEARCH:
-        drive = measure_drive(trace, config.fit.detrend)
+        drive = measure_drive(trace, settings.detrend)
     if drive is not None:
         f = drive.estimate.frequency / trace.sample_rate
     else:

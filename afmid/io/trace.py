@@ -606,8 +606,9 @@ def trace_from_array(deflection, sample_rate: float, cantilever: Cantilever | No
                      units: str = "m", positive: str = "toward_sample",
                      drive_force_amplitude: float | None = None) -> Trace:
     """:meth:`Trace.from_array`: the arguments as a run config's data, cantilever and drive keys would give them
-    (validated by the same schema, so a bad value is the same one-line error naming the key)."""
-    from afmid.config import build_config
+    (validated by the same schemas, afmid.io.sections, so a bad value is the same one-line error naming the key;
+    the checks on load then use the fit's defaults)."""
+    from afmid.io.sections import record_sections
 
     where = "Trace.from_array"
     if not isinstance(cantilever, Cantilever):
@@ -622,8 +623,8 @@ def trace_from_array(deflection, sample_rate: float, cantilever: Cantilever | No
     drive = {"frequency": cantilever.resonance_frequency if drive_frequency is None else drive_frequency}
     if drive_force_amplitude is not None:
         drive["force_amplitude"] = drive_force_amplitude
-    config = build_config({"data": {"sample_rate": sample_rate, "units": units, "positive": positive},
-                           "cantilever": cantilever.config_section(), "drive": drive}, source=Path(where))
+    config = record_sections({"data": {"sample_rate": sample_rate, "units": units, "positive": positive},
+                              "cantilever": cantilever.config_section(), "drive": drive}, source=Path(where))
     import afmid.io.defects as defects
 
     defects.report(defects.check_values(values), Path(where))  # NaN/inf runs: where, and the longest clean part

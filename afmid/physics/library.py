@@ -121,29 +121,27 @@ class Library:
         return expr.ProgramSet(programs), gates
 
     def evaluate(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
-                 backend: str = "numba", state_values: np.ndarray | None = None) -> np.ndarray:
-        """Library columns (N, p) along a trajectory. ``params`` holds d (separation), a0, R and nonlinear ones.
+                 state_values: np.ndarray | None = None) -> np.ndarray:
+        """Library columns (N, p) along a trajectory (x m, xdot m/s, t s; columns in the terms' units, coefficient
+        x column = N). ``params`` holds d (separation), a0, R and nonlinear ones.
 
         The state gates (hysteresis) are scanned along the trajectory, unless
         ``state_values`` (n_states, N) gives them (for points that are not one
-        time series, e.g. sub-samples of many short intervals).
+        time series, e.g. sub-samples of many short intervals). The columns come from the VM kernel
+        (afmid.kernels.vm); the tests compare it with a plain-NumPy twin (tests/support/library_twin.py).
         """
+        from afmid.kernels.vm import eval_set
+
         variables = trajectory_variables(x, xdot, t, params["d"], params["a0"], len(self.states))
         program_set, gates = self.compile(params)
         if self.states:
             if state_values is not None:
                 variables[len(expr.VARIABLES):] = state_values
             else:
-                _fill_states(variables, gates, backend)
+                _fill_states(variables, gates)
         out = np.empty((x.size, len(self.terms)))
-        if backend == "numba":
-            from afmid.kernels.vm import eval_set
-
-            eval_set(program_set.code, program_set.code_offsets, program_set.consts, program_set.const_offsets,
-                     variables, out)
-        else:
-            for j, term in enumerate(self.terms):
-                out[:, j] = expr.evaluate_numpy(term.expression, variables, dict(params), self.state_names)
+        eval_set(program_set.code, program_set.code_offsets, program_set.consts, program_set.const_offsets,
+                 variables, out)
         return out
 
 
@@ -217,13 +215,13 @@ class Library:
         return out.reshape(x.size, -1)
 
     def states_along(self, x: np.ndarray, xdot: np.ndarray, t: np.ndarray, params: Mapping[str, float],
-                     backend: str = "numba", initial: np.ndarray | None = None) -> np.ndarray:
+                     initial: np.ndarray | None = None) -> np.ndarray:
         """The states (n_states, N) scanned along a trajectory: gates 0 or 1, relaxing states their values.
         ``initial`` (n_states,): the relaxing states' values at the first sample where known (NaN or None:
         relaxed there, state = source); gates always start from their conditions at the first sample."""
         variables = trajectory_variables(x, xdot, t, params["d"], params["a0"], len(self.states))
         if self.states:
-            _fill_states(variables, self.compile(params)[1], backend, initial)
+            _fill_states(variables, self.compile(params)[1], initial)
         return variables[len(expr.VARIABLES):]
 
     def states_from(self, initial: np.ndarray, x: np.ndarray, xdot: np.ndarray, t: np.ndarray,
@@ -266,28 +264,23 @@ def trajectory_variables(x, xdot, t, d: float, a0: float, n_states: int = 0) -> 
     return v
 
 
-def _fill_states(variables: np.ndarray, gates, backend: str, initial: np.ndarray | None = None) -> None:
-    from afmid.kernels.hysteresis import scan_hysteresis, scan_hysteresis_numpy, scan_relaxation, scan_relaxation_numpy
+def _fill_states(variables: np.ndarray, gates, initial: np.ndarray | None = None) -> None:
+    """The state rows of ``variables`` scanned along the trajectory by the kernels (afmid.kernels.hysteresis)."""
+    from afmid.kernels.hysteresis import scan_hysteresis, scan_relaxation
 
     base = len(expr.VARIABLES)
     for k, (on_prog, off_prog) in enumerate(gates):
         if not isinstance(off_prog, expr.Program):  # a relaxing state: (source, time constant in s)
             source = expr.evaluate_numpy(on_prog, variables)
             start = source[0] if initial is None or not np.isfinite(initial[k]) else float(initial[k])
-            if backend == "numba":
-                out = np.empty_like(source)
-                scan_relaxation(source, variables[6], off_prog, start, out)
-            else:
-                out = scan_relaxation_numpy(source, variables[6], off_prog, start)
+            out = np.empty_like(source)
+            scan_relaxation(source, variables[6], off_prog, start, out)
             variables[base + k] = out
             continue
         on = expr.evaluate_numpy(on_prog, variables)
         off = expr.evaluate_numpy(off_prog, variables)
-        if backend == "numba":
-            out = np.empty_like(on)
-            scan_hysteresis(on, off, float(on[0] != 0), out)
-        else:
-            out = scan_hysteresis_numpy(on, off, float(on[0] != 0))
+        out = np.empty_like(on)
+        scan_hysteresis(on, off, float(on[0] != 0), out)
         variables[base + k] = out
 
 

@@ -35,8 +35,8 @@ the names of
 - :mod:`afmid.simulate.integrator` -- :class:`Integrator` (runs the kernel),
   :func:`first_harmonic`, :func:`settle`.
 
-The plain-Python twin of the kernel for the tests is :mod:`afmid.testing.reference` (a layer above
-this one: it is imported from there, not re-exported here).
+The plain-Python twin of the kernel the tests compare against is test code
+(tests/support/reference_integrator.py), not part of the package.
 """
 
 from __future__ import annotations

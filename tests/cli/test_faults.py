@@ -255,8 +255,8 @@ def test_batch_workers_exit_when_the_parent_is_killed(tmp_path, trace_bytes):
     (tmp_path / "run.yaml").write_text(yaml.safe_dump(RUN_CONFIG))
     from batch_workers import HOLD_30S
 
-    parent = subprocess.Popen([sys.executable, "-m", "afmid.cli", "-q", "batch", "run.yaml", "--inputs", "in/*.h5",
-                               "-o", "out", "-j", "2"] + HOLD_30S,  # every worker sits in its item for 30 s
+    # afmid batch's run_batch with a worker that sits in its item for 30 s
+    parent = subprocess.Popen(HOLD_30S + ["run.yaml", "--inputs", "in/*.h5", "-o", "out", "-j", "2"],
                               cwd=tmp_path, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 60

@@ -246,8 +246,9 @@ def test_a_second_batch_on_the_same_folder_fails_at_once_naming_the_first(tmp_pa
     out = tmp_path / "out"
     from batch_workers import HOLD_2S
 
-    args += HOLD_2S  # the first batch stays busy a few seconds
-    first = subprocess.Popen(AFMID + args + ["-o", str(out)], stderr=subprocess.PIPE, text=True)
+    # the first batch stays busy a few seconds (afmid batch's run_batch with a worker that holds every item 2 s);
+    # the second is afmid's own command
+    first = subprocess.Popen(HOLD_2S + args[args.index("batch") + 1:] + ["-o", str(out)], stderr=subprocess.PIPE, text=True)
     try:
         _wait_for(lambda: (out / LOCK).is_file() and (out / LOCK).read_text().strip())
         holder = (out / LOCK).read_text().strip()

@@ -27,6 +27,7 @@ from afmid.physics.presets import PRESETS
 from afmid.physics.effects import EFFECTS
 from afmid.preprocess.periods import estimate_drive, harmonic_blocks, weak_windows
 from afmid.terms.units import parse_unit
+from library_twin import evaluate_numpy
 
 # floating-point results compared; blas_sensitive: make test-kernels runs these again (BLAS/LAPACK on the path)
 pytestmark = [pytest.mark.numerics, pytest.mark.blas_sensitive]
@@ -209,7 +210,7 @@ def _realistic_problem(library, seed, periods=12, rel_noise=1e-3):
     x, v, t = _tapping_trajectory(seed, periods)
     d = 8.5e-9 if library != "lj_table1" else float(x.max()) + 0.3e-9
     params = {"d": d, "a0": A0_CONTACT, "R": 10e-9, "w": 2 * np.pi * F_DRIVE, **lib.nonlinear}
-    theta = lib.evaluate(x, v, t, params, backend="numpy")
+    theta = evaluate_numpy(lib, x, v, t, params)
     w = 2 * np.pi * F_DRIVE
     A = np.column_stack([theta, np.cos(w * t), np.sin(w * t)])
     if library == "lj_table1":
@@ -636,8 +637,8 @@ def test_vm_matches_numpy_on_library_terms(spec):
     # contact models indent by ~1 nm; the Lennard-Jones table (z^1.5, z^2) needs z > 0: closest approach 0.15 nm
     d = 8.5e-9 if spec.get("library") != "lj_table1" else float(x.max()) + 0.15e-9
     params = {"d": d, "a0": A0_CONTACT, "R": 10e-9, "w": 2 * np.pi * F_DRIVE, **lib.nonlinear}
-    vm = lib.evaluate(x, v, t, params, backend="numba")
-    ref = lib.evaluate(x, v, t, params, backend="numpy")
+    vm = lib.evaluate(x, v, t, params)
+    ref = evaluate_numpy(lib, x, v, t, params)
     assert vm.shape == (x.size, len(lib))
     assert np.all(np.isfinite(ref))
     for j, name in enumerate(lib.names):

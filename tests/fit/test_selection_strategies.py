@@ -15,7 +15,9 @@ import pytest
 
 import afmid.fit.regression as regression
 from afmid.fit.selection import SelectionSettings
-from afmid.fit.selection_strategies import SELECTION_SCOPES, PeriodVote, RecordSelection, period_groups
+from afmid.fit.selection_strategies import (SELECTION_STRATEGIES, PeriodVote, RecordSelection, period_groups,
+                                           strategies_by_declared_name, strategy_for)
+from afmid.sections.selection_scopes import SELECTION_SCOPES
 
 ROWS = 20  # whitened rows per block
 NAMES = ["true_a", "true_b", "absorber", "noise_term", "drive"]
@@ -113,6 +115,22 @@ def test_period_groups_cover_every_block_once():
         assert len(groups) == max(1, n // g)
 
 
+def test_every_declared_scope_has_a_strategy_and_every_strategy_a_declaration():
+    """The config checks ``fit.selection_scope`` against the declarations (afmid.sections.selection_scopes); the
+    fit runs the objects registered against them: the two sets are one."""
+    from afmid.errors import DefinitionError
+
+    assert sorted(SELECTION_STRATEGIES) == sorted(SELECTION_SCOPES.names())
+    for name in SELECTION_SCOPES.names():
+        assert strategy_for(name).name == name
+    with pytest.raises(KeyError, match="did you mean 'record'"):
+        strategy_for("records")
+    with pytest.raises(DefinitionError, match="declared"):
+        strategies_by_declared_name(PeriodVote())  # "record" declared, no object for it
+    with pytest.raises(DefinitionError, match="declared"):
+        strategies_by_declared_name(PeriodVote(), RecordSelection(), PeriodVote(name="majority"))
+
+
 def test_the_scope_is_a_registered_config_choice():
     from afmid.config import build_config
     from afmid.errors import ConfigError
@@ -126,5 +144,5 @@ def test_the_scope_is_a_registered_config_choice():
     raw["fit"] = {"selection_scope": "record", "vote_periods": 25}
     config = build_config(raw)
     assert config.fit.selection_scope == "record"
-    scope = SELECTION_SCOPES.get("vote").configured(config.fit)
+    scope = strategy_for("vote").configured(config.fit)
     assert isinstance(scope, PeriodVote) and scope.periods == 25

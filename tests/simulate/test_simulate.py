@@ -27,7 +27,7 @@ from afmid.simulate.driver import (
     resolve_setup,
     simulate,
 )
-from afmid.testing.reference import reference_drive, reference_integrate
+from reference_integrator import reference_drive, reference_integrate
 
 pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
 

@@ -2,14 +2,15 @@
 
 A module of its own, importable by name in the spawned workers, so the faults live in the tests, not in afmid:
 in-process tests pass them as ``run_batch(worker=...)`` (pytest puts tests/support on the path, and spawned processes
-inherit it); ``afmid batch`` subprocesses name them with the hidden option ``--worker`` (:data:`HOLD_1500MS`
-etc., a path to this file and a function name).
+inherit it); a batch subprocess runs them through the test-side script ``batch_with_worker.py`` (:data:`HOLD_1500MS`
+etc.: the command that starts it with the worker; afmid's command line has no hook for a foreign worker).
 """
 
 from __future__ import annotations
 
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -51,14 +52,16 @@ def fit_task_holding_30s(task: dict) -> dict:
     return _holding(30.0)(task)
 
 
-def _worker_option(function) -> list[str]:
-    return ["--worker", f"{Path(__file__).resolve()}:{function.__name__}"]
+def _batch_command(function) -> list[str]:
+    """The command that runs ``afmid batch``'s :func:`afmid.batch.run.run_batch` with ``function`` as the worker
+    (tests/support/batch_with_worker.py); the batch arguments (CONFIG, --inputs, -o, ...) follow it."""
+    return [sys.executable, str(Path(__file__).with_name("batch_with_worker.py")), function.__name__]
 
 
-#: ``afmid batch`` arguments that make its workers hold every item 1.5 s, 2 s or 30 s.
-HOLD_1500MS = _worker_option(fit_task_holding_1500ms)
-HOLD_2S = _worker_option(fit_task_holding_2s)
-HOLD_30S = _worker_option(fit_task_holding_30s)
+#: Commands (then the ``afmid batch`` arguments after ``batch``) whose workers hold every item 1.5 s, 2 s or 30 s.
+HOLD_1500MS = _batch_command(fit_task_holding_1500ms)
+HOLD_2S = _batch_command(fit_task_holding_2s)
+HOLD_30S = _batch_command(fit_task_holding_30s)
 
 
 class SerialEngine:

@@ -1,9 +1,10 @@
-"""Plain-Python twin of the integration kernel (slow; for the tests that check the kernels).
+"""Plain-Python twin of the integration kernel (slow; for the tests that check the kernels). Test code: it lives
+in tests/support (issue 30: no test-only code in the shipped package), imported by plain name.
 
 :func:`reference_integrate` runs the same RK4 + event algorithm as
 :func:`afmid.kernels.integrate.integrate` without numba, evaluating the force
 with :func:`afmid.terms.expr.evaluate_numpy`; :func:`reference_drive` reproduces the
-kernel's drive. Above :mod:`afmid.simulate` in the layers (it uses :mod:`afmid.simulate.model`).
+kernel's drive. It uses :mod:`afmid.simulate.model`'s public names only.
 """
 
 from __future__ import annotations

@@ -1,1 +1,0 @@
-"""Reference implementations used by the tests only (not by the pipeline)."""
