@@ -12,12 +12,14 @@ BATCH_JOBS ?= 2
 # Test processes (pytest-xdist): the suite's tests are independent; 2 matches the CI machine's cores.
 TEST_JOBS ?= 2
 
-.PHONY: help venv demo demo-map test test-kernels coverage batch bench clean
+.PHONY: help venv demo demo-map screenshots test test-kernels coverage batch bench clean
 .DEFAULT_GOAL := help
 
 help:
 	@echo "make demo   - set up .venv, simulate a soft-polymer trace, fit it, write a report"
 	@echo "make demo-map - a force map with hidden viscoelasticity: map with [dmt] (which effect is missing where), refit with --add viscoelastic, reports before/after"
+	@echo "make screenshots - make demo demo-map, then screenshot their reports and the map explorer in headless Chromium"
+	@echo "              into $(SCREENSHOT_DIR)/ and check issue 33's points in their DOM (tests/report/test_demo_screenshots.py)"
 	@echo "make test   - set up .venv with test extras and run the test suite"
 	@echo "make test-kernels - the BLAS-sensitive tests again under two other OpenBLAS kernels of this CPU (and without NumPy's AVX-512 code)"
 	@echo "make coverage - the full coverage run (issue 28): every configs/coverage/*.yaml, COVERAGE_DRAWS=200 draws (the blind loop's"
@@ -53,6 +55,16 @@ demo-map: $(STAMP)
 	$(AFMID) report $(DEMO_MAP_DIR)/dmt.h5 -o $(DEMO_MAP_DIR)/report_dmt --overwrite
 	$(AFMID) report $(DEMO_MAP_DIR)/visco.h5 -o $(DEMO_MAP_DIR)/report_visco --overwrite
 	$(AFMID) report $(DEMO_MAP_DIR)/dmt.h5 $(DEMO_MAP_DIR)/visco.h5 -o $(DEMO_MAP_DIR)/report_before_after --overwrite
+
+# The demo's reports as a reader sees them (issue 33): demo_output/report/report.html, the demo map's report_dmt page
+# and its explorer.html screenshot by Chromium (apt-get install chromium) into $(SCREENSHOT_DIR)/ as PNG, the points
+# of the issue checked in the DOM. The test is skipped unless AFMID_DEMO_SCREENSHOTS=1 (it needs these outputs).
+SCREENSHOT_DIR ?= screenshots
+screenshots: demo demo-map
+	AFMID_DEMO_SCREENSHOTS=1 AFMID_DEMO_DIR=$(abspath $(DEMO_DIR)) AFMID_DEMO_MAP_DIR=$(abspath $(DEMO_MAP_DIR)) \
+		AFMID_SCREENSHOT_DIR=$(abspath $(SCREENSHOT_DIR)) \
+		$(PY) -m pytest -q -p no:xdist -p no:cacheprovider tests/report/test_demo_screenshots.py
+	@echo "screenshots in $(abspath $(SCREENSHOT_DIR))"
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n $(TEST_JOBS)
@@ -119,4 +131,4 @@ bench: $(STAMP)
 	$(PY) bench/run_all.py $(BENCH_ARGS)
 
 clean:
-	rm -rf $(DEMO_DIR) $(RESULTS) $(COVERAGE_OUT) .pytest_cache
+	rm -rf $(DEMO_DIR) $(DEMO_MAP_DIR) $(SCREENSHOT_DIR) $(RESULTS) $(COVERAGE_OUT) .pytest_cache

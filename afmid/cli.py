@@ -239,15 +239,17 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
     OUTPUT/NAME.trace.h5 (as `afmid simulate`), then fitted. --set applies to every config.
 
     Writes OUTPUT/NAME.run.h5 per item (NAME from the trace's or the config's stem) and
-    OUTPUT/summary.csv + summary.h5: one row per item with its status (ok, suspect,
-    failed, skipped), the failure message, config, error metric against its noise floor, a
+    OUTPUT/summary.csv + summary.h5: one row per item with its status (ok, model-limited,
+    suspect, failed, skipped), the failure message, config, error metric against its noise floor, a
     diagnosis (at the noise floor, or model-limited with the residual's region and character)
     and physical parameters with their 1-sigma errors (`*_sigma`) and 95 % intervals (SI
     units; the union over all runs, empty where a run has no such quantity). Items
     whose outputs are up to date (same input bytes, config and afmid version) are
     skipped; a failing item does not stop the batch. An item whose read-outs are not all
     plausible (outside their declared range, see `afmid effects`) is `suspect`, with the
-    reasons in the failure column and a warning. Exit code 1 if any item failed (suspect
+    reasons in the failure column and a warning; one whose cv error stands above its
+    noise-floor limit is `model-limited` (its parameters are biased beyond their error
+    bars), with a warning. Exit code 1 if any item failed (suspect and model-limited
     items alone exit 0: their run files are written and flagged), 130 if interrupted.
     One batch at a time per OUTPUT (lock file OUTPUT/.afmid-batch.lock).
     """
@@ -281,6 +283,11 @@ def batch(config: Path | None, inputs: tuple[str, ...], manifest: Path | None, c
         log.warning("%d of %d %s suspect (%s): implausible read-outs, the reasons are in %s", len(suspect),
                     result.total, result.unit, ", ".join(suspect[:3]) + (", ..." if len(suspect) > 3 else ""),
                     output / "summary.csv")
+    limited = [r.item.name for r in result.rows if r.status == "model-limited"]
+    if limited:  # as suspect: written and flagged, not an error; the summary's failure column says by how much
+        log.warning("%d of %d %s model-limited (%s): the model misses part of the force, the parameters are biased "
+                    "beyond their error bars; see %s", len(limited), result.total, result.unit,
+                    ", ".join(limited[:3]) + (", ..." if len(limited) > 3 else ""), output / "summary.csv")
     failed = [r.item.name for r in result.rows if r.status == "failed"]
     if failed:
         from afmid.tempfiles import NO_SPACE_TEXT

@@ -186,3 +186,21 @@ def unit_words(unit: str) -> str:
 def range_words(low: float, high: float, unit: str) -> str:
     """``[0, 1e5] Pa s``: a declared range in SI (bounds in ``unit``), as the registry and `afmid effects` state it."""
     return f"[{short_number(low)}, {short_number(high)}] {unit_words(unit)}"
+
+
+def unit_suffix(unit: str) -> str:
+    """A unit as the end of a CSV column name (afmid's one convention for its CSVs, docs/file-formats.md "Column
+    names"): ``/`` -> ``_per_``, ``^`` dropped (the exponent follows its unit), ``*``, ``·`` and spaces dropped
+    (the units joined), a decimal point of an exponent -> ``p``; ``'1'`` (dimensionless) and ``''`` -> ``''``.
+    'J/m^2' -> 'J_per_m2', 'm/s^2' -> 'm_per_s2', 'Pa*s' -> 'Pas', 'Pa*m^0.5' -> 'Pam0p5'."""
+    if unit in ("", "1"):
+        return ""
+    joined = unit.replace("/", "_per_").replace("^", "").replace("*", "").replace(" ", "").replace("·", "")
+    return joined.replace(".", "p")  # no '.' in a column name: a manifest CSV reads dotted columns as config keys
+
+
+def column_name(name: str, unit: str | None) -> str:
+    """``name_unit`` (:func:`unit_suffix`): ``force_N``, ``E_star_sigma_Pa``; the bare name for a dimensionless
+    or text column (``unit`` '1', '' or None)."""
+    suffix = unit_suffix(unit or "")
+    return f"{name}_{suffix}" if suffix else name

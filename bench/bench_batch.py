@@ -83,13 +83,14 @@ def run(quick: bool = False) -> list[dict]:
     seconds, cpu = timed(cmd, timeout=3600)
     rows = _summary(out)
     statuses = statistics.multimode([r["status"] for r in rows])
-    n_ok = sum(r["status"] == "ok" for r in rows)
+    fitted_now = ("ok", "model-limited")  # a run file written by this batch (model-limited: flagged, still timed)
+    n_ok = sum(r["status"] in fitted_now for r in rows)
 
     def mean(col):
-        return statistics.fmean(float(r[col]) for r in rows if r["status"] == "ok")
+        return statistics.fmean(float(r[col]) for r in rows if r["status"] in fitted_now)
 
-    load, fit, write = mean("load_time [s]"), mean("fit_time [s]"), mean("write_time [s]")
-    cpu_trace = mean("cpu_time [s]")
+    load, fit, write = mean("load_time_s"), mean("fit_time_s"), mean("write_time_s")
+    cpu_trace = mean("cpu_time_s")
     per_trace = load + fit + write
     overhead = seconds - n * per_trace / 2
     # Reference: one `afmid fit` process per trace.

@@ -51,12 +51,15 @@ Outputs in DIR:
 - ``NAME.trace.h5``: the simulated trace of a config run on simulated data.
 - ``summary.csv`` and ``summary.h5``: one row per item in input order with
   the status (``ok``, ``failed``, ``skipped`` = up to date from an earlier
-  run, ``suspect`` = a run file whose read-outs are not all plausible), the
-  error message of a failure or the reasons of a suspect item, the config,
+  run, ``model-limited`` = a run file whose model fails the data: cv error
+  above its noise-floor limit, ``suspect`` = a run file whose read-outs are
+  not all plausible), the error message of a failure or the reasons of a
+  suspect or model-limited item, the config,
   the input, the effects, the error metric, the separation, every physical parameter with its error
   and 95 % interval (the union over all rows: empty / NaN where a run has no
-  such quantity), and the time spent per stage. SI units in the CSV headers
-  (``E_star [Pa]``) and as ``units`` attributes in the h5. Layout in
+  such quantity), and the time spent per stage. SI units at the end of the
+  CSV headers (``E_star_Pa``, as ``afmid export`` names its columns) and as
+  ``units`` attributes in the h5. Layout in
   docs/file-formats.md.
 
 Resuming: every run file written by a batch carries the attribute

@@ -1,5 +1,7 @@
-"""Batch summary: one row per item (status ok / suspect / failed / skipped, the read-outs of its run file, the
-time per stage) written as ``summary.csv`` and ``summary.h5`` (layout in docs/file-formats.md).
+"""Batch summary: one row per item (status ok / model-limited / suspect / failed / skipped, the read-outs of its
+run file, the time per stage) written as ``summary.csv`` and ``summary.h5`` (layout in docs/file-formats.md).
+CSV headers name the unit at the end (``E_star_Pa``, ``fit_time_s``), as ``afmid export`` does
+(:func:`afmid.quantity_text.column_name`).
 
 Imports nothing heavy at import time.
 """
@@ -16,9 +18,18 @@ from typing import Any
 from afmid.batch.plan import SUMMARY_CSV, SUMMARY_H5, Item
 
 SUMMARY_FORMAT = "afmid-batch-summary"
-#: ok: fitted now; suspect: a run file exists (fitted now or up to date) but a read-out is implausible
-#: (afmid.fit.plausibility); failed: no run file; skipped: up to date from an earlier batch.
-STATUSES = ("ok", "suspect", "failed", "skipped")
+#: ok: fitted now; skipped: up to date from an earlier batch; model-limited: a run file exists (fitted now or up
+#: to date) but its model fails the data (cv error above FLOOR_FACTOR x its noise floor: the parameters are biased
+#: beyond their error bars); suspect: a run file exists but a read-out is implausible (afmid.fit.plausibility),
+#: model-limited or not; failed: no run file. A row says the worst that holds: a result afmid cannot stand
+#: behind never reads as a plain ok or skipped.
+STATUSES = ("ok", "model-limited", "suspect", "failed", "skipped")
+MODEL_LIMITED = "model-limited"
+
+
+def status_count_attribute(status: str) -> str:
+    """summary.h5's root attribute counting the rows of ``status``: ``n_ok``, ``n_model_limited``, ..."""
+    return "n_" + status.replace("-", "_")
 
 
 def read_run_row(path: Path) -> dict:
@@ -68,12 +79,31 @@ def diagnosis_text(path: Path) -> str:
 
 
 def run_file_row(item: "Item", got: dict, status: str, times: dict | None = None) -> "Row":
-    """The summary row of an item whose run file exists (``got`` from :func:`read_run_row`): ``status``, or
-    ``suspect`` with the reasons in the failure column when a read-out is implausible."""
+    """The summary row of an item whose run file exists (``got`` from :func:`read_run_row`): ``status`` (ok or
+    skipped) when afmid stands behind it; ``model-limited`` when its cv error stands above its noise-floor limit;
+    ``suspect`` when a read-out is implausible; the reasons in the failure column (both when both hold)."""
+    reasons = []
     if got.get("implausible"):
-        return Row(item, "suspect", "implausible read-outs: " + "; ".join(got["implausible"]), got["values"],
-                   got["quantities"], times or {})
-    return Row(item, status, "", got["values"], got["quantities"], times or {})
+        reasons.append("implausible read-outs: " + "; ".join(got["implausible"]))
+    limited = model_limited_reason(got["values"])
+    if limited:
+        reasons.append(limited)
+    if got.get("implausible"):
+        status = "suspect"
+    elif limited:
+        status = MODEL_LIMITED
+    return Row(item, status, "; ".join(reasons), got["values"], got["quantities"], times or {})
+
+
+def model_limited_reason(values: dict) -> str:
+    """The failure cell of a model-limited run (its cv error and floor in ``values``), "" for one that is not."""
+    from afmid.fit.uncertainty import FLOOR_FACTOR
+
+    if _model_limited_flag(values) != 1:
+        return ""
+    ratio = values["cv_error"] / values["cv_error_noise_floor"]
+    return (f"model-limited: cv_error {ratio:.2g}x its noise floor (limit {FLOOR_FACTOR:g}x): the model misses part "
+            f"of the force, its parameters are biased beyond their error bars (where: diagnosis column)")
 
 
 def attr_text(value) -> str:
@@ -108,7 +138,7 @@ FIELD_MEANINGS = {"sigma": {"error_kind": "1 sigma"}, "ci_low": {"interval": "95
 class Row:
     item: Item
     status: str
-    failure: str = ""  # why the item failed, or the implausible read-outs of a suspect one
+    failure: str = ""  # why the item failed, or why a suspect or model-limited one is flagged
     values: dict = field(default_factory=dict)
     quantities: dict = field(default_factory=dict)
     times: dict = field(default_factory=dict)
@@ -139,7 +169,11 @@ def _quantity(row: Row, name: str, unit: str) -> dict | None:
 
 
 def _column_title(name: str, unit: str | None) -> str:
-    return name if unit is None else f"{name} [{unit}]"
+    """The CSV header of a column: ``name_unit`` (``E_star_Pa``, ``fit_time_s``, ``cv_error``), afmid's one rule
+    for its CSVs (:func:`afmid.quantity_text.column_name`; ``name [unit]`` before issue 33)."""
+    from afmid.quantity_text import column_name
+
+    return column_name(name, unit)
 
 
 def _fmt(value) -> str:
@@ -171,8 +205,8 @@ def _row_cells(row: Row, output_dir: Path) -> dict[str, Any]:
 def _model_limited_flag(values: dict):
     """1 when the run's cv error stands above its noise floor by more than the factor afmid allows
     (:func:`afmid.fit.uncertainty.model_limited`: its parameters are biased beyond their error bars), 0 when
-    not, None (empty / NaN) without a run file. The status says whether a run file was written: a status ``ok``
-    with model_limited 1 is a fit that worked and a model that does not explain the data."""
+    not, None (empty / NaN) without a run file. A row with 1 has the status ``model-limited`` (or ``suspect``
+    when a read-out is also implausible), never ``ok``."""
     from afmid.fit.uncertainty import model_limited
 
     error, floor = values.get("cv_error"), values.get("cv_error_noise_floor")
@@ -215,7 +249,7 @@ def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:
     with atomic_hdf5(output_dir / SUMMARY_H5, SUMMARY_FORMAT, config_text) as h5:
         h5.attrs["n_traces"] = len(rows)
         for status in STATUSES:
-            h5.attrs[f"n_{status}"] = sum(r.status == status for r in rows)
+            h5.attrs[status_count_attribute(status)] = sum(r.status == status for r in rows)
         for name, unit in FIXED_COLUMNS + TIME_COLUMNS:
             if unit is None:
                 meaning = {"meaning": DIAGNOSIS_MEANING} if name == "diagnosis" else {}

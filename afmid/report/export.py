@@ -31,6 +31,9 @@ import math
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+# afmid's one column-naming rule for its CSVs (the batch summary names its columns with it too)
+from afmid.quantity_text import column_name
+
 #: What ``afmid export --what`` can write (name -> one line for the help).
 EXPORTS = {
     "force-curves": "F(z) per period and branch (approach / retract): model force and inverted force",
@@ -91,18 +94,6 @@ def cell(value) -> str:
         return str(value)
     number = float(value)
     return repr(number) if math.isfinite(number) else ""
-
-
-def unit_suffix(unit: str) -> str:
-    """A unit as the end of a column name: 'J/m^2' -> 'J_per_m2', 'Pa s' -> 'Pas', '1' -> ''."""
-    if unit in ("", "1"):
-        return ""
-    return unit.replace("/", "_per_").replace("^", "").replace("*", "").replace(" ", "").replace("·", "")
-
-
-def column_name(name: str, unit: str) -> str:
-    suffix = unit_suffix(unit)
-    return f"{name}_{suffix}" if suffix else name
 
 
 # --------------------------------------------------------------------------- the tables

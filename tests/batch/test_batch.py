@@ -143,14 +143,14 @@ def test_summary_has_one_row_per_trace_with_si_units(traces, tmp_path):
     rows = _summary(out)
     assert [r["name"] for r in rows] == ["broken", "n01"]
     header = list(rows[0])
-    for column in ("cv_error [1]", "separation [m]", "E_star [Pa]", "E_star_sigma [Pa]", "E_star_ci_low [Pa]",
-                   "hamaker [J]", "adhesion_force [N]", "fit_time [s]", "status", "failure", "diagnosis"):
+    for column in ("cv_error", "separation_m", "E_star_Pa", "E_star_sigma_Pa", "E_star_ci_low_Pa",
+                   "hamaker_J", "adhesion_force_N", "fit_time_s", "status", "failure", "diagnosis"):
         assert column in header, column
     ok = rows[1]
     run = read_run_row(out / "n01.run.h5")
-    assert float(ok["E_star [Pa]"]) == run["quantities"]["E_star"]["value"]
-    assert float(ok["cv_error [1]"]) == run["values"]["cv_error"]
-    assert 1e9 < float(ok["E_star [Pa]"]) < 3e9  # truth 2 GPa
+    assert float(ok["E_star_Pa"]) == run["quantities"]["E_star"]["value"]
+    assert float(ok["cv_error"]) == run["values"]["cv_error"]
+    assert 1e9 < float(ok["E_star_Pa"]) < 3e9  # truth 2 GPa
     assert "not a readable HDF5 file" in rows[0]["failure"] and rows[0]["run_file"] == "" and rows[0]["diagnosis"] == ""
     assert ok["diagnosis"].startswith(("at the noise floor (x", "model-limited (x")), ok["diagnosis"]
     with h5py.File(out / "summary.h5", "r") as h5:
@@ -183,7 +183,7 @@ def test_rerun_skips_finished_traces_and_refits_changed_ones(traces, tmp_path):
     assert {p.name: p.stat().st_mtime_ns for p in out.glob(f"*{RUN_SUFFIX}")} == stamps
     after = _summary(out)
     for b, a in zip(before, after):  # the same numbers for skipped traces
-        assert a["E_star [Pa]"] == b["E_star [Pa]"] and a["cv_error [1]"] == b["cv_error [1]"]
+        assert a["E_star_Pa"] == b["E_star_Pa"] and a["cv_error"] == b["cv_error"]
 
     # New bytes in one input: only that trace is refitted. A changed config refits everything.
     inputs[1].write_bytes((traces / "n03.h5").read_bytes())
@@ -412,28 +412,28 @@ def test_config_summary_has_the_union_of_the_runs_quantities(config_dir, config_
     rows = {r["name"]: r for r in _summary(out)}
     assert list(rows) == ["bad", "dmt", "lennard_jones", "measured", "nodata"]
     header = list(rows["dmt"])
-    for column in ("config", "effects", "E_star [Pa]", "E_star_sigma [Pa]", "sigma [m]", "sigma_ci_high [m]",
-                   "hamaker [J]", "simulate_time [s]", "fit_time [s]"):
+    for column in ("config", "effects", "E_star_Pa", "E_star_sigma_Pa", "sigma_m", "sigma_ci_high_m",
+                   "hamaker_J", "simulate_time_s", "fit_time_s"):
         assert column in header, column
     dmt, lj, measured = rows["dmt"], rows["lennard_jones"], rows["measured"]
     assert dmt["effects"] == "dmt" and lj["effects"] == "lennard_jones"
     assert dmt["config"] == str(config_dir / "dmt.yaml")
     assert dmt["input"] == str((out / "dmt.trace.h5").resolve()) and dmt["run_file"] == str((out / "dmt.run.h5").resolve())
     assert measured["input"] == str((config_dir / "measured.h5").resolve())
-    assert 1e9 < float(dmt["E_star [Pa]"]) < 3e9 and dmt["sigma [m]"] == "" and dmt["sigma_sigma [m]"] == ""
-    assert 0.25e-9 < float(lj["sigma [m]"]) < 0.35e-9 and lj["E_star [Pa]"] == "" and lj["E_star_sigma [Pa]"] == ""
-    assert float(lj["hamaker [J]"]) > 0 and float(dmt["hamaker [J]"]) > 0  # shared by both models: one column
-    assert float(dmt["simulate_time [s]"]) > 0 and measured["simulate_time [s]"] == ""
+    assert 1e9 < float(dmt["E_star_Pa"]) < 3e9 and dmt["sigma_m"] == "" and dmt["sigma_sigma_m"] == ""
+    assert 0.25e-9 < float(lj["sigma_m"]) < 0.35e-9 and lj["E_star_Pa"] == "" and lj["E_star_sigma_Pa"] == ""
+    assert float(lj["hamaker_J"]) > 0 and float(dmt["hamaker_J"]) > 0  # shared by both models: one column
+    assert float(dmt["simulate_time_s"]) > 0 and measured["simulate_time_s"] == ""
     assert rows["bad"]["status"] == "failed" and "quality_factor: must be > 0" in rows["bad"]["failure"]
     assert rows["nodata"]["status"] == "failed" and "no data.path" in rows["nodata"]["failure"]
     assert rows["bad"]["run_file"] == rows["nodata"]["run_file"] == rows["nodata"]["input"] == ""
     # issue 33: a model-limited run was listed 'ok' with nothing beside it saying so
     from afmid.fit.uncertainty import FLOOR_FACTOR
 
-    assert "model_limited [1]" in header and rows["bad"]["model_limited [1]"] == ""
+    assert "model_limited" in header and rows["bad"]["model_limited"] == ""
     for row in (dmt, lj, measured):
-        limited = float(row["cv_error [1]"]) > FLOOR_FACTOR * float(row["cv_error_noise_floor [1]"])
-        assert row["model_limited [1]"] == str(int(limited)), row
+        limited = float(row["cv_error"]) > FLOOR_FACTOR * float(row["cv_error_noise_floor"])
+        assert row["model_limited"] == str(int(limited)), row
         assert row["diagnosis"].startswith("model-limited" if limited else "at the noise floor"), row
     with h5py.File(out / "summary.h5", "r") as h5:
         assert h5.attrs["config"] == "" and h5.attrs["n_ok"] == 3 and h5.attrs["n_failed"] == 2
@@ -442,7 +442,7 @@ def test_config_summary_has_the_union_of_the_runs_quantities(config_dir, config_
         sigma, e_star = h5["parameters/sigma/value"], h5["parameters/E_star/value"]
         assert sigma.attrs["units"] == "m" and e_star.attrs["units"] == "Pa"
         assert h5["parameters/sigma"].attrs["effect"] == "lennard_jones"
-        assert np.isnan(sigma[1]) and sigma[2] == float(lj["sigma [m]"]) and np.isnan(e_star[2])
+        assert np.isnan(sigma[1]) and sigma[2] == float(lj["sigma_m"]) and np.isnan(e_star[2])
         assert np.isnan(h5["parameters/sigma/sigma"][1]) and np.isnan(h5["simulate_time"][3])
         assert h5["parameters/E_star/value"][1] == read_run_row(out / "dmt.run.h5")["quantities"]["E_star"]["value"]
 
@@ -474,7 +474,7 @@ def test_config_batch_resumes_without_simulating_again(config_dir, config_batch,
     assert now["dmt.trace.h5"] == before["dmt.trace.h5"] and now["measured.run.h5"] == before["measured.run.h5"]
     assert now["lennard_jones.trace.h5"] != before["lennard_jones.trace.h5"]
     rows = {r["name"]: r for r in _summary(out)}
-    assert rows["dmt"]["simulate_time [s]"] == "" and float(rows["lennard_jones"]["simulate_time [s]"]) > 0
+    assert rows["dmt"]["simulate_time_s"] == "" and float(rows["lennard_jones"]["simulate_time_s"]) > 0
     with h5py.File(out / "lennard_jones.trace.h5", "r") as h5:
         assert "seed: 3" in h5.attrs["config"]
 

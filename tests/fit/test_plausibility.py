@@ -321,7 +321,7 @@ def test_batch_lists_an_implausible_item_as_suspect(workspace, run_cli):
     assert rows["right"]["status"] == "ok" and rows["right"]["failure"] == ""
     assert rows["wrong_q"]["status"] == "suspect"
     assert rows["wrong_q"]["failure"].startswith("implausible read-outs: viscosity = ")
-    assert Path(rows["wrong_q"]["run_file"]).name == "wrong_q.run.h5" and float(rows["wrong_q"]["viscosity [Pa*s]"]) < 0
+    assert Path(rows["wrong_q"]["run_file"]).name == "wrong_q.run.h5" and float(rows["wrong_q"]["viscosity_Pas"]) < 0
     with h5py.File(out / "summary.h5", "r") as h5:
         assert (h5.attrs["n_ok"], h5.attrs["n_suspect"], h5.attrs["n_failed"]) == (1, 1, 0)
     # resumed: the up-to-date suspect item stays suspect, the other is skipped

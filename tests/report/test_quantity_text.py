@@ -123,3 +123,18 @@ def test_every_catalog_parameter_prints_in_its_declared_unit(effect, parameter):
     assert re.search(rf"\d {re.escape(shown)} \(1σ\)$" if shown else r"\d\)? \(1σ\)$", cell), cell
     if parameter.unit != "m":  # a length's display unit on anything else is the bug this test guards
         assert not any(re.search(r"\bnm\b", t) for t in [*texts.values(), cell]), (texts, cell)
+
+
+def test_csv_column_names_put_the_unit_at_the_end_by_one_rule():
+    """afmid's CSVs (export, the batch summary) name a column ``name_unit``: '/' -> '_per_', '^' dropped, '*' and
+    spaces joined, an exponent's '.' -> 'p', no suffix for a dimensionless or text column (docs/file-formats.md)."""
+    from afmid.quantity_text import column_name
+
+    cases = {("force", "N"): "force_N", ("E_star", "Pa"): "E_star_Pa", ("E_star_sigma", "Pa"): "E_star_sigma_Pa",
+             ("surface_energy", "J/m^2"): "surface_energy_J_per_m2", ("acceleration", "m/s^2"): "acceleration_m_per_s2",
+             ("viscosity", "Pa*s"): "viscosity_Pas", ("viscosity", "Pa s"): "viscosity_Pas",
+             ("k", "Pa*m^0.5"): "k_Pam0p5", ("cv_error", "1"): "cv_error", ("name", None): "name",
+             ("charge", "C^2/m^4"): "charge_C2_per_m4"}
+    for (name, unit), expected in cases.items():
+        assert column_name(name, unit) == expected, (name, unit)
+    assert all("." not in column_name(n, u) and " " not in column_name(n, u) for n, u in cases)
