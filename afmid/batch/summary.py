@@ -170,7 +170,7 @@ def _quantity(row: Row, name: str, unit: str) -> dict | None:
 
 def _column_title(name: str, unit: str | None) -> str:
     """The CSV header of a column: ``name_unit`` (``E_star_Pa``, ``fit_time_s``, ``cv_error``), afmid's one rule
-    for its CSVs (:func:`afmid.quantity_text.column_name`; ``name [unit]`` before issue 33)."""
+    for its CSVs (:func:`afmid.quantity_text.column_name`; the older ``name [unit]`` headers are gone)."""
     from afmid.quantity_text import column_name
 
     return column_name(name, unit)

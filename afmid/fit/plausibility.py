@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 from afmid.physics.effect_tags import Character
 from afmid.physics.effects import EFFECTS, quantity_range
-from afmid.quantity_text import range_words, unit_words
+from afmid.quantity_text import range_words, short_number, unit_words
 
 log = logging.getLogger("afmid")
 
@@ -229,7 +229,7 @@ class SpringConstantCause(str):
 
 
 def _factor_words(factor: float) -> str:
-    return f"{_short(float(f'{factor:.2g}'))}x"
+    return f"{short_number(float(f'{factor:.2g}'))}x"
 
 
 def spring_constant_cause(quantities: Mapping[str, Mapping | float]) -> SpringConstantCause | None:

@@ -162,7 +162,7 @@ def measured_observables(run, lever: DrivenLever | None = None) -> dict[str, np.
     return tapping_observables(amplitude, _wrap(phase_x - lever.drive_phase), lever)
 
 
-def truth_observables(run, lever: Cantilever | None = None) -> dict[str, np.ndarray]:
+def truth_observables(run, lever: DrivenLever | None = None) -> dict[str, np.ndarray]:
     """Per period observables of a simulated run's TRUE deflection (x = d - z of the simulation's truth, no
     detector noise), computed exactly as :func:`measured_observables` computes the measured ones: the same
     periods, the same first-harmonic fit and the same lever and drive (the run's fitted drive unless ``lever`` is
