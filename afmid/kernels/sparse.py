@@ -30,6 +30,13 @@ _GELSD = types.ExternalFunction("numba_ez_gelsd", types.intc(
     types.CPointer(types.float64), types.intp, types.CPointer(types.float64), types.float64,
     types.CPointer(numba_linalg.F_INT_nbtype)))
 _DOUBLE = ord("d")  # LAPACK kind: real double precision
+# BLAS dgemv through numba's bridge, as numba's ``A @ x`` calls it for a C-contiguous A (issue 31: the operator's
+# overload and its checks were ~0.5 s of the first-ever fit's compilation): kind, trans, m, n, alpha, a, lda, x,
+# beta, y; unit strides.
+_GEMV = types.ExternalFunction("numba_xxgemv", types.intc(
+    types.char, types.char, types.intp, types.intp, types.CPointer(types.float64), types.CPointer(types.float64),
+    types.intp, types.CPointer(types.float64), types.CPointer(types.float64), types.CPointer(types.float64)))
+_TRANSPOSE = ord("t")  # a C-contiguous matrix is the transpose of BLAS's column-major one
 
 
 @njit(cache=True)
@@ -69,6 +76,29 @@ def lstsq_solution(A, b, rcond):
 
 
 @njit(cache=True)
+def matvec(A, x):
+    """``A @ x`` (A m x n C-contiguous, x length n contiguous; any unit) by BLAS dgemv with the arguments numba's own
+    ``A @ x`` passes (transposed column-major A, lda = n, alpha 1, beta 0), so the same bits without the operator's
+    compilation (tests/kernels/test_sparse_lstsq.py compares them)."""
+    m, n = A.shape
+    y = np.empty(m)
+    if n == 0:
+        for i in range(m):
+            y[i] = 0.0
+        return y
+    alpha = np.empty(1)
+    alpha[0] = 1.0
+    beta = np.empty(1)
+    beta[0] = 0.0
+    if _GEMV(_DOUBLE, _TRANSPOSE, n, m, alpha.ctypes, A.ctypes, n, x.ctypes, beta.ctypes, y.ctypes) != 0:
+        raise RuntimeError("BLAS dgemv is not available")
+    # the arguments stay alive until BLAS is done with them (their last use is here)
+    if A.size + x.size + alpha.size + beta.size < 0:
+        y[0] = np.nan
+    return y
+
+
+@njit(cache=True)
 def subset_lstsq(T, active):
     """Least squares of the last column of ``T`` on its ``active`` columns (SVD, machine-precision cut-off):
     (coefficients with zeros off the subset, residual sum of squares)."""
@@ -96,7 +126,7 @@ def subset_lstsq(T, active):
             m += 1
     rhs = T[:, p].copy()
     sol = lstsq_solution(sub, rhs, -1.0)
-    resid = rhs - sub @ sol
+    resid = rhs - matvec(sub, sol)
     m = 0
     for j in range(p):
         if active[j]:
@@ -193,18 +223,38 @@ def _householder(W, r, c, c_end):
     return beta
 
 
-@njit(cache=True)
 def subset_rss(T, protected, max_error, min_pivot):
     """Residual sum of squares of every subset of the free (non-protected) columns of factor ``T``.
 
-    ``T`` (m x q, usually the q x q factor of ``[A | y]``); the protected columns are in every subset.
-    Returns ``(rss, exact)``, arrays of length ``2**n_free`` indexed by bitmask: bit ``i`` set = the
-    ``i``-th free column (in column order) is active. ``exact[b]`` is True where subset ``b`` was solved
-    by :func:`subset_lstsq` itself (the empty subset, near rank-deficient or ill-conditioned subsets,
-    see ``SUBSET_RSS_MAX_ERROR``); elsewhere the residual comes from a Householder QR of the unit-norm
-    columns (as :func:`subset_lstsq` scales them) grown column by column along a depth-first walk
-    over the subsets, one reflection per subset, and agrees with :func:`subset_lstsq` to rounding.
+    ``T`` (m x q, usually the q x q factor of ``[A | y]``, C-contiguous float64); the protected columns (a
+    C-contiguous bool array) are in every subset. Returns ``(rss, exact)``, arrays of length ``2**n_free``
+    indexed by bitmask: bit ``i`` set = the ``i``-th free column (in column order) is active. ``exact[b]`` is
+    True where subset ``b`` was solved by :func:`subset_lstsq` itself (the empty subset, near rank-deficient or
+    ill-conditioned subsets, see ``SUBSET_RSS_MAX_ERROR``); elsewhere the residual comes from
+    :func:`subset_rss_qr` and agrees with :func:`subset_lstsq` to rounding.
+
+    The exact subsets are solved here, one kernel call each, not inside :func:`subset_rss_qr`: a numba kernel
+    that calls another is compiled with the callee's code linked in and optimised again, and subset_lstsq (with
+    LAPACK's bridge) was ~1 s of the ~2.5 s that compiling the walk cost a new install (issue 31). The values
+    are the same bits either way (the same kernel on the same arguments).
     """
+    rss, exact = subset_rss_qr(T, protected, max_error, min_pivot)
+    if exact.any():
+        free = np.flatnonzero(~protected)
+        for sub in np.flatnonzero(exact):
+            mask = protected.copy()
+            mask[free[(int(sub) >> np.arange(free.size)) & 1 == 1]] = True
+            rss[sub] = subset_lstsq(T, mask)[1]
+    return rss, exact
+
+
+@njit(cache=True)
+def subset_rss_qr(T, protected, max_error, min_pivot):
+    """:func:`subset_rss`'s walk: the residual sum of squares of every subset of the free columns of ``T`` by a
+    Householder QR of the unit-norm columns (as :func:`subset_lstsq` scales them) grown column by column along a
+    depth-first walk over the subsets, one reflection per subset. Returns ``(rss, exact)``; where ``exact`` is
+    True (the empty subset, near rank-deficient or ill-conditioned subsets) ``rss`` is NaN: the caller solves
+    those by :func:`subset_lstsq`."""
     m, q = T.shape
     p = q - 1
     nf = 0
@@ -262,7 +312,6 @@ def subset_rss(T, protected, max_error, min_pivot):
     bits = np.zeros(nf + 1, np.int64)
     nxt = np.zeros(nf + 1, np.int64)
     coef = np.empty(p)
-    mask = np.empty(p, np.bool_)
     d = 0
     while d >= 0:
         # ---- evaluate the subset at depth d (its reflections are done)
@@ -289,12 +338,7 @@ def subset_rss(T, protected, max_error, min_pivot):
             else:
                 ok = False
         if not ok:
-            for j in range(p):
-                mask[j] = protected[j]
-            for e in range(nf):
-                if (sub >> e) & 1:
-                    mask[free[e]] = True
-            rss[sub] = subset_lstsq(T, mask)[1]
+            rss[sub] = np.nan  # solved by subset_lstsq in subset_rss
             exact[sub] = True
         # ---- next subset: add the next free column after the last one, else backtrack
         while d >= 0 and nxt[d] >= nf:

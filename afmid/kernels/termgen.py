@@ -32,7 +32,7 @@ import afmid.terms.expr as expr
 from afmid.kernels.lawgen import GenerationError, SourceWriter, load_module, translate_program, variables_read
 
 #: Bump when the generated text changes in a way the text itself would not show.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # 2: eval_rows compiled for one signature
 
 _lock = threading.Lock()
 _by_structure: dict[tuple, object] = {}  # program structure -> generated module
@@ -51,7 +51,10 @@ class TermKernel:
         strides): the values of :func:`afmid.kernels.trajectory_eval.eval_rows`, bit for bit. Returns (all values
         finite, any value exactly zero); an overflow of the running sum alone reads as not finite (the caller then
         checks the values themselves, as after the VM kernel)."""
-        finite, any_zero = self.module.eval_rows(self.consts, x, xdot, t, separation, a0, out)
+        # C-contiguous trajectory rows: the one compiled signature (EVAL_ROWS_SIGNATURE; no copy when they are)
+        finite, any_zero = self.module.eval_rows(self.consts, *(np.ascontiguousarray(a, dtype=np.float64)
+                                                              for a in (x, xdot, t)),
+                                                 float(separation), float(a0), out)
         return bool(finite), bool(any_zero)
 
     def stiffness_squares(self, coef: np.ndarray, x: np.ndarray, xdot: np.ndarray, t: np.ndarray,
@@ -72,6 +75,14 @@ def _kinematics_source() -> str:
     text = textwrap.dedent(inspect.getsource(contact_kinematics_at.py_func))
     body = text[text.index("def contact_kinematics_at"):]
     return '@njit(cache=True, error_model="numpy", inline="always")\n' + body
+
+
+#: The one signature of the generated ``eval_rows``: consts and the trajectory rows C-contiguous (the caller makes
+#: them so), ``out`` of any strides ('A'). Given ahead, numba compiles this one version and converts a C-contiguous
+#: ``out`` (the row-major columns) to it instead of compiling a second, C-layout version beside the weak form's
+#: sample-major one: each compilation of a generated kernel is ~0.6-0.8 s of CPU on the first-ever fit (issue 31),
+#: and the two versions did the same float operations in the same order (the same bits).
+EVAL_ROWS_SIGNATURE = "(f8[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8, f8, f8[:, :, :])"
 
 
 #: Samples of a row per tile when ``out`` is sample-major (the weak form's layout, rows = blocks): the kernel runs
@@ -135,7 +146,8 @@ def module_source(programs) -> str:
     w.emit(1, "return total")
     w.emit(0, "")
     w.emit(0, "")
-    w.emit(0, '@njit(cache=True, error_model="numpy", nogil=True)  # nogil: chunks of one trace run in threads')
+    # One signature given ahead (EVAL_ROWS_SIGNATURE): compiled once for every layout of out, see its comment.
+    w.emit(0, f'@njit("{EVAL_ROWS_SIGNATURE}", cache=True, error_model="numpy", nogil=True)  # nogil: chunks in threads')
     w.emit(0, "def eval_rows(K, x_rows, v_rows, t_rows, separation, a0, out):")
     w.emit(1, '"""out[r, i, j] = term j at sample i of row r; returns (all finite, any exactly zero)."""')
     w.emit(1, "rows, n = x_rows.shape")

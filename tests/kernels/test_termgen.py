@@ -79,6 +79,26 @@ def test_generated_kernel_equals_the_vm_bit_for_bit_and_the_numpy_twin_to_roundi
         np.testing.assert_allclose(out, twin, rtol=1e-12, atol=0)
 
 
+
+def test_one_compiled_version_serves_every_layout_and_strided_rows():
+    """Issue 31: the generated eval_rows is compiled for one signature (out of any strides), not once per layout
+    of out (each compilation is ~0.6-0.8 s of a new install's first fit); C-contiguous and strided out and
+    strided trajectory rows all run through it, with the VM's values."""
+    library = build_library(LIBRARIES["dmt"])
+    params = _params()
+    kernel = library.term_kernel(params)
+    x, v, t = _trajectory(rows=4, n=64)
+    strided = {"x": x[:, ::2], "v": v[:, ::2], "t": t[:, ::2]}  # not C-contiguous: the rows are made so first
+    for rows in ({"x": x, "v": v, "t": t}, strided):
+        for layout, out in _layouts(rows["x"], len(library)).items():
+            reference = np.empty_like(out)
+            _vm(library, params, np.ascontiguousarray(rows["x"]), np.ascontiguousarray(rows["v"]),
+                np.ascontiguousarray(rows["t"]), reference)
+            kernel.eval_rows(rows["x"], rows["v"], rows["t"], params["d"], params["a0"], out)
+            np.testing.assert_array_equal(out.view(np.int64), reference.view(np.int64), err_msg=layout)
+    assert len(kernel.module.eval_rows.signatures) == 1
+
+
 def test_generated_kernel_at_special_values():
     """z = 0 (inf, -inf terms), NaN and infinite deflections, x = -0.0: the VM's values and flags, bit for bit."""
     library = build_library(LIBRARIES["every opcode"])

@@ -11,7 +11,7 @@ import json, sys
 from afmid.kernels.warm import warm
 from afmid.kernels import sparse, switching
 warm()
-kernels = {"subset_rss": sparse.subset_rss, "subset_lstsq": sparse.subset_lstsq, "stlsq_factor": sparse.stlsq_factor,
+kernels = {"subset_rss_qr": sparse.subset_rss_qr, "subset_lstsq": sparse.subset_lstsq, "stlsq_factor": sparse.stlsq_factor,
            "switching_cells": switching.switching_cells, "cell_subsamples": switching.cell_subsamples}
 print(json.dumps({name: [sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values())]
                   for name, k in kernels.items()}))
