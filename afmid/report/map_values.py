@@ -68,8 +68,12 @@ def stats_text(stats: dict) -> str:
     if stats["selected_pixels"] == 0:
         return "not selected"
     unit = f" {stats['unit']}" if stats["unit"] and stats["unit"] != "1" else ""
-    text = (f"{stats['median']:.4g}{unit} (16-84 %: {stats['p16']:.4g} .. {stats['p84']:.4g}; "
-            f"median 1 sigma {stats['median_sigma']:.2g})")
+    if stats["selected_pixels"] == 1:  # one pixel's value is not the group's: no median, no spread to show
+        sigma = f" ± {stats['median_sigma']:.2g} (1 sigma)" if math.isfinite(stats["median_sigma"]) else ""
+        text = f"{stats['median']:.4g}{unit}{sigma} at that one pixel only, not a group value"
+    else:
+        text = (f"{stats['median']:.4g}{unit} (16-84 %: {stats['p16']:.4g} .. {stats['p84']:.4g}; "
+                f"median 1 sigma {stats['median_sigma']:.2g})")
     if stats["selected_pixels"] < stats["pixels"]:
         text += f"; selected at {stats['selected_pixels']} of {stats['pixels']} pixels"
     return text

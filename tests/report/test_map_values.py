@@ -44,6 +44,9 @@ def test_an_unselected_term_reads_not_selected_and_a_partly_selected_one_says_wh
     part = value_stats(values, sigma, everywhere, right, "Pa*s")
     assert part["median"] == pytest.approx(41.0, rel=1e-12)  # of 40 and 42 only: the zeros are not values
     assert stats_text(part).endswith("selected at 2 of 6 pixels") and "median 0" not in stats_text(part)
+    one = value_stats(values, sigma, everywhere, right & np.array([[True], [False]]), "Pa*s")
+    # one pixel is no group: its value is said to be that pixel's, without a median or a 16-84 % spread
+    assert stats_text(one) == "40 Pa s ± 1 (1 sigma) at that one pixel only, not a group value; selected at 1 of 6 pixels"
 
 
 def test_values_per_group_are_each_groups_own():
