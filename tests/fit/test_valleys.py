@@ -9,7 +9,7 @@ import pytest
 
 from afmid.fit.profile import ProfileResult
 from afmid.fit.search import NonlinearEstimate
-from afmid.fit.valleys import (chi2_inflation, cover_other_valleys, covering_sigma, other_valleys,
+from afmid.fit.valleys import (chi2_inflation, cover_other_valleys, covering_sigma, near_valleys, other_valleys,
                                separated_minima, Valley)
 
 S2 = 1.0  # one chi-square unit of the residual
@@ -123,3 +123,39 @@ def test_the_inflation_scales_the_rise():
 def test_covering_sigma_never_shrinks():
     assert covering_sigma(0.0, 5.0, [Valley(1.0, 0.0, 0.0)]) == 5.0
     assert covering_sigma(0.0, math.nan, [Valley(1.0, 0.0, 9.0)]) == pytest.approx(1.0 / 3.0)
+
+
+def near_double_well(rise: float, barrier: float):
+    """The fit's own profile points (as robust_profile leaves them, a grid step of WIDTH / 2): a valley at HOME
+    and, 6 widths away, one ``rise`` units higher behind a barrier ``barrier`` units above the lowest."""
+    away = HOME + 6 * WIDTH
+    grid = np.linspace(HOME - 4 * WIDTH, away + 4 * WIDTH, 29)
+    home = ((grid - HOME) / WIDTH) ** 2
+    other = ((grid - away) / WIDTH) ** 2 + rise
+    values = BASE + S2 * np.minimum(np.minimum(home, other), barrier)
+    return ProfileResult(HOME, WIDTH, WIDTH, math.nan, WIDTH / 2, grid, values, grid.size, S2), away
+
+
+def test_a_valley_among_the_profiles_own_points_is_covered():
+    """The outer grid steps over a valley a few widths away (draw 9 of instrument.yaml): the profile's points
+    show it; 3 units higher, it sits at sqrt(3) sigmas."""
+    found, away = near_double_well(rise=3.0, barrier=6.0)
+    valleys = other_valleys(found, np.linspace(0.02e-9, 1.5e-9, 3), np.full(3, BASE + 20.0), S2, lambda s: None)
+    assert len(valleys) == 1
+    assert valleys[0].value == pytest.approx(away, abs=1e-15) and valleys[0].rise == pytest.approx(3.0, rel=1e-9)
+    assert covering_sigma(HOME, WIDTH, valleys) == pytest.approx((away - HOME) / math.sqrt(3.0))
+
+
+def test_a_dip_on_the_flank_is_no_valley():
+    """A point below its neighbours by less than one unit (the quadrature's small steps) is no second valley;
+    nor is a valley more than REACH units up."""
+    found, _ = near_double_well(rise=3.0, barrier=3.8)  # the barrier 0.8 units above the other minimum
+    assert near_valleys(found, S2) == []
+    found, _ = near_double_well(rise=10.0, barrier=20.0)
+    assert near_valleys(found, S2) == []
+
+
+def test_the_near_valley_follows_the_effective_unit():
+    found, away = near_double_well(rise=4.0, barrier=12.0)
+    valleys = near_valleys(found, 4.0 * S2)  # correlated rows: one effective unit is 4 raw ones
+    assert len(valleys) == 1 and valleys[0].rise == pytest.approx(1.0, rel=1e-9)
