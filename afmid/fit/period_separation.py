@@ -16,6 +16,7 @@ import dataclasses
 import numpy as np
 
 from afmid.fit.prepare import Prepared
+from afmid.preprocess.periods import ou_smooth_given
 
 
 def block_means(prep: Prepared, per_sample: np.ndarray) -> np.ndarray:
@@ -60,7 +61,8 @@ def period_mean_forces(prep: Prepared, library, coef: np.ndarray, params: dict, 
     return out
 
 
-def mean_force_offsets(prep: Prepared, library, coef: np.ndarray, params: dict) -> np.ndarray:
+def mean_force_offsets(prep: Prepared, library, coef: np.ndarray, params: dict, smooth: bool = True
+                       ) -> np.ndarray:
     """Each harmonic block's rest separation relative to params["d"] (m), from its mean force.
 
     A period's constant Fourier row of the equation of motion is its mean tip-sample force, measured without the
@@ -68,7 +70,8 @@ def mean_force_offsets(prep: Prepared, library, coef: np.ndarray, params: dict) 
     rest separation at which the law's force averaged over that period's trajectory is this mean is the
     period's d: found on a grid of offsets (linear interpolation between the two bracketing ones; a period whose
     mean force the grid does not bracket gets the grid's end). Returned minus their mean: the trace's level
-    stays params["d"] (the joint fit's to estimate)."""
+    stays params["d"] (the joint fit's to estimate). With ``smooth`` the period-to-period noise is smoothed away
+    (:func:`smooth_offsets`; its variance: prep.block_sigma[0] over the mean force's slope in d, squared)."""
     grid = np.arange(-SCAN_HALF_WIDTH, SCAN_HALF_WIDTH + 0.5 * SCAN_STEP, SCAN_STEP)
     model = period_mean_forces(prep, library, coef, params, grid)  # falls with the offset (less contact)
     measured = prep.Y_block[:, 0]
@@ -78,4 +81,24 @@ def mean_force_offsets(prep: Prepared, library, coef: np.ndarray, params: dict) 
         # needs increasing abscissae.
         falling = np.minimum.accumulate(curve)
         offsets[b] = np.interp(target, falling[::-1], grid[::-1])
+    offsets -= offsets.mean()
+    centre = grid.size // 2  # the offset 0
+    slope = np.mean(model[:, centre - 1] - model[:, centre + 1]) / (2 * SCAN_STEP)  # N/m, the mean contact stiffness
+    if smooth and slope > 0 and offsets.size > 2:
+        offsets = smooth_offsets(offsets, (float(prep.block_sigma[0]) / slope) ** 2)
     return offsets - offsets.mean()
+
+
+def smooth_offsets(offsets: np.ndarray, noise_var: float) -> np.ndarray:
+    """Per-period offsets (m) with their noise (``noise_var``, m^2, independent per period) smoothed away: the
+    feedback moves d on its loop's time (tens of periods), so the offsets are an Ornstein-Uhlenbeck process seen
+    in white noise (:func:`afmid.preprocess.periods.ou_smooth_given`, a Kalman smoother), its variance the
+    scatter's excess over the noise and its period-to-period correlation the lag-1 autocovariance over that
+    variance (an OU process's rho; clipped to [0, 0.999]). Unchanged when the scatter is all noise."""
+    signal_var = float(np.var(offsets)) - noise_var
+    if signal_var <= 0:
+        return np.zeros_like(offsets)  # nothing beyond the noise: the block's d holds for every period
+    centred = offsets - offsets.mean()
+    rho = float(np.clip(np.mean(centred[1:] * centred[:-1]) / signal_var, 0.0, 0.999))
+    smoothed, _ = ou_smooth_given(centred[:, None], np.array([noise_var]), np.array([signal_var]), rho)
+    return smoothed[:, 0]

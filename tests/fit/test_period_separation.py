@@ -61,7 +61,7 @@ def test_each_periods_offset_is_found_from_its_mean_force(fitted):
     forces = period_mean_forces(prep, library, coef, params, truth)[np.arange(n), np.arange(n)]
     Y_block = prep.Y_block.copy()
     Y_block[:, 0] = forces
-    found = mean_force_offsets(dataclasses.replace(prep, Y_block=Y_block), library, coef, params)
+    found = mean_force_offsets(dataclasses.replace(prep, Y_block=Y_block), library, coef, params, smooth=False)
     np.testing.assert_allclose(found, truth - truth.mean(), atol=0.2 * SCAN_STEP)
 
 
@@ -72,10 +72,30 @@ def test_the_measured_mean_force_is_the_laws_at_the_true_separation(fitted):
     stiffness averaged over the period, measured on the fitted law: 4.5 N/m here). Allowed: 0.5 to 2 times
     that ratio (40 periods: the sd's own scatter is ~11 %)."""
     prep, library, coef, params = fitted
-    found = mean_force_offsets(prep, library, coef, params)
+    found = mean_force_offsets(prep, library, coef, params, smooth=False)
     step = 5e-12
     forces = period_mean_forces(prep, library, coef, params, np.array([-step, step]))
     slope = float(np.mean(forces[:, 0] - forces[:, 1]) / (2 * step))  # N/m, > 0: less d, more force
     assert slope > 0
     expected = float(prep.block_sigma[0]) / slope
     assert 0.5 * expected < np.std(found) < 2.0 * expected, (np.std(found), expected, slope)
+
+
+def test_smoothing_takes_the_periods_noise_out_of_a_slow_offset():
+    """An OU offset (sd 25 pm, rho 0.95 from period to period: the loop's ~20-period time) seen in white noise of
+    15 pm per period: the Kalman smoother's steady error is ~sqrt(sqrt(q r) / 2) ~ 8 pm (q = 25^2 (1 - rho^2),
+    r = 15^2); allowed 0.7 of the noise (10.5 pm), and pure noise smoothed to well under it."""
+    from afmid.fit.period_separation import smooth_offsets
+
+    rng = np.random.default_rng(11)
+    n, rho, sd, noise = 400, 0.95, 25e-12, 15e-12
+    signal = np.empty(n)
+    signal[0] = rng.normal(0, sd)
+    for i in range(1, n):
+        signal[i] = rho * signal[i - 1] + rng.normal(0, sd * np.sqrt(1 - rho**2))
+    signal -= signal.mean()
+    seen = signal + rng.normal(0, noise, n)
+    smoothed = smooth_offsets(seen, noise**2)
+    assert np.sqrt(np.mean((smoothed - signal) ** 2)) < 0.7 * noise
+    only_noise = smooth_offsets(rng.normal(0, noise, n), noise**2)
+    assert np.sqrt(np.mean(only_noise**2)) < 0.5 * noise
