@@ -13,9 +13,10 @@ blocks' middle times.
 Within a block d still moves: the feedback moves the piezo every period (sd 8-30 pm within 100-period blocks on a
 2 nm step at gain 6000 /s), and a contact of well under a nanometre's indentation turns that into a law biased
 soft with every block's d ~400 pm low (docs/lab/2026-11-29-scanning-record.md). Given each period's true d
-inside the fit, the same record came out right (d +17 pm at sigma 35 pm, E* 2.06 +- 0.12 GPa for 2). So the fit
-runs twice: the first joint fit's law gives each period's d relative to its block's from the period's mean force
-(:mod:`afmid.fit.period_separation`), and the second fits with those per-period separations, a level per block.
+inside the fit, the same record came out right (d +17 pm at sigma 35 pm, E* 2.06 +- 0.12 GPa for 2). So the
+blocks are fitted jointly ``PERIOD_OFFSET_PASSES`` times: each joint fit's law gives each period's d relative to
+its block's from the period's mean force (:mod:`afmid.fit.period_separation`), and the next fits with those
+per-period separations, a level per block (the track: the levels; ``period_offsets``: the periods within).
 """
 
 from __future__ import annotations
@@ -80,10 +81,12 @@ def cut_blocks(trace: Trace, block_periods: int) -> list[Trace]:
 
 
 def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, progress=False,
-                         uncertainty: bool = True) -> SeparationTrack:
+                         uncertainty: bool = True, within_block: str | None = None) -> SeparationTrack:
     """The force law and the track d(t) of ``trace`` (checked, :func:`afmid.io.trace.check_trace`) at
     ``bandwidth`` (Hz). ConfigError naming ``fit.separation_track.bandwidth`` when a block would be shorter than
-    the fit needs, or when ``sample.separation`` is given (then there is nothing to track)."""
+    the fit needs, or when ``sample.separation`` is given (then there is nothing to track). ``within_block``
+    ("constant" or "mean_force"; None: ``fit.separation_track.within_block``, else "constant"): d held per block,
+    or moved per period from each period's mean force (``PERIOD_OFFSET_PASSES`` joint fits)."""
     key = "fit.separation_track.bandwidth"
     if config.sample.separation is not None:
         raise ConfigError("a separation track estimates d(t); leave sample.separation out", file=config.source,
@@ -98,12 +101,15 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
                           "track needs two; raise the bandwidth or fit it with one separation", file=config.source,
                           key=key)
     configs = [config] * len(blocks)
-    joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty=False)
+    section = config.fit.separation_track
+    within_block = within_block or (section.within_block if section is not None else "constant")
+    passes = PERIOD_OFFSET_PASSES if within_block == "mean_force" else 1
+    joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty=uncertainty and passes == 1)
     offsets = [np.zeros(t.prep.blocks.n_blocks) for t in joint.traces]
-    for fit_pass in range(2, PERIOD_OFFSET_PASSES + 1):
+    for fit_pass in range(2, passes + 1):
         # A refit's preparations carry the offsets already: what its law finds is the change on top of them.
         offsets = [total + more for total, more in zip(offsets, period_offsets(joint))]
-        last = fit_pass == PERIOD_OFFSET_PASSES
+        last = fit_pass == passes
         joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty and last,
                                    adjust_prepared=lambda i, prep: with_period_separation(prep, offsets[i]))
     first = np.array([b.first_sample - trace.first_sample for b in blocks])
