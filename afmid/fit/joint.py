@@ -28,6 +28,7 @@ and its cross-validated error and noise floor, held-out periods of that trace re
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -239,20 +240,23 @@ def run_joint_fit(config: RunConfig, progress: bool | Progress = False, uncertai
 
 
 def fit_traces_jointly(config: RunConfig, configs: list[RunConfig], traces_in: list[Trace],
-                       progress: bool | Progress = False, uncertainty: bool = True) -> JointResult:
+                       progress: bool | Progress = False, uncertainty: bool = True,
+                       adjust_prepared=None) -> JointResult:
     """The joint fit of traces already in memory (checked), each with its own config (its ``sample.separation``,
     None: estimated): one shared force law, a separation per trace. A record cut into blocks of periods is such
-    a set of traces (afmid.fit.separation_track)."""
+    a set of traces (afmid.fit.separation_track). ``adjust_prepared(i, prep) -> Prepared`` (optional) replaces
+    trace i's preparation after its own fit, before the joint one (the separation track moves each period's
+    rest separation there: afmid.fit.period_separation)."""
     bar = progress if isinstance(progress, Progress) else Progress("fit", enabled=progress)
     try:
-        return _run_joint_fit(config, configs, traces_in, bar, uncertainty)
+        return _run_joint_fit(config, configs, traces_in, bar, uncertainty, adjust_prepared)
     finally:
         if bar is not progress:
             bar.close()
 
 
 def _run_joint_fit(config: RunConfig, configs: list[RunConfig], traces_in: list[Trace], bar: Progress,
-                   uncertainty: bool) -> JointResult:
+                   uncertainty: bool, adjust_prepared=None) -> JointResult:
     fit = config.fit
     if fit.form == "strong":
         raise ConfigError("a joint fit (data.paths) stacks the weak form's rows; use fit.form: weak",
@@ -265,6 +269,8 @@ def _run_joint_fit(config: RunConfig, configs: list[RunConfig], traces_in: list[
     for i, (c, trace) in enumerate(zip(configs, traces_in)):
         bar.stage(f"trace {i + 1} of {n}: its own fit", step=(i + 1, n + 3))
         single = run_fit(c, trace=trace, uncertainty=False)
+        if adjust_prepared is not None:
+            single = dataclasses.replace(single, prep=adjust_prepared(i, single.prep))
         separation = None
         if c.sample.separation is None:
             est = single.nonlinear["d"]

@@ -1,0 +1,104 @@
+"""A rest separation that moves from period to period inside a trace: the library evaluated at d + delta_b.
+
+Under an amplitude feedback the piezo moves every drive period, so within a block of a separation track
+(:mod:`afmid.fit.separation_track`) d(t) is not constant (measured on a 2 nm step at gain 6000 /s: sd 8-30 pm
+within 100-period blocks, against an indentation of well under a nanometre). The library's terms depend on the
+separation only through z = d - x, and each harmonic block (about one period) of a preparation is synthesised
+from its own Fourier coefficients, so a per-period rest separation d + delta_b is the library evaluated on the
+trajectory x - delta_b: its constant coefficient moved by -delta_b. The equation of motion's own rows
+(m x'' + c x' + k x, from the recorded samples) are untouched: moving the piezo moves the sample, not the lever.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from afmid.fit.prepare import Prepared
+from afmid.preprocess.periods import ou_smooth_given
+
+
+def block_means(prep: Prepared, per_sample: np.ndarray) -> np.ndarray:
+    """The mean of ``per_sample`` (one value per sample of ``prep``'s trace) over each of its harmonic blocks."""
+    blocks = prep.blocks
+    used = np.asarray(per_sample, dtype=float)[blocks.used]
+    return used.reshape(blocks.n_blocks, blocks.L).mean(axis=1)
+
+
+def with_period_separation(prep: Prepared, offsets: np.ndarray) -> Prepared:
+    """``prep`` with the library evaluated at the rest separation d + ``offsets[b]`` (m) in harmonic block b
+    (the trajectory's constant coefficient moved by -offsets[b]; its velocity and the equation's rows unchanged).
+    ValueError when ``offsets`` does not hold one value per block."""
+    offsets = np.asarray(offsets, dtype=float)
+    if offsets.shape != (prep.blocks.n_blocks,):
+        raise ValueError(f"need one separation offset per harmonic block ({prep.blocks.n_blocks}), got "
+                         f"{offsets.shape}")
+    trajectory = prep.X_traj.copy()
+    trajectory[:, 0] -= offsets
+    # A kept fine grid belongs to the old trajectory (FineGrid.holds compares the arrays): dropped with it.
+    return dataclasses.replace(prep, X_traj=trajectory, fine_grid=None)
+
+
+#: The offsets tried per period when matching its mean force, m: +-SCAN_HALF_WIDTH in SCAN_STEP steps (the
+#: feedback moved d by at most 108 pm within a 100-period block on the 2 nm step measured; 300 pm leaves room).
+SCAN_HALF_WIDTH = 300e-12
+SCAN_STEP = 5e-12
+
+
+def period_mean_forces(prep: Prepared, library, coef: np.ndarray, params: dict, offsets: np.ndarray) -> np.ndarray:
+    """The law's tip-sample force (N, ``coef`` on ``library``'s columns) averaged over each harmonic block's
+    trajectory, at the rest separation params["d"] + each of ``offsets`` (m): (n_blocks, len(offsets))."""
+    blocks = prep.blocks
+    first = np.arange(blocks.n_blocks)
+    x, v = blocks.synthesize_fine_rows(prep.X_traj, prep.V_traj, first=0)
+    t = blocks.fine_times(0, blocks.n_blocks)
+    out = np.empty((blocks.n_blocks, len(offsets)))
+    for j, offset in enumerate(offsets):
+        shifted = dict(params, d=float(params["d"]) + float(offset))
+        force = library.evaluate_rows(x, v, t, shifted) @ coef
+        out[:, j] = force.reshape(first.size, -1).mean(axis=1)
+    return out
+
+
+def mean_force_offsets(prep: Prepared, library, coef: np.ndarray, params: dict, smooth: bool = True
+                       ) -> np.ndarray:
+    """Each harmonic block's rest separation relative to params["d"] (m), from its mean force.
+
+    A period's constant Fourier row of the equation of motion is its mean tip-sample force, measured without the
+    drive (which has none): <F_ts>_b = -<m x'' + c x' + k x>_b (prep.Y_block[:, 0], N). Given the law, the
+    rest separation at which the law's force averaged over that period's trajectory is this mean is the
+    period's d: found on a grid of offsets (linear interpolation between the two bracketing ones; a period whose
+    mean force the grid does not bracket gets the grid's end). Returned minus their mean: the trace's level
+    stays params["d"] (the joint fit's to estimate). With ``smooth`` the period-to-period noise is smoothed away
+    (:func:`smooth_offsets`; its variance: prep.block_sigma[0] over the mean force's slope in d, squared)."""
+    grid = np.arange(-SCAN_HALF_WIDTH, SCAN_HALF_WIDTH + 0.5 * SCAN_STEP, SCAN_STEP)
+    model = period_mean_forces(prep, library, coef, params, grid)  # falls with the offset (less contact)
+    measured = prep.Y_block[:, 0]
+    offsets = np.empty(model.shape[0])
+    for b, (curve, target) in enumerate(zip(model, measured)):
+        # Made non-increasing (an attractive dip at the far end could turn it up), then reversed: np.interp
+        # needs increasing abscissae.
+        falling = np.minimum.accumulate(curve)
+        offsets[b] = np.interp(target, falling[::-1], grid[::-1])
+    offsets -= offsets.mean()
+    centre = grid.size // 2  # the offset 0
+    slope = np.mean(model[:, centre - 1] - model[:, centre + 1]) / (2 * SCAN_STEP)  # N/m, the mean contact stiffness
+    if smooth and slope > 0 and offsets.size > 2:
+        offsets = smooth_offsets(offsets, (float(prep.block_sigma[0]) / slope) ** 2)
+    return offsets - offsets.mean()
+
+
+def smooth_offsets(offsets: np.ndarray, noise_var: float) -> np.ndarray:
+    """Per-period offsets (m) with their noise (``noise_var``, m^2, independent per period) smoothed away: the
+    feedback moves d on its loop's time (tens of periods), so the offsets are an Ornstein-Uhlenbeck process seen
+    in white noise (:func:`afmid.preprocess.periods.ou_smooth_given`, a Kalman smoother), its variance the
+    scatter's excess over the noise and its period-to-period correlation the lag-1 autocovariance over that
+    variance (an OU process's rho; clipped to [0, 0.999]). Unchanged when the scatter is all noise."""
+    signal_var = float(np.var(offsets)) - noise_var
+    if signal_var <= 0:
+        return np.zeros_like(offsets)  # nothing beyond the noise: the block's d holds for every period
+    centred = offsets - offsets.mean()
+    rho = float(np.clip(np.mean(centred[1:] * centred[:-1]) / signal_var, 0.0, 0.999))
+    smoothed, _ = ou_smooth_given(centred[:, None], np.array([noise_var]), np.array([signal_var]), rho)
+    return smoothed[:, 0]

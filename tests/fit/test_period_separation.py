@@ -1,0 +1,101 @@
+"""afmid.fit.period_separation: a rest separation per period, as the library sees it, and its estimate from each
+period's mean force."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from afmid.config import build_config
+from afmid.fit.period_separation import (SCAN_STEP, mean_force_offsets, period_mean_forces, with_period_separation)
+from afmid.fit.pipeline import run_fit
+from afmid.io.trace import check_trace
+from afmid.simulate.driver import simulate
+
+RAW = {"cantilever": {"spring_constant": 40.0, "resonance_frequency": 3e5, "quality_factor": 250.0, "tip_radius": 1e-8},
+       "drive": {"frequency": 3e5, "free_amplitude": 1e-8}, "sample": {"a0": 0.165e-9, "separation": 8.5e-9},
+       "model": {"effects": ["dmt"]}, "fit": {"bootstrap": 0, "seed": 0},
+       "simulate": {"model": "dmt", "parameters": {"E_star": 2e9, "hamaker": 5e-20}, "periods": 40,
+                    "samples_per_period": 100, "steps_per_period": 1000, "setpoint": 0.85,
+                    "noise": {"detector_rms": 1e-12}, "seed": 5}}
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    config = build_config(copy.deepcopy(RAW))
+    result = run_fit(config, trace=check_trace(simulate(config), config), uncertainty=False)
+    p = len(result.library)
+    coef = np.where(result.selected[:p], result.coef[:p], 0.0)
+    return result.prep, result.library, coef, dict(result.system.params)
+
+
+def test_a_period_offset_is_the_library_at_a_shifted_separation(fitted):
+    """Block b shifted by c_b: the law's period-mean force there is the unshifted trajectory's at d + c_b."""
+    prep, library, coef, params = fitted
+    n = prep.blocks.n_blocks
+    offsets = np.linspace(-60e-12, 90e-12, n)
+    shifted = with_period_separation(prep, offsets)
+    at_zero = period_mean_forces(shifted, library, coef, params, np.array([0.0]))[:, 0]
+    per_block = period_mean_forces(prep, library, coef, params, offsets)  # (n, n): column j at offset j
+    expected = per_block[np.arange(n), np.arange(n)]
+    # The same arithmetic on a trajectory moved by c_b instead of d moved by c_b: rounding of z = d - x only.
+    np.testing.assert_allclose(at_zero, expected, rtol=1e-9, atol=1e-9 * np.max(np.abs(expected)))
+    assert np.ptp(expected) > 0.05 * np.max(np.abs(expected))  # the offsets matter: not a vacuous equality
+    np.testing.assert_array_equal(shifted.V_traj, prep.V_traj)
+    np.testing.assert_array_equal(shifted.Y_block, prep.Y_block)
+    with pytest.raises(ValueError, match="one separation offset per harmonic block"):
+        with_period_separation(prep, offsets[:-1])
+
+
+def test_each_periods_offset_is_found_from_its_mean_force(fitted):
+    """Mean forces made by the law at known offsets per period: the offsets come back (minus their mean) to the
+    grid's linear interpolation, well under one grid step."""
+    import dataclasses
+
+    prep, library, coef, params = fitted
+    n = prep.blocks.n_blocks
+    rng = np.random.default_rng(3)
+    truth = rng.uniform(-150e-12, 150e-12, n)
+    forces = period_mean_forces(prep, library, coef, params, truth)[np.arange(n), np.arange(n)]
+    Y_block = prep.Y_block.copy()
+    Y_block[:, 0] = forces
+    found = mean_force_offsets(dataclasses.replace(prep, Y_block=Y_block), library, coef, params, smooth=False)
+    np.testing.assert_allclose(found, truth - truth.mean(), atol=0.2 * SCAN_STEP)
+
+
+def test_the_measured_mean_force_is_the_laws_at_the_true_separation(fitted):
+    """On the simulated record (d constant, 1 pm detector noise, no thermal force) each period's offset found
+    from its own mean force scatters about 0 by that mean force's noise (prep.block_sigma[0], N: the
+    preparation's noise model of a period's constant row) over the mean force's slope in d (the contact
+    stiffness averaged over the period, measured on the fitted law: 4.5 N/m here). Allowed: 0.5 to 2 times
+    that ratio (40 periods: the sd's own scatter is ~11 %)."""
+    prep, library, coef, params = fitted
+    found = mean_force_offsets(prep, library, coef, params, smooth=False)
+    step = 5e-12
+    forces = period_mean_forces(prep, library, coef, params, np.array([-step, step]))
+    slope = float(np.mean(forces[:, 0] - forces[:, 1]) / (2 * step))  # N/m, > 0: less d, more force
+    assert slope > 0
+    expected = float(prep.block_sigma[0]) / slope
+    assert 0.5 * expected < np.std(found) < 2.0 * expected, (np.std(found), expected, slope)
+
+
+def test_smoothing_takes_the_periods_noise_out_of_a_slow_offset():
+    """An OU offset (sd 25 pm, rho 0.95 from period to period: the loop's ~20-period time) seen in white noise of
+    15 pm per period: the Kalman smoother's steady error is ~sqrt(sqrt(q r) / 2) ~ 8 pm (q = 25^2 (1 - rho^2),
+    r = 15^2); allowed 0.7 of the noise (10.5 pm), and pure noise smoothed to well under it."""
+    from afmid.fit.period_separation import smooth_offsets
+
+    rng = np.random.default_rng(11)
+    n, rho, sd, noise = 400, 0.95, 25e-12, 15e-12
+    signal = np.empty(n)
+    signal[0] = rng.normal(0, sd)
+    for i in range(1, n):
+        signal[i] = rho * signal[i - 1] + rng.normal(0, sd * np.sqrt(1 - rho**2))
+    signal -= signal.mean()
+    seen = signal + rng.normal(0, noise, n)
+    smoothed = smooth_offsets(seen, noise**2)
+    assert np.sqrt(np.mean((smoothed - signal) ** 2)) < 0.7 * noise
+    only_noise = smooth_offsets(rng.normal(0, noise, n), noise**2)
+    assert np.sqrt(np.mean(only_noise**2)) < 0.5 * noise
