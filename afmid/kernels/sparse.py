@@ -30,7 +30,7 @@ _GELSD = types.ExternalFunction("numba_ez_gelsd", types.intc(
     types.CPointer(types.float64), types.intp, types.CPointer(types.float64), types.float64,
     types.CPointer(numba_linalg.F_INT_nbtype)))
 _DOUBLE = ord("d")  # LAPACK kind: real double precision
-# BLAS dgemv through numba's bridge, as numba's ``A @ x`` calls it for a C-contiguous A (issue 31: the operator's
+# BLAS dgemv through numba's bridge, as numba's ``A @ x`` calls it for a C-contiguous A (the operator's
 # overload and its checks were ~0.5 s of the first-ever fit's compilation): kind, trans, m, n, alpha, a, lda, x,
 # beta, y; unit strides.
 _GEMV = types.ExternalFunction("numba_xxgemv", types.intc(
@@ -235,7 +235,7 @@ def subset_rss(T, protected, max_error, min_pivot):
 
     The exact subsets are solved here, one kernel call each, not inside :func:`subset_rss_qr`: a numba kernel
     that calls another is compiled with the callee's code linked in and optimised again, and subset_lstsq (with
-    LAPACK's bridge) was ~1 s of the ~2.5 s that compiling the walk cost a new install (issue 31). The values
+    LAPACK's bridge) was ~1 s of the ~2.5 s that compiling the walk cost a new install. The values
     are the same bits either way (the same kernel on the same arguments).
     """
     rss, exact = subset_rss_qr(T, protected, max_error, min_pivot)

@@ -80,7 +80,7 @@ def _kinematics_source() -> str:
 #: The one signature of the generated ``eval_rows``: consts and the trajectory rows C-contiguous (the caller makes
 #: them so), ``out`` of any strides ('A'). Given ahead, numba compiles this one version and converts a C-contiguous
 #: ``out`` (the row-major columns) to it instead of compiling a second, C-layout version beside the weak form's
-#: sample-major one: each compilation of a generated kernel is ~0.6-0.8 s of CPU on the first-ever fit (issue 31),
+#: sample-major one: each compilation of a generated kernel is ~0.6-0.8 s of CPU on the first-ever fit,
 #: and the two versions did the same float operations in the same order (the same bits).
 EVAL_ROWS_SIGNATURE = "(f8[::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8, f8, f8[:, :, :])"
 
