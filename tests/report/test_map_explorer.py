@@ -12,6 +12,7 @@ import re
 import h5py
 import numpy as np
 
+from afmid.io.files import FORMAT_VERSION
 from afmid.maps.pixel_curves import CURVE_POINTS, CURVES, write_pixel_curves
 from afmid.report.map_explorer import MAX_PIXELS, write_explorer
 from afmid.report.maps import read_map_result
@@ -23,6 +24,8 @@ def _result(path, rows: int, cols: int, curves: bool) -> None:
     rng = np.random.default_rng(0)
     with h5py.File(path, "w") as h5:
         h5.attrs["format"] = "afmid-map-result"
+        h5.attrs["format_version"] = FORMAT_VERSION  # as every afmid file (afmid.io.files.check_format_version)
+        h5.attrs["rows"], h5.attrs["cols"] = rows, cols  # afmid.report.map_result.check_layout reads them
         maps = h5.create_group("maps")
 
         def put(name, data, unit, **attrs):
