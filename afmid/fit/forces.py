@@ -190,6 +190,7 @@ def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) 
 
         central = quantities(coef)
         samples = [quantities(c) for c in bagging.coef_samples] if bagging is not None else []
+        sources = _sources(quantities, central, coef, index, mask)
         for q in effect.quantities:
             value = float(central.get(q.name, math.nan))
             arr = np.array([s.get(q.name, math.nan) for s in samples], dtype=float)
@@ -198,8 +199,27 @@ def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) 
             lo, hi = (np.percentile(arr, [2.5, 97.5]) if arr.size > 2 else (math.nan, math.nan))
             key = q.name if q.name not in out else f"{effect_name}.{q.name}"
             out[key] = {"value": value, "error": err, "ci_low": float(lo), "ci_high": float(hi), "unit": q.unit,
-                        "effect": effect_name, "doc": q.doc, "tip_radius": float(ctx["R"])}
+                        "effect": effect_name, "doc": q.doc, "tip_radius": float(ctx["R"]),
+                        "sources": sources.get(q.name, ())}
     return out
+
+
+def _sources(quantities, central: dict, coef, index: dict[str, int], mask) -> dict[str, tuple[str, ...]]:
+    """For each read-out of an effect, the selected terms whose coefficient it is computed from (labels, sorted):
+    each selected coefficient is moved by 0.1 % and the read-outs that change depend on it. Read-outs of the same
+    single coefficient (H, the adhesion and the surface energy of DMT's van der Waals term) are one piece of
+    evidence, not several (afmid.fit.plausibility.spring_constant_cause counts the terms)."""
+    out: dict[str, set[str]] = {}
+    for label, j in index.items():
+        if not mask[j] or not np.isfinite(coef[j]) or coef[j] == 0:
+            continue
+        moved = np.array(coef, dtype=float, copy=True)
+        moved[j] *= 1.001
+        for name, value in quantities(moved).items():
+            before = central.get(name, math.nan)
+            if np.isfinite(value) and np.isfinite(before) and value != before:
+                out.setdefault(name, set()).add(label)
+    return {name: tuple(sorted(labels)) for name, labels in out.items()}
 
 
 # --------------------------------------------------------------------------- forces

@@ -260,8 +260,10 @@ def spring_constant_cause(quantities: Mapping[str, Mapping | float]) -> SpringCo
         if not (low <= value <= high):
             flagged.add(name)
     # One read-out alone allows any factor that brings it in (E* 10 TPa: 10x to 1e11x) and is as well a wrong
-    # data.units: the cause is named only when two or more read-outs agree on a factor.
-    if not flagged or len(scaled) < 2 or lo > hi or lo <= 0.0 <= hi:
+    # data.units: the cause is named only when two or more read-outs agree on a factor, and they must rest on two
+    # or more fitted terms: H, the adhesion and the surface energy of one van der Waals coefficient are one piece of
+    # evidence (``sources``, afmid.fit.forces.read_out; read-outs given without it count as independent).
+    if not flagged or len(scaled) < 2 or lo > hi or lo <= 0.0 <= hi or not _independent(quantities, scaled):
         return None
     larger = lo > 0.0  # f > 1: the declared k is too large
     direction = "large" if larger else "small"
@@ -284,6 +286,15 @@ def spring_constant_cause(quantities: Mapping[str, Mapping | float]) -> SpringCo
         f"to it (at {_factor_words(10.0 ** example)} too {direction}: {at}): check cantilever.spring_constant")
     cause.explained = frozenset(flagged)
     return cause
+
+
+def _independent(quantities: Mapping[str, Mapping | float], names) -> bool:
+    """True when the read-outs ``names`` rest on at least two fitted terms (their ``sources``), or when any of them
+    does not say what it rests on."""
+    sources = [q.get("sources") if isinstance(q, Mapping) else None for q in (quantities[n] for n in names)]
+    if any(s is None for s in sources):
+        return True
+    return len({label for s in sources for label in s}) >= 2 and len({tuple(s) for s in sources}) >= 2
 
 
 def unphysical(name: str, quantity: Mapping) -> bool:

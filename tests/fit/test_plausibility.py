@@ -135,6 +135,18 @@ def test_no_spring_constant_cause_when_no_single_factor_explains_the_read_outs()
     assert "cantilever.spring_constant" in reason and "would explain it" not in reason
 
 
+def test_read_outs_of_one_term_are_one_piece_of_evidence():
+    """H, the adhesion and the surface energy all come from DMT's van der Waals coefficient: when E* is not
+    determined (no contact term selected, as on a record the model fails) they are one read-out, and one read-out
+    names no spring constant (any factor brings it in). With E* from the Hertz term beside them, they are two."""
+    one_term = {name: {**q, "sources": ("dmt.vdw",)} for name, q in _dmt_quantities(_K_TIMES_100).items()
+                if name != "E_star"}
+    reason = check_plausibility(one_term)["hamaker"].reason
+    assert not check_plausibility(one_term)["hamaker"].plausible and "would explain it" not in reason
+    two_terms = {**one_term, "E_star": {**_dmt_quantities(_K_TIMES_100)["E_star"], "sources": ("dmt.hertz",)}}
+    assert "a spring constant 5.1x to 5100x too large would explain it" in check_plausibility(two_terms)["hamaker"].reason
+
+
 def test_read_outs_in_range_give_no_cause():
     verdicts = check_plausibility(_dmt_quantities({"hamaker": 5.0e-20, "E_star": 2.0e9, "adhesion_force": 3.1e-9,
                                                    "surface_energy": 0.0246}))
