@@ -162,18 +162,20 @@ def check_folder_writable(path: str | Path) -> None:
     """
     import tempfile
 
+    from afmid.interrupts import deferred
     from afmid.tempfiles import is_write_refused, prefix_for, write_refused_error
 
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
-    try:
-        fd, probe = tempfile.mkstemp(prefix=prefix_for(path), dir=folder)
-    except OSError as exc:
-        if is_write_refused(exc):
-            raise write_refused_error(exc, path) from None
-        raise OutputError(f"cannot write in folder {folder}: {exc.strerror or exc}", file=path) from None
-    os.close(fd)
-    os.unlink(probe)
+    with deferred():  # a Ctrl-C or SIGTERM between making and removing the probe must not leave it behind
+        try:
+            fd, probe = tempfile.mkstemp(prefix=prefix_for(path), dir=folder)
+        except OSError as exc:
+            if is_write_refused(exc):
+                raise write_refused_error(exc, path) from None
+            raise OutputError(f"cannot write in folder {folder}: {exc.strerror or exc}", file=path) from None
+        os.close(fd)
+        os.unlink(probe)
 
 
 def is_regular_file(path: str | Path) -> bool:
