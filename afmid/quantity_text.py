@@ -99,6 +99,18 @@ def format_value(value: float, unit: str, significant: int = 3) -> str:
     return _with_unit(_plain(value * factor, significant), shown)
 
 
+def format_number(value: float | None, unit: str = "", digits: int = 3) -> str:
+    """A number already in the unit it is shown in, with ``digits`` significant digits (``%g``), for the report's
+    tables and sentences: ``format_number(0.04317)`` -> ``0.0432``, ``format_number(57.81, "eV")`` -> ``57.8 eV``;
+    ``–`` for a missing or non-finite value, no sign on a rounded zero. Unlike :func:`format_value` it converts
+    nothing: the caller has already scaled to ``unit``."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "–"
+    text = f"{value:.{digits}g}"
+    text = text.lstrip("-") if float(text) == 0 else text  # a rounded zero has no sign
+    return _with_unit(text, unit)
+
+
 def pdg_error_digits(sigma: float) -> int:
     """Significant digits the PDG rule keeps for an error ``sigma`` > 0 (1 or 2)."""
     leading = int(f"{abs(sigma):.2e}".replace(".", "")[:3])  # the three leading digits, 100..999

@@ -14,11 +14,11 @@ last, whose figures are the page's own ``residual`` and ``suggestions``.
 from __future__ import annotations
 
 import html
-import math
 from pathlib import Path
 
 from afmid.report.figures import figure_html
 from afmid.report.plots import fig_residual, fig_suggestions
+from afmid.report.quantity_text import format_number
 
 NN = 1e9  # N -> nN for display
 
@@ -26,20 +26,12 @@ REGION_HEADER = ["region", "time", "share of residual", "rms", "noise", "approac
                  "correlation with dz/dt"]
 
 
-def _fmt(v: float, unit: str = "", digits: int = 3) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "–"
-    text = f"{v:.{digits}g}"
-    text = text.lstrip("-") if float(text) == 0 else text  # a rounded zero has no sign
-    return text + (f" {unit}" if unit else "")
-
-
 def region_rows(local: dict) -> list[list[str]]:
     """The residual by region (:func:`afmid.diagnosis.localize.localize`'s ``by_region``) as table rows, forces
     in nN."""
     return [[k, f"{100 * v['fraction_of_time']:.0f} %", f"{100 * v['share_of_residual']:.0f} %",
-             _fmt(v["rms"] * NN, "nN"), _fmt(v["noise_rms"] * NN, "nN"), _fmt(v["rms_approach"] * NN, "nN"),
-             _fmt(v["rms_retraction"] * NN, "nN"), _fmt(v["rate_correlation"])] for k, v in local["by_region"].items()]
+             format_number(v["rms"] * NN, "nN"), format_number(v["noise_rms"] * NN, "nN"), format_number(v["rms_approach"] * NN, "nN"),
+             format_number(v["rms_retraction"] * NN, "nN"), format_number(v["rate_correlation"])] for k, v in local["by_region"].items()]
 
 
 def residual_caption(local: dict) -> str:

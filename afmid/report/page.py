@@ -39,7 +39,7 @@ from afmid.report.plots import (bandwidth_text, fig_coefficients, fig_error_runs
                                 fig_suggestions)
 from afmid.report.loop_evidence import (REGION_HEADER, SUGGESTIONS_CAPTION, loop_figures, region_rows,
                                         residual_caption, run_evidence_html)
-from afmid.report.quantity_text import format_delta_bic, format_measurement, format_value
+from afmid.report.quantity_text import format_delta_bic, format_measurement, format_number, format_value
 from afmid.report.story import (band_words, diagnose_runs, error_text, fold_spread, loop_html, loop_lines, loop_steps,
                                 run_entry)
 from afmid.runcheck import check_same_traces
@@ -102,14 +102,6 @@ def _table(header: list[str], rows: list[list]) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
-def _fmt(v: float, unit: str = "", digits: int = 3) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "–"
-    text = f"{v:.{digits}g}"
-    text = text.lstrip("-") if float(text) == 0 else text  # a rounded zero has no sign
-    return text + (f" {unit}" if unit else "")
-
-
 CSS = """body{font-family:system-ui,sans-serif;max-width:1150px;margin:2em auto;color:#222;line-height:1.45}
 h1{font-size:1.5em}h2{font-size:1.2em;border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.6em}
 table{border-collapse:collapse;margin:.6em 0;font-size:.9em}td,th{border:1px solid #ccc;padding:.25em .6em;text-align:left;vertical-align:top}
@@ -129,8 +121,9 @@ def _verdict_box(summary: dict, last_name: str | None = None) -> str:
     if "missing_effect" not in summary or not diag:
         return ("<div class='verdict'><h2>Verdict: not diagnosed</h2><p>"
                 + html.escape(summary.get("note", "suggestions were not requested (--no-suggest)")) + "</p></div>")
-    facts = (f"Current model: error {_fmt(diag.get('error'))} (noise floor {_fmt(diag.get('noise_floor'))}), "
-             f"reduced χ² {_fmt(diag.get('chi2_reduced'))} (significant above {_fmt(diag.get('chi2_limit'))}).")
+    facts = (f"Current model: error {format_number(diag.get('error'))} "
+             f"(noise floor {format_number(diag.get('noise_floor'))}), "
+             f"reduced χ² {format_number(diag.get('chi2_reduced'))} (significant above {format_number(diag.get('chi2_limit'))}).")
     band = band_words(summary["runs"][-1]) if summary.get("runs") else ""
     if band:  # how well the force itself is known, next to the verdict on its law
         facts += f" {band[0].upper()}{band[1:]}."
@@ -189,8 +182,8 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     parts.extend(f"<p><b>Note:</b> {html.escape(note)}</p>" for note in summary.get("notes", []))
     parts.append("<h2>Runs</h2>")
     rows = [[r.path.name, ", ".join(r.effects) or "(library)", error_text(r.cv_error, *fold_spread(r)),
-             _fmt(r.cv_error_noise_floor, digits=3), "yes" if r.model_limited else "no", r.n_terms,
-             _fmt(r.chi2_reduced, digits=3), ", ".join(r.selected_terms), e["diagnosis"]["verdict"]]
+             format_number(r.cv_error_noise_floor, digits=3), "yes" if r.model_limited else "no", r.n_terms,
+             format_number(r.chi2_reduced, digits=3), ", ".join(r.selected_terms), e["diagnosis"]["verdict"]]
             for r, e in zip(runs, summary["runs"])]
     parts.append(_table(["run", "effects", "cv error ± sd over folds", "noise floor", "model-limited", "terms",
                          "χ²_red", "selected terms", "diagnosis of this run"], rows))
@@ -287,10 +280,10 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                  "cantilever's energy balance and from the model; they agree when the model captures the "
                  "dissipation.</p>")
     parts.append(_table(["from", "depends on", "energy"], [
-        [what, depends, _fmt(energy[key] / eV, "eV")
-         + (f" ± {_fmt(energy[sigma] / eV, 'eV')} (1σ, drive calibration)" if sigma else "")]
+        [what, depends, format_number(energy[key] / eV, "eV")
+         + (f" ± {format_number(energy[sigma] / eV, 'eV')} (1σ, drive calibration)" if sigma else "")]
         for what, depends, key, sigma in energy_rows(energy, last.drive_calibrated)]))
-    parts.append(f"<p>For scale: the drive does {_fmt(energy['drive_work'] / eV, 'eV')} of work per period. "
+    parts.append(f"<p>For scale: the drive does {format_number(energy['drive_work'] / eV, 'eV')} of work per period. "
                  f"{energy_caveat(last.drive_calibrated)}</p>")
     parts.append(_img(folder, figures["periods"], "Per period: residual, model force extremes, dissipated energy"))
     if summary.get("tried"):
@@ -300,7 +293,7 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                      "a lower cross-validated error and physically possible parameter values; ranked by BIC.</p>")
         if "suggestions" in figures:
             parts.append(_img(folder, figures["suggestions"], SUGGESTIONS_CAPTION))
-        rows = [[t["effect"], _fmt(t["error_after"], digits=3),
+        rows = [[t["effect"], format_number(t["error_after"], digits=3),
                  format_delta_bic(t["delta_bic"]) if t["delta_bic"] is not None else "–",
                  "yes" if t["significant"] else "no",
                  fitted_text(t),
@@ -324,7 +317,7 @@ def joint_html(run: RunData) -> str:
     rows = [[Path(t["path"]).name,
              (f"{t['separation'] * 1e9:.4f} ± {t['separation_error'] * 1e9:.4f} nm (1σ)" if t["separation_error"] > 0
               else f"{t['separation'] * 1e9:.4f} nm (given)"),
-             _fmt(t["cv_error"], digits=3), _fmt(t["cv_error_noise_floor"], digits=3),
+             format_number(t["cv_error"], digits=3), format_number(t["cv_error_noise_floor"], digits=3),
              "yes" if t["model_limited"] else "no"] for t in run.joint]
     return (f"<h2>Joint fit: one force law, {len(run.joint)} traces ({html.escape(run.path.name)})</h2>"
             "<p>The traces were fitted together (<code>data.paths</code>): one sample, one tip, one set of force-law "
@@ -445,7 +438,7 @@ def terminal_summary(summary: dict, output: Path) -> str:
         error = error_text(r["error"], r.get("error_fold_sd", math.nan), d.get("error_folds", 0))
         error = error.replace("(sd over ", "(")
         lines.append(f"{Path(r['run']).name:<24} {', '.join(r['effects']):<30} {error:>24} "
-                     f"{_fmt(r.get('noise_floor'), digits=3):>7} {r['n_terms']:>5}")
+                     f"{format_number(r.get('noise_floor'), digits=3):>7} {r['n_terms']:>5}")
     for r in summary["runs"]:
         implausible = [k for k, v in r["parameters"].items() if not v.get("plausible", True)]
         if implausible:

@@ -8,6 +8,7 @@ from afmid.quantity_text import (  # noqa: F401 (re-exported for the report's mo
     format_delta_bic,
     format_interval,
     format_measurement,
+    format_number,
     format_value,
     pdg_error_digits,
 )

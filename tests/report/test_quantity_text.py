@@ -138,3 +138,23 @@ def test_csv_column_names_put_the_unit_at_the_end_by_one_rule():
     for (name, unit), expected in cases.items():
         assert column_name(name, unit) == expected, (name, unit)
     assert all("." not in column_name(n, u) and " " not in column_name(n, u) for n, u in cases)
+
+
+@pytest.mark.parametrize("value, unit, digits, expected", [
+    (0.04317, "", 3, "0.0432"),
+    (57.81, "eV", 3, "57.8 eV"),
+    (1.2345e-5, "nN", 3, "1.23e-05 nN"),
+    (-0.0004, "", 1, "-0.0004"),
+    (-0.0, "", 3, "0"),             # a rounded zero has no sign
+    (-1e-30, "eV", 3, "-1e-30 eV"),  # tiny but not zero at 3 digits: the sign stays
+    (7, "", 3, "7"),
+    (None, "eV", 3, "–"),
+    (math.nan, "", 3, "–"),
+    (np.float64(math.inf), "nN", 3, "–"),
+])
+def test_format_number_writes_a_scaled_number_as_the_report_tables_do(value, unit, digits, expected):
+    """The report's tables write numbers the caller has already scaled (nN, eV) with ``%g`` digits and a dash for
+    what is missing: one formatter for the page and the loop's evidence."""
+    from afmid.quantity_text import format_number
+
+    assert format_number(value, unit, digits) == expected
