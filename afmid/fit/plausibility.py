@@ -158,6 +158,7 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
     interval = f"[{display(ci_low, unit)}, {display(ci_high, unit)}]" if has_interval else ""
     tip_radius = _field(q, "tip_radius")
     tip_range = tip_scaled_range(name, q.get("effect") or None, tip_radius)
+    whole_interval_outside = interval_outside_range(name, q)
     if declared is not None:
         low, high, _ = tip_range or declared
         allowed = range_words(low, high, unit)
@@ -180,12 +181,12 @@ def judge(name: str, quantity: Mapping | float) -> Verdict:
                 hint = ("are the units and calibration right (data.units, data.invols or data.scale, "
                         "cantilever.spring_constant, cantilever.tip_radius)?")
             if has_interval:
-                if ci_high < low or ci_low > high:
+                if whole_interval_outside:
                     what += f", and its 95 % interval {interval} is outside it too"
                 else:
                     what += f", and only its 95 % interval {interval} reaches into it"
             return Verdict(False, f"{what}; {hint}", what)
-        if has_interval and (ci_high < low or ci_low > high):
+        if whole_interval_outside:
             return Verdict(False, f"{shown} lies in {allowed}, but its whole 95 % interval {interval} lies outside")
     if math.isinf(error) or (value != 0 and math.isfinite(error) and error > UNCONSTRAINED_RATIO * abs(value)):
         return Verdict(False, f"{shown} ± {display(error, unit)} (1σ) is unconstrained: its error is more than "
@@ -246,8 +247,8 @@ def spring_constant_cause(quantities: Mapping[str, Mapping | float]) -> SpringCo
     flagged = set()
     for name, q in quantities.items():
         q = q if isinstance(q, Mapping) else {"value": q}
-        value, effect = _field(q, "value"), q.get("effect") or None
-        declared = tip_scaled_range(name, effect, _field(q, "tip_radius")) or plausible_range(name, effect)
+        value = _field(q, "value")
+        declared = judged_range(name, q)
         if declared is None or q.get("determined", True) is False or not (math.isfinite(value) and value > 0):
             continue
         low, high, unit = declared
@@ -297,22 +298,36 @@ def _independent(quantities: Mapping[str, Mapping | float], names) -> bool:
     return len({label for s in sources for label in s}) >= 2 and len({tuple(s) for s in sources}) >= 2
 
 
-def unphysical(name: str, quantity: Mapping) -> bool:
-    """True when a determined read-out and its whole 95 % interval lie outside the physical range (for a force
-    that grows with the tip, the declared tip's): no value the data allow is physical, so the model fits the
-    record only with an impossible parameter. Noise alone puts a small term's interval across a bound, never
-    wholly beyond it (that is 2 sigma at least); a read-out without an interval is no evidence either way."""
+def judged_range(name: str, quantity: Mapping) -> tuple[float, float, str] | None:
+    """(low, high, unit) a read-out is judged against: for a force that grows with the tip, the range the declared
+    tip allows (:func:`tip_scaled_range`), else the declared one (:func:`plausible_range`); None if undeclared."""
+    effect = quantity.get("effect") or None
+    return tip_scaled_range(name, effect, _field(quantity, "tip_radius")) or plausible_range(name, effect)
+
+
+def interval_outside_range(name: str, quantity: Mapping) -> bool:
+    """True when a determined read-out's whole 95 % interval (``ci_low``, ``ci_high``, finite) lies outside its
+    physical range (:func:`judged_range`): no value the data allow is physical. Noise alone puts a small term's
+    interval across a bound, never wholly beyond it (that is 2 sigma at least); a read-out without an interval
+    is no evidence either way."""
     if quantity.get("determined", True) is False:
         return False
-    value, ci_low, ci_high = (_field(quantity, k) for k in ("value", "ci_low", "ci_high"))
-    if not (math.isfinite(value) and math.isfinite(ci_low) and math.isfinite(ci_high)):
-        return False
-    effect = quantity.get("effect") or None
-    declared = tip_scaled_range(name, effect, _field(quantity, "tip_radius")) or plausible_range(name, effect)
-    if declared is None:
+    ci_low, ci_high = _field(quantity, "ci_low"), _field(quantity, "ci_high")
+    declared = judged_range(name, quantity)
+    if declared is None or not (math.isfinite(ci_low) and math.isfinite(ci_high)):
         return False
     low, high, _ = declared
-    return not (low <= value <= high) and (ci_high < low or ci_low > high)
+    return ci_high < low or ci_low > high
+
+
+def unphysical(name: str, quantity: Mapping) -> bool:
+    """True when a determined read-out lies outside its physical range and so does its whole 95 % interval
+    (:func:`interval_outside_range`): the model fits the record only with an impossible parameter."""
+    value = _field(quantity, "value")
+    if not math.isfinite(value) or not interval_outside_range(name, quantity):
+        return False
+    low, high, _ = judged_range(name, quantity)
+    return not (low <= value <= high)
 
 
 def judge_separation(value: float, sigma: float) -> Verdict:
