@@ -167,8 +167,14 @@ def _time_domain_cv_error(prep: Prepared, system: System, mask: np.ndarray, fold
 
 
 # --------------------------------------------------------------------------- read-out
-def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) -> dict[str, dict]:
-    """Physical quantities of each effect from its terms' coefficients, with bootstrap intervals."""
+def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace,
+             with_sources: bool = False) -> dict[str, dict]:
+    """Physical quantities of each effect from its terms' coefficients, with bootstrap intervals.
+
+    ``with_sources``: also record each read-out's ``sources`` (the selected terms it is computed from, by a probe
+    of one extra read-out per selected term). Only the final fit's read-outs need them (the plausibility check
+    counts the independent terms behind implausible values); the read-outs of resamples and propagations, made
+    many times per fit, leave them out."""
     out: dict[str, dict] = {}
     ctx = dict(params)
     if "R" not in ctx:
@@ -190,7 +196,7 @@ def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) 
 
         central = quantities(coef)
         samples = [quantities(c) for c in bagging.coef_samples] if bagging is not None else []
-        sources = _sources(quantities, central, coef, index, mask)
+        sources = _sources(quantities, central, coef, index, mask) if with_sources else None
         for q in effect.quantities:
             value = float(central.get(q.name, math.nan))
             arr = np.array([s.get(q.name, math.nan) for s in samples], dtype=float)
@@ -199,8 +205,9 @@ def read_out(library: Library, coef, bagging, params: dict, mask, trace: Trace) 
             lo, hi = (np.percentile(arr, [2.5, 97.5]) if arr.size > 2 else (math.nan, math.nan))
             key = q.name if q.name not in out else f"{effect_name}.{q.name}"
             out[key] = {"value": value, "error": err, "ci_low": float(lo), "ci_high": float(hi), "unit": q.unit,
-                        "effect": effect_name, "doc": q.doc, "tip_radius": float(ctx["R"]),
-                        "sources": sources.get(q.name, ())}
+                        "effect": effect_name, "doc": q.doc, "tip_radius": float(ctx["R"])}
+            if sources is not None:
+                out[key]["sources"] = sources.get(q.name, ())
     return out
 
 

@@ -348,7 +348,7 @@ def _run_joint_fit(config: RunConfig, configs: list[RunConfig], traces_in: list[
         inclusion = bagging.inclusion
     bar.stage("error and forces per trace", step=(n + 3, n + 3))
     first = traces[0]
-    quantities = read_out(library, coef, bagging, first.params, chosen, first.prep.trace)
+    quantities = read_out(library, coef, bagging, first.params, chosen, first.prep.trace, with_sources=True)
     if uncertainty:
         _propagate(quantities, columns, directions, chosen, library, traces[0])
     for i, t in enumerate(traces):

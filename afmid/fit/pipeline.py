@@ -436,7 +436,7 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
     except AfmidError:
         bar.close()  # the error line must not land on the progress line
         raise
-    quantities = read_out(library, coef, bagging, params, chosen, trace)
+    quantities = read_out(library, coef, bagging, params, chosen, trace, with_sources=True)
     if uncertainty:
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
     force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,

@@ -334,7 +334,7 @@ class SharedSupportFit:
         rng = np.random.default_rng([config.fit.seed, 14])
         draws = covariance_draws(T, coef, support, rss, system.n_rows, COVARIANCE_DRAWS, rng)
         bagging = regression.Bagging(support.astype(float), draws, COVARIANCE_DRAWS)
-        quantities = read_out(library, coef, bagging, params, support, trace)
+        quantities = read_out(library, coef, bagging, params, support, trace, with_sources=True)
         if not search.propagate(quantities, found, lambda c, d: read_out(library, c, None, dict(params, d=d), support,
                                                                           trace), support):
             nonlinear = {"d": NonlinearEstimate("d", found.value, found.sigma, "m", True)}

@@ -406,3 +406,29 @@ def test_a_run_whose_estimated_separation_is_below_zero_is_suspect(workspace, ru
     shown = [line for line in parameter_lines(flagged) if "rest separation d" in line]
     assert len(shown) == 1 and "IMPLAUSIBLE: the estimated rest separation d = -860 pm" in shown[0]
     assert not any("IMPLAUSIBLE" in line for line in parameter_lines(result) if "rest separation d" in line)
+
+
+def test_read_out_records_the_terms_behind_each_read_out_only_when_asked():
+    """The final fit's read-outs carry ``sources`` (the selected terms each is computed from: H, the adhesion and
+    the surface energy from DMT's van der Waals term, E* from its Hertz term); the read-outs of resamples and
+    propagations, made many times per fit, do not probe for them and carry none."""
+    import numpy as np
+
+    from afmid.config import ModelConfig
+    from afmid.fit.forces import read_out
+    from afmid.physics.library import build_library
+
+    library = build_library(ModelConfig(effects=["dmt"]))
+    labels = [t.label for t in library.terms]
+    assert sorted(labels) == ["hertz", "vdw"]
+    coef = np.array([9.5e-6 if label == "hertz" else -1e-29 for label in labels])  # E* > 0, attractive tail
+    params = {"R": 1e-8, "a0": 0.165e-9}
+    with_sources = read_out(library, coef, None, params, np.ones(len(labels), bool), None, with_sources=True)
+    assert {name: q["sources"] for name, q in with_sources.items()} == {
+        "hamaker": ("vdw",), "adhesion_force": ("vdw",), "surface_energy": ("vdw",), "E_star": ("hertz",)}
+    plain = read_out(library, coef, None, params, np.ones(len(labels), bool), None)
+    assert all("sources" not in q for q in plain.values())
+    assert {n: q["value"] for n, q in plain.items()} == {n: q["value"] for n, q in with_sources.items()}
+    hertz_only = read_out(library, coef, None, params, np.array([label == "hertz" for label in labels]), None,
+                          with_sources=True)
+    assert hertz_only["E_star"]["sources"] == ("hertz",) and hertz_only["hamaker"]["sources"] == ()
