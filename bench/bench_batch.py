@@ -19,7 +19,6 @@ Run: python bench/bench_batch.py [--quick]   (quick: 40 traces)
 
 from __future__ import annotations
 
-import argparse
 import csv
 import shutil
 import statistics
@@ -29,8 +28,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import (CONFIGS, RESULTS, SINGLE_THREAD, cached_trace, differing, load_average, machine,  # noqa: E402
-                    median, row, timed, wall)
+from common import (CONFIGS, RESULTS, SINGLE_THREAD, bench_main, cached_trace, differing, load_average,  # noqa: E402
+                    median, met_word, row, timed, wall)
 
 CONFIG = CONFIGS / "dmt.yaml"
 AFMID = [sys.executable, "-m", "afmid.cli"]
@@ -125,12 +124,8 @@ def run(quick: bool = False) -> list[dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="40 traces instead of 1,000")
-    args = parser.parse_args()
-    print(f"machine: {machine()}")
-    for r in run(args.quick):
-        print(f"{r['name']}: {r['afmid_s']:.1f} s ({'met' if r['met'] else 'missed'})\n  {r['notes']}")
+    bench_main(__doc__, run, "40 traces instead of 1,000",
+               lambda r: f"{r['name']}: {r['afmid_s']:.1f} s ({met_word(r['met'])})\n  {r['notes']}")
 
 
 if __name__ == "__main__":

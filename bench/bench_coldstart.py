@@ -18,14 +18,13 @@ Run: python bench/bench_coldstart.py [--quick]
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import CONFIGS, SINGLE_THREAD, cached_trace, machine, median, row, run_python, timed, wall  # noqa: E402
+from common import CONFIGS, SINGLE_THREAD, bench_main, cached_trace, median, row, run_python, timed, wall  # noqa: E402
 
 CONFIG = CONFIGS / "dmt.yaml"
 AFMID = [sys.executable, "-m", "afmid.cli"]  # what the `afmid` script runs, without depending on PATH
@@ -92,13 +91,7 @@ def run(quick: bool = False) -> list[dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer repetitions")
-    args = parser.parse_args()
-    print(f"machine: {machine()}")
-    for r in run(args.quick):
-        print(f"{r['name']}: {r['afmid_s']:.2f} s ({'met' if r['met'] else 'missed' if r['met'] is False else '-'})"
-              f"\n  {r['notes']}")
+    bench_main(__doc__, run, "fewer repetitions")
 
 
 if __name__ == "__main__":

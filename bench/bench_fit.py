@@ -43,7 +43,6 @@ Run: python bench/bench_fit.py [--quick]
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
@@ -52,7 +51,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import CONFIGS, best_of, cached_trace, machine, row  # noqa: E402  (sets one BLAS thread: before NumPy)
+from common import CONFIGS, bench_main, best_of, cached_trace, met_word, row  # noqa: E402  (sets one BLAS thread: before NumPy)
 import numpy as np  # noqa: E402
 
 
@@ -262,14 +261,9 @@ def run(quick: bool = False) -> list[dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer repetitions and thresholds")
-    args = parser.parse_args()
-    rows = run(args.quick)
-    print(f"machine: {machine()}")
-    for r in rows:
-        print(f"{r['name']}\n  afmid {r['afmid_s']:.4f} s, PySINDy {r['reference_s']:.4f} s, ratio {r['ratio']:.2f}x; "
-              f"target {r['target']}: {'met' if r['met'] else 'missed'}\n  {r['notes']}")
+    bench_main(__doc__, run, "fewer repetitions and thresholds",
+               lambda r: f"{r['name']}\n  afmid {r['afmid_s']:.4f} s, PySINDy {r['reference_s']:.4f} s, ratio "
+                         f"{r['ratio']:.2f}x; target {r['target']}: {met_word(r['met'])}\n  {r['notes']}")
 
 
 if __name__ == "__main__":

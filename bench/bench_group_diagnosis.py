@@ -17,7 +17,6 @@ Run: python bench/bench_group_diagnosis.py [--quick]
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import time
@@ -25,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import CONFIGS, machine, row  # noqa: E402  (sets the BLAS thread count first)
+from common import CONFIGS, bench_main, met_word, row  # noqa: E402  (sets the BLAS thread count first)
 
 CONFIG = CONFIGS / "maps" / "blend_hidden_viscous.yaml"
 SHARE_TARGET = 0.20  # issue 31: the group diagnosis adds <= 20 % to a 64x64 map's wall time
@@ -93,13 +92,8 @@ def run(quick: bool = False) -> list[dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a 6x6 map of 40-period traces")
-    args = parser.parse_args()
-    print(f"machine: {machine()}")
-    for r in run(args.quick):
-        print(f"{r['name']}: {r['afmid_s']:.2f} s (ratio {r['ratio']}, {'met' if r['met'] else 'missed' if r['met'] is False else '-'})"
-              f"\n  {r['notes']}")
+    bench_main(__doc__, run, "a 6x6 map of 40-period traces",
+               lambda r: f"{r['name']}: {r['afmid_s']:.2f} s (ratio {r['ratio']}, {met_word(r['met'])})\n  {r['notes']}")
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ Run: python bench/bench_report.py
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import tempfile
@@ -24,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import ROOT, SINGLE_THREAD, cached_trace, machine, row, timed  # noqa: E402
+from common import ROOT, SINGLE_THREAD, bench_main, cached_trace, row, timed  # noqa: E402
 
 CONFIG = ROOT / "afmid" / "templates" / "demo_ldpe.yaml"
 AFMID = [sys.executable, "-m", "afmid.cli"]
@@ -65,12 +64,7 @@ def run(quick: bool = False) -> list[dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="the same (the demo is small)")
-    args = parser.parse_args()
-    print(f"machine: {machine()}")
-    for r in run(args.quick):
-        print(f"{r['name']}: {r['afmid_s']:.2f} s ({'met' if r['met'] else 'missed'})\n  {r['notes']}")
+    bench_main(__doc__, run, "the same (the demo is small)")
 
 
 if __name__ == "__main__":

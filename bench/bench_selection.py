@@ -45,7 +45,6 @@ Run: python bench/bench_selection.py [--quick]   (quick: 3 draws per length)
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -54,7 +53,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import CONFIGS, cached_trace, machine, row  # noqa: E402  (sets one BLAS thread: before NumPy)
+from common import CONFIGS, bench_main, cached_trace, met_word, row  # noqa: E402  (sets one BLAS thread: before NumPy)
 import numpy as np  # noqa: E402
 
 
@@ -235,12 +234,8 @@ def run(quick: bool = False) -> list[dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="3 draws per length")
-    args = parser.parse_args()
-    print(f"machine: {machine()}")
-    for r in run(args.quick):
-        print(f"{r['name']}: target {r['target']}: {'met' if r['met'] else 'missed'}\n  {r['notes']}")
+    bench_main(__doc__, run, "3 draws per length",
+               lambda r: f"{r['name']}: target {r['target']}: {met_word(r['met'])}\n  {r['notes']}")
 
 
 if __name__ == "__main__":

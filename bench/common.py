@@ -7,6 +7,7 @@ unchanged.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -150,3 +151,20 @@ def row(name: str, afmid_s: float | None, reference_s: float | None, ratio: floa
     """A table row (see run_all.py)."""
     return {"name": name, "afmid_s": afmid_s, "reference_s": reference_s, "ratio": ratio, "target": target,
             "met": met, "notes": notes, **extra}
+
+
+def met_word(met: bool | None) -> str:
+    """A row's verdict on its target: 'met', 'missed', or '-' for a row without one."""
+    return "met" if met else "missed" if met is False else "-"
+
+
+def bench_main(doc: str, run, quick_help: str, describe=None) -> None:
+    """A benchmark file's command line: ``--quick`` (``quick_help``: what it leaves out), then the machine and each
+    row of ``run(quick)``, as ``describe(row)`` or by default ``name: afmid_s s (met)`` with the notes below."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help=quick_help)
+    args = parser.parse_args()
+    rows = run(args.quick)
+    print(f"machine: {machine()}")
+    for r in rows:
+        print(describe(r) if describe else f"{r['name']}: {r['afmid_s']:.2f} s ({met_word(r['met'])})\n  {r['notes']}")
