@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 import afmid.terms.expr as expr
+from afmid.terms import opcodes
 
 #: Bump when the translation changes in a way the generated text would not show.
 GENERATOR_VERSION = 1
@@ -116,18 +117,18 @@ def translate_program(program: expr.Program, offset: int, w: SourceWriter, inden
 
         while pc < end:
             op = code[pc]
-            if op == expr.PUSH_VAR:
+            if op == opcodes.PUSH_VAR:
                 slot = code[pc + 1]
                 if slot >= len(names):
                     raise GenerationError(f"{program.text!r} reads variable slot {slot}, beyond the gates")
                 stack.append(names[slot])
                 pc += 2
-            elif op == expr.PUSH_CONST:
+            elif op == opcodes.PUSH_CONST:
                 stack.append(f"K[{offset + code[pc + 1]}]")
                 pc += 2
-            elif op == expr.JUMP_IF_FALSE_PUSH0:
+            elif op == opcodes.JUMP_IF_FALSE_PUSH0:
                 target = code[pc + 1]
-                if not (pc + 2 < target <= end) or code[target - 1] != expr.GATE_END:
+                if not (pc + 2 < target <= end) or code[target - 1] != opcodes.GATE_END:
                     raise GenerationError(f"{program.text!r}: unexpected gate layout at {pc}")
                 cond = stack.pop()
                 result = w.temp()
@@ -138,12 +139,12 @@ def translate_program(program: expr.Program, offset: int, w: SourceWriter, inden
                 w.emit(level + 1, f"{result} = 0.0")
                 stack.append(result)
                 pc = target
-            elif op == expr.GATE_END:
+            elif op == opcodes.GATE_END:
                 raise GenerationError(f"{program.text!r}: GATE_END without its jump at {pc}")
-            elif op == expr.POW_HALVES:
+            elif op == opcodes.POW_HALVES:
                 stack.append(_pow_halves(stack.pop(), code[pc + 1], w, level))
                 pc += 2
-            elif expr.ADD <= op < expr.NEG:
+            elif opcodes.ADD <= op < opcodes.NEG:
                 b = stack.pop()
                 a = stack.pop()
                 assign(_binary(op, a, b))
@@ -159,33 +160,33 @@ def translate_program(program: expr.Program, offset: int, w: SourceWriter, inden
 
 
 def _binary(op: int, a: str, b: str) -> str:
-    simple = {expr.ADD: "+", expr.SUB: "-", expr.MUL: "*", expr.DIV: "/", expr.POW: "**"}
+    simple = {opcodes.ADD: "+", opcodes.SUB: "-", opcodes.MUL: "*", opcodes.DIV: "/", opcodes.POW: "**"}
     if op in simple:
         return f"{a} {simple[op]} {b}"
-    if op == expr.MAX:  # NaN-propagating, like the VM and np.maximum
+    if op == opcodes.MAX:  # NaN-propagating, like the VM and np.maximum
         return f"{a} if ({a} > {b} or {a} != {a}) else {b}"
-    if op == expr.MIN:
+    if op == opcodes.MIN:
         return f"{a} if ({a} < {b} or {a} != {a}) else {b}"
-    compare = {expr.LT: "<", expr.LE: "<=", expr.GT: ">", expr.GE: ">="}
+    compare = {opcodes.LT: "<", opcodes.LE: "<=", opcodes.GT: ">", opcodes.GE: ">="}
     if op in compare:
         return f"1.0 if {a} {compare[op]} {b} else 0.0"
-    if op == expr.AND:
+    if op == opcodes.AND:
         return f"1.0 if ({a} != 0.0 and {b} != 0.0) else 0.0"
-    if op == expr.OR:
+    if op == opcodes.OR:
         return f"1.0 if ({a} != 0.0 or {b} != 0.0) else 0.0"
     raise GenerationError(f"unknown binary opcode {op}")
 
 
 def _unary(op: int, a: str) -> str:
-    functions = {expr.EXP: "math.exp", expr.LOG: "math.log", expr.SQRT: "math.sqrt", expr.ABS: "abs",
-                 expr.SIN: "math.sin", expr.COS: "math.cos"}
-    if op == expr.NEG:
+    functions = {opcodes.EXP: "math.exp", opcodes.LOG: "math.log", opcodes.SQRT: "math.sqrt", opcodes.ABS: "abs",
+                 opcodes.SIN: "math.sin", opcodes.COS: "math.cos"}
+    if op == opcodes.NEG:
         return f"-{a}"
     if op in functions:
         return f"{functions[op]}({a})"
-    if op == expr.POS:
+    if op == opcodes.POS:
         return f"{a} if ({a} > 0.0 or {a} != {a}) else 0.0"
-    if op == expr.NOT:
+    if op == opcodes.NOT:
         return f"1.0 if {a} == 0.0 else 0.0"
     raise GenerationError(f"unknown unary opcode {op}")
 
@@ -220,9 +221,9 @@ def variables_read(programs) -> set[int]:
         pc = 0
         while pc < len(code):
             op = code[pc]
-            if op == expr.PUSH_VAR:
+            if op == opcodes.PUSH_VAR:
                 used.add(code[pc + 1])
-            pc += 2 if op in (expr.PUSH_VAR, expr.PUSH_CONST, expr.JUMP_IF_FALSE_PUSH0, expr.POW_HALVES) else 1
+            pc += 2 if op in (opcodes.PUSH_VAR, opcodes.PUSH_CONST, opcodes.JUMP_IF_FALSE_PUSH0, opcodes.POW_HALVES) else 1
     return used
 
 

@@ -1,9 +1,8 @@
 """The numba stack VM that evaluates compiled force-library terms.
 
 Programs come from :func:`afmid.terms.expr.compile_expression`; the opcodes are
-defined in :mod:`afmid.terms.expr` (so the compiler stays free of numba) and
-re-exported here. The kernels are compiled once, never per expression:
-changing an expression or a parameter only changes the data they are given.
+declared in :mod:`afmid.terms.opcodes` (so the compiler stays free of numba).
+The kernels are compiled once, never per expression: changing an expression or a parameter only changes the data they are given.
 
 The VM runs a program on a block of up to BLOCK samples at a time: every
 opcode is a loop over the block, so the interpretation overhead is paid once
@@ -29,40 +28,9 @@ from collections.abc import Mapping
 import numpy as np
 from numba import njit
 
-from afmid.terms.expr import (
-    Program,
-    ProgramSet,
-    check_variables,
-    compile_expression,
-    ABS,
-    ADD,
-    AND,
-    COS,
-    DIV,
-    EXP,
-    GATE_END,
-    GE,
-    GT,
-    JUMP_IF_FALSE_PUSH0,
-    LE,
-    LOG,
-    LT,
-    MAX,
-    MIN,
-    MUL,
-    NEG,
-    NOT,
-    OR,
-    POS,
-    POW,
-    POW_HALVES,
-    PUSH_CONST,
-    PUSH_VAR,
-    SIN,
-    SQRT,
-    STACK_SIZE,
-    SUB,
-)
+from afmid.terms import opcodes
+from afmid.terms.opcodes import STACK_SIZE
+from afmid.terms.expr import Program, ProgramSet, check_variables, compile_expression
 
 # Samples per block in eval_set: the (STACK_SIZE, BLOCK) float64 stack is 32 kB,
 # which stays in the L1/L2 cache.
@@ -97,19 +65,19 @@ def _run(code, c0, c1, consts, k0, variables, i0, nb, stack):
     pc = c0
     while pc < c1:
         op = code[pc]
-        if op == PUSH_VAR:
+        if op == opcodes.PUSH_VAR:
             v = code[pc + 1]
             for i in range(nb):
                 stack[sp, i] = variables[v, i0 + i]
             sp += 1
             pc += 2
-        elif op == PUSH_CONST:
+        elif op == opcodes.PUSH_CONST:
             c = consts[k0 + code[pc + 1]]
             for i in range(nb):
                 stack[sp, i] = c
             sp += 1
             pc += 2
-        elif op == JUMP_IF_FALSE_PUSH0:
+        elif op == opcodes.JUMP_IF_FALSE_PUSH0:
             pc += 2
             skip = True
             for i in range(nb):
@@ -120,60 +88,60 @@ def _run(code, c0, c1, consts, k0, variables, i0, nb, stack):
                 for i in range(nb):
                     stack[sp - 1, i] = 0.0  # +0.0, also where the condition was -0.0
                 pc = c0 + code[pc - 1]
-        elif op == GATE_END:
+        elif op == opcodes.GATE_END:
             sp -= 1
             for i in range(nb):
                 stack[sp - 1, i] = stack[sp, i] if stack[sp - 1, i] != 0.0 else 0.0
             pc += 1
-        elif op == POW_HALVES:
+        elif op == opcodes.POW_HALVES:
             k = code[pc + 1]
             for i in range(nb):
                 stack[sp - 1, i] = _pow_halves(stack[sp - 1, i], k)
             pc += 2
-        elif op < NEG:
+        elif op < opcodes.NEG:
             # Binary (opcodes 10..29): row t = (row t) op (row u), popping row u.
             # One loop per opcode, so that the loops vectorise.
             sp -= 1
             t, u = sp - 1, sp
-            if op == MUL:
+            if op == opcodes.MUL:
                 for i in range(nb):
                     stack[t, i] *= stack[u, i]
-            elif op == ADD:
+            elif op == opcodes.ADD:
                 for i in range(nb):
                     stack[t, i] += stack[u, i]
-            elif op == SUB:
+            elif op == opcodes.SUB:
                 for i in range(nb):
                     stack[t, i] -= stack[u, i]
-            elif op == DIV:
+            elif op == opcodes.DIV:
                 for i in range(nb):
                     stack[t, i] /= stack[u, i]
-            elif op == POW:
+            elif op == opcodes.POW:
                 for i in range(nb):
                     stack[t, i] **= stack[u, i]
-            elif op == MAX:
+            elif op == opcodes.MAX:
                 for i in range(nb):
                     a, b = stack[t, i], stack[u, i]
                     stack[t, i] = a if (a > b or a != a) else b  # NaN-propagating, like np.maximum
-            elif op == MIN:
+            elif op == opcodes.MIN:
                 for i in range(nb):
                     a, b = stack[t, i], stack[u, i]
                     stack[t, i] = a if (a < b or a != a) else b
-            elif op == LT:
+            elif op == opcodes.LT:
                 for i in range(nb):
                     stack[t, i] = 1.0 if stack[t, i] < stack[u, i] else 0.0
-            elif op == LE:
+            elif op == opcodes.LE:
                 for i in range(nb):
                     stack[t, i] = 1.0 if stack[t, i] <= stack[u, i] else 0.0
-            elif op == GT:
+            elif op == opcodes.GT:
                 for i in range(nb):
                     stack[t, i] = 1.0 if stack[t, i] > stack[u, i] else 0.0
-            elif op == GE:
+            elif op == opcodes.GE:
                 for i in range(nb):
                     stack[t, i] = 1.0 if stack[t, i] >= stack[u, i] else 0.0
-            elif op == AND:
+            elif op == opcodes.AND:
                 for i in range(nb):
                     stack[t, i] = 1.0 if (stack[t, i] != 0.0 and stack[u, i] != 0.0) else 0.0
-            elif op == OR:
+            elif op == opcodes.OR:
                 for i in range(nb):
                     stack[t, i] = 1.0 if (stack[t, i] != 0.0 or stack[u, i] != 0.0) else 0.0
             else:
@@ -182,32 +150,32 @@ def _run(code, c0, c1, consts, k0, variables, i0, nb, stack):
         else:
             # Unary (opcodes 30 and up): row t = f(row t).
             t = sp - 1
-            if op == NEG:
+            if op == opcodes.NEG:
                 for i in range(nb):
                     stack[t, i] = -stack[t, i]
-            elif op == EXP:
+            elif op == opcodes.EXP:
                 for i in range(nb):
                     stack[t, i] = math.exp(stack[t, i])
-            elif op == LOG:
+            elif op == opcodes.LOG:
                 for i in range(nb):
                     stack[t, i] = math.log(stack[t, i])
-            elif op == SQRT:
+            elif op == opcodes.SQRT:
                 for i in range(nb):
                     stack[t, i] = math.sqrt(stack[t, i])
-            elif op == ABS:
+            elif op == opcodes.ABS:
                 for i in range(nb):
                     stack[t, i] = abs(stack[t, i])
-            elif op == SIN:
+            elif op == opcodes.SIN:
                 for i in range(nb):
                     stack[t, i] = math.sin(stack[t, i])
-            elif op == COS:
+            elif op == opcodes.COS:
                 for i in range(nb):
                     stack[t, i] = math.cos(stack[t, i])
-            elif op == POS:
+            elif op == opcodes.POS:
                 for i in range(nb):
                     a = stack[t, i]
                     stack[t, i] = a if (a > 0.0 or a != a) else 0.0
-            elif op == NOT:
+            elif op == opcodes.NOT:
                 for i in range(nb):
                     stack[t, i] = 1.0 if stack[t, i] == 0.0 else 0.0
             else:

@@ -27,9 +27,9 @@ Text is parsed by a hand-written tokenizer and recursive-descent parser (user
 text is never given to eval, exec, compile or ast.parse). :func:`compile_expression`
 turns an expression into a :class:`Program` for the numba stack VM in
 :mod:`afmid.kernels.vm`; :func:`evaluate_numpy` is its plain-NumPy twin, used to
-test the VM. This module does not import numba (nor any kernel: the VM imports
-its opcodes from here; :func:`afmid.kernels.vm.evaluate_numba` evaluates one
-expression with it).
+test the VM. This module does not import numba (nor any kernel: the VM reads
+its opcodes from :mod:`afmid.terms.opcodes`; :func:`afmid.kernels.vm.evaluate_numba`
+evaluates one expression with it).
 
 Layout: the term language lives in four modules, re-exported here (the public
 facade; callers import from :mod:`afmid.terms.expr`):
@@ -38,42 +38,15 @@ facade; callers import from :mod:`afmid.terms.expr`):
 - :mod:`afmid.terms.term_units` -- :func:`expression_units`, the dimensional check;
 - :mod:`afmid.terms.term_lowering` -- names to slots and values, gates pulled out of
   products, constant folding, NumPy operations with the VM's float64 semantics;
-- :mod:`afmid.terms.term_compile` -- opcodes, :class:`Program`, :func:`compile_expression`,
+- :mod:`afmid.terms.opcodes` -- the VM's opcodes and stack size;
+- :mod:`afmid.terms.term_compile` -- :class:`Program`, :func:`compile_expression`,
   :func:`switching_programs`, :class:`ProgramSet`, :func:`evaluate_numpy`.
 """
 
 from __future__ import annotations
 
+from afmid.terms.opcodes import MAX_POW_HALVES, STACK_SIZE  # noqa: F401 (re-exported)
 from afmid.terms.term_compile import (  # noqa: F401 (re-exported)
-    ABS,
-    ADD,
-    AND,
-    COS,
-    DIV,
-    EXP,
-    GATE_END,
-    GE,
-    GT,
-    JUMP_IF_FALSE_PUSH0,
-    LE,
-    LOG,
-    LT,
-    MAX,
-    MAX_POW_HALVES,
-    MIN,
-    MUL,
-    NEG,
-    NOT,
-    OR,
-    POS,
-    POW,
-    POW_HALVES,
-    PUSH_CONST,
-    PUSH_VAR,
-    SIN,
-    SQRT,
-    STACK_SIZE,
-    SUB,
     Program,
     ProgramSet,
     check_variables,

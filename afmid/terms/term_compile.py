@@ -5,8 +5,7 @@ and emits a :class:`Program` for :mod:`afmid.kernels.vm`;
 :func:`switching_programs` compiles the functions whose sign changes mark
 non-smooth instants; :class:`ProgramSet` concatenates programs for one kernel
 call; :func:`evaluate_numpy` evaluates an expression with NumPy to test the VM.
-The opcodes are defined here, not in the kernel, so that compiling does not
-import numba (the VM imports them from :mod:`afmid.terms.expr`).
+The opcodes are declared in :mod:`afmid.terms.opcodes`, which the VM reads too.
 """
 
 from __future__ import annotations
@@ -16,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from afmid.terms import opcodes
 from afmid.terms.term_lowering import Gated, VarSlot, lower, numpy_value, param_values, resolve
 from afmid.terms.term_parser import (
     VARIABLES,
@@ -33,60 +33,12 @@ from afmid.terms.term_parser import (
     walk,
 )
 
-# ---------------------------------------------------------------------------
-# Bytecode of the stack VM. The opcodes live here, not in afmid.kernels.vm, so
-# that the compiler does not import numba; the VM imports them from here.
-# Code is a flat int64 array: each opcode is followed by its inline operand, if
-# any. Booleans are 0.0/1.0 on the stack; a value counts as true when nonzero.
-# A gated product [c] * e compiles to
-#     c  JUMP_IF_FALSE_PUSH0 end  e  GATE_END  end:
-# ---------------------------------------------------------------------------
-PUSH_VAR = 1  # operand: variable slot
-PUSH_CONST = 2  # operand: index into the program's consts
-# operand: jump target, relative to the program's first code word. If the
-# condition on top of the stack is false (on every sample of the block the VM
-# runs), it becomes the result 0.0 and control jumps over the gated body;
-# otherwise the condition stays below the body for GATE_END.
-JUMP_IF_FALSE_PUSH0 = 3
-# Pops the body value e and the condition c below it; pushes e where c is
-# true, else 0.0 (so samples where c is false get 0.0 even if e is nan there).
-GATE_END = 4
-# operand k: replaces the top x by x ** (k/2) for |k| <= MAX_POW_HALVES, using
-# multiplications and a sqrt, since a general pow costs ~10x more.
-POW_HALVES = 5
-MAX_POW_HALVES = 16
-# Binary opcodes (pop b, pop a, push a op b) are 10..29.
-ADD = 10
-SUB = 11
-MUL = 12
-DIV = 13
-POW = 14
-MAX = 15
-MIN = 16
-LT = 17
-LE = 18
-GT = 19
-GE = 20
-AND = 21
-OR = 22
-# Unary opcodes (pop a, push f(a)) are 30 and up.
-NEG = 30
-EXP = 31
-LOG = 32
-SQRT = 33
-ABS = 34
-SIN = 35
-COS = 36
-POS = 37
-NOT = 38
 
-# Stack slots of the VM. The compiler rejects deeper expressions, so the kernel
-# needs no overflow check.
-STACK_SIZE = 32
-
-_BINARY_OPCODES = {"+": ADD, "-": SUB, "*": MUL, "/": DIV, "^": POW, "max": MAX, "min": MIN,
-                   "<": LT, "<=": LE, ">": GT, ">=": GE, "and": AND, "or": OR}
-_UNARY_OPCODES = {"exp": EXP, "log": LOG, "sqrt": SQRT, "abs": ABS, "sin": SIN, "cos": COS, "pos": POS}
+_BINARY_OPCODES = {"+": opcodes.ADD, "-": opcodes.SUB, "*": opcodes.MUL, "/": opcodes.DIV, "^": opcodes.POW,
+                   "max": opcodes.MAX, "min": opcodes.MIN, "<": opcodes.LT, "<=": opcodes.LE, ">": opcodes.GT,
+                   ">=": opcodes.GE, "and": opcodes.AND, "or": opcodes.OR}
+_UNARY_OPCODES = {"exp": opcodes.EXP, "log": opcodes.LOG, "sqrt": opcodes.SQRT, "abs": opcodes.ABS, "sin": opcodes.SIN,
+                  "cos": opcodes.COS, "pos": opcodes.POS}
 
 
 # ---------------------------------------------------------------------------
@@ -120,10 +72,10 @@ class Program:
 def _program(tree, text: str, values: dict[str, float], states: tuple[str, ...]) -> Program:
     emitter = _Emitter()
     emitter.value(tree)
-    if emitter.max_depth > STACK_SIZE:
+    if emitter.max_depth > opcodes.STACK_SIZE:
         raise ExpressionError(
             f"expression is nested too deeply for the VM (needs {emitter.max_depth} stack slots, "
-            f"at most {STACK_SIZE})", text)
+            f"at most {opcodes.STACK_SIZE})", text)
     code = np.array(emitter.code, dtype=np.int64)
     consts = np.array(emitter.consts, dtype=np.float64)
     code.flags.writeable = consts.flags.writeable = False
@@ -177,7 +129,7 @@ def _pow_halves(exponent) -> int | None:
     """k if ``exponent`` is a constant k/2 with |k| <= MAX_POW_HALVES, else None."""
     if isinstance(exponent, Num) and (2 * exponent.value).is_integer():
         k = int(2 * exponent.value)
-        return k if abs(k) <= MAX_POW_HALVES else None
+        return k if abs(k) <= opcodes.MAX_POW_HALVES else None
     return None
 
 
@@ -203,21 +155,21 @@ class _Emitter:
         slot = self._const_slots.setdefault(key, len(self.consts))
         if slot == len(self.consts):
             self.consts.append(value)
-        self.emit(PUSH_CONST, +1, slot)
+        self.emit(opcodes.PUSH_CONST, +1, slot)
 
     def value(self, node) -> None:
         if isinstance(node, Num):
             self.const(node.value)
         elif isinstance(node, VarSlot):
-            self.emit(PUSH_VAR, +1, node.index)
+            self.emit(opcodes.PUSH_VAR, +1, node.index)
         elif isinstance(node, Neg):
             self.value(node.operand)
-            self.emit(NEG, 0)
+            self.emit(opcodes.NEG, 0)
         elif isinstance(node, Gated):
             self.gated(node)
         elif isinstance(node, BinOp) and node.op == "^" and _pow_halves(node.right) is not None:
             self.value(node.left)
-            self.emit(POW_HALVES, 0, _pow_halves(node.right))
+            self.emit(opcodes.POW_HALVES, 0, _pow_halves(node.right))
         elif isinstance(node, Call) and node.func in _UNARY_OPCODES:
             self.value(node.args[0])
             self.emit(_UNARY_OPCODES[node.func], 0)
@@ -228,10 +180,10 @@ class _Emitter:
 
     def cond(self, node) -> None:
         if isinstance(node, VarSlot):
-            self.emit(PUSH_VAR, +1, node.index)
+            self.emit(opcodes.PUSH_VAR, +1, node.index)
         elif isinstance(node, Not):
             self.cond(node.operand)
-            self.emit(NOT, 0)
+            self.emit(opcodes.NOT, 0)
         elif isinstance(node, Compare):
             self.value(node.left)
             self.value(node.right)
@@ -247,14 +199,14 @@ class _Emitter:
         self.cond(node.conds[0])
         for cond in node.conds[1:]:
             self.cond(cond)
-            self.emit(AND, -1)
+            self.emit(opcodes.AND, -1)
         operand_at = len(self.code) + 1
-        self.emit(JUMP_IF_FALSE_PUSH0, 0, -1)  # the condition stays below the body
+        self.emit(opcodes.JUMP_IF_FALSE_PUSH0, 0, -1)  # the condition stays below the body
         if node.body is None:
             self.const(1.0)
         else:
             self.value(node.body)
-        self.emit(GATE_END, -1)
+        self.emit(opcodes.GATE_END, -1)
         self.code[operand_at] = len(self.code)
 
 
