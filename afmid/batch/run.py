@@ -338,6 +338,12 @@ def _run_in_folder(items: list[Item], output_dir: Path, batch_text: str, unit: s
         interrupted = exc
         interrupts.clear()  # handled here: the summary below must not be stopped by it again
         with _interrupts_held(reraise=False):  # a second Ctrl-C must not spoil the summary
+            # The engine has stopped its workers: a run file renamed into place after the engine reported its task
+            # in flight (a worker slower to stop than the engine waits), or whose outcome the interrupt cut short
+            # while it was being recorded, is whole and current, and the summary lists it.
+            for item in todo:
+                if item.index not in rows:
+                    _record_if_written(item, rows)
             write_summary(output_dir, ordered(), batch_text)
     finally:
         if bar is not None:

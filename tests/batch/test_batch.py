@@ -282,29 +282,52 @@ def _interrupt_after_first_run(args: list[str], out: Path, env: dict) -> tuple[i
 
 
 def test_interrupted_batch_leaves_whole_files_and_a_valid_summary(traces, tmp_path):
+    """Ctrl-C at a fixed point: right after the worker of ``INTERRUPTING_ITEM`` renamed its run file into place and
+    before the parent has its result (the others held 30 s mid-item, so they never finish). Exit 130, no temporary
+    file, that item's run file alone, whole, and listed in the summary, whether the parent got the result or only
+    finds the file; a resume skips it and fits the rest."""
+    from batch_workers import INTERRUPT_AFTER_RUN_FILE, INTERRUPTING_ITEM
+
     names = ["n01.h5", "n02.h5", "n03.h5", "n04.h5", "n05.h5"]
     _copy(traces, tmp_path / "in", names)
     out = tmp_path / "out"
-    from batch_workers import HOLD_1500MS
-
-    # afmid batch's run_batch with a worker whose every fit takes > 1.5 s: Ctrl-C lands mid-fit
-    args = HOLD_1500MS + [str(CONFIG), "--inputs", str(tmp_path / "in" / "*.h5"), "-o", str(out), "-j", "2",
-                          "--set", FAST[0]]
-    code, err = _interrupt_after_first_run(args, out, dict(os.environ))
-    assert code == 130, err
-    assert "interrupted" in err
+    args = INTERRUPT_AFTER_RUN_FILE + [str(CONFIG), "--inputs", str(tmp_path / "in" / "*.h5"), "-o", str(out),
+                                       "-j", "2", "--set", FAST[0]]
+    proc = subprocess.run(args, env=dict(os.environ), cwd=ROOT, stderr=subprocess.PIPE, text=True,
+                          start_new_session=True, preexec_fn=terminal_signals, timeout=120)
+    assert proc.returncode == 130, proc.stderr
+    assert "interrupted" in proc.stderr
     assert not _leftovers(out)
     finished = sorted(p.name for p in out.glob(f"*{RUN_SUFFIX}"))
+    assert finished == [f"{INTERRUPTING_ITEM}{RUN_SUFFIX}"]
+    read_run_row(out / finished[0])  # whole and readable
     rows = _summary(out)
-    assert 1 <= len(finished) < len(names)
-    assert sorted(Path(r["run_file"]).name for r in rows) == finished and all(r["status"] == "ok" for r in rows)
-    for name in finished:
-        read_run_row(out / name)  # whole, readable run files
+    assert [Path(r["run_file"]).name for r in rows] == finished and rows[0]["status"] == "ok"
 
     again = run_batch(CONFIG, out, inputs=[str(tmp_path / "in" / "*.h5")], jobs=2, overrides=FAST)
     status = {r.item.output.name: r.status for r in again.rows}
-    assert all(status[n] == "skipped" for n in finished)
-    assert sorted(status.values()).count("ok") == len(names) - len(finished)
+    assert status[finished[0]] == "skipped"
+    assert sorted(status.values()).count("ok") == len(names) - 1
+
+
+def test_a_run_file_whose_outcome_the_interrupt_cut_short_is_in_the_summary(traces, tmp_path):
+    """Ctrl-C after a worker renamed its run file into place, while the parent was recording its outcome (an engine
+    that never reports it): the run file is whole and current, so the summary written on the interrupt lists it
+    (it used to list nothing, and only a resume showed the file, as skipped)."""
+    from afmid.batch.run import BatchInterrupted
+    from batch_workers import EngineLosingItsFirstOutcome
+
+    names = ["n01.h5", "n02.h5"]
+    _copy(traces, tmp_path / "in", names)
+    out = tmp_path / "out"
+    with pytest.raises(BatchInterrupted) as stopped:
+        run_batch(CONFIG, out, inputs=[str(tmp_path / "in" / "*.h5")], overrides=FAST,
+                  engine=EngineLosingItsFirstOutcome())
+    assert [r.item.output.name for r in stopped.value.result.rows] == [f"n01{RUN_SUFFIX}"]
+    assert sorted(p.name for p in out.glob(f"*{RUN_SUFFIX}")) == [f"n01{RUN_SUFFIX}"]
+    assert not _leftovers(out)
+    rows = _summary(out)
+    assert [Path(r["run_file"]).name for r in rows] == [f"n01{RUN_SUFFIX}"] and rows[0]["status"] == "ok"
 
 
 def test_ctrl_c_of_afmid_batch_itself_exits_130_naming_what_finished(traces, tmp_path):

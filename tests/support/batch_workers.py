@@ -52,6 +52,26 @@ def fit_task_holding_30s(task: dict) -> dict:
     return _holding(30.0)(task)
 
 
+#: The item whose worker Ctrl-Cs the batch at a chosen point of its own item (the other items are held 30 s mid-item).
+INTERRUPTING_ITEM = "n01"
+
+
+def _ctrl_c_the_batch() -> None:
+    """Ctrl-C as a terminal delivers it: SIGINT to the batch's whole process group (the workers ignore it)."""
+    os.killpg(os.getpgid(0), signal.SIGINT)
+
+
+def fit_task_interrupting_after_its_run_file(task: dict) -> dict:
+    """:func:`afmid.batch.run.fit_task`; the worker of ``INTERRUPTING_ITEM`` Ctrl-Cs the batch right after its run file
+    is renamed into place, before the parent has its result: a Ctrl-C at a fixed point of the race between a worker's
+    run file and the parent's record of it. The other items are held 30 s mid-item, so they are stopped unfinished."""
+    if task["name"] != INTERRUPTING_ITEM:
+        return fit_task_holding_30s(task)
+    out = fit_task(task)
+    _ctrl_c_the_batch()
+    return out
+
+
 def _batch_command(function) -> list[str]:
     """The command that runs ``afmid batch``'s :func:`afmid.batch.run.run_batch` with ``function`` as the worker
     (tests/support/batch_with_worker.py); the batch arguments (CONFIG, --inputs, -o, ...) follow it."""
@@ -62,6 +82,8 @@ def _batch_command(function) -> list[str]:
 HOLD_1500MS = _batch_command(fit_task_holding_1500ms)
 HOLD_2S = _batch_command(fit_task_holding_2s)
 HOLD_30S = _batch_command(fit_task_holding_30s)
+#: The command whose worker of ``INTERRUPTING_ITEM`` Ctrl-Cs the batch right after writing its run file.
+INTERRUPT_AFTER_RUN_FILE = _batch_command(fit_task_interrupting_after_its_run_file)
 
 
 class SerialEngine:
@@ -81,3 +103,17 @@ class SerialEngine:
             self.ran.append(key)
             report(Outcome(key, worker(task)))
             tick()
+
+
+class EngineLosingItsFirstOutcome:
+    """An :class:`afmid.batch.engine.Engine` that runs the first task in this process (its run file is written), then
+    is stopped by Ctrl-C before it reports that task's outcome: what the parent of the local pool meets when the
+    Ctrl-C lands after the worker wrote its run file and while the outcome is being recorded."""
+
+    def workers_for(self, n_tasks: int) -> int:
+        return min(1, n_tasks)
+
+    def run(self, worker, tasks, report, tick) -> None:
+        key, task = tasks[0]
+        worker(task)
+        raise KeyboardInterrupt
