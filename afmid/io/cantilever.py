@@ -25,6 +25,29 @@ def lever_damping(spring_constant: float, omega0: float, quality_factor: float) 
     return lever_mass(spring_constant, omega0) * omega0 / quality_factor
 
 
+class FirstMode:
+    """The first mode's dynamics from a lever's calibration, one way everywhere: a class with ``spring_constant``
+    k (N/m), ``resonance_frequency`` f0 (Hz) and ``quality_factor`` Q (1) gets w0, m and c from it (the lever, the
+    simulation's oscillator, the report's driven lever)."""
+
+    __slots__ = ()
+
+    @property
+    def omega0(self) -> float:
+        """Angular resonance frequency w0 = 2 pi f0, rad/s."""
+        return 2.0 * math.pi * self.resonance_frequency
+
+    @property
+    def mass(self) -> float:
+        """Effective mass m = k / w0^2, kg (:func:`lever_mass`)."""
+        return lever_mass(self.spring_constant, self.omega0)
+
+    @property
+    def damping(self) -> float:
+        """Viscous damping c = m w0 / Q, kg/s (:func:`lever_damping`)."""
+        return lever_damping(self.spring_constant, self.omega0, self.quality_factor)
+
+
 @dataclass(frozen=True)
 class HigherMode:
     """A higher flexural mode of the lever, seen at the tip (``cantilever.higher_modes``)."""
@@ -35,7 +58,7 @@ class HigherMode:
 
 
 @dataclass
-class Cantilever:
+class Cantilever(FirstMode):
     """The lever: ``spring_constant`` k (N/m), ``resonance_frequency`` f0 (Hz), ``quality_factor`` Q (1),
     ``tip_radius`` R (m, None: unknown), ``tip_shape`` (``afmid effects --tips``), ``tip_half_angle`` (rad, cones
     and pyramids), ``spring_constant_uncertainty`` / ``quality_factor_uncertainty`` (relative 1 sigma, 0.1 = 10 %,
@@ -50,21 +73,6 @@ class Cantilever:
     spring_constant_uncertainty: float | None = None  # relative, 1 sigma
     quality_factor_uncertainty: float | None = None  # relative, 1 sigma
     higher_modes: tuple[HigherMode, ...] = field(default_factory=tuple)
-
-    @property
-    def omega0(self) -> float:
-        """Angular resonance frequency, rad/s."""
-        return 2.0 * math.pi * self.resonance_frequency
-
-    @property
-    def mass(self) -> float:
-        """Effective mass m = k / w0^2, kg."""
-        return lever_mass(self.spring_constant, self.omega0)
-
-    @property
-    def damping(self) -> float:
-        """Damping coefficient c = m w0 / Q, kg/s."""
-        return lever_damping(self.spring_constant, self.omega0, self.quality_factor)
 
     def config_section(self) -> dict[str, Any]:
         """The run config's ``cantilever:`` section for this lever (SI; keys left out where not declared)."""

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from afmid.io.cantilever import lever_damping, lever_mass
+from afmid.io.cantilever import FirstMode
 
 #: What each observable depends on (said in summary.json and the figure's caption).
 DEPENDS_ON = {
@@ -51,7 +51,7 @@ UNITS = {"amplitude": "m", "phase": "rad", "amplitude_ratio": "1", "phase_shift"
 
 
 @dataclass(frozen=True)
-class DrivenLever:
+class DrivenLever(FirstMode):
     """The point-mass model of the cantilever's first mode and its drive (SI): the lever of a run file's
     ``cantilever`` with the drive; mass and damping as :class:`afmid.io.cantilever.Cantilever` computes them."""
 
@@ -66,21 +66,6 @@ class DrivenLever:
     def omega(self) -> float:
         """w = 2 pi f, rad/s."""
         return 2.0 * math.pi * self.drive_frequency
-
-    @property
-    def omega0(self) -> float:
-        """w0 = 2 pi f0, rad/s."""
-        return 2.0 * math.pi * self.resonance_frequency
-
-    @property
-    def mass(self) -> float:
-        """m = k / w0^2, kg (afmid.io.cantilever.lever_mass)."""
-        return lever_mass(self.spring_constant, self.omega0)
-
-    @property
-    def damping(self) -> float:
-        """c = m w0 / Q, kg/s (afmid.io.cantilever.lever_damping)."""
-        return lever_damping(self.spring_constant, self.omega0, self.quality_factor)
 
 
 def free_oscillation(lever: DrivenLever) -> tuple[float, float]:

@@ -25,7 +25,7 @@ import numpy as np
 import afmid.terms.expr as expr
 from afmid.config import RunConfig
 from afmid.errors import ConfigError
-from afmid.io.cantilever import Cantilever, lever_damping, lever_mass
+from afmid.io.cantilever import Cantilever, FirstMode
 from afmid.terms.kinematics import contact_kinematics
 import afmid.physics.medium as medium
 from afmid.physics.effect_types import RelaxingState
@@ -38,7 +38,7 @@ _DELTA_RE = re.compile(r"\bdelta(dot)?\b")
 
 # =========================================================================== the oscillator
 @dataclass(frozen=True)
-class Oscillator:
+class Oscillator(FirstMode):
     """The cantilever's first mode as a driven, damped point mass (SI): the lever's calibration
     (:class:`afmid.io.cantilever.Cantilever`, :meth:`of`) with the drive; mass and damping computed as there."""
 
@@ -49,24 +49,9 @@ class Oscillator:
     drive_force: float  # F0, N
 
     @property
-    def omega0(self) -> float:
-        """w0, rad/s."""
-        return 2.0 * math.pi * self.resonance_frequency
-
-    @property
     def omega(self) -> float:
         """Drive angular frequency w, rad/s."""
         return 2.0 * math.pi * self.drive_frequency
-
-    @property
-    def mass(self) -> float:
-        """Effective mass m = k / w0^2, kg (afmid.io.cantilever.lever_mass)."""
-        return lever_mass(self.spring_constant, self.omega0)
-
-    @property
-    def damping(self) -> float:
-        """Viscous damping c = m w0 / Q, kg/s (afmid.io.cantilever.lever_damping)."""
-        return lever_damping(self.spring_constant, self.omega0, self.quality_factor)
 
     @classmethod
     def of(cls, cantilever: Cantilever, drive_frequency: float, drive_force: float) -> "Oscillator":
