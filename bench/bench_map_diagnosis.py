@@ -1,12 +1,14 @@
 """Benchmark: what the group diagnosis adds to a 64x64 map's wall time (issue 31), measured end to end.
 
 Workload: configs/maps/blend_hidden_viscous.yaml (a glassy matrix and a soft domain hiding viscoelasticity, fitted
-with [dmt]) as a 64x64 map of 9,984-sample traces (78 periods x 128 samples, as bench_map.py's map) with 2 nm
-pixels, so that the soft domain covers ~20 % of the map and its pixels make a model-limited group (the one
-diagnosed); simulated once and cached in bench/results/ (~250 MB). ``afmid -q map ... -j 2`` (default chunks)
+with [dmt]) as a 64x64 map of 9,984-sample traces (78 periods x 128 samples, as bench_map.py's map) over a
+128 nm square (2 nm pixels), so that the soft domain covers ~20 % of the map and its pixels make a model-limited
+group (the one diagnosed); simulated once and cached in bench/results/ (~250 MB). ``afmid -q map ... -j 2`` (default chunks)
 twice: ``--no-diagnosis``, then with the diagnosis (the default); wall and CPU of each whole process tree (client,
 dask workers), peak RSS. The share is (with - without) / without in wall time. Both results' pixel maps are
-compared (the diagnosis changes only /groups). --quick: a 16x16 map (the share is then no measure of the target).
+compared (the diagnosis changes only /groups). --quick: a 16x16 map over the same square (8 nm pixels; the share is then no measure of the target: the
+diagnosis costs the same, the map 1/16). Cost on a quiet machine (estimated): the 64x64 map's simulation ~6 min of
+CPU (once), each map ~3 min of CPU.
 
 Run: python bench/bench_map_diagnosis.py [--quick]
 """
@@ -25,7 +27,7 @@ from common import CONFIGS, RESULTS, SINGLE_THREAD, differing, load_average, mac
 CONFIG = CONFIGS / "maps" / "blend_hidden_viscous.yaml"
 AFMID = [sys.executable, "-m", "afmid.cli", "-q"]
 PERIODS = 78  # x 128 samples per period = 9,984 samples per pixel
-PIXEL_SIZE = 2e-9  # m: the soft domain (radius 35 nm) over ~20 % of a 64x64 map
+MAP_WIDTH = 128e-9  # m: the soft domain (radius 35 nm, centred at 30 nm, 30 nm) over ~20 % of the map
 SHARE_TARGET = 0.20
 JOBS = 2
 
@@ -38,7 +40,8 @@ def make_map(side: int) -> Path:
         partial = path.with_suffix(".partial.h5")
         measured(AFMID + ["simulate", str(CONFIG), "-o", str(partial), "--overwrite",
                           "--set", f"simulate.map.rows={side}", "--set", f"simulate.map.cols={side}",
-                          "--set", f"simulate.periods={PERIODS}", "--set", f"simulate.map.pixel_size={PIXEL_SIZE}"],
+                          "--set", f"simulate.periods={PERIODS}",
+                          "--set", f"simulate.map.pixel_size={MAP_WIDTH / side}"],
                  timeout=7200)
         partial.rename(path)
     return path
