@@ -1,7 +1,7 @@
 """Benchmark: ``afmid report`` of a record as long as the real HSDC record (issue 31): time and peak memory.
 
 Workload: bench/record_5e5.yaml, simulated once and cached in bench/results/: 600 periods at the HSDC record's
-rate (50 MHz) and drive (56.856 kHz), 879.4 samples per period, 527,640 samples; lever 2.8 N/m, 57 kHz, Q 150;
+rate (50 MHz) and drive (56.856 kHz), 879.4 samples per period, 527,648 samples; lever 2.8 N/m, 57 kHz, Q 150;
 DMT + hidden Kelvin-Voigt, fitted with [dmt] (run1) and [dmt, viscoelastic] (run2). Each command in a fresh
 process, one BLAS thread, a fresh diagnosis cache; wall, CPU (user + sys) and peak RSS of each process tree
 (bench/common.py ``measured``):
