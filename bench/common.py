@@ -113,6 +113,62 @@ def timed(args: list[str], env: dict | None = None, timeout: float = 3600) -> tu
     return seconds, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
+def measured(args: list[str], env: dict | None = None, timeout: float = 3600, cwd: Path = ROOT,
+             ok_codes: tuple[int, ...] = (0,)) -> dict:
+    """Wall time (s), CPU time (user + sys, s) and peak resident memory (GB) of one command.
+
+    The usage is the one ``os.wait4`` returns for the command's process: its own plus that of the descendants it
+    waited for (peak RSS: the largest of them), so other benchmarks' processes are not counted. Raises if the
+    command's exit code is not in ``ok_codes``; kills it after ``timeout`` s. ``python -m`` puts ``cwd`` first on
+    the module path: run another source tree with ``cwd`` set to it."""
+    import tempfile
+    import threading
+
+    with tempfile.TemporaryFile() as err:
+        start = time.perf_counter()
+        proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=err, env=dict(os.environ, **(env or {})),
+                                cwd=cwd)
+        killer = threading.Timer(timeout, proc.kill)
+        killer.start()
+        try:
+            _, status, usage = os.wait4(proc.pid, 0)
+        finally:
+            killer.cancel()
+        elapsed = time.perf_counter() - start
+        proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait for it again
+        if proc.returncode not in ok_codes:
+            err.seek(0)
+            raise RuntimeError(f"{' '.join(map(str, args))} failed ({proc.returncode}):\n"
+                               f"{err.read().decode(errors='replace')[-4000:]}")
+    return {"wall": elapsed, "cpu": usage.ru_utime + usage.ru_stime, "rss_gb": usage.ru_maxrss * 1024 / 1e9,
+            "code": proc.returncode}
+
+
+#: The previous release the report rows compare against: the repository's published main before the issue 30/31
+#: work (2026-11-25; the project has no release tags). ``AFMID_BENCH_PREVIOUS`` names another commit, ``none`` skips it.
+PREVIOUS_RELEASE = "c502dadba00feca3f7391dded19d6d0fcd5fcdad"
+
+
+def previous_release() -> tuple[str, Path] | None:
+    """(commit, source tree) of the previous release, extracted once into bench/results/ by ``git archive``.
+
+    Run it with this environment's Python and ``PYTHONPATH`` set to the tree (its dependencies are this one's);
+    None when ``AFMID_BENCH_PREVIOUS=none``."""
+    commit = os.environ.get("AFMID_BENCH_PREVIOUS", PREVIOUS_RELEASE)
+    if commit.lower() == "none":
+        return None
+    commit = subprocess.run(["git", "rev-parse", "--verify", f"{commit}^{{commit}}"], capture_output=True, text=True,
+                            cwd=ROOT, check=True).stdout.strip()
+    tree = RESULTS / f"previous-{commit[:12]}"
+    if not (tree / "afmid" / "cli.py").exists():
+        partial = RESULTS / f"previous-{commit[:12]}.partial"
+        partial.mkdir(parents=True, exist_ok=True)
+        archive = subprocess.run(["git", "archive", commit, "afmid"], capture_output=True, cwd=ROOT, check=True)
+        subprocess.run(["tar", "-x", "-C", str(partial)], input=archive.stdout, check=True)
+        partial.rename(tree)
+    return commit, tree
+
+
 def median(values) -> float:
     return float(statistics.median(values))
 

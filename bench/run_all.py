@@ -5,7 +5,9 @@ Each bench/bench_*.py exposes ``run(quick) -> list[dict]`` with rows holding
 benchmarks with a target, ``target`` and ``met``. The table is printed and
 also written to bench/results/table.md and bench/results/bench.json.
 
-Run: python bench/run_all.py [--quick] [--only simulate,fit,selection,scaling,coldstart,batch,map,group_diagnosis,report]
+Run: python bench/run_all.py [--quick] [--only simulate,fit,...] (names: BENCHES below). The heavy ones alone:
+``--only report_record`` (the 5e5-sample record's reports, ~3 min of CPU quiet, its trace simulated once),
+``--only map_diagnosis`` (a 64x64 map twice, ~6 min of CPU, its map simulated once).
 """
 
 from __future__ import annotations
@@ -22,12 +24,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import RESULTS, load_average, machine  # noqa: E402  (sets the BLAS thread count first)
 
-BENCHES = ["simulate", "fit", "selection", "scaling", "coldstart", "batch", "map", "group_diagnosis", "report"]
+BENCHES = ["simulate", "fit", "selection", "scaling", "coldstart", "batch", "map", "group_diagnosis", "report",
+           "report_record", "map_diagnosis"]
 
 
-def _seconds(value) -> str:
+def _seconds(value, unit: str = "s") -> str:
     if value is None:
         return "-"
+    if unit != "s":  # a row measuring something else than time (peak memory in GB)
+        return f"{value:.2f} {unit}"
     if value >= 100:
         return f"{value:.0f} s"
     if value >= 1:
@@ -45,7 +50,8 @@ def table(rows: list[dict]) -> str:
     lines = ["| benchmark | afmid | reference | ratio | target | met |", "| --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         met = {True: "yes", False: "**no**", None: "-"}[r.get("met")]
-        lines.append(f"| {r['name']} | {_seconds(r.get('afmid_s'))} | {_seconds(r.get('reference_s'))} | "
+        lines.append(f"| {r['name']} | {_seconds(r.get('afmid_s'), r.get('unit', 's'))} | "
+                     f"{_seconds(r.get('reference_s'), r.get('unit', 's'))} | "
                      f"{_ratio(r.get('ratio'))} | {r.get('target', '')} | {met} |")
     return "\n".join(lines)
 
