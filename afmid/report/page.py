@@ -234,8 +234,8 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     if limited:
         parts.append(f"<p><b>Model-limited</b>: {html.escape(', '.join(limited))}: the cross-validated error stands "
                      "above the noise floor, so the model misses part of the force and its parameters are biased by "
-                     "more than their error bars (which cover noise and calibration only). Do not publish them as "
-                     "measurements.</p>")
+                     "more than their error bars (which cover the noise and a declared calibration uncertainty only). "
+                     "Do not publish them as measurements.</p>")
     flagged = [(r.path.name, q.get("plausibility", "")) for r in runs for q in r.quantities.values()
                if not q.get("plausible", True)]
     if flagged:
