@@ -357,3 +357,35 @@ def test_a_contact_term_whose_column_is_zero_on_the_trace_reads_out_as_not_deter
     unphysical_start = UNPHYSICAL_TEXT.split("{")[0]
     assert not any(w.startswith(unphysical_start) for w in result.warnings), result.warnings
     _assert_honest_readouts(result, "tip off the sample")
+
+
+def test_real_hsdc_first_half_reads_out_honestly(tmp_path):
+    """Bruker's HSDC record (its first half, [dmt], k 2.8 N/m, Q 150, R 8 nm, 60 nm/V: an assumed calibration,
+    the file has none): the fit keeps the tip off the Hertz term's reach, and E* is "not determined", not
+    "0 +- 0" made into an unphysical read-out; every read-out labelled plausible lies in its declared range for
+    the declared tip."""
+    from afmid.config import build_config
+    import afmid.fit.plausibility as plausibility
+    from afmid.fit.pipeline import UNPHYSICAL_TEXT, run_fit
+    from tests.io.test_hsdc import EXAMPLE
+
+    if not EXAMPLE.is_file():
+        pytest.skip(f"Bruker's example file is not at {EXAMPLE}")
+    half = 524288 / 50e6 / 2  # s: the record's 524,288 samples at 50 MHz, halved
+    config = build_config({"data": {"path": str(EXAMPLE), "invols": 60e-9, "stop": half},
+                           "cantilever": {"spring_constant": 2.8, "resonance_frequency": 57e3, "quality_factor": 150.0,
+                                          "tip_radius": 8e-9},
+                           "model": {"effects": ["dmt"]}, "fit": {"bootstrap": 10}}, source=tmp_path / "run.yaml")
+    result = run_fit(config)
+    _assert_honest_readouts(result, "HSDC first half")
+    if "dmt.hertz" not in result.selected_terms():
+        assert result.quantities["E_star"]["determined"] is False, result.quantities["E_star"]
+    unphysical_start = UNPHYSICAL_TEXT.split("{")[0]
+    assert not any(unphysical_start in w and "E_star" in w for w in result.warnings), result.warnings
+    for name, verdict in plausibility.check_plausibility(result.quantities).items():
+        q = result.quantities[name]
+        if verdict.plausible and q.get("determined", True) and math.isfinite(q["value"]):
+            declared = (plausibility.tip_scaled_range(name, q.get("effect"), 8e-9)
+                        or plausibility.plausible_range(name, q.get("effect")))
+            if declared is not None:
+                assert declared[0] <= q["value"] <= declared[1], (name, q["value"], declared)
