@@ -406,3 +406,23 @@ def test_a_run_whose_estimated_separation_is_below_zero_is_suspect(workspace, ru
     shown = [line for line in parameter_lines(flagged) if "rest separation d" in line]
     assert len(shown) == 1 and "IMPLAUSIBLE: the estimated rest separation d = -860 pm" in shown[0]
     assert not any("IMPLAUSIBLE" in line for line in parameter_lines(result) if "rest separation d" in line)
+
+
+def test_flagged_value_shows_the_declared_tips_bound_the_verdict_used():
+    """An adhesion of 34.4 uN for a declared 8 nm tip (Bruker's HSDC record at an assumed calibration) is
+    implausible against that tip's bound, and the table and the terminal show that bound, not the catalog's
+    tip-independent range (the report printed "(plausible: [0, 1e-4] N)" beside a verdict of [0, 5.027e-7] N)."""
+    from afmid.fit.plausibility import range_words, tip_scaled_range
+    from afmid.report.page import parameter_text
+
+    q = {"value": 34.4e-6, "error": 131e-6, "unit": "N", "effect": "dmt", "plausible": False}
+    low, high, _ = tip_scaled_range("adhesion_force", "dmt", 8e-9)
+    assert high < plausible_range("adhesion_force", "dmt")[1]
+    tip_bound = f"(plausible: {range_words(low, high, 'N')})"
+    assert tip_bound == "(plausible: [0, 5.027e-7] N)"
+    assert tip_bound in flagged_value("adhesion_force", q, 8e-9)
+    assert tip_bound in flagged_value("adhesion_force", {**q, "tip_radius": 8e-9})
+    assert tip_bound in parameter_text(q, "adhesion_force", 8e-9)
+    # Without a declared tip the catalog's range is all there is.
+    generic = plausible_range("adhesion_force", "dmt")
+    assert f"(plausible: {range_words(generic[0], generic[1], 'N')})" in flagged_value("adhesion_force", q)
