@@ -372,13 +372,17 @@ def attributes(verdict: Verdict) -> dict:
     return {"plausible": bool(verdict.plausible), "plausibility": verdict.reason}
 
 
-def flagged_value(name: str, quantity: Mapping) -> str:
+def flagged_value(name: str, quantity: Mapping, tip_radius: float | None = None) -> str:
     """How a table shows an implausible read-out: never as a plain number.
 
-    ``implausible: -24 kPa s ± 3 kPa s (1σ) (plausible: [0, 1e5] Pa s)``.
+    ``implausible: -24 kPa s ± 3 kPa s (1σ) (plausible: [0, 1e5] Pa s)``. The range shown is the one the verdict
+    used: for a force that grows with the tip, the bound of the declared tip (``tip_radius`` in m, else the
+    quantity's own ``tip_radius``).
     """
     value, error = _field(quantity, "value"), _field(quantity, "error")
-    declared = plausible_range(name, quantity.get("effect") or None)
+    effect = quantity.get("effect") or None
+    radius = tip_radius if tip_radius is not None else _field(quantity, "tip_radius")
+    declared = tip_scaled_range(name, effect, radius) or plausible_range(name, effect)
     unit = str(quantity.get("unit") or (declared[2] if declared else ""))
     if quantity.get("determined", True) is False:
         return not_determined_text(quantity, unit)

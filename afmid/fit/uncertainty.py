@@ -62,7 +62,7 @@ INTERVALS_WITH_CALIBRATION = "statistical and calibration"
 #: Warning text of a model-limited fit (the numbers are filled in).
 MODEL_LIMITED_TEXT = ("model-limited: the cross-validated error {error:.3g} stands above its noise floor {floor:.3g} "
                       "(x{ratio:.2g}): the model misses part of the force, so its parameters are biased by more than "
-                      "their error bars, which cover noise and calibration only")
+                      "their error bars, which cover the noise and a declared calibration uncertainty only")
 
 
 def model_limited(cv_error: float, noise_floor: float) -> bool:

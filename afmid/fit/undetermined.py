@@ -105,8 +105,10 @@ def mark(quantities: dict, library, system, coef: np.ndarray, mask: np.ndarray, 
             value_forced = _read(read_out, library, forced_coef, params, forced, trace, name)
             # The quantity needs a missing term when the missing terms' own coefficients change its read-out,
             # the other coefficients held (E* needs Hertz, not vdW; refitting would move both).
+            # A column that is zero on this trace keeps a coefficient of exactly 0 when forced in, which reads out
+            # as now ("E* = 0"): a unit coefficient (SI) probes whether the read-out is made of the term.
             probe = coef.copy()
-            probe[missing] = forced_coef[missing]
+            probe[missing] = np.where(forced_coef[missing] != 0, forced_coef[missing], 1.0)
             value_probe = _read(read_out, library, probe, params, forced, trace, name)
             value_now = q["value"]
             needs = not (math.isfinite(value_now) and math.isfinite(value_probe)

@@ -203,7 +203,7 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
             q = r.quantities.get(n) or r.nonlinear.get(n)
             fixed = r.config.model.parameters.get(n)
             if q and not q.get("plausible", True):
-                row.append(plausibility.flagged_value(n, q))
+                row.append(plausibility.flagged_value(n, q, r.cantilever.get("tip_radius")))
             elif q:
                 row.append(quantity_cell(q))
             elif fixed is not None:
@@ -227,8 +227,8 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
     if limited:
         parts.append(f"<p><b>Model-limited</b>: {html.escape(', '.join(limited))}: the cross-validated error stands "
                      "above the noise floor, so the model misses part of the force and its parameters are biased by "
-                     "more than their error bars (which cover noise and calibration only). Do not publish them as "
-                     "measurements.</p>")
+                     "more than their error bars (which cover the noise and a declared calibration uncertainty only). "
+                     "Do not publish them as measurements.</p>")
     flagged = [(r.path.name, q.get("plausibility", "")) for r in runs for q in r.quantities.values()
                if not q.get("plausible", True)]
     if flagged:
@@ -467,7 +467,8 @@ def terminal_summary(summary: dict, output: Path) -> str:
     parameters = summary["runs"][-1]["parameters"]
     if parameters:
         lines.append(f"parameters of {Path(summary['runs'][-1]['run']).name} (± 1σ):")
-        lines.extend(f"  {name} = {parameter_text(q, name)}" for name, q in parameters.items())
+        tip_radius = summary["runs"][-1].get("tip_radius")
+        lines.extend(f"  {name} = {parameter_text(q, name, tip_radius)}" for name, q in parameters.items())
         if summary.get("intervals") == INTERVALS_STATISTICAL:
             lines.append(f"  {STATISTICAL_ONLY_TEXT}")
     lines.extend(f"note: {note}" for note in summary.get("notes", []))
@@ -490,8 +491,9 @@ def quantity_cell(q: dict) -> str:
     return text
 
 
-def parameter_text(q: dict, name: str = "") -> str:
-    """A read-out as the terminal prints it: :func:`quantity_cell`, or the flag of an implausible value."""
+def parameter_text(q: dict, name: str = "", tip_radius: float | None = None) -> str:
+    """A read-out as the terminal prints it: :func:`quantity_cell`, or the flag of an implausible value (with the
+    range for the declared tip of radius ``tip_radius``, m)."""
     if not q.get("plausible", True):
-        return plausibility.flagged_value(name, q)
+        return plausibility.flagged_value(name, q, tip_radius)
     return quantity_cell(q)

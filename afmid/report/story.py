@@ -156,6 +156,7 @@ def run_entry(path: Path, run: RunData, diagnosis: dict) -> dict:
             "error_fold_sd": diagnosis["error_fold_sd"], "error_spread_kind": diagnosis["error_spread_kind"],
             "noise_floor": run.cv_error_noise_floor, "n_terms": run.n_terms, "terms": run.selected_terms,
             "chi2_reduced": run.chi2_reduced, "model_limited": run.model_limited,
+            "tip_radius": run.cantilever.get("tip_radius"),  # m: the bound of forces that grow with the tip
             "parameters": {k: {"value": v["value"], "error": v["error"], "error_kind": ERROR_LABEL,
                                "error_statistical": v.get("error_statistical", v["error"]),
                                "error_calibration": v.get("error_calibration", 0.0),

@@ -432,3 +432,23 @@ def test_read_out_records_the_terms_behind_each_read_out_only_when_asked():
     hertz_only = read_out(library, coef, None, params, np.array([label == "hertz" for label in labels]), None,
                           with_sources=True)
     assert hertz_only["E_star"]["sources"] == ("hertz",) and hertz_only["hamaker"]["sources"] == ()
+
+
+def test_flagged_value_shows_the_declared_tips_bound_the_verdict_used():
+    """An adhesion of 34.4 uN for a declared 8 nm tip (Bruker's HSDC record at an assumed calibration) is
+    implausible against that tip's bound, and the table and the terminal show that bound, not the catalog's
+    tip-independent range (the report printed "(plausible: [0, 1e-4] N)" beside a verdict of [0, 5.027e-7] N)."""
+    from afmid.fit.plausibility import range_words, tip_scaled_range
+    from afmid.report.page import parameter_text
+
+    q = {"value": 34.4e-6, "error": 131e-6, "unit": "N", "effect": "dmt", "plausible": False}
+    low, high, _ = tip_scaled_range("adhesion_force", "dmt", 8e-9)
+    assert high < plausible_range("adhesion_force", "dmt")[1]
+    tip_bound = f"(plausible: {range_words(low, high, 'N')})"
+    assert tip_bound == "(plausible: [0, 5.027e-7] N)"
+    assert tip_bound in flagged_value("adhesion_force", q, 8e-9)
+    assert tip_bound in flagged_value("adhesion_force", {**q, "tip_radius": 8e-9})
+    assert tip_bound in parameter_text(q, "adhesion_force", 8e-9)
+    # Without a declared tip the catalog's range is all there is.
+    generic = plausible_range("adhesion_force", "dmt")
+    assert f"(plausible: {range_words(generic[0], generic[1], 'N')})" in flagged_value("adhesion_force", q)

@@ -333,3 +333,59 @@ def test_thermal_phase_noise_is_not_a_dropped_sample_but_six_samples_are(tmp_pat
     dropped = np.delete(x, np.arange(2100, 2106))
     found = defects.check_jumps(defects.analyse_with(dropped, settings), settings)
     assert [f.name for f in found] == ["phase_jump"] and "dropped" in found[0].message
+
+
+def test_a_contact_term_whose_column_is_zero_on_the_trace_reads_out_as_not_determined(tmp_path):
+    """A fit that holds the tip off the sample (d 25 nm given, a 15 nm amplitude simulated at d 16 nm): the Hertz
+    column is exactly zero on the trace, so least squares leave its coefficient at exactly 0 even when it is
+    forced in. E* is then "not
+    determined" (no bound), never "E* = 0 +- 0" flagged as an unphysical read-out that makes the run
+    model-limited (what the first half of Bruker's HSDC record showed at an assumed calibration)."""
+    import afmid.fit.plausibility as plausibility
+    from afmid.fit.pipeline import UNPHYSICAL_TEXT, run_fit
+
+    _, config, _ = _simulate_and_config(
+        tmp_path, "dmt", ["sample.separation=1.6e-8", "simulate.periods=20", "fit.bootstrap=10",
+                          "model.library=null", "model.effects=[dmt]"], "off_sample")
+    config = config.model_copy(update={"sample": config.sample.model_copy(update={"separation": 2.5e-8})})
+    result = run_fit(config)
+    assert "dmt.hertz" not in result.selected_terms(), result.selected_terms()
+    e_star = result.quantities["E_star"]
+    assert e_star["determined"] is False and math.isnan(e_star["value"]), e_star
+    assert e_star["silent_terms"] == ["dmt.hertz"], e_star
+    assert not plausibility.unphysical("E_star", e_star)
+    unphysical_start = UNPHYSICAL_TEXT.split("{")[0]
+    assert not any(w.startswith(unphysical_start) for w in result.warnings), result.warnings
+    _assert_honest_readouts(result, "tip off the sample")
+
+
+def test_real_hsdc_first_half_reads_out_honestly(tmp_path):
+    """Bruker's HSDC record (its first half, [dmt], k 2.8 N/m, Q 150, R 8 nm, 60 nm/V: an assumed calibration,
+    the file has none): the fit keeps the tip off the Hertz term's reach, and E* is "not determined", not
+    "0 +- 0" made into an unphysical read-out; every read-out labelled plausible lies in its declared range for
+    the declared tip."""
+    from afmid.config import build_config
+    import afmid.fit.plausibility as plausibility
+    from afmid.fit.pipeline import UNPHYSICAL_TEXT, run_fit
+    from tests.io.test_hsdc import EXAMPLE
+
+    if not EXAMPLE.is_file():
+        pytest.skip(f"Bruker's example file is not at {EXAMPLE}")
+    half = 524288 / 50e6 / 2  # s: the record's 524,288 samples at 50 MHz, halved
+    config = build_config({"data": {"path": str(EXAMPLE), "invols": 60e-9, "stop": half},
+                           "cantilever": {"spring_constant": 2.8, "resonance_frequency": 57e3, "quality_factor": 150.0,
+                                          "tip_radius": 8e-9},
+                           "model": {"effects": ["dmt"]}, "fit": {"bootstrap": 10}}, source=tmp_path / "run.yaml")
+    result = run_fit(config)
+    _assert_honest_readouts(result, "HSDC first half")
+    if "dmt.hertz" not in result.selected_terms():
+        assert result.quantities["E_star"]["determined"] is False, result.quantities["E_star"]
+    unphysical_start = UNPHYSICAL_TEXT.split("{")[0]
+    assert not any(unphysical_start in w and "E_star" in w for w in result.warnings), result.warnings
+    for name, verdict in plausibility.check_plausibility(result.quantities).items():
+        q = result.quantities[name]
+        if verdict.plausible and q.get("determined", True) and math.isfinite(q["value"]):
+            declared = (plausibility.tip_scaled_range(name, q.get("effect"), 8e-9)
+                        or plausibility.plausible_range(name, q.get("effect")))
+            if declared is not None:
+                assert declared[0] <= q["value"] <= declared[1], (name, q["value"], declared)

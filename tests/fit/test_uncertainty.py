@@ -201,3 +201,13 @@ def test_model_limited_report_and_console_lines():
     assert "1σ" in cell and "model-limited" in cell
     line = quantity_line("hamaker", q)  # what `afmid fit` prints
     assert "(1σ)" in line and "(95 %)" in line and "MODEL-LIMITED" in line
+
+
+def test_model_limited_warning_does_not_say_the_error_bars_hold_a_calibration_that_was_not_declared():
+    """Without declared calibration uncertainties the error bars are statistical only (the run says so): the
+    model-limited warning must not say they cover the calibration, only a declared calibration uncertainty."""
+    from afmid.fit.uncertainty import model_limited_warning
+
+    text = model_limited_warning(1.09, 0.00875)
+    assert "x1.2e+02" in text and "cover noise and calibration only" not in text
+    assert "a declared calibration uncertainty" in text
