@@ -27,8 +27,10 @@ fitted model and the record's noise:
   that integral's |S(f)|^2 near f_k, so I_ij = T sum_k Re(conj(dc_k/dtheta_i) dc_k/dtheta_j) / S(f_k)
   (:func:`fisher_information`). Check: a sinusoid's amplitude in white noise of variance sigma^2 per sample at
   fs (S = 2 sigma^2 / fs, T = N / fs) gives I = N / (2 sigma^2), the known sigma_A = sqrt(2 sigma^2 / N)
-  (tests/fit/test_information_bound.py). The mean deflection (k = 0) is left out: the record's offset and drift are
-  unknown (fit.detrend), so it carries no information about d.
+  (tests/fit/test_information_bound.py). The mean deflection (k = 0) counts only where the fit reads it
+  (fit.detrend none: no offset or drift column); with an unknown offset it carries nothing about d.
+  The detector's noise is the record's white floor between the harmonics far above resonance
+  (:func:`detector_noise_rms`), not the fit's block residual, which also holds the lever's thermal wander.
 * **bound** = sqrt(diag(I^-1)); a read-out's bound is the linear propagation J I^-1 J^T of its derivatives with
   respect to theta (:func:`readout_bounds`).
 
@@ -219,7 +221,8 @@ class SteadyStateModel:
         orbit = self._shoot(integrator, self.orbit)
         _, _, segment = self._period(integrator, orbit, record=True)
         spectrum = np.fft.rfft(segment.x[:-1]) * (2.0 / STEPS_PER_PERIOD)
-        return spectrum[1:self.harmonics + 1]
+        spectrum[0] *= 0.5  # the mean deflection, m
+        return spectrum[:self.harmonics + 1]
 
 
 # --------------------------------------------------------------------------- the bound of a fit
@@ -263,7 +266,7 @@ def sensitivities(model: SteadyStateModel, parameters: tuple[Parameter, ...], co
     """dc_k / dtheta (n_params, K) by central differences (steps scaled by ``relative_step``); the drive phase's
     analytically. ``coefficient_names`` are the parameters that are the law's term coefficients, in its order."""
     nominal = model.harmonics_at()
-    k = np.arange(1, model.harmonics + 1)
+    k = np.arange(model.harmonics + 1)
     coefficients = model.compiled.coefficients
     rows = []
     for p in parameters:
@@ -325,11 +328,13 @@ def force_sensitivities(model: SteadyStateModel, parameters: tuple[Parameter, ..
 
 def compute_bound(law: ForceLaw, oscillator: Oscillator, separation: float, parameters: tuple[Parameter, ...],
                   coefficient_names: list[str], noise: NoiseModel, periods: float,
-                  relative_step: float = 1.0) -> InformationBound:
+                  relative_step: float = 1.0, mean_known: bool = True) -> InformationBound:
     """The bound of ``parameters`` for a record of ``periods`` drive periods with ``noise``.
 
     ``law`` holds the coefficients in the order of ``coefficient_names`` (the parameters that are coefficients).
-    Harmonics below the record's Nyquist frequency are used: K = ceil(fs / (2 f)) - 1.
+    Harmonics below the record's Nyquist frequency are used: K = ceil(fs / (2 f)) - 1; the mean deflection too when
+    ``mean_known`` (the record's zero is the lever's rest: fit.detrend none, where the fit uses it): a real
+    amplitude, twice the weight of a harmonic's part (its variance per record is sigma^2 / N, not 2 sigma^2 / N).
     """
     started = time.process_time()
     f = oscillator.drive_frequency
@@ -337,12 +342,14 @@ def compute_bound(law: ForceLaw, oscillator: Oscillator, separation: float, para
     harmonics = min(harmonics, STEPS_PER_PERIOD // 4)
     model = SteadyStateModel(law, oscillator, separation, harmonics)
     derivatives = sensitivities(model, parameters, coefficient_names, relative_step)
-    frequencies = f * np.arange(1, harmonics + 1)
+    frequencies = f * np.arange(harmonics + 1)
     if noise.detector_response is not None:  # the record is the detector's output: G(f_k) c_k
         derivatives = derivatives * noise.detector_response(frequencies)[None, :]
     duration = periods / f
     detector_only = replace(noise, temperature=None)
-    information = fisher_information(derivatives, deflection_noise_psd(detector_only, frequencies), duration)
+    psd = deflection_noise_psd(detector_only, frequencies)
+    psd[0] = psd[0] / 2.0 if mean_known else math.inf
+    information = fisher_information(derivatives, psd, duration)
     covariances = [bound_from_information(information)[0]]
     if noise.temperature is not None:
         residual, dt = force_sensitivities(model, parameters, coefficient_names)
@@ -391,6 +398,33 @@ def raise_to_bound(name: str, unit: str, sigma: float, bound: float) -> tuple[fl
 
 
 # --------------------------------------------------------------------------- the fit's record
+#: The detector's white noise is read from the record's spectrum above this multiple of the higher of the drive
+#: and resonance frequencies, where the lever's thermal motion is < 1/(3^2 - 1)^2 = 1.6 % of its static response's
+#: PSD and the tapping signal only has its harmonics (left out).
+QUIET_ABOVE = 3.0
+
+
+def detector_noise_rms(deflection: np.ndarray, sample_rate: float, drive_frequency: float,
+                       resonance_frequency: float) -> float:
+    """The detector's white noise (m per sample) from the record's periodogram between the drive harmonics above
+    :data:`QUIET_ABOVE` x max(f, f0): the median bin over ln 2 (a white noise's periodogram bins are exponential,
+    their median ln 2 of the mean). NaN when there are fewer than 20 such bins. The fit's own noise estimate (its
+    per-period block residual) also holds the lever's thermal wander near resonance, which the bound must not count
+    as detector noise."""
+    x = np.asarray(deflection, dtype=float)
+    x = x - x.mean()
+    n = x.size
+    power = np.abs(np.fft.rfft(x)) ** 2 / n  # mean sigma^2 for white noise of variance sigma^2
+    frequency = np.fft.rfftfreq(n, 1.0 / sample_rate)
+    resolution = sample_rate / n
+    nearest = np.abs(frequency / drive_frequency - np.round(frequency / drive_frequency)) * drive_frequency
+    quiet = ((frequency > QUIET_ABOVE * max(drive_frequency, resonance_frequency))
+             & (frequency < 0.5 * sample_rate - resolution) & (nearest > 2.5 * resolution))
+    if np.count_nonzero(quiet) < 20:
+        return math.nan
+    return float(math.sqrt(np.median(power[quiet]) / math.log(2.0)))
+
+
 #: Why no bound is computed for a fit (the reason, or None when it applies).
 def bound_applies(prep, config, instrument, drive_search) -> str | None:
     """None when the bound can be computed for this fit, else why not: a record that is not in steady state (a
@@ -442,11 +476,13 @@ def fit_bound(prep, library, config, system, coef: np.ndarray, chosen: np.ndarra
     oscillator = Oscillator(lever.spring_constant, lever.resonance_frequency, lever.quality_factor,
                             prep.drive.frequency, drive_force)
     detector = instrument.detector if instrument is not None else None
-    noise = NoiseModel(prep.noise_rms, trace.sample_rate, lever.spring_constant, 2.0 * math.pi * lever.resonance_frequency,
+    quiet_rms = detector_noise_rms(prep.x, trace.sample_rate, prep.drive.frequency, lever.resonance_frequency)
+    noise = NoiseModel(min(prep.noise_rms, quiet_rms) if math.isfinite(quiet_rms) else prep.noise_rms, trace.sample_rate, lever.spring_constant, 2.0 * math.pi * lever.resonance_frequency,
                        lever.quality_factor, config.fit.temperature if config.fit.thermal_noise else None,
                        detector.response if detector is not None else None)
+    mean_known = not {"offset", "drift"} & set(names)  # no offset column: the fit reads d from the mean too
     bound = compute_bound(law, oscillator, float(params["d"]), tuple(theta), coefficient_names, noise,
-                          prep.blocks.n_blocks)
+                          prep.blocks.n_blocks, mean_known=mean_known)
 
     def quantities_at(values: dict) -> dict:
         changed = np.array(coef, dtype=float)

@@ -105,8 +105,8 @@ def test_the_poor_instruments_bound_is_the_reviewers_order():
 
 def test_without_thermal_noise_it_matches_the_test_side_bound():
     """tests/support/cramer_rao.py: another implementation (afmid simulate's records, their record-mean spectrum,
-    the mean included) on hidden_clean.yaml at 5 pm, thermal noise off. Its record-mean includes the offset (k = 0),
-    which this bound leaves out as unknown, so this one may only be larger, and by little."""
+    the mean included, harmonics to the Nyquist frequency, its own steps) on hidden_clean.yaml at 5 pm, thermal
+    noise off: the same number within the two step choices' differences (2 %)."""
     from afmid.config import apply_overrides, build_config, parse_override, read_yaml
     from afmid.physics.tips import tip_geometry
     from cramer_rao import separation_bound
@@ -131,7 +131,7 @@ def test_without_thermal_noise_it_matches_the_test_side_bound():
     assert tip_geometry(c) is not None
     bound = compute_bound(law, setup.oscillator, config.sample.separation, theta, coefficient_names, noise,
                           config.simulate.periods)
-    assert reference.sigma <= bound.of("d") <= 1.25 * reference.sigma
+    assert bound.of("d") == pytest.approx(reference.sigma, rel=0.02)  # measured: 148.95 vs 148.87 pm
 
 
 def test_a_sigma_below_the_bound_is_raised_and_says_so():
@@ -152,3 +152,48 @@ def test_a_sigma_below_the_bound_is_raised_and_says_so():
     assert quantities["hamaker"]["information_bound"] == 1e-21
     assert len(warnings) == 2
     assert "d's sigma raised to the information bound (0.626 nm; the fit's own 0.170 nm)" in warnings[0]
+
+
+#: Noise draws of the empirical check (fixed before they were run; seeds 101-124 were the exploratory run).
+EMPIRICAL_SEEDS = tuple(range(201, 225))
+
+
+def _poor_configs(seed: int, bootstrap: int = 0):
+    """(simulation config, fit config with the separation estimated) of configs/coverage/poor.yaml's centre at 2 pm
+    (a bound of ~90 pm on d: small against the ~1 nm indentation, where the linear bound applies)."""
+    from afmid.config import apply_overrides, build_config, parse_override, read_yaml
+    from repo_paths import REPO_ROOT
+
+    raw = apply_overrides(read_yaml(REPO_ROOT / "configs" / "coverage" / "poor.yaml"),
+                          [parse_override(o) for o in ("simulate.noise.detector_rms=2e-12", f"simulate.seed={seed}",
+                                                       f"fit.bootstrap={bootstrap}")])
+    raw.pop("coverage")
+    simulation = build_config(raw, source=REPO_ROOT / "poor.yaml", base_dir=REPO_ROOT)
+    raw["sample"]["separation"] = None
+    return simulation, build_config(raw, source=REPO_ROOT / "poor.yaml", base_dir=REPO_ROOT)
+
+
+@pytest.mark.slow
+def test_the_spread_of_afmids_estimates_over_noise_draws_is_not_below_the_bound():
+    """24 noise draws of a 50-period poor-instrument record (2 pm, d estimated; ~35 s CPU): the standard deviation
+    of afmid's d and E* is at least the bound, within the chi-square tolerance of 24 samples (the 0.1 % quantile of
+    chi2(23) / 23: a true ratio of 1 fails one run in 1000). Measured on the exploratory seeds: 0.87 (d) and 0.82
+    (E*). And the bound is not vacuous: afmid's estimator is near-efficient (docs/accuracy.md, 'Is it the record
+    or the estimator?'), so the spread is under 2x the bound."""
+    from afmid.fit.pipeline import run_fit
+    from afmid.simulate.driver import simulate
+
+    simulation, fit = _poor_configs(200, bootstrap=20)
+    bound = run_fit(fit, trace=simulate(simulation)).information_bound
+    assert bound is not None
+    separations, moduli = [], []
+    for seed in EMPIRICAL_SEEDS:
+        simulation, fit = _poor_configs(seed)
+        result = run_fit(fit, trace=simulate(simulation), uncertainty=False)
+        separations.append(result.system.params["d"])
+        moduli.append(result.quantities["E_star"]["value"])
+    n = len(EMPIRICAL_SEEDS)
+    lowest = math.sqrt(chi2.ppf(0.001, n - 1) / (n - 1))
+    for name, values, limit in (("d", separations, bound.of("d")), ("E*", moduli, bound.quantities["E_star"])):
+        ratio = float(np.std(values, ddof=1)) / limit
+        assert lowest < ratio < 2.0, f"{name}: spread / bound = {ratio:.3f}"
