@@ -36,7 +36,8 @@ fitted model and the record's noise:
 
 Not included (each makes the bound smaller than the record's true one, never larger, except the thermal
 approximation above): the drive frequency (measured, nearly orthogonal to the rest), higher eigenmodes (no bound is
-computed when one is declared: :func:`bound_applies`), the harmonics' aliasing above the Nyquist frequency.
+computed when one is declared: :func:`bound_applies`), the harmonics' aliasing above the Nyquist frequency when a
+period does not hold a whole number of samples (with a whole number, the sampled period's spectrum is used).
 """
 
 from __future__ import annotations
@@ -146,8 +147,16 @@ class SteadyStateModel:
     periods whatever the quality factor.
     """
 
-    def __init__(self, law: ForceLaw, oscillator: Oscillator, separation: float, harmonics: int):
+    def __init__(self, law: ForceLaw, oscillator: Oscillator, separation: float, harmonics: int,
+                 samples_per_period: float | None = None):
         self.law = law
+        # The record's samples on the integration grid when a period holds a whole number M of them: the harmonics
+        # are then the sampled record's, aliasing included (a sharp contact at 50 samples per period has harmonics
+        # above the Nyquist frequency that fold onto the ones below); else the fine grid's. "Whole" within 1e-3
+        # sample: the measured drive frequency is off the nominal by ppm, a slip of < 0.1 sample over 100 periods.
+        whole = samples_per_period is not None and abs(samples_per_period - round(samples_per_period)) < 1e-3
+        self.samples = int(round(samples_per_period)) if whole else None
+        self.steps = self.samples * math.ceil(STEPS_PER_PERIOD / self.samples) if whole else STEPS_PER_PERIOD
         self.oscillator = oscillator
         self.separation = separation
         self.harmonics = harmonics
@@ -158,7 +167,7 @@ class SteadyStateModel:
         nominal.start(x0, v0, 0.0)
         amplitude = oscillator.free_response()[0]
         self.scale = np.array([amplitude, amplitude * oscillator.omega])
-        steady = settle(nominal, STEPS_PER_PERIOD, SETTLE_TOLERANCE,
+        steady = settle(nominal, self.steps, SETTLE_TOLERANCE,
                         max(200, int(MAX_SETTLE_Q * oscillator.quality_factor)))
         self.simulated_periods += steady.periods
         start = Orbit(nominal.x, nominal.v, nominal.gates.copy())
@@ -168,8 +177,8 @@ class SteadyStateModel:
     # one period from an orbit's state
     def _period(self, integrator: Integrator, state: Orbit, record: bool = False):
         integrator.start(state.x, state.v, 0.0, state.gates)
-        h = self.oscillator.period / STEPS_PER_PERIOD
-        segment = integrator.run(0.0, h, STEPS_PER_PERIOD, 1)
+        h = self.oscillator.period / self.steps
+        segment = integrator.run(0.0, h, self.steps, 1)
         self.simulated_periods += 1
         end = np.array([integrator.x, integrator.v])
         return (end, integrator.gates.copy(), segment) if record else (end, integrator.gates.copy())
@@ -204,7 +213,7 @@ class SteadyStateModel:
         sample (the next period's first) left out."""
         integrator = Integrator(self.oscillator, self.compiled, self.separation)
         _, _, segment = self._period(integrator, self.orbit, record=True)
-        t = np.arange(STEPS_PER_PERIOD) * (self.oscillator.period / STEPS_PER_PERIOD)
+        t = np.arange(self.steps) * (self.oscillator.period / self.steps)
         return t, segment.x[:-1], segment.v[:-1], segment.gates[:-1]
 
     def harmonics_at(self, separation: float | None = None, coefficients: np.ndarray | None = None,
@@ -220,7 +229,8 @@ class SteadyStateModel:
         integrator = Integrator(oscillator, compiled, self.separation if separation is None else separation)
         orbit = self._shoot(integrator, self.orbit)
         _, _, segment = self._period(integrator, orbit, record=True)
-        spectrum = np.fft.rfft(segment.x[:-1]) * (2.0 / STEPS_PER_PERIOD)
+        x = segment.x[:-1] if self.samples is None else segment.x[:-1:self.steps // self.samples]
+        spectrum = np.fft.rfft(x) * (2.0 / x.size)
         spectrum[0] *= 0.5  # the mean deflection, m
         return spectrum[:self.harmonics + 1]
 
@@ -323,7 +333,7 @@ def force_sensitivities(model: SteadyStateModel, parameters: tuple[Parameter, ..
                                                                                   p.name: p.value + sign * p.step})),
                                  x, v, t, model.separation, gates) for sign in (1.0, -1.0)]
             rows.append((sides[0] - sides[1]) / (2.0 * p.step))
-    return np.array(rows), model.oscillator.period / STEPS_PER_PERIOD
+    return np.array(rows), model.oscillator.period / model.steps
 
 
 def compute_bound(law: ForceLaw, oscillator: Oscillator, separation: float, parameters: tuple[Parameter, ...],
@@ -340,7 +350,7 @@ def compute_bound(law: ForceLaw, oscillator: Oscillator, separation: float, para
     f = oscillator.drive_frequency
     harmonics = max(1, math.ceil(noise.sample_rate / (2.0 * f)) - 1)
     harmonics = min(harmonics, STEPS_PER_PERIOD // 4)
-    model = SteadyStateModel(law, oscillator, separation, harmonics)
+    model = SteadyStateModel(law, oscillator, separation, harmonics, noise.sample_rate / f)
     derivatives = sensitivities(model, parameters, coefficient_names, relative_step)
     frequencies = f * np.arange(harmonics + 1)
     if noise.detector_response is not None:  # the record is the detector's output: G(f_k) c_k
@@ -498,8 +508,9 @@ def fit_bound(prep, library, config, system, coef: np.ndarray, chosen: np.ndarra
 
 def apply_bound(bound: InformationBound, quantities: dict, nonlinear: dict, warnings: list[str]) -> None:
     """Store the bound beside each sigma and raise a sigma below it to it (in place): a nonlinear estimate's
-    ``sigma`` (``information_bound`` set on it), a read-out's ``error`` (``information_bound`` in its dict) with its
-    95 % interval widened to at least value +- 1.96 x the bound. One warning per raised number."""
+    ``sigma`` (``information_bound`` set on it), a read-out's statistical error (``error_statistical``, then
+    ``error`` = it and the calibration share in quadrature; ``information_bound`` in its dict) with its 95 %
+    interval widened to at least value +- 1.96 x the new error. One warning per raised number."""
     for name, est in nonlinear.items():
         b = bound.of(name)
         est.information_bound = b
@@ -512,8 +523,13 @@ def apply_bound(bound: InformationBound, quantities: dict, nonlinear: dict, warn
         q["information_bound"] = b
         if not q.get("determined", True) or not math.isfinite(q.get("value", math.nan)):
             continue
-        sigma, warning = raise_to_bound(name, q["unit"], q["error"], b)
+        # The bound is on the data's share: a declared calibration share adds to it in quadrature.
+        statistical = "error_statistical" in q
+        sigma, warning = raise_to_bound(name, q["unit"], q["error_statistical" if statistical else "error"], b)
         if warning:
+            if statistical:
+                q["error_statistical"] = sigma
+                sigma = math.hypot(sigma, q.get("error_calibration", 0.0))
             q["error"] = sigma
             half = 1.959963984540054 * sigma
             q["ci_low"] = min(q["ci_low"], q["value"] - half) if math.isfinite(q["ci_low"]) else q["value"] - half

@@ -154,11 +154,14 @@ def test_a_sigma_below_the_bound_is_raised_and_says_so():
     assert "d's sigma raised to the information bound (0.626 nm; the fit's own 0.170 nm)" in warnings[0]
 
 
-#: Noise draws of the empirical check (fixed before they were run; seeds 101-124 were the exploratory run).
-EMPIRICAL_SEEDS = tuple(range(201, 225))
+#: Noise draws of the empirical check, fixed before they were run. Seeds 101-124 were the exploratory run (with the
+#: thermal force: spread / bound 0.87 for d, 0.82 for E*; without: 1.10 and 1.10); 201-224 the first fixed set, run
+#: with the thermal force (0.59 and 0.71: the lever's thermal wander carries information the bound does not count,
+#: docs/accuracy.md "The information bound"), so the check moved to records without it, on new seeds.
+EMPIRICAL_SEEDS = tuple(range(301, 325))
 
 
-def _poor_configs(seed: int, bootstrap: int = 0):
+def _poor_configs(seed: int, bootstrap: int = 0, thermal: bool = True):
     """(simulation config, fit config with the separation estimated) of configs/coverage/poor.yaml's centre at 2 pm
     (a bound of ~90 pm on d: small against the ~1 nm indentation, where the linear bound applies)."""
     from afmid.config import apply_overrides, build_config, parse_override, read_yaml
@@ -166,7 +169,8 @@ def _poor_configs(seed: int, bootstrap: int = 0):
 
     raw = apply_overrides(read_yaml(REPO_ROOT / "configs" / "coverage" / "poor.yaml"),
                           [parse_override(o) for o in ("simulate.noise.detector_rms=2e-12", f"simulate.seed={seed}",
-                                                       f"fit.bootstrap={bootstrap}")])
+                                                       f"fit.bootstrap={bootstrap}",
+                                                       f"simulate.noise.thermal={str(thermal).lower()}")])
     raw.pop("coverage")
     simulation = build_config(raw, source=REPO_ROOT / "poor.yaml", base_dir=REPO_ROOT)
     raw["sample"]["separation"] = None
@@ -175,20 +179,20 @@ def _poor_configs(seed: int, bootstrap: int = 0):
 
 @pytest.mark.slow
 def test_the_spread_of_afmids_estimates_over_noise_draws_is_not_below_the_bound():
-    """24 noise draws of a 50-period poor-instrument record (2 pm, d estimated; ~35 s CPU): the standard deviation
-    of afmid's d and E* is at least the bound, within the chi-square tolerance of 24 samples (the 0.1 % quantile of
-    chi2(23) / 23: a true ratio of 1 fails one run in 1000). Measured on the exploratory seeds: 0.87 (d) and 0.82
-    (E*). And the bound is not vacuous: afmid's estimator is near-efficient (docs/accuracy.md, 'Is it the record
-    or the estimator?'), so the spread is under 2x the bound."""
+    """24 noise draws of a 50-period poor-instrument record (2 pm of detector noise, no thermal force, d estimated;
+    ~35 s CPU): the standard deviation of afmid's d and E* is at least the bound, within the chi-square tolerance of
+    24 samples (the 0.1 % quantile of chi2(23) / 23: a true ratio of 1 fails one run in 1000). And the bound is not
+    vacuous: afmid's estimator is near-efficient (docs/accuracy.md, 'Is it the record or the estimator?'), so the
+    spread is under 2x the bound."""
     from afmid.fit.pipeline import run_fit
     from afmid.simulate.driver import simulate
 
-    simulation, fit = _poor_configs(200, bootstrap=20)
+    simulation, fit = _poor_configs(300, bootstrap=20, thermal=False)
     bound = run_fit(fit, trace=simulate(simulation)).information_bound
     assert bound is not None
     separations, moduli = [], []
     for seed in EMPIRICAL_SEEDS:
-        simulation, fit = _poor_configs(seed)
+        simulation, fit = _poor_configs(seed, thermal=False)
         result = run_fit(fit, trace=simulate(simulation), uncertainty=False)
         separations.append(result.system.params["d"])
         moduli.append(result.quantities["E_star"]["value"])
@@ -197,3 +201,30 @@ def test_the_spread_of_afmids_estimates_over_noise_draws_is_not_below_the_bound(
     for name, values, limit in (("d", separations, bound.of("d")), ("E*", moduli, bound.quantities["E_star"])):
         ratio = float(np.std(values, ddof=1)) / limit
         assert lowest < ratio < 2.0, f"{name}: spread / bound = {ratio:.3f}"
+
+
+def test_a_fit_stores_the_bound_beside_each_sigma_in_its_run_file(tmp_path):
+    """The fit's quantities and separation carry the bound, the run file keeps it as an attribute of the number
+    (in its units) and reads it back; no reported sigma is below it."""
+    import h5py
+
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import load_run, write_run
+    from afmid.simulate.driver import simulate
+
+    simulation, fit = _poor_configs(200, bootstrap=10)
+    result = run_fit(fit, trace=simulate(simulation))
+    bound = result.information_bound
+    d = result.nonlinear["d"]
+    assert d.information_bound == bound.of("d") and d.sigma >= d.information_bound > 0
+    for name in ("E_star", "hamaker"):
+        q = result.quantities[name]
+        assert q["information_bound"] == bound.quantities[name] and q["error"] >= q["information_bound"] > 0
+    path = write_run(tmp_path / "run.h5", result, fit)
+    with h5py.File(path) as h5:
+        assert h5["model/separation"].attrs["information_bound"] == d.information_bound
+        assert h5["model/parameters/E_star"].attrs["units"] == "Pa"
+        assert h5["model/parameters/E_star"].attrs["information_bound"] == result.quantities["E_star"]["information_bound"]
+    run = load_run(path)
+    assert run.quantities["E_star"]["information_bound"] == result.quantities["E_star"]["information_bound"]
+    assert run.nonlinear["d"]["information_bound"] == d.information_bound
