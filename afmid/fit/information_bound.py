@@ -487,8 +487,10 @@ def fit_bound(prep, library, config, system, coef: np.ndarray, chosen: np.ndarra
                             prep.drive.frequency, drive_force)
     detector = instrument.detector if instrument is not None else None
     quiet_rms = detector_noise_rms(prep.x, trace.sample_rate, prep.drive.frequency, lever.resonance_frequency)
-    noise = NoiseModel(min(prep.noise_rms, quiet_rms) if math.isfinite(quiet_rms) else prep.noise_rms, trace.sample_rate, lever.spring_constant, 2.0 * math.pi * lever.resonance_frequency,
-                       lever.quality_factor, config.fit.temperature if config.fit.thermal_noise else None,
+    detector_rms = min(prep.noise_rms, quiet_rms) if math.isfinite(quiet_rms) else prep.noise_rms
+    noise = NoiseModel(detector_rms, trace.sample_rate, lever.spring_constant,
+                       2.0 * math.pi * lever.resonance_frequency, lever.quality_factor,
+                       config.fit.temperature if config.fit.thermal_noise else None,
                        detector.response if detector is not None else None)
     mean_known = not {"offset", "drift"} & set(names)  # no offset column: the fit reads d from the mean too
     bound = compute_bound(law, oscillator, float(params["d"]), tuple(theta), coefficient_names, noise,
@@ -538,7 +540,8 @@ def apply_bound(bound: InformationBound, quantities: dict, nonlinear: dict, warn
 
 
 def floor_at_bound(prep, library, config, system, coef, chosen, params: dict, nonlinear: dict, quantities: dict,
-                   warnings: list[str], drive_search, read_out: Callable[[dict, dict], dict]) -> InformationBound | None:
+                   warnings: list[str], drive_search,
+                   read_out: Callable[[dict, dict], dict]) -> InformationBound | None:
     """The fit's bound (:func:`fit_bound`) applied to its sigmas (:func:`apply_bound`); None (and the sigmas
     unchanged) where it does not apply (:func:`bound_applies`) or the fitted law has no steady state to linearize."""
     from afmid.errors import AfmidError
