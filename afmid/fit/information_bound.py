@@ -8,7 +8,10 @@ fitted model and the record's noise:
   RK4 with steps onto every non-smooth instant) with the fitted force law (the selected terms, their coefficients,
   the fitted nonlinear parameters), at the fitted separation and drive. theta = the estimated nonlinear parameters
   (d, decay lengths), the selected terms' coefficients and, when the drive is fitted rather than calibrated, the
-  drive force's amplitude F0 (N) and phase (rad) as nuisance parameters.
+  drive force's amplitude F0 (N) and phase (rad) as nuisance parameters. A preset library is bounded with the law of
+  the catalog effects it stands for (all their terms), the law the fit pins d with (afmid.fit.pipeline.profile_library:
+  a preset's split columns, e.g. a free adhesion constant in contact, trade off with d; measured on
+  tests/configs/dmt.yaml, seed 1: 100 pm with the selected bridging constant free, 22 pm with DMT's law).
 * **sensitivities**: the complex amplitudes c_k (m; x = Re sum_k c_k exp(i k w t)) of harmonics k = 1..K below
   the record's Nyquist frequency, differentiated by central differences of steady states (:func:`steady_harmonics`:
   a periodic orbit found by shooting, so a perturbed state settles in a few periods whatever Q is); the phase

@@ -479,9 +479,17 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         limited = True
     information = None
     if uncertainty:  # no sigma below the record's Cramér-Rao bound (afmid.fit.information_bound)
+        bound_library, bound_system, bound_coef, bound_mask, bound_params = library, system, coef, chosen, params
+        if physics is not library:  # a preset: d is pinned by its catalog effects' law (profile_library), so is this
+            bound_library, bound_params = physics, dict(params, **extra)
+            bound_system = build_system(prep, physics, bound_params)
+            bound_mask = np.ones(len(bound_system.names), dtype=bool)
+            bound_coef, _ = regression.subset_fit(regression.combine(bound_system.T_blocks), bound_mask)
         information = floor_at_bound(
-            prep, library, config, system, coef, chosen, params, nonlinear, quantities, warnings, drive_search,
-            lambda c, p: {k: q["value"] for k, q in read_out(library, c, None, p, chosen, trace).items()})
+            prep, bound_library, config, bound_system, bound_coef, bound_mask, bound_params, nonlinear, quantities,
+            warnings, drive_search,
+            lambda c, p: {k: q["value"]
+                          for k, q in read_out(bound_library, c, None, p, bound_mask, trace).items()})
     force_estimate, force_inverted = per_sample_forces(prep, library, system, coef, rows)
     share = SHARE_NOT_COMPUTED
     if uncertainty and "d" in nonlinear and config.sample.separation is None:
