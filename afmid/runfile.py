@@ -136,6 +136,19 @@ def run_data(result: FitResult, config: RunConfig, name: str = "fit") -> RunData
     return data
 
 
+#: What a number's ``information_bound`` attribute is (afmid.fit.information_bound).
+INFORMATION_BOUND_MEANING = ("the record's Cramer-Rao bound on the 1-sigma error, in the dataset's units (NaN: not "
+                             "computed); the error is never below it")
+
+
+def bound_attributes(quantity: dict) -> dict:
+    """The ``information_bound`` attributes of a number whose dict may hold it (nothing when it does not)."""
+    if "information_bound" not in quantity:
+        return {}
+    return {"information_bound": float(quantity["information_bound"]),
+            "information_bound_meaning": INFORMATION_BOUND_MEANING}
+
+
 def write_run_contents(h5, result: FitResult, config: RunConfig) -> dict:
     """Everything of a run file below its provenance (docs/file-formats.md) into the open HDF5 file ``h5``;
     returns the read-outs' plausibility verdicts (:func:`afmid.fit.plausibility.check_run`)."""
@@ -205,17 +218,20 @@ def write_run_contents(h5, result: FitResult, config: RunConfig) -> dict:
     for name, q in result.quantities.items():
         parts = {k: q[k] for k in ("error_statistical", "error_calibration") if k in q}
         parts.update(undetermined_attributes(q))
+        parts.update(bound_attributes(q))
         write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
                       effect=q["effect"], description=q["doc"], model_limited=bool(q.get("model_limited", False)),
                       **ERROR_ATTRS, **parts, **plausibility.attributes(verdicts[name]))
     ng = m.create_group("nonlinear")
     for name, est in result.nonlinear.items():
         write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated,
-                      error_kind=ERROR_LABEL)
+                      error_kind=ERROR_LABEL, **bound_attributes({"information_bound": est.information_bound}))
     fixed_d = config.sample.separation
     separation_verdict = verdicts.get(plausibility.SEPARATION)
     write_dataset(m, "separation", result.system.params["d"], "m", estimated=fixed_d is None,
                   error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0, error_kind=ERROR_LABEL,
+                  **bound_attributes({"information_bound": result.nonlinear["d"].information_bound}
+                                     if "d" in result.nonlinear else {}),
                   **(plausibility.attributes(separation_verdict) if separation_verdict else {}))
     fg = h5.create_group("force")
     separation_share = float(getattr(result, "force_separation_uncertainty", math.nan))
@@ -470,14 +486,16 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
                "error": float(_required_attr(ds, "error", path)),
                "ci_low": float(_required_attr(ds, "ci_low", path)), "ci_high": float(_required_attr(ds, "ci_high", path)),
                "effect": text(_required_attr(ds, "effect", path)),
-               **{k: float(ds.attrs[k]) for k in ("error_statistical", "error_calibration") if k in ds.attrs},
+               **{k: float(ds.attrs[k]) for k in ("error_statistical", "error_calibration", "information_bound")
+                  if k in ds.attrs},
                "model_limited": bool(ds.attrs.get("model_limited", False)),
                **read_undetermined(ds.attrs),
                **plausibility.attributes(read_verdict(name, ds))}
         for name, ds in m["parameters"].items()
     }
     nonlinear = {name: {"value": float(ds[()]), "error": float(_required_attr(ds, "error", path)),
-                        "unit": text(_required_attr(ds, "units", path))}
+                        "unit": text(_required_attr(ds, "units", path)),
+                        "information_bound": float(ds.attrs.get("information_bound", math.nan))}
                  for name, ds in m["nonlinear"].items()}
     d = h5["diagnostics"]
     return RunData(

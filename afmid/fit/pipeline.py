@@ -60,6 +60,7 @@ from afmid.fit.undetermined import whole_effects
 from afmid.progress import Progress
 from afmid.fit.separation_share import NOT_COMPUTED as SHARE_NOT_COMPUTED, SeparationShare, separation_share
 from afmid.fit.force_band import selection_share, statistical_share, total_share
+from afmid.fit.information_bound import InformationBound, floor_at_bound
 # Kept importable from afmid.fit.pipeline, where they were defined before (bench/bench_fit.py uses term_penalties).
 from afmid.fit.forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from afmid.fit.selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
@@ -169,6 +170,8 @@ class FitResult:
     force_statistical_uncertainty: float = math.nan
     #: half the force's change with the dropped terms of its effects forced in (relative, 1 sigma; NaN: not computed)
     force_selection_uncertainty: float = math.nan
+    #: the record's Cramér-Rao bound (afmid.fit.information_bound; None: not computed), the floor of the sigmas
+    information_bound: InformationBound | None = None
 
     @property
     def force_separation_uncertainty(self) -> float:
@@ -474,6 +477,19 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         mark_model_limited(quantities, True)
         warnings.append("warning: " + UNPHYSICAL_TEXT.format(names=", ".join(impossible)))
         limited = True
+    information = None
+    if uncertainty:  # no sigma below the record's Cramér-Rao bound (afmid.fit.information_bound)
+        bound_library, bound_system, bound_coef, bound_mask, bound_params = library, system, coef, chosen, params
+        if physics is not library:  # a preset: d is pinned by its catalog effects' law (profile_library), so is this
+            bound_library, bound_params = physics, dict(params, **extra)
+            bound_system = build_system(prep, physics, bound_params)
+            bound_mask = np.ones(len(bound_system.names), dtype=bool)
+            bound_coef, _ = regression.subset_fit(regression.combine(bound_system.T_blocks), bound_mask)
+        information = floor_at_bound(
+            prep, bound_library, config, bound_system, bound_coef, bound_mask, bound_params, nonlinear, quantities,
+            warnings, drive_search,
+            lambda c, p: {k: q["value"]
+                          for k, q in read_out(bound_library, c, None, p, bound_mask, trace).items()})
     force_estimate, force_inverted = per_sample_forces(prep, library, system, coef, rows)
     share = SHARE_NOT_COMPUTED
     if uncertainty and "d" in nonlinear and config.sample.separation is None:
@@ -493,7 +509,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         prep = replace(prep, fine_grid=None)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_inverted, periods,
-                     warnings, drive_search, force_calibration, limited, share, statistical, selection_doubt)
+                     warnings, drive_search, force_calibration, limited, share, statistical, selection_doubt,
+                     information)
 
 
 #: The warning of a fit whose law needs an unphysical parameter (afmid.fit.plausibility.unphysical).

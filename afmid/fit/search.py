@@ -57,6 +57,8 @@ class NonlinearEstimate:
     # the parts of sigma from the profile (afmid.fit.profile.ProfileResult; NaN: not profiled)
     sigma_width: float = math.nan
     sigma_jackknife: float = math.nan
+    #: the record's Cramér-Rao bound on sigma (afmid.fit.information_bound; NaN: not computed)
+    information_bound: float = math.nan
 
 
 def search_1d(objective, lo: float, hi: float, n_grid: int, log_scale: bool, tolerance: float = 1e-6

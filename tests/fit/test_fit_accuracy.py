@@ -218,7 +218,10 @@ EXPECT["lennard_jones", "poor", "estimated"] = Expect(  # seed 2: d +0.022 nm, s
     force=0.124, may_drop=_TAIL, separation_nm=0.09)  # force 5.2-10.3 %; d within 0.074 nm
 EXPECT["jkr", "poor", "estimated"] = Expect(  # seed 5: d -0.05 +- 0.73 nm, E* +23 %, adhesion +50 %, force 8.1 %
     contact=_C(E_star=1.20, adhesion_force=0.64),  # 3 x 40 %, 3 x 21 % (seed 1: d +1.2 nm, Hertz dropped)
-    sigma_max=_C(E_star=1.81, adhesion_force=0.66),  # 1.5 x the test seed's 120 % / 44 %
+    # 1.5 x the test seed's 120 % / 154 %: the adhesion's 44 % rose to 154 % when the information bound (d's at
+    # 2.2 nm against the fit's own profile, 0.75 nm, over an indentation of 2.4 nm) became a floor under the sigmas;
+    # which of the two is right for this record is open (docs/accuracy.md, "The information bound")
+    sigma_max=_C(E_star=1.81, adhesion_force=2.31),
     force=0.121, may_drop=_TAIL, separation_nm=2.0)  # force 6.1-13.3 %; d: 3 x median sigma 0.68 nm
 EXPECT["dmt_viscoelastic", "poor", "estimated"] = Expect(  # seed 3: d -0.006 +- 0.34 nm, E* +11 %, eta -4.7 %
     contact=_C(E_star=2.07, adhesion_force=1.07, viscosity=1.225),  # 3 x 69 %, 36 %, 41 %: not determined
