@@ -39,7 +39,7 @@ _GEMV = types.ExternalFunction("numba_xxgemv", types.intc(
 _TRANSPOSE = ord("t")  # a C-contiguous matrix is the transpose of BLAS's column-major one
 
 
-@njit(cache=True)
+@njit(cache=True, no_cfunc_wrapper=True)
 def lstsq_solution(A, b, rcond):
     """The minimum-norm least-squares solution of ``A x ~ b`` (A m x n, b length m; any unit) by LAPACK's dgelsd
     with singular values below ``rcond`` x the largest cut (negative: machine precision): the ``x`` of
@@ -54,13 +54,14 @@ def lstsq_solution(A, b, rcond):
             if not np.isfinite(A[i, j]):
                 raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
     big = max(m, n)
-    a_fortran = np.empty((n, m)).T  # dgelsd overwrites A: a column-major copy
+    # dgelsd overwrites A: a column-major copy, held flat (element (i, j) at i + j m, lda = m)
+    a_fortran = np.empty(m * n)
     for j in range(n):
         for i in range(m):
-            a_fortran[i, j] = A[i, j]
-    b_column = np.zeros((1, big)).T  # B in, the solution out (rows n..: residual components)
-    for i in range(m):
-        b_column[i, 0] = b[i]
+            a_fortran[i + j * m] = A[i, j]
+    b_column = np.empty(big)  # B in, the solution out (rows n..: residual components)
+    for i in range(big):
+        b_column[i] = b[i] if i < m else 0.0
     singular = np.empty(min(m, n))
     rank = np.empty(1, dtype=_LAPACK_INT)
     info = _GELSD(_DOUBLE, m, n, 1, a_fortran.ctypes, m, b_column.ctypes, big, singular.ctypes, rcond, rank.ctypes)
@@ -68,14 +69,14 @@ def lstsq_solution(A, b, rcond):
         raise ValueError("Internal algorithm failed to converge.")
     x = np.empty(n)
     for j in range(n):
-        x[j] = b_column[j, 0]
+        x[j] = b_column[j]
     # the work arrays stay alive until LAPACK is done with them (their last use is here)
     if a_fortran.size + singular.size + rank.size < 0:
         x[0] = np.nan
     return x
 
 
-@njit(cache=True)
+@njit(cache=True, no_cfunc_wrapper=True)
 def matvec(A, x):
     """``A @ x`` (A m x n C-contiguous, x length n contiguous; any unit) by BLAS dgemv with the arguments numba's own
     ``A @ x`` passes (transposed column-major A, lda = n, alpha 1, beta 0), so the same bits without the operator's
@@ -98,44 +99,59 @@ def matvec(A, x):
     return y
 
 
-@njit(cache=True)
+@njit(cache=True, no_cfunc_wrapper=True)
 def subset_lstsq(T, active):
     """Least squares of the last column of ``T`` on its ``active`` columns (SVD, machine-precision cut-off):
     (coefficients with zeros off the subset, residual sum of squares)."""
-    q = T.shape[1]
+    rows, q = T.shape
     p = q - 1
     k = 0
     for j in range(p):
         if active[j]:
             k += 1
-    coef = np.zeros(p)
+    # Loops and np.empty only (no np.zeros, np.sum, array expressions): each NumPy call of another signature is one
+    # more compilation in a new install; sums run in index order from 0, as np.sum does in numba (the same bits).
+    coef = np.empty(p)
+    for j in range(p):
+        coef[j] = 0.0
     if k == 0:
-        return coef, np.sum(T[:, p] ** 2)
+        rss = 0.0
+        for i in range(rows):
+            rss += T[i, p] * T[i, p]
+        return coef, rss
     # Unit-norm columns: SI columns differ by ~40 orders of magnitude, and the
     # SVD cut-off is relative to the largest singular value.
-    sub = np.empty((T.shape[0], k))
-    norms = np.ones(k)
+    sub = np.empty((rows, k))
+    norms = np.empty(k)
     m = 0
     for j in range(p):
         if active[j]:
-            nrm = np.sqrt(np.sum(T[:, j] ** 2))
-            if nrm > 0.0:
-                norms[m] = nrm
-            for i in range(T.shape[0]):  # element by element: a slice assignment compiles its error text
+            squares = 0.0
+            for i in range(rows):
+                squares += T[i, j] * T[i, j]
+            nrm = np.sqrt(squares)
+            norms[m] = nrm if nrm > 0.0 else 1.0
+            for i in range(rows):
                 sub[i, m] = T[i, j] / norms[m]
             m += 1
-    rhs = T[:, p].copy()
+    rhs = np.empty(rows)
+    for i in range(rows):
+        rhs[i] = T[i, p]
     sol = lstsq_solution(sub, rhs, -1.0)
-    resid = rhs - matvec(sub, sol)
+    fitted = matvec(sub, sol)
+    rss = 0.0
+    for i in range(rows):
+        resid = rhs[i] - fitted[i]
+        rss += resid * resid
     m = 0
     for j in range(p):
         if active[j]:
             coef[j] = sol[m] / norms[m]
             m += 1
-    return coef, np.sum(resid**2)
+    return coef, rss
 
 
-@njit(cache=True)
+@njit(cache=True, no_cfunc_wrapper=True)
 def stlsq_factor(T, scale, threshold, protected, initial, max_iter):
     """STLSQ on factor ``T`` (q x q) starting from the ``initial`` active set.
 
@@ -193,7 +209,7 @@ SUBSET_RSS_MAX_ERROR = 1e-10
 SUBSET_RSS_MIN_PIVOT = 1e-8
 
 
-@njit(cache=True)
+@njit(cache=True, no_cfunc_wrapper=True)
 def _householder(W, r, c, c_end):
     """Reflect rows r.. of ``W`` so that column ``c`` is zero below row ``r``; apply to columns c+1..c_end-1.
 
@@ -248,7 +264,7 @@ def subset_rss(T, protected, max_error, min_pivot):
     return rss, exact
 
 
-@njit(cache=True)
+@njit(cache=True, no_cfunc_wrapper=True)
 def subset_rss_qr(T, protected, max_error, min_pivot):
     """:func:`subset_rss`'s walk: the residual sum of squares of every subset of the free columns of ``T`` by a
     Householder QR of the unit-norm columns (as :func:`subset_lstsq` scales them) grown column by column along a
@@ -274,8 +290,11 @@ def subset_rss_qr(T, protected, max_error, min_pivot):
             free[a] = j
             a += 1
     n_sub = 1 << nf
+    # np.empty and loops, no np.zeros: each NumPy call of another signature is one more compilation in a new install
     rss = np.empty(n_sub)
-    exact = np.zeros(n_sub, np.bool_)
+    exact = np.empty(n_sub, np.bool_)
+    for b in range(n_sub):
+        exact[b] = False
     eps = 2.220446049250313e-16
     # unit-norm columns, protected first, then the free ones, then y
     M = np.empty((m, p + 1))
@@ -295,7 +314,10 @@ def subset_rss_qr(T, protected, max_error, min_pivot):
         ynorm += T[i, p] * T[i, p]
     ynorm = np.sqrt(ynorm)
     # R: column e holds the triangular factor's column of the e-th active column of the current subset
-    R = np.zeros((max(m, p), p))
+    R = np.empty((max(m, p), p))
+    for i in range(R.shape[0]):
+        for k in range(p):
+            R[i, k] = 0.0
     pivmin = np.empty(nf + 1)
     pivmin[0] = np.inf
     for e in range(npr):
@@ -305,12 +327,19 @@ def subset_rss_qr(T, protected, max_error, min_pivot):
             R[i, e] = M[i, e]
     # W[d]: the free columns and y (last) after the reflections of the protected columns and of the
     # d free columns added on the current path
-    W = np.zeros((nf + 1, m, nf + 1))
+    W = np.empty((nf + 1, m, nf + 1))
+    for level in range(1, nf + 1):
+        for i in range(m):
+            for k in range(nf + 1):
+                W[level, i, k] = 0.0
     for i in range(m):
         for k in range(nf + 1):
             W[0, i, k] = M[i, npr + k]
-    bits = np.zeros(nf + 1, np.int64)
-    nxt = np.zeros(nf + 1, np.int64)
+    bits = np.empty(nf + 1, np.int64)
+    nxt = np.empty(nf + 1, np.int64)
+    for level in range(nf + 1):
+        bits[level] = 0
+        nxt[level] = 0
     coef = np.empty(p)
     d = 0
     while d >= 0:

@@ -16,13 +16,16 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, no_cfunc_wrapper=True)
 def switching_cells(fine):
     """(rows, cols) int64 of the samples of ``fine`` (n, M, p: n rows of M fine-grid samples, p terms; any strides)
     next to a switch: some term is exactly zero on sample j and not on j + 1 (both samples are flagged), the first
     and last sample of each row excepted (a cell needs both neighbours). In row-major order, as ``np.nonzero``."""
     n, M, p = fine.shape
-    flagged = np.zeros((n, M), np.bool_)
+    flagged = np.empty((n, M), np.bool_)  # np.empty and a loop: np.zeros would be one more compilation in a new install
+    for r in range(n):
+        for j in range(M):
+            flagged[r, j] = False
     for j in range(M - 1):  # the sample index outermost: the weak form keeps the columns sample-major
         for r in range(n):
             for k in range(p):
@@ -49,7 +52,7 @@ def switching_cells(fine):
     return rows, cols
 
 
-@njit(cache=True)
+@njit(cache=True, no_cfunc_wrapper=True)
 def cell_subsamples(x, v, t, rows, cols, subsamples):
     """Positions, velocities and times (cells, subsamples) of ``subsamples`` points evenly spread over the cell of
     each sample (``rows``, ``cols``) of the fine-grid rows ``x`` (m), ``v`` (m/s), ``t`` (s) (n, M each, uniform

@@ -41,3 +41,44 @@ def test_warm_command_line_names_each_group(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "afmid.kernels.warm", "nonsense"], env=env, capture_output=True,
                          text=True, timeout=600)
     assert bad.returncode == 2 and "invalid choice" in bad.stderr and "Traceback" not in bad.stderr
+
+
+SYNC = """
+import importlib, json, pkgutil, sys
+import afmid.kernels
+from numba.core.registry import CPUDispatcher
+from afmid.config import load_config
+from afmid.fit.pipeline import run_fit
+from afmid.kernels.warm import warm
+
+def compiled() -> dict:
+    # every kernel of the afmid.kernels modules (the generated ones live in modules of their own) with its signatures
+    found = {}
+    for info in pkgutil.iter_modules(afmid.kernels.__path__):
+        module = importlib.import_module(f"afmid.kernels.{info.name}")
+        for name, value in vars(module).items():
+            if isinstance(value, CPUDispatcher) and value.py_func.__module__ == module.__name__:
+                found[f"{info.name}.{name}"] = sorted(str(s) for s in value.signatures)
+    return found
+
+warm()
+before = compiled()
+run_fit(load_config(sys.argv[1], ["fit.bootstrap=5"]))
+after = compiled()
+print(json.dumps({name: [s for s in after[name] if s not in before[name]] for name in after}))
+"""
+
+
+def test_the_warm_step_prepares_every_library_independent_kernel_the_demo_fit_runs():
+    """After ``warm()``, the demo's fit (configs/ldpe_like.yaml: the demo's physics and record) calls no kernel of
+    afmid.kernels with a signature the warm step did not compile or load: a kernel added to the fit, or one called
+    with another layout, must be added to afmid.kernels.warm too (or the first fit after `make venv` compiles it).
+    Only the kernels generated per library structure (afmid.kernels.termgen's modules) are left to the fit."""
+    from repo_paths import REPO_ROOT
+
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    out = subprocess.run([sys.executable, "-c", SYNC, str(REPO_ROOT / "configs" / "ldpe_like.yaml")], env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    added = json.loads(out.stdout.strip().splitlines()[-1])
+    assert {name: sigs for name, sigs in added.items() if sigs} == {}
