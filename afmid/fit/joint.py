@@ -320,7 +320,8 @@ class JointSeparations:
         self.rounds = 0
 
     def settle(self) -> Settled:
-        config, library, traces, uncertainty, shared = self.config, self.library, self.traces, self.uncertainty, self.shared
+        config, library, traces, shared = self.config, self.library, self.traces, self.shared
+        uncertainty = self.uncertainty
         settings, columns, n = self.settings, self.columns, len(traces)
         self.bar.stage("joint selection and separations", step=(n + 1, n + 3))
         joint = columns.joint()
@@ -385,8 +386,8 @@ class HeldOutPeriodsPerTrace:
         """Each trace's error, folds and floor set on its :class:`TraceFit`; the joint fit has no error of its own:
         the estimate returned is NaN (nothing counted in it)."""
         for i, t in enumerate(self.columns.traces):
-            t.cv_error, t.cv_error_folds, t.cv_error_noise_floor = trace_cv_error(system, t.prep, self.columns.system(i),
-                                                                                   chosen, coef, i, self.folds)
+            errors = trace_cv_error(system, t.prep, self.columns.system(i), chosen, coef, i, self.folds)
+            t.cv_error, t.cv_error_folds, t.cv_error_noise_floor = errors
         return ErrorEstimate(math.nan, np.zeros(0), math.nan, np.zeros(0, dtype=bool))
 
 

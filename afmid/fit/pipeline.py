@@ -350,7 +350,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
     done = orchestrate(config, library, separation, spread, HeldOutPeriods(library, fit.folds), finishing, bar,
                        Stages(spread=(4, FIT_STAGES), error=(5, FIT_STAGES)))
     state, coef, chosen, rows = done.state, done.coef, done.settled.chosen, done.error.rows
-    prep, system, params, nonlinear, warnings = state.prep, state.system, state.params, separation.nonlinear, state.warnings
+    prep, system, params, warnings = state.prep, state.system, state.params, state.warnings
+    nonlinear = separation.nonlinear
     force_estimate, force_inverted = per_sample_forces(prep, library, system, coef, rows)
     share = SHARE_NOT_COMPUTED
     if uncertainty and "d" in nonlinear and config.sample.separation is None:
@@ -375,6 +376,19 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
                      error.cv_error, error.per_fold, error.noise_floor, rows, force_estimate, force_inverted, periods,
                      warnings, separation.drive_search, state.force_calibration, state.model_limited, share,
                      statistical, selection_doubt)
+
+
+def select_with_regressor_noise(prep: Prepared, library: Library, params: dict, settings: SelectionSettings
+                                ) -> tuple[Prepared, System, regression.Selection]:
+    """The first selection of a fit at ``params`` (SI): the rows weighted with the regressors' own noise (from a
+    first support's stiffness: :func:`afmid.fit.prepare.with_regressor_noise`), then the support selected on the
+    reweighted system (the same columns). Returns (the reweighted preparation, its system, the selection)."""
+    system = build_system(prep, library, params)
+    coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
+    prep = with_regressor_noise(prep, library, params, coef0)
+    system = build_system(prep, library, params, theta=system.theta,  # same columns, new row weights
+                          thermal_bias=system.thermal_bias)
+    return prep, system, settings.select(system)
 
 
 class ProfiledSeparation:
@@ -422,14 +436,8 @@ class ProfiledSeparation:
             prep, fit.drive_frequency, fit.seed, factors_at, estimate_again if nonlinear else None)
         self.bar.stage("selecting terms", step=(3, FIT_STAGES))
         settings = self.settings
-        system = build_system(prep, library, params)
-        # Weights that include the regressors' own noise (from a first support's stiffness), then the selection.
-        coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
-        prep = with_regressor_noise(prep, library, params, coef0)
+        prep, system, selection = select_with_regressor_noise(prep, library, params, settings)
         self.prep = prep
-        system = build_system(prep, library, params, theta=system.theta,  # same columns, new row weights
-                              thermal_bias=system.thermal_bias)
-        selection = settings.select(system)
         chosen = selection.best.mask
         # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the
         # profile's width is their uncertainty (propagated into the read-out).

@@ -200,19 +200,15 @@ class SharedSupportFit:
         the regressors' noise and one selection there, as :func:`afmid.fit.pipeline.fit_prepared` makes them
         before its profile. The profile itself (~30 library evaluations) is left out: the anchor's own result
         comes from the carried path's search started here, which finds the minimum and its sigma."""
-        from afmid.fit.pipeline import build_system, estimate_nonlinear, library_parameters
-        from afmid.fit.prepare import with_regressor_noise
+        from afmid.fit.pipeline import estimate_nonlinear, library_parameters, select_with_regressor_noise
 
         library = self.library
         params = library_parameters(prep, self.config, library)
         estimate_nonlinear(prep, library, self.config, params, physics=(self.physics, self.extra),
                            refine_tolerance=ANCHOR_TOLERANCE)
         settings = self.settings_for(len(prep.nuisance_names))
-        system = build_system(prep, library, params)
-        coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
-        weighted = with_regressor_noise(prep, library, params, coef0)
-        system = build_system(weighted, library, params, theta=system.theta, thermal_bias=system.thermal_bias)
-        support = np.asarray(settings.select(system).best.mask, bool)
+        _, system, selection = select_with_regressor_noise(prep, library, params, settings)
+        support = np.asarray(selection.best.mask, bool)
         self.support = support.copy()
         self.coef = np.asarray(regression.subset_fit(regression.combine(system.T_blocks), support)[0], float)
         self.offsets = [params["d"] - touch]
