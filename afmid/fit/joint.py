@@ -38,7 +38,10 @@ import numpy as np
 import afmid.fit.regression as regression
 from afmid.config import RunConfig
 from afmid.errors import AfmidError, ConfigError, InputError
+from afmid.fit.fit_state import FitState
 from afmid.fit.forces import FoldErrors, prediction_variance, read_out, signal_rows
+from afmid.fit.orchestration import (ErrorEstimate, NoSpread, Settled, Stages, StratifiedBagging, Undetermined,
+                                     orchestrate)
 from afmid.fit.pipeline import FitResult, profile_library, run_fit, whole_effects
 from afmid.fit.prepare import Prepared
 from afmid.fit.profile import GroupedProfile, robust_profile
@@ -47,7 +50,6 @@ from afmid.fit.selection import SelectionSettings
 from afmid.fit.system import System, build_system, library_columns
 from afmid.fit.uncertainty import (add_largest_shift, mark_model_limited, model_limited, model_limited_warning,
                                    widen_interval)
-from afmid.fit.undetermined import mark as mark_undetermined
 from afmid.io.files import check_input_file
 from afmid.io.trace import Trace, load_trace
 from afmid.physics.library import Library, build_library
@@ -276,100 +278,151 @@ def _run_joint_fit(config: RunConfig, configs: list[RunConfig], traces_in: list[
             est = single.nonlinear["d"]
             separation = NonlinearEstimate("d", est.value, math.nan, est.unit, True, bounds=est.bounds)
         traces.append(TraceFit(c, single, dict(single.system.params), separation))
-    shared_names = [k for k in library.nonlinear if k not in config.model.parameters and fit.estimate_nonlinear]
-    shared: dict[str, NonlinearEstimate] = {}
-    for name in shared_names:  # start from the median of the single fits' values
-        value = float(np.median([t.params[name] for t in traces]))
-        first = traces[0].single.nonlinear.get(name)
-        shared[name] = NonlinearEstimate(name, value, math.nan, first.unit if first else "", True,
-                                         bounds=first.bounds if first else (0.0, math.inf))
-        for t in traces:
-            t.params[name] = value
-    settings = SelectionSettings.for_library(fit, library, sum(len(t.prep.nuisance_names) for t in traces))
-    columns = _Columns(library, traces, {})
-    bar.stage("joint selection and separations", step=(n + 1, n + 3))
-    joint = columns.joint()
-    selection = settings.select(joint)
-    chosen = selection.best.mask
-    physics, extra = profile_library(library, config)
-    directions = search_directions(traces, shared)
-    rounds = 0
-    if directions:
-        physics_columns = _Columns(physics, traces, extra)
-        mask = whole_effects(library, chosen) if physics is library else None
-        for direction in directions:  # one pass each (shared decay lengths: a start for the scan below)
-            if not isinstance(direction, SeparationShift):
-                direction.apply(_profile(physics_columns, direction, mask, jackknife=False).value)
-                physics_columns.cache.clear()
-        scan_common_shift(physics_columns, traces, mask)
-        rounds = minimise_separations(physics_columns, traces, mask)
-        columns.cache.clear()
+    searched = JointSeparations(config, library, traces, uncertainty, bar)
+    settings = searched.settings
+    spread = (StratifiedBagging(settings, fit.bootstrap, fit.seed) if fit.bootstrap > 0 and uncertainty
+              else NoSpread())
+    finishing = [TracesModelLimited(traces)] + ([CalibrationNotPropagated()] if uncertainty else [])
+    finishing.append(Undetermined(fit.bootstrap if uncertainty else 0, fit.seed))
+    done = orchestrate(config, library, searched, spread, HeldOutPeriodsPerTrace(searched.columns, fit.folds),
+                       finishing, bar, Stages(spread=(n + 2, n + 3), error=(n + 3, n + 3),
+                                              error_text="error and forces per trace"))
+    state, spread_out = done.state, done.spread
+    return JointResult(config, library, traces, state.system, done.settled.selection, done.coef, spread_out.coef_std,
+                       spread_out.ci_low, spread_out.ci_high, spread_out.inclusion, spread_out.bagging,
+                       searched.shared, state.quantities, state.warnings, searched.rounds)
+
+
+class JointSeparations:
+    """The joint fit's separation strategy (:class:`afmid.fit.orchestration.SeparationStrategy`): the shared
+    decay lengths started from the median of the single fits', a joint selection, each searched direction
+    (:func:`search_directions`) profiled once, the common shift scanned (:func:`scan_common_shift`) and the
+    separations minimised together (:func:`minimise_separations`), a re-selection, the sigmas at the minimum
+    (each separation's own and the common shift's in quadrature); the sigmas are propagated into the shared
+    read-outs by refits at +-1 sigma. After :meth:`settle`: ``shared`` (the shared
+    nonlinear estimates), ``rounds`` (evaluations of the joint residual by the minimisation), ``columns``."""
+
+    def __init__(self, config: RunConfig, library: Library, traces: list[TraceFit], uncertainty: bool, bar: Progress):
+        self.config, self.library, self.traces, self.uncertainty, self.bar = config, library, traces, uncertainty, bar
+        fit = config.fit
+        shared_names = [k for k in library.nonlinear if k not in config.model.parameters and fit.estimate_nonlinear]
+        self.shared: dict[str, NonlinearEstimate] = {}
+        for name in shared_names:  # start from the median of the single fits' values
+            value = float(np.median([t.params[name] for t in traces]))
+            first = traces[0].single.nonlinear.get(name)
+            self.shared[name] = NonlinearEstimate(name, value, math.nan, first.unit if first else "", True,
+                                                  bounds=first.bounds if first else (0.0, math.inf))
+            for t in traces:
+                t.params[name] = value
+        self.settings = SelectionSettings.for_library(fit, library, sum(len(t.prep.nuisance_names) for t in traces))
+        self.columns = _Columns(library, traces, {})
+        self.directions: list = []
+        self.rounds = 0
+
+    def settle(self) -> Settled:
+        config, library, traces, shared = self.config, self.library, self.traces, self.shared
+        uncertainty = self.uncertainty
+        settings, columns, n = self.settings, self.columns, len(traces)
+        self.bar.stage("joint selection and separations", step=(n + 1, n + 3))
         joint = columns.joint()
         selection = settings.select(joint)
         chosen = selection.best.mask
-        mask = whole_effects(library, chosen) if physics is library else None
-        for direction in directions:  # the sigmas at the minimum; a shared decay length also moves there
-            found = _profile(physics_columns, direction, mask, jackknife=uncertainty)
-            log.debug("%s %s: minimum %.6g +- %.3g (at %.6g)", type(direction).__name__, direction.name,
-                      found.value, found.sigma, direction.current())
-            if isinstance(direction, SharedParameter):
-                direction.apply(found.value)
-                physics_columns.cache.clear()
-            direction.sigma = found.sigma if uncertainty else math.nan
-        if shared:
+        physics, extra = profile_library(library, config)
+        directions = self.directions = search_directions(traces, shared)
+        if directions:
+            physics_columns = _Columns(physics, traces, extra)
+            mask = whole_effects(library, chosen) if physics is library else None
+            for direction in directions:  # one pass each (shared decay lengths: a start for the scan below)
+                if not isinstance(direction, SeparationShift):
+                    direction.apply(_profile(physics_columns, direction, mask, jackknife=False).value)
+                    physics_columns.cache.clear()
+            scan_common_shift(physics_columns, traces, mask)
+            self.rounds = minimise_separations(physics_columns, traces, mask)
             columns.cache.clear()
             joint = columns.joint()
             selection = settings.select(joint)
             chosen = selection.best.mask
-        common = next((d.sigma for d in directions if isinstance(d, SeparationShift)), 0.0)
-        for d in directions:
-            if isinstance(d, TraceSeparation):  # its own sigma and the common shift's, independent
-                traces[d.index].separation.sigma = math.hypot(d.sigma, common)
-            elif isinstance(d, SharedParameter):
-                shared[d.name].sigma = d.sigma
-        for t in traces:
-            if t.separation is not None:
-                t.separation.value = t.params["d"]
-    T = regression.combine(joint.T_blocks)
-    coef, _ = regression.subset_fit(T, chosen)
-    bagging = None
-    coef_std = np.zeros_like(coef)
-    ci_low, ci_high = coef.copy(), coef.copy()
-    inclusion = chosen.astype(float)
-    warnings: list[str] = []
-    if fit.bootstrap > 0 and uncertainty:
-        bar.stage(f"error bars ({fit.bootstrap} resamples of the periods of all traces)", step=(n + 2, n + 3))
-        rng = np.random.default_rng(fit.seed)
-        pooled = settings.bag(joint, chosen, fit.bootstrap, rng)  # the inclusion frequencies (re-selection)
-        bagging = regression.Bagging(pooled.inclusion, stratified_coefficients(joint, chosen, fit.bootstrap, rng),
-                                     fit.bootstrap, pooled.supports)
-        coef_std = bagging.coef_samples.std(axis=0, ddof=1)
-        ci_low, ci_high = np.percentile(bagging.coef_samples, [2.5, 97.5], axis=0)
-        inclusion = bagging.inclusion
-    bar.stage("error and forces per trace", step=(n + 3, n + 3))
-    first = traces[0]
-    quantities = read_out(library, coef, bagging, first.params, chosen, first.prep.trace, with_sources=True)
-    if uncertainty:
-        _propagate(quantities, columns, directions, chosen, library, traces[0])
-    for i, t in enumerate(traces):
-        t.cv_error, t.cv_error_folds, t.cv_error_noise_floor = trace_cv_error(joint, t.prep, columns.system(i),
-                                                                               chosen, coef, i, fit.folds)
-        t.model_limited = model_limited(t.cv_error, t.cv_error_noise_floor)
-        if t.model_limited:
-            warnings.append(f"warning: trace {i} ({t.prep.trace.path}): "
-                            + model_limited_warning(t.cv_error, t.cv_error_noise_floor))
-    mark_model_limited(quantities, any(t.model_limited for t in traces))
-    if uncertainty:
+            mask = whole_effects(library, chosen) if physics is library else None
+            for direction in directions:  # the sigmas at the minimum; a shared decay length also moves there
+                found = _profile(physics_columns, direction, mask, jackknife=uncertainty)
+                log.debug("%s %s: minimum %.6g +- %.3g (at %.6g)", type(direction).__name__, direction.name,
+                          found.value, found.sigma, direction.current())
+                if isinstance(direction, SharedParameter):
+                    direction.apply(found.value)
+                    physics_columns.cache.clear()
+                direction.sigma = found.sigma if uncertainty else math.nan
+            if shared:
+                columns.cache.clear()
+                joint = columns.joint()
+                selection = settings.select(joint)
+                chosen = selection.best.mask
+            common = next((d.sigma for d in directions if isinstance(d, SeparationShift)), 0.0)
+            for d in directions:
+                if isinstance(d, TraceSeparation):  # its own sigma and the common shift's, independent
+                    traces[d.index].separation.sigma = math.hypot(d.sigma, common)
+                elif isinstance(d, SharedParameter):
+                    shared[d.name].sigma = d.sigma
+            for t in traces:
+                if t.separation is not None:
+                    t.separation.value = t.params["d"]
+        first = traces[0]  # the shared read-outs are evaluated on the first trace's parameters
+        return Settled(first.prep, joint, chosen, first.params, [], selection)
+
+    def propagate(self, state: FitState) -> None:
+        if self.uncertainty:
+            _propagate(state.quantities, self.columns, self.directions, state.mask, self.library,
+                                 self.traces[0])
+
+
+@dataclass
+class HeldOutPeriodsPerTrace:
+    """The joint fit's error strategy (:class:`afmid.fit.orchestration.ErrorStrategy`): each trace's error with
+    the shared law (:func:`trace_cv_error`), kept on its :class:`TraceFit`."""
+
+    columns: _Columns
+    folds: int
+
+    def estimate(self, prep: Prepared, system, coef: np.ndarray, chosen: np.ndarray) -> ErrorEstimate:
+        """Each trace's error, folds and floor set on its :class:`TraceFit`; the joint fit has no error of its own:
+        the estimate returned is NaN (nothing counted in it)."""
+        for i, t in enumerate(self.columns.traces):
+            errors = trace_cv_error(system, t.prep, self.columns.system(i), chosen, coef, i, self.folds)
+            t.cv_error, t.cv_error_folds, t.cv_error_noise_floor = errors
+        return ErrorEstimate(math.nan, np.zeros(0), math.nan, np.zeros(0, dtype=bool))
+
+
+@dataclass
+class TracesModelLimited:
+    """A joint fit is model-limited when any of its traces is (its error above its floor): each such trace
+    named in a warning, every read-out flagged."""
+
+    traces: list
+    name = "model limits per trace"
+
+    def apply(self, state: FitState) -> None:
+        for i, t in enumerate(self.traces):
+            t.model_limited = model_limited(t.cv_error, t.cv_error_noise_floor)
+            if t.model_limited:
+                state.warn(f"trace {i} ({t.prep.trace.path}): "
+                           + model_limited_warning(t.cv_error, t.cv_error_noise_floor))
+        state.model_limited = any(t.model_limited for t in self.traces)
+        mark_model_limited(state.quantities, state.model_limited)
+
+
+class CalibrationNotPropagated:
+    """A joint fit does not propagate the declared calibration uncertainties: a warning says so when any is
+    declared (its intervals are statistical only)."""
+
+    name = "calibration not propagated"
+
+    def apply(self, state: FitState) -> None:
+        config = state.config
         declared = [k for k in ("spring_constant_uncertainty", "quality_factor_uncertainty")
                     if getattr(config.cantilever, k, None)] + (["data.invols_uncertainty"]
                                                                 if config.data.invols_uncertainty else [])
         if declared:
-            warnings.append("warning: the declared calibration uncertainties (" + ", ".join(declared) + ") are not "
-                            "propagated into a joint fit's parameters: their intervals are statistical only")
-    mark_undetermined(quantities, library, joint, coef, chosen, first.params, first.prep.trace, inclusion,
-                      fit.bootstrap if uncertainty else 0, fit.seed, read_out, warnings)
-    return JointResult(config, library, traces, joint, selection, coef, coef_std, ci_low, ci_high, inclusion,
-                       bagging, shared, quantities, warnings, rounds)
+            state.warn("the declared calibration uncertainties (" + ", ".join(declared) + ") are not "
+                       "propagated into a joint fit's parameters: their intervals are statistical only")
 
 
 # --------------------------------------------------------------------------- searched directions
@@ -610,22 +663,6 @@ def _propagate(quantities: dict, columns: _Columns, directions: list, mask: np.n
         add_largest_shift(extra, quantities, shifted)
     for k, q in quantities.items():
         widen_interval(q, math.sqrt(extra[k]))
-
-
-def stratified_coefficients(joint: JointSystem, chosen: np.ndarray, n_boot: int, rng: np.random.Generator
-                            ) -> np.ndarray:
-    """(n_boot, columns) coefficients of the ``chosen`` support refitted on resamples of the periods drawn within
-    each trace (each keeps its number of periods: the traces are independent records of fixed length).
-
-    Resampling the pooled periods instead lets a trace's share of the record vary from resample to resample:
-    measured (seed 3, separations given), the joint E* std became 4.4e7 Pa, twice the best single trace's 2.2e7.
-    """
-    samples = np.empty((n_boot, joint.T_blocks.shape[-1] - 1))
-    counts = np.diff(joint.block_start)
-    for k in range(n_boot):
-        multiplicity = np.concatenate([rng.multinomial(n, np.full(n, 1.0 / n)) for n in counts]).astype(float)
-        samples[k], _ = regression.subset_fit(regression.combine(joint.T_blocks, multiplicity), chosen)
-    return samples
 
 
 def trace_cv_error(joint: JointSystem, prep: Prepared, system: System, mask: np.ndarray, coef: np.ndarray, i: int,

@@ -35,32 +35,32 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from afmid.config import RunConfig
-from afmid.errors import AfmidError, ConfigError, InputError
+from afmid.errors import AfmidError, ConfigError
 from afmid.preprocess.instrument import from_config as instrument_from_config
 from afmid.io.trace import Trace, load_trace
 from afmid.physics.library import Library, build_library
 from afmid.physics.medium import relative_permittivity
 from afmid.physics.tips import tip_geometry
 import afmid.fit.regression as regression
-from afmid.fit.forces import force_cv_error, per_sample_forces, period_curves, read_out, signal_rows
+from afmid.fit.forces import per_sample_forces, period_curves, read_out
+from afmid.fit.information_bound import InformationBound, floor_at_bound
 from afmid.fit.search import NonlinearEstimate, search_1d, search_range
 from afmid.fit.profile import GroupedProfile, ProfileResult, open_side_warning, robust_profile
 from afmid.fit.joint_profile import other_valley
 from afmid.fit.valleys import cover_other_valleys
-from afmid.fit.contact_probe import check_contact_law
-from afmid.fit.plausibility import unphysical
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
-from afmid.fit.declared_drive import declared_drive, propagate_drive_calibration, with_declared_drive
-from afmid.preprocess.motion import fit_warning as motion_warning
-from afmid.fit.invols_share import propagate_invols
-from afmid.fit.uncertainty import add_largest_shift, finish as finish_uncertainty, mark_model_limited, widen_interval
-from afmid.fit.undetermined import mark as mark_undetermined
+from afmid.fit.declared_drive import declared_drive, with_declared_drive
+from afmid.fit.fit_state import FitState
+from afmid.fit.orchestration import (BootstrapBagging, CalibrationAndLimits, ContactLawProbe, DriveCalibration,
+                                     HeldOutPeriods, InvolsShare, NoSpread, Settled, Stages, Undetermined, Unphysical,
+                                     orchestrate, propagate_nonlinear, record_warnings)
 from afmid.fit.undetermined import whole_effects
 from afmid.progress import Progress
 from afmid.fit.separation_share import NOT_COMPUTED as SHARE_NOT_COMPUTED, SeparationShare, separation_share
 from afmid.fit.force_band import selection_share, statistical_share, total_share
-from afmid.fit.information_bound import InformationBound, floor_at_bound
+# Kept importable from afmid.fit.pipeline, where they were defined before (tests/cli/test_requests.py).
+from afmid.fit.orchestration import UNPHYSICAL_TEXT, refuse_unusable  # noqa: F401
 # Kept importable from afmid.fit.pipeline, where they were defined before (bench/bench_fit.py uses term_penalties).
 from afmid.fit.forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
 from afmid.fit.selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
@@ -336,160 +336,28 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
     grid_made_here = prep.fine_grid is None
     prep = with_fine_grid(prep)
     # Defects were detected and reported when the trace was loaded (afmid.io.defects); keep them with the run.
-    warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
-    if prep.motion is not None and prep.motion.non_periodic:
-        warnings.append(motion_warning(prep.motion, prep.noise_rms))
+    warnings = record_warnings(prep)
     drive = declared_drive(config, trace)
     if drive is not None:  # a calibrated drive: not fitted, so the inverted force does not depend on the model
         prep = with_declared_drive(prep, drive)
         log.info("drive not fitted: %s", drive.describe())
-    params = library_parameters(prep, config, library)
-    searched = ("the separation" if config.sample.separation is None  # a calibrated drive is not searched
-                else "the shape parameters" if drive is not None else "the drive")
-    bar.stage(f"searching {searched}", step=(2, FIT_STAGES))
-    physics, extra = profile_library(library, config)
-    nonlinear = estimate_nonlinear(prep, library, config, params, physics=(physics, extra))
-
-    def factors_at(p: Prepared):  # the profile library's columns at the current parameters, held
-        trial = dict(params, **extra)
-        theta, bias = library_columns(p, physics, trial), library_thermal_bias(p, physics, trial)
-        return lambda q: build_system(q, physics, trial, theta=theta, thermal_bias=bias).T_blocks
-
-    def estimate_again(p: Prepared) -> None:
-        nonlinear.update(estimate_nonlinear(p, library, config, params, physics=(physics, extra)))
-
-    prep, drive_search = (prep, None) if prep.declared_drive is not None else settle_drive_frequency(
-        prep, fit.drive_frequency, fit.seed, factors_at, estimate_again if nonlinear else None)
-    bar.stage("selecting terms", step=(3, FIT_STAGES))
-    settings = SelectionSettings.for_library(fit, library, len(prep.nuisance_names))
-    system = build_system(prep, library, params)
-    # Weights that include the regressors' own noise (from a first support's stiffness), then the selection.
-    coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
-    prep = with_regressor_noise(prep, library, params, coef0)
-    system = build_system(prep, library, params, theta=system.theta,  # same columns, new row weights
-                          thermal_bias=system.thermal_bias)
-    selection = settings.select(system)
-    chosen = selection.best.mask
-    # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the
-    # profile's width is their uncertainty (propagated into the read-out below).
-    if nonlinear:
-        def profile(name, est, mask, jackknife=uncertainty):
-            # A preset is profiled with all the terms of its catalog effects.
-            return profile_parameter(prep, physics, dict(params, **extra), name, est.bounds,
-                                     whole_effects(library, mask) if physics is library else None,
-                                     jackknife=jackknife)
-
-        profiled = {}
-        for name, est in nonlinear.items():
-            found = profile(name, est, chosen)
-            params[name] = found.value
-            profiled[name] = found
-        support = chosen
-        system = build_system(prep, library, params)
-        selection = settings.select(system)
-        chosen = selection.best.mask
-        for name, est in nonlinear.items():
-            est.value = params[name]
-            if uncertainty:
-                # The profile of the final support (the first one's when the support did not change).
-                same = np.array_equal(chosen, support) or physics is not library
-                found = profiled[name] if same else profile(name, est, chosen)
-                est.sigma, est.sigma_width, est.sigma_jackknife = found.sigma, found.sigma_width, found.sigma_jackknife
-                profiled[name] = found
-        if uncertainty and "d" in nonlinear and len(nonlinear) > 1:  # d and a decay length: a second valley?
-            moved, warning = other_valley(prep, physics, extra, params, nonlinear, system.n_rows,
-                                          whole_effects(library, chosen) if physics is library else None,
-                                          lambda name, est: profile(name, est, chosen))
-            if moved:
-                system = build_system(prep, library, params)
-                selection = settings.select(system)
-                chosen = selection.best.mask
-            if warning:
-                warnings.append("warning: " + warning)
-        if uncertainty:
-            for name, est in nonlinear.items():
-                opened = open_side_warning(name, est.unit, profiled[name], est.bounds)
-                if opened:
-                    warnings.append("warning: " + opened)
-                if cover_other_valleys(name, est, profiled[name], params,
-                                       lambda name, est: profile(name, est, chosen), warnings):
-                    system = build_system(prep, library, params)
-                    selection = settings.select(system)
-                    chosen = selection.best.mask
-    T = regression.combine(system.T_blocks)
-    coef, _ = regression.subset_fit(T, chosen)
-    bagging = None
-    coef_std = np.zeros_like(coef)
-    ci_low, ci_high = coef.copy(), coef.copy()
-    inclusion = chosen.astype(float)
-    for name, est in nonlinear.items():
-        est.value = params[name]
-    if fit.bootstrap > 0 and uncertainty:
-        bar.stage(f"error bars ({fit.bootstrap} resamples)", step=(4, FIT_STAGES))
-        rng = np.random.default_rng(fit.seed)
-        bagging = settings.bag(system, chosen, fit.bootstrap, rng)
-        coef_std = bagging.coef_samples.std(axis=0, ddof=1)
-        ci_low, ci_high = np.percentile(bagging.coef_samples, [2.5, 97.5], axis=0)
-        inclusion = bagging.inclusion
-    bar.stage("error and forces", step=(5, FIT_STAGES))
-    rows = signal_rows(prep, system, coef)
-    cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, rows, fit.folds)
-    try:
-        refuse_unusable(trace, library, coef[:len(library)], cv_error)
-    except AfmidError:
-        bar.close()  # the error line must not land on the progress line
-        raise
-    quantities = read_out(library, coef, bagging, params, chosen, trace, with_sources=True)
+    separation = ProfiledSeparation(prep, library, config, warnings, uncertainty, bar, drive is not None)
+    settings = separation.settings
+    finishing = [CalibrationAndLimits(uncertainty)]
     if uncertainty:
-        propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
-    force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,
-                                                    trace, config, cv_error, noise_floor, read_out, uncertainty)
-    if uncertainty:  # the deflection sensitivity's share, beside k's and Q's (refits on the scaled deflection)
-        def resettle(scaled: Prepared, trial: dict) -> dict:  # the nonlinear parameters searched on the scaled record
-            for name, est in nonlinear.items():
-                trial[name] = profile_parameter(scaled, physics, dict(trial, **extra), name, est.bounds,
-                                                whole_effects(library, chosen) if physics is library else None,
-                                                jackknife=False).value
-            return trial
-
-        force_calibration = math.hypot(force_calibration, propagate_invols(
-            quantities, prep, library, config, coef, chosen, params, nonlinear, read_out, resettle))
-    if uncertainty:
-        def select_with(extra_terms: list[str]):
-            model = config.model.model_copy(update={"terms": [*config.model.terms, *extra_terms]})
-            probed = build_library(model, config.source, library.tip)
-            probed_settings = SelectionSettings.for_library(fit, probed, len(prep.nuisance_names))
-            return probed, probed_settings.select(build_system(prep, probed, params)).best.mask
-
-        probe = check_contact_law(library, chosen, list(config.model.terms), config.model.library, select_with)
-        if probe is not None and probe.failed:
-            mark_model_limited(quantities, True)
-            warnings.append("warning: " + probe.warning())
-            limited = True
-    if uncertainty:  # a calibrated drive's declared uncertainty, like k's and Q's
-        propagate_drive_calibration(quantities, prep, library, system, coef, chosen, params, trace, read_out)
-    # A read-out whose term was not selected is "not determined" (never 0 +- 0); terms the resamples select
-    # only sometimes widen the error bars they affect (afmid.fit.undetermined).
-    mark_undetermined(quantities, library, system, coef, chosen, params, trace, inclusion,
-                      fit.bootstrap if uncertainty else 0, fit.seed, read_out, warnings)
-    impossible = [name for name, q in quantities.items() if unphysical(name, q)]
-    if impossible:  # the law fits only with an impossible parameter: the others are biased by what it stands for
-        mark_model_limited(quantities, True)
-        warnings.append("warning: " + UNPHYSICAL_TEXT.format(names=", ".join(impossible)))
-        limited = True
-    information = None
+        finishing += [InvolsShare(separation.nonlinear, separation.resettle), ContactLawProbe(separation.select_with),
+                      DriveCalibration()]
+    finishing += [Undetermined(fit.bootstrap if uncertainty else 0, fit.seed), Unphysical()]
+    information = InformationFloor(separation)
     if uncertainty:  # no sigma below the record's Cramér-Rao bound (afmid.fit.information_bound)
-        bound_library, bound_system, bound_coef, bound_mask, bound_params = library, system, coef, chosen, params
-        if physics is not library:  # a preset: d is pinned by its catalog effects' law (profile_library), so is this
-            bound_library, bound_params = physics, dict(params, **extra)
-            bound_system = build_system(prep, physics, bound_params)
-            bound_mask = np.ones(len(bound_system.names), dtype=bool)
-            bound_coef, _ = regression.subset_fit(regression.combine(bound_system.T_blocks), bound_mask)
-        information = floor_at_bound(
-            prep, bound_library, config, bound_system, bound_coef, bound_mask, bound_params, nonlinear, quantities,
-            warnings, drive_search,
-            lambda c, p: {k: q["value"]
-                          for k, q in read_out(bound_library, c, None, p, bound_mask, trace).items()})
+        finishing.append(information)
+    spread = (BootstrapBagging(settings, fit.bootstrap, fit.seed) if fit.bootstrap > 0 and uncertainty
+              else NoSpread())
+    done = orchestrate(config, library, separation, spread, HeldOutPeriods(library, fit.folds), finishing, bar,
+                       Stages(spread=(4, FIT_STAGES), error=(5, FIT_STAGES)))
+    state, coef, chosen, rows = done.state, done.coef, done.settled.chosen, done.error.rows
+    prep, system, params, warnings = state.prep, state.system, state.params, state.warnings
+    nonlinear = separation.nonlinear
     force_estimate, force_inverted = per_sample_forces(prep, library, system, coef, rows)
     share = SHARE_NOT_COMPUTED
     if uncertainty and "d" in nonlinear and config.sample.separation is None:
@@ -498,6 +366,7 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
                                  nonlinear["d"].sigma, force_estimate)
         if share.warning():
             warnings.append("warning: " + share.warning())
+    bagging = done.spread.bagging
     statistical = (statistical_share(prep, library, system, bagging.coef_samples, force_estimate)
                    if uncertainty and bagging is not None else math.nan)
     selection_doubt = (selection_share(prep, library, system, chosen, whole_effects(library, chosen), force_estimate)
@@ -507,63 +376,178 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         log.debug("estimated %s = %.4g ± %.2g %s", name, est.value, est.sigma, est.unit)
     if grid_made_here:
         prep = replace(prep, fine_grid=None)
-    return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
-                     nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_inverted, periods,
-                     warnings, drive_search, force_calibration, limited, share, statistical, selection_doubt,
-                     information)
+    spread_out, error = done.spread, done.error
+    return FitResult(config, prep, library, system, done.settled.selection, coef, spread_out.coef_std,
+                     spread_out.ci_low, spread_out.ci_high, spread_out.inclusion, bagging, nonlinear, state.quantities,
+                     error.cv_error, error.per_fold, error.noise_floor, rows, force_estimate, force_inverted, periods,
+                     warnings, separation.drive_search, state.force_calibration, state.model_limited, share,
+                     statistical, selection_doubt, information.bound)
 
 
-#: The warning of a fit whose law needs an unphysical parameter (afmid.fit.plausibility.unphysical).
-UNPHYSICAL_TEXT = ("model-limited: the model fits the record only with an unphysical {names} (the whole 95 % "
-                   "interval outside the physical range): the force the data ask for is not this law with physical "
-                   "parameters, so every parameter is biased beyond its error bar (or the calibration is wrong: "
-                   "data.invols, data.positive, cantilever.spring_constant, cantilever.tip_radius)")
+class InformationFloor:
+    """The record's Cramér-Rao bound as a floor under d's and the read-outs' sigmas
+    (:func:`afmid.fit.information_bound.floor_at_bound`); ``bound`` keeps it (None: not computed). A preset is
+    bounded with its catalog effects' law (profile_library), the law that pins d."""
 
+    name = "information bound"
 
-def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:
-    """Stop (InputError, nothing written) when the fit has no result afmid can stand behind.
+    def __init__(self, separation: "ProfiledSeparation"):
+        self.separation = separation
+        self.bound: InformationBound | None = None
 
-    A NaN error metric means no drive harmonic of the inverted force stood out of the noise on the
-    held-out periods: there was no tip-sample force to identify, and the coefficients only describe noise.
-    """
-    bad = [name for name, c in zip(library.names, coef) if not math.isfinite(c)]
-    if bad:
-        raise InputError(f"the fit's coefficients are not finite for {', '.join(bad)}: the library columns are "
-                         "degenerate on this trace; nothing was written", file=trace.path, key="model")
-    if not math.isfinite(cv_error):
-        raise InputError("the fit has no usable result: its cross-validated error is NaN because no harmonic of "
-                         "the inverted tip-sample force stands above the noise (the tip does not reach the sample, "
-                         "or this is not a tapping trace); nothing was written", file=trace.path, key="data.path")
-
-
-def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params, mask, trace) -> None:
-    """Add the uncertainty of estimated nonlinear parameters (separation, decay lengths) to the quantities.
-
-    The bootstrap holds them fixed; refitting at +-1 sigma of each and reading
-    out again gives the sensitivity (the larger change of the two sides:
-    :func:`afmid.fit.uncertainty.add_largest_shift`), added in quadrature to the
-    error and to both halves of the 95 % interval (in place). A read-out that bends with the parameter (E* as d
-    nears contact on the poor instrument) is understated by the 1-sigma sides; counting the 2-sigma sides
-    (halved) covered draw 132 of configs/coverage/poor.yaml but widened E*'s sigma past what the seed spread of
-    the accuracy suite allows (tests/fit/test_fit_accuracy.py, poor rows): one symmetric sigma cannot serve a
-    read-out this skewed; an asymmetric interval is the open fix (docs/coverage.md).
-    """
-    extra = {k: 0.0 for k in quantities}
-    for name, est in nonlinear.items():
-        if not math.isfinite(est.sigma) or est.sigma <= 0:
-            continue
-        shifted = []
-        for sign in (1, -1):
-            trial = dict(params, **{name: params[name] + sign * est.sigma})
-            try:
-                system = build_system(prep, library, trial)
-            except AfmidError:
-                continue  # e.g. a separation below a0: the other side alone
+    def apply(self, state) -> None:
+        sep = self.separation
+        library, system, coef, mask, params = state.library, state.system, state.coef, state.mask, state.params
+        if sep.physics is not library:
+            library, params = sep.physics, dict(params, **sep.extra)
+            system = build_system(state.prep, library, params)
+            mask = np.ones(len(system.names), dtype=bool)
             coef, _ = regression.subset_fit(regression.combine(system.T_blocks), mask)
-            shifted.append(read_out(library, coef, None, trial, mask, trace))
-        add_largest_shift(extra, quantities, shifted)
-    for k, q in quantities.items():
-        widen_interval(q, math.sqrt(extra[k]))
+        trace = state.trace
+        self.bound = floor_at_bound(
+            state.prep, library, state.config, system, coef, mask, params, sep.nonlinear, state.quantities,
+            state.warnings, sep.drive_search,
+            lambda c, p: {k: q["value"] for k, q in read_out(library, c, None, p, mask, trace).items()})
+
+
+def select_with_regressor_noise(prep: Prepared, library: Library, params: dict, settings: SelectionSettings
+                                ) -> tuple[Prepared, System, regression.Selection]:
+    """The first selection of a fit at ``params`` (SI): the rows weighted with the regressors' own noise (from a
+    first support's stiffness: :func:`afmid.fit.prepare.with_regressor_noise`), then the support selected on the
+    reweighted system (the same columns). Returns (the reweighted preparation, its system, the selection)."""
+    system = build_system(prep, library, params)
+    coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
+    prep = with_regressor_noise(prep, library, params, coef0)
+    system = build_system(prep, library, params, theta=system.theta,  # same columns, new row weights
+                          thermal_bias=system.thermal_bias)
+    return prep, system, settings.select(system)
+
+
+class ProfiledSeparation:
+    """The single trace's separation strategy (:class:`afmid.fit.orchestration.SeparationStrategy`): the coarse
+    search of the separation and decay lengths on the profile library (:func:`estimate_nonlinear`), the drive
+    frequency settled on the residual (a transient), the row weights with the regressors' noise, a selection,
+    each parameter refined on its profile over the chosen support (:func:`profile_parameter`) and a re-selection,
+    a second valley of d with a decay length (afmid.fit.joint_profile), the open side of a profile and the other
+    valleys covered (afmid.fit.valleys); the profiles' widths are the sigmas propagated into the read-outs.
+
+    ``warnings`` is the fit's list of lines (appended to); ``drive_declared``: a calibrated drive (not searched).
+    After :meth:`settle`: ``nonlinear`` (name -> :class:`afmid.fit.search.NonlinearEstimate`) and ``drive_search``.
+    """
+
+    def __init__(self, prep: Prepared, library: Library, config: RunConfig, warnings: list[str], uncertainty: bool,
+                 bar: Progress, drive_declared: bool):
+        self.prep, self.library, self.config, self.warnings = prep, library, config, warnings
+        self.uncertainty, self.bar, self.drive_declared = uncertainty, bar, drive_declared
+        self.params = library_parameters(prep, config, library)
+        self.physics, self.extra = profile_library(library, config)
+        self.settings = SelectionSettings.for_library(config.fit, library, len(prep.nuisance_names))
+        self.nonlinear: dict[str, NonlinearEstimate] = {}
+        self.drive_search: DriveSearch | None = None
+        self.chosen: np.ndarray | None = None
+
+    def settle(self) -> Settled:
+        """The search, selections and profiles in the order of the class docstring."""
+        config, library, params, physics, extra = self.config, self.library, self.params, self.physics, self.extra
+        fit, uncertainty, warnings, prep = config.fit, self.uncertainty, self.warnings, self.prep
+        searched = ("the separation" if config.sample.separation is None  # a calibrated drive is not searched
+                    else "the shape parameters" if self.drive_declared else "the drive")
+        self.bar.stage(f"searching {searched}", step=(2, FIT_STAGES))
+        nonlinear = self.nonlinear
+        nonlinear.update(estimate_nonlinear(prep, library, config, params, physics=(physics, extra)))
+
+        def factors_at(p: Prepared):  # the profile library's columns at the current parameters, held
+            trial = dict(params, **extra)
+            theta, bias = library_columns(p, physics, trial), library_thermal_bias(p, physics, trial)
+            return lambda q: build_system(q, physics, trial, theta=theta, thermal_bias=bias).T_blocks
+
+        def estimate_again(p: Prepared) -> None:
+            nonlinear.update(estimate_nonlinear(p, library, config, params, physics=(physics, extra)))
+
+        prep, self.drive_search = (prep, None) if prep.declared_drive is not None else settle_drive_frequency(
+            prep, fit.drive_frequency, fit.seed, factors_at, estimate_again if nonlinear else None)
+        self.bar.stage("selecting terms", step=(3, FIT_STAGES))
+        settings = self.settings
+        prep, system, selection = select_with_regressor_noise(prep, library, params, settings)
+        self.prep = prep
+        chosen = selection.best.mask
+        # Refine the nonlinear parameters on the profile of the chosen support, then re-select once; the
+        # profile's width is their uncertainty (propagated into the read-out).
+        if nonlinear:
+            def profile(name, est, mask, jackknife=uncertainty):
+                # A preset is profiled with all the terms of its catalog effects.
+                return profile_parameter(prep, physics, dict(params, **extra), name, est.bounds,
+                                         whole_effects(library, mask) if physics is library else None,
+                                         jackknife=jackknife)
+
+            profiled = {}
+            for name, est in nonlinear.items():
+                found = profile(name, est, chosen)
+                params[name] = found.value
+                profiled[name] = found
+            support = chosen
+            system = build_system(prep, library, params)
+            selection = settings.select(system)
+            chosen = selection.best.mask
+            for name, est in nonlinear.items():
+                est.value = params[name]
+                if uncertainty:
+                    # The profile of the final support (the first one's when the support did not change).
+                    same = np.array_equal(chosen, support) or physics is not library
+                    found = profiled[name] if same else profile(name, est, chosen)
+                    est.sigma, est.sigma_width, est.sigma_jackknife = (found.sigma, found.sigma_width,
+                                                                       found.sigma_jackknife)
+                    profiled[name] = found
+            if uncertainty and "d" in nonlinear and len(nonlinear) > 1:  # d and a decay length: a second valley?
+                moved, warning = other_valley(prep, physics, extra, params, nonlinear, system.n_rows,
+                                              whole_effects(library, chosen) if physics is library else None,
+                                              lambda name, est: profile(name, est, chosen))
+                if moved:
+                    system = build_system(prep, library, params)
+                    selection = settings.select(system)
+                    chosen = selection.best.mask
+                if warning:
+                    warnings.append("warning: " + warning)
+            if uncertainty:
+                for name, est in nonlinear.items():
+                    opened = open_side_warning(name, est.unit, profiled[name], est.bounds)
+                    if opened:
+                        warnings.append("warning: " + opened)
+                    if cover_other_valleys(name, est, profiled[name], params,
+                                           lambda name, est: profile(name, est, chosen), warnings):
+                        system = build_system(prep, library, params)
+                        selection = settings.select(system)
+                        chosen = selection.best.mask
+        for name, est in nonlinear.items():
+            est.value = params[name]
+        self.chosen = chosen
+        return Settled(prep, system, chosen, params, warnings, selection)
+
+    def propagate(self, state: FitState) -> None:
+        """The profiles' sigmas into the read-outs (refits at +-1 sigma: :func:`propagate_nonlinear`), with
+        error bars only."""
+        if self.uncertainty:
+            propagate_nonlinear(state.quantities, self.nonlinear, state.prep, self.library, state.params, state.mask,
+                                state.trace)
+
+    def resettle(self, scaled: Prepared, trial: dict) -> dict:
+        """The nonlinear parameters searched again on a scaled record (the deflection sensitivity's share,
+        afmid.fit.invols_share), each on its profile over the chosen support; ``trial`` updated and returned."""
+        library, physics, chosen = self.library, self.physics, self.chosen
+        for name, est in self.nonlinear.items():
+            trial[name] = profile_parameter(scaled, physics, dict(trial, **self.extra), name, est.bounds,
+                                            whole_effects(library, chosen) if physics is library else None,
+                                            jackknife=False).value
+        return trial
+
+    def select_with(self, extra_terms: list[str]) -> tuple[Library, np.ndarray]:
+        """The library with ``extra_terms`` added and its support selected at the settled parameters (the
+        contact-law probe, afmid.fit.contact_probe)."""
+        config = self.config
+        model = config.model.model_copy(update={"terms": [*config.model.terms, *extra_terms]})
+        probed = build_library(model, config.source, self.library.tip)
+        probed_settings = SelectionSettings.for_library(config.fit, probed, len(self.prep.nuisance_names))
+        return probed, probed_settings.select(build_system(self.prep, probed, self.params)).best.mask
 
 
 # --------------------------------------------------------------------------- effects from the CLI

@@ -28,10 +28,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 import afmid.fit.regression as regression
+
+if TYPE_CHECKING:  # annotations only
+    from afmid.fit.fit_state import FitState
 
 #: A cross-validated error within this factor of its noise floor counts as the noise level. For a right model
 #: (error)^2 / (floor)^2 is a chi-square over its effective degrees of freedom nu divided by nu (the floor is
@@ -204,21 +208,24 @@ def propagate_calibration(quantities: dict, prep, library, system, coef: np.ndar
     return math.sqrt(force_variance)
 
 
-def finish(quantities: dict, warnings: list, prep, library, system, coef, mask, params, trace, config,
-           cv_error: float, noise_floor: float, read_out, uncertainty: bool = True) -> tuple[float, bool]:
-    """The fit's last step on its error bars (in place): the calibration's share (when ``uncertainty``) and
-    the model-limited mark (always; a warning line is appended). Returns (the force's relative calibration
-    uncertainty, 1 sigma; whether the fit is model-limited)."""
-    force_calibration = 0.0
+def finish(state: FitState, uncertainty: bool = True) -> None:
+    """The fit's last step on its error bars (in place on ``state``, an :class:`afmid.fit.fit_state.FitState`): the
+    calibration's share (when ``uncertainty``; ``state.force_calibration`` becomes the force's relative calibration
+    uncertainty, 1 sigma) and the model-limited mark (always: ``state.model_limited``, each quantity's flag and a
+    warning line)."""
+    # The read-out's module is loaded here, not with this one: the report and the batch summary read this module's
+    # labels and thresholds without loading the fit's numerics.
+    from afmid.fit.forces import read_out
+
     if uncertainty:
-        force_calibration = propagate_calibration(
-            quantities, prep, library, system, coef, mask, params, trace, Calibration.from_config(config.cantilever),
-            read_out, fixed_cantilever=config.fit.cantilever == "fixed")
-    limited = model_limited(cv_error, noise_floor)
-    mark_model_limited(quantities, limited)
-    if limited:
-        warnings.append("warning: " + model_limited_warning(cv_error, noise_floor))
-    return force_calibration, limited
+        state.force_calibration = propagate_calibration(
+            state.quantities, state.prep, state.library, state.system, state.coef, state.mask, state.params,
+            state.trace, Calibration.from_config(state.config.cantilever), read_out,
+            fixed_cantilever=state.config.fit.cantilever == "fixed")
+    state.model_limited = model_limited(state.cv_error, state.noise_floor)
+    mark_model_limited(state.quantities, state.model_limited)
+    if state.model_limited:
+        state.warn(model_limited_warning(state.cv_error, state.noise_floor))
 
 
 def shift_variance(quantities: dict, shifts: list, read_out_at) -> dict[str, float]:

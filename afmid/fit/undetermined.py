@@ -23,10 +23,16 @@ from __future__ import annotations
 
 import math
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 import afmid.fit.regression as regression
+from afmid.fit.forces import read_out
 from afmid.fit.uncertainty import widen_interval
+
+if TYPE_CHECKING:  # annotations only
+    from afmid.fit.fit_state import FitState
 
 #: A selected term that a resample of the periods re-selects at least this often counts as decided by the data.
 DECIDED = 0.9
@@ -82,15 +88,17 @@ def _interval(read_out, library, samples: np.ndarray, params, mask, trace, name:
     return float(values.std(ddof=1)), float(lo), float(hi)
 
 
-def mark(quantities: dict, library, system, coef: np.ndarray, mask: np.ndarray, params: dict, trace,
-         inclusion: np.ndarray, n_boot: int, seed: int | None, read_out, warnings: list[str]) -> None:
-    """Mark the not-determined and the undecided read-outs of a fit (in place; see the module docstring).
+def mark(state: FitState, n_boot: int, seed: int | None) -> None:
+    """Mark the not-determined and the undecided read-outs of a fit (in place on ``state.quantities``; see the
+    module docstring).
 
-    ``coef``/``mask``: the fit's coefficients and support (all columns); ``inclusion``: per column, the
-    fraction of period resamples selecting it (the chosen mask when there was no bootstrap); ``n_boot``: the
-    resamples of the forced supports' intervals (0: no interval, the flags only); ``read_out`` is
-    :func:`afmid.fit.forces.read_out`. Warning lines are appended to ``warnings``.
+    ``state`` (:class:`afmid.fit.fit_state.FitState`): the fit's coefficients and support (all columns) and
+    ``inclusion``, per column the fraction of period resamples selecting it (the chosen mask when there was no
+    bootstrap); ``n_boot``: the resamples of the forced supports' intervals (0: no interval, the flags only), drawn
+    from ``seed``. Warning lines are appended to ``state.warnings``.
     """
+    quantities, library, system, coef, mask = state.quantities, state.library, state.system, state.coef, state.mask
+    params, trace, inclusion, warnings = state.params, state.trace, state.inclusion, state.warnings
     T = regression.combine(system.T_blocks)
     for name, q in quantities.items():
         q.setdefault("determined", True)

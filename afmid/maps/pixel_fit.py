@@ -200,19 +200,15 @@ class SharedSupportFit:
         the regressors' noise and one selection there, as :func:`afmid.fit.pipeline.fit_prepared` makes them
         before its profile. The profile itself (~30 library evaluations) is left out: the anchor's own result
         comes from the carried path's search started here, which finds the minimum and its sigma."""
-        from afmid.fit.pipeline import build_system, estimate_nonlinear, library_parameters
-        from afmid.fit.prepare import with_regressor_noise
+        from afmid.fit.pipeline import estimate_nonlinear, library_parameters, select_with_regressor_noise
 
         library = self.library
         params = library_parameters(prep, self.config, library)
         estimate_nonlinear(prep, library, self.config, params, physics=(self.physics, self.extra),
                            refine_tolerance=ANCHOR_TOLERANCE)
         settings = self.settings_for(len(prep.nuisance_names))
-        system = build_system(prep, library, params)
-        coef0, _ = regression.subset_fit(regression.combine(system.T_blocks), settings.weighting_support(system))
-        weighted = with_regressor_noise(prep, library, params, coef0)
-        system = build_system(weighted, library, params, theta=system.theta, thermal_bias=system.thermal_bias)
-        support = np.asarray(settings.select(system).best.mask, bool)
+        _, system, selection = select_with_regressor_noise(prep, library, params, settings)
+        support = np.asarray(selection.best.mask, bool)
         self.support = support.copy()
         self.coef = np.asarray(regression.subset_fit(regression.combine(system.T_blocks), support)[0], float)
         self.offsets = [params["d"] - touch]
@@ -317,42 +313,55 @@ class SharedSupportFit:
         return SeparationSearch(found, systems)
 
     def _finish(self, prep, params, system, support, search, counter, route) -> tuple[PixelResult, np.ndarray]:
-        from afmid.fit.pipeline import propagate_nonlinear, refuse_unusable
-        from afmid.fit.forces import force_cv_error, read_out, signal_rows
-        from afmid.fit.search import NonlinearEstimate
-        from afmid.fit.uncertainty import finish
+        """The pixel's fit at the found separation through the fits' one sequence
+        (:func:`afmid.fit.orchestration.orchestrate`): coefficients, their spread from the least-squares covariance
+        (:data:`COVARIANCE_DRAWS` draws), the cross-validated error, the read-out, the separation's sigma
+        propagated (:class:`CarriedSeparation`), the calibration and the model-limited mark."""
+        from afmid.fit.orchestration import CalibrationAndLimits, CovarianceDraws, HeldOutPeriods, orchestrate
         from afmid.maps.residual import fit_view, view_signature
 
-        config, library, trace = self.config, self.library, prep.trace
-        found = search.found
-        params = dict(params, d=found.value)
-        T = regression.combine(system.T_blocks)
-        coef, rss = regression.subset_fit(T, support)
-        rows = signal_rows(prep, system, coef)
-        cv_error, _, floor = force_cv_error(prep, system, support, rows, config.fit.folds)
-        refuse_unusable(trace, library, coef[:len(library)], cv_error)
-        rng = np.random.default_rng([config.fit.seed, 14])
-        draws = covariance_draws(T, coef, support, rss, system.n_rows, COVARIANCE_DRAWS, rng)
-        bagging = regression.Bagging(support.astype(float), draws, COVARIANCE_DRAWS)
-        quantities = read_out(library, coef, bagging, params, support, trace, with_sources=True)
-        if not search.propagate(quantities, found, lambda c, d: read_out(library, c, None, dict(params, d=d), support,
-                                                                          trace), support):
-            nonlinear = {"d": NonlinearEstimate("d", found.value, found.sigma, "m", True)}
-            counter["builds"] += 2
-            propagate_nonlinear(quantities, nonlinear, prep, library, params, support, trace)
-        for q in quantities.values():
-            q["error_kind"] = "1 sigma (least-squares covariance)"
-        warnings = [f"{f.severity}: {f.message}" for f in trace.findings if f.severity != "error"]
-        if prep.motion is not None and prep.motion.non_periodic:
-            from afmid.preprocess.motion import fit_warning
+        config, library = self.config, self.library
+        done = orchestrate(config, library, CarriedSeparation(prep, library, params, system, support, search, counter),
+                           CovarianceDraws(COVARIANCE_DRAWS, [config.fit.seed, 14]),
+                           HeldOutPeriods(library, config.fit.folds), [CalibrationAndLimits(True)])
+        state, found = done.state, search.found
+        signature, curves = view_signature(fit_view(prep, library, system, done.coef, state.params, done.error.rows,
+                                                    config))
+        return PixelResult(state.quantities, found.value, found.sigma, state.cv_error, state.noise_floor,
+                           np.asarray(support[:len(library)], bool), state.warnings, route, signature=signature,
+                           curves=curves), done.coef
 
-            warnings.append(fit_warning(prep.motion, prep.noise_rms))
-        finish(quantities, warnings, prep, library, system, coef, support, params, trace, config, cv_error, floor,
-               read_out, True)
-        signature, curves = view_signature(fit_view(prep, library, system, coef, params, rows, config))
-        return PixelResult(quantities, found.value, found.sigma, cv_error, floor,
-                           np.asarray(support[:len(library)], bool), warnings, route, signature=signature,
-                           curves=curves), coef
+
+class CarriedSeparation:
+    """A map pixel's separation strategy (:class:`afmid.fit.orchestration.SeparationStrategy`) once its carried
+    search has run (:meth:`SharedSupportFit._search`): :meth:`settle` hands on the separation it found, the system
+    there and the support (carried from the last pixel, or re-selected); :meth:`propagate` adds d's sigma from the
+    search's own points (:meth:`SeparationSearch.propagate`), or, with fewer than three of them near the minimum,
+    by refits at d +- sigma (:func:`afmid.fit.orchestration.propagate_nonlinear`, two library evaluations counted
+    in ``counter``)."""
+
+    def __init__(self, prep, library, params: dict, system, support: np.ndarray, search: SeparationSearch,
+                 counter: dict):
+        self.prep, self.library, self.system, self.support, self.search, self.counter = (prep, library, system,
+                                                                                        support, search, counter)
+        self.params = dict(params, d=search.found.value)
+
+    def settle(self):
+        from afmid.fit.orchestration import Settled, record_warnings
+
+        return Settled(self.prep, self.system, self.support, self.params, record_warnings(self.prep))
+
+    def propagate(self, state) -> None:
+        from afmid.fit.forces import read_out
+        from afmid.fit.orchestration import propagate_nonlinear
+        from afmid.fit.search import NonlinearEstimate
+
+        library, params, support, trace, found = self.library, self.params, self.support, state.trace, self.search.found
+        if not self.search.propagate(state.quantities, found, lambda c, d: read_out(library, c, None, dict(params, d=d),
+                                                                                    support, trace), support):
+            nonlinear = {"d": NonlinearEstimate("d", found.value, found.sigma, "m", True)}
+            self.counter["builds"] += 2
+            propagate_nonlinear(state.quantities, nonlinear, self.prep, library, params, support, trace)
 
 
 @dataclass
@@ -382,7 +391,7 @@ class SeparationSearch:
         that is not monotone in d within its sigma (E* that falls on both sides of the minimum). For a read-out
         linear in d this is the slope times sigma. False when fewer than three points are there (the caller
         refits at d +- sigma instead). Added in quadrature to the error and to both halves of the 95 %
-        interval, as afmid.fit.pipeline.propagate_nonlinear does."""
+        interval, as afmid.fit.orchestration.propagate_nonlinear does."""
         sigma = found.sigma
         if not (math.isfinite(sigma) and sigma > 0):
             return True  # nothing to propagate
@@ -623,25 +632,6 @@ def _jackknife_spread(profile, points: np.ndarray) -> float:
         vertices.append(v)
     vertices = np.asarray(vertices)
     return float(math.sqrt((G - 1) / G * np.sum((vertices - vertices.mean()) ** 2)))
-
-
-def covariance_draws(T: np.ndarray, coef: np.ndarray, support: np.ndarray, rss: float, n_rows: int, n: int,
-                     rng: np.random.Generator) -> np.ndarray:
-    """``n`` coefficient vectors drawn from the least-squares covariance s2 (A_S^T A_S)^-1 of the support (zero
-    elsewhere), s2 = rss / (rows - k); ``T`` is the combined triangular factor of [A | y] (so A^T A = T_A^T T_A).
-    Columns are scaled to unit norm first: SI columns span tens of orders of magnitude."""
-    index = np.flatnonzero(support)
-    A = T[:, index]
-    norms = np.linalg.norm(A, axis=0)
-    norms[norms == 0] = 1.0
-    gram = (A / norms).T @ (A / norms)
-    s2 = rss / max(n_rows - index.size, 1)
-    w, V = np.linalg.eigh(gram)
-    w = np.where(w > w.max() * 1e-14, w, np.inf)  # a direction the data do not determine gets no spread here
-    root = V / np.sqrt(w)  # cov_scaled = root @ root.T / s2^-1
-    draws = np.tile(coef, (n, 1))
-    draws[:, index] += (rng.standard_normal((n, index.size)) @ root.T) * math.sqrt(s2) / norms
-    return draws
 
 
 PIXEL_FITS: Registry = Registry("pixel fit")

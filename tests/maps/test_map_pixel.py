@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 import yaml
 
-from afmid.maps.pixel_fit import (ROUTE_ANCHOR, ROUTE_FULL, ROUTE_RESEARCHED, ROUTES, covariance_draws,
-                             parabolic_minimum)
+from afmid.fit.orchestration import covariance_draws
+from afmid.maps.pixel_fit import (ROUTE_ANCHOR, ROUTE_FULL, ROUTE_RESEARCHED, ROUTES,
+                                parabolic_minimum)
 from afmid.maps.task import STATUS_SUSPECT, fit_chunk
 from repo_paths import REPO_ROOT
 
