@@ -171,6 +171,7 @@ class TraceFit:
     cv_error: float = math.nan
     cv_error_folds: np.ndarray = field(default_factory=lambda: np.zeros(0))
     cv_error_noise_floor: float = math.nan
+    cv_error_floor_dof: float = math.nan
     model_limited: bool = False
 
     @property
@@ -352,12 +353,13 @@ def _run_joint_fit(config: RunConfig, configs: list[RunConfig], traces_in: list[
     if uncertainty:
         _propagate(quantities, columns, directions, chosen, library, traces[0])
     for i, t in enumerate(traces):
-        t.cv_error, t.cv_error_folds, t.cv_error_noise_floor = trace_cv_error(joint, t.prep, columns.system(i),
-                                                                               chosen, coef, i, fit.folds)
-        t.model_limited = model_limited(t.cv_error, t.cv_error_noise_floor)
+        (t.cv_error, t.cv_error_folds, t.cv_error_noise_floor,
+         t.cv_error_floor_dof) = trace_cv_error(joint, t.prep, columns.system(i), chosen, coef, i, fit.folds)
+        t.model_limited = model_limited(t.cv_error, t.cv_error_noise_floor, t.cv_error_floor_dof)
         if t.model_limited:
             warnings.append(f"warning: trace {i} ({t.prep.trace.path}): "
-                            + model_limited_warning(t.cv_error, t.cv_error_noise_floor))
+                            + model_limited_warning(t.cv_error, t.cv_error_noise_floor,
+                                                  t.cv_error_floor_dof))
     mark_model_limited(quantities, any(t.model_limited for t in traces))
     if uncertainty:
         declared = [k for k in ("spring_constant_uncertainty", "quality_factor_uncertainty")

@@ -169,6 +169,8 @@ class FitResult:
     force_statistical_uncertainty: float = math.nan
     #: half the force's change with the dropped terms of its effects forced in (relative, 1 sigma; NaN: not computed)
     force_selection_uncertainty: float = math.nan
+    #: the noise floor's effective degrees of freedom (afmid.fit.uncertainty.floor_threshold; NaN: not known)
+    cv_error_floor_dof: float = math.nan
 
     @property
     def force_separation_uncertainty(self) -> float:
@@ -430,7 +432,7 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         inclusion = bagging.inclusion
     bar.stage("error and forces", step=(5, FIT_STAGES))
     rows = signal_rows(prep, system, coef)
-    cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, rows, fit.folds)
+    cv_error, per_fold, noise_floor, floor_dof = force_cv_error(prep, system, chosen, rows, fit.folds)
     try:
         refuse_unusable(trace, library, coef[:len(library)], cv_error)
     except AfmidError:
@@ -440,7 +442,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
     if uncertainty:
         propagate_nonlinear(quantities, nonlinear, prep, library, params, chosen, trace)
     force_calibration, limited = finish_uncertainty(quantities, warnings, prep, library, system, coef, chosen, params,
-                                                    trace, config, cv_error, noise_floor, read_out, uncertainty)
+                                                    trace, config, cv_error, noise_floor, read_out, uncertainty,
+                                                    floor_dof=floor_dof)
     if uncertainty:  # the deflection sensitivity's share, beside k's and Q's (refits on the scaled deflection)
         def resettle(scaled: Prepared, trial: dict) -> dict:  # the nonlinear parameters searched on the scaled record
             for name, est in nonlinear.items():
@@ -493,7 +496,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
         prep = replace(prep, fine_grid=None)
     return FitResult(config, prep, library, system, selection, coef, coef_std, ci_low, ci_high, inclusion, bagging,
                      nonlinear, quantities, cv_error, per_fold, noise_floor, rows, force_estimate, force_inverted, periods,
-                     warnings, drive_search, force_calibration, limited, share, statistical, selection_doubt)
+                     warnings, drive_search, force_calibration, limited, share, statistical, selection_doubt,
+                     cv_error_floor_dof=floor_dof)
 
 
 #: The warning of a fit whose law needs an unphysical parameter (afmid.fit.plausibility.unphysical).

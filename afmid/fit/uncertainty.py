@@ -33,14 +33,14 @@ import numpy as np
 
 import afmid.fit.regression as regression
 
-#: A cross-validated error within this factor of its noise floor counts as the noise level. For a right model
-#: (error)^2 / (floor)^2 is a chi-square over its effective degrees of freedom nu divided by nu (the floor is
-#: the expected noise in the error's own sum: fit_forces.force_cv_error), nu = 12-40 on steady traces (10 pm at
-#: 50 samples/period .. 1 pm at 200). Measured on 28 clean traces with detector noise, separation not given:
-#: error / floor mean 1.05, sd 0.14, max 1.36 (scripts/floor_study.py). 1.45 is the one-sided 99 % quantile of
-#: sqrt(chi2_nu / nu) at nu = 13.5, the fewest seen; the old 1.3 was the 99 % point at nu = 32, inside the spread
-#: of the 1.31x clean trace (docs/diagnosis.md, "The noise floor and its threshold"). Above it the model misses
-#: something; the diagnosis looks for it and the fit marks its parameters model-limited.
+#: The most a cross-validated error may stand above its noise floor and still count as the noise level
+#: (:func:`floor_threshold` is the fit's own threshold, at most this). For a right model (error)^2 / (floor)^2 is a
+#: chi-square over its effective degrees of freedom nu divided by nu (the floor is the expected noise in the
+#: error's own sum: fit_forces.force_cv_error), nu = 12-40 on steady traces (10 pm at 50 samples/period .. 1 pm at
+#: 200). Measured on 28 clean traces with detector noise, separation not given: error / floor mean 1.05, sd 0.14,
+#: max 1.36 (scripts/floor_study.py). 1.45 is the one-sided 99 % quantile of sqrt(chi2_nu / nu) at nu = 13.5, the
+#: fewest seen (docs/diagnosis.md, "The noise floor and its threshold"). Above it the model misses something; the
+#: diagnosis looks for it and the fit marks its parameters model-limited.
 FLOOR_FACTOR = 1.45
 
 #: What every ``error`` in afmid's outputs is.
@@ -61,13 +61,32 @@ INTERVALS_WITH_CALIBRATION = "statistical and calibration"
 
 #: Warning text of a model-limited fit (the numbers are filled in).
 MODEL_LIMITED_TEXT = ("model-limited: the cross-validated error {error:.3g} stands above its noise floor {floor:.3g} "
-                      "(x{ratio:.2g}): the model misses part of the force, so its parameters are biased by more than "
-                      "their error bars, which cover noise and calibration only")
+                      "(x{ratio:.3g}, above x{threshold:.3g}{why}): the model misses part of the force, so its "
+                      "parameters are biased by more than their error bars, which cover noise and calibration only")
 
 
-def model_limited(cv_error: float, noise_floor: float) -> bool:
-    """True when the fit's error stands above its noise floor by more than :data:`FLOOR_FACTOR`."""
-    return bool(math.isfinite(cv_error) and math.isfinite(noise_floor) and cv_error > FLOOR_FACTOR * noise_floor)
+#: The one-sided quantile of a right model's error / floor at which a fit counts as model-limited
+#: (:func:`floor_threshold`): about 1 right model in 100 is flagged by chance.
+FLOOR_QUANTILE = 0.99
+
+
+def floor_threshold(floor_dof: float = math.nan) -> float:
+    """The ratio cv_error / noise floor above which a fit is model-limited, for a floor with ``floor_dof``
+    effective degrees of freedom (afmid.fit.forces.FoldErrors.floor_dof): the :data:`FLOOR_QUANTILE` point of
+    sqrt(chi2_nu / nu), never above :data:`FLOOR_FACTOR` (which it is at nu = 13.5, the fewest seen); NaN or
+    fewer than one degree of freedom: :data:`FLOOR_FACTOR`. A record with many degrees of freedom locates its
+    floor well, so a smaller excess is already significant (nu 32: 1.29)."""
+    if not (math.isfinite(floor_dof) and floor_dof >= 1.0):
+        return FLOOR_FACTOR
+    from scipy.stats import chi2
+
+    return min(FLOOR_FACTOR, math.sqrt(float(chi2.ppf(FLOOR_QUANTILE, floor_dof)) / floor_dof))
+
+
+def model_limited(cv_error: float, noise_floor: float, floor_dof: float = math.nan) -> bool:
+    """True when the fit's error stands above its noise floor by more than :func:`floor_threshold`."""
+    return bool(math.isfinite(cv_error) and math.isfinite(noise_floor)
+                and cv_error > floor_threshold(floor_dof) * noise_floor)
 
 
 def at_noise_floor(cv_error: float, noise_floor: float) -> bool:
@@ -77,9 +96,13 @@ def at_noise_floor(cv_error: float, noise_floor: float) -> bool:
     return bool(math.isfinite(cv_error) and math.isfinite(noise_floor) and cv_error <= noise_floor)
 
 
-def model_limited_warning(cv_error: float, noise_floor: float) -> str:
+def model_limited_warning(cv_error: float, noise_floor: float, floor_dof: float = math.nan) -> str:
     """The warning line of a model-limited fit."""
-    return MODEL_LIMITED_TEXT.format(error=cv_error, floor=noise_floor, ratio=cv_error / noise_floor)
+    threshold = floor_threshold(floor_dof)
+    why = (f", which a right model exceeds 1 time in {round(1 / (1 - FLOOR_QUANTILE))} at this record's "
+           f"{floor_dof:.0f} degrees of freedom" if threshold < FLOOR_FACTOR else "")
+    return MODEL_LIMITED_TEXT.format(error=cv_error, floor=noise_floor, ratio=cv_error / noise_floor,
+                                     threshold=threshold, why=why)
 
 
 def mark_model_limited(quantities: dict, limited: bool) -> None:
@@ -205,7 +228,8 @@ def propagate_calibration(quantities: dict, prep, library, system, coef: np.ndar
 
 
 def finish(quantities: dict, warnings: list, prep, library, system, coef, mask, params, trace, config,
-           cv_error: float, noise_floor: float, read_out, uncertainty: bool = True) -> tuple[float, bool]:
+           cv_error: float, noise_floor: float, read_out, uncertainty: bool = True,
+           floor_dof: float = math.nan) -> tuple[float, bool]:
     """The fit's last step on its error bars (in place): the calibration's share (when ``uncertainty``) and
     the model-limited mark (always; a warning line is appended). Returns (the force's relative calibration
     uncertainty, 1 sigma; whether the fit is model-limited)."""
@@ -214,10 +238,10 @@ def finish(quantities: dict, warnings: list, prep, library, system, coef, mask, 
         force_calibration = propagate_calibration(
             quantities, prep, library, system, coef, mask, params, trace, Calibration.from_config(config.cantilever),
             read_out, fixed_cantilever=config.fit.cantilever == "fixed")
-    limited = model_limited(cv_error, noise_floor)
+    limited = model_limited(cv_error, noise_floor, floor_dof)
     mark_model_limited(quantities, limited)
     if limited:
-        warnings.append("warning: " + model_limited_warning(cv_error, noise_floor))
+        warnings.append("warning: " + model_limited_warning(cv_error, noise_floor, floor_dof))
     return force_calibration, limited
 
 

@@ -329,7 +329,7 @@ class SharedSupportFit:
         T = regression.combine(system.T_blocks)
         coef, rss = regression.subset_fit(T, support)
         rows = signal_rows(prep, system, coef)
-        cv_error, _, floor = force_cv_error(prep, system, support, rows, config.fit.folds)
+        cv_error, _, floor, _ = force_cv_error(prep, system, support, rows, config.fit.folds)
         refuse_unusable(trace, library, coef[:len(library)], cv_error)
         rng = np.random.default_rng([config.fit.seed, 14])
         draws = covariance_draws(T, coef, support, rss, system.n_rows, COVARIANCE_DRAWS, rng)
