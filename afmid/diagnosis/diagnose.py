@@ -59,10 +59,9 @@ import afmid.physics.medium as medium
 from afmid.physics.effects import EFFECTS
 # BIC differences as a person reads them (no -0, no 7e-13): the one formatter of afmid's numbers.
 from afmid.quantity_text import format_delta_bic, format_value
-# A cross-validated error within its threshold of its noise floor counts as the noise level (the fit's own
-# model-limited test, model_limited); the share of the excess a candidate removes is judged only beyond
-# FLOOR_FACTOR, where the excess is large enough to divide.
-from afmid.fit.uncertainty import FLOOR_FACTOR, at_noise_floor, model_limited
+# A cross-validated error within FLOOR_FACTOR of its noise floor counts as the noise level (one constant with
+# the fit's model-limited mark).
+from afmid.fit.uncertainty import FLOOR_FACTOR, at_noise_floor, floor_threshold, model_limited
 # The run-file reader lives in afmid.runfile; `from afmid.diagnosis.diagnose import load_run, RunData` keeps working.
 from afmid.runfile import RunData, load_run  # noqa: F401
 
@@ -118,7 +117,6 @@ class Trial:
     block_chi2: np.ndarray | None = field(default=None, repr=False)  # per-block chi-square (afmid.diagnosis.decide)
     n_parameters: int = 0  # selected terms + estimated nonlinear parameters of the refit (afmid.diagnosis.decide)
     space: object = field(default=None, repr=False)  # () -> its rival_truth.ModelSpace, computed on first call
-    floor_dof_after: float = math.nan  # the refit's noise floor's degrees of freedom (uncertainty.floor_threshold)
 
 
 @dataclass
@@ -294,14 +292,12 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
                             time.perf_counter() - t0, separation=separation, block_chi2=decide.block_chi2(result),
                             n_parameters=int(result.selection.best.mask.sum()) + len(shape),
                             space=functools.cache(functools.partial(rival_truth.model_space, prepared, result,
-                                                                    list(shape), separation_estimated(run))),
-                            floor_dof_after=result.cv_error_floor_dof))
-    residual_significant = _significant(base.chi2, base.chi2_limit, base.error, base.floor, base.floor_dof)
+                                                                    list(shape), separation_estimated(run)))))
+    residual_significant = _significant(base.chi2, base.chi2_limit, base.error, base.floor)
     for t in trials:
         t.reasons = _rejections(t, base)
         t.significant = not t.reasons
-        t.explains = not _significant(t.chi2_after, t.chi2_limit_after, t.error_after, t.noise_floor_after,
-                                      t.floor_dof_after)
+        t.explains = not _significant(t.chi2_after, t.chi2_limit_after, t.error_after, t.noise_floor_after)
     trials.sort(key=lambda t: (not t.significant, t.delta_bic))
     good = [t for t in trials if t.significant]
     final, final_bic = _forward(run, prepared, good)
@@ -388,7 +384,7 @@ class _SetFit:
     effects: tuple[str, ...]
     bic: float
     error: float
-    state: tuple[float, float, float, float, float]  # chi2, chi2 limit, error, noise floor, its degrees of freedom
+    state: tuple[float, float, float, float]  # chi2, chi2 limit, error, noise floor
     selected: dict[str, bool]
 
 
@@ -412,16 +408,15 @@ def _fit_set(run: RunData, prepared, members: list[Trial]) -> _SetFit | None:
     names = list(zip(result.library.names, result.selected))
     selected = {m.effect: any(s and name.startswith(m.effect + ".") for name, s in names) for m in members}
     return _SetFit(tuple(m.effect for m in members), bic, result.cv_error,
-                   (chi2, limit, result.cv_error, result.cv_error_noise_floor, result.cv_error_floor_dof), selected)
+                   (chi2, limit, result.cv_error, result.cv_error_noise_floor), selected)
 
 
 #: At most this many accepted candidates enter the search for a pair of missing effects.
 PAIR_CANDIDATES = 5
 
 
-def _forward(run: RunData, prepared, good: list[Trial]) -> tuple[tuple[float, float, float, float, float], float]:
-    """Which of the accepted candidates are needed; returns ((chi2, limit, error, floor, floor dof), BIC) of the
-    final set.
+def _forward(run: RunData, prepared, good: list[Trial]) -> tuple[tuple[float, float, float, float], float]:
+    """Which of the accepted candidates are needed; returns ((chi2, limit, error, floor), BIC) of the final set.
 
     Forward selection: the best candidate is kept; each further one is refitted
     on top of the ones kept so far and kept only if it still lowers the BIC by
@@ -433,10 +428,10 @@ def _forward(run: RunData, prepared, good: list[Trial]) -> tuple[tuple[float, fl
     BIC_EVIDENCE replaces it. Rejected candidates get the reason.
     """
     if not good:
-        return (math.nan, math.nan, math.nan, math.nan, math.nan), math.nan
+        return (math.nan, math.nan, math.nan, math.nan), math.nan
     top = good[0]
     kept = [top]
-    state = (top.chi2_after, top.chi2_limit_after, top.error_after, top.noise_floor_after, top.floor_dof_after)
+    state = (top.chi2_after, top.chi2_limit_after, top.error_after, top.noise_floor_after)
     bic, error = top.bic_after, top.error_after
     verdicts: dict[str, str] = {}
     for t in good[1:]:
@@ -457,7 +452,7 @@ def _forward(run: RunData, prepared, good: list[Trial]) -> tuple[tuple[float, fl
     # Pairs cost refits only (a pair must still beat the forward choice by BIC_EVIDENCE): tried whenever the
     # error stands above its noise floor at all, not only beyond FLOOR_FACTOR (a meniscus alone can bring a
     # damping + hydration trace to 1.3-1.45x its floor).
-    chi2, limit, error_now, floor_now, _ = state
+    chi2, limit, error_now, floor_now = state
     if (chi2 > limit or (math.isfinite(floor_now) and error_now > floor_now)) and len(good) > 2:
         pool = good[:PAIR_CANDIDATES]
         best = None
@@ -515,17 +510,18 @@ def _errors_compared(t: Trial, base: _Base) -> tuple[float, float, float]:
     return base.error, t.error_after, base.floor
 
 
-def _significant(chi2: float, limit: float, error: float, floor: float, floor_dof: float = math.nan) -> bool:
+def _significant(chi2: float, limit: float, error: float, floor: float) -> bool:
     """A misfit is significant when the in-sample chi-square OR the out-of-sample error sees it.
 
     The two are complementary: the chi-square runs over every whitened row and
     dilutes a misfit concentrated on the few harmonics that carry the force; the
     cross-validated error looks only at those, but against a noise floor that is
-    itself an estimate (hence a threshold above 1: the fit's own, afmid.fit.uncertainty.floor_threshold).
+    itself an estimate (hence FLOOR_FACTOR).
     """
     if at_noise_floor(error, floor):  # no diagnosis below the noise floor (a chi-square there is numerical)
         return False
-    return bool(chi2 > limit or model_limited(error, floor, floor_dof))
+    above_floor = math.isfinite(error) and math.isfinite(floor) and error > FLOOR_FACTOR * floor
+    return bool(chi2 > limit or above_floor)
 
 
 def _rejections(t: Trial, base: _Base) -> list[str]:
@@ -700,6 +696,13 @@ def _verdict(good: list[Trial], significant: bool, explained: bool, base: _Base,
         return f"not explained by the catalog: {names} explains part of the residual ({change}), but {why}"
     if significant:
         return "not explained by the catalog: a significant residual that no catalog effect explains"
+    if model_limited(base.error, base.floor, base.floor_dof):
+        # Flagged by the fit's own threshold, below the alarm (FLOOR_FACTOR or the chi-square): say both.
+        return (f"no effect is missing that this record can show: the error {base.error:.3g} stands "
+                f"{base.error / base.floor:.3g}x its noise floor {base.floor:.3g}, above this record's 99 % point "
+                f"(x{floor_threshold(base.floor_dof):.3g}: the parameters are flagged model-limited) but below the "
+                f"alarm (x{FLOOR_FACTOR:g}, reduced chi-square {base.chi2:.3g}), and no catalog effect improves the "
+                f"BIC by {BIC_EVIDENCE:g}")
     return (f"no effect is missing: the model explains the data to the noise level (reduced chi-square "
             f"{base.chi2:.3g}, error {base.error:.3g} vs noise floor {base.floor:.3g}) and no catalog effect "
             f"improves the BIC by {BIC_EVIDENCE:g}")
