@@ -34,7 +34,8 @@ from afmid.errors import ConfigError, InputError
 from afmid.io.files import check_input_file, is_regular_file
 from afmid.fit.forces import PeriodCurves
 from afmid.io.trace import RUN_FORMAT, TRACE_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
-from afmid.fit.uncertainty import ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR, intervals_kind
+from afmid.fit.uncertainty import (ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR, FLOOR_QUANTILE, floor_threshold,
+                                   intervals_kind)
 from afmid.runcheck import RunReader, check_version, input_unchanged, stored_config
 
 if TYPE_CHECKING:  # an annotation only: the run file is written from a fit's result (fit is a layer below)
@@ -264,9 +265,15 @@ def write_run_contents(h5, result: FitResult, config: RunConfig) -> dict:
     write_dataset(dg, "cv_error_folds", result.cv_error_folds, "1")
     write_dataset(dg, "cv_error_noise_floor", result.cv_error_noise_floor, "1",
                   definition="expected cv_error of a perfect model at the estimated noise")
+    floor_dof = float(getattr(result, "cv_error_floor_dof", math.nan))
+    write_dataset(dg, "cv_error_floor_dof", floor_dof, "1",
+                  definition="effective degrees of freedom of (cv_error / cv_error_noise_floor)^2 for a right model "
+                             "(Satterthwaite over the held-out rows; NaN: not known)")
     write_dataset(dg, "model_limited", bool(result.model_limited), "1",
-                  definition=f"cv_error above {FLOOR_FACTOR} x cv_error_noise_floor: the parameters are biased "
-                             "by a missing effect beyond their error bars")
+                  definition=f"cv_error above floor_threshold x cv_error_noise_floor (the one-sided "
+                             f"{FLOOR_QUANTILE:.0%} point of sqrt(chi2_nu / nu) at nu = cv_error_floor_dof, at most "
+                             f"{FLOOR_FACTOR}; here {floor_threshold(floor_dof):.3f}), or a failed test of the law's "
+                             "shape: the parameters are biased by a missing effect beyond their error bars")
     best = result.selection.best
     write_dataset(dg, "bic", best.bic, "1", definition="n ln(rss/n) + k ln n over whitened rows")
     write_dataset(dg, "rss", best.rss, "1", definition="whitened residual sum of squares")
@@ -355,6 +362,7 @@ class RunData:
         """True when the fit used a calibrated drive: the inverted force does not depend on the force model."""
         return self.drive_source == DRIVE_CALIBRATED
     model_limited: bool = False  # cv_error above its noise floor (afmid.fit.uncertainty.model_limited)
+    cv_error_floor_dof: float = math.nan  # the noise floor's degrees of freedom (afmid.fit.uncertainty.floor_threshold)
     force_calibration_uncertainty: float = 0.0  # relative 1 sigma of the force from the declared k / Q
     force_separation_uncertainty: float = math.nan  # RMS 1 sigma of the force from the estimated d, / peak
     force_statistical_uncertainty: float = math.nan  # RMS bootstrap 1 sigma of the force, / peak
@@ -530,6 +538,7 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         harmonics=d["harmonics"][...].astype(int) if "harmonics" in d else None,
         signal_rows=d["signal_rows"][...].astype(bool) if "signal_rows" in d else None,
         model_limited=bool(d["model_limited"][()]) if "model_limited" in d else False,
+        cv_error_floor_dof=float(d["cv_error_floor_dof"][()]) if "cv_error_floor_dof" in d else math.nan,
         cv_error_folds=np.atleast_1d(d["cv_error_folds"][...]).astype(float) if "cv_error_folds" in d else None,
         force_calibration_uncertainty=float(h5["force"]["estimate"].attrs.get("calibration_relative_uncertainty", 0.0)),
         force_separation_uncertainty=float(h5["force"]["estimate"].attrs.get("separation_relative_uncertainty",
@@ -618,6 +627,7 @@ def read_summary(path: Path) -> dict:
             "effects": ";".join(e for e in effects if e),
             "cv_error": float(diag["cv_error"][()]),
             "cv_error_noise_floor": float(diag["cv_error_noise_floor"][()]),
+            "cv_error_floor_dof": float(diag["cv_error_floor_dof"][()]) if "cv_error_floor_dof" in diag else math.nan,
             "chi2_reduced": float(diag["chi2_reduced"][()]),
             "terms": ";".join(t for t, s in zip(terms, selected) if s),
             "separation": float(sep[()]),

@@ -55,6 +55,7 @@ class RunReadout:
         self.nonlinear = {name: StoredEstimate(q["value"], q["error"], q["unit"]) for name, q in run.nonlinear.items()}
         self.cv_error = run.cv_error
         self.cv_error_noise_floor = run.cv_error_noise_floor
+        self.cv_error_floor_dof = run.cv_error_floor_dof
         self.cv_error_folds = run.cv_error_folds if run.cv_error_folds is not None else np.zeros(0)
         self.model_limited = run.model_limited
         self.force_calibration_uncertainty = run.force_calibration_uncertainty

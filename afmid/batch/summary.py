@@ -19,7 +19,7 @@ from afmid.batch.plan import SUMMARY_CSV, SUMMARY_H5, Item
 
 SUMMARY_FORMAT = "afmid-batch-summary"
 #: ok: fitted now; skipped: up to date from an earlier batch; model-limited: a run file exists (fitted now or up
-#: to date) but its model fails the data (cv error above FLOOR_FACTOR x its noise floor: the parameters are biased
+#: to date) but its model fails the data (cv error above its threshold x its noise floor, afmid.fit.uncertainty.floor_threshold: the parameters are biased
 #: beyond their error bars); suspect: a run file exists but a read-out is implausible (afmid.fit.plausibility),
 #: model-limited or not; failed: no run file. A row says the worst that holds: a result afmid cannot stand
 #: behind never reads as a plain ok or skipped.
@@ -66,7 +66,7 @@ def diagnosis_text(path: Path) -> str:
     try:
         run = load_run(path)
         ratio = run.cv_error / run.cv_error_noise_floor
-        if not model_limited(run.cv_error, run.cv_error_noise_floor):
+        if not model_limited(run.cv_error, run.cv_error_noise_floor, run.cv_error_floor_dof):
             return f"at the noise floor (x{ratio:.2g})"
         local = localize(run)
     except (AfmidError, OSError, KeyError, ValueError, ZeroDivisionError) as exc:  # older or damaged: no verdict
@@ -97,12 +97,13 @@ def run_file_row(item: "Item", got: dict, status: str, times: dict | None = None
 
 def model_limited_reason(values: dict) -> str:
     """The failure cell of a model-limited run (its cv error and floor in ``values``), "" for one that is not."""
-    from afmid.fit.uncertainty import FLOOR_FACTOR
+    from afmid.fit.uncertainty import floor_threshold
 
     if _model_limited_flag(values) != 1:
         return ""
     ratio = values["cv_error"] / values["cv_error_noise_floor"]
-    return (f"model-limited: cv_error {ratio:.2g}x its noise floor (limit {FLOOR_FACTOR:g}x): the model misses part "
+    limit = floor_threshold(values.get("cv_error_floor_dof", math.nan))
+    return (f"model-limited: cv_error {ratio:.3g}x its noise floor (limit {limit:.3g}x): the model misses part "
             f"of the force, its parameters are biased beyond their error bars (where: diagnosis column)")
 
 
@@ -212,7 +213,7 @@ def _model_limited_flag(values: dict):
     error, floor = values.get("cv_error"), values.get("cv_error_noise_floor")
     if error is None or floor is None or not (math.isfinite(error) and math.isfinite(floor)):
         return None
-    return int(bool(model_limited(error, floor)))
+    return int(bool(model_limited(error, floor, values.get("cv_error_floor_dof", math.nan))))
 
 
 def write_summary(output_dir: Path, rows: list[Row], config_text: str) -> None:

@@ -61,7 +61,7 @@ from afmid.physics.effects import EFFECTS
 from afmid.quantity_text import format_delta_bic, format_value
 # A cross-validated error within FLOOR_FACTOR of its noise floor counts as the noise level (one constant with
 # the fit's model-limited mark).
-from afmid.fit.uncertainty import FLOOR_FACTOR, at_noise_floor
+from afmid.fit.uncertainty import FLOOR_FACTOR, at_noise_floor, floor_threshold, model_limited
 # The run-file reader lives in afmid.runfile; `from afmid.diagnosis.diagnose import load_run, RunData` keeps working.
 from afmid.runfile import RunData, load_run  # noqa: F401
 
@@ -129,6 +129,7 @@ class _Base:
     chi2: float
     chi2_limit: float
     n_rows: int
+    floor_dof: float = math.nan  # the noise floor's degrees of freedom (afmid.fit.uncertainty.floor_threshold)
 
 
 def candidate_effects(current: list[str], medium: str = "air") -> list[str]:
@@ -263,7 +264,7 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
     base_result = _fit_quick(base_config, prepared)
     chi2, limit, n_rows = _chi2(base_result)
     base = _Base(base_result.cv_error, base_result.cv_error_noise_floor, base_result.selection.best.bic,
-                 chi2, limit, n_rows)
+                 chi2, limit, n_rows, base_result.cv_error_floor_dof)
     if abs(base.error - run.cv_error) > 0.02 * max(run.cv_error, 1e-12):
         log.warning("refitting %s gives error %.4g, the run file says %.4g (made by another afmid version?); "
                     "comparing with the refit", run.path.name, base.error, run.cv_error)
@@ -695,6 +696,13 @@ def _verdict(good: list[Trial], significant: bool, explained: bool, base: _Base,
         return f"not explained by the catalog: {names} explains part of the residual ({change}), but {why}"
     if significant:
         return "not explained by the catalog: a significant residual that no catalog effect explains"
+    if model_limited(base.error, base.floor, base.floor_dof):
+        # Flagged by the fit's own threshold, below the alarm (FLOOR_FACTOR or the chi-square): say both.
+        return (f"no effect is missing that this record can show: the error {base.error:.3g} stands "
+                f"{base.error / base.floor:.3g}x its noise floor {base.floor:.3g}, above this record's 99 % point "
+                f"(x{floor_threshold(base.floor_dof):.3g}: the parameters are flagged model-limited) but below the "
+                f"alarm (x{FLOOR_FACTOR:g}, reduced chi-square {base.chi2:.3g}), and no catalog effect improves the "
+                f"BIC by {BIC_EVIDENCE:g}")
     return (f"no effect is missing: the model explains the data to the noise level (reduced chi-square "
             f"{base.chi2:.3g}, error {base.error:.3g} vs noise floor {base.floor:.3g}) and no catalog effect "
             f"improves the BIC by {BIC_EVIDENCE:g}")

@@ -53,6 +53,7 @@ class FitState:
     inclusion: np.ndarray
     cv_error: float = math.nan
     noise_floor: float = math.nan
+    floor_dof: float = math.nan  # the floor's effective degrees of freedom (afmid.fit.uncertainty.floor_threshold)
     model_limited: bool = False
     force_calibration: float = 0.0
     #: read-out steps that ran, in order (their ``name``): what the state went through

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -62,6 +62,17 @@ def _power(F: np.ndarray, harmonics: np.ndarray) -> np.ndarray:
     return np.sum(w * F**2, axis=-1)
 
 
+class CrossValidatedError(NamedTuple):
+    """The cross-validated force error (:func:`force_cv_error`): relative RMS, each fold's, the noise floor (the
+    error a right model shows at this noise) and the floor's effective degrees of freedom (the per-fit threshold
+    of afmid.fit.uncertainty.floor_threshold; NaN: not known, the one factor applies)."""
+
+    error: float
+    folds: np.ndarray
+    floor: float
+    floor_dof: float
+
+
 class FoldErrors:
     """The cross-validated force error summed over held-out folds (:func:`force_cv_error`; the joint fit's
     per-trace error uses the same sums): per fold the misfit |F_free - F_model|^2, the signal |F_free - mean|^2
@@ -71,6 +82,7 @@ class FoldErrors:
     def __init__(self, harmonics: np.ndarray):
         self.harmonics = harmonics
         self.misfit = self.signal = self.noise = 0.0
+        self.noise_squares = 0.0  # sum over the rows of (their noise term)^2: the floor's degrees of freedom
         self.per_fold: list[float] = []
 
     def add(self, free: np.ndarray, model: np.ndarray, sigma: np.ndarray, held_out: np.ndarray,
@@ -88,16 +100,26 @@ class FoldErrors:
         self.misfit += misfit
         self.signal += signal
         self.noise += _power(sigma[keep], h)
+        self.noise_squares += float(np.sum((np.where(h == 0, 1.0, 0.5) * sigma[keep] ** 2) ** 2))
 
-    def result(self) -> tuple[float, np.ndarray, float]:
-        """(error, error of each fold, noise floor); NaN where no held-out row carried signal."""
+    @property
+    def floor_dof(self) -> float:
+        """The effective degrees of freedom of error^2 / floor^2 for a right model (Satterthwaite): the misfit is
+        sum_i w_i r_i^2 with r_i ~ N(0, sigma_i^2) per kept row, so (sum w sigma^2)^2 / sum (w sigma^2)^2
+        (NaN where no row was kept)."""
+        return self.noise**2 / self.noise_squares if self.noise_squares > 0 else math.nan
+
+    def result(self) -> "CrossValidatedError":
+        """(error, error of each fold, noise floor, the floor's degrees of freedom); NaN where no held-out row
+        carried signal."""
         if self.signal <= 0:
-            return math.nan, np.asarray(self.per_fold), math.nan
-        return (math.sqrt(self.misfit / self.signal), np.asarray(self.per_fold),
-                math.sqrt(self.noise / self.signal))
+            return CrossValidatedError(math.nan, np.asarray(self.per_fold), math.nan, math.nan)
+        return CrossValidatedError(math.sqrt(self.misfit / self.signal), np.asarray(self.per_fold),
+                                   math.sqrt(self.noise / self.signal), self.floor_dof)
 
 
-def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.ndarray, folds: int):
+def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.ndarray,
+                   folds: int) -> CrossValidatedError:
     """Normalised cross-validated force error over held-out periods (0 = perfect, 1 = a constant force).
 
     For each fold of contiguous periods the model is refitted on the other
@@ -110,7 +132,7 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
     of each fold, and the noise floor: the error a perfect model would show,
     i.e. the expected noise in that same sum: the held-out periods' noise plus
     that of the model fitted on the other periods (docs/diagnosis.md, "The noise
-    floor and its threshold").
+    floor and its threshold"), and the floor's effective degrees of freedom.
     """
     if prep.form == "strong":
         return _time_domain_cv_error(prep, system, mask, folds)
@@ -163,7 +185,7 @@ def _time_domain_cv_error(prep: Prepared, system: System, mask: np.ndarray, fold
         per_fold.append(math.sqrt(n_f / d_f) if d_f > 0 else math.nan)
         num += n_f
         den += d_f
-    return (math.sqrt(num / den) if den > 0 else math.nan), np.asarray(per_fold), math.nan
+    return CrossValidatedError(math.sqrt(num / den) if den > 0 else math.nan, np.asarray(per_fold), math.nan, math.nan)
 
 
 # --------------------------------------------------------------------------- read-out

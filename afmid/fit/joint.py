@@ -173,6 +173,7 @@ class TraceFit:
     cv_error: float = math.nan
     cv_error_folds: np.ndarray = field(default_factory=lambda: np.zeros(0))
     cv_error_noise_floor: float = math.nan
+    cv_error_floor_dof: float = math.nan
     model_limited: bool = False
 
     @property
@@ -387,7 +388,7 @@ class HeldOutPeriodsPerTrace:
         the estimate returned is NaN (nothing counted in it)."""
         for i, t in enumerate(self.columns.traces):
             errors = trace_cv_error(system, t.prep, self.columns.system(i), chosen, coef, i, self.folds)
-            t.cv_error, t.cv_error_folds, t.cv_error_noise_floor = errors
+            t.cv_error, t.cv_error_folds, t.cv_error_noise_floor, t.cv_error_floor_dof = errors
         return ErrorEstimate(math.nan, np.zeros(0), math.nan, np.zeros(0, dtype=bool))
 
 
@@ -401,10 +402,10 @@ class TracesModelLimited:
 
     def apply(self, state: FitState) -> None:
         for i, t in enumerate(self.traces):
-            t.model_limited = model_limited(t.cv_error, t.cv_error_noise_floor)
+            t.model_limited = model_limited(t.cv_error, t.cv_error_noise_floor, t.cv_error_floor_dof)
             if t.model_limited:
                 state.warn(f"trace {i} ({t.prep.trace.path}): "
-                           + model_limited_warning(t.cv_error, t.cv_error_noise_floor))
+                           + model_limited_warning(t.cv_error, t.cv_error_noise_floor, t.cv_error_floor_dof))
         state.model_limited = any(t.model_limited for t in self.traces)
         mark_model_limited(state.quantities, state.model_limited)
 

@@ -58,7 +58,7 @@ def trace_result(result: JointResult, i: int) -> FitResult:
                      _trace_vector(result, result.ci_high, i), _trace_vector(result, result.inclusion, i),
                      result.bagging, nonlinear, result.quantities, t.cv_error, t.cv_error_folds,
                      t.cv_error_noise_floor, rows, force_estimate, force_inverted, periods, warnings,
-                     t.single.drive_search, 0.0, t.model_limited)
+                     t.single.drive_search, 0.0, t.model_limited, cv_error_floor_dof=t.cv_error_floor_dof)
 
 
 def joint_table(result: JointResult, per_trace: list[FitResult]) -> str:

@@ -272,6 +272,7 @@ class ErrorEstimate:
     per_fold: np.ndarray
     noise_floor: float
     rows: np.ndarray
+    floor_dof: float = math.nan  # the floor's effective degrees of freedom (afmid.fit.uncertainty.floor_threshold)
 
 
 class ErrorStrategy(Protocol):
@@ -288,9 +289,9 @@ class HeldOutPeriods:
 
     def estimate(self, prep: Prepared, system, coef: np.ndarray, chosen: np.ndarray) -> ErrorEstimate:
         rows = signal_rows(prep, system, coef)
-        cv_error, per_fold, noise_floor = force_cv_error(prep, system, chosen, rows, self.folds)
+        cv_error, per_fold, noise_floor, floor_dof = force_cv_error(prep, system, chosen, rows, self.folds)
         refuse_unusable(prep.trace, self.library, coef[:len(self.library)], cv_error)
-        return ErrorEstimate(cv_error, per_fold, noise_floor, rows)
+        return ErrorEstimate(cv_error, per_fold, noise_floor, rows, floor_dof)
 
 
 def refuse_unusable(trace: Trace, library: Library, coef: np.ndarray, cv_error: float) -> None:
@@ -457,7 +458,8 @@ def orchestrate(config: RunConfig, library: Library, separation: SeparationStrat
     quantities = read_out(library, coef, coefficient_spread.bagging, settled.params, chosen, settled.prep.trace,
                           with_sources=True)
     state = FitState(config, settled.prep, library, system, coef, chosen, settled.params, quantities,
-                     settled.warnings, coefficient_spread.inclusion, estimate.cv_error, estimate.noise_floor)
+                     settled.warnings, coefficient_spread.inclusion, estimate.cv_error, estimate.noise_floor,
+                     estimate.floor_dof)
     separation.propagate(state)
     if spread.error_kind is not None:
         for q in state.quantities.values():

@@ -172,6 +172,8 @@ class FitResult:
     force_selection_uncertainty: float = math.nan
     #: the record's Cramér-Rao bound (afmid.fit.information_bound; None: not computed), the floor of the sigmas
     information_bound: InformationBound | None = None
+    #: the noise floor's effective degrees of freedom (afmid.fit.uncertainty.floor_threshold; NaN: not known)
+    cv_error_floor_dof: float = math.nan
 
     @property
     def force_separation_uncertainty(self) -> float:
@@ -381,7 +383,7 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
                      spread_out.ci_low, spread_out.ci_high, spread_out.inclusion, bagging, nonlinear, state.quantities,
                      error.cv_error, error.per_fold, error.noise_floor, rows, force_estimate, force_inverted, periods,
                      warnings, separation.drive_search, state.force_calibration, state.model_limited, share,
-                     statistical, selection_doubt, information.bound)
+                     statistical, selection_doubt, information.bound, cv_error_floor_dof=error.floor_dof)
 
 
 class InformationFloor:

@@ -37,14 +37,14 @@ import afmid.fit.regression as regression
 if TYPE_CHECKING:  # annotations only
     from afmid.fit.fit_state import FitState
 
-#: A cross-validated error within this factor of its noise floor counts as the noise level. For a right model
-#: (error)^2 / (floor)^2 is a chi-square over its effective degrees of freedom nu divided by nu (the floor is
-#: the expected noise in the error's own sum: fit_forces.force_cv_error), nu = 12-40 on steady traces (10 pm at
-#: 50 samples/period .. 1 pm at 200). Measured on 28 clean traces with detector noise, separation not given:
-#: error / floor mean 1.05, sd 0.14, max 1.36 (scripts/floor_study.py). 1.45 is the one-sided 99 % quantile of
-#: sqrt(chi2_nu / nu) at nu = 13.5, the fewest seen; the old 1.3 was the 99 % point at nu = 32, inside the spread
-#: of the 1.31x clean trace (docs/diagnosis.md, "The noise floor and its threshold"). Above it the model misses
-#: something; the diagnosis looks for it and the fit marks its parameters model-limited.
+#: The most a cross-validated error may stand above its noise floor and still count as the noise level
+#: (:func:`floor_threshold` is the fit's own threshold, at most this). For a right model (error)^2 / (floor)^2 is a
+#: chi-square over its effective degrees of freedom nu divided by nu (the floor is the expected noise in the
+#: error's own sum: fit_forces.force_cv_error), nu = 12-40 on steady traces (10 pm at 50 samples/period .. 1 pm at
+#: 200). Measured on 28 clean traces with detector noise, separation not given: error / floor mean 1.05, sd 0.14,
+#: max 1.36 (scripts/floor_study.py). 1.45 is the one-sided 99 % quantile of sqrt(chi2_nu / nu) at nu = 13.5, the
+#: fewest seen (docs/diagnosis.md, "The noise floor and its threshold"). Above it the model misses something; the
+#: diagnosis looks for it and the fit marks its parameters model-limited.
 FLOOR_FACTOR = 1.45
 
 #: What every ``error`` in afmid's outputs is.
@@ -65,13 +65,33 @@ INTERVALS_WITH_CALIBRATION = "statistical and calibration"
 
 #: Warning text of a model-limited fit (the numbers are filled in).
 MODEL_LIMITED_TEXT = ("model-limited: the cross-validated error {error:.3g} stands above its noise floor {floor:.3g} "
-                      "(x{ratio:.2g}): the model misses part of the force, so its parameters are biased by more than "
-                      "their error bars, which cover the noise and a declared calibration uncertainty only")
+                      "(x{ratio:.3g}, above x{threshold:.3g}{why}): the model misses part of the force, so its "
+                      "parameters are biased by more than their error bars, which cover the noise and a declared "
+                      "calibration uncertainty only")
 
 
-def model_limited(cv_error: float, noise_floor: float) -> bool:
-    """True when the fit's error stands above its noise floor by more than :data:`FLOOR_FACTOR`."""
-    return bool(math.isfinite(cv_error) and math.isfinite(noise_floor) and cv_error > FLOOR_FACTOR * noise_floor)
+#: The one-sided quantile of a right model's error / floor at which a fit counts as model-limited
+#: (:func:`floor_threshold`): about 1 right model in 100 is flagged by chance.
+FLOOR_QUANTILE = 0.99
+
+
+def floor_threshold(floor_dof: float = math.nan) -> float:
+    """The ratio cv_error / noise floor above which a fit is model-limited, for a floor with ``floor_dof``
+    effective degrees of freedom (afmid.fit.forces.FoldErrors.floor_dof): the :data:`FLOOR_QUANTILE` point of
+    sqrt(chi2_nu / nu), never above :data:`FLOOR_FACTOR` (which it is at nu = 13.5, the fewest seen); NaN or
+    fewer than one degree of freedom: :data:`FLOOR_FACTOR`. A record with many degrees of freedom locates its
+    floor well, so a smaller excess is already significant (nu 32: 1.29)."""
+    if not (math.isfinite(floor_dof) and floor_dof >= 1.0):
+        return FLOOR_FACTOR
+    from scipy.stats import chi2
+
+    return min(FLOOR_FACTOR, math.sqrt(float(chi2.ppf(FLOOR_QUANTILE, floor_dof)) / floor_dof))
+
+
+def model_limited(cv_error: float, noise_floor: float, floor_dof: float = math.nan) -> bool:
+    """True when the fit's error stands above its noise floor by more than :func:`floor_threshold`."""
+    return bool(math.isfinite(cv_error) and math.isfinite(noise_floor)
+                and cv_error > floor_threshold(floor_dof) * noise_floor)
 
 
 def at_noise_floor(cv_error: float, noise_floor: float) -> bool:
@@ -81,9 +101,13 @@ def at_noise_floor(cv_error: float, noise_floor: float) -> bool:
     return bool(math.isfinite(cv_error) and math.isfinite(noise_floor) and cv_error <= noise_floor)
 
 
-def model_limited_warning(cv_error: float, noise_floor: float) -> str:
+def model_limited_warning(cv_error: float, noise_floor: float, floor_dof: float = math.nan) -> str:
     """The warning line of a model-limited fit."""
-    return MODEL_LIMITED_TEXT.format(error=cv_error, floor=noise_floor, ratio=cv_error / noise_floor)
+    threshold = floor_threshold(floor_dof)
+    why = (f", which a right model exceeds 1 time in {round(1 / (1 - FLOOR_QUANTILE))} at this record's "
+           f"{floor_dof:.0f} degrees of freedom" if threshold < FLOOR_FACTOR else "")
+    return MODEL_LIMITED_TEXT.format(error=cv_error, floor=noise_floor, ratio=cv_error / noise_floor,
+                                     threshold=threshold, why=why)
 
 
 def mark_model_limited(quantities: dict, limited: bool) -> None:
@@ -222,10 +246,10 @@ def finish(state: FitState, uncertainty: bool = True) -> None:
             state.quantities, state.prep, state.library, state.system, state.coef, state.mask, state.params,
             state.trace, Calibration.from_config(state.config.cantilever), read_out,
             fixed_cantilever=state.config.fit.cantilever == "fixed")
-    state.model_limited = model_limited(state.cv_error, state.noise_floor)
+    state.model_limited = model_limited(state.cv_error, state.noise_floor, state.floor_dof)
     mark_model_limited(state.quantities, state.model_limited)
     if state.model_limited:
-        state.warn(model_limited_warning(state.cv_error, state.noise_floor))
+        state.warn(model_limited_warning(state.cv_error, state.noise_floor, state.floor_dof))
 
 
 def shift_variance(quantities: dict, shifts: list, read_out_at) -> dict[str, float]:

@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from afmid.fit.plausibility import judge, judge_separation
-from afmid.fit.uncertainty import FLOOR_FACTOR, STATISTICAL_ONLY_TEXT, calibration_declared, model_limited
+from afmid.fit.uncertainty import STATISTICAL_ONLY_TEXT, calibration_declared, floor_threshold, model_limited
 from afmid.quantity_text import format_delta_bic, format_interval, format_measurement, format_value
 
 #: Candidate supports listed by ``-v`` (best by the criterion first).
@@ -166,14 +166,16 @@ def error_lines(result) -> list[str]:
     if not (math.isfinite(error) and math.isfinite(floor) and floor > 0):
         return [line + ": not compared (no finite floor)"]
     ratio = error / floor
-    if model_limited(error, floor):
-        verdict = (f"MODEL-LIMITED: x{ratio:.2g} the floor (more than x{FLOOR_FACTOR:g}); the model misses part "
+    floor_dof = float(getattr(result, "cv_error_floor_dof", math.nan))
+    limit = floor_threshold(floor_dof)
+    if model_limited(error, floor, floor_dof):
+        verdict = (f"MODEL-LIMITED: x{ratio:.3g} the floor (more than x{limit:.3g}); the model misses part "
                    "of the force (afmid report RUN names what is missing)")
     elif getattr(result, "model_limited", False):
         verdict = (f"MODEL-LIMITED at x{ratio:.2g} the floor: the model fails a test of its law's shape (see the "
                    "warnings), so its parameters are biased beyond their error bars")
     else:
-        verdict = f"at the noise floor (x{ratio:.2g}, limit x{FLOOR_FACTOR:g}): the model explains the force"
+        verdict = f"at the noise floor (x{ratio:.3g}, limit x{limit:.3g}): the model explains the force"
     return [line, f"verdict: {verdict}"]
 
 

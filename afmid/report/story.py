@@ -22,7 +22,7 @@ import numpy as np
 
 from afmid.diagnosis.diagnose import describe_residual, localize
 from afmid.diagnosis.stored import diagnosed
-from afmid.fit.uncertainty import ERROR_LABEL, FLOOR_FACTOR
+from afmid.fit.uncertainty import ERROR_LABEL, model_limited
 from afmid.quantity_text import format_delta_bic, format_measurement, format_value
 from afmid.runfile import RunData
 
@@ -47,11 +47,11 @@ def error_text(error: float, sd: float, k: int) -> str:
     return format_measurement(error, sd, "1", kind=f"sd over {k} folds")
 
 
-def _ratio_words(error: float, floor: float) -> str:
+def _ratio_words(error: float, floor: float, floor_dof: float = math.nan) -> str:
     if not (math.isfinite(error) and math.isfinite(floor) and floor > 0):
         return "no noise floor"
     ratio = error / floor
-    where = "at the noise level" if ratio <= FLOOR_FACTOR else "model-limited"
+    where = "model-limited" if model_limited(error, floor, floor_dof) else "at the noise level"
     return f"{ratio:.2g}x its noise floor {floor:.3g}: {where}"
 
 
@@ -177,7 +177,7 @@ _CHARACTERS = {"conservative": "conservative (the same on approach and retractio
 
 def _state(run: RunData, diagnosis: dict) -> str:
     error = error_text(run.cv_error, diagnosis["error_fold_sd"], diagnosis["error_folds"])
-    return f"{error}, {_ratio_words(run.cv_error, run.cv_error_noise_floor)}"
+    return f"{error}, {_ratio_words(run.cv_error, run.cv_error_noise_floor, run.cv_error_floor_dof)}"
 
 
 def _failure(diagnosis: dict) -> str:
