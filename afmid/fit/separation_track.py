@@ -22,6 +22,7 @@ per-period separations, a level per block (the track: the levels; ``period_offse
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from dataclasses import dataclass
 
@@ -31,8 +32,11 @@ from afmid.config import RunConfig
 from afmid.errors import ConfigError
 from afmid.fit.joint import JointResult, fit_traces_jointly
 from afmid.fit.period_separation import mean_force_offsets, with_period_separation
+from afmid.io import defects
 from afmid.io.onset import crop
 from afmid.io.trace import Trace, check_trace
+
+log = logging.getLogger(__name__)
 
 #: The fewest drive periods a block may hold: its own first fit cross-validates over 5 folds and the default
 #: selection votes over groups of 6 periods (afmid.fit.selection_strategies), so 30 gives every fold a group.
@@ -52,6 +56,7 @@ class SeparationTrack:
     joint: JointResult  # the joint fit of the blocks (the shared law, each block's forces)
     #: per block, each harmonic block's (period's) rest separation relative to the block's d, m
     period_offsets: list[np.ndarray] = dataclasses.field(default_factory=list)
+    within_block: str = "constant"  # how d moved within a block in the fit ("constant" or "mean_force")
 
 
 def block_periods_for(bandwidth: float, drive_frequency: float) -> int:
@@ -85,8 +90,9 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     """The force law and the track d(t) of ``trace`` (checked, :func:`afmid.io.trace.check_trace`) at
     ``bandwidth`` (Hz). ConfigError naming ``fit.separation_track.bandwidth`` when a block would be shorter than
     the fit needs, or when ``sample.separation`` is given (then there is nothing to track). ``within_block``
-    ("constant" or "mean_force"; None: ``fit.separation_track.within_block``, else "constant"): d held per block,
-    or moved per period from each period's mean force (``PERIOD_OFFSET_PASSES`` joint fits)."""
+    ("constant", "mean_force" or "auto"; None: ``fit.separation_track.within_block``, else "auto"): d held per
+    block, or moved per period from each period's mean force (``PERIOD_OFFSET_PASSES`` joint fits); "auto" picks
+    one from the record (:func:`within_block_for`)."""
     key = "fit.separation_track.bandwidth"
     if config.sample.separation is not None:
         raise ConfigError("a separation track estimates d(t); leave sample.separation out", file=config.source,
@@ -102,13 +108,19 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
                           key=key)
     configs = [config] * len(blocks)
     section = config.fit.separation_track
-    within_block = within_block or (section.within_block if section is not None else "constant")
+    within_block = within_block or (section.within_block if section is not None else "auto")
+    if within_block == "auto":
+        within_block, why = within_block_for(trace, config)
+        log.info("fit.separation_track.within_block auto: %s (%s)", within_block, why)
     passes = PERIOD_OFFSET_PASSES if within_block == "mean_force" else 1
     joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty=uncertainty and passes == 1)
     offsets = [np.zeros(t.prep.blocks.n_blocks) for t in joint.traces]
+    # The blocks' own preparations, before any offset: every pass finds the whole offsets afresh on them from its
+    # law. Adding a refit's increments instead kept the first, soft law's too-large offsets: the increments'
+    # scatter lay below the noise and was smoothed to zero (measured: d +93 pm high after three passes).
+    unshifted = [t.prep for t in joint.traces]
     for fit_pass in range(2, passes + 1):
-        # A refit's preparations carry the offsets already: what its law finds is the change on top of them.
-        offsets = [total + more for total, more in zip(offsets, period_offsets(joint))]
+        offsets = period_offsets(joint, unshifted)
         last = fit_pass == passes
         joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty and last,
                                    adjust_prepared=lambda i, prep: with_period_separation(prep, offsets[i]))
@@ -117,15 +129,32 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     separation = np.array([t.separation.value for t in joint.traces])
     sigma = np.array([t.separation.sigma for t in joint.traces])
     return SeparationTrack(0.5 * (first + stop) / trace.sample_rate, first, stop, separation, sigma, bandwidth, joint,
-                           offsets)
+                           offsets, within_block)
 
 
-def period_offsets(joint: JointResult) -> list[np.ndarray]:
+def within_block_for(trace: Trace, config: RunConfig) -> tuple[str, str]:
+    """``within_block: auto`` resolved from the record: ("mean_force" or "constant", why in a few words).
+
+    An amplitude feedback moves the piezo every period, and the per-period amplitude then carries a slow
+    modulation (afmid.preprocess.motion.slow_modulation: correlated from period to period and above the noise
+    and the thermal wander; the loop's own signal). Without one (a record taken at rest, or d moving only with
+    the topography under a still piezo) the per-period offsets are not needed, and the fit stays the one with
+    d constant per block, its numbers unchanged."""
+    analysis = defects.analyse_with(trace.deflection, defects.settings_for(trace, config),
+                                    trace.drive_frequency / trace.sample_rate)
+    modulation = None if analysis is None or analysis.motion is None else analysis.motion.modulation
+    if modulation is None:
+        return "constant", "the per-period amplitude shows no slow modulation"
+    return "mean_force", modulation.words(trace.drive_frequency)
+
+
+def period_offsets(joint: JointResult, preparations: list) -> list[np.ndarray]:
     """Per block, each period's rest separation relative to the block's (m, zero mean), from the period's mean
-    force under the joint fit's law (:func:`afmid.fit.period_separation.mean_force_offsets`, smoothed)."""
+    force under the joint fit's law and the block's level (:func:`afmid.fit.period_separation.mean_force_offsets`,
+    smoothed), on ``preparations`` (one per block: the unshifted ones)."""
     p = len(joint.library)
     law = np.where(joint.selected[:p], joint.coef[:p], 0.0)
-    return [mean_force_offsets(t.prep, joint.library, law, t.params) for t in joint.traces]
+    return [mean_force_offsets(prep, joint.library, law, t.params) for prep, t in zip(preparations, joint.traces)]
 
 
 #: Joint fits made: the first with d constant per block, then each with the per-period offsets from the previous
@@ -146,6 +175,7 @@ def write_track(group, track: SeparationTrack) -> None:
 
     group.attrs["layout"] = TRACK_LAYOUT
     group.attrs["bandwidth"] = float(track.bandwidth)
+    group.attrs["within_block"] = track.within_block
     group.attrs["units"] = "bandwidth: Hz"
     group.attrs["meaning"] = ("the rest separation d(t) (topography under feedback) per block of whole drive periods, "
                               "fitted jointly with one force law; block i is /joint/trace_<i>")
