@@ -22,7 +22,6 @@ per-period separations, a level per block (the track: the levels; ``period_offse
 from __future__ import annotations
 
 import dataclasses
-import logging
 import math
 from dataclasses import dataclass
 
@@ -32,11 +31,8 @@ from afmid.config import RunConfig
 from afmid.errors import ConfigError
 from afmid.fit.joint import JointResult, fit_traces_jointly
 from afmid.fit.period_separation import mean_force_offsets, with_period_separation
-from afmid.io import defects
 from afmid.io.onset import crop
 from afmid.io.trace import Trace, check_trace
-
-log = logging.getLogger(__name__)
 
 #: The fewest drive periods a block may hold: its own first fit cross-validates over 5 folds and the default
 #: selection votes over groups of 6 periods (afmid.fit.selection_strategies), so 30 gives every fold a group.
@@ -90,9 +86,8 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     """The force law and the track d(t) of ``trace`` (checked, :func:`afmid.io.trace.check_trace`) at
     ``bandwidth`` (Hz). ConfigError naming ``fit.separation_track.bandwidth`` when a block would be shorter than
     the fit needs, or when ``sample.separation`` is given (then there is nothing to track). ``within_block``
-    ("constant", "mean_force" or "auto"; None: ``fit.separation_track.within_block``, else "auto"): d held per
-    block, or moved per period from each period's mean force (``PERIOD_OFFSET_PASSES`` joint fits); "auto" picks
-    one from the record (:func:`within_block_for`)."""
+    ("constant" or "mean_force"; None: ``fit.separation_track.within_block``, else "constant"): d held per block,
+    or moved per period from each period's mean force (``PERIOD_OFFSET_PASSES`` joint fits)."""
     key = "fit.separation_track.bandwidth"
     if config.sample.separation is not None:
         raise ConfigError("a separation track estimates d(t); leave sample.separation out", file=config.source,
@@ -108,16 +103,13 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
                           key=key)
     configs = [config] * len(blocks)
     section = config.fit.separation_track
-    within_block = within_block or (section.within_block if section is not None else "auto")
-    if within_block == "auto":
-        within_block, why = within_block_for(trace, config)
-        log.info("fit.separation_track.within_block auto: %s (%s)", within_block, why)
+    within_block = within_block or (section.within_block if section is not None else "constant")
     passes = PERIOD_OFFSET_PASSES if within_block == "mean_force" else 1
     joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty=uncertainty and passes == 1)
     offsets = [np.zeros(t.prep.blocks.n_blocks) for t in joint.traces]
     # The blocks' own preparations, before any offset: every pass finds the whole offsets afresh on them from its
-    # law. Adding a refit's increments instead kept the first, soft law's too-large offsets: the increments'
-    # scatter lay below the noise and was smoothed to zero (measured: d +93 pm high after three passes).
+    # law. Adding a refit's increments instead can keep the first, soft law's too-large offsets: a correction
+    # whose scatter lies below the noise is smoothed to zero (a third pass changed nothing on a step record).
     unshifted = [t.prep for t in joint.traces]
     for fit_pass in range(2, passes + 1):
         offsets = period_offsets(joint, unshifted)
@@ -130,22 +122,6 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     sigma = np.array([t.separation.sigma for t in joint.traces])
     return SeparationTrack(0.5 * (first + stop) / trace.sample_rate, first, stop, separation, sigma, bandwidth, joint,
                            offsets, within_block)
-
-
-def within_block_for(trace: Trace, config: RunConfig) -> tuple[str, str]:
-    """``within_block: auto`` resolved from the record: ("mean_force" or "constant", why in a few words).
-
-    An amplitude feedback moves the piezo every period, and the per-period amplitude then carries a slow
-    modulation (afmid.preprocess.motion.slow_modulation: correlated from period to period and above the noise
-    and the thermal wander; the loop's own signal). Without one (a record taken at rest, or d moving only with
-    the topography under a still piezo) the per-period offsets are not needed, and the fit stays the one with
-    d constant per block, its numbers unchanged."""
-    analysis = defects.analyse_with(trace.deflection, defects.settings_for(trace, config),
-                                    trace.drive_frequency / trace.sample_rate)
-    modulation = None if analysis is None or analysis.motion is None else analysis.motion.modulation
-    if modulation is None:
-        return "constant", "the per-period amplitude shows no slow modulation"
-    return "mean_force", modulation.words(trace.drive_frequency)
 
 
 def period_offsets(joint: JointResult, preparations: list) -> list[np.ndarray]:

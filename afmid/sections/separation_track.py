@@ -18,7 +18,8 @@ class SeparationTrackConfig(BaseModel):
 
     bandwidth: Annotated[float, Field(gt=0, allow_inf_nan=False)] = Field(
         ..., description="Hz; the highest frequency of d(t) the track follows (blocks of f / (2 bandwidth) periods)")
-    within_block: Literal["auto", "constant", "mean_force"] = Field(
-        "auto", description="d within a block: constant, or per period from its mean force under the law "
-        "(afmid.fit.period_separation; for records under an amplitude feedback, docs/lab/2026-11-29-scanning-record.md); "
-        "auto: mean_force when the per-period amplitude shows a slow modulation (a feedback at work), else constant")
+    within_block: Literal["constant", "mean_force"] = Field(
+        "constant", description="d within a block: constant, or per period from its mean force under the law "
+        "(afmid.fit.period_separation; for records under an amplitude feedback, see "
+        "docs/lab/2026-11-29-scanning-record.md; wrong on a record whose d steps under a still piezo, hence not "
+        "the default)")

@@ -106,9 +106,9 @@ def test_a_step_in_d_is_tracked_block_by_block(tmp_path, run_cli):
     assert separation[0] - separation[-1] == pytest.approx(0.4e-9, abs=3 * np.hypot(sigma[0], sigma[-1]))
 
 
-def test_within_block_is_auto_unless_asked_and_checked():
+def test_within_block_is_constant_unless_asked_and_checked():
     _, fitting = configs(periods=40)
-    assert fitting.fit.separation_track.within_block == "auto"
+    assert fitting.fit.separation_track.within_block == "constant"
     raw = fitting.model_dump(mode="json", exclude_none=True)
     raw["fit"]["separation_track"]["within_block"] = "mean_force"
     assert build_config(raw).fit.separation_track.within_block == "mean_force"
