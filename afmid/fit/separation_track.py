@@ -52,6 +52,7 @@ class SeparationTrack:
     joint: JointResult  # the joint fit of the blocks (the shared law, each block's forces)
     #: per block, each harmonic block's (period's) rest separation relative to the block's d, m
     period_offsets: list[np.ndarray] = dataclasses.field(default_factory=list)
+    within_block: str = "constant"  # how d moved within a block in the fit ("constant" or "mean_force")
 
 
 def block_periods_for(bandwidth: float, drive_frequency: float) -> int:
@@ -106,9 +107,12 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     passes = PERIOD_OFFSET_PASSES if within_block == "mean_force" else 1
     joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty=uncertainty and passes == 1)
     offsets = [np.zeros(t.prep.blocks.n_blocks) for t in joint.traces]
+    # The blocks' own preparations, before any offset: every pass finds the whole offsets afresh on them from its
+    # law. Adding a refit's increments instead can keep the first, soft law's too-large offsets: a correction
+    # whose scatter lies below the noise is smoothed to zero (a third pass changed nothing on a step record).
+    unshifted = [t.prep for t in joint.traces]
     for fit_pass in range(2, passes + 1):
-        # A refit's preparations carry the offsets already: what its law finds is the change on top of them.
-        offsets = [total + more for total, more in zip(offsets, period_offsets(joint))]
+        offsets = period_offsets(joint, unshifted)
         last = fit_pass == passes
         joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty and last,
                                    adjust_prepared=lambda i, prep: with_period_separation(prep, offsets[i]))
@@ -117,15 +121,16 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     separation = np.array([t.separation.value for t in joint.traces])
     sigma = np.array([t.separation.sigma for t in joint.traces])
     return SeparationTrack(0.5 * (first + stop) / trace.sample_rate, first, stop, separation, sigma, bandwidth, joint,
-                           offsets)
+                           offsets, within_block)
 
 
-def period_offsets(joint: JointResult) -> list[np.ndarray]:
+def period_offsets(joint: JointResult, preparations: list) -> list[np.ndarray]:
     """Per block, each period's rest separation relative to the block's (m, zero mean), from the period's mean
-    force under the joint fit's law (:func:`afmid.fit.period_separation.mean_force_offsets`, smoothed)."""
+    force under the joint fit's law and the block's level (:func:`afmid.fit.period_separation.mean_force_offsets`,
+    smoothed), on ``preparations`` (one per block: the unshifted ones)."""
     p = len(joint.library)
     law = np.where(joint.selected[:p], joint.coef[:p], 0.0)
-    return [mean_force_offsets(t.prep, joint.library, law, t.params) for t in joint.traces]
+    return [mean_force_offsets(prep, joint.library, law, t.params) for prep, t in zip(preparations, joint.traces)]
 
 
 #: Joint fits made: the first with d constant per block, then each with the per-period offsets from the previous
@@ -146,6 +151,7 @@ def write_track(group, track: SeparationTrack) -> None:
 
     group.attrs["layout"] = TRACK_LAYOUT
     group.attrs["bandwidth"] = float(track.bandwidth)
+    group.attrs["within_block"] = track.within_block
     group.attrs["units"] = "bandwidth: Hz"
     group.attrs["meaning"] = ("the rest separation d(t) (topography under feedback) per block of whole drive periods, "
                               "fitted jointly with one force law; block i is /joint/trace_<i>")

@@ -20,5 +20,6 @@ class SeparationTrackConfig(BaseModel):
         ..., description="Hz; the highest frequency of d(t) the track follows (blocks of f / (2 bandwidth) periods)")
     within_block: Literal["constant", "mean_force"] = Field(
         "constant", description="d within a block: constant, or per period from its mean force under the law "
-        "(afmid.fit.period_separation; for records under feedback: measured on a 2 nm step, see "
-        "docs/lab/2026-11-29-scanning-record.md; not yet right on a record whose d steps without feedback)")
+        "(afmid.fit.period_separation; for records under an amplitude feedback, see "
+        "docs/lab/2026-11-29-scanning-record.md; wrong on a record whose d steps under a still piezo, hence not "
+        "the default)")
