@@ -451,11 +451,13 @@ def test_config_summary_has_the_union_of_the_runs_quantities(config_dir, config_
     assert rows["nodata"]["status"] == "failed" and "no data.path" in rows["nodata"]["failure"]
     assert rows["bad"]["run_file"] == rows["nodata"]["run_file"] == rows["nodata"]["input"] == ""
     # issue 33: a model-limited run was listed 'ok' with nothing beside it saying so
-    from afmid.fit.uncertainty import FLOOR_FACTOR
+    from afmid.fit.uncertainty import model_limited
 
     assert "model_limited" in header and rows["bad"]["model_limited"] == ""
     for row in (dmt, lj, measured):
-        limited = float(row["cv_error"]) > FLOOR_FACTOR * float(row["cv_error_noise_floor"])
+        with h5py.File(row["run_file"], "r") as run:  # the fit's own threshold: its floor's degrees of freedom
+            floor_dof = float(run["diagnostics/cv_error_floor_dof"][()])
+        limited = model_limited(float(row["cv_error"]), float(row["cv_error_noise_floor"]), floor_dof)
         assert row["model_limited"] == str(int(limited)), row
         assert row["diagnosis"].startswith("model-limited" if limited else "at the noise floor"), row
     with h5py.File(out / "summary.h5", "r") as h5:
