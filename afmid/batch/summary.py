@@ -103,7 +103,7 @@ def model_limited_reason(values: dict) -> str:
         return ""
     ratio = values["cv_error"] / values["cv_error_noise_floor"]
     limit = floor_threshold(values.get("cv_error_floor_dof", math.nan))
-    return (f"model-limited: cv_error {ratio:.3g}x its noise floor (limit {limit:.3g}x): the model misses part "
+    return (f"model-limited: cv_error {ratio:.2g}x its noise floor (limit {limit:.3g}x): the model misses part "
             f"of the force, its parameters are biased beyond their error bars (where: diagnosis column)")
 
 

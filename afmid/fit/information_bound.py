@@ -53,6 +53,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from afmid.fit.uncertainty import Z95
 from afmid.physics.effects import BOLTZMANN, ForceLaw
 from afmid.quantity_text import format_value
 from afmid.simulate.integrator import Integrator, settle
@@ -536,7 +537,7 @@ def apply_bound(bound: InformationBound, quantities: dict, nonlinear: dict, warn
                 q["error_statistical"] = sigma
                 sigma = math.hypot(sigma, q.get("error_calibration", 0.0))
             q["error"] = sigma
-            half = 1.959963984540054 * sigma
+            half = Z95 * sigma
             q["ci_low"] = min(q["ci_low"], q["value"] - half) if math.isfinite(q["ci_low"]) else q["value"] - half
             q["ci_high"] = max(q["ci_high"], q["value"] + half) if math.isfinite(q["ci_high"]) else q["value"] + half
             warnings.append("warning: " + warning)

@@ -65,7 +65,7 @@ INTERVALS_WITH_CALIBRATION = "statistical and calibration"
 
 #: Warning text of a model-limited fit (the numbers are filled in).
 MODEL_LIMITED_TEXT = ("model-limited: the cross-validated error {error:.3g} stands above its noise floor {floor:.3g} "
-                      "(x{ratio:.3g}, above x{threshold:.3g}{why}): the model misses part of the force, so its "
+                      "(x{ratio:.2g}, above x{threshold:.3g}{why}): the model misses part of the force, so its "
                       "parameters are biased by more than their error bars, which cover the noise and a declared "
                       "calibration uncertainty only")
 
@@ -287,6 +287,11 @@ def add_largest_shift(variance: dict[str, float], quantities: dict, shifted: lis
             variance[k] += max(changes) ** 2
 
 
+#: The half-width of a 95 % interval in sigmas, as every widening of afmid's intervals uses it (two-sided normal,
+#: 1.95996 rounded as the intervals are stated): one constant, so two widenings of the same interval agree.
+Z95 = 1.96
+
+
 def widen_interval(q: dict, sigma: float) -> None:
     """Add an independent 1-sigma error component ``sigma`` (the quantity's unit) to read-out ``q`` in place:
     in quadrature to its 1-sigma ``error`` and, as 1.96 sigma, to each side of its 95 % interval (an interval
@@ -295,7 +300,7 @@ def widen_interval(q: dict, sigma: float) -> None:
     if not math.isfinite(sigma) or sigma <= 0:
         return
     q["error"] = math.hypot(q["error"] if math.isfinite(q["error"]) else 0.0, sigma)
-    half = 1.96 * sigma
+    half = Z95 * sigma
     lo, hi, value = q["ci_low"], q["ci_high"], q["value"]
     if math.isfinite(lo) and math.isfinite(hi):
         q["ci_low"], q["ci_high"] = value - math.hypot(value - lo, half), value + math.hypot(hi - value, half)

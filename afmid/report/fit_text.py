@@ -169,13 +169,13 @@ def error_lines(result) -> list[str]:
     floor_dof = float(getattr(result, "cv_error_floor_dof", math.nan))
     limit = floor_threshold(floor_dof)
     if model_limited(error, floor, floor_dof):
-        verdict = (f"MODEL-LIMITED: x{ratio:.3g} the floor (more than x{limit:.3g}); the model misses part "
+        verdict = (f"MODEL-LIMITED: x{ratio:.2g} the floor (more than x{limit:.3g}); the model misses part "
                    "of the force (afmid report RUN names what is missing)")
     elif getattr(result, "model_limited", False):
         verdict = (f"MODEL-LIMITED at x{ratio:.2g} the floor: the model fails a test of its law's shape (see the "
                    "warnings), so its parameters are biased beyond their error bars")
     else:
-        verdict = f"at the noise floor (x{ratio:.3g}, limit x{limit:.3g}): the model explains the force"
+        verdict = f"at the noise floor (x{ratio:.2g}, limit x{limit:.3g}): the model explains the force"
     return [line, f"verdict: {verdict}"]
 
 

@@ -177,7 +177,8 @@ _CHARACTERS = {"conservative": "conservative (the same on approach and retractio
 
 def _state(run: RunData, diagnosis: dict) -> str:
     error = error_text(run.cv_error, diagnosis["error_fold_sd"], diagnosis["error_folds"])
-    return f"{error}, {_ratio_words(run.cv_error, run.cv_error_noise_floor, run.cv_error_floor_dof)}"
+    floor_dof = getattr(run, "cv_error_floor_dof", math.nan)  # NaN: the single factor (older stand-ins)
+    return f"{error}, {_ratio_words(run.cv_error, run.cv_error_noise_floor, floor_dof)}"
 
 
 def _failure(diagnosis: dict) -> str:

@@ -100,7 +100,7 @@ def test_fit_killed_outright_leaves_a_temporary_file_the_next_run_removes(tmp_pa
     """kill -9 cannot be handled: the next write in the folder cleans up after it."""
     _fit_workspace(tmp_path)
     env = dict(os.environ, PYTHONPATH=str(SIGNAL_CHILD), PYTHONDONTWRITEBYTECODE="1", AFMID_TEST_SIGNAL="SIGKILL",
-               AFMID_TEST_SIGNAL_WHEN=".afmid-tmp-*")
+               AFMID_TEST_SIGNAL_WHEN=".afmid-tmp-*", AFMID_TEST_SIGNAL_NONEMPTY="1")
     killed = subprocess.Popen([sys.executable, "-m", "afmid.cli", "-q", "fit", "run.yaml", "-o", "out.h5"],
                               cwd=tmp_path, env=env, stderr=subprocess.DEVNULL)
     assert killed.wait(timeout=120) == -signal.SIGKILL
@@ -205,7 +205,8 @@ def test_a_signal_at_any_moment_of_the_write_phase_leaves_nothing_or_a_whole_fil
     for delay in (0.0, 0.005, 0.01, 0.02, 0.04):
         (tmp_path / "out.h5").unlink(missing_ok=True)
         env = dict(os.environ, PYTHONPATH=str(SIGNAL_CHILD), PYTHONDONTWRITEBYTECODE="1", AFMID_TEST_SIGNAL=sig,
-                   AFMID_TEST_SIGNAL_WHEN=".afmid-tmp-*", AFMID_TEST_SIGNAL_DELAY=str(delay))
+                   AFMID_TEST_SIGNAL_WHEN=".afmid-tmp-*", AFMID_TEST_SIGNAL_NONEMPTY="1",
+                   AFMID_TEST_SIGNAL_DELAY=str(delay))
         proc = subprocess.run([sys.executable, "-m", "afmid.cli", "-q", "fit", "run.yaml", "-o", "out.h5"],
                               cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
         assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr

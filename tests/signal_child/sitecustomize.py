@@ -8,6 +8,8 @@ Environment (read once, then removed, so that processes it starts, e.g. batch wo
   (e.g. ``.afmid-tmp-*``: the write phase has begun); or ``audit:EVENT:TEXT``: once the main thread raises
   the audit event EVENT with TEXT in its arguments (e.g. ``audit:open:trace.h5``: the input is read);
   or, if empty, right away;
+- ``AFMID_TEST_SIGNAL_NONEMPTY=1``: with a glob, only a file that already holds bytes counts (the output's
+  temporary file once written to, not the empty probe that checks the folder is writable before the fit);
 - ``AFMID_TEST_SIGNAL_DELAY``: seconds to wait after that (default 0);
 - or ``AFMID_TEST_SIGNAL_AT``: an audit event (e.g. ``tempfile.mkstemp``, raised as a temporary file is
   made): the main thread sends the signal itself the first time it raises that event, so it arrives at
@@ -30,6 +32,7 @@ if _signal_name:
 
     _when = os.environ.pop("AFMID_TEST_SIGNAL_WHEN", "")
     _delay = float(os.environ.pop("AFMID_TEST_SIGNAL_DELAY", "0") or 0)
+    _nonempty = os.environ.pop("AFMID_TEST_SIGNAL_NONEMPTY", "") == "1"
     _at = os.environ.pop("AFMID_TEST_SIGNAL_AT", "")
     _in_callback = os.environ.pop("AFMID_TEST_SIGNAL_IN_CALLBACK", "") == "1"
     signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -40,7 +43,16 @@ if _signal_name:
         deadline = time.monotonic() + 100
         if _when.startswith("audit:"):
             _seen.wait(100)
-        while _when and not _when.startswith("audit:") and not glob.glob(_when) and time.monotonic() < deadline:
+        def _matched() -> bool:
+            for path in glob.glob(_when):
+                try:
+                    if not _nonempty or os.path.getsize(path) > 0:
+                        return True
+                except OSError:  # removed between the glob and the size
+                    pass
+            return False
+
+        while _when and not _when.startswith("audit:") and not _matched() and time.monotonic() < deadline:
             time.sleep(0.001)
         time.sleep(_delay)
         os.kill(os.getpid(), getattr(signal, _signal_name))
