@@ -15,14 +15,13 @@ Run: python bench/bench_map_diagnosis.py [--quick]
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import CONFIGS, RESULTS, SINGLE_THREAD, differing, load_average, machine, measured, row  # noqa: E402
+from common import CONFIGS, RESULTS, SINGLE_THREAD, bench_main, differing, load_average, measured, met_word, row  # noqa: E402
 
 CONFIG = CONFIGS / "maps" / "blend_hidden_viscous.yaml"
 AFMID = [sys.executable, "-m", "afmid.cli", "-q"]
@@ -94,13 +93,8 @@ def run(quick: bool = False) -> list[dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a 16x16 map")
-    args = parser.parse_args()
-    print(f"machine: {machine()}")
-    for r in run(args.quick):
-        met = {True: "met", False: "missed", None: "-"}[r["met"]]
-        print(f"{r['name']}: share {r['ratio']:.1%} ({met})\n  {r['notes']}")
+    bench_main(__doc__, run, "a 16x16 map",
+               describe=lambda r: f"{r['name']}: share {r['ratio']:.1%} ({met_word(r['met'])})\n  {r['notes']}")
 
 
 if __name__ == "__main__":

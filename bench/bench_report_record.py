@@ -25,7 +25,6 @@ Run: python bench/bench_report_record.py [--quick]
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import tempfile
@@ -34,7 +33,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_report import AFMID, described, same_summary  # noqa: E402
-from common import BENCH, ROOT, SINGLE_THREAD, cached_trace, machine, measured, previous_release, row  # noqa: E402
+from common import BENCH, ROOT, SINGLE_THREAD, bench_main, cached_trace, measured, met_word, previous_release, row  # noqa: E402
 
 CONFIG = BENCH / "record_5e5.yaml"
 ONE_RUN_TARGET_S, TWO_RUN_TARGET_S, RSS_TARGET_GB = 60.0, 90.0, 2.0
@@ -112,13 +111,8 @@ def run(quick: bool = False) -> list[dict]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="60 periods")
-    args = parser.parse_args()
-    print(f"machine: {machine()}")
-    for r in run(args.quick):
-        met = {True: "met", False: "missed", None: "-"}[r["met"]]
-        print(f"{r['name']}: {r['afmid_s']:.2f} ({met})\n  {r['notes']}")
+    bench_main(__doc__, run, "60 periods",
+               describe=lambda r: f"{r['name']}: {r['afmid_s']:.2f} ({met_word(r['met'])})\n  {r['notes']}")
 
 
 if __name__ == "__main__":
