@@ -6,19 +6,28 @@ is missing"). Before issue 13's audit, clean trace c of tests/diagnosis/test_dia
 no catalog effect explains" at 1.31x its noise floor: the threshold (FLOOR_FACTOR 1.3) sat inside the spread of
 a right model's error over its floor (docs/diagnosis.md, "The noise floor and its threshold"). Kinds: steady
 traces at several seeds, moduli, lengths and sampling rates, with and without thermal noise, noise-free, and
-transients from rest and from free oscillation; all chosen before the first run. Required: 0 alarms of 12; and soft levers in liquid (below).
+transients from rest and from free oscillation; all chosen before the first run. Required: 0 alarms of 12; and soft levers in liquid (below). Each case's
+answer (flags and every candidate's ΔBIC) is compared with the one stored in tests/diagnosis/verdict_reference.json
+(tests/support/verdict_reference.py: a faster diagnosis must say the same). ``AFMID_FALSE_ALARM_RECORD=path``
+appends one JSON line per case.
 """
 
 from __future__ import annotations
 
+import json
+import os
 
 import pytest
 
 from afmid.config import apply_overrides, parse_override, read_yaml
 from repo_paths import REPO_ROOT
 from unknown_separation import diagnose_without_separation
+from verdict_reference import check_answer
 
 pytestmark = [pytest.mark.numerics, pytest.mark.slow]
+
+#: ``AFMID_FALSE_ALARM_RECORD=path`` appends one JSON line per case (as test_hidden_unknown_d.py's switch).
+RECORD = os.environ.get("AFMID_FALSE_ALARM_RECORD")
 
 ROOT = REPO_ROOT
 CLEAN = ROOT / "tests" / "configs" / "hidden_clean.yaml"
@@ -73,13 +82,19 @@ CASES: dict[str, list[str] | dict | object] = {
 }
 
 
-@pytest.mark.parametrize("case", list(CASES.values()), ids=list(CASES))
-def test_a_clean_trace_raises_no_alarm_with_the_separation_unknown(tmp_path, case):
+@pytest.mark.parametrize("name, case", list(CASES.items()), ids=list(CASES))
+def test_a_clean_trace_raises_no_alarm_with_the_separation_unknown(tmp_path, name, case):
     raw = case if isinstance(case, dict) else apply_overrides(read_yaml(CLEAN), [parse_override(o) for o in case])
     summary, result = diagnose_without_separation(tmp_path, raw)
     error, floor = result.cv_error, result.cv_error_noise_floor
     diagnosis = summary["diagnosis"]
     where = f"{diagnosis['verdict']} (error {error:.4g}, floor {floor:.4g}, x{error / floor:.2f})"
+    if RECORD:
+        with open(RECORD, "a", encoding="utf-8") as out:
+            out.write(json.dumps({"case": name, "top": None, "verdict": diagnosis["verdict"], "error_before": error,
+                                  "floor_before": floor,
+                                  "tried": {t["effect"]: t["delta_bic"] for t in summary["tried"]}}, default=float) + "\n")
+    check_answer("false_alarms", name, summary)
     assert summary["suggestions"] == [], where
     assert summary["missing_effect"] is False, where
     assert diagnosis.get("instrument") is None, where

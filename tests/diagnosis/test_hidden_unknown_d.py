@@ -22,7 +22,9 @@ Variants (seeds and parameters fixed before any of these runs was made):
 
 Cost: ~20-30 s CPU per case. By default one variant per effect runs (``b``, the one no other d-unknown test
 covers); ``AFMID_HIDDEN_FULL=1`` runs all three (the table of docs/diagnosis.md, "Separation unknown").
-``AFMID_HIDDEN_RECORD=path`` appends one JSON line per case.
+``AFMID_HIDDEN_RECORD=path`` appends one JSON line per case. Each case's answer (named effect, flags, every
+ΔBIC) is also compared with the one stored in tests/diagnosis/verdict_reference.json (tests/support/
+verdict_reference.py: a faster diagnosis must say the same).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from repo_paths import TEST_CONFIGS
 from tests.diagnosis.test_diagnose import VARIANTS
 from tests.physics.test_liquid_physics import DOUBLE_LAYER_SETS
 from unknown_separation import diagnose_without_separation
+from verdict_reference import check_answer
 
 pytestmark = [pytest.mark.numerics, pytest.mark.slow]
 
@@ -111,6 +114,7 @@ def test_hidden_effect_is_named_first_with_the_separation_unknown(tmp_path, case
                 "floor_after": top["noise_floor_after"] if top else None,
                 "tried": {t["effect"]: t["delta_bic"] for t in summary["tried"]},
                 "compared": summary.get("compared_with_best")}, default=float) + "\n")
+    check_answer("hidden", f"{case}-{variant}", summary)
     assert top is not None and top["effect"] == _expected(case), verdict
     assert summary["diagnosis"]["explained_by_catalog"] is True, verdict
     assert top["error_after"] <= WITHIN_FLOOR * top["noise_floor_after"], verdict
