@@ -28,7 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from afmid.kernels.sparse import SUBSET_RSS_MAX_ERROR, SUBSET_RSS_MIN_PIVOT, subset_lstsq, stlsq_factor, subset_rss
+from afmid.kernels.sparse import (SUBSET_RSS_MAX_ERROR, SUBSET_RSS_MIN_PIVOT, stlsq_factor, subset_lstsq_or_twin,
+                                  subset_rss)
 
 
 # --------------------------------------------------------------------------- factors
@@ -64,7 +65,7 @@ def combine_each(T_stacks: np.ndarray) -> np.ndarray:
 
 def subset_fit(T: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float]:
     """Least-squares coefficients on the columns in ``mask`` and the residual sum of squares."""
-    coef, rss = subset_lstsq(np.ascontiguousarray(T), mask.astype(np.bool_))
+    coef, rss = subset_lstsq_or_twin(np.ascontiguousarray(T), mask.astype(np.bool_))
     return coef, float(rss)
 
 

@@ -17,7 +17,7 @@ log = logging.getLogger(__name__)
 
 from afmid.fit.prepare import CHUNK_BLOCKS, Prepared, fine_chunks, map_fine_chunks
 from afmid.fit.thermal_bias import remove_thermal_bias, thermal_bias_rows
-from afmid.kernels.switching import cell_subsamples, switching_cells
+from afmid.kernels.switching import cell_subsamples_or_twin, switching_cells_or_twin
 from afmid.preprocess.periods import fine_support
 
 
@@ -141,12 +141,12 @@ def average_switching_cells(library: Library, params: dict, x: np.ndarray, v: np
     their values along the rows, (n_states, n * M), as the library scans them).
     """
     # Both kernels (afmid.kernels.switching) are one pass each; their NumPy twins (the array expressions, ~0.6 ms
-    # of passes over the fine grid and its strided views per library evaluation) are compared in
-    # tests/kernels/test_switching.py bit for bit.
-    rows, cols = switching_cells(fine)
+    # of passes over the fine grid and its strided views per library evaluation, the same bits) run instead while
+    # the kernels are not compiled (a new install: compiling them would cost more than the first fit's calls).
+    rows, cols = switching_cells_or_twin(fine)
     if rows.size == 0:
         return
-    xs, vs, ts = cell_subsamples(x, v, t, rows, cols, SWITCH_SUBSAMPLES)
+    xs, vs, ts = cell_subsamples_or_twin(x, v, t, rows, cols, SWITCH_SUBSAMPLES)
     sub_states = None
     if library.states:  # scanned through the cell from the state of the sample before it
         if states is None:

@@ -88,6 +88,11 @@ N_VARIABLES = 7
 # Steps between exact evaluations of cos(w t), sin(w t) for the drive; between
 # them the drive at the RK4 stage times comes from the angle-addition formula.
 DRIVE_ANCHOR_STEPS = 64
+# Whether the force law can have gates (history states). The VM's kernel serves every law: True. A kernel generated
+# for a law without gates sets it False after this section (afmid.kernels.lawgen.module_source); numba then prunes
+# the branches on it before typing, so the gate handling (update_gates' body, the clocks at the start of a run) is
+# not compiled: ~1 s less to compile per gate-free law. With no gates that code never runs, so nothing else changes.
+HAS_GATES = True
 
 _jit = njit(cache=True, error_model="numpy")
 # Inlined at numba IR level: no call overhead and no array reference counting.
@@ -219,7 +224,7 @@ def _relevant(owner, gates):
 @_inline
 def update_gates(x, v, t, dyn, gates, law, work, cond_values):
     """Flip every gate whose relevant condition holds at (x, v, t); returns whether any flipped."""
-    if gates.size == 0:
+    if not HAS_GATES or gates.size == 0:
         return False
     law_conditions(x, v, t, dyn, gates, law, work, cond_values)
     flipped = False
@@ -365,7 +370,7 @@ def integrate(x, v, t0, h, n_steps, n_sub, dyn, gates, law, owners, thermal, out
     record_force = out_f.size > 0
     has_thermal = thermal.size > 0
 
-    if n_gates > 0:
+    if HAS_GATES and n_gates > 0:
         law_conditions(x, v, t0, dyn, gates, law, work, cond_values)
         start_relaxation_clocks(t0, gates, cond_values)
     state[0] = law_full(x, v, t0, dyn, gates, law, work, s_tmp)

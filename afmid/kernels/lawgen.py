@@ -340,7 +340,10 @@ def module_source(terms, switching, conditions, n_gates: int) -> str:
         + f'"""\n# generator version {GENERATOR_VERSION}\n\n'
         "import math\n\nimport numpy as np\nfrom numba import njit\n\n"
     )
-    return header + algorithm_source() + law_source(terms, switching, conditions, n_gates)
+    # A law without gates: the algorithm's gate handling pruned at compile time (see HAS_GATES in the section)
+    gates = ("" if n_gates else
+             "\n# no gates in this law: the algorithm's gate handling is not compiled\nHAS_GATES = False\n\n")
+    return header + algorithm_source() + gates + law_source(terms, switching, conditions, n_gates)
 
 
 # =========================================================================== files and import

@@ -15,9 +15,13 @@ handing the ill-conditioned and rank-deficient subsets to :func:`subset_lstsq`.
 
 from __future__ import annotations
 
+import types as pytypes
+
 import numpy as np
 import numba.np.linalg as numba_linalg
 from numba import njit, types
+
+from afmid.kernels.twin import KernelOrTwin
 
 # LAPACK's dgelsd (SVD least squares) through numba's own LAPACK bridge, as ``np.linalg.lstsq`` calls it inside
 # numba, but without that overload's checks: their error-message formatting (strings, shape contexts) made up
@@ -254,13 +258,13 @@ def subset_rss(T, protected, max_error, min_pivot):
     LAPACK's bridge) was ~1 s of the ~2.5 s that compiling the walk cost a new install. The values
     are the same bits either way (the same kernel on the same arguments).
     """
-    rss, exact = subset_rss_qr(T, protected, max_error, min_pivot)
+    rss, exact = _subset_rss_walk(T, protected, max_error, min_pivot)
     if exact.any():
         free = np.flatnonzero(~protected)
         for sub in np.flatnonzero(exact):
             mask = protected.copy()
             mask[free[(int(sub) >> np.arange(free.size)) & 1 == 1]] = True
-            rss[sub] = subset_lstsq(T, mask)[1]
+            rss[sub] = subset_lstsq_or_twin(T, mask)[1]
     return rss, exact
 
 
@@ -388,6 +392,82 @@ def subset_rss_qr(T, protected, max_error, min_pivot):
         nxt[d + 1] = j + 1
         d += 1
     return rss, exact
+
+
+def _interpreted(kernel, **callees):
+    """``kernel``'s own Python code, run by the interpreter, with the numba ``callees`` it calls (by global name)
+    replaced by their Python code too: the same float64 operations in the same order as the compiled kernel (IEEE
+    arithmetic and a correctly rounded sqrt either way, no fastmath), so the same bits, without compiling anything;
+    tests/kernels/test_twin.py and test_sparse_lstsq.py compare them."""
+    function = kernel.py_func
+    names = dict(function.__globals__, **{name: getattr(callee, "py_func", callee) for name, callee in callees.items()})
+    return pytypes.FunctionType(function.__code__, names, function.__name__, function.__defaults__,
+                                function.__closure__)
+
+
+#: :func:`subset_rss_qr` run by the interpreter (see :func:`_interpreted`): ~0.1 ms for 2 free columns of a 5 x 5
+#: factor, ~0.4 ms for 4 free columns of 7 x 7, growing as 2^free x rows x free.
+subset_rss_qr_interpreted = _interpreted(subset_rss_qr, _householder=_householder)
+#: The walk's work is interpreted at most up to this many free columns and factor rows (16 subsets of <= 32 rows:
+#: <= ~2 ms a call); above, the compiled kernel runs.
+INTERPRETED_MAX_FREE, INTERPRETED_MAX_ROWS = 4, 32
+
+
+def _few_subsets(T, protected, max_error, min_pivot) -> bool:
+    free = protected.size - int(np.count_nonzero(protected))
+    return T.shape[0] <= INTERPRETED_MAX_ROWS and free <= INTERPRETED_MAX_FREE
+
+
+#: The walk as :func:`subset_rss` runs it: the kernel, or while it is compiled neither in this process nor in numba's
+#: cache, its interpreted code on small factors, until that has taken 1 s of CPU (compiling the kernel takes ~2 s:
+#: a first-ever fit of the demo runs ~120 walks of 4 or 16 subsets, ~0.05 s interpreted).
+_subset_rss_walk = KernelOrTwin(subset_rss_qr, subset_rss_qr_interpreted, _few_subsets, compile_seconds=1.0)
+
+
+def lstsq_solution_scipy(A, b, rcond):
+    """:func:`lstsq_solution` from Python: LAPACK's dgelsd through SciPy's wrapper, the same routine of the same
+    library as numba's bridge calls (both SciPy's LAPACK), with the same arguments (the workspace sizes of the same
+    query, B in a max(m, n) column): the same bits (tests/kernels/test_sparse_lstsq.py)."""
+    from scipy.linalg.lapack import dgelsd, dgelsd_lwork
+
+    m, n = A.shape
+    if m == 0 or n == 0:
+        raise np.linalg.LinAlgError("Arrays cannot be empty")
+    if not (np.isfinite(A).all() and np.isfinite(b).all()):
+        raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+    work, iwork, info = dgelsd_lwork(m, n, 1, rcond)
+    if info != 0:
+        raise ValueError("Internal algorithm failed to converge.")
+    b_column = np.zeros((max(m, n), 1))
+    b_column[:m, 0] = b
+    x, _, _, info = dgelsd(np.asfortranarray(A), b_column, int(work), int(iwork), rcond)
+    if info != 0:
+        raise ValueError("Internal algorithm failed to converge.")
+    return x[:n, 0].copy()
+
+
+def matvec_scipy(A, x):
+    """:func:`matvec` from Python: BLAS dgemv through SciPy's wrapper on the same transposed column-major view with
+    the same arguments as numba's bridge passes (the same bits)."""
+    from scipy.linalg.blas import dgemv
+
+    if A.shape[1] == 0:
+        return np.zeros(A.shape[0])
+    return dgemv(1.0, A.T, x, 0.0, trans=1)
+
+
+#: :func:`subset_lstsq` run by the interpreter with LAPACK and BLAS called through SciPy: ~0.1 ms for the factors
+#: of a few columns the fit solves (compiling the kernel: ~1.1 s of CPU in a new install).
+subset_lstsq_interpreted = _interpreted(subset_lstsq, lstsq_solution=lstsq_solution_scipy, matvec=matvec_scipy)
+
+
+def _small_factor(T, active) -> bool:
+    return T.shape[0] <= INTERPRETED_MAX_ROWS and T.shape[1] <= INTERPRETED_MAX_ROWS
+
+
+#: subset_lstsq as the fit calls it from Python: the kernel, or its interpreted code while the kernel is not
+#: compiled (a first-ever fit of the demo solves ~230 subsets, ~0.05 s interpreted), until that has taken 0.5 s of CPU.
+subset_lstsq_or_twin = KernelOrTwin(subset_lstsq, subset_lstsq_interpreted, _small_factor, compile_seconds=0.5)
 
 
 def subset_rss_numpy(T, protected, max_error=SUBSET_RSS_MAX_ERROR, min_pivot=SUBSET_RSS_MIN_PIVOT):

@@ -129,3 +129,26 @@ def test_matvec_is_numbas_matmul_bit_for_bit():
         compared += 1
     assert compared == 300
     assert np.array_equal(matvec(np.empty((3, 0)), np.empty(0)), np.zeros(3))  # no columns: zeros, as A @ x
+
+
+def test_the_python_lapack_and_blas_calls_are_the_bridges_bit_for_bit():
+    """The twins subset_lstsq runs before it is compiled: dgelsd and dgemv through SciPy's wrappers with numba's
+    arguments give the bridge's bits (the same routines of the same library), and so does the interpreted
+    subset_lstsq."""
+    from afmid.kernels.sparse import lstsq_solution_scipy, matvec_scipy, subset_lstsq_interpreted
+
+    compared = 0
+    for A, b, rcond in _problems(400, seed=35):
+        x = lstsq_solution(A, b, rcond)
+        assert np.array_equal(lstsq_solution_scipy(A, b, rcond), x), (A.shape, rcond)
+        assert np.array_equal(matvec_scipy(A, x), matvec(A, x)), A.shape
+        if A.shape[0] >= A.shape[1]:  # a factor of [A | y]: the last column is y
+            T = np.ascontiguousarray(np.column_stack([A, b]))
+            for active in (np.ones(A.shape[1], np.bool_), np.arange(A.shape[1]) % 2 == 0):
+                coef, rss = subset_lstsq(T, active)
+                coef_twin, rss_twin = subset_lstsq_interpreted(T, active)
+                assert np.array_equal(coef, coef_twin) and rss == rss_twin
+        compared += 1
+    assert compared == 400
+    with pytest.raises(np.linalg.LinAlgError):
+        lstsq_solution_scipy(np.array([[np.nan]]), np.ones(1), -1.0)

@@ -11,36 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from afmid.kernels.switching import cell_subsamples, switching_cells
+from afmid.kernels.switching import cell_subsamples, cell_subsamples_numpy, switching_cells, switching_cells_numpy
 
 SUBSAMPLES = 32
-
-
-def switching_cells_numpy(fine: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The plain-NumPy twin of :func:`switching_cells`: the samples next to a zero / non-zero change of any term."""
-    zero = fine == 0.0
-    switch = np.any(zero[:, 1:] != zero[:, :-1], axis=2)  # between samples j and j + 1
-    flagged = np.zeros(fine.shape[:2], dtype=bool)
-    flagged[:, :-1] |= switch
-    flagged[:, 1:] |= switch
-    flagged[:, 0] = flagged[:, -1] = False  # the cell needs both neighbours
-    return np.nonzero(flagged)
-
-
-def cell_subsamples_numpy(x, v, t, rows, cols, subsamples):
-    """The plain-NumPy twin of :func:`cell_subsamples` (the cubic Hermite interpolation as array expressions)."""
-    h = float(t[0, 1] - t[0, 0])
-    u = (np.arange(subsamples) + 0.5) / subsamples - 0.5  # offsets within the cell, in cells
-    left = u < 0  # the left half of the cell lies between samples j - 1 and j
-    a = cols[:, None] - left[None, :].astype(int)
-    s = np.where(left, 1.0 + u, u)[None, :]
-    r = rows[:, None]
-    xa, xb, va, vb = x[r, a], x[r, a + 1], v[r, a], v[r, a + 1]
-    s2, s3 = s * s, s * s * s
-    xs = (2 * s3 - 3 * s2 + 1) * xa + (s3 - 2 * s2 + s) * h * va + (3 * s2 - 2 * s3) * xb + (s3 - s2) * h * vb
-    vs = (6 * s2 - 6 * s) * (xa - xb) / h + (3 * s2 - 4 * s + 1) * va + (3 * s2 - 2 * s) * vb
-    ts = t[rows, cols][:, None] + u[None, :] * h
-    return xs, vs, ts
 
 
 def _tapping_rows(n_rows=6, samples=512, seed=3):

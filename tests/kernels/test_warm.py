@@ -61,24 +61,48 @@ def compiled() -> dict:
                 found[f"{info.name}.{name}"] = sorted(str(s) for s in value.signatures)
     return found
 
-warm()
+if sys.argv[2] == "warm":
+    warm()
 before = compiled()
-run_fit(load_config(sys.argv[1], ["fit.bootstrap=5"]))
+result = run_fit(load_config(sys.argv[1], ["fit.bootstrap=5"]))
 after = compiled()
-print(json.dumps({name: [s for s in after[name] if s not in before[name]] for name in after}))
+from afmid.kernels import sparse, switching
+twins = {"walk": sparse._subset_rss_walk.twin_seconds, "cells": switching.switching_cells_or_twin.twin_seconds,
+         "subsamples": switching.cell_subsamples_or_twin.twin_seconds}
+numbers = [float(c).hex() for c in (*result.coef, *result.coef_std, result.cv_error)]
+print(json.dumps({"added": {name: [s for s in after[name] if s not in before[name]] for name in after},
+                  "twin_seconds": twins, "numbers": numbers}))
 """
+
+
+def _fit_in_a_new_process(how: str, env: dict) -> dict:
+    from repo_paths import REPO_ROOT
+
+    out = subprocess.run([sys.executable, "-c", SYNC, str(REPO_ROOT / "configs" / "ldpe_like.yaml"), how], env=env,
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def test_the_warm_step_prepares_every_library_independent_kernel_the_demo_fit_runs():
     """After ``warm()``, the demo's fit (configs/ldpe_like.yaml: the demo's physics and record) calls no kernel of
     afmid.kernels with a signature the warm step did not compile or load: a kernel added to the fit, or one called
     with another layout, must be added to afmid.kernels.warm too (or the first fit after `make venv` compiles it).
-    Only the kernels generated per library structure (afmid.kernels.termgen's modules) are left to the fit."""
-    from repo_paths import REPO_ROOT
+    Only the kernels generated per library structure (afmid.kernels.termgen's modules) are left to the fit; the
+    kernels with a same-bits twin (afmid.kernels.twin) run themselves, the twins not at all."""
+    found = _fit_in_a_new_process("warm", dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+    assert {name: sigs for name, sigs in found["added"].items() if sigs} == {}
+    assert found["twin_seconds"] == {"walk": 0.0, "cells": 0.0, "subsamples": 0.0}
 
+
+def test_a_first_ever_fit_runs_the_twins_and_gives_the_warm_fits_numbers(tmp_path):
+    """An empty numba cache (a new install without the warm step): the subset walk and the switching cells run
+    their twins (nothing of theirs compiled) and the fit's coefficients, their sigmas and its error are the warm
+    fit's bit for bit."""
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
-    out = subprocess.run([sys.executable, "-c", SYNC, str(REPO_ROOT / "configs" / "ldpe_like.yaml")], env=env,
-                         capture_output=True, text=True, timeout=600)
-    assert out.returncode == 0, out.stderr[-2000:]
-    added = json.loads(out.stdout.strip().splitlines()[-1])
-    assert {name: sigs for name, sigs in added.items() if sigs} == {}
+    cold = _fit_in_a_new_process("cold", dict(env, NUMBA_CACHE_DIR=str(tmp_path), AFMID_KERNEL_DIR=str(tmp_path / "k")))
+    assert all(seconds > 0.0 for seconds in cold["twin_seconds"].values()), cold["twin_seconds"]
+    assert not cold["added"]["sparse.subset_rss_qr"] and not cold["added"]["switching.switching_cells"]
+    assert not cold["added"]["switching.cell_subsamples"]
+    warm = _fit_in_a_new_process("warm", env)
+    assert cold["numbers"] == warm["numbers"]

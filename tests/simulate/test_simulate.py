@@ -457,6 +457,31 @@ def test_generated_modules_are_files_written_once(tmp_path, monkeypatch):
     source = lawgen.module_source(compiled.terms, compiled.switching, compiled.conditions, compiled.n_gates)
     assert lawgen.algorithm_source() in source
     assert "def law_force(" in source and "max(z, a0)^-2" in source
+    # a law without gates switches the algorithm's gate handling off; a law with gates keeps it
+    assert compiled.n_gates == 0 and "\nHAS_GATES = False\n" in source
+    gated = compile_force_law(build_force_law(["jkr"], {}, {"R": R, "a0": A0_CONTACT}))
+    assert gated.n_gates > 0
+    assert "\nHAS_GATES = False\n" not in lawgen.module_source(gated.terms, gated.switching, gated.conditions,
+                                                              gated.n_gates)
+
+
+def test_a_gate_free_generated_kernel_does_not_compile_the_gate_handling():
+    """HAS_GATES = False prunes the gate handling before numba types it: running a gate-free law's generated kernel
+    compiles no version of its law_conditions (the code before compiled it, unused, into integrate and event_step:
+    ~1 s of CPU of the first-ever fit). The trajectory is the VM kernel's (which keeps the gate handling)."""
+    compiled = compile_force_law(build_force_law(["dmt"], {}, {"R": R, "a0": A0_CONTACT}))
+    osc = Oscillator(K, F0_HZ, 50.0, F0_HZ, 8e-9)  # drive 8 nN at Q 50: a free amplitude of 10 nm, tapping at D_TAP
+    h = osc.period / 2000
+    ends = []
+    for kernel in ("generated", "vm"):
+        integrator = Integrator(osc, compiled, D_TAP, kernel=kernel)
+        integrator.start(*osc.free_state(0.0))
+        segment = integrator.run(0.0, h, 4000, 10)
+        ends.append((segment.x, segment.events))
+    module = compiled.generated_kernel().module
+    assert module.HAS_GATES is False and module.integrate.signatures and not module.law_conditions.signatures
+    assert ends[0][1] == ends[1][1] > 0
+    np.testing.assert_array_equal(ends[0][0], ends[1][0])  # the same operations in the same order
 
 
 def test_integrator_falls_back_to_the_vm_kernel(monkeypatch):
