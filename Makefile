@@ -35,7 +35,7 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test]'
-	$(PY) -m afmid.kernels.warm  # the library-independent numba kernels compiled now, not in the first fit (issue 31)
+	$(PY) -m afmid.fit.warm  # numba kernels compiled now, not in the first fit (issue 31): afmid.kernels.warm's, then the default model's generated ones
 	touch $(STAMP)
 
 venv: $(STAMP)

@@ -9,7 +9,8 @@ alone does not get it unless they run the command once (the first fit then compi
 
 What it cannot do: the kernels generated per library structure (:mod:`afmid.kernels.termgen`,
 :mod:`afmid.kernels.lawgen`) exist only once a force law is known; they compile on the first fit of that
-structure (~1 s each) and are cached from then on.
+structure (~1 s each) and are cached from then on. :mod:`afmid.fit.warm` (a layer that knows the effects) runs
+this module and then compiles those of the default model; ``make venv`` runs it.
 """
 
 from __future__ import annotations
