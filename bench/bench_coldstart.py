@@ -6,8 +6,9 @@
    process (everything imported, kernels loaded): the difference is what a new
    process adds (interpreter, imports, loading the cached kernels).
 3. The first-ever fit of a fresh install (issue 31's target: <= 5 s): the install's warm step
-   (``python -m afmid.kernels.warm``, which ``make venv`` runs) into an empty ``NUMBA_CACHE_DIR``, then the
-   fit: only the kernels generated per library structure compile in it.
+   (``python -m afmid.fit.warm``, which ``make venv`` runs: the library-independent kernels, then the default
+   model's generated ones) into an empty ``NUMBA_CACHE_DIR``, then the fit ([dmt], the default model): nothing
+   compiles in it.
 4. The first-ever fit with no warm step (``pip install`` alone): the same command with
    ``NUMBA_CACHE_DIR`` pointing at an empty folder, so every kernel compiles in the fit (kernels with a
    same-bits twin run the twin instead, afmid.kernels.twin). The generated kernels' folder
@@ -70,7 +71,7 @@ def run(quick: bool = False) -> list[dict]:
             cold_again = wall(fit_cmd, empty)  # the cache that run filled
         with tempfile.TemporaryDirectory(prefix="afmid-numba-cache-") as cache:
             empty = dict(env, NUMBA_CACHE_DIR=cache, AFMID_KERNEL_DIR=str(Path(cache) / "afmid_kernels"))
-            warm_step, warm_step_cpu = timed([sys.executable, "-m", "afmid.kernels.warm"], empty)
+            warm_step, warm_step_cpu = timed([sys.executable, "-m", "afmid.fit.warm"], empty)
             after_warm, after_warm_cpu = timed(fit_cmd, empty)
     help_s = median(helps)
     first_s = median(firsts)
@@ -88,8 +89,8 @@ def run(quick: bool = False) -> list[dict]:
             after_warm, cold, cold / after_warm if after_warm else None, f"<= {FIRST_EVER_TARGET} s",
             after_warm <= FIRST_EVER_TARGET,
             f"'reference' = the same fit with no warm step, 'ratio' = that / this; CPU {after_warm_cpu:.2f} s; the "
-            f"install's warm step itself {warm_step:.2f} s (CPU {warm_step_cpu:.2f} s); compiled in the fit: the "
-            f"library's generated kernels"),
+            f"install's warm step (python -m afmid.fit.warm) itself {warm_step:.2f} s (CPU {warm_step_cpu:.2f} s); "
+            f"compiled in the fit: none (the default model's generated kernels are warmed)"),
         row("cold start: first-ever afmid fit with no warm step (pip install alone: empty numba cache)", cold,
             warm["warm"], cold - warm["warm"], "report only", None,
             f"'ratio' column = seconds added to the warm in-process fit ({cold - warm['warm']:.1f} s); CPU "
