@@ -22,6 +22,7 @@ resumes, on this cluster or another.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 from collections.abc import Callable, Sequence
@@ -120,6 +121,23 @@ class DaskEngine:
         self.connect_timeout = connect_timeout
         self.worker_timeout = DEFAULT_WORKER_TIMEOUT if worker_timeout is None else worker_timeout
         self.n_workers_seen = 0
+        self._keep = False  # inside kept_running(): run() leaves its client (and local cluster) open
+        self._kept = None  # (client, cluster or None) left open by the last run() inside kept_running()
+
+    @contextlib.contextmanager
+    def kept_running(self):
+        """Within this block successive :meth:`run` calls share one client and, without a scheduler address, one
+        local cluster (started by the first run, stopped when the block ends): a second run (e.g. a map's group
+        diagnosis after its pixels) does not pay for new worker processes that import afmid and load its kernels
+        again. A run that ends with an exception closes them; the next run starts anew."""
+        self._keep = True
+        try:
+            yield self
+        finally:
+            self._keep = False
+            kept, self._kept = self._kept, None
+            if kept is not None:
+                _close(kept[0], kept[1], self.connect_timeout)
 
     def workers_for(self, n_tasks: int) -> int:
         """Local cluster: the worker processes started; a remote cluster: its workers when last connected."""
@@ -164,8 +182,13 @@ class DaskEngine:
         client, cluster = None, None
         futures: dict = {}
         reported: set[int] = set()
+        keep = False  # whether this run leaves its client and cluster open for the next (kept_running)
         try:
-            client, cluster = self._client(len(tasks))
+            if self._kept is not None and self._kept[0].status == "running":
+                client, cluster = self._kept
+            else:
+                client, cluster = self._client(len(tasks))
+            self._kept = None
             watch = _Watch(self, client, len(tasks))
             for key, task in tasks:
                 futures[client.submit(run_in_worker, worker, task, pure=False)] = key
@@ -183,6 +206,7 @@ class DaskEngine:
                     report(_outcome(key, fut))
                 watch.check(len(reported))
                 tick()
+            keep = self._keep
         except BaseException:
             connected = client is not None and client.status == "running"
             for fut, key in futures.items():
@@ -197,16 +221,24 @@ class DaskEngine:
             raise
         finally:
             futures.clear()
-            if client is not None:
-                _quietly(client.close, timeout=self.connect_timeout)
-            if cluster is not None:
-                cluster.close()
+            if keep:
+                self._kept = (client, cluster)
+            else:
+                _close(client, cluster, self.connect_timeout)
             quiet.restore()
             for k, v in saved_env.items():
                 if v is None:
                     os.environ.pop(k, None)
                 else:
                     os.environ[k] = v
+
+
+def _close(client, cluster, timeout: float) -> None:
+    """Close a run's client and the local cluster it started (either may be None)."""
+    if client is not None:
+        _quietly(client.close, timeout=timeout)
+    if cluster is not None:
+        cluster.close()
 
 
 def _ask_scheduler(address: str, timeout: float, key: str) -> int:

@@ -17,9 +17,18 @@ is what more than half of its representatives say, in this order:
   or a significant residual left); every representative's verdict is kept and said;
 - ``undecided``: the representatives disagree (each one's verdict is kept).
 
-The representatives are diagnosed one after another, and those left are skipped once the verdict cannot change
-(the first two of three agree on the verdict and the leading candidate: :func:`_settled`); the group's record then
-holds the pixels diagnosed ("2 of 2 representative pixels").
+The representatives are those nearest the group's centre in the grouping's scaled features (residual signature and
+parameters: :func:`afmid.maps.groups.representatives`), nearest first; those left are skipped once the verdict
+cannot change (the first two of three agree on the verdict and the leading candidate: :func:`verdict_settled`); the
+group's record then holds the pixels diagnosed ("2 of 2 representative pixels").
+
+Where they run: each representative is one task (:func:`diagnose_pixel_task`) on the map's engine, the workers that
+fitted the pixels. The groups are known only once every pixel is fitted (k-means over the whole map), so the
+diagnoses follow the map's fit; they run in rounds, every model-limited group's next pixels in one round: as many
+as could settle the group (two of three at first, then the third only if the two disagree). A round never
+diagnoses a pixel the one-after-another order would have skipped, and its results are taken in that order, so the
+verdicts are the same as diagnosing one pixel after another in this process; with two workers the first two
+representatives of a group take the wall time of one.
 
 A group whose median error is within the model-limited rule (at most FLOOR_FACTOR x the floor) is not refitted:
 its verdict is ``nothing missing`` by the error rule, and says so ("not diagnosed"). The cost is a few single-trace
@@ -131,22 +140,20 @@ def pixel_verdict(summary: dict) -> tuple[str, list[str]]:
 
 
 def diagnose_groups(grouping, maps: dict[str, np.ndarray], source, config_text: str, config_source: str | None,
-                    diagnose: bool = True) -> list[GroupVerdict]:
+                    diagnose: bool = True, engine=None) -> list[GroupVerdict]:
     """The verdict of every group (see the module docstring). ``maps``: name -> flat arrays over the pixels
     (cv_error, cv_error_noise_floor, residual_region, residual_character); ``source``: the map
     (:func:`afmid.maps.input_file.open_map`). ``diagnose`` False: no refit; a model-limited group's verdict is
-    :data:`NOT_DIAGNOSED`."""
+    :data:`NOT_DIAGNOSED`. ``engine``: where the representatives are diagnosed (an
+    :class:`afmid.batch.engine.Engine`, e.g. the map's own); None: in this process, one after another."""
     from afmid.fit.uncertainty import FLOOR_FACTOR
     from afmid.maps.groups import representatives
     from afmid.maps.residual import CHARACTERS, REGIONS
 
-    import time
-
-    started = time.process_time()
     labels = grouping.labels.ravel()
     fitted = int(np.count_nonzero(labels >= 0))
     ratio = maps["cv_error"] / maps["cv_error_noise_floor"]
-    out = []
+    out, to_diagnose = [], []
     for g in range(grouping.n_groups):
         members = labels == g
         median = float(np.nanmedian(ratio[members]))
@@ -156,14 +163,93 @@ def diagnose_groups(grouping, maps: dict[str, np.ndarray], source, config_text: 
         if median > FLOOR_FACTOR and not diagnose:
             verdict.verdict = NOT_DIAGNOSED
         elif median > FLOOR_FACTOR:
-            chosen = representatives(grouping, g, REPRESENTATIVES)
-            _diagnose(verdict, chosen, source, config_text, config_source)
-        log.info("%s", verdict.sentence())
+            to_diagnose.append((verdict, [int(p) for p in representatives(grouping, g, REPRESENTATIVES)]))
         out.append(verdict)
-    diagnosed = sum(len(v.representatives) for v in out)
-    if diagnosed:
-        log.info("diagnosed %d representative pixel(s) in %.1f s of CPU", diagnosed, time.process_time() - started)
+    if to_diagnose:
+        diagnose_representatives(to_diagnose, source, config_text, config_source, engine)
+    for verdict in out:
+        log.info("%s", verdict.sentence())
     return out
+
+
+@dataclass
+class _Diagnosis:
+    """A model-limited group being diagnosed: its verdict (filled in place) and its chosen representatives, of which
+    the first ``tried`` have been diagnosed (or failed)."""
+
+    verdict: GroupVerdict
+    chosen: list[int]
+    tried: int = 0
+
+    def next_pixels(self) -> list[int]:
+        """The representatives to diagnose in the next round: none once the verdict is settled or every one is
+        tried; else as many as could settle it (:func:`fewest_to_settle`), never more than are left."""
+        v = self.verdict
+        if self.tried >= len(self.chosen) or verdict_settled(v.pixel_verdicts, v.leading, len(self.chosen)):
+            return []
+        need = fewest_to_settle(v.pixel_verdicts, v.leading, len(self.chosen))
+        return self.chosen[self.tried:self.tried + need]
+
+
+def fewest_to_settle(texts: list[str], leads: list[str], chosen: int) -> int:
+    """A lower bound (at least 1) on the further representatives whose diagnoses :func:`verdict_settled` needs: a
+    strict majority of ``chosen`` agreeing on verdict and leading candidate, less the largest such agreement so
+    far. Diagnosing that many at once never spends a diagnosis the one-after-another order would have skipped."""
+    pairs = list(zip(texts, leads))
+    agreeing = max((pairs.count(p) for p in set(pairs)), default=0)
+    return max(1, chosen // 2 + 1 - agreeing)
+
+
+def diagnose_representatives(chosen: list[tuple[GroupVerdict, list[int]]], source, config_text: str,
+                             config_source: str | None, engine=None) -> None:
+    """Diagnose each group's chosen representative pixels (flat indices, nearest the centre first) in rounds on
+    ``engine`` (None: in this process; see the module docstring) and set each group's verdict in place. ``source``:
+    the map (:func:`afmid.maps.input_file.open_map`; its path is what the tasks name)."""
+    import time
+
+    groups = [_Diagnosis(verdict, [int(p) for p in pixels]) for verdict, pixels in chosen]
+    for d in groups:
+        d.verdict.diagnosed = True
+
+    started, cpu = time.perf_counter(), 0.0
+    task = {"input": str(source.path.resolve()), "config": config_text, "source": config_source}
+    rounds = 0
+    while True:
+        batch = [(d, pixel) for d in groups for pixel in d.next_pixels()]
+        if not batch:
+            break
+        rounds += 1
+        tasks = [(k, {**task, "pixel": pixel}) for k, (_, pixel) in enumerate(batch)]
+        results: dict[int, dict] = {}
+        if engine is None:
+            results = {k: diagnose_pixel_task(t) for k, t in tasks}
+        else:
+            def report(outcome) -> None:
+                if outcome.result is not None:
+                    results[outcome.key] = outcome.result
+                elif outcome.crashed:
+                    results[outcome.key] = {"error": outcome.crashed}
+
+            engine.run(diagnose_pixel_task, tasks, report, lambda: None)
+        for k, (d, pixel) in enumerate(batch):  # in the order of the representatives, as one after another
+            d.tried += 1
+            result = results.get(k, {"error": "no result from the engine"})
+            cpu += result.get("cpu_s", 0.0)
+            if verdict_settled(d.verdict.pixel_verdicts, d.verdict.leading, len(d.chosen)):
+                continue  # one after another would not have diagnosed it (a round of fewest_to_settle never has one)
+            if "summary" in result:
+                _record(d.verdict, pixel, result["summary"])
+            else:
+                log.warning("pixel %s could not be diagnosed: %s", divmod(pixel, source.cols), result["error"])
+    for d in groups:
+        if d.verdict.representatives:
+            d.verdict.verdict, d.verdict.effects = majority(d.verdict.pixel_verdicts, d.verdict.leading)
+        else:
+            d.verdict.verdict = UNDECIDED
+    diagnosed = sum(len(d.verdict.representatives) for d in groups)
+    where = "in this process" if engine is None else f"on {engine.workers_for(2)} worker(s)"
+    log.info("diagnosed %d representative pixel(s) of %d group(s) in %d round(s) %s: %.1f s wall, %.1f s of CPU",
+             diagnosed, len(groups), rounds, where, time.perf_counter() - started, cpu)
 
 
 def _most_common(codes: np.ndarray, names: tuple[str, ...]) -> str:
@@ -171,39 +257,44 @@ def _most_common(codes: np.ndarray, names: tuple[str, ...]) -> str:
     return names[int(np.bincount(codes).argmax())] if codes.size else ""
 
 
-def _diagnose(verdict: GroupVerdict, pixels: np.ndarray, source, config_text: str, config_source: str | None) -> None:
-    """Diagnose the representative ``pixels`` and set the group's verdict (majority) in place."""
-    from afmid.errors import AfmidError
+def _record(verdict: GroupVerdict, pixel: int, summary: dict) -> None:
+    """Add one representative's diagnosis (:func:`afmid.diagnosis.diagnose.suggest`'s summary) to its group."""
+    text, effects = pixel_verdict(summary)
+    diagnosis = summary.get("diagnosis", {})
+    lead = leading_candidate(summary)
+    verdict.representatives.append(int(pixel))
+    verdict.pixel_verdicts.append(text)
+    verdict.leading.append(lead["effect"] if lead else "")
+    if effects:  # the named effect(s) together
+        after, delta = diagnosis.get("error_after"), diagnosis.get("delta_bic_after")
+    else:  # the leading candidate's own refit (NaN: none)
+        after, delta = (lead["error_after"], lead["delta_bic"]) if lead else (None, None)
+    verdict.delta_bic.append(float(delta) if delta is not None else math.nan)
+    verdict.error_after.append(float(after) if after is not None else math.nan)
+    verdict.floor.append(float(diagnosis.get("noise_floor", math.nan)))
 
-    verdict.diagnosed = True
-    for pixel in pixels:
-        if verdict_settled(verdict.pixel_verdicts, verdict.leading, len(pixels)):
-            break  # the pixels left cannot change the group's verdict: each one is a whole diagnosis (seconds)
-        try:
-            summary = diagnose_pixel(int(pixel), source, config_text, config_source)
-        except KeyboardInterrupt:
-            raise
-        except Exception as exc:  # one pixel that cannot be diagnosed must not lose the fitted map
-            why = exc.message if isinstance(exc, AfmidError) else f"{type(exc).__name__}: {exc}"
-            log.warning("pixel %s could not be diagnosed: %s", divmod(int(pixel), source.cols), why)
-            continue
-        text, effects = pixel_verdict(summary)
-        diagnosis = summary.get("diagnosis", {})
-        lead = leading_candidate(summary)
-        verdict.representatives.append(int(pixel))
-        verdict.pixel_verdicts.append(text)
-        verdict.leading.append(lead["effect"] if lead else "")
-        if effects:  # the named effect(s) together
-            after, delta = diagnosis.get("error_after"), diagnosis.get("delta_bic_after")
-        else:  # the leading candidate's own refit (NaN: none)
-            after, delta = (lead["error_after"], lead["delta_bic"]) if lead else (None, None)
-        verdict.delta_bic.append(float(delta) if delta is not None else math.nan)
-        verdict.error_after.append(float(after) if after is not None else math.nan)
-        verdict.floor.append(float(diagnosis.get("noise_floor", math.nan)))
-    if not verdict.representatives:
-        verdict.verdict = UNDECIDED
-        return
-    verdict.verdict, verdict.effects = majority(verdict.pixel_verdicts, verdict.leading)
+
+def diagnose_pixel_task(task: dict) -> dict:
+    """One representative pixel diagnosed where an engine runs it: ``task`` names the map file (``input``), the
+    merged config (``config``, YAML text; ``source``, its path or None) and the flat ``pixel``. Returns
+    ``{"pixel", "summary", "cpu_s"}``, or ``{"pixel", "error", "cpu_s"}`` (one line) when the pixel cannot be
+    diagnosed: never raises for a bad pixel (the fitted map must not be lost)."""
+    import time
+
+    from afmid.errors import AfmidError
+    from afmid.maps.input_file import open_map
+    from afmid.maps.task import map_config
+
+    started = time.process_time()
+    pixel = int(task["pixel"])
+    try:
+        source = open_map(task["input"], map_config(task["config"], task.get("source")))
+        out = {"summary": diagnose_pixel(pixel, source, task["config"], task.get("source"))}
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:  # noqa: BLE001 - one pixel that cannot be diagnosed is said, not raised
+        out = {"error": exc.message if isinstance(exc, AfmidError) else f"{type(exc).__name__}: {exc}"}
+    return {"pixel": pixel, **out, "cpu_s": time.process_time() - started}
 
 
 def majority(texts: list[str], leading: list[str]) -> tuple[str, list[str]]:
@@ -223,7 +314,7 @@ def majority(texts: list[str], leading: list[str]) -> tuple[str, list[str]]:
 
 
 def verdict_settled(texts: list[str], leads: list[str], chosen: int) -> bool:
-    """Whether the majority rule of :func:`_diagnose` gives the same group verdict whatever the remaining of the
+    """Whether the majority rule of :func:`majority` gives the same group verdict whatever the remaining of the
     ``chosen`` representatives say: one verdict holds a strict majority of all ``chosen`` and its pixels share
     one leading candidate (then rule 1 ``missing: ...`` holds; or the leading candidate has that majority, rule
     2; or no other leading candidate can reach a majority and rule 3 gives that verdict). With 3 representatives:

@@ -11,6 +11,7 @@ is in, the result file is written atomically with its provenance and the sidecar
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import math
@@ -79,7 +80,9 @@ def run_map(config, config_text: str, input_path: Path, output: Path, engine, ch
     key = {"input_sha256": sha256_file(source.path), "config_sha256": hashlib.sha256(config_text.encode()).hexdigest(),
            "shape": [source.rows, source.cols, source.samples], "chunk": chunk,
            "pixel_fit": pixel_fit or DEFAULT_PIXEL_FIT, "chunk_layout": CHUNK_LAYOUT}
-    with held_sidecar(sidecar_for(output), key, bounds) as sidecar:
+    # The group diagnosis runs on the same workers after the pixels: an engine that can keep them keeps them.
+    kept = getattr(engine, "kept_running", None)
+    with held_sidecar(sidecar_for(output), key, bounds) as sidecar, (kept() if kept else contextlib.nullcontext()):
         return _run_chunks(sidecar, source, config, config_text, output, engine, diagnose)
 
 
@@ -125,7 +128,7 @@ def _run_chunks(sidecar: Sidecar, source, config, config_text: str, output: Path
         raise EngineError(f"the engine finished without the results of {len(bounds) - len(saved)} of {len(bounds)} "
                           f"chunks; the {len(saved)} finished ones are saved in {folder}: run the same command again "
                           "to resume", file=output)
-    return write_map_result(output, source, config, config_text, sidecar, diagnose=diagnose)
+    return write_map_result(output, source, config, config_text, sidecar, diagnose=diagnose, engine=engine)
 
 
 def separation_ignored(config) -> bool:
@@ -179,9 +182,11 @@ def _load_chunks(sidecar: Sidecar) -> list[dict]:
     return chunks
 
 
-def write_map_result(output: Path, source, config, config_text: str, sidecar: Sidecar, diagnose: bool = True) -> dict:
+def write_map_result(output: Path, source, config, config_text: str, sidecar: Sidecar, diagnose: bool = True,
+                     engine=None) -> dict:
     """Assemble the saved chunks into ``output`` (atomically, with provenance), with the pixels' groups and their
-    verdicts (``diagnose``: the catalog diagnosis of the model-limited groups); returns the pixel counts."""
+    verdicts (``diagnose``: the catalog diagnosis of the model-limited groups, on ``engine``, None: in this
+    process); returns the pixel counts."""
     from afmid.io.trace import atomic_hdf5, write_dataset
     from afmid.maps.pixel_curves import merge_chunks, write_pixel_curves
     from afmid.maps.residual import CODED, SIGNATURE
@@ -222,7 +227,7 @@ def write_map_result(output: Path, source, config, config_text: str, sidecar: Si
             values[name][lo:hi] = c["values"][k]
             sigmas[name][lo:hi] = c["sigmas"][k]
     counts = {name: int(np.count_nonzero(status == code)) for code, name in enumerate(STATUS_NAMES)}
-    grouping, verdicts = _groups(source, config, config_text, flat, values, sigmas, names, status, diagnose)
+    grouping, verdicts = _groups(source, config, config_text, flat, values, sigmas, names, status, diagnose, engine)
     with atomic_hdf5(output, MAP_RESULT_FORMAT, config_text, {str(source.path): key["input_sha256"]}) as h5:
         h5.attrs["rows"], h5.attrs["cols"], h5.attrs["samples"] = source.rows, source.cols, source.samples
         h5.attrs["chunk_pixels"] = key["chunk"]
@@ -274,8 +279,9 @@ def write_map_result(output: Path, source, config, config_text: str, sidecar: Si
 
 
 def _groups(source, config, config_text: str, flat: dict, values: dict, sigmas: dict, names: list[str],
-            status: np.ndarray, diagnose: bool):
-    """The pixels' groups and (``diagnose``) their verdicts (afmid.maps.groups, afmid.maps.group_diagnosis)."""
+            status: np.ndarray, diagnose: bool, engine=None):
+    """The pixels' groups and (``diagnose``) their verdicts (afmid.maps.groups, afmid.maps.group_diagnosis; the
+    representatives diagnosed on ``engine``)."""
     from afmid.maps.group_diagnosis import diagnose_groups
     from afmid.maps.groups import group_pixels
 
@@ -285,7 +291,7 @@ def _groups(source, config, config_text: str, flat: dict, values: dict, sigmas: 
     log.info("%d group(s) of pixels by residual signature and parameters (silhouette %.2f)", grouping.n_groups,
              grouping.silhouette)
     verdicts = diagnose_groups(grouping, maps, source, config_text, str(config.source) if config.source else None,
-                               diagnose=diagnose)
+                               diagnose=diagnose, engine=engine)
     return grouping, verdicts
 
 

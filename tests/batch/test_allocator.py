@@ -95,3 +95,36 @@ def test_the_local_clusters_workers_run_without_dasks_statistical_profiler():
     assert sorted(o.key for o in seen) == [0, 1]
     assert all(o.result == {"profile": False} for o in seen), seen
     assert dask.config.get("distributed.worker.profile.enabled", default=None) in (before, True)  # dask's default
+
+
+def _worker_pid(task: dict) -> dict:
+    return {"pid": os.getpid()}
+
+
+def test_a_dask_engine_kept_running_shares_its_local_cluster_between_runs():
+    """A map's group diagnosis runs on the workers that fitted its pixels: inside kept_running() the second run
+    gets the first run's worker processes (no new cluster to start); outside it each run starts its own, and the
+    block's end stops the kept one."""
+    from afmid.batch.engine_dask import DaskEngine
+
+    engine = DaskEngine(jobs=2)
+    first, second = [], []
+    with engine.kept_running():
+        engine.run(_worker_pid, [(k, {}) for k in range(6)], first.append, lambda: None)
+        engine.run(_worker_pid, [(0, {}), (1, {})], second.append, lambda: None)
+        kept_pids = {o.result["pid"] for o in first}
+        assert len(kept_pids) == 2 and {o.result["pid"] for o in second} <= kept_pids
+        assert all(alive(pid) for pid in kept_pids)
+    assert not any(alive(pid) for pid in kept_pids)  # the block's end stopped the kept cluster
+    third = []
+    engine.run(_worker_pid, [(0, {})], third.append, lambda: None)
+    assert third[0].result["pid"] not in kept_pids  # a new cluster for a run outside the block
+    assert not alive(third[0].result["pid"])  # and stopped after it
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True

@@ -137,3 +137,25 @@ def test_the_report_draws_the_verdict_map_and_add_makes_the_error_fall(maps, tmp
     assert compared["model_limited_after"] < compared["model_limited_before"]
     assert json.loads((tmp_path / "rep2" / "summary.json").read_text())["groups"]["summary"] == (
         "nothing missing anywhere on the map")
+
+
+@pytest.mark.slow
+def test_the_group_diagnosis_on_a_dask_cluster_gives_the_verdicts_of_one_after_another(maps):
+    """The representatives diagnosed on the map's own local dask cluster (kept from the pixels' fit, in rounds)
+    give the groups of the in-process engine's map: the same pixels diagnosed, the same verdicts; their numbers
+    to 1e-6 relative (the workers run one BLAS thread, this process may not: rounding, not a different fit)."""
+    from afmid.batch.engine_dask import DaskEngine
+    from afmid.config import dump_config, load_config
+    from afmid.maps.run import run_map
+
+    m = maps[0]
+    config = load_config(m["config"], [])
+    output = m["folder"] / "dask.h5"
+    run_map(config, dump_config(config), m["input"], output, DaskEngine(jobs=2))
+    with h5py.File(m["result"], "r") as serial, h5py.File(output, "r") as dask:
+        for name in ("verdict", "effects", "representatives", "pixel_verdicts", "leading", "diagnosed"):
+            assert np.array_equal(serial["groups"][name][()], dask["groups"][name][()]), name
+        for name in ("delta_bic", "error_after", "noise_floor"):
+            np.testing.assert_allclose(dask["groups"][name][()], serial["groups"][name][()], rtol=1e-6,
+                                       equal_nan=True, err_msg=name)
+        assert (dask["groups/representatives"][()] >= 0).sum() >= 2  # a model-limited group was diagnosed
