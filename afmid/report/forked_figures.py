@@ -83,92 +83,136 @@ def _inside_dask_worker() -> bool:
 
 
 class Figures:
-    """The figures drawn aside: :meth:`get` gives ``{name: PNG file name}``, from the child or drawn here."""
+    """The figures drawn aside. :meth:`get` gives ``{name: PNG file name}`` of the figures drawn from the start;
+    :meth:`finish` hands the diagnosis's answer to the figures that need it and gives theirs. From the child, or
+    drawn here when there is no child or it failed."""
 
-    def __init__(self, draws: dict[str, Callable[[], str]], fork: bool):
-        self._draws = draws
-        self._process = None
-        self._receiver = None
+    def __init__(self, draws: dict[str, Callable[[], str]], later: dict[str, Callable[[object], str | None]],
+                 fork: bool):
+        self._draws, self._later = draws, later
+        self._process = self._results = self._answers = None
         self._got: dict[str, str] | None = None
         if fork:
             self._start()
 
     def _start(self) -> None:
         context = multiprocessing.get_context("fork")
-        receiver, sender = context.Pipe(duplex=False)
-        process = context.Process(target=_child, args=(self._draws, sender, os.getpid()), name="afmid-figures",
-                                  daemon=True)
+        results, child_results = context.Pipe(duplex=False)  # child -> parent: each stage's figures
+        child_answers, answers = context.Pipe(duplex=False)  # parent -> child: the answer the later figures need
+        process = context.Process(target=_child, name="afmid-figures", daemon=True,
+                                  args=(self._draws, self._later, child_results, child_answers, (results, answers),
+                                        os.getpid()))
         # Held across the fork, so that a Ctrl-C cannot reach the child before it has its default handlers.
         held = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
         try:
             process.start()
         finally:
             signal.pthread_sigmask(signal.SIG_SETMASK, held)
-            sender.close()  # the child's end: the parent's copy closed, a dead child reads as end of file
-        self._process, self._receiver = process, receiver
+            # The child's ends closed here: a child that dies reads as end of file (and the parent's, in the child)
+            child_results.close()
+            child_answers.close()
+        self._process, self._results, self._answers = process, results, answers
 
     def get(self) -> dict[str, str]:
-        """The figures' PNG names by figure name (waits for the child; draws here what it did not give)."""
+        """The first figures' PNG names by figure name (waits for the child; draws them here if it did not)."""
         if self._got is None:
             self._got = self._from_child() if self._process is not None else None
             if self._got is None:
+                self.close()
                 self._got = {name: draw() for name, draw in self._draws.items()}
         return self._got
 
+    def finish(self, answer) -> dict[str, str]:
+        """The later figures drawn for ``answer`` (picklable; None from a figure that has nothing to draw is left
+        out): their PNG names by figure name. Ends the child."""
+        self.get()
+        got = None
+        if self._process is not None and self._later:
+            try:
+                self._answers.send(answer)
+            except OSError:  # the child is gone
+                pass
+            else:
+                got = self._from_child()
+        self.close()
+        if got is None:
+            got = {name: draw(answer) for name, draw in self._later.items()}
+        return {name: png for name, png in got.items() if png is not None}
+
     def _from_child(self) -> dict[str, str] | None:
         try:
-            status, payload = self._receiver.recv()
+            status, payload = self._results.recv()
         except EOFError:
             status, payload = "error", "ended without an answer"
-        finally:
-            self.close()
         if status == "ok":
             return payload
+        self.close()
         # Debug only: the figures are drawn again here, and an error that is theirs is raised by that drawing (one
         # line from the command line), not told twice.
         log.debug("drawing the figures in a second process failed, drawing them here:\n%s", payload)
         return None
 
     def close(self) -> None:
-        """Kill the child if it still runs, reap it, then close its pipe (idempotent): nothing writes into the
+        """Kill the child if it still runs, reap it, then close the pipes (idempotent): nothing writes into the
         report's folder after this."""
         process, self._process = self._process, None
         if process is not None:
             if process.is_alive():
                 process.kill()
             process.join()
-        if self._receiver is not None:
-            self._receiver.close()
-            self._receiver = None
+        for end in (self._results, self._answers):
+            if end is not None:
+                end.close()
+        self._results = self._answers = None
 
 
-def _child(draws: dict[str, Callable[[], str]], sender, parent: int) -> None:
-    """The forked child: draw each figure, send ``("ok", {name: PNG})`` or ``("error", traceback text)``."""
+def _child(draws, later, results, answers, parent_ends, parent: int) -> None:
+    """The forked child: draw each of ``draws``, send ``("ok", {name: PNG})``; then wait for the answer and do the
+    same with ``later``; an error is sent as ``("error", traceback text)`` and ends it."""
     for signum in _STOP_SIGNALS:
         signal.signal(signum, signal.SIG_DFL)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+    for end in parent_ends:  # so that the parent's death reads as end of file here
+        end.close()
     try:
-        got = {}
-        for name, draw in draws.items():
-            if os.getppid() != parent:  # the parent was killed outright: its report will never be used
-                os._exit(1)
-            got[name] = draw()
-        sender.send(("ok", got))
+        results.send(("ok", _drawn(draws, (), parent)))
+        if later:
+            try:
+                answer = answers.recv()
+            except EOFError:  # the parent stopped waiting for them
+                return
+            results.send(("ok", _drawn(later, (answer,), parent)))
     except BaseException:  # everything, told to the parent, which draws again and raises there
-        sender.send(("error", traceback.format_exc()))
+        try:
+            results.send(("error", traceback.format_exc()))
+        except OSError:  # the parent is gone
+            pass
     finally:
-        sender.close()
+        results.close()
+        answers.close()
+
+
+def _drawn(draws: dict, args: tuple, parent: int) -> dict:
+    got = {}
+    for name, draw in draws.items():
+        if os.getppid() != parent:  # the parent was killed outright: its report will never be used
+            os._exit(1)
+        got[name] = draw(*args)
+    return got
 
 
 @contextlib.contextmanager
-def figures_aside(draws: dict[str, Callable[[], str]], jobs: int | None = None) -> Iterator[Figures]:
+def figures_aside(draws: dict[str, Callable[[], str]], later: dict[str, Callable[[object], str | None]] | None = None,
+                  jobs: int | None = None) -> Iterator[Figures]:
     """Start drawing ``draws`` (figure name -> a function that draws it into the report's folder and returns the
     PNG's name) in a forked child when :func:`serial_reason` allows (``jobs``: default :func:`report_jobs`), and
-    yield a :class:`Figures`; when the block ends, by any exception too, the child is stopped and reaped."""
+    yield a :class:`Figures`; ``later``: figures drawn from the answer given to :meth:`Figures.finish` (by the same
+    child, whose matplotlib is loaded by then). When the block ends, by any exception too, the child is stopped
+    and reaped."""
     reason = serial_reason(report_jobs() if jobs is None else jobs)
     if reason is not None:
         log.debug("figures drawn serially: %s", reason)
-    figures = Figures(draws, fork=reason is None)
+    figures = Figures(draws, later or {}, fork=reason is None)
     try:
         yield figures
     finally:

@@ -377,13 +377,14 @@ def write_report(runs: list[RunData], output: Path, overwrite: bool = False, sug
         local = localize(last)
         energy = energy_check(last)
         resim = resimulate(last)
-        with figures_aside(independent_figures(runs, tmp, local, energy, resim), jobs) as aside:
+        # The effects-tried figure needs the diagnosis's answer: drawn once it is given (by the child too, whose
+        # matplotlib is loaded by then).
+        later = {"suggestions": lambda answer: fig_suggestions(answer, tmp)}
+        with figures_aside(independent_figures(runs, tmp, local, energy, resim), later, jobs) as aside:
             summary, result, diagnoses, localized = _diagnosed_summary(runs, local, energy, resim, suggest_effects,
                                                                        progress, notes, names, traces)
             figures = dict(aside.get())
-        suggestions_fig = fig_suggestions(summary, tmp)
-        if suggestions_fig:
-            figures["suggestions"] = suggestions_fig
+            figures.update(aside.finish({"tried": summary.get("tried"), "diagnosis": summary.get("diagnosis")}))
         evidence = None
         if len(runs) > 1:  # the loop carries each run's own evidence (afmid.report.loop_evidence)
             per_run = loop_figures(runs, diagnoses, localized, tmp, figures)

@@ -46,11 +46,33 @@ def test_drawn_in_a_child_with_two_jobs_and_here_with_one(tmp_path):
         folder = tmp_path / str(jobs)
         folder.mkdir()
         draws = {name: _pid_draw(folder, name) for name in ("a", "b")}
-        with figures_aside(draws, jobs) as aside:
+        with figures_aside(draws, jobs=jobs) as aside:
             got = aside.get()
         assert got == {"a": "a.png", "b": "b.png"}
         pids = {int((folder / f"{name}.txt").read_text()) for name in draws}
         assert len(pids) == 1 and (pids.pop() != os.getpid()) is elsewhere
+    assert multiprocessing.active_children() == []
+
+
+@needs_fork
+def test_the_later_figures_are_drawn_by_the_same_child_from_the_answer(tmp_path):
+    """The figures that need the diagnosis's answer: drawn from what :meth:`finish` hands over, by the child that
+    drew the first ones (with one job, here); a figure with nothing to draw (None) is left out."""
+    for jobs in (2, 1):
+        folder = tmp_path / str(jobs)
+        folder.mkdir()
+
+        def from_the_answer(answer: dict) -> str:
+            (folder / "later.txt").write_text(f"{os.getpid()} {answer['tried']}")
+            return "later.png"
+
+        later = {"later": from_the_answer, "nothing": lambda answer: None}
+        with figures_aside({"a": _pid_draw(folder, "a")}, later, jobs=jobs) as aside:
+            assert aside.get() == {"a": "a.png"}
+            assert aside.finish({"tried": ["viscoelastic"]}) == {"later": "later.png"}
+        first = int((folder / "a.txt").read_text())
+        assert (folder / "later.txt").read_text() == f"{first} ['viscoelastic']"
+        assert (first != os.getpid()) is (jobs == 2)
     assert multiprocessing.active_children() == []
 
 
@@ -63,7 +85,7 @@ def test_a_figure_that_fails_in_the_child_is_drawn_again_here_and_its_error_rais
             raise OSError(28, "No space left on device")
         return "drawn_here.png"
 
-    with figures_aside({"a": _pid_draw(tmp_path, "a"), "b": fails_in_the_child}, 2) as aside:
+    with figures_aside({"a": _pid_draw(tmp_path, "a"), "b": fails_in_the_child}, jobs=2) as aside:
         assert aside.get() == {"a": "a.png", "b": "drawn_here.png"}
     assert int((tmp_path / "a.txt").read_text()) == parent  # every figure drawn again here
 
@@ -71,7 +93,7 @@ def test_a_figure_that_fails_in_the_child_is_drawn_again_here_and_its_error_rais
         raise ValueError("a figure's own error")
 
     with pytest.raises(ValueError, match="a figure's own error"):
-        with figures_aside({"a": always_fails}, 2) as aside:
+        with figures_aside({"a": always_fails}, jobs=2) as aside:
             aside.get()
     assert multiprocessing.active_children() == []
 
@@ -87,7 +109,7 @@ def test_an_exception_in_the_block_stops_the_child_before_the_block_is_left(tmp_
 
     started = time.monotonic()
     with pytest.raises(KeyboardInterrupt):
-        with figures_aside({"slow": slow}, 2):
+        with figures_aside({"slow": slow}, jobs=2):
             time.sleep(0.3)  # the child is drawing
             raise KeyboardInterrupt
     assert time.monotonic() - started < 30
