@@ -4,8 +4,10 @@
 and drawing the figures. Only the effects-tried figure (and, with several runs, the loop's per-run evidence) needs
 the diagnosis's answer; the others are drawn from the run file, its residual, its energy check and the model's
 re-simulation. :func:`figures_aside` forks a child process that draws those into the report's temporary folder
-while the parent diagnoses, then hands back their file names. The files are the ones a serial report writes (same
-code, same data: the child is a copy of the parent at the fork).
+while the parent diagnoses and hands back their file names; given the diagnosis's answer, the same child draws the
+effects-tried figure (its matplotlib loaded by then: the parent never imports it). The files are the ones a serial
+report writes (same code, same data: the child is a copy of the parent at the fork). ``afmid batch`` and ``afmid
+map`` make no reports, so their workers never fork here.
 
 Serial instead (the same figures drawn in this process when they are asked for), decided by
 :func:`serial_reason`: ``AFMID_REPORT_JOBS=1`` (:data:`REPORT_JOBS_ENV`; 2, the default, allows the child); not on
@@ -17,7 +19,7 @@ Interrupts and failures: the child restores the default SIGINT/SIGTERM actions (
 group and ends it quietly; the parent's own handling, :mod:`afmid.interrupts`, raises in the parent); whatever ends
 the parent's block (an interrupt, an error) kills and reaps the child before the block is left, so the report's
 temporary folder is removed with nothing writing into it. A child whose parent is gone (``kill -9``) stops at its
-next figure. A child that fails (an error in a figure, a full disk, killed) is reported in the log and its figures
+next figure. A child that fails (an error in a figure, a full disk, killed) is logged (debug) and its figures
 are drawn again here, serially: an error then surfaces in this process as it would in a serial report.
 """
 
