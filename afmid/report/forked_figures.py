@@ -29,6 +29,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import pickle
 import signal
 import sys
 import traceback
@@ -126,13 +127,13 @@ class Figures:
 
     def finish(self, answer) -> dict[str, str]:
         """The later figures drawn for ``answer`` (picklable; None from a figure that has nothing to draw is left
-        out): their PNG names by figure name. Ends the child."""
+        out): what each draws (a PNG name) by figure name. Ends the child."""
         self.get()
         got = None
         if self._process is not None and self._later:
             try:
-                self._answers.send(answer)
-            except OSError:  # the child is gone
+                self._answers.send(answer)  # pickled whole before a byte is written
+            except (OSError, pickle.PicklingError, TypeError, AttributeError):  # the child gone, or not picklable
                 pass
             else:
                 got = self._from_child()

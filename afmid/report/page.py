@@ -38,7 +38,7 @@ from afmid.report.observables import summarize as summarize_observables
 from afmid.report.plots import (bandwidth_text, fig_coefficients, fig_error_runs, fig_force_separation, no_contact_note,
                                 fig_force_time, fig_observables, fig_periods, fig_phase_portraits, fig_residual,
                                 fig_suggestions)
-from afmid.report.loop_evidence import (REGION_HEADER, SUGGESTIONS_CAPTION, loop_figures, region_rows,
+from afmid.report.loop_evidence import (REGION_HEADER, SUGGESTIONS_CAPTION, earlier_run_figures, region_rows,
                                         residual_caption, run_evidence_html)
 from afmid.report.quantity_text import format_delta_bic, format_measurement, format_number, format_value
 from afmid.report.story import (band_words, diagnose_runs, error_text, fold_spread, loop_html, loop_lines, loop_steps,
@@ -377,17 +377,23 @@ def write_report(runs: list[RunData], output: Path, overwrite: bool = False, sug
         local = localize(last)
         energy = energy_check(last)
         resim = resimulate(last)
-        # The effects-tried figure needs the diagnosis's answer: drawn once it is given (by the child too, whose
-        # matplotlib is loaded by then).
+        # The figures that need the diagnosis's answer: drawn once it is given (by the child too, whose matplotlib
+        # is loaded by then): the effects tried and, with several runs, each earlier run's evidence on the loop.
         later = {"suggestions": lambda answer: fig_suggestions(answer, tmp)}
+        if len(runs) > 1:
+            later["earlier_runs"] = lambda answer: earlier_run_figures(runs, answer["diagnoses"], answer["localized"],
+                                                                       tmp)
         with figures_aside(independent_figures(runs, tmp, local, energy, resim), later, jobs) as aside:
             summary, result, diagnoses, localized = _diagnosed_summary(runs, local, energy, resim, suggest_effects,
                                                                        progress, notes, names, traces)
             figures = dict(aside.get())
-            figures.update(aside.finish({"tried": summary.get("tried"), "diagnosis": summary.get("diagnosis")}))
+            answered = aside.finish({"tried": summary.get("tried"), "diagnosis": summary.get("diagnosis"),
+                                     "diagnoses": diagnoses, "localized": localized})
+        earlier = answered.pop("earlier_runs", [])
+        figures.update(answered)
         evidence = None
         if len(runs) > 1:  # the loop carries each run's own evidence (afmid.report.loop_evidence)
-            per_run = loop_figures(runs, diagnoses, localized, tmp, figures)
+            per_run = earlier + [{"residual": figures["residual"], "suggestions": figures.get("suggestions")}]
             evidence = [run_evidence_html(r, d, loc, f, tmp, _table, _rich)
                         for r, d, loc, f in zip(runs, diagnoses, localized, per_run)]
         truth_q = truth_quantities(last)
