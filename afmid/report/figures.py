@@ -78,12 +78,27 @@ def log_axis(ax, which: str = "y") -> None:
 
 def save_figure(fig, folder: Path, stem: str, dpi: float | None = None) -> str:
     """Write ``fig`` as ``folder/STEM.png`` (at ``dpi``, default :data:`FIGURE_DPI`) and ``folder/STEM.svg``,
-    close it and return the PNG's file name."""
+    close it and return the PNG's file name.
+
+    The figure is laid out and drawn once: one Agg drawing at the PNG's resolution solves the constrained
+    layout (the costliest part, every text's extent) and renders the pixels the PNG is written from (the same
+    bytes ``savefig`` writes, which would lay the figure out in a drawing of its own first); the layout is then
+    frozen, so the SVG is the same figure with its elements in the same places, not a second solution at 72 dpi.
+    """
+    import matplotlib.image
     import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     folder = Path(folder)
     try:
-        fig.savefig(folder / f"{stem}.png", dpi=FIGURE_DPI if dpi is None else dpi)
+        canvas = fig.canvas if isinstance(fig.canvas, FigureCanvasAgg) else FigureCanvasAgg(fig)
+        shown_dpi = fig.get_dpi()
+        fig.set_dpi(FIGURE_DPI if dpi is None else dpi)
+        canvas.draw()
+        fig.set_layout_engine("none")
+        matplotlib.image.imsave(folder / f"{stem}.png", canvas.buffer_rgba(), format="png", origin="upper",
+                                dpi=fig.get_dpi())
+        fig.set_dpi(shown_dpi)
         fig.savefig(folder / f"{stem}.svg", format="svg", metadata={"Date": None})
     finally:
         plt.close(fig)

@@ -47,16 +47,12 @@ def residual_caption(local: dict) -> str:
 SUGGESTIONS_CAPTION = "Candidates: BIC decrease (green = accepted) and error after adding each"
 
 
-def loop_figures(runs: list, diagnoses: list[dict], localized: list[dict], folder: Path,
-                 last_figures: dict) -> list[dict]:
-    """Per run, in order: ``{"residual": PNG name, "suggestions": PNG name or None}``. The last run's are
-    ``last_figures``' (the page's own); a run given twice is drawn once."""
+def earlier_run_figures(runs: list, diagnoses: list[dict], localized: list[dict], folder: Path) -> list[dict]:
+    """Per run but the last, in order: ``{"residual": PNG name, "suggestions": PNG name or None}``; a run given
+    twice is drawn once."""
     out, drawn = [], {}
-    for i, (run, diagnosis, local) in enumerate(zip(runs, diagnoses, localized)):
+    for i, (run, diagnosis, local) in enumerate(zip(runs[:-1], diagnoses, localized)):
         key = Path(run.path).resolve()
-        if i == len(runs) - 1:
-            out.append({"residual": last_figures["residual"], "suggestions": last_figures.get("suggestions")})
-            continue
         if key not in drawn:
             drawn[key] = {
                 "residual": fig_residual(local, folder, run.config.sample.a0, name=f"residual_run{i + 1}"),

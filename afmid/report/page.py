@@ -33,11 +33,12 @@ from afmid.diagnosis.candidate_shapes import shape_words
 from afmid.fit.uncertainty import INTERVALS_STATISTICAL, STATISTICAL_ONLY_TEXT, calibration_declared, intervals_kind
 from afmid.report.figures import figure_html
 from afmid.report.folder import report_folder
+from afmid.report.forked_figures import figures_aside
 from afmid.report.observables import summarize as summarize_observables
 from afmid.report.plots import (bandwidth_text, fig_coefficients, fig_error_runs, fig_force_separation, no_contact_note,
                                 fig_force_time, fig_observables, fig_periods, fig_phase_portraits, fig_residual,
                                 fig_suggestions)
-from afmid.report.loop_evidence import (REGION_HEADER, SUGGESTIONS_CAPTION, loop_figures, region_rows,
+from afmid.report.loop_evidence import (REGION_HEADER, SUGGESTIONS_CAPTION, earlier_run_figures, region_rows,
                                         residual_caption, run_evidence_html)
 from afmid.report.quantity_text import format_delta_bic, format_measurement, format_number, format_value
 from afmid.report.story import (band_words, diagnose_runs, error_text, fold_spread, loop_html, loop_lines, loop_steps,
@@ -358,11 +359,14 @@ def make_report(paths: list[Path], output: Path, overwrite: bool = False, sugges
 
 def write_report(runs: list[RunData], output: Path, overwrite: bool = False, suggest_effects: bool = True,
                  progress: bool = False, notes: list[str] | None = None, names: list | None = None,
-                 inputs: dict | None = None, traces: list | None = None) -> str:
+                 inputs: dict | None = None, traces: list | None = None, jobs: int | None = None) -> str:
     """:func:`make_report` of runs already read (or made in memory, :func:`afmid.runfile.run_data`); return the
     terminal summary table. ``names``: each run as summary.json names it (default: its path); ``inputs``: further
     input files the folder must not hold (path -> what it is), besides the runs' traces; ``traces``: each run's
-    trace in memory for its diagnosis (None: read again from its input file, :func:`afmid.diagnosis.diagnose.suggest`).
+    trace in memory for its diagnosis (None: read again from its input file, :func:`afmid.diagnosis.diagnose.suggest`);
+    ``jobs``: 2 draws the figures that do not need the diagnosis in a forked child while this process diagnoses, 1
+    draws them here (default: ``AFMID_REPORT_JOBS``, else 2; :mod:`afmid.report.forked_figures` says when it is
+    serial anyway). The files are the same either way.
     """
     output = Path(output)
     notes = notes or []
@@ -372,38 +376,24 @@ def write_report(runs: list[RunData], output: Path, overwrite: bool = False, sug
         last = runs[-1]
         local = localize(last)
         energy = energy_check(last)
-        result = diagnosed(last, progress=progress, trace=traces[-1]) if suggest_effects else None
-        localized = [local if r is last else localize(r) for r in runs] if len(runs) > 1 else [local]
-        diagnoses = diagnose_runs(runs, result, local, suggest_effects, progress, traces, localized)
-        summary = {"runs": [run_entry(p, r, d) for p, r, d in zip(names or [r.path for r in runs], runs, diagnoses)]}
-        if len(runs) > 1:
-            summary["loop"] = loop_steps(runs, diagnoses)
-        if notes:
-            summary["notes"] = notes
-        if result is not None:
-            summary.update(result)
-        summary["energy"] = energy
-        summary["intervals"] = intervals_kind(last.config)  # the last run's: statistical only, or with calibration
-        summary["afmid_version"] = __version__
         resim = resimulate(last)
-        summary["observables"] = summarize_observables(last, resim)
-        figures = {
-            "phase_portraits": fig_phase_portraits(last, tmp, resim),
-            "observables": fig_observables(last, tmp, resim),
-            "force_time": fig_force_time(last, tmp),
-            "force_separation": fig_force_separation(last, tmp),
-            "coefficients": fig_coefficients(last, tmp, truth_coefficients(last)),
-            "residual": fig_residual(local, tmp, last.config.sample.a0),
-            "periods": fig_periods(last, local, tmp, energy),
-        }
+        # The figures that need the diagnosis's answer: drawn once it is given (by the child too, whose matplotlib
+        # is loaded by then): the effects tried and, with several runs, each earlier run's evidence on the loop.
+        later = {"suggestions": lambda answer: fig_suggestions(answer, tmp)}
         if len(runs) > 1:
-            figures["error_by_run"] = fig_error_runs(runs, tmp)
-        suggestions_fig = fig_suggestions(summary, tmp)
-        if suggestions_fig:
-            figures["suggestions"] = suggestions_fig
+            later["earlier_runs"] = lambda answer: earlier_run_figures(runs, answer["diagnoses"], answer["localized"],
+                                                                       tmp)
+        with figures_aside(independent_figures(runs, tmp, local, energy, resim), later, jobs) as aside:
+            summary, result, diagnoses, localized = _diagnosed_summary(runs, local, energy, resim, suggest_effects,
+                                                                       progress, notes, names, traces)
+            figures = dict(aside.get())
+            answered = aside.finish({"tried": summary.get("tried"), "diagnosis": summary.get("diagnosis"),
+                                     "diagnoses": diagnoses, "localized": localized})
+        earlier = answered.pop("earlier_runs", [])
+        figures.update(answered)
         evidence = None
         if len(runs) > 1:  # the loop carries each run's own evidence (afmid.report.loop_evidence)
-            per_run = loop_figures(runs, diagnoses, localized, tmp, figures)
+            per_run = earlier + [{"residual": figures["residual"], "suggestions": figures.get("suggestions")}]
             evidence = [run_evidence_html(r, d, loc, f, tmp, _table, _rich)
                         for r, d, loc, f in zip(runs, diagnoses, localized, per_run)]
         truth_q = truth_quantities(last)
@@ -411,6 +401,48 @@ def write_report(runs: list[RunData], output: Path, overwrite: bool = False, sug
         (tmp / "report.html").write_text(render_html(runs, summary, figures, local, energy, tmp, truth_q, evidence),
                                          encoding="utf-8")
     return terminal_summary(summary, output)
+
+
+def independent_figures(runs: list[RunData], folder: Path, local: dict, energy: dict, resim: dict | None
+                        ) -> dict:
+    """The figures that do not depend on the diagnosis, each as a function drawing it into ``folder`` (figure
+    name -> its PNG's name): the last run's (from its run file, residual ``local``, energy check and re-simulation
+    ``resim``) and, with several runs, the error by run. Drawn beside the diagnosis
+    (:func:`afmid.report.forked_figures.figures_aside`)."""
+    last = runs[-1]
+    draws = {
+        "phase_portraits": lambda: fig_phase_portraits(last, folder, resim),
+        "observables": lambda: fig_observables(last, folder, resim),
+        "force_time": lambda: fig_force_time(last, folder),
+        "force_separation": lambda: fig_force_separation(last, folder),
+        "coefficients": lambda: fig_coefficients(last, folder, truth_coefficients(last)),
+        "residual": lambda: fig_residual(local, folder, last.config.sample.a0),
+        "periods": lambda: fig_periods(last, local, folder, energy),
+    }
+    if len(runs) > 1:
+        draws["error_by_run"] = lambda: fig_error_runs(runs, folder)
+    return draws
+
+
+def _diagnosed_summary(runs, local, energy, resim, suggest_effects, progress, notes, names, traces):
+    """The diagnosis of the last run (and each run's, for the loop) and summary.json's content:
+    (summary, the last run's diagnosis or None, each run's diagnosis, each run's residual)."""
+    last = runs[-1]
+    result = diagnosed(last, progress=progress, trace=traces[-1]) if suggest_effects else None
+    localized = [local if r is last else localize(r) for r in runs] if len(runs) > 1 else [local]
+    diagnoses = diagnose_runs(runs, result, local, suggest_effects, progress, traces, localized)
+    summary = {"runs": [run_entry(p, r, d) for p, r, d in zip(names or [r.path for r in runs], runs, diagnoses)]}
+    if len(runs) > 1:
+        summary["loop"] = loop_steps(runs, diagnoses)
+    if notes:
+        summary["notes"] = notes
+    if result is not None:
+        summary.update(result)
+    summary["energy"] = energy
+    summary["intervals"] = intervals_kind(last.config)  # the last run's: statistical only, or with calibration
+    summary["afmid_version"] = __version__
+    summary["observables"] = summarize_observables(last, resim)
+    return summary, result, diagnoses, localized
 
 
 def _jsonable(obj):
