@@ -12,7 +12,7 @@ so the system is the one :func:`afmid.fit.system.build_system` builds from the f
 The shortcut is checked once per added-effect library against the full evaluation (:data:`AGREEMENT`): a gated
 term switching inside a fine-grid cell makes the full library average every column over that cell, the
 composed system only the columns of the library (run's or added) whose term switches; where that moves the
-residual by more than a hundredth of a chi-square unit, the full library is evaluated.
+BIC by more than a hundredth of a unit, the full library is evaluated.
 Lengths in m.
 """
 
@@ -28,11 +28,12 @@ log = logging.getLogger(__name__)
 #: Bytes of kept columns (and bias rows) before the least recently used are dropped. A 5e5-sample record's
 #: [dmt] columns are ~1 MB per separation; a diagnosis visits a few hundred.
 KEPT_BYTES = 512 << 20
-#: The composed system's residual must agree with the full library's within this, in whitened chi-square units
-#: (a BIC moves by about as much; 1 is the evidence scale's resolution). They differ where the run's gated terms
-#: switch inside a fine-grid cell: the full library averages every column over such a cell
-#: (:func:`afmid.fit.system.average_switching_cells`), an added term evaluated alone only where it switches
-#: itself. Measured on a 20-period clean DMT trace, [dmt] + electrostatic: 0.0023 in a residual of 2443.
+#: The composed system's residual must agree with the full library's within this many BIC units (the BIC is
+#: n ln(rss / n) + ...: a residual off by delta moves it by n delta / rss; 1 is the evidence scale's resolution).
+#: They differ where the run's gated terms switch inside a fine-grid cell: the full library averages every column
+#: over such a cell (:func:`afmid.fit.system.average_switching_cells`), an added term evaluated alone only where
+#: it switches itself. Measured on a 20-period clean DMT trace, [dmt] + electrostatic: 0.0023 in a residual of
+#: 2443 over 2299 rows, 0.002 BIC units.
 AGREEMENT = 0.01
 
 
@@ -97,10 +98,10 @@ class BaseColumns:
             self._agrees[key] = False  # not the run's terms plus others: nothing to reuse
         if self._agrees.get(key) is False:
             return residual_sum_squares(build_system(self.prepared, library, params))
-        composed = self._composed_residual(library, params, [position[n] for n in base_names])
+        composed, n_rows = self._composed_residual(library, params, [position[n] for n in base_names])
         if key not in self._agrees:
             full = residual_sum_squares(build_system(self.prepared, library, params))
-            agrees = abs(composed - full) <= AGREEMENT
+            agrees = n_rows * abs(composed - full) <= AGREEMENT * full
             self._agrees[key] = agrees
             if not agrees:
                 log.debug("run columns reused disagree with the full library %s (%g vs %g); not reused", names,
@@ -108,7 +109,8 @@ class BaseColumns:
                 return full
         return composed
 
-    def _composed_residual(self, library, params: dict, base_positions: list[int]) -> float:
+    def _composed_residual(self, library, params: dict, base_positions: list[int]) -> tuple[float, int]:
+        """(the residual of the system composed of the kept run columns and the added ones, its rows)."""
         from dataclasses import replace
 
         from afmid.fit.system import build_system, library_columns, library_thermal_bias, residual_sum_squares
@@ -130,5 +132,7 @@ class BaseColumns:
             bias[..., base_positions] = base_bias
             bias[..., added_positions] = added_bias
         elif (base_bias is None) != (added_bias is None):  # cannot happen on one preparation; never mixed
-            return residual_sum_squares(build_system(self.prepared, library, params))
-        return residual_sum_squares(build_system(self.prepared, library, params, theta=theta, thermal_bias=bias))
+            system = build_system(self.prepared, library, params)
+            return residual_sum_squares(system), system.n_rows
+        system = build_system(self.prepared, library, params, theta=theta, thermal_bias=bias)
+        return residual_sum_squares(system), system.n_rows
