@@ -65,7 +65,9 @@ class ShapeSearch:
         rest = [t for t in library.terms if t.effect != effect]
         # The columns (and thermal-bias rows) alone: a whole system would also factor them, for nothing.
         rest_library, own_library = replace(library, terms=rest), replace(library, terms=own)
-        kept_elsewhere = self.base_columns is not None
+        # An added state gate: the run's kept columns are not used (BaseColumns.adds_a_gate); the rest's columns are
+        # then evaluated once per search with the full library's gates, as without kept columns.
+        kept_elsewhere = self.base_columns is not None and not self.base_columns.adds_a_gate(library)
         fixed_theta = library_columns(prep, rest_library, params) if rest and not kept_elsewhere else None
         fixed_bias = library_thermal_bias(prep, rest_library, params) if rest and not kept_elsewhere else None
 
@@ -83,7 +85,7 @@ class ShapeSearch:
         def shared(trial: dict) -> float:  # the run's terms' columns kept across searches and candidates
             return self.base_columns.residual(library, trial)
 
-        rss = [shared if self.base_columns is not None else composed if own and rest else full]
+        rss = [shared if kept_elsewhere else composed if own and rest else full]
         checked = [False]
         found: dict[str, float] = {}
         for _round in range(2 if len(names) > 1 else 1):

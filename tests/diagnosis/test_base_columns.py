@@ -110,3 +110,18 @@ def test_the_store_keeps_at_most_its_bytes(clean):
     assert shared.reused == 0
     shared.columns(dict(params, d=touch + 3e-10))
     assert shared.reused == 1
+
+
+def test_an_added_state_gate_is_evaluated_in_full(clean):
+    """capillary's meniscus gate switches at its own rupture distance: those cells are averaged over every column
+    in the full library, so the run's kept columns would differ there at every trial (not only the checked one)."""
+    from afmid.diagnosis.base_columns import BaseColumns
+    from afmid.fit.pipeline import library_parameters
+
+    config, prepared, touch = clean
+    shared = BaseColumns(prepared, _library(config, ["dmt"]))
+    library = _library(config, ["dmt", "capillary"])
+    params = library_parameters(prepared, config, library)
+    for d in (touch, touch, touch + 1e-10):
+        shared.residual(library, dict(params, d=d))
+    assert (shared.evaluations, shared.reused) == (3, 0)
