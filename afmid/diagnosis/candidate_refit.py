@@ -50,19 +50,22 @@ SEPARATION_COARSE_STEP = 2 * SEPARATION_WINDOW / (SEPARATION_GRID - 1)
 SEPARATION_STEP = 2e-12
 
 
-def search_separation(prepared, config: RunConfig, low: float, high: float) -> float:
+def search_separation(prepared, config: RunConfig, low: float, high: float, base_columns=None) -> float:
     """The rest separation in [``low``, ``high``] (and not below ``sample.a0``) that minimises the weighted residual of
     ``config``'s full library (its nonlinear parameters as ``config.model.parameters`` fixes them), m
     (:func:`separation_minimum`)."""
-    return separation_minimum(prepared, config, low, high)[0]
+    return separation_minimum(prepared, config, low, high, base_columns)[0]
 
 
-def separation_minimum(prepared, config: RunConfig, low: float, high: float) -> tuple[float, float]:
+def separation_minimum(prepared, config: RunConfig, low: float, high: float, base_columns=None
+                       ) -> tuple[float, float]:
     """:func:`search_separation`'s separation (m) and the lowest weighted residual sum of squares it evaluated.
 
     A coarse grid (at most :data:`SEPARATION_COARSE_STEP` apart), then zooms on the lowest point (each a grid of
     SEPARATION_ZOOM points between its neighbours) and a parabola through the last three
-    (:func:`afmid.fit.profile.local_minimum`: no parabola through a kink)."""
+    (:func:`afmid.fit.profile.local_minimum`: no parabola through a kink). ``base_columns``: the diagnosis's
+    :class:`afmid.diagnosis.base_columns.BaseColumns` (the run's own terms' columns at each separation, shared
+    by every candidate: only the added terms are evaluated per trial); None evaluates the whole library."""
     import numpy as np
 
     from afmid.errors import AfmidError
@@ -80,7 +83,8 @@ def separation_minimum(prepared, config: RunConfig, low: float, high: float) -> 
             d = float(d)
             if d not in values:
                 try:
-                    values[d] = residual_sum_squares(build_system(prepared, library, dict(params, d=d)))
+                    values[d] = (residual_sum_squares(build_system(prepared, library, dict(params, d=d)))
+                                 if base_columns is None else base_columns.residual(library, dict(params, d=d)))
                 except AfmidError:
                     values[d] = math.inf
         x = np.array(sorted(values))
@@ -183,7 +187,7 @@ def _reprofile(config: RunConfig, start: float, span, effect: str, shape_names: 
                 quick, shape = False, {}
                 trial.model.parameters = dict(config.model.parameters)
         if span is not None:
-            trial.sample.separation, residual = separation_minimum(prepared, trial, *span)
+            trial.sample.separation, residual = separation_minimum(prepared, trial, *span, shapes.base_columns)
             # The next round starts from a separation that fits the effect.
             separation = trial.sample.separation
             span = (separation - SEPARATION_REFINE_WINDOW, separation + SEPARATION_REFINE_WINDOW)

@@ -40,8 +40,11 @@ class ShapeSearch:
     and dropped if they disagree.
     """
 
-    def __init__(self, prepared):
+    def __init__(self, prepared, base_columns=None):
         self.prep = prepared  # afmid.fit.pipeline.Prepared of the trace, shared with the refits
+        #: afmid.diagnosis.base_columns.BaseColumns of the run's own terms on ``prepared`` (None: a trial evaluates the
+        #: columns of every term not searched, once per search)
+        self.base_columns = base_columns
         self.evaluations = 0
 
     def search(self, config: RunConfig, effect: str, names: list[str]) -> dict[str, float]:
@@ -62,8 +65,11 @@ class ShapeSearch:
         rest = [t for t in library.terms if t.effect != effect]
         # The columns (and thermal-bias rows) alone: a whole system would also factor them, for nothing.
         rest_library, own_library = replace(library, terms=rest), replace(library, terms=own)
-        fixed_theta = library_columns(prep, rest_library, params) if rest else None
-        fixed_bias = library_thermal_bias(prep, rest_library, params) if rest else None
+        # An added state gate: the run's kept columns are not used (BaseColumns.adds_a_gate); the rest's columns are
+        # then evaluated once per search with the full library's gates, as without kept columns.
+        kept_elsewhere = self.base_columns is not None and not self.base_columns.adds_a_gate(library)
+        fixed_theta = library_columns(prep, rest_library, params) if rest and not kept_elsewhere else None
+        fixed_bias = library_thermal_bias(prep, rest_library, params) if rest and not kept_elsewhere else None
 
         def composed(trial: dict) -> float:
             theta = np.concatenate([fixed_theta, library_columns(prep, own_library, trial)], axis=2)
@@ -76,7 +82,10 @@ class ShapeSearch:
         def full(trial: dict) -> float:
             return residual_sum_squares(build_system(prep, library, trial))
 
-        rss = [composed if own and rest else full]
+        def shared(trial: dict) -> float:  # the run's terms' columns kept across searches and candidates
+            return self.base_columns.residual(library, trial)
+
+        rss = [shared if kept_elsewhere else composed if own and rest else full]
         checked = [False]
         found: dict[str, float] = {}
         for _round in range(2 if len(names) > 1 else 1):

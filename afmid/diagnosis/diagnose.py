@@ -53,6 +53,7 @@ from afmid.io.trace import sha256_file
 from afmid.diagnosis.candidate_refit import (SEPARATION_WINDOW, refit_candidate, search_separation,
                                              separation_estimated)
 from afmid.diagnosis.candidate_shapes import ShapeSearch, shape_words
+from afmid.diagnosis.base_columns import BaseColumns
 # Where the residual sits: afmid.diagnosis.localize (importable from here as before).
 from afmid.diagnosis.localize import NEAR_RANGE, band_limit, energy_check, localize  # noqa: F401
 import afmid.physics.medium as medium
@@ -253,6 +254,8 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
     from afmid.fit.prepare import with_fine_grid
     from afmid.preprocess.instrument import from_config as instrument_from_config
     from afmid.io.trace import load_trace
+    from afmid.physics.library import build_library
+    from afmid.physics.tips import tip_geometry
 
     started = time.perf_counter()
     local = localize(run)
@@ -268,7 +271,11 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
     if abs(base.error - run.cv_error) > 0.02 * max(run.cv_error, 1e-12):
         log.warning("refitting %s gives error %.4g, the run file says %.4g (made by another afmid version?); "
                     "comparing with the refit", run.path.name, base.error, run.cv_error)
-    shapes = ShapeSearch(prepared)
+    # The run's own terms' columns at each separation (and shape) a candidate's search visits, evaluated once for
+    # all the candidates, their shape searches and the sets' separation searches.
+    base_columns = BaseColumns(prepared, build_library(base_config.model, base_config.source,
+                                                       tip_geometry(base_config.cantilever)))
+    shapes = ShapeSearch(prepared, base_columns)
     trials: list[Trial] = []
     for effect in counted(candidate_effects(run.effects, run.config.sample.medium), "report", "trying effects", "effects",
                           progress, named=True):  # the candidate named, an ETA
@@ -300,7 +307,7 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
         t.explains = not _significant(t.chi2_after, t.chi2_limit_after, t.error_after, t.noise_floor_after)
     trials.sort(key=lambda t: (not t.significant, t.delta_bic))
     good = [t for t in trials if t.significant]
-    final, final_bic = _forward(run, prepared, good)
+    final, final_bic = _forward(run, prepared, good, base_columns)
     good = [t for t in good if t.significant]
     trials.sort(key=lambda t: (not t.significant, t.delta_bic))
     # A catalog shape with physically impossible values (e.g. an attractive "hydration" force) that fits much
@@ -388,7 +395,7 @@ class _SetFit:
     selected: dict[str, bool]
 
 
-def _fit_set(run: RunData, prepared, members: list[Trial]) -> _SetFit | None:
+def _fit_set(run: RunData, prepared, members: list[Trial], base_columns: BaseColumns | None = None) -> _SetFit | None:
     config = refit_config(run, run.effects + [m.effect for m in members])
     fixed = {**config.model.parameters}
     for m in members:
@@ -396,7 +403,7 @@ def _fit_set(run: RunData, prepared, members: list[Trial]) -> _SetFit | None:
     config.model.parameters = fixed
     if separation_estimated(run) and math.isfinite(members[0].separation):
         config.sample.separation = search_separation(prepared, config, members[0].separation - SEPARATION_WINDOW,
-                                                     members[0].separation + SEPARATION_WINDOW)
+                                                     members[0].separation + SEPARATION_WINDOW, base_columns)
     try:
         result = _fit_quick(config, prepared)
     except Exception as exc:
@@ -415,7 +422,8 @@ def _fit_set(run: RunData, prepared, members: list[Trial]) -> _SetFit | None:
 PAIR_CANDIDATES = 5
 
 
-def _forward(run: RunData, prepared, good: list[Trial]) -> tuple[tuple[float, float, float, float], float]:
+def _forward(run: RunData, prepared, good: list[Trial], base_columns: BaseColumns | None = None
+             ) -> tuple[tuple[float, float, float, float], float]:
     """Which of the accepted candidates are needed; returns ((chi2, limit, error, floor), BIC) of the final set.
 
     Forward selection: the best candidate is kept; each further one is refitted
@@ -435,7 +443,7 @@ def _forward(run: RunData, prepared, good: list[Trial]) -> tuple[tuple[float, fl
     bic, error = top.bic_after, top.error_after
     verdicts: dict[str, str] = {}
     for t in good[1:]:
-        fitted = _fit_set(run, prepared, kept + [t])
+        fitted = _fit_set(run, prepared, kept + [t], base_columns)
         if fitted is None:
             verdicts[t.effect] = "could not be refitted together with " + ", ".join(k.effect for k in kept)
             continue
@@ -461,7 +469,7 @@ def _forward(run: RunData, prepared, good: list[Trial]) -> tuple[tuple[float, fl
                 pair = [pool[i], pool[j]]
                 if {p.effect for p in pair} <= {k.effect for k in kept}:
                     continue
-                fitted = _fit_set(run, prepared, pair)
+                fitted = _fit_set(run, prepared, pair, base_columns)
                 if fitted is None or not all(fitted.selected.values()):
                     continue
                 if best is None or fitted.bic < best[1].bic:
