@@ -15,8 +15,13 @@ Within a block d still moves: the feedback moves the piezo every period (sd 8-30
 soft with every block's d ~400 pm low (docs/lab/2026-11-29-scanning-record.md). Given each period's true d
 inside the fit, the same record came out right (d +17 pm at sigma 35 pm, E* 2.06 +- 0.12 GPa for 2). So the
 blocks are fitted jointly ``PERIOD_OFFSET_PASSES`` times: each joint fit's law gives each period's d relative to
-its block's from the period's mean force (:mod:`afmid.fit.period_separation`), and the next fits with those
-per-period separations, a level per block (the track: the levels; ``period_offsets``: the periods within).
+its block's (:mod:`afmid.fit.period_separation`), and the next fits with those per-period separations, a level per
+block (the track: the levels; ``period_offsets``: the periods within). The per-period d comes from all the
+period's weak-form rows (``within_block: rows``) or from its mean force alone (``mean_force``). The mean force's
+sensitivity to d is the period's mean contact stiffness, ~1.5 N/m on the 240-period feedback records measured:
+its offsets erred by 6-9 pm per period against a true sd of 5-8 pm, and the law traded the misassigned contact
+for a soft E* and every block's level 42-101 pm low (errors in the regressor flatten the law). The rows find the
+offsets to 1-2 pm there, and the levels came out within 2 sigma (docs/lab/2026-11-29-scanning-record.md).
 """
 
 from __future__ import annotations
