@@ -16,6 +16,7 @@ import dataclasses
 import numpy as np
 
 from afmid.fit.prepare import Prepared
+from afmid.fit.system import library_columns
 from afmid.preprocess.periods import ou_smooth_given
 
 
@@ -102,3 +103,94 @@ def smooth_offsets(offsets: np.ndarray, noise_var: float) -> np.ndarray:
     rho = float(np.clip(np.mean(centred[1:] * centred[:-1]) / signal_var, 0.0, 0.999))
     smoothed, _ = ou_smooth_given(centred[:, None], np.array([noise_var]), np.array([signal_var]), rho)
     return smoothed[:, 0]
+
+
+#: The step of the offsets' numerical derivative, m: a few pm, far below the indentation (~1 nm on the records
+#: measured), so the law's curvature over it is negligible, and far above the arithmetic's rounding.
+DERIVATIVE_STEP = 2e-12
+#: Gauss-Newton steps of :func:`row_offsets` (the second on the trajectory shifted by the first's offsets:
+#: F ~ delta^1.5 bends over the tens of pm the feedback moves d).
+ROW_OFFSET_STEPS = 2
+#: The Ornstein-Uhlenbeck prior's candidates, searched by the marginal likelihood: the offsets' sd (m) and their
+#: period-to-period correlation (the feedback loop's time, tens of periods, gives 0.9-0.99).
+PRIOR_SD = np.array([0.5, 1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 100]) * 1e-12
+PRIOR_RHO = np.array([0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995])
+
+
+def row_information(prep: Prepared, library, law: np.ndarray, nuisance_coef: np.ndarray, params: dict,
+                    offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weak-form rows' information on the per-period offsets linearised at ``offsets`` (m): the whitened
+    design's G^T G (1/m^2, (n, n)) and G^T r (1/m, (n,)) with r the rows' whitened residual under the law
+    (``law`` on ``library``'s columns, ``nuisance_coef`` on the preparation's drive columns) at ``offsets``.
+
+    A window spans two periods (:func:`afmid.preprocess.periods.weak_windows`) and sees each through the same
+    harmonics (weighted by the window's envelope), so one window cannot tell its two periods apart: G has about
+    one direction per window, and neighbouring periods are separated only by a prior (:func:`row_offsets`). The
+    derivatives come from moving the even and the odd periods apart (four evaluations of the columns); the row
+    noise is the fit's (``row_sigma``, independent rows)."""
+    n = prep.blocks.n_blocks
+    parity = np.arange(n) % 2
+    residual = (prep.Y - library_columns(with_period_separation(prep, offsets), library, params) @ law
+                - prep.nuisance @ nuisance_coef) / prep.row_sigma[None, :]
+    windows = residual.shape[0]
+    if windows > n:
+        raise ValueError(f"{windows} weak-form windows over {n} periods: a window spans more than two periods")
+    design = np.zeros((windows, residual.shape[1], n))
+    for odd in (0, 1):
+        step = DERIVATIVE_STEP * (parity == odd)
+        up = library_columns(with_period_separation(prep, offsets + step), library, params) @ law
+        down = library_columns(with_period_separation(prep, offsets - step), library, params) @ law
+        slope = (up - down) / (2 * DERIVATIVE_STEP) / prep.row_sigma[None, :]  # each window's period of this parity
+        for w in range(windows):  # window w spans periods w and w + 1
+            for b in (w, w + 1):
+                if b < n and parity[b] == odd:
+                    design[w, :, b] = slope[w]
+    whitened = design.reshape(-1, n)
+    return whitened.T @ whitened, whitened.T @ residual.ravel()
+
+
+def ou_prior(n: int, sd: float, rho: float) -> np.ndarray:
+    """The covariance (m^2) of n periods of an Ornstein-Uhlenbeck process of sd ``sd`` (m), lag-1 correlation rho."""
+    lags = np.abs(np.subtract.outer(np.arange(n), np.arange(n)))
+    return sd**2 * rho**lags
+
+
+def marginal_log_likelihood(information: np.ndarray, score: np.ndarray, prior: np.ndarray) -> float:
+    """log p(rows | prior) up to a constant for rows = G x + e, x ~ N(0, prior), e ~ N(0, 1) whitened, from
+    G^T G and G^T r: -1/2 log det(1 + prior G^T G) + 1/2 score^T (prior^-1 + G^T G)^-1 score."""
+    n = score.size
+    system = np.eye(n) + prior @ information
+    sign, logdet = np.linalg.slogdet(system)
+    if sign <= 0:
+        return -np.inf
+    return float(-0.5 * logdet + 0.5 * score @ np.linalg.solve(system, prior @ score))
+
+
+def row_offsets(prep: Prepared, library, law: np.ndarray, nuisance_coef: np.ndarray, params: dict
+                ) -> tuple[np.ndarray, tuple[float, float]]:
+    """Each harmonic block's (period's) rest separation relative to params["d"] (m, zero mean) from all the
+    weak-form rows of the equation of motion under the law, and the prior chosen ((sd in m, rho)).
+
+    The period's mean force (:func:`mean_force_offsets`) is one of those rows; on a contact of well under a
+    nanometre its sensitivity to d is low (mean contact stiffness ~1.5 N/m on the 2 nm step and rough records
+    measured: a period's noise ~10 pm against the feedback's 5-30 pm of motion), while the contact's harmonics
+    carry the same d in every row. The rows cannot tell neighbouring periods apart (:func:`row_information`), so
+    the offsets are the posterior mean under an Ornstein-Uhlenbeck prior (the feedback moves d smoothly) whose
+    sd and correlation maximise the rows' marginal likelihood (:data:`PRIOR_SD`, :data:`PRIOR_RHO`), linearised
+    at the previous step's offsets (Gauss-Newton, :data:`ROW_OFFSET_STEPS`)."""
+    n = prep.blocks.n_blocks
+    offsets = np.zeros(n)
+    chosen = (0.0, 0.0)
+    for _ in range(ROW_OFFSET_STEPS):
+        information, score = row_information(prep, library, law, nuisance_coef, params, offsets)
+        # The rows' evidence for the total offsets (not the step): G^T r + G^T G x0.
+        total = score + information @ offsets
+        best = -np.inf
+        for sd in PRIOR_SD:
+            for rho in PRIOR_RHO:
+                value = marginal_log_likelihood(information, total, ou_prior(n, sd, rho))
+                if value > best:
+                    best, chosen = value, (float(sd), float(rho))
+        prior = ou_prior(n, *chosen)
+        offsets = prior @ np.linalg.solve(np.eye(n) + information @ prior, total)
+    return offsets - offsets.mean(), chosen

@@ -15,8 +15,15 @@ Within a block d still moves: the feedback moves the piezo every period (sd 8-30
 soft with every block's d ~400 pm low (docs/lab/2026-11-29-scanning-record.md). Given each period's true d
 inside the fit, the same record came out right (d +17 pm at sigma 35 pm, E* 2.06 +- 0.12 GPa for 2). So the
 blocks are fitted jointly ``PERIOD_OFFSET_PASSES`` times: each joint fit's law gives each period's d relative to
-its block's from the period's mean force (:mod:`afmid.fit.period_separation`), and the next fits with those
-per-period separations, a level per block (the track: the levels; ``period_offsets``: the periods within).
+its block's (:mod:`afmid.fit.period_separation`), and the next fits with those per-period separations, a level per
+block (the track: the levels; ``period_offsets``: the periods within). The per-period d comes from all the
+period's weak-form rows (``within_block: rows``) or from its mean force alone (``mean_force``). The mean force's
+sensitivity to d is the period's mean contact stiffness, ~1.5 N/m on the 240-period feedback records measured:
+its offsets erred by 6-9 pm per period against a true sd of 5-8 pm, and the law traded the misassigned contact
+for a soft E* and every block's level 42-101 pm low (errors in the regressor flatten the law). The rows find the
+offsets to 1-2 pm there: 40 of 40 blocks within 2 sigma over seeds 71-75 of a step and a rough surface, force
+error 0.09-1.67 % of the peak; on seed 81 both were still ~40-50 pm low at sigma 14-16 pm: the level's sigma,
+conditional on the offsets, is too small (docs/lab/2026-11-29-scanning-record.md).
 """
 
 from __future__ import annotations
@@ -29,8 +36,8 @@ import numpy as np
 
 from afmid.config import RunConfig
 from afmid.errors import ConfigError
-from afmid.fit.joint import JointResult, fit_traces_jointly
-from afmid.fit.period_separation import mean_force_offsets, with_period_separation
+from afmid.fit.joint import JointResult, fit_traces_jointly, trace_coefficients
+from afmid.fit.period_separation import mean_force_offsets, row_offsets, with_period_separation
 from afmid.io.onset import crop
 from afmid.io.trace import Trace, check_trace
 
@@ -52,7 +59,7 @@ class SeparationTrack:
     joint: JointResult  # the joint fit of the blocks (the shared law, each block's forces)
     #: per block, each harmonic block's (period's) rest separation relative to the block's d, m
     period_offsets: list[np.ndarray] = dataclasses.field(default_factory=list)
-    within_block: str = "constant"  # how d moved within a block in the fit ("constant" or "mean_force")
+    within_block: str = "constant"  # how d moved within a block in the fit ("constant", "mean_force" or "rows")
 
 
 def block_periods_for(bandwidth: float, drive_frequency: float) -> int:
@@ -86,8 +93,9 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     """The force law and the track d(t) of ``trace`` (checked, :func:`afmid.io.trace.check_trace`) at
     ``bandwidth`` (Hz). ConfigError naming ``fit.separation_track.bandwidth`` when a block would be shorter than
     the fit needs, or when ``sample.separation`` is given (then there is nothing to track). ``within_block``
-    ("constant" or "mean_force"; None: ``fit.separation_track.within_block``, else "constant"): d held per block,
-    or moved per period from each period's mean force (``PERIOD_OFFSET_PASSES`` joint fits)."""
+    ("constant", "mean_force" or "rows"; None: ``fit.separation_track.within_block``, else "constant"): d held
+    per block, or moved per period from each period's mean force or from all its rows (``PERIOD_OFFSET_PASSES``
+    joint fits)."""
     key = "fit.separation_track.bandwidth"
     if config.sample.separation is not None:
         raise ConfigError("a separation track estimates d(t); leave sample.separation out", file=config.source,
@@ -104,7 +112,7 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     configs = [config] * len(blocks)
     section = config.fit.separation_track
     within_block = within_block or (section.within_block if section is not None else "constant")
-    passes = PERIOD_OFFSET_PASSES if within_block == "mean_force" else 1
+    passes = 1 if within_block == "constant" else PERIOD_OFFSET_PASSES
     joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty=uncertainty and passes == 1)
     offsets = [np.zeros(t.prep.blocks.n_blocks) for t in joint.traces]
     # The blocks' own preparations, before any offset: every pass finds the whole offsets afresh on them from its
@@ -112,7 +120,7 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     # whose scatter lies below the noise is smoothed to zero (a third pass changed nothing on a step record).
     unshifted = [t.prep for t in joint.traces]
     for fit_pass in range(2, passes + 1):
-        offsets = period_offsets(joint, unshifted)
+        offsets = period_offsets(joint, unshifted, within_block)
         last = fit_pass == passes
         joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty and last,
                                    adjust_prepared=lambda i, prep: with_period_separation(prep, offsets[i]))
@@ -124,12 +132,17 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
                            offsets, within_block)
 
 
-def period_offsets(joint: JointResult, preparations: list) -> list[np.ndarray]:
-    """Per block, each period's rest separation relative to the block's (m, zero mean), from the period's mean
-    force under the joint fit's law and the block's level (:func:`afmid.fit.period_separation.mean_force_offsets`,
-    smoothed), on ``preparations`` (one per block: the unshifted ones)."""
+def period_offsets(joint: JointResult, preparations: list, within_block: str = "mean_force") -> list[np.ndarray]:
+    """Per block, each period's rest separation relative to the block's (m, zero mean) under the joint fit's law
+    and the block's level, on ``preparations`` (one per block: the unshifted ones): from the period's mean force
+    (``within_block`` "mean_force": :func:`afmid.fit.period_separation.mean_force_offsets`, smoothed) or from all
+    the period's weak-form rows with the block's drive ("rows": :func:`afmid.fit.period_separation.row_offsets`)."""
     p = len(joint.library)
-    law = np.where(joint.selected[:p], joint.coef[:p], 0.0)
+    coef = np.where(joint.selected, joint.coef, 0.0)
+    law = coef[:p]
+    if within_block == "rows":
+        return [row_offsets(prep, joint.library, law, trace_coefficients(joint.system, coef, i, p)[p:], t.params)[0]
+                for i, (prep, t) in enumerate(zip(preparations, joint.traces))]
     return [mean_force_offsets(prep, joint.library, law, t.params) for prep, t in zip(preparations, joint.traces)]
 
 

@@ -18,8 +18,9 @@ class SeparationTrackConfig(BaseModel):
 
     bandwidth: Annotated[float, Field(gt=0, allow_inf_nan=False)] = Field(
         ..., description="Hz; the highest frequency of d(t) the track follows (blocks of f / (2 bandwidth) periods)")
-    within_block: Literal["constant", "mean_force"] = Field(
-        "constant", description="d within a block: constant, or per period from its mean force under the law "
-        "(afmid.fit.period_separation; for records under an amplitude feedback, see "
+    within_block: Literal["constant", "mean_force", "rows"] = Field(
+        "constant", description="d within a block: constant, or per period from its mean force under the law, or "
+        "from all its weak-form rows under the law (afmid.fit.period_separation; for records under an amplitude "
+        "feedback, see "
         "docs/lab/2026-11-29-scanning-record.md; wrong on a record whose d steps under a still piezo, hence not "
         "the default)")
