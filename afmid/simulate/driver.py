@@ -386,15 +386,27 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
                  drive_frequency=osc.drive_frequency, truth=truth, drive_force_amplitude=osc.drive_force)
 
 
+#: The share of the start's transient (exp(-pi N / Q) after N periods) above which an unsettled orbit is not
+#: described by its repeat: the start, not the orbit, would be what the first harmonic shows.
+START_LEFT_TO_CLASSIFY = 0.01
+
+
 def unsettled_orbit_text(extra: dict) -> str:
     """A steady simulation's unsettled orbit in words (``extra``: its truth's extra mapping with the keys
     :func:`simulate` writes when simulate.unsettled is record), for logs and coverage rows; nm in text."""
-    period = extra.get("orbit_periods", 0)
+    period = int(extra.get("orbit_periods", 0))
+    window = min(ORBIT_WINDOW_PERIODS, int(extra["settle_periods"]))  # the periods the orbit was looked at over
     low, high = extra["unsettled_amplitude_low"], extra["unsettled_amplitude_high"]
-    shape = (f"a period-{period} orbit" if period > 1 else
-             f"no repeat within {ORBIT_WINDOW_PERIODS // 2} periods (a slow beat, quasi-periodic or chaotic)")
+    if extra["start_decay"] > START_LEFT_TO_CLASSIFY:
+        shape = "the start still decaying (too few periods to tell the orbit)"
+    elif period > 1:
+        shape = f"a period-{period} orbit"
+    elif period == 1:  # steady over the few periods run, too few to count as settled
+        shape = "one period repeating, over too few periods to call it settled"
+    else:
+        shape = f"no repeat within {window // 2} periods (a slow beat, quasi-periodic or chaotic)"
     return (f"{shape}, first-harmonic amplitude {low * 1e9:.4f}-{high * 1e9:.4f} nm over the last "
-            f"{ORBIT_WINDOW_PERIODS} periods; the start decayed to {extra['start_decay']:.1e}")
+            f"{window} periods; {extra['start_decay']:.1e} of the start left")
 
 
 def _record_scanning(integrator, grid: Grid, setup: Setup, config: RunConfig, d: float, extra: dict, rng,
