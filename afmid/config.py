@@ -121,6 +121,10 @@ class SimulateConfig(StrictModel):
     )
     settle_tolerance: PositiveFloat = Field(1e-7, description="relative amplitude change per period at steady state")
     max_settle_periods: Annotated[int, Field(ge=1)] = 20000
+    unsettled: Literal["fail", "record"] = Field(
+        "fail", description="steady: an oscillation that does not settle within max_settle_periods is refused "
+        "(fail) or recorded as it then is (record: a period-n or aperiodic orbit, as an instrument records it)"
+    )
     transient_start: Literal["rest", "free"] = Field(
         "free", description="transient: start at rest or in free steady oscillation far from the sample"
     )

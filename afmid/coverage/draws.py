@@ -116,6 +116,9 @@ def set_value(raw: dict, key: str, value: Any) -> None:
     node[parts[-1]] = value
 
 
+#: simulate.unsettled of every draw: an oscillation that does not settle is recorded as it is.
+UNSETTLED = "record"
+
 #: Config mappings whose keys are free (a model's parameter names), so a drawn key may be new there.
 FREE_MAPPINGS = ("simulate.parameters", "model.parameters")
 
@@ -220,8 +223,8 @@ def draw(config: RunConfig, raw: dict, index: int) -> Draw:
 
 def apply_draw(raw: dict, one: Draw, separation_given: bool) -> tuple[dict, dict]:
     """(the simulation's config mapping, the fit's) for draw ``one`` from the merged mapping ``raw``: the drawn
-    values and the draw's simulate.seed in both, no data file, the coverage section gone; the fit's without
-    sample.separation unless ``separation_given``."""
+    values, the draw's simulate.seed and simulate.unsettled :data:`UNSETTLED` in both, no data file, the coverage
+    section gone; the fit's without sample.separation unless ``separation_given``."""
     simulated = yaml.safe_load(yaml.safe_dump(raw))
     simulated.pop("coverage", None)
     # The experiment is simulated, not read: no data file, nothing of one to crop (data.start / stop).
@@ -229,6 +232,9 @@ def apply_draw(raw: dict, one: Draw, separation_given: bool) -> tuple[dict, dict
     for key, value in one.values.items():
         set_value(simulated, key, value)
     set_value(simulated, "simulate.seed", one.seed)
+    # A steady oscillation that never settles (a period-n orbit) is recorded as an instrument would record it,
+    # not dropped: dropping such draws would bias the measured rates toward the easy experiments.
+    set_value(simulated, "simulate.unsettled", UNSETTLED)
     fitted = yaml.safe_load(yaml.safe_dump(simulated))
     if not separation_given:
         fitted["sample"]["separation"] = None
@@ -247,4 +253,5 @@ def set_options(one: Draw, separation_given: bool) -> list[str]:
     ``sample.separation=null`` unless given, ``afmid fit CONFIG`` fit it as the coverage run did)."""
     options = [f"{key}={yaml_text(value)}" for key, value in one.values.items()]
     options.append(f"simulate.seed={one.seed}")
+    options.append(f"simulate.unsettled={UNSETTLED}")
     return options

@@ -11,7 +11,12 @@ would (``afmid fit --add EFFECT``). Counted over the draws:
   same for both fits, so the comparison is of one computation on one record, without noise of its own);
 - **false alarm**: a draw with nothing hidden in which an effect is suggested; a *residual alarm* when the
   diagnosis calls the residual significant with no effect named;
-- **cannot decide**: the diagnosis said that the data cannot decide between effects (no effect named).
+- **cannot decide**: the diagnosis said that the data cannot decide between effects (no effect named);
+- **refused**: afmid's fit or diagnosis raised on the draw's record (counted, never dropped).
+
+A steady oscillation that never settles (a capillary neck formed on some taps only: a period-n orbit) is
+recorded as it is (simulate.unsettled: record, :mod:`afmid.coverage.draws`); the draw's ``recorded`` says so and
+the summary lists such draws with their outcome.
 
 The hidden effect and its parameters come from their own random stream of (``coverage.seed``, k), so that the
 drawn experiment (``coverage.vary``) is the same with and without the loop.
@@ -108,11 +113,58 @@ def judge(loop: dict) -> dict:
 
 
 # --------------------------------------------------------------------------- over the draws
+#: Stages of a failed draw at which afmid itself refused the recorded trace (its fit or its diagnosis raised): such
+#: a draw is counted as a refusal, not dropped (the simulator's own failures, stage simulate, are listed apart).
+REFUSING_STAGES = ("fit", "diagnose")
+
+
+def refused_row(one: dict) -> dict | None:
+    """The loop row of a failed draw whose record afmid's fit or diagnosis refused (None for any other draw):
+    nothing named, no refit, ``refused`` true."""
+    if one.get("status") == "ok" or one.get("stage") not in REFUSING_STAGES or "hidden" not in one:
+        return None
+    row = {"hidden": one["hidden"], "hidden_parameters": one.get("hidden_parameters", {}), "suggested": None,
+           "explained_by_catalog": False, "missing_effect": False, "undecided": False, "delta_bic": math.nan,
+           "error_before": math.nan, "error_after": math.nan, "noise_floor_before": math.nan,
+           "noise_floor_after": math.nan, "refused": True}
+    row.update(judge(row))
+    return row
+
+
+def loop_rows(draws: list[dict]) -> list[tuple[dict, dict]]:
+    """(draw, its loop row) of every draw the loop counts: the fitted draws with a loop record, and the draws afmid
+    refused (:func:`refused_row`)."""
+    out = []
+    for one in draws:
+        row = one.get("loop") if one.get("status") == "ok" else refused_row(one)
+        if row:
+            out.append((one, row))
+    return out
+
+
+def outcome(one: dict) -> str:
+    """A draw's outcome in the loop's words: 'named first', 'other: EFFECT', 'cannot decide', 'none', 'refused
+    (STAGE): ERROR' or 'failed (STAGE): ERROR'; ', raised' appended when the suggestion raised the error."""
+    row = one.get("loop") if one.get("status") == "ok" else refused_row(one)
+    if not row:
+        return f"failed ({one.get('stage', '')}): {one.get('error', '')}"
+    if row.get("refused"):
+        return f"refused ({one['stage']}): {one.get('error', '')}"
+    if row["named_first"]:
+        words = "named first"
+    elif row["suggested"] is not None:
+        words = f"other: {row['suggested']}"
+    else:
+        words = "cannot decide" if row["undecided"] else "none"
+    return words + (", raised" if row["raised"] else "")
+
+
 def loop_summary(draws: list[dict]) -> dict:
-    """Counts over the fitted draws with a loop record: per hidden effect and in all (named first, suggested
-    something else, cannot decide, nothing named, raised), and over the draws with nothing hidden (false alarms,
-    residual alarms), each fraction with its 95 % Wilson interval."""
-    loops = [d["loop"] for d in draws if d.get("status") == "ok" and d.get("loop")]
+    """Counts over the draws the loop counts (:func:`loop_rows`): per hidden effect and in all (named first,
+    suggested something else, cannot decide, refused, nothing named, raised), and over the draws with nothing
+    hidden (false alarms, residual alarms, refused), each fraction with its 95 % Wilson interval; and the draws
+    whose record is not a settled steady state (``recorded`` says so), each with its outcome."""
+    loops = [row for _, row in loop_rows(draws)]
     hidden = [one for one in loops if one["hidden"] != NOTHING_HIDDEN]
     null = [one for one in loops if one["hidden"] == NOTHING_HIDDEN]
 
@@ -121,10 +173,11 @@ def loop_summary(draws: list[dict]) -> dict:
         named = sum(r["named_first"] for r in rows)
         other = sum(r["suggested"] is not None and not r["named_first"] for r in rows)
         undecided = sum(r["suggested"] is None and r["undecided"] for r in rows)
+        refused = sum(bool(r.get("refused")) for r in rows)
         return {"n": n, "named_first": named, "named_first_fraction": named / n if n else math.nan,
                 "named_first_interval95": list(binomial_interval(named, n)), "named_other": other,
-                "cannot_decide": undecided, "nothing_named": n - named - other - undecided,
-                "raised": sum(r["raised"] for r in rows)}
+                "cannot_decide": undecided, "refused": refused,
+                "nothing_named": n - named - other - undecided - refused, "raised": sum(r["raised"] for r in rows)}
 
     by_effect = {}
     for effect in sorted({r["hidden"] for r in hidden}):
@@ -132,24 +185,30 @@ def loop_summary(draws: list[dict]) -> dict:
     n_null = len(null)
     false = sum(r["false_alarm"] for r in null)
     residual = sum(r["residual_alarm"] for r in null)
+    unsettled = [{"index": d["index"], "hidden": d.get("hidden", NOTHING_HIDDEN), "recorded": d["recorded"],
+                  "outcome": outcome(d)}
+                 for d in draws if str(d.get("recorded", "")).startswith("unsettled")]
     return {"hidden": rates(hidden), "by_effect": by_effect,
             "null": {"n": n_null, "false_alarms": false, "false_alarm_fraction": false / n_null if n_null else math.nan,
                      "false_alarm_interval95": list(binomial_interval(false, n_null)),
-                     "residual_alarms": residual, "raised": sum(r["raised"] for r in null),
+                     "residual_alarms": residual, "refused": sum(bool(r.get("refused")) for r in null),
+                     "raised": sum(r["raised"] for r in null),
                      "suggested": sorted({r["suggested"] for r in null if r["suggested"]})},
-            "raised_draws": [d["index"] for d in draws if d.get("loop") and d["loop"]["raised"]]}
+            "raised_draws": [d["index"] for d, row in loop_rows(draws) if row["raised"]],
+            "unsettled": unsettled}
 
 
 def loop_text(summary: dict) -> str:
     """The loop's table as ``afmid coverage`` prints it."""
     lines = ["\nthe blind loop (fit -> diagnose -> add the top suggestion -> refit); fraction [95 % Wilson interval]:",
-             f"{'hidden':<24} {'n':>4} {'named first':<22} {'other':>5} {'undecided':>9} {'none':>5} {'raised':>6}"]
+             f"{'hidden':<24} {'n':>4} {'named first':<22} {'other':>5} {'undecided':>9} {'refused':>7} {'none':>5} "
+             f"{'raised':>6}"]
 
     def row(name: str, r: dict) -> str:
         low, high = r["named_first_interval95"]
         cell = f"{r['named_first_fraction']:.2f} [{low:.2f}, {high:.2f}]" if r["n"] else "-"
         return (f"{name:<24} {r['n']:>4} {cell:<22} {r['named_other']:>5} {r['cannot_decide']:>9} "
-                f"{r['nothing_named']:>5} {r['raised']:>6}")
+                f"{r.get('refused', 0):>7} {r['nothing_named']:>5} {r['raised']:>6}")
 
     for effect, r in summary["by_effect"].items():
         lines.append(row(effect, r))
@@ -164,6 +223,8 @@ def loop_text(summary: dict) -> str:
                      + f"; {null['residual_alarms']} called the residual significant with no effect named")
     if summary["raised_draws"]:
         lines.append(f"the suggested effect raised the cross-validated error in draws {summary['raised_draws']}")
+    for one in summary.get("unsettled", []):
+        lines.append(f"draw {one['index']} (hidden {one['hidden']}): {one['recorded']}; {one['outcome']}")
     return "\n".join(lines)
 
 

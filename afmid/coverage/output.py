@@ -3,7 +3,8 @@ flags, the summary per quantity and the provenance (merged config, afmid version
 
 ``.json``: one document (NaN written as null). ``.h5`` / ``.hdf5``: the same in HDF5, format ``afmid-coverage``::
 
-    /draws/index, seed, status, stage, error, cv_error, cv_error_noise_floor   one row per draw
+    /draws/index, seed, status, stage, error, cv_error, cv_error_noise_floor   one row per draw; recorded: what
+                          the simulated record holds ('steady state', 'unsettled orbit, recorded as it is ...')
     /drawn/KEY            the drawn value of each varied key (KEY as in the config, '.' kept), NaN where failed
     /numbers/NAME/estimate, sigma (1 sigma), truth, z, ci95_low, ci95_high   (NaN where the draw has none)
     /numbers/NAME/in_ci95 (1 inside, 0 outside, -1 no interval), flags (comma-separated)
@@ -96,7 +97,7 @@ def _write_hdf5(path: Path, result) -> None:
         write_dataset(table, "index", np.array([d["index"] for d in draws], dtype=np.int64), "1")
         write_dataset(table, "seed", np.array([d["seed"] for d in draws], dtype=np.int64), "1",
                       description="simulate.seed of the draw")
-        for name in ("status", "stage", "error"):
+        for name in ("status", "stage", "error", "recorded"):
             write_dataset(table, name, np.array([str(d.get(name, "")) for d in draws]), "")
         for name in ("cv_error", "cv_error_noise_floor"):
             write_dataset(table, name, _column(draws, lambda d, n=name: d[n]), "1")

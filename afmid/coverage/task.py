@@ -25,11 +25,25 @@ def draw_task(index: int, seed: int, values: dict, simulated: dict, fitted: dict
             "source": None if source is None else str(source), "separation_given": separation_given}
 
 
+def recorded_text(extra: dict) -> str:
+    """What the simulated record of a draw holds, in words (``extra``: its truth's extra mapping): 'steady
+    state', 'from rest', 'from the free oscillation', or 'unsettled orbit: ...' for a steady simulation that
+    did not settle (:func:`afmid.simulate.driver.unsettled_orbit_text`)."""
+    from afmid.simulate.driver import unsettled_orbit_text
+
+    if extra.get("mode") == "transient":
+        return "from rest" if extra.get("transient_start") == "rest" else "from the free oscillation"
+    if extra.get("settled", True):
+        return "steady state"
+    return (f"unsettled orbit, recorded as it is after {extra['settle_periods']} periods (steady state not "
+            f"reached): {unsettled_orbit_text(extra)}")
+
+
 def run_draw(task: dict) -> dict:
     """Simulate, check (:func:`afmid.io.trace.check_trace`: a record from rest is fitted from its onset, as on
     loading a file), fit (:func:`afmid.fit.pipeline.run_fit`) and compare (:func:`afmid.coverage.compare.compare`)
-    one draw. Returns {index, seed, values, status (ok / failed), error, stage, numbers, cv_error,
-    cv_error_noise_floor, warnings, seconds}."""
+    one draw. Returns {index, seed, values, status (ok / failed), error, stage, recorded (:func:`recorded_text`,
+    once simulated), numbers, cv_error, cv_error_noise_floor, warnings, seconds}."""
     out = {"index": task["index"], "seed": task["seed"], "values": task["values"], "status": "failed", "error": "",
            "stage": "simulate", "numbers": {}, "warnings": [], "seconds": {}}
     if task.get("loop"):  # the effect hidden in the simulation, kept even if the draw fails
@@ -51,6 +65,7 @@ def run_draw(task: dict) -> dict:
         started = time.process_time()
         trace = simulate(build_config(task["simulate"], source=source))
         out["seconds"]["simulate"] = time.process_time() - started
+        out["recorded"] = recorded_text(trace.truth.extra)
         out["stage"] = "fit"
         config = build_config(task["fit"], source=source)
         started = time.process_time()

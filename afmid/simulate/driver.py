@@ -58,6 +58,7 @@ from afmid.physics.effects import BOLTZMANN
 from afmid.simulate.instrument import MultiModeIntegrator, detect, detector_lead_periods, integrator_for  # noqa: F401
 from afmid.simulate.integrator import (  # noqa: F401 (re-exported)
     DEFAULT_KERNEL,
+    ORBIT_WINDOW_PERIODS,
     SETTLE_CHUNK_PERIODS,
     SETTLED_PERIODS,
     Integrator,
@@ -283,9 +284,18 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
 
         if sim.mode == "steady":
             bar.stage(f"settling (at most {sim.max_settle_periods} periods)")
-            state = settle(integrator, sim.steps_per_period, sim.settle_tolerance, sim.max_settle_periods, bar)
+            state = settle(integrator, sim.steps_per_period, sim.settle_tolerance, sim.max_settle_periods, bar,
+                           require_settled=sim.unsettled == "fail")
             extra.update(steady_amplitude=state.amplitude, steady_phase=state.phase, settle_periods=state.periods,
-                         setpoint=state.amplitude / setup.free_amplitude)
+                         setpoint=state.amplitude / setup.free_amplitude, settled=state.settled)
+            if not state.settled:
+                # An instrument records whatever the lever does once the start has died away: a period-n or
+                # aperiodic orbit (a capillary neck that forms on some taps only) is recorded as it is.
+                extra.update(unsettled_amplitude_low=state.amplitude_low, unsettled_amplitude_high=state.amplitude_high,
+                             orbit_periods=state.orbit_periods,
+                             start_decay=math.exp(-math.pi * state.periods / osc.quality_factor))
+                log.warning("the oscillation did not settle within %d periods (%s); recorded as it is "
+                            "(simulate.unsettled: record)", state.periods, unsettled_orbit_text(extra))
             if sim.setpoint is not None and abs(state.amplitude / setup.free_amplitude - sim.setpoint) > 1e-3:
                 log.warning("setpoint search reached A/A0 = %.4f instead of %.4f (the amplitude jumps near "
                             "this separation: bistable attractive/repulsive regimes)",
@@ -345,7 +355,8 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
         adc_step=noise.adc_step,
         seed=sim.seed,
         units=("drive_force_amplitude: N; separation: m; drive_frequency: Hz; free_amplitude: m; "
-               "steady_amplitude: m; steady_phase: rad (lag behind the drive); integration_step: s; "
+               "steady_amplitude: m; steady_phase: rad (lag behind the drive); unsettled_amplitude_low, "
+               "unsettled_amplitude_high: m; orbit_periods: drive periods; start_decay: 1; integration_step: s; "
                "temperature: K; detector_rms: m; adc_step: m"),
     )
     if not declared.ideal:
@@ -373,6 +384,29 @@ def simulate(config: RunConfig, progress: bool = False) -> Trace:
                                         resonance_frequency=osc.resonance_frequency, quality_factor=osc.quality_factor)
     return Trace(deflection=deflection, sample_rate=grid.sample_rate, cantilever=cantilever,
                  drive_frequency=osc.drive_frequency, truth=truth, drive_force_amplitude=osc.drive_force)
+
+
+#: The share of the start's transient (exp(-pi N / Q) after N periods) above which an unsettled orbit is not
+#: described by its repeat: the start, not the orbit, would be what the first harmonic shows.
+START_LEFT_TO_CLASSIFY = 0.01
+
+
+def unsettled_orbit_text(extra: dict) -> str:
+    """A steady simulation's unsettled orbit in words (``extra``: its truth's extra mapping with the keys
+    :func:`simulate` writes when simulate.unsettled is record), for logs and coverage rows; nm in text."""
+    period = int(extra.get("orbit_periods", 0))
+    window = min(ORBIT_WINDOW_PERIODS, int(extra["settle_periods"]))  # the periods the orbit was looked at over
+    low, high = extra["unsettled_amplitude_low"], extra["unsettled_amplitude_high"]
+    if extra["start_decay"] > START_LEFT_TO_CLASSIFY:
+        shape = "the start still decaying (too few periods to tell the orbit)"
+    elif period > 1:
+        shape = f"a period-{period} orbit"
+    elif period == 1:  # steady over the few periods run, too few to count as settled
+        shape = "one period repeating, over too few periods to call it settled"
+    else:
+        shape = f"no repeat within {window // 2} periods (a slow beat, quasi-periodic or chaotic)"
+    return (f"{shape}, first-harmonic amplitude {low * 1e9:.4f}-{high * 1e9:.4f} nm over the last "
+            f"{window} periods; {extra['start_decay']:.1e} of the start left")
 
 
 def _record_scanning(integrator, grid: Grid, setup: Setup, config: RunConfig, d: float, extra: dict, rng,

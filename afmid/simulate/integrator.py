@@ -168,10 +168,30 @@ class SteadyState:
     periods: int  # drive periods integrated to settle
     amplitude: float  # first-harmonic amplitude, m
     phase: float  # its phase lag behind the drive, rad
+    settled: bool = True  # False: the first harmonic still changed when max_periods ran out (see settle)
+    amplitude_low: float = math.nan  # unsettled: the smallest and largest first-harmonic amplitude (m) over
+    amplitude_high: float = math.nan  # the last ORBIT_WINDOW_PERIODS periods
+    orbit_periods: int = 0  # unsettled: the orbit's period in drive periods (0: no repeat within ORBIT_WINDOW_PERIODS / 2)
+
+
+#: Periods whose first harmonic an unsettled :func:`settle` keeps to describe the orbit it ended on.
+ORBIT_WINDOW_PERIODS = 128
+
+
+def orbit_period(amplitudes: np.ndarray, phases: np.ndarray, tolerance: float) -> int:
+    """The smallest lag L (drive periods, 1 .. len / 2) after which the per-period first harmonic repeats: every
+    amplitude within ``tolerance`` (relative) and every phase within ``tolerance`` (rad) of the one L periods
+    before, over the whole series; 0 when none does (a slow beat, quasi-periodic or chaotic motion)."""
+    for lag in range(1, amplitudes.size // 2 + 1):
+        d_amp = np.abs(amplitudes[lag:] - amplitudes[:-lag]) / amplitudes[lag:]
+        d_phase = np.abs(np.remainder(phases[lag:] - phases[:-lag] + math.pi, 2.0 * math.pi) - math.pi)
+        if max(d_amp.max(), d_phase.max()) < tolerance:
+            return lag
+    return 0
 
 
 def settle(integrator: Integrator, steps_per_period: int, tolerance: float, max_periods: int,
-           tick: Callable[[int], None] = lambda n: None) -> SteadyState:
+           tick: Callable[[int], None] = lambda n: None, require_settled: bool = True) -> SteadyState:
     """Integrate whole drive periods until the first harmonic stops changing.
 
     Settled when the relative amplitude change and the phase change (rad) from
@@ -179,7 +199,10 @@ def settle(integrator: Integrator, steps_per_period: int, tolerance: float, max_
     in a row. The transient decays by exp(-pi/Q) per period, so the remaining
     deviation from the steady state is about tolerance * Q / pi. Leaves the
     integrator at a period boundary (drive phase 0). Raises AfmidError if it
-    does not settle within ``max_periods``.
+    does not settle within ``max_periods``; with ``require_settled`` false it
+    returns the state it ended on instead (``settled`` False, the amplitude range
+    and the orbit's period over the last ORBIT_WINDOW_PERIODS periods): a
+    period-n or aperiodic orbit, as an instrument would record it.
     """
     h = integrator.oscillator.period / steps_per_period
     omega_h = 2.0 * math.pi / steps_per_period
@@ -187,6 +210,8 @@ def settle(integrator: Integrator, steps_per_period: int, tolerance: float, max_
     previous = None
     calm = 0
     done = 0
+    recent_amplitudes: list[float] = []
+    recent_phases: list[float] = []
     while done < max_periods:
         chunk = min(SETTLE_CHUNK_PERIODS, max_periods - done)
         seg = integrator.run(0.0, h, chunk * steps_per_period, 1)
@@ -197,14 +222,23 @@ def settle(integrator: Integrator, steps_per_period: int, tolerance: float, max_
                 d_phase = abs(math.remainder(phase - previous[1], 2.0 * math.pi))
                 calm = calm + 1 if max(d_amp, d_phase) < tolerance else 0
             previous = (amplitude, phase)
+            recent_amplitudes.append(amplitude)
+            recent_phases.append(phase)
+        del recent_amplitudes[:-ORBIT_WINDOW_PERIODS], recent_phases[:-ORBIT_WINDOW_PERIODS]
         done += chunk
         tick(chunk)
         if calm >= SETTLED_PERIODS:
             return SteadyState(done, amplitude, phase)
+    if not require_settled:
+        amplitudes, phases = np.array(recent_amplitudes), np.array(recent_phases)
+        return SteadyState(done, amplitude, phase, settled=False, amplitude_low=float(amplitudes.min()),
+                           amplitude_high=float(amplitudes.max()),
+                           orbit_periods=orbit_period(amplitudes, phases, tolerance))
     raise AfmidError(
         f"the oscillation did not settle within {max_periods} drive periods (the first harmonic still "
         f"changes by more than simulate.settle_tolerance = {tolerance:g} per period; it may be "
         "period-doubled or chaotic at this separation). Increase simulate.max_settle_periods, loosen "
-        "simulate.settle_tolerance, or use simulate.mode: transient",
+        "simulate.settle_tolerance, record the orbit as it is (simulate.unsettled: record), or use "
+        "simulate.mode: transient",
         key="simulate.max_settle_periods",
     )

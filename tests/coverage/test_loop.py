@@ -103,6 +103,46 @@ def test_the_counts_over_draws():
     assert s["raised_draws"] == [2]
 
 
+def test_a_draw_that_does_not_settle_is_recorded_as_it_is_and_its_row_says_so():
+    """Draw 2 of loop_air (hidden capillary) with max_settle_periods 3, far too few to settle: the coverage draw
+    records the oscillation as it then is (simulate.unsettled: record, also in the --set options that reproduce it)
+    where the same simulation without it is refused; the draw's row says what was recorded, a record afmid then
+    refuses is counted as refused (not dropped) and listed with its outcome."""
+    from afmid.coverage.draws import Draw, set_options
+    from afmid.coverage.loop import loop_text
+    from afmid.coverage.run import prepare_draws
+    from afmid.coverage.task import recorded_text, run_draw
+    from afmid.errors import AfmidError
+    from afmid.simulate.driver import simulate
+
+    raw = yaml.safe_load(LOOP.read_text())
+    raw["simulate"]["max_settle_periods"] = 3
+    config = build_config(raw, source=LOOP)
+    task = prepare_draws(config, [2])[0]
+    assert task["hidden"] == "capillary" and task["simulate"]["simulate"]["unsettled"] == "record"
+    assert "simulate.unsettled=record" in set_options(Draw(2, task["seed"], task["values"]), False)
+    trace = simulate(build_config(task["simulate"], source=LOOP))
+    row = recorded_text(trace.truth.extra)
+    assert row.startswith("unsettled orbit, recorded as it is after 3 periods (steady state not reached): the start "
+                          "still decaying"), row  # exp(-pi 3 / Q) of the start left at Q 100-600: 0.91-0.98
+    refusing = {**task["simulate"], "simulate": {**task["simulate"]["simulate"], "unsettled": "fail"}}
+    with pytest.raises(AfmidError) as err:
+        simulate(build_config(refusing, source=LOOP))
+    assert err.value.key == "simulate.max_settle_periods"
+
+    # The same draw, its fit refused at once (an invalid fit section): recorded, then counted as refused.
+    task["fit"] = {**task["fit"], "fit": {**task["fit"]["fit"], "bootstrap": -1}}
+    one = run_draw(task)
+    assert one["status"] == "failed" and one["stage"] == "fit" and one["recorded"] == row
+    fitted = {"index": 0, "status": "ok", "hidden": "capillary", "recorded": "steady state",
+              "loop": _record("capillary", "capillary", after=0.1)}
+    s = loop_summary([one, fitted])
+    assert s["hidden"] == {**s["hidden"], "n": 2, "named_first": 1, "refused": 1, "nothing_named": 0}
+    assert s["unsettled"] == [{"index": 2, "hidden": "capillary", "recorded": row,
+                               "outcome": f"refused (fit): {one['error']}"}]
+    assert f"draw 2 (hidden capillary): {row}; refused (fit)" in loop_text(s)
+
+
 def _first_index(config, effect: str, start: int = 0) -> int:
     return next(i for i in range(start, 500) if draw_hidden(config.coverage, i)[0] == effect)
 

@@ -680,3 +680,42 @@ def test_a_run_that_does_not_settle_says_so():
     with pytest.raises(AfmidError) as err:
         simulate(config)
     assert err.value.key == "simulate.max_settle_periods" and "did not settle" in err.value.message
+    assert "simulate.unsettled: record" in err.value.message
+
+
+def test_an_unsettled_run_is_recorded_as_it_is_when_asked():
+    """simulate.unsettled: record keeps the state after max_settle_periods and records from it; the truth says
+    it did not settle and how much of the start is left (exp(-pi N / Q) after N periods)."""
+    Q, periods = 250.0, 5
+    trace = simulate(make_config(Q=Q, max_settle_periods=3, unsettled="record", periods=periods))
+    extra = trace.truth.extra
+    assert extra["settled"] is False and extra["settle_periods"] == 3
+    assert extra["start_decay"] == pytest.approx(math.exp(-math.pi * 3 / Q), rel=1e-12)
+    assert 0 < extra["unsettled_amplitude_low"] <= extra["unsettled_amplitude_high"] < 1.1 * A_FREE
+    assert trace.deflection.size == round(periods * 200)  # the recording itself as in a settled run
+    assert simulate(make_config(Q=2.0, unsettled="record", periods=3)).truth.extra["settled"] is True
+
+
+def test_orbit_period_finds_the_repeat_and_none_in_a_beat():
+    from afmid.simulate.integrator import orbit_period
+
+    n = np.arange(128)
+    period_3 = 6.7e-9 * (1 + 1e-3 * np.array([0.0, 1.0, -0.5])[n % 3])
+    assert orbit_period(period_3, np.full(128, 2.3), 1e-7) == 3
+    beat = 6.7e-9 * (1 + 1e-3 * np.sin(2 * np.pi * n / (3 + math.sqrt(2))))  # incommensurate: never repeats
+    assert orbit_period(beat, np.full(128, 2.3), 1e-7) == 0
+    assert orbit_period(np.full(128, 6.7e-9), 2.3 + 1e-3 * (n % 2), 1e-7) == 2  # a repeat in the phase alone
+
+
+def test_a_capillary_neck_formed_on_some_taps_only_is_a_period_8_orbit():
+    """Draw 13 of configs/coverage/loop_air.yaml (seed 2805): a meniscus that forms on 5 taps of every 8 never
+    settles to one period; the orbit is reached well within 2000 periods at Q 200 (the start decays to
+    exp(-pi 2000 / 200) ~ 2e-14) and repeats after exactly 8 periods."""
+    config = make_config(effects=["capillary"], Q=199.96188082020134, d=7.142663936778473e-09,
+                         A0=9.951341595965224e-09,
+                         parameters={"E_star": 3178269521.180495, "hamaker": 3.551827748040398e-20,
+                                     "contact_angle": 0.6207703356041621, "rupture_distance": 1.1448647850999555e-09},
+                         max_settle_periods=2000, unsettled="record", periods=16, samples_per_period=100)
+    extra = simulate(config).truth.extra
+    assert extra["settled"] is False and extra["orbit_periods"] == 8
+    assert 6.9e-9 < extra["unsettled_amplitude_low"] < extra["unsettled_amplitude_high"] < 7.0e-9
