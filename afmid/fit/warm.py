@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import time
 
 import numpy as np
 
@@ -104,14 +103,9 @@ KERNELS = {"library": _library, "contact_probe": _contact_probe, "information_bo
 def warm_default_model(names=None, stream=None) -> dict[str, float]:
     """Compile (or load from numba's cache) the default model's generated kernels of ``names`` (default: all of
     :data:`KERNELS`); returns the seconds each took (a compilation ~0.5-3 s, a cache load ~10-50 ms)."""
-    seconds = {}
-    for name in names or KERNELS:
-        start = time.perf_counter()
-        KERNELS[name]()
-        seconds[name] = time.perf_counter() - start
-        if stream is not None:
-            stream.write(f"afmid default model: {name} ready in {seconds[name]:.2f} s\n")
-    return seconds
+    from afmid.kernels.warm import warm
+
+    return warm(names, stream, kernels=KERNELS, label="afmid default model")
 
 
 def main(argv=None) -> int:

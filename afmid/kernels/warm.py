@@ -49,16 +49,18 @@ def _switching() -> None:
 KERNELS = {"switching": _switching, "sparse": _sparse}
 
 
-def warm(names=None, stream=None) -> dict[str, float]:
-    """Compile (or load from numba's cache) the kernels of ``names`` (default: all of :data:`KERNELS`); returns the
-    seconds each took (a compilation ~0.5-3 s, a cache load ~10 ms)."""
+def warm(names=None, stream=None, kernels=None, label: str = "afmid kernels") -> dict[str, float]:
+    """Compile (or load from numba's cache) the kernels of ``names`` (default: all of ``kernels``, which defaults to
+    :data:`KERNELS`; another module passes its own table of name -> compiling function); returns the seconds each
+    took (a compilation ~0.5-3 s, a cache load ~10 ms). ``stream`` gets one line per group, starting with ``label``."""
+    kernels = KERNELS if kernels is None else kernels
     seconds = {}
-    for name in names or KERNELS:
+    for name in names or kernels:
         start = time.perf_counter()
-        KERNELS[name]()
+        kernels[name]()
         seconds[name] = time.perf_counter() - start
         if stream is not None:
-            stream.write(f"afmid kernels: {name} ready in {seconds[name]:.2f} s\n")
+            stream.write(f"{label}: {name} ready in {seconds[name]:.2f} s\n")
     return seconds
 
 
