@@ -465,10 +465,32 @@ def test_generated_modules_are_files_written_once(tmp_path, monkeypatch):
                                                               gated.n_gates)
 
 
+#: Run in a fresh process: in the suite's own process another test may have called a module's law_conditions.
+_GATE_FREE_CHECK = """
+from afmid.physics.effects import build_force_law
+from afmid.simulate.driver import Integrator, Oscillator, compile_force_law
+compiled = compile_force_law(build_force_law(["dmt"], {{}}, {{"R": {R!r}, "a0": {a0!r}}}))
+osc = Oscillator({k!r}, {f0!r}, 50.0, {f0!r}, 8e-9)
+integrator = Integrator(osc, compiled, {d!r}, kernel="generated")
+integrator.start(*osc.free_state(0.0))
+integrator.run(0.0, osc.period / 2000, 4000, 10)
+module = compiled.generated_kernel().module
+print(module.HAS_GATES, bool(module.integrate.signatures), bool(module.law_conditions.signatures))
+"""
+
+
 def test_a_gate_free_generated_kernel_does_not_compile_the_gate_handling():
     """HAS_GATES = False prunes the gate handling before numba types it: running a gate-free law's generated kernel
-    compiles no version of its law_conditions (the code before compiled it, unused, into integrate and event_step:
-    ~1 s of CPU of the first-ever fit). The trajectory is the VM kernel's (which keeps the gate handling)."""
+    (in a new process, from the on-disk cache or compiled) loads no version of its law_conditions (the code before
+    compiled it, unused, into integrate and event_step: ~1 s of CPU of the first-ever fit). The trajectory is the
+    VM kernel's (which keeps the gate handling)."""
+    import subprocess
+    import sys
+
+    code = _GATE_FREE_CHECK.format(R=R, a0=A0_CONTACT, k=K, f0=F0_HZ, d=D_TAP)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["False", "True", "False"], out.stdout
     compiled = compile_force_law(build_force_law(["dmt"], {}, {"R": R, "a0": A0_CONTACT}))
     osc = Oscillator(K, F0_HZ, 50.0, F0_HZ, 8e-9)  # drive 8 nN at Q 50: a free amplitude of 10 nm, tapping at D_TAP
     h = osc.period / 2000
@@ -478,8 +500,6 @@ def test_a_gate_free_generated_kernel_does_not_compile_the_gate_handling():
         integrator.start(*osc.free_state(0.0))
         segment = integrator.run(0.0, h, 4000, 10)
         ends.append((segment.x, segment.events))
-    module = compiled.generated_kernel().module
-    assert module.HAS_GATES is False and module.integrate.signatures and not module.law_conditions.signatures
     assert ends[0][1] == ends[1][1] > 0
     np.testing.assert_array_equal(ends[0][0], ends[1][0])  # the same operations in the same order
 
