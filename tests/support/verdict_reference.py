@@ -11,7 +11,11 @@ tried. :func:`check_answer` compares a new answer with it:
   difference below 2 units is "not worth more than a bare mention" on Kass and Raftery's scale (J. Am. Stat.
   Assoc. 90, 773, 1995), so a move of 1 unit cannot change any candidate's evidence class; 0.5 % of a large ΔBIC
   (tens of units at -5000) leaves room for a search that ends on a neighbouring point of the separation grid
-  and changes no ranking (the verdicts are compared exactly).
+  and changes no ranking (the verdicts are compared exactly). On a nearly noise-free record a rejected candidate's
+  ΔBIC can move by more: on the false-alarm suite's transient records (1 pm noise) the squeeze-film candidate's
+  separation search ended 0.1 pm apart when the candidates began to share the run's columns
+  (afmid.diagnosis.base_columns), and its ΔBIC went +14342 -> +14270 and +1255 -> +1248 (recorded anew: both far
+  on the rejected side, every verdict the same).
 
 A deliberate change of the diagnosis's answers is recorded anew: run the two suites with
 ``AFMID_VERDICT_RECORD=1`` (every case's answer is written into the file instead of compared; with
