@@ -79,8 +79,10 @@ def differences(reference: dict, got: dict) -> list[str]:
     return found
 
 
-def check_answer(suite: str, case: str, summary: dict) -> None:
-    """Assert that ``summary`` gives the stored answer of ``suite``/``case`` (or record it, see above)."""
+def check_answer(suite: str, case: str, summary: dict, bic_compared: bool = True) -> None:
+    """Assert that ``summary`` gives the stored answer of ``suite``/``case`` (or record it, see above).
+    ``bic_compared=False`` compares the verdict only: on a noise-free record (reduced chi-square ~1e-5) the BIC is
+    set by rounding, and another BLAS kernel (OPENBLAS_CORETYPE=Haswell) moved every ΔBIC of one such case by 4.4."""
     got = answer(summary)
     if RECORDING:
         _record(suite, case, got)
@@ -88,5 +90,5 @@ def check_answer(suite: str, case: str, summary: dict) -> None:
     stored = _stored().get(suite, {})
     assert case in stored, (f"no stored answer for {suite}/{case} in {REFERENCE.name}: record it with "
                             "AFMID_VERDICT_RECORD=1")
-    found = differences(stored[case], got)
+    found = differences(stored[case], got if bic_compared else dict(got, tried=stored[case]["tried"]))
     assert not found, f"{suite}/{case}: the diagnosis's answer moved: " + "; ".join(found) + f" (now: {got['verdict']})"
