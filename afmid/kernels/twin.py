@@ -17,6 +17,8 @@ import threading
 import time
 from collections.abc import Callable
 
+import numpy as np
+
 
 class KernelOrTwin:
     """Call ``kernel`` (a numba dispatcher) or, while it is not compiled, ``twin`` (same arguments, same bits).
@@ -32,6 +34,9 @@ class KernelOrTwin:
         self.compile_seconds = compile_seconds
         self.twin_seconds = 0.0  # CPU time the twin has taken in this process
         self._looked_up: set[tuple] = set()  # argument types looked up in numba's cache
+        # Arguments' kinds (:func:`argument_kinds`) for which the kernel was found compiled: it stays so, and a
+        # map's pixel makes ~100 calls, where asking numba for each argument's type cost more than some calls do.
+        self._compiled_kinds: set[tuple] = set()
         self._lock = threading.Lock()
 
     def __call__(self, *args):
@@ -44,19 +49,48 @@ class KernelOrTwin:
         return result
 
     def _kernel_runs(self, args) -> bool:
-        if self.twin_seconds >= self.compile_seconds or not self.small(*args):
+        if self.twin_seconds >= self.compile_seconds:
+            return True
+        kinds = argument_kinds(args)
+        if kinds is not None and kinds in self._compiled_kinds:
+            return True
+        if not self.small(*args):
             return True
         try:
             types = tuple(self.kernel.typeof_pyval(a) for a in args)
         except (AttributeError, ValueError, TypeError):  # not a numba dispatcher, or an argument numba cannot type
             return True
         if types in self.kernel.overloads:  # compiled or loaded in this process (also by another caller)
-            return True
+            return self._compiled(kinds)
         with self._lock:
             if types not in self._looked_up:  # numba's on-disk cache, once per argument types
                 self._looked_up.add(types)
-                return _load_from_cache(self.kernel, types)
+                return self._compiled(kinds) if _load_from_cache(self.kernel, types) else False
         return False
+
+    def _compiled(self, kinds: tuple | None) -> bool:
+        if kinds is not None:
+            self._compiled_kinds.add(kinds)
+        return True
+
+
+def argument_kinds(args) -> tuple | None:
+    """What decides numba's type of each argument, read without numba: an array's dtype, dimensions, layout flags,
+    writeability and alignment; a scalar's Python or NumPy type (an int also whether it fits in int64). Equal kinds
+    give equal numba types; None for an argument of another sort (then numba is asked)."""
+    kinds = []
+    for a in args:
+        if isinstance(a, np.ndarray):
+            flags = a.flags
+            kinds.append((a.dtype, a.ndim, flags.c_contiguous, flags.f_contiguous, flags.writeable, flags.aligned,
+                          type(a)))
+        elif isinstance(a, bool | float | np.generic):
+            kinds.append(type(a))
+        elif type(a) is int:
+            kinds.append((int, -(1 << 63) <= a < (1 << 63)))
+        else:
+            return None
+    return tuple(kinds)
 
 
 def _load_from_cache(kernel, types: tuple) -> bool:

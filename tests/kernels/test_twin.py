@@ -68,3 +68,50 @@ def test_the_twin_runs_until_its_time_would_pay_for_compiling():
     spent = KernelOrTwin(_double, twin, lambda a: True, compile_seconds=0.0)  # no time for the twin
     spent(np.arange(3, dtype=np.int64))
     assert calls == [4] and len(_double.signatures) == 2
+
+
+@njit
+def _triple(a):
+    return 3.0 * a
+
+
+def test_a_kernel_found_compiled_is_remembered_by_its_arguments_kinds():
+    """Once the kernel is compiled for some arguments, calls with arguments of the same kinds run it without asking
+    numba their types again; arguments of another kind (dtype, layout, a read-only array) are still looked up, and
+    the twin runs for those while they are not compiled."""
+    calls = []
+
+    def twin(a):
+        calls.append(a.dtype.name)
+        return 3.0 * a
+
+    lazy = KernelOrTwin(_triple, twin, lambda a: True, compile_seconds=3600.0)
+    _triple(np.arange(3.0))  # compiled for C-contiguous float64 vectors
+    assert np.array_equal(lazy(np.arange(5.0)), 3.0 * np.arange(5.0)) and calls == []
+    assert np.array_equal(lazy(np.arange(6.0)), 3.0 * np.arange(6.0)) and calls == []  # remembered
+    lazy(np.arange(4))  # int64: not compiled
+    strided = np.arange(8.0)[::2]  # layout 'A': not compiled
+    lazy(strided)
+    frozen = np.arange(3.0)
+    frozen.flags.writeable = False  # read-only: another numba type
+    lazy(frozen)
+    assert calls == ["int64", "float64", "float64"] and len(_triple.signatures) == 1
+
+
+def test_equal_argument_kinds_are_equal_numba_types():
+    """argument_kinds may be finer than numba's types, never coarser: arguments of one kind have one numba type."""
+    from numba import typeof
+
+    from afmid.kernels.twin import argument_kinds
+
+    base = np.arange(24.0).reshape(4, 6)
+    frozen = base.copy()
+    frozen.flags.writeable = False
+    values = [base, base.T, base[:, ::2], base[0], base[:, 0], np.asfortranarray(base), frozen, base.astype(np.float32),
+              base.astype(np.int64), base.astype(bool), np.zeros(0), np.zeros((0, 3)), np.float64(1.0), 1.0, 2, True,
+              np.int32(3), np.bool_(False), 1 << 63, -(1 << 63), np.arange(3.0), np.arange(3.0)[::-1]]
+    for a in values:
+        for b in values:
+            if argument_kinds((a,)) == argument_kinds((b,)):
+                assert typeof(a) == typeof(b), (a, b)
+    assert argument_kinds(("text",)) is None
