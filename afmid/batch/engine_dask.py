@@ -207,8 +207,14 @@ class DaskEngine:
                 watch.check(len(reported))
                 tick()
             keep = self._keep
-        except BaseException:
+        except BaseException as stopped:
             connected = client is not None and client.status == "running"
+            if (connected and cluster is not None and isinstance(stopped, KeyboardInterrupt)
+                    and logging.getLogger("afmid").getEffectiveLevel() > logging.DEBUG):
+                # The local cluster is stopped under running tasks: a worker's heartbeat cut by the scheduler's
+                # close is logged by dask with its traceback on the terminal the workers share. Not an error of
+                # the map: the workers' dask loggers are raised first, for the teardown only (not with -v).
+                _quietly(client.run, silence_dask_logs, callback_timeout=self.connect_timeout)
             for fut, key in futures.items():
                 if key in reported:
                     continue
@@ -346,21 +352,29 @@ class _Watch:
 
 class _QuietDask:
     """dask's own loggers silenced for a run (what goes wrong reaches the user as afmid's one line; a lost
-    scheduler would add dask's reconnect errors on stderr), unless afmid logs at DEBUG (``-v``)."""
+    scheduler would add dask's reconnect errors on stderr), unless afmid logs at DEBUG (``-v``) and not
+    ``always``."""
 
     ROOTS = ("distributed", "tornado")
 
-    def __init__(self):
+    def __init__(self, always: bool = False):
         # dask's logging config gives some children their own level (distributed.client: warning): each is set
         names = [n for n in list(logging.root.manager.loggerDict) if n.split(".")[0] in self.ROOTS]
         self.levels = {name: logging.getLogger(name).level for name in {*self.ROOTS, *names}}
-        if logging.getLogger("afmid").getEffectiveLevel() > logging.DEBUG:
+        if always or logging.getLogger("afmid").getEffectiveLevel() > logging.DEBUG:
             for name in self.levels:
                 logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
     def restore(self) -> None:
         for name, level in self.levels.items():
             logging.getLogger(name).setLevel(level)
+
+
+def silence_dask_logs() -> None:
+    """Raise dask's loggers (:attr:`_QuietDask.ROOTS` and their children) in this process above CRITICAL: run in
+    the workers of afmid's local cluster when an interrupt stops it, whose shutdown would otherwise print dask's
+    tracebacks of connections closed under it. Never while a run goes on: a running worker's errors are shown."""
+    _QuietDask(always=True)
 
 
 def _quietly(call: Callable, *args, **kwargs) -> None:

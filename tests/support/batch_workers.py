@@ -117,3 +117,41 @@ class EngineLosingItsFirstOutcome:
         key, task = tasks[0]
         worker(task)
         raise KeyboardInterrupt
+
+
+#: What :func:`noisy_until_stopped` logs while it runs, and what it logs once its worker is being closed.
+RUNNING_ERROR = "a running worker's error (shown)"
+TEARDOWN_NOISE = "teardown noise: the connection closed under a heartbeat"
+
+
+def noisy_until_stopped(task: dict) -> dict:
+    """A dask task that logs an error through dask's worker logger while it runs, marks ``task['started']`` and
+    waits until its worker is closed; a thread of it then logs what dask logs when a heartbeat's connection is
+    closed under it (an exception with its traceback): the noise of a local cluster stopped by a Ctrl-C."""
+    import logging
+    import threading
+
+    from distributed import get_worker
+    from distributed.core import Status
+
+    worker = get_worker()
+    log = logging.getLogger("distributed.worker")
+    log.error(RUNNING_ERROR)
+    stopping = (Status.closing, Status.closed, Status.closing_gracefully, Status.failed)
+
+    def teardown_noise() -> None:
+        while worker.status not in stopping:
+            time.sleep(0.002)
+        try:
+            raise OSError("Stream is closed")
+        except OSError:
+            log.exception(TEARDOWN_NOISE)
+
+    noise = threading.Thread(target=teardown_noise, daemon=True)
+    noise.start()
+    Path(task["started"]).touch()
+    deadline = time.monotonic() + task.get("seconds", 120)
+    while worker.status not in stopping and time.monotonic() < deadline:
+        time.sleep(0.01)
+    noise.join(1.0)
+    return {}
