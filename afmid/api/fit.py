@@ -1,8 +1,8 @@
 """A fit as a Python object: :class:`Fit` (made by :meth:`afmid.api.model.ForceModel.fit`, or read back by :func:`load`).
 
 A Fit holds the pipeline's :class:`afmid.fit.pipeline.FitResult` (a fresh fit) and always the run as the run file
-holds it (:class:`afmid.runfile.RunData`: made in memory by :func:`afmid.runfile.run_data` with the run file's own
-writer and reader, or read by :func:`afmid.runfile.load_run`), so a fit and its saved file give the same table.
+holds it (:class:`afmid.runfile.RunData`: built from the fit by :func:`afmid.runfile.run_data` from the values the
+run file's writer stores, or read by :func:`afmid.runfile.load_run`), so a fit and its saved file give the same table.
 The diagnosis and the report run on that RunData with the trace held in memory (no temporary file); a fit loaded
 without its trace refits the candidates on the run's input file, as ``afmid report`` does.
 """
