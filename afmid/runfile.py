@@ -485,6 +485,13 @@ class RunData:
         return int(self.selected.sum())
 
     @property
+    def n_periods(self) -> int | None:
+        """The drive periods of the record the fit used: one row of ``/periods`` per block, times
+        ``fit.periods_per_block`` (None: a file without the periods' start times)."""
+        starts = self.periods.get("period_start_time")
+        return None if starts is None else int(len(starts) * self.config.fit.periods_per_block)
+
+    @property
     def selected_terms(self) -> list[str]:
         return [t for t, s in zip(self.terms, self.selected) if s]
 

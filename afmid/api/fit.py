@@ -38,11 +38,6 @@ class Fit:
 
     # ------------------------------------------------------------------ what the run holds
     @property
-    def result(self):
-        """The pipeline's :class:`afmid.fit.pipeline.FitResult` (None for a fit loaded from a run file)."""
-        return self._result
-
-    @property
     def trace(self):
         """The fitted :class:`afmid.io.trace.Trace` (of a loaded fit: the one given to :func:`load`, or None)."""
         if self._trace is None and self._result is not None:
@@ -81,6 +76,36 @@ class Fit:
     def model_limited(self) -> bool:
         """The error stands above its noise floor: the parameters are biased beyond their error bars."""
         return bool(self.run.model_limited)
+
+    @property
+    def warnings(self) -> list[str]:
+        """The run's warning lines (``warning: ...``): the trace's findings on load, then the fit's own
+        (model-limited, non-periodic motion, a failed contact-law probe, ...)."""
+        return [str(w) for w in (self._result.warnings if self._result is not None else self.run.warnings)]
+
+    @property
+    def implausible(self) -> list[str]:
+        """Why read-outs cannot be physical, one reason per implausible read-out and for an estimated rest
+        separation out of range (:mod:`afmid.fit.plausibility`; the same verdicts the run file stores); empty when
+        every read-out is plausible."""
+        from afmid.fit.plausibility import check_run, judge_separation, violations
+
+        if self._result is not None:
+            return violations(check_run(self._result.quantities, self._result.nonlinear))
+        run = self.run
+        reasons = [str(q.get("plausibility", "")) for q in run.quantities.values() if not q.get("plausible", True)]
+        d = run.nonlinear.get("d")
+        if d is not None and run.separation_estimated:
+            verdict = judge_separation(float(d["value"]), float(d["error"]))
+            if not verdict.plausible:
+                reasons.append(verdict.reason)
+        return reasons
+
+    def summary_line(self) -> str:
+        """One line for a log: ``cv_error 0.0434; terms: ...`` (the selected terms, or none)."""
+        if self._result is not None:
+            return self._result.summary_line()
+        return f"cv_error {self.cv_error:.4f}; terms: {', '.join(self.terms) or 'none'}"
 
     @property
     def parameters(self) -> Parameters:
