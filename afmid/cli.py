@@ -386,10 +386,11 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
             _echo(make_map_report(runs[-1], output, overwrite=overwrite,
                                        before=runs[0] if len(runs) == 2 else None))
             return
-        from afmid.report.page import make_report
+        from afmid.api import load  # the Python front door's calls (docs/python.md)
 
-        summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest,
-                              progress=not _state["quiet"], allow_different_traces=allow_different_traces)
+        fits = [load(run) for run in runs]
+        summary = fits[-1].report(output, compare=fits[:-1], overwrite=overwrite, suggest=not no_suggest,
+                                  progress=not _state["quiet"], allow_different_traces=allow_different_traces)
         if tables:  # the last run's CSVs beside the page, listed in the folder's marker
             from afmid.report.report_exports import export_into_report
 

@@ -189,7 +189,8 @@ class Fit:
 
         fits = [*compare, self]
         names = [f.name for f in fits]
-        if len(set(names)) != len(names):
+        made = [f.name for f in fits if f._result is not None]  # a loaded fit is named by its file: one run
+        if len(set(made)) != len(made) or set(made) & {f.name for f in fits if f._result is None}:
             raise ConfigError(f"two fits are named alike ({names}); give them distinct names (fit(trace, name=...))",
                               file=Path(folder), key="compare")
         traces = [f.trace for f in fits]
@@ -204,8 +205,9 @@ class Fit:
         if arrays_differ and not notes:
             notes = ["the runs were fitted on different traces: their errors and parameters compare the traces as "
                      "much as the models"]
+        run_files = {f.run.path: "a run file" for f in fits if f._result is None}  # never replaced by the folder
         return write_report(runs, Path(folder), overwrite, suggest, progress, notes=notes, names=names,
-                            traces=traces)
+                            traces=traces, inputs=run_files)
 
     def save(self, path: str | Path, overwrite: bool = False) -> Path:
         """Write the run file (the same file as ``afmid fit -o PATH``); after :meth:`diagnose` it also holds the
@@ -224,9 +226,10 @@ class Fit:
 
 
 def load(path: str | Path, trace=None) -> Fit:
-    """The :class:`Fit` of a run file (``afmid fit -o``, :meth:`Fit.save`); ``trace``: its trace in memory, for
-    the diagnosis of a fit of an array (otherwise the run's input file is read again)."""
+    """The :class:`Fit` of a run file (``afmid fit -o``, :meth:`Fit.save`), named by ``path`` as given (as
+    ``afmid report`` names its runs); ``trace``: its trace in memory, for the diagnosis of a fit of an array
+    (otherwise the run's input file is read again)."""
     from afmid.runfile import load_run
 
     run = load_run(path)
-    return Fit(None, run.config, trace=trace, name=run.path.name, run=run)
+    return Fit(None, run.config, trace=trace, name=str(run.path), run=run)
