@@ -190,18 +190,14 @@ def fit(
 
     fitted = Fit.from_config(cfg, progress=not _state["quiet"])
     fitted.save(output, overwrite=overwrite)
-    result = fitted.result
-    from afmid.fit.plausibility import check_run, violations
-
-    implausible = violations(check_run(result.quantities, result.nonlinear))
+    implausible = fitted.implausible
     flagged = f"; {len(implausible)} read-out(s) implausible, flagged in the file (see the warnings)" if implausible else ""
-    log.info("wrote %s: %s%s", output, result.summary_line(), flagged)
+    log.info("wrote %s: %s%s", output, fitted.summary_line(), flagged)
     if not _state["quiet"]:  # the read-out is the command's result: stdout (afmid.report.fit_text builds it)
         _echo(fitted.text(verbose=_state["verbose"] > 0))
     # The fit's own warnings (model-limited, non-periodic motion); the trace's findings were logged on loading.
-    prep = getattr(result, "prep", None)
-    loaded = {f"{f.severity}: {f.message}" for f in getattr(getattr(prep, "trace", None), "findings", [])}
-    for line in getattr(result, "warnings", []):
+    loaded = {f"{f.severity}: {f.message}" for f in fitted.trace.findings}
+    for line in fitted.warnings:
         if line not in loaded:
             log.warning("%s: %s", output, line.removeprefix("warning: "))
 
@@ -390,10 +386,11 @@ def report(runs: tuple[Path, ...], output: Path, overwrite: bool, no_suggest: bo
             _echo(make_map_report(runs[-1], output, overwrite=overwrite,
                                        before=runs[0] if len(runs) == 2 else None))
             return
-        from afmid.report.page import make_report
+        from afmid.api import load  # the Python front door's calls (docs/python.md)
 
-        summary = make_report(list(runs), output, overwrite=overwrite, suggest_effects=not no_suggest,
-                              progress=not _state["quiet"], allow_different_traces=allow_different_traces)
+        fits = [load(run) for run in runs]
+        summary = fits[-1].report(output, compare=fits[:-1], overwrite=overwrite, suggest=not no_suggest,
+                                  progress=not _state["quiet"], allow_different_traces=allow_different_traces)
         if tables:  # the last run's CSVs beside the page, listed in the folder's marker
             from afmid.report.report_exports import export_into_report
 

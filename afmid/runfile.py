@@ -115,26 +115,136 @@ def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = Fals
 
 
 def run_data(result: FitResult, config: RunConfig, name: str = "fit") -> RunData:
-    """The :class:`RunData` that :func:`load_run` gives for the run file of ``result``, without a file: the run is
-    written by :func:`write_run`'s own code into an HDF5 file held in memory and read back by :func:`load_run`'s,
-    so a fit in memory and its saved file hold the same values. ``name`` stands for the file's name (``path``);
-    the ground truth is the fitted trace's own."""
-    import io
-
-    import h5py
-
+    """The :class:`RunData` that :func:`load_run` gives for the run file of ``result``, made from the fit without a
+    file: the values :func:`write_run` stores, each computed by the same function the writer takes it from
+    (:func:`drive_values`, :func:`quantity_record`, ...), in the types :func:`load_run` reads them back as
+    (tests/cli/test_run_data.py compares the two field by field on several fits). ``name`` stands for the
+    file's name (``path``); the ground truth is the fitted trace's own."""
     trace = result.prep.trace
     path = Path(name)
-    config_text = dump_config(config)
-    with h5py.File(io.BytesIO(), "w") as h5:
-        h5.attrs["config"] = config_text
-        if trace.path:  # as atomic_hdf5 stores the input
-            h5.attrs["input_path"] = str(Path(trace.path).resolve())
-            h5.attrs["input_sha256"] = trace.sha256 or ""
-        write_run_contents(h5, result, config)
-        data = _read_run(RunReader(h5, path), path, stored_config(config_text, path))
-    data.truth = trace.truth
-    return data
+    p = result.n_library
+    input_path = Path(str(Path(trace.path).resolve())) if trace.path else None
+    verdicts = plausibility.check_run(result.quantities, result.nonlinear)
+    best = result.selection.best
+    d_estimate = result.nonlinear.get("d")
+    periods = result.periods
+    return RunData(
+        path=path,
+        config=run_config(stored_config(dump_config(config), path), path, input_path),
+        effects=[e for e in result.library.effects if e],
+        terms=list(result.library.names),
+        expressions=[t.expression for t in result.library.terms],
+        units=[t.coefficient_unit for t in result.library.terms],
+        coefficients=stored_coefficients(result),
+        errors=np.array(result.coef_std[:p]),
+        selected=np.array(result.selected[:p], dtype=bool),
+        inclusion=np.array(result.inclusion[:p]),
+        # by name, as the file's groups are read back
+        quantities={name: quantity_record(name, q, verdicts[name]) for name, q in sorted(result.quantities.items())},
+        nonlinear={name: nonlinear_record(est) for name, est in sorted(result.nonlinear.items())},
+        separation=float(result.system.params["d"]),
+        separation_error=float(d_estimate.sigma) if d_estimate is not None else 0.0,
+        separation_estimated=config.sample.separation is None,
+        cv_error=float(result.cv_error),
+        cv_error_noise_floor=float(result.cv_error_noise_floor),
+        bic=float(best.bic),
+        chi2_reduced=float(chi2_reduced(result)),
+        drive={k: float(v) for k, v in sorted(drive_values(result).items())},  # the file's (name) order
+        cantilever={k: float(v) for k, v in sorted(cantilever_values(trace.cantilever).items())},
+        periods=dict(sorted((k, np.array(periods[k])) for k in periods)),
+        force=dict(sorted(force_values(result).items())),
+        drive_source=DRIVE_CALIBRATED if result.prep.declared_drive is not None else DRIVE_FITTED,
+        input_path=input_path,
+        input_sha256=(trace.sha256 or "") if input_path is not None else None,
+        warnings=[str(w) for w in result.warnings],
+        n_rows=int(result.system.n_rows),
+        harmonics=np.asarray(result.prep.blocks.harmonics).astype(int),
+        signal_rows=np.asarray(result.signal_rows).astype(bool),
+        model_limited=bool(result.model_limited),
+        cv_error_floor_dof=float(getattr(result, "cv_error_floor_dof", math.nan)),
+        cv_error_folds=np.atleast_1d(np.asarray(result.cv_error_folds)).astype(float),
+        truth=trace.truth,
+        **force_shares(result),
+    )
+
+
+def stored_coefficients(result: FitResult) -> np.ndarray:
+    """The library's coefficients as stored: the selected terms' values, 0 for the others (SI)."""
+    p = result.n_library
+    return np.where(result.selected[:p], result.coef[:p], 0.0)
+
+
+def chi2_reduced(result: FitResult) -> float:
+    """rss / (n - k) of the chosen support over the whitened rows (about 1 when the model explains the data to
+    the predicted noise)."""
+    best = result.selection.best
+    return best.rss / max(result.system.n_rows - int(best.mask.sum()), 1)
+
+
+def quantity_record(name: str, q: dict, verdict: plausibility.Verdict) -> dict:
+    """A read-out as :class:`RunData` holds it (the attributes of ``/model/parameters/NAME`` as :func:`load_run`
+    reads them): value, unit, error, 95 % interval, effect (SI), the error's shares, the marks and the verdict."""
+    return {"value": float(q["value"]), "unit": str(q["unit"]), "error": float(q["error"]),
+            "ci_low": float(q["ci_low"]), "ci_high": float(q["ci_high"]), "effect": str(q["effect"]),
+            **{k: float(q[k]) for k in ("error_statistical", "error_calibration", "information_bound") if k in q},
+            "model_limited": bool(q.get("model_limited", False)),
+            **read_undetermined(undetermined_attributes(q)),
+            **plausibility.attributes(verdict)}
+
+
+def nonlinear_record(est) -> dict:
+    """A nonlinear parameter (an :class:`afmid.fit.search.NonlinearEstimate`) as :class:`RunData` holds it: value,
+    its 1 sigma, unit (SI), the record's information bound (NaN: not computed)."""
+    return {"value": float(est.value), "error": float(est.sigma), "unit": str(est.unit),
+            "information_bound": float(getattr(est, "information_bound", math.nan))}
+
+
+def cantilever_values(cantilever) -> dict[str, float]:
+    """``/cantilever``'s attributes (as given): k (N/m), f0 (Hz), Q, the tip radius (m, NaN: not given)."""
+    return {"spring_constant": cantilever.spring_constant, "resonance_frequency": cantilever.resonance_frequency,
+            "quality_factor": cantilever.quality_factor,
+            "tip_radius": np.nan if cantilever.tip_radius is None else cantilever.tip_radius}
+
+
+def drive_values(result: FitResult) -> dict[str, float]:
+    """The numbers of ``/model/drive`` (SI; as given, the file stores their own type), in the writer's order: F_drive = cos * cos(w t) + sin * sin(w t) in
+    the trace's time base (the fit's columns are -F_drive; a calibrated drive's given values), its amplitude,
+    a calibrated drive's phase and uncertainties, the drive frequency (and a searched one's sigma and the
+    response peak it replaced), the offset force and the baseline's drift when the fit had those columns."""
+    p = result.n_library
+    nu = result.coef[p:]
+    declared = result.prep.declared_drive
+    drive_cos, drive_sin = (declared.cos, declared.sin) if declared is not None else (-nu[0], -nu[1])
+    out = {"force_amplitude": float(np.hypot(drive_cos, drive_sin)), "cos": float(drive_cos),
+           "sin": float(drive_sin)}
+    if declared is not None:
+        out.update(phase=declared.phase, force_amplitude_uncertainty=declared.force_amplitude_uncertainty,
+                   phase_uncertainty=declared.phase_uncertainty)
+    out.update(frequency=result.prep.drive.frequency, nominal_frequency=result.prep.drive.nominal)
+    found = getattr(result, "drive_search", None)
+    if found is not None:
+        out.update(frequency_sigma=found.sigma, response_frequency=found.response_frequency)
+    if "offset" in result.system.names:
+        out["offset_force"] = float(nu[result.system.names.index("offset") - p])
+    if "drift" in result.system.names:
+        out["baseline_drift"] = float(baseline_drift(result))
+    return out
+
+
+def force_values(result: FitResult) -> dict[str, np.ndarray]:
+    """``/force``'s per-sample arrays: the model force and the inverted force (N, positive = repulsive), the
+    time (s) and the deflection (m, positive toward the sample)."""
+    return {"estimate": np.asarray(result.force_estimate), "inverted": np.asarray(result.force_inverted),
+            "time": np.asarray(result.prep.t), "deflection": np.asarray(result.prep.x)}
+
+
+def force_shares(result: FitResult) -> dict[str, float]:
+    """The force curve's relative 1-sigma shares as :class:`RunData` names them (NaN: not computed)."""
+    return {"force_calibration_uncertainty": float(result.force_calibration_uncertainty),
+            "force_separation_uncertainty": float(getattr(result, "force_separation_uncertainty", math.nan)),
+            "force_statistical_uncertainty": float(getattr(result, "force_statistical_uncertainty", math.nan)),
+            "force_selection_uncertainty": float(getattr(result, "force_selection_uncertainty", math.nan)),
+            "force_total_uncertainty": float(getattr(result, "force_total_uncertainty", math.nan))}
 
 
 #: What a number's ``information_bound`` attribute is (afmid.fit.information_bound).
@@ -161,17 +271,14 @@ def write_run_contents(h5, result: FitResult, config: RunConfig) -> dict:
     h5.attrs["overridden"] = list(trace.overridden) or [""]
     h5.attrs["value_sources"] = "; ".join(f"{k}: {v}" for k, v in trace.sources.items())
     cg = h5.create_group("cantilever")
-    cl = trace.cantilever
-    cg.attrs["spring_constant"] = cl.spring_constant
-    cg.attrs["resonance_frequency"] = cl.resonance_frequency
-    cg.attrs["quality_factor"] = cl.quality_factor
-    cg.attrs["tip_radius"] = np.nan if cl.tip_radius is None else cl.tip_radius
+    for name, value in cantilever_values(trace.cantilever).items():
+        cg.attrs[name] = value
     cg.attrs["units"] = "spring_constant: N/m; resonance_frequency: Hz; quality_factor: 1; tip_radius: m"
     m = h5.create_group("model")
     write_dataset(m, "terms", np.array(result.library.names), "1")
     write_dataset(m, "expressions", np.array([t.expression for t in result.library.terms]), "1")
     write_dataset(m, "units", np.array(units), "1")
-    write_dataset(m, "coefficients", np.where(result.selected[:p], result.coef[:p], 0.0), "see /model/units")
+    write_dataset(m, "coefficients", stored_coefficients(result), "see /model/units")
     write_dataset(m, "coefficients_errors", result.coef_std[:p], "see /model/units", meaning="bootstrap std, 1 sigma")
     write_dataset(m, "coefficients_ci_low", result.ci_low[:p], "see /model/units", meaning="lower end of the 95 % bootstrap interval (2.5 % percentile)")
     write_dataset(m, "coefficients_ci_high", result.ci_high[:p], "see /model/units", meaning="upper end of the 95 % bootstrap interval (97.5 % percentile)")
@@ -182,34 +289,32 @@ def write_run_contents(h5, result: FitResult, config: RunConfig) -> dict:
     dg = m.create_group("drive")
     nu = result.coef[p:]
     declared = result.prep.declared_drive
-    # F_drive = cos * cos(w t) + sin * sin(w t) in the trace's time base (the fit's columns are -F_drive)
-    drive_cos, drive_sin = (declared.cos, declared.sin) if declared is not None else (-nu[0], -nu[1])
-    write_dataset(dg, "force_amplitude", float(np.hypot(drive_cos, drive_sin)), "N")
-    write_dataset(dg, "cos", float(drive_cos), "N")
-    write_dataset(dg, "sin", float(drive_sin), "N")
+    drive = drive_values(result)
+    for name in ("force_amplitude", "cos", "sin"):
+        write_dataset(dg, name, drive[name], "N")
     dg.attrs["source"] = DRIVE_CALIBRATED if declared is not None else DRIVE_FITTED
     if declared is not None:  # afmid.fit.declared_drive: given, not fitted
-        write_dataset(dg, "phase", declared.phase, "rad", meaning="F_drive = F0 cos(2 pi f t + phase)")
-        write_dataset(dg, "force_amplitude_uncertainty", declared.force_amplitude_uncertainty, "1",
+        write_dataset(dg, "phase", drive["phase"], "rad", meaning="F_drive = F0 cos(2 pi f t + phase)")
+        write_dataset(dg, "force_amplitude_uncertainty", drive["force_amplitude_uncertainty"], "1",
                       meaning="relative, 1 sigma (0: not given)")
-        write_dataset(dg, "phase_uncertainty", declared.phase_uncertainty, "rad", meaning="1 sigma (0: not given)")
+        write_dataset(dg, "phase_uncertainty", drive["phase_uncertainty"], "rad", meaning="1 sigma (0: not given)")
         dg.attrs["force_amplitude_source"] = declared.amplitude_source
-    write_dataset(dg, "frequency", result.prep.drive.frequency, "Hz")
-    write_dataset(dg, "nominal_frequency", result.prep.drive.nominal, "Hz")
+    write_dataset(dg, "frequency", drive["frequency"], "Hz")
+    write_dataset(dg, "nominal_frequency", drive["nominal_frequency"], "Hz")
     found = getattr(result, "drive_search", None)
     if found is not None:  # a transient record: the regression chose the drive frequency (afmid.fit.drive_search)
-        write_dataset(dg, "frequency_sigma", found.sigma, "Hz", meaning="1 sigma")
-        write_dataset(dg, "response_frequency", found.response_frequency, "Hz",
+        write_dataset(dg, "frequency_sigma", drive["frequency_sigma"], "Hz", meaning="1 sigma")
+        write_dataset(dg, "response_frequency", drive["response_frequency"], "Hz",
                       meaning="spectral peak of the deflection, replaced by the searched drive frequency")
     dg.attrs["frequency_source"] = (
         "nominal (calibrated drive, drive.phase)" if declared is not None
         else "regression search (record not in steady state)" if found is not None
         else "nominal (fit.drive_frequency: nominal)" if config.fit.drive_frequency == "nominal"
         else "spectral peak of the deflection")
-    if "offset" in result.system.names:
-        write_dataset(dg, "offset_force", float(nu[result.system.names.index("offset") - p]), "N")
-    if "drift" in result.system.names:  # fit.detrend: linear
-        write_dataset(dg, "baseline_drift", baseline_drift(result), "m/s",
+    if "offset_force" in drive:
+        write_dataset(dg, "offset_force", drive["offset_force"], "N")
+    if "baseline_drift" in drive:  # fit.detrend: linear
+        write_dataset(dg, "baseline_drift", drive["baseline_drift"], "m/s",
                       meaning="slope of the deflection baseline estimated with the force law (afmid.preprocess.baseline)")
     if config.fit.cantilever == "free":
         write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
@@ -278,7 +383,7 @@ def write_run_contents(h5, result: FitResult, config: RunConfig) -> dict:
     write_dataset(dg, "bic", best.bic, "1", definition="n ln(rss/n) + k ln n over whitened rows")
     write_dataset(dg, "rss", best.rss, "1", definition="whitened residual sum of squares")
     write_dataset(dg, "n_rows", result.system.n_rows, "1")
-    write_dataset(dg, "chi2_reduced", best.rss / max(result.system.n_rows - int(best.mask.sum()), 1), "1",
+    write_dataset(dg, "chi2_reduced", chi2_reduced(result), "1",
                   definition="rss / (n - k); about 1 when the model explains the data to the predicted noise")
     residual = create_dataset(dg, "residual", result.force_inverted.shape, np.float64, "N")
     for lo in range(0, residual.shape[0], 1 << 20):  # chunk by chunk: no third per-sample array
@@ -378,6 +483,13 @@ class RunData:
     @property
     def n_terms(self) -> int:
         return int(self.selected.sum())
+
+    @property
+    def n_periods(self) -> int | None:
+        """The drive periods of the record the fit used: one row of ``/periods`` per block, times
+        ``fit.periods_per_block`` (None: a file without the periods' start times)."""
+        starts = self.periods.get("period_start_time")
+        return None if starts is None else int(len(starts) * self.config.fit.periods_per_block)
 
     @property
     def selected_terms(self) -> list[str]:
@@ -484,10 +596,7 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
     """The contents of an open run file (``raw``: its stored config as a mapping)."""
     input_path = h5.attrs.get("input_path")
     input_sha256 = h5.attrs.get("input_sha256")
-    model = raw.get("model")
-    if isinstance(model, dict) and model.get("library") is not None:
-        model.pop("effects", None)  # older afmid stored the unused default effects beside a preset
-    config = build_config(raw, source=path, base_dir=Path(text(input_path)).parent if input_path else path.parent)
+    config = run_config(raw, path, Path(text(input_path)) if input_path else None)
     m = h5["model"]
     quantities = {
         name: {"value": float(ds[()]), "unit": text(_required_attr(ds, "units", path)),
@@ -550,6 +659,15 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         force_total_uncertainty=float(h5["force"]["estimate"].attrs.get("total_relative_uncertainty", math.nan)),
         joint=read_joint_traces(h5["joint"]) if "joint" in h5 else None,
     )
+
+
+def run_config(raw: dict, path: Path, input_path: Path | None) -> RunConfig:
+    """The run config stored in a run file (``raw``: its mapping): relative paths as seen from the input's folder
+    (the run file's own when the input is not known)."""
+    model = raw.get("model")
+    if isinstance(model, dict) and model.get("library") is not None:
+        model.pop("effects", None)  # older afmid stored the unused default effects beside a preset
+    return build_config(raw, source=path, base_dir=input_path.parent if input_path else path.parent)
 
 
 def read_joint_traces(joint) -> list[dict]:

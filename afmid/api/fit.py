@@ -1,8 +1,8 @@
 """A fit as a Python object: :class:`Fit` (made by :meth:`afmid.api.model.ForceModel.fit`, or read back by :func:`load`).
 
 A Fit holds the pipeline's :class:`afmid.fit.pipeline.FitResult` (a fresh fit) and always the run as the run file
-holds it (:class:`afmid.runfile.RunData`: made in memory by :func:`afmid.runfile.run_data` with the run file's own
-writer and reader, or read by :func:`afmid.runfile.load_run`), so a fit and its saved file give the same table.
+holds it (:class:`afmid.runfile.RunData`: built from the fit by :func:`afmid.runfile.run_data` from the values the
+run file's writer stores, or read by :func:`afmid.runfile.load_run`), so a fit and its saved file give the same table.
 The diagnosis and the report run on that RunData with the trace held in memory (no temporary file); a fit loaded
 without its trace refits the candidates on the run's input file, as ``afmid report`` does.
 """
@@ -37,11 +37,6 @@ class Fit:
         return cls(run_fit(config, progress=progress), config, name=name)
 
     # ------------------------------------------------------------------ what the run holds
-    @property
-    def result(self):
-        """The pipeline's :class:`afmid.fit.pipeline.FitResult` (None for a fit loaded from a run file)."""
-        return self._result
-
     @property
     def trace(self):
         """The fitted :class:`afmid.io.trace.Trace` (of a loaded fit: the one given to :func:`load`, or None)."""
@@ -81,6 +76,36 @@ class Fit:
     def model_limited(self) -> bool:
         """The error stands above its noise floor: the parameters are biased beyond their error bars."""
         return bool(self.run.model_limited)
+
+    @property
+    def warnings(self) -> list[str]:
+        """The run's warning lines (``warning: ...``): the trace's findings on load, then the fit's own
+        (model-limited, non-periodic motion, a failed contact-law probe, ...)."""
+        return [str(w) for w in (self._result.warnings if self._result is not None else self.run.warnings)]
+
+    @property
+    def implausible(self) -> list[str]:
+        """Why read-outs cannot be physical, one reason per implausible read-out and for an estimated rest
+        separation out of range (:mod:`afmid.fit.plausibility`; the same verdicts the run file stores); empty when
+        every read-out is plausible."""
+        from afmid.fit.plausibility import check_run, judge_separation, violations
+
+        if self._result is not None:
+            return violations(check_run(self._result.quantities, self._result.nonlinear))
+        run = self.run
+        reasons = [str(q.get("plausibility", "")) for q in run.quantities.values() if not q.get("plausible", True)]
+        d = run.nonlinear.get("d")
+        if d is not None and run.separation_estimated:
+            verdict = judge_separation(float(d["value"]), float(d["error"]))
+            if not verdict.plausible:
+                reasons.append(verdict.reason)
+        return reasons
+
+    def summary_line(self) -> str:
+        """One line for a log: ``cv_error 0.0434; terms: ...`` (the selected terms, or none)."""
+        if self._result is not None:
+            return self._result.summary_line()
+        return f"cv_error {self.cv_error:.4f}; terms: {', '.join(self.terms) or 'none'}"
 
     @property
     def parameters(self) -> Parameters:
@@ -164,7 +189,8 @@ class Fit:
 
         fits = [*compare, self]
         names = [f.name for f in fits]
-        if len(set(names)) != len(names):
+        made = [f.name for f in fits if f._result is not None]  # a loaded fit is named by its file: one run
+        if len(set(made)) != len(made) or set(made) & {f.name for f in fits if f._result is None}:
             raise ConfigError(f"two fits are named alike ({names}); give them distinct names (fit(trace, name=...))",
                               file=Path(folder), key="compare")
         traces = [f.trace for f in fits]
@@ -179,8 +205,9 @@ class Fit:
         if arrays_differ and not notes:
             notes = ["the runs were fitted on different traces: their errors and parameters compare the traces as "
                      "much as the models"]
+        run_files = {f.run.path: "a run file" for f in fits if f._result is None}  # never replaced by the folder
         return write_report(runs, Path(folder), overwrite, suggest, progress, notes=notes, names=names,
-                            traces=traces)
+                            traces=traces, inputs=run_files)
 
     def save(self, path: str | Path, overwrite: bool = False) -> Path:
         """Write the run file (the same file as ``afmid fit -o PATH``); after :meth:`diagnose` it also holds the
@@ -199,9 +226,10 @@ class Fit:
 
 
 def load(path: str | Path, trace=None) -> Fit:
-    """The :class:`Fit` of a run file (``afmid fit -o``, :meth:`Fit.save`); ``trace``: its trace in memory, for
-    the diagnosis of a fit of an array (otherwise the run's input file is read again)."""
+    """The :class:`Fit` of a run file (``afmid fit -o``, :meth:`Fit.save`), named by ``path`` as given (as
+    ``afmid report`` names its runs); ``trace``: its trace in memory, for the diagnosis of a fit of an array
+    (otherwise the run's input file is read again)."""
     from afmid.runfile import load_run
 
     run = load_run(path)
-    return Fit(None, run.config, trace=trace, name=run.path.name, run=run)
+    return Fit(None, run.config, trace=trace, name=str(run.path), run=run)

@@ -2,12 +2,12 @@
 
 ``afmid fit`` prints its text from the pipeline's result; a fit loaded from its run file has only what the file
 holds (:class:`afmid.runfile.RunData`). :class:`RunReadout` presents that under the result's names, so the loaded
-fit prints the same lines (the run file does not hold the number of periods, so the clause on how long a record
-would bring the force band to its target is left out).
+fit prints the same lines (the parameters in the file's order, by name).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,16 +42,18 @@ class RunReadout:
     """A :class:`afmid.runfile.RunData` under the names of :class:`afmid.fit.pipeline.FitResult` that the fit's
     text uses."""
 
-    prep = None  # not stored
-
     def __init__(self, run):
         self.config = run.config  # the merged config the run was fitted with (its calibration, for the notes)
         self.library = StoredLibrary(run)
         self.n_library = len(run.terms)
+        self.n_periods = run.n_periods
         self.selected = np.asarray(run.selected, dtype=bool)
         self.coef = np.asarray(run.coefficients, dtype=float)
         self.coef_std = np.asarray(run.errors, dtype=float)
-        self.quantities = run.quantities
+        # Each read-out is judged with the tip it was read out for (a force that grows with R has a bound scaled
+        # to the tip), as the fit's own quantities carry it; the file keeps the radius once, under /cantilever.
+        radius = float(run.cantilever.get("tip_radius", math.nan))
+        self.quantities = {name: {**q, "tip_radius": radius} for name, q in run.quantities.items()}
         self.nonlinear = {name: StoredEstimate(q["value"], q["error"], q["unit"]) for name, q in run.nonlinear.items()}
         self.cv_error = run.cv_error
         self.cv_error_noise_floor = run.cv_error_noise_floor

@@ -192,6 +192,11 @@ class FitResult:
         return self.selection.best.mask
 
     @property
+    def n_periods(self) -> int:
+        """The drive periods of the record the fit used: its blocks times ``fit.periods_per_block``."""
+        return int(self.prep.blocks.n_blocks * self.config.fit.periods_per_block)
+
+    @property
     def n_library(self) -> int:
         return len(self.library)
 

@@ -68,10 +68,9 @@ def _record_clause(result, statistical: float, separation: float, selection: flo
     """"; a record of about N periods ..." when the band is above the target and a longer record would help."""
     from afmid.fit.force_band import RECORD_TARGET, periods_for_total
 
-    prep, config = getattr(result, "prep", None), getattr(result, "config", None)
-    if total <= RECORD_TARGET or prep is None or config is None:
+    periods = getattr(result, "n_periods", None)
+    if total <= RECORD_TARGET or periods is None:
         return ""
-    periods = int(prep.blocks.n_blocks * config.fit.periods_per_block)
     needed = periods_for_total(periods, statistical, separation, selection, calibration if calibration > 0 else math.nan)
     if needed is None:
         return f"; no longer record brings it to {100 * RECORD_TARGET:.2g} % (the calibration share is larger)"

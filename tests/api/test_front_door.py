@@ -62,11 +62,29 @@ def test_save_and_load_give_the_same_table_and_text(dmt_fit, tmp_path):
     again = afmid.load(path)
     assert again.parameters == dmt_fit.parameters  # float64 through HDF5 and back: bit for bit
     assert again.cv_error == dmt_fit.cv_error and again.terms == dmt_fit.terms
-    # the same lines; the file orders the parameters by name and does not hold the record-length clause
-    fresh = sorted(line.split("; a record of about")[0] for line in dmt_fit.text().splitlines())
-    assert sorted(again.text().splitlines()) == fresh
+    # the same lines, the record-length clause included; the file orders the parameters by name
+    assert sorted(again.text().splitlines()) == sorted(dmt_fit.text().splitlines())
     with pytest.raises(ConfigError, match="a loaded fit is its run file already"):
         again.save(tmp_path / "other.h5")
+
+
+def test_a_loaded_fit_says_what_the_fit_said(simulated, tmp_path):
+    """The fit's verdicts outside its text (the implausible read-outs' reasons, its warnings, its log line) come
+    from the fit itself and from a loaded fit's run file alike. The lever declared 1000x too stiff makes every
+    force 1000x too large: the Hamaker constant and the surface energy leave their plausible ranges
+    (tests/fit/test_plausibility.py), so the lists compared are not empty."""
+    stiff = afmid.Cantilever(40000.0, LEVER["resonance_frequency"], LEVER["quality_factor"],
+                             tip_radius=LEVER["tip_radius"])
+    trace = afmid.Trace.from_array(simulated.deflection, simulated.sample_rate, cantilever=stiff,
+                                   drive_frequency=simulated.drive_frequency)
+    fit = afmid.ForceModel(["dmt"], fit={"bootstrap": 0}).fit(trace)
+    again = afmid.load(fit.save(tmp_path / "stiff.h5"), trace=trace)
+    assert {"hamaker", "surface_energy"} <= {reason.split(" ")[0] for reason in fit.implausible}
+    assert sorted(again.implausible) == sorted(fit.implausible)
+    assert again.warnings == fit.warnings
+    assert again.summary_line() == fit.summary_line() == (f"cv_error {fit.cv_error:.4f}; terms: "
+                                                          f"{', '.join(fit.terms)}")
+    assert sorted(again.text().splitlines()) == sorted(fit.text().splitlines())
 
 
 def test_the_front_door_gives_the_numbers_of_afmid_fit(tmp_path, run_cli, simulated):

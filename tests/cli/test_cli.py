@@ -11,6 +11,7 @@ import json
 import subprocess
 import sys
 import textwrap
+import types
 from pathlib import Path
 
 import h5py
@@ -158,6 +159,10 @@ class _StubResult:
     selected = np.zeros(0, dtype=bool)
     nonlinear: dict = {}
     cv_error, cv_error_noise_floor, cv_error_folds = 0.0, 1.0, np.zeros(0)
+    warnings: list = []  # the fit's warning lines (afmid.api.Fit.warnings)
+
+    def __init__(self, trace):
+        self.prep = types.SimpleNamespace(trace=trace)  # the fitted trace (afmid.api.Fit.trace): its findings
 
     def summary_line(self) -> str:
         return "cv_error 0.0000; terms: stub"
@@ -178,7 +183,7 @@ def stub_fit(monkeypatch):
         seen["trace"] = load_trace(config)
         if "raise" in seen:
             raise seen["raise"]
-        return _StubResult()
+        return _StubResult(seen["trace"])
 
     def write_run(path, result, config, overwrite=False):
         path = check_output_path(path, overwrite)

@@ -118,6 +118,7 @@ def test_fit_stores_and_prints_the_band_and_claims_nothing_without_a_bootstrap(t
     run = load_run(tmp_path / "run.h5")
     assert run.force_statistical_uncertainty == result.force_statistical_uncertainty
     assert run.force_total_uncertainty == result.force_total_uncertainty
+    assert force_lines(run) == lines  # the run file's lines, the record's length included (12 periods)
     plain = run_fit(config, trace=trace, uncertainty=False)
     assert math.isnan(plain.force_statistical_uncertainty) and math.isnan(plain.force_total_uncertainty)
 
