@@ -100,20 +100,30 @@ def propagate_nonlinear(quantities: dict, nonlinear: dict, prep, library, params
     """
     extra = {k: 0.0 for k in quantities}
     for name, est in nonlinear.items():
-        if not math.isfinite(est.sigma) or est.sigma <= 0:
-            continue
-        shifted = []
-        for sign in (1, -1):
-            trial = dict(params, **{name: params[name] + sign * est.sigma})
-            try:
-                system = build_system(prep, library, trial)
-            except AfmidError:
-                continue  # e.g. a separation below a0: the other side alone
-            coef, _ = regression.subset_fit(regression.combine(system.T_blocks), mask)
-            shifted.append(read_out(library, coef, None, trial, mask, trace))
-        add_largest_shift(extra, quantities, shifted)
+        for k, v in nonlinear_shift(quantities, name, est.sigma, prep, library, params, mask, trace).items():
+            extra[k] += v
     for k, q in quantities.items():
         widen_interval(q, math.sqrt(extra[k]))
+
+
+def nonlinear_shift(quantities: dict, name: str, sigma: float, prep, library, params, mask, trace) -> dict[str, float]:
+    """Per read-out of ``quantities``, the square of its largest change when nonlinear parameter ``name`` moves by
+    +-``sigma`` (its unit) and the support's coefficients are refitted there
+    (:func:`afmid.fit.uncertainty.add_largest_shift`); all 0 when ``sigma`` is not a positive number."""
+    extra = {k: 0.0 for k in quantities}
+    if not math.isfinite(sigma) or sigma <= 0:
+        return extra
+    shifted = []
+    for sign in (1, -1):
+        trial = dict(params, **{name: params[name] + sign * sigma})
+        try:
+            system = build_system(prep, library, trial)
+        except AfmidError:
+            continue  # e.g. a separation below a0: the other side alone
+        coef, _ = regression.subset_fit(regression.combine(system.T_blocks), mask)
+        shifted.append(read_out(library, coef, None, trial, mask, trace))
+    add_largest_shift(extra, quantities, shifted)
+    return extra
 
 
 # --------------------------------------------------------------------------- the coefficients' spread

@@ -47,14 +47,16 @@ from afmid.fit.information_bound import InformationBound, floor_at_bound
 from afmid.fit.search import NonlinearEstimate, search_1d, search_range
 from afmid.fit.profile import GroupedProfile, ProfileResult, open_side_warning, robust_profile
 from afmid.fit.joint_profile import other_valley
-from afmid.fit.valleys import cover_other_valleys
+from afmid.fit.plausibility import unphysical
+from afmid.fit.uncertainty import widen_interval
+from afmid.fit.valleys import Misfit, cover_model_limited, cover_other_valleys
 from afmid.fit.selection import SelectionSettings
 from afmid.fit.drive_search import DriveSearch, settle_drive_frequency
 from afmid.fit.declared_drive import declared_drive, with_declared_drive
 from afmid.fit.fit_state import FitState
 from afmid.fit.orchestration import (BootstrapBagging, CalibrationAndLimits, ContactLawProbe, DriveCalibration,
                                      HeldOutPeriods, InvolsShare, NoSpread, Settled, Stages, Undetermined, Unphysical,
-                                     orchestrate, propagate_nonlinear, record_warnings)
+                                     nonlinear_shift, orchestrate, propagate_nonlinear, record_warnings)
 from afmid.fit.undetermined import whole_effects
 from afmid.progress import Progress
 from afmid.fit.separation_share import NOT_COMPUTED as SHARE_NOT_COMPUTED, SeparationShare, separation_share
@@ -356,8 +358,8 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
                       DriveCalibration()]
     finishing += [Undetermined(fit.bootstrap if uncertainty else 0, fit.seed), Unphysical()]
     information = InformationFloor(separation)
-    if uncertainty:  # no sigma below the record's Cramér-Rao bound (afmid.fit.information_bound)
-        finishing.append(information)
+    if uncertainty:  # a model-limited fit's intervals from the whole profile; none below the Cramér-Rao bound
+        finishing += [ModelLimitedProfile(separation), information]
     spread = (BootstrapBagging(settings, fit.bootstrap, fit.seed) if fit.bootstrap > 0 and uncertainty
               else NoSpread())
     done = orchestrate(config, library, separation, spread, HeldOutPeriods(library, fit.folds), finishing, bar,
@@ -389,6 +391,70 @@ def _fit_prepared(prep: Prepared, library: Library, config: RunConfig, bar: Prog
                      error.cv_error, error.per_fold, error.noise_floor, rows, force_estimate, force_inverted, periods,
                      warnings, separation.drive_search, state.force_calibration, state.model_limited, share,
                      statistical, selection_doubt, information.bound, cv_error_floor_dof=error.floor_dof)
+
+
+class ModelLimitedProfile:
+    """A model-limited fit's nonlinear parameters (the separation first) get the interval of their profile over
+    the whole searched window weighed against the model's misfit (:func:`afmid.fit.valleys.cover_model_limited`):
+    the chi-square unit scaled by (error / floor)^2, and, when read-outs are unphysical, the rise a law with
+    physical parameters loses at the fit's own minimum allowed to every other valley. The widened sigma's extra
+    share is propagated into the read-outs (the larger change at +-sigma, in quadrature with what they carry).
+    A fit that is not model-limited is left as it is."""
+
+    name = "model-limited profile"
+
+    def __init__(self, separation: "ProfiledSeparation"):
+        self.separation = separation
+
+    def apply(self, state) -> None:
+        sep = self.separation
+        if not state.model_limited or not sep.profiled:
+            return
+        misfit = Misfit(state.cv_error / state.noise_floor if state.noise_floor > 0 else math.nan,
+                        physical_allowance(state))
+        for name, est in sep.nonlinear.items():
+            found = sep.profiled.get(name)
+            if found is None:
+                continue
+            if not math.isclose(found.value, est.value, rel_tol=0.0, abs_tol=1e-3 * max(found.sigma, 0.0)):
+                found = sep.profile_from(name, est.value, jackknife=True)  # moved since (another valley)
+
+            def refine(start: float, name=name) -> ProfileResult | None:
+                try:
+                    return sep.profile_from(name, start)
+                except AfmidError:
+                    return None
+
+            before = cover_model_limited(name, est, found, misfit, refine, state.warnings)
+            if not est.sigma > before:
+                continue
+            args = (state.prep, state.library, state.params, state.mask, state.trace)
+            wide = nonlinear_shift(state.quantities, name, est.sigma, *args)
+            narrow = nonlinear_shift(state.quantities, name, before, *args)
+            for k, q in state.quantities.items():
+                widen_interval(q, math.sqrt(max(wide[k] - narrow[k], 0.0)))
+
+
+def physical_allowance(state) -> float:
+    """How much the fit's weighted residual grows at its own parameters when its unphysical read-outs
+    (:func:`afmid.fit.plausibility.unphysical`) are held at their physical range's edge, zero: their source
+    terms dropped from the support (one-sided bounds on a least-squares fit: the bounded optimum sits on the
+    bound). 0 when none is unphysical or a source is not a column of the fit."""
+    names = list(state.system.names)
+    dropped = np.array(state.mask, dtype=bool, copy=True)
+    for key, q in state.quantities.items():
+        if not unphysical(key, q):
+            continue
+        for source in q.get("sources") or ():
+            label = f"{q.get('effect')}.{source}" if q.get("effect") else source
+            if label not in names:
+                return 0.0
+            dropped[names.index(label)] = False
+    if np.array_equal(dropped, state.mask):
+        return 0.0
+    T = regression.combine(state.system.T_blocks)
+    full, without = regression.subset_fit(T, state.mask)[1], regression.subset_fit(T, dropped)[1]
+    return max(float(without - full), 0.0) if math.isfinite(without) and math.isfinite(full) else 0.0
 
 
 class InformationFloor:
@@ -450,6 +516,7 @@ class ProfiledSeparation:
         self.physics, self.extra = profile_library(library, config)
         self.settings = SelectionSettings.for_library(config.fit, library, len(prep.nuisance_names))
         self.nonlinear: dict[str, NonlinearEstimate] = {}
+        self.profiled: dict[str, ProfileResult] = {}  # each nonlinear parameter's profile on the final support
         self.drive_search: DriveSearch | None = None
         self.chosen: np.ndarray | None = None
 
@@ -528,7 +595,18 @@ class ProfiledSeparation:
         for name, est in nonlinear.items():
             est.value = params[name]
         self.chosen = chosen
+        if nonlinear and uncertainty:
+            self.profiled = profiled
         return Settled(prep, system, chosen, params, warnings, selection)
+
+    def profile_from(self, name: str, start: float, jackknife: bool = False) -> ProfileResult:
+        """Nonlinear parameter ``name`` profiled again from ``start`` (its unit) on the settled support and row
+        weights, the other parameters held at their settled values."""
+        library, physics, est = self.library, self.physics, self.nonlinear[name]
+        trial = dict(self.params, **self.extra, **{name: start})
+        return profile_parameter(self.prep, physics, trial, name, est.bounds,
+                                 whole_effects(library, self.chosen) if physics is library else None,
+                                 jackknife=jackknife)
 
     def propagate(self, state: FitState) -> None:
         """The profiles' sigmas into the read-outs (refits at +-1 sigma: :func:`propagate_nonlinear`), with

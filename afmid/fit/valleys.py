@@ -84,25 +84,29 @@ def separated_minima(grid: np.ndarray, values: np.ndarray, best: float, level: f
 
 
 def other_valleys(found: ProfileResult, grid: np.ndarray, values: np.ndarray, s2: float,
-                  refine: Callable[[float], ProfileResult | None]) -> list[Valley]:
+                  refine: Callable[[float], ProfileResult | None], scale: float = 1.0,
+                  allowance: float = 0.0) -> list[Valley]:
     """The refined other valleys of a profile within :data:`REACH` effective units, lowest first.
 
     ``found`` is the fit's profile (its minimum's residual is the lowest of its values); ``grid``/``values`` the
     outer search's coarse profile over the whole window (any library: only its shape is used to find the
     valleys); ``s2`` the residual variance of one chi-square unit; ``refine(start)`` profiles the parameter
-    again from ``start`` on the fit's support (None where it cannot be evaluated)."""
+    again from ``start`` on the fit's support (None where it cannot be evaluated). A model-limited fit weighs
+    the rises against its misfit (:class:`Misfit`): ``scale`` (>= 1) multiplies the effective unit and
+    ``allowance`` (residual units) is taken off every rise before it is counted."""
     if not (math.isfinite(found.value) and s2 > 0 and np.size(grid) >= 3):
         return []
     here = float(np.min(found.values)) if np.size(found.values) else math.nan
     if not math.isfinite(here):
         return []
-    unit = s2 * chi2_inflation(found)
+    unit = s2 * chi2_inflation(found) * max(scale, 1.0)
+    allowance = max(allowance, 0.0) if math.isfinite(allowance) else 0.0
     coarse = np.asarray(values, float)
     lowest = float(np.min(coarse[np.isfinite(coarse)])) if np.isfinite(coarse).any() else math.nan
     if not math.isfinite(lowest):
         return []
-    starts = separated_minima(grid, coarse, found.value, lowest + REACH * unit, lowest + unit)
-    valleys: list[Valley] = near_valleys(found, unit)
+    starts = separated_minima(grid, coarse, found.value, lowest + allowance + REACH * unit, lowest + unit)
+    valleys: list[Valley] = near_valleys(found, unit, allowance)
     for start in starts:
         other = refine(start)
         if other is None or not math.isfinite(other.value) or not np.size(other.values):
@@ -112,13 +116,13 @@ def other_valleys(found: ProfileResult, grid: np.ndarray, values: np.ndarray, s2
             continue  # refined back into the fit's own valley, or inside its interval already
         if any(abs(other.value - v.value) <= max(found.sigma, 0.0) for v in valleys):
             continue  # already found among the profile's own points
-        rise = (rss - here) / unit
+        rise = (rss - here - allowance) / unit
         if rise <= REACH:
             valleys.append(Valley(other.value, rss, rise))
     return sorted(valleys, key=lambda v: v.rss)
 
 
-def near_valleys(found: ProfileResult, unit: float) -> list[Valley]:
+def near_valleys(found: ProfileResult, unit: float, allowance: float = 0.0) -> list[Valley]:
     """The other valleys among the fit's own profile points (``found.grid`` / ``found.values``: the zoom, the
     chi-square interval and the jackknife's grid, a few sigma either side of the minimum, on the fit's support).
 
@@ -129,7 +133,8 @@ def near_valleys(found: ProfileResult, unit: float) -> list[Valley]:
     counts when it is a local minimum of the points, within :data:`REACH` effective units (``unit``: residual
     per effective chi-square unit) of the fit's minimum, and cut off from it by a rise of more than one unit
     above itself (a wiggle on the valley's flank is not). Its rise is read at the point (no refit: a refit from
-    there slides back into the deeper valley a few grid steps away)."""
+    there slides back into the deeper valley a few grid steps away). ``allowance`` (residual units) is taken
+    off each rise, as in :func:`other_valleys`."""
     grid, values = np.asarray(found.grid, float), np.asarray(found.values, float)
     keep = np.isfinite(values)
     grid, values = grid[keep], values[keep]
@@ -149,7 +154,7 @@ def near_valleys(found: ProfileResult, unit: float) -> list[Valley]:
         lo, hi = sorted((j, home))
         if hi - lo < 2 or float(np.max(values[lo:hi + 1])) - values[j] <= unit:
             continue
-        rise = (float(values[j]) - here) / unit
+        rise = (float(values[j]) - here - allowance) / unit
         if rise <= REACH and abs(grid[j] - found.value) > max(found.sigma, 0.0):
             valleys.append(Valley(float(grid[j]), float(values[j]), rise))
     return valleys
@@ -208,3 +213,66 @@ def cover_other_valleys(name: str, est, found: ProfileResult, params: dict,
         est.sigma = sigma
         warnings.append("warning: " + describe(name, est.unit, est.value, sigma, valleys))
     return moved
+
+
+@dataclass(frozen=True)
+class Misfit:
+    """What a model-limited fit's failure is worth on a nonlinear parameter's profile (the profile's chi-square
+    is then not the noise's alone, so neither its curvature nor the rise to another valley is a noise interval).
+
+    ``ratio``: the cross-validated error over its noise floor; the chi-square unit is scaled by ``ratio**2``
+    when above 1 (the residual per row the model leaves, as a scale factor on a chi-square with a misfit).
+    ``allowance`` (residual units, the profile's weighted sum of squares): the rise at the fit's own minimum when
+    its unphysical read-outs are held at their physical range's edge (their terms dropped): a law with physical
+    parameters is that much worse there, so another valley up to that much higher is one such a law prefers.
+    Measured on instrument.yaml seed 2804 draw 48 (20 samples per period, aliasing warned, error / floor 0.97):
+    the separation's minimum at 9.43 nm needs a negative Hamaker constant and E*; dropping the tail costs 2339
+    units there; a second valley at 7.50 nm, 37.5 units higher (19 effective), has H 9.2e-20 J and E* 3.4 GPa
+    (truth 7.70 nm, 6.3e-20 J, 3.7 GPa); the fit's own curvature sigma was 49 pm (z +35)."""
+
+    ratio: float = math.nan
+    allowance: float = 0.0
+
+    @property
+    def scale(self) -> float:
+        """The chi-square unit's factor (>= 1)."""
+        return max(1.0, self.ratio**2) if math.isfinite(self.ratio) else 1.0
+
+
+def misfit_text(misfit: Misfit, s2: float) -> str:
+    """How the profile was weighed, in words (``s2``: residual units per chi-square unit)."""
+    parts = []
+    if misfit.scale > 1.0:
+        parts.append(f"its chi-square unit scaled by (error / floor)^2 = {misfit.scale:.2g}")
+    if misfit.allowance > 0 and s2 > 0:
+        parts.append(f"a valley up to {misfit.allowance / s2:.3g} chi-square units higher counted as good as the "
+                     "fit's: a law with physical parameters loses that much at the fit's own minimum")
+    return " and ".join(parts) or "its chi-square as the noise's"
+
+
+def cover_model_limited(name: str, est, found: ProfileResult, misfit: Misfit,
+                        refine: Callable[[float], ProfileResult | None], warnings: list[str]) -> float:
+    """The 1-sigma of nonlinear parameter ``name`` of a model-limited fit: its profile over the whole searched
+    window weighed against the model's misfit (:class:`Misfit`), never a local curvature sigma alone.
+
+    The fit's own valley's sigma grows by sqrt(scale); every other valley of the window within :data:`REACH`
+    weighed units (:func:`other_valleys` with the misfit) is put at sqrt(rise) sigmas (at one sigma when the
+    misfit allows it as good), and the run warns naming them. ``est`` (its ``sigma``) is updated in place;
+    returns the sigma before (the caller propagates the difference into the read-outs)."""
+    before = est.sigma
+    if not (math.isfinite(found.value) and math.isfinite(before)):
+        return before
+    local = before * math.sqrt(misfit.scale)
+    valleys = other_valleys(found, est.grid, est.objective, found.s2, refine, misfit.scale, misfit.allowance)
+    sigma = covering_sigma(est.value, local, valleys)
+    if sigma <= before:
+        return before
+    est.sigma = sigma
+    scale, shown = (1e9, "nm") if est.unit == "m" else (1.0, est.unit)
+    others = "; ".join(f"{scale * v.value:.3g} {shown} ({max(v.rise, 0.0):.2g} weighed units higher)" for v in valleys)
+    where = (f"the profile over the searched window has other valleys the model's failure cannot rule out: "
+             f"{others}; " if valleys else "")
+    warnings.append(f"warning: {name}: the fit is model-limited, so its profile is weighed against the model's "
+                    f"misfit ({misfit_text(misfit, found.s2)}): {where}its 1-sigma grows from "
+                    f"{scale * before:.3g} to {scale * sigma:.3g} {shown}, and so do the read-outs that depend on it")
+    return before

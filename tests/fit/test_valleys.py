@@ -159,3 +159,80 @@ def test_the_near_valley_follows_the_effective_unit():
     found, away = near_double_well(rise=4.0, barrier=12.0)
     valleys = near_valleys(found, 4.0 * S2)  # correlated rows: one effective unit is 4 raw ones
     assert len(valleys) == 1 and valleys[0].rise == pytest.approx(1.0, rel=1e-9)
+
+
+# --------------------------------------------------------------------------- a model-limited fit
+def model_limited(rise: float, misfit):
+    """The fit's profile and estimate of a double well ``rise`` units apart, widened as a model-limited fit's."""
+    from afmid.fit.valleys import cover_model_limited
+
+    rss = double_well(rise)
+    profile_at = fake_profile(rss)
+    est, warnings = estimate(rss), []
+    found = profile_at({"x": HOME}, "x")
+    before = cover_model_limited("hydration_length", est, found, misfit, lambda start: profile_at({"x": start}, "x"),
+                                 warnings)
+    return est, before, warnings
+
+
+def test_a_model_limited_fit_covers_the_valley_its_unphysical_law_cannot_rule_out():
+    """The old behaviour: a valley 37.5 units higher is beyond the reach, the curvature sigma stays (draw 48 of
+    instrument.yaml, seed 2804: 49 pm, d 1.7 nm off). A law with physical parameters loses 2339 units at the
+    fit's minimum, so the other valley is one such a law prefers: it sits at one sigma."""
+    from afmid.fit.valleys import Misfit
+
+    est, params, warnings, moved = run(rise=37.5)
+    assert not moved and est.sigma == WIDTH and not warnings  # what the fit reported before
+    est, before, warnings = model_limited(37.5, Misfit(ratio=0.97, allowance=2339.0))
+    assert before == WIDTH
+    assert est.sigma == pytest.approx(AWAY - HOME)
+    assert len(warnings) == 1 and "model-limited" in warnings[0] and "0.5 nm" in warnings[0]
+    assert "2.34e+03 chi-square units" in warnings[0]
+
+
+def test_a_model_limited_fit_scales_its_chi_square_by_the_misfit():
+    """Error 2x the floor: the unit is 4x, so a valley 12 raw units higher (beyond the reach of 9) is 3 units
+    higher and sits at sqrt(3) sigmas; the fit's own valley's sigma doubles."""
+    from afmid.fit.valleys import Misfit
+
+    est, _, warnings, _ = run(rise=12.0)
+    assert est.sigma == WIDTH and not warnings
+    est, before, warnings = model_limited(12.0, Misfit(ratio=2.0))
+    assert before == WIDTH
+    assert est.sigma == pytest.approx(max(2 * WIDTH, (AWAY - HOME) / math.sqrt(3.0)), rel=1e-9)
+    assert warnings and "scaled by (error / floor)^2 = 4" in warnings[0]
+
+
+def test_a_model_limited_fit_with_nothing_to_weigh_is_unchanged():
+    """Error at its floor and no unphysical read-out (a contact-law probe's flag): a valley beyond the reach
+    changes nothing, no warning."""
+    from afmid.fit.valleys import Misfit
+
+    est, before, warnings = model_limited(12.0, Misfit(ratio=0.9, allowance=0.0))
+    assert est.sigma == before == WIDTH and not warnings
+
+
+def test_the_allowance_is_the_residual_of_the_law_held_physical():
+    """afmid.fit.pipeline.physical_allowance: the rise of the weighted residual when the unphysical read-out's
+    source term is dropped, against the same least-squares fits done directly."""
+    from types import SimpleNamespace
+
+    import afmid.fit.regression as regression
+    from afmid.fit.pipeline import physical_allowance
+
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(6, 40, 3))
+    b = A @ np.array([1.0, -0.5, 0.2]) + 0.1 * rng.normal(size=(6, 40))
+    system = SimpleNamespace(names=["dmt.vdw", "dmt.hertz", "drive_cos"],
+                             T_blocks=regression.factor_blocks(A, b))
+    hamaker = {"value": -1e-18, "error": 1e-19, "ci_low": -1.2e-18, "ci_high": -0.8e-18, "unit": "J",
+               "effect": "dmt", "sources": ("vdw",), "determined": True}
+    mask = np.ones(3, dtype=bool)
+    state = SimpleNamespace(system=system, mask=mask, quantities={"hamaker": hamaker})
+    flat_A, flat_b = A.reshape(-1, 3), b.ravel()
+    full = np.sum((flat_b - flat_A @ np.linalg.lstsq(flat_A, flat_b, rcond=None)[0]) ** 2)
+    kept = flat_A[:, 1:]
+    without = np.sum((flat_b - kept @ np.linalg.lstsq(kept, flat_b, rcond=None)[0]) ** 2)
+    assert physical_allowance(state) == pytest.approx(without - full, rel=1e-8)
+    hamaker.update(value=5e-20, ci_low=3e-20, ci_high=7e-20)  # physical: nothing to allow
+    assert physical_allowance(state) == 0.0
