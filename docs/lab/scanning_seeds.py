@@ -6,7 +6,8 @@ MODE: a fit.separation_track.within_block value, or "default" (the config's defa
 E* 2 GPa, H 5e-20 J, A0 10 nm, A/A0 0.85, thermal noise + 1 pm detector, feedback gain 6000 /s, demodulator
 10 kHz; fit [dmt], separation unknown, no bootstrap) prints: blocks whose d is within 2 sigma of the block's mean
 true d(t), the blocks' z, E*, the force error (the fitted law against the true force at the true z(t), RMS over
-the samples, % of the peak true force), model-limited blocks, and inspect's motion line. The simulated trace is
+the samples, % of the peak true force), model-limited blocks, inspect's motion line and, with rows, the
+offsets' share of each level's sigma and the linearised joint minimum's remaining step (afmid.fit.separation_track). The simulated trace is
 cached in the temp folder (keyed by surface, periods, seed).
 """
 import copy, sys, time, logging, os, pickle, tempfile
@@ -15,7 +16,7 @@ from afmid.config import build_config
 from afmid.simulate.driver import simulate
 from afmid.io.trace import check_trace, write_trace_file
 from afmid.io.inspect import inspect_file
-from afmid.fit.separation_track import fit_separation_track
+from afmid.fit.separation_track import fit_separation_track, offsets_share
 
 periods, bandwidth, mode, kind = int(sys.argv[1]), float(sys.argv[2]), sys.argv[3], sys.argv[4]
 seeds = [int(s) for s in sys.argv[5:]]
@@ -77,5 +78,8 @@ for seed in seeds:
           f"d-truth pm {np.round((track.separation - truth) * 1e12).astype(int).tolist()} sigma pm "
           f"{np.round(track.sigma * 1e12).astype(int).tolist()}; E* {e_star / 1e9:.3f} GPa; force error "
           f"{100 * err:.2f} % of peak; model-limited {limited}/{z.size}; terms {joint.selected_terms()}; "
-          f"{motion[0] if motion else 'motion: -'}; cpu sim {t_sim:.0f} s fit {time.process_time() - t1:.0f} s",
+          f"{motion[0] if motion else 'motion: -'}; cpu sim {t_sim:.0f} s fit {time.process_time() - t1:.0f} s"
+          + (f"; offsets' share of sigma pm {np.round(np.sqrt(offsets_share(track.level_step)) * 1e12, 1).tolist()}, "
+             f"joint minimum's step pm {np.round(track.level_step.level_change * 1e12, 1).tolist()}"
+             if track.level_step is not None else ""),
           flush=True)
