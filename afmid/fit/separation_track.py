@@ -82,18 +82,21 @@ def cut_blocks(trace: Trace, block_periods: int) -> list[Trace]:
     per_period = trace.sample_rate / trace.drive_frequency
     n_blocks = max(1, int(trace.n_samples // (block_periods * per_period)))
     edges = [round(k * block_periods * per_period) for k in range(n_blocks)] + [trace.n_samples]
-    blocks = []
-    for first, stop in zip(edges[:-1], edges[1:]):
-        block = crop(trace, first, stop)
-        truth = trace.truth
-        if truth is not None and truth.tracks:
-            tracks = {name: (values[first:stop], unit) for name, (values, unit) in truth.tracks.items()}
-            extra = dict(truth.extra)
-            if "rest_separation" in tracks:
-                extra["separation"] = float(np.mean(tracks["rest_separation"][0]))
-            block = dataclasses.replace(block, truth=dataclasses.replace(block.truth, tracks=tracks, extra=extra))
-        blocks.append(block)
-    return blocks
+    return [cut_block(trace, first, stop) for first, stop in zip(edges[:-1], edges[1:])]
+
+
+def cut_block(trace: Trace, first: int, stop: int) -> Trace:
+    """Samples ``first``..``stop`` of ``trace`` (its own indices) as a block of a track: a simulation's truth
+    cut with it, its ``separation`` attribute the block's mean rest separation when the record has a d(t) track."""
+    block = crop(trace, first, stop)
+    truth = trace.truth
+    if truth is not None and truth.tracks:
+        tracks = {name: (values[first:stop], unit) for name, (values, unit) in truth.tracks.items()}
+        extra = dict(truth.extra)
+        if "rest_separation" in tracks:
+            extra["separation"] = float(np.mean(tracks["rest_separation"][0]))
+        block = dataclasses.replace(block, truth=dataclasses.replace(block.truth, tracks=tracks, extra=extra))
+    return block
 
 
 def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, progress=False,
@@ -236,6 +239,11 @@ def write_track(group, track: SeparationTrack) -> None:
     write_dataset(group, "stop_sample", track.stop_sample, "1", definition="one past the block's last sample")
     write_dataset(group, "separation", track.separation, "m", definition="rest separation d of the block")
     write_dataset(group, "separation_error", track.sigma, "m", error_kind="1 sigma")
+    if track.period_offsets:
+        write_dataset(group, "period_offsets", np.concatenate(track.period_offsets), "m",
+                      definition="each harmonic block's (period's) rest separation relative to its block's d, the "
+                                 "blocks one after the other (period_offset_counts per block)")
+        write_dataset(group, "period_offset_counts", np.array([o.size for o in track.period_offsets]), "1")
 
 
 def track_table(track: SeparationTrack) -> str:

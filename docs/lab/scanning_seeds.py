@@ -8,13 +8,16 @@ E* 2 GPa, H 5e-20 J, A0 10 nm, A/A0 0.85, thermal noise + 1 pm detector, feedbac
 true d(t), the blocks' z, E*, the force error (the fitted law against the true force at the true z(t), RMS over
 the samples, % of the peak true force), model-limited blocks, inspect's motion line and, with rows, the
 offsets' share of each level's sigma and the linearised joint minimum's remaining step (afmid.fit.separation_track). The simulated trace is
-cached in the temp folder (keyed by surface, periods, seed).
+cached in the temp folder (keyed by surface, periods, seed), and the track's run file written beside it
+(..._MODE.run.h5: afmid report diagnoses it).
 """
-import copy, sys, time, logging, os, pickle, tempfile
+import copy, dataclasses, sys, time, logging, os, pickle, tempfile
+from pathlib import Path
 import numpy as np
 from afmid.config import build_config
 from afmid.simulate.driver import simulate
-from afmid.io.trace import check_trace, write_trace_file
+from afmid.io.trace import check_trace, sha256_file, write_trace_file
+from afmid.joint_runfile import write_track_run
 from afmid.io.inspect import inspect_file
 from afmid.fit.separation_track import fit_separation_track, offsets_share
 
@@ -62,8 +65,10 @@ for seed in seeds:
     motion = [line.strip() for line in inspect_file(h5).splitlines() if line.strip().startswith("motion")]
     fit_raw = copy.deepcopy(raw)
     del fit_raw["sample"]["separation"]
+    fit_raw["fit"]["separation_track"] = {"bandwidth": bandwidth, "within_block": "constant" if mode == "default" else mode}
     config = build_config(fit_raw)
-    trace = check_trace(trace, config)
+    # The trace file's path and digest: the run file written below points at it (afmid report refits from it).
+    trace = check_trace(dataclasses.replace(trace, path=Path(h5), sha256=sha256_file(h5)), config)
     t1 = time.process_time()
     track = fit_separation_track(config, trace, bandwidth, within_block=None if mode == "default" else mode)
     joint = track.joint
@@ -83,3 +88,5 @@ for seed in seeds:
              f"joint minimum's step pm {np.round(track.level_step.level_change * 1e12, 1).tolist()}"
              if track.level_step is not None else ""),
           flush=True)
+    write_track_run(f"{tempfile.gettempdir()}/afmid_scan_seeds_{kind}_{periods}_{seed}_{mode}.run.h5", track,
+                    overwrite=True)
