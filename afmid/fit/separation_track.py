@@ -22,8 +22,12 @@ sensitivity to d is the period's mean contact stiffness, ~1.5 N/m on the 240-per
 its offsets erred by 6-9 pm per period against a true sd of 5-8 pm, and the law traded the misassigned contact
 for a soft E* and every block's level 42-101 pm low (errors in the regressor flatten the law). The rows find the
 offsets to 1-2 pm there: 40 of 40 blocks within 2 sigma over seeds 71-75 of a step and a rough surface, force
-error 0.09-1.67 % of the peak; on seed 81 both were still ~40-50 pm low at sigma 14-16 pm: the level's sigma,
-conditional on the offsets, is too small (docs/lab/2026-11-29-scanning-record.md).
+error 0.09-1.67 % of the peak. The offsets come from the same rows as the law and the levels, so the last pass
+takes them at the joint minimum over all three (:func:`afmid.fit.period_separation.joint_level_step`, linearised
+at the previous fit: the alternation alone left the 2 nm step of seed 81 11 pm short of it), and the levels'
+sigma gets the offsets' posterior share in quadrature (:func:`offsets_share`; 6 pm beside the profile's 16 pm
+there). What the true per-period d given inside the fit leaves (seed 81: every block ~40 pm low at 16 pm) is not
+the offsets' and is not covered (docs/lab/2026-11-29-scanning-record.md).
 """
 
 from __future__ import annotations

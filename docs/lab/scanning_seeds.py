@@ -33,6 +33,8 @@ FEEDBACK = {"gain": 6000.0, "bandwidth": 10e3}
 SCANS = {"step": {"speed": 4e-6, "start": -5e-9, "step": {"height": 2e-9, "position": 0.0, "width": 5e-9},
                   "feedback": FEEDBACK},
          "rough": {"speed": 4e-6, "rough": {"rms": 0.5e-9, "correlation_length": 5e-9}, "feedback": FEEDBACK},
+         # no feedback, a flat surface: the piezo still, d constant (what a track must not make worse)
+         "flat": {"speed": 4e-6},
          # no feedback: the piezo still, d drops 0.4 nm mid-record (tests/fit/test_separation_track.py's record)
          "nofeedback": {"speed": 4e-6, "start": -1.6e-9, "step": {"height": 0.4e-9, "position": 0.0, "width": 0.1e-9}}}
 logging.getLogger("afmid").setLevel(logging.ERROR)
