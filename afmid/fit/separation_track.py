@@ -243,7 +243,7 @@ def write_track(group, track: SeparationTrack) -> None:
     write_dataset(group, "stop_sample", track.stop_sample, "1", definition="one past the block's last sample")
     write_dataset(group, "separation", track.separation, "m", definition="rest separation d of the block")
     write_dataset(group, "separation_error", track.sigma, "m", error_kind="1 sigma")
-    if track.period_offsets:
+    if track.period_offsets and track.within_block != "constant":
         write_dataset(group, "period_offsets", np.concatenate(track.period_offsets), "m",
                       definition="each harmonic block's (period's) rest separation relative to its block's d, the "
                                  "blocks one after the other (period_offset_counts per block)")
