@@ -479,6 +479,10 @@ class RunData:
     #: A joint fit's traces (/joint, data.paths), in order: path, separation and its 1 sigma (m; sigma 0 when
     #: given), cv error, noise floor, model-limited. None for a single trace. The rest of RunData is trace 0's.
     joint: list[dict] | None = None
+    #: A separation track's first block (/model/separation_track), whose result the rest of RunData is: its
+    #: samples in the checked record (first_sample, stop_sample) and its periods' rest separations relative to its
+    #: d (period_offsets, m; None when d was held per block). None for a run without a track.
+    track_block: dict | None = None
 
     @property
     def n_terms(self) -> int:
@@ -658,6 +662,7 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
                                                                             math.nan)),
         force_total_uncertainty=float(h5["force"]["estimate"].attrs.get("total_relative_uncertainty", math.nan)),
         joint=read_joint_traces(h5["joint"]) if "joint" in h5 else None,
+        track_block=read_track_block(m["separation_track"]) if "separation_track" in m else None,
     )
 
 
@@ -668,6 +673,17 @@ def run_config(raw: dict, path: Path, input_path: Path | None) -> RunConfig:
     if isinstance(model, dict) and model.get("library") is not None:
         model.pop("effects", None)  # older afmid stored the unused default effects beside a preset
     return build_config(raw, source=path, base_dir=input_path.parent if input_path else path.parent)
+
+
+def read_track_block(track) -> dict:
+    """The first block of a separation track (``/model/separation_track``, afmid.fit.separation_track.write_track):
+    its sample range and its periods' offsets (m; None when the file holds none)."""
+    offsets = None
+    if "period_offsets" in track and "period_offset_counts" in track:
+        count = int(track["period_offset_counts"][0])
+        offsets = np.asarray(track["period_offsets"][:count], dtype=float)
+    return {"first_sample": int(track["first_sample"][0]), "stop_sample": int(track["stop_sample"][0]),
+            "period_offsets": offsets}
 
 
 def read_joint_traces(joint) -> list[dict]:

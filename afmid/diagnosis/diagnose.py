@@ -234,6 +234,37 @@ def suggest(run: RunData, progress: bool = False, trace=None) -> dict:
         return _diagnose(run, progress, trace)
 
 
+def track_block_preparation(run: RunData, record, config: RunConfig):
+    """The preparation a separation track's run describes: the track's first block of ``record`` (the run's
+    single-trace layout holds that block's result), with its periods' rest separations as the track fitted them
+    (:func:`afmid.fit.period_separation.with_period_separation`) and its d (``config``'s, from the run).
+
+    The record as a whole under one d is not what the track fitted: while scanning, d(t) follows the topography,
+    and one d for the record leaves a residual of the scan itself (docs/lab/2026-11-29-scanning-record.md: the
+    2 nm step's force error 13 % of the peak with one d), which a candidate effect would be asked to explain.
+    The candidates are refitted on the first block alone, with the track's d and per-period offsets held, as
+    a joint fit's candidates are on its first trace; InputError when the stored offsets do not fit the block's
+    periods (the record or the fit settings changed)."""
+    from afmid.fit.period_separation import with_period_separation
+    from afmid.fit.pipeline import prepare
+    from afmid.fit.separation_track import cut_block
+    from afmid.io.trace import check_trace
+    from afmid.preprocess.instrument import from_config as instrument_from_config
+
+    block = run.track_block
+    checked = check_trace(record, config)
+    prepared = prepare(check_trace(cut_block(checked, block["first_sample"], block["stop_sample"]), config),
+                       config.fit, instrument_from_config(config))
+    offsets = block["period_offsets"]
+    if offsets is None:
+        return prepared
+    if offsets.size != prepared.blocks.n_blocks:
+        raise InputError(f"the separation track's first block holds {offsets.size} period offsets, the record's "
+                         f"block prepares {prepared.blocks.n_blocks} periods: refit the run", file=run.path,
+                         key="model/separation_track/period_offsets")
+    return with_period_separation(prepared, offsets)
+
+
 def _one_blas_thread():
     """Single-threaded BLAS for the refits (threadpoolctl, when installed).
 
@@ -262,8 +293,11 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
     base_config = refit_config(run, run.effects)
     # Every refit below differs from this one only in its library and fixed parameters: one preparation, and its
     # trajectory on the fine grid made once for all the refits' and shape searches' library evaluations.
-    prepared = with_fine_grid(prepare(load_trace(base_config) if trace is None else trace, base_config.fit,
-                                      instrument_from_config(base_config)))
+    record = load_trace(base_config) if trace is None else trace
+    if run.track_block is not None:
+        prepared = with_fine_grid(track_block_preparation(run, record, base_config))
+    else:
+        prepared = with_fine_grid(prepare(record, base_config.fit, instrument_from_config(base_config)))
     base_result = _fit_quick(base_config, prepared)
     chi2, limit, n_rows = _chi2(base_result)
     base = _Base(base_result.cv_error, base_result.cv_error_noise_floor, base_result.selection.best.bic,

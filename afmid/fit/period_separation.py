@@ -117,17 +117,18 @@ PRIOR_SD = np.array([0.5, 1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 100]) * 1e-12
 PRIOR_RHO = np.array([0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995])
 
 
-def row_information(prep: Prepared, library, law: np.ndarray, nuisance_coef: np.ndarray, params: dict,
-                    offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The weak-form rows' information on the per-period offsets linearised at ``offsets`` (m): the whitened
-    design's G^T G (1/m^2, (n, n)) and G^T r (1/m, (n,)) with r the rows' whitened residual under the law
-    (``law`` on ``library``'s columns, ``nuisance_coef`` on the preparation's drive columns) at ``offsets``.
+def row_design(prep: Prepared, library, law: np.ndarray, nuisance_coef: np.ndarray, params: dict,
+               offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weak-form rows linearised in the per-period offsets at ``offsets`` (m): the whitened design G
+    (rows, n) in 1/m, and r, the rows' whitened residual under the law (``law`` on ``library``'s columns,
+    ``nuisance_coef`` on the preparation's drive columns) at ``offsets`` (rows,), dimensionless.
 
     A window spans two periods (:func:`afmid.preprocess.periods.weak_windows`) and sees each through the same
     harmonics (weighted by the window's envelope), so one window cannot tell its two periods apart: G has about
     one direction per window, and neighbouring periods are separated only by a prior (:func:`row_offsets`). The
     derivatives come from moving the even and the odd periods apart (four evaluations of the columns); the row
-    noise is the fit's (``row_sigma``, independent rows)."""
+    noise is the fit's (``row_sigma``, independent rows). G summed over its columns is the rows' derivative in
+    the block's level: moving every period by the same amount moves the level."""
     n = prep.blocks.n_blocks
     parity = np.arange(n) % 2
     residual = (prep.Y - library_columns(with_period_separation(prep, offsets), library, params) @ law
@@ -145,8 +146,15 @@ def row_information(prep: Prepared, library, law: np.ndarray, nuisance_coef: np.
             for b in (w, w + 1):
                 if b < n and parity[b] == odd:
                     design[w, :, b] = slope[w]
-    whitened = design.reshape(-1, n)
-    return whitened.T @ whitened, whitened.T @ residual.ravel()
+    return design.reshape(-1, n), residual.ravel()
+
+
+def row_information(prep: Prepared, library, law: np.ndarray, nuisance_coef: np.ndarray, params: dict,
+                    offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weak-form rows' information on the per-period offsets linearised at ``offsets`` (m): the whitened
+    design's G^T G (1/m^2, (n, n)) and G^T r (1/m, (n,)) (:func:`row_design`)."""
+    whitened, residual = row_design(prep, library, law, nuisance_coef, params, offsets)
+    return whitened.T @ whitened, whitened.T @ residual
 
 
 def ou_prior(n: int, sd: float, rho: float) -> np.ndarray:
@@ -194,3 +202,95 @@ def row_offsets(prep: Prepared, library, law: np.ndarray, nuisance_coef: np.ndar
         prior = ou_prior(n, *chosen)
         offsets = prior @ np.linalg.solve(np.eye(n) + information @ prior, total)
     return offsets - offsets.mean(), chosen
+
+
+@dataclasses.dataclass
+class LinearisedBlock:
+    """One block of a separation track linearised at its fit (whitened rows, unit noise): the rows' residual
+    ``residual`` (rows,) at the offsets ``offsets`` (m, (n,)); the selected law columns ``shared`` (rows, p_s),
+    shared with the other blocks; the block's own selected drive columns ``own`` (rows, m); the offsets' design
+    ``design`` (rows, n) in 1/m (:func:`row_design`; its row sums are the level's column); and the offsets'
+    Ornstein-Uhlenbeck prior ``prior`` (n, n), m^2 (:func:`ou_prior`, before its mean is taken out)."""
+
+    residual: np.ndarray
+    offsets: np.ndarray
+    shared: np.ndarray
+    own: np.ndarray
+    design: np.ndarray
+    prior: np.ndarray
+
+
+@dataclasses.dataclass
+class LevelStep:
+    """What :func:`joint_level_step` returns: the levels' covariance given the offsets (``conditional``, m^2, as
+    the joint fit's profile sees it) and with them marginalised (``marginal``); the linearised joint minimum's
+    change of each level (``level_change``, m) and its offsets (``offsets``, per block, m, zero mean)."""
+
+    conditional: np.ndarray
+    marginal: np.ndarray
+    level_change: np.ndarray
+    offsets: list[np.ndarray]
+
+
+def centred_prior(prior: np.ndarray) -> np.ndarray:
+    """``prior`` (m^2) of offsets whose mean is taken out (the block's level carries it): C prior C, C the
+    centring matrix."""
+    n = prior.shape[0]
+    centring = np.eye(n) - 1.0 / n
+    return centring @ prior @ centring
+
+
+def joint_level_step(blocks: list[LinearisedBlock]) -> LevelStep:
+    """The blocks' levels, the shared law and each block's drive, linearised together with the per-period offsets.
+
+    Each block's whitened rows are r = S c + O n + l d + G x + e (S: the shared law's columns, O: its drive's, l =
+    G 1: its level's, G: its offsets', e ~ N(0, 1)), the offsets x ~ N(0, P) with P the centred OU prior. The
+    joint fit refits c, n and d with x held at the offsets found from the previous law, so its profile's
+    covariance of d is the conditional (A^T A)^-1 over A = [S O l]. The offsets come from the same rows, and their
+    error is common to a block: integrating x out gives the rows' covariance 1 + G P G^T, weight
+    W = 1 - G P (1 + G^T G P)^-1 G^T, and the marginal covariance (A^T W A)^-1, which exceeds the conditional by
+    the offsets' posterior uncertainty propagated into the levels (the law of total variance, exact for this
+    linear Gaussian model). The same weight gives the joint minimum over (c, n, d, x): the generalised least
+    squares step of (c, n, d) on the rows with the offsets put back, r + G x0, and x at its posterior mean given
+    that step. The alternation (offsets from one law, the law from those offsets) reaches that minimum only in
+    the limit of many passes; one step of this solve lands there for the linear model.
+
+    Every column is scaled to unit norm before the solve (the law's coefficients and the offsets differ by
+    orders of magnitude)."""
+    widths = [b.own.shape[1] + 1 for b in blocks]
+    n_shared = blocks[0].shared.shape[1]
+    size = n_shared + sum(widths)
+    conditional_info, marginal_info = np.zeros((size, size)), np.zeros((size, size))
+    marginal_score = np.zeros(size)
+    start = n_shared
+    index, weighted = [], []
+    for block, width in zip(blocks, widths):
+        level = block.design.sum(axis=1)
+        columns = np.column_stack([block.shared, block.own, level])
+        where = np.r_[np.arange(n_shared), start + np.arange(width)]
+        prior = centred_prior(block.prior)
+        gain = prior @ np.linalg.solve(np.eye(prior.shape[0]) + block.design.T @ block.design @ prior,
+                                       block.design.T)  # P (1 + G^T G P)^-1 G^T: rows -> offsets
+        restored = block.residual + block.design @ block.offsets  # the rows with the offsets put back
+        weighted_columns = columns - block.design @ (gain @ columns)  # W A
+        conditional_info[np.ix_(where, where)] += columns.T @ columns
+        marginal_info[np.ix_(where, where)] += columns.T @ weighted_columns
+        marginal_score[where] += weighted_columns.T @ restored
+        index.append(where)
+        weighted.append((gain, restored, columns))
+        start += width
+    scale = 1.0 / np.sqrt(np.maximum(np.diag(conditional_info), np.finfo(float).tiny))
+    levels = np.array([where[-1] for where in index])
+
+    def covariance(info: np.ndarray) -> np.ndarray:
+        inverse = np.linalg.pinv(info * np.outer(scale, scale), hermitian=True) * np.outer(scale, scale)
+        return inverse
+
+    conditional = covariance(conditional_info)
+    marginal = covariance(marginal_info)
+    step = marginal @ marginal_score
+    offsets = []
+    for where, (gain, restored, columns) in zip(index, weighted):
+        found = gain @ (restored - columns @ step[where])
+        offsets.append(found - found.mean())
+    return LevelStep(conditional[np.ix_(levels, levels)], marginal[np.ix_(levels, levels)], step[levels], offsets)

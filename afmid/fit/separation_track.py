@@ -22,13 +22,18 @@ sensitivity to d is the period's mean contact stiffness, ~1.5 N/m on the 240-per
 its offsets erred by 6-9 pm per period against a true sd of 5-8 pm, and the law traded the misassigned contact
 for a soft E* and every block's level 42-101 pm low (errors in the regressor flatten the law). The rows find the
 offsets to 1-2 pm there: 40 of 40 blocks within 2 sigma over seeds 71-75 of a step and a rough surface, force
-error 0.09-1.67 % of the peak; on seed 81 both were still ~40-50 pm low at sigma 14-16 pm: the level's sigma,
-conditional on the offsets, is too small (docs/lab/2026-11-29-scanning-record.md).
+error 0.09-1.67 % of the peak. The offsets come from the same rows as the law and the levels, so the last pass
+takes them at the joint minimum over all three (:func:`afmid.fit.period_separation.joint_level_step`, linearised
+at the previous fit: the alternation alone left the 2 nm step of seed 81 11 pm short of it), and the levels'
+sigma gets the offsets' posterior share in quadrature (:func:`offsets_share`; 6 pm beside the profile's 16 pm
+there). What the true per-period d given inside the fit leaves (seed 81: every block ~40 pm low at 16 pm) is not
+the offsets' and is not covered (docs/lab/2026-11-29-scanning-record.md).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from dataclasses import dataclass
 
@@ -37,9 +42,13 @@ import numpy as np
 from afmid.config import RunConfig
 from afmid.errors import ConfigError
 from afmid.fit.joint import JointResult, fit_traces_jointly, trace_coefficients
-from afmid.fit.period_separation import mean_force_offsets, row_offsets, with_period_separation
+from afmid.fit.period_separation import (LevelStep, LinearisedBlock, joint_level_step, mean_force_offsets, ou_prior,
+                                        row_design, row_offsets, with_period_separation)
+from afmid.fit.system import library_columns
 from afmid.io.onset import crop
 from afmid.io.trace import Trace, check_trace
+
+log = logging.getLogger(__name__)
 
 #: The fewest drive periods a block may hold: its own first fit cross-validates over 5 folds and the default
 #: selection votes over groups of 6 periods (afmid.fit.selection_strategies), so 30 gives every fold a group.
@@ -60,6 +69,9 @@ class SeparationTrack:
     #: per block, each harmonic block's (period's) rest separation relative to the block's d, m
     period_offsets: list[np.ndarray] = dataclasses.field(default_factory=list)
     within_block: str = "constant"  # how d moved within a block in the fit ("constant", "mean_force" or "rows")
+    #: with "rows": the levels, the law and the offsets linearised together at the fit (the levels' covariance
+    #: given the offsets and with them marginalised; the joint minimum's step)
+    level_step: LevelStep | None = None
 
 
 def block_periods_for(bandwidth: float, drive_frequency: float) -> int:
@@ -74,18 +86,21 @@ def cut_blocks(trace: Trace, block_periods: int) -> list[Trace]:
     per_period = trace.sample_rate / trace.drive_frequency
     n_blocks = max(1, int(trace.n_samples // (block_periods * per_period)))
     edges = [round(k * block_periods * per_period) for k in range(n_blocks)] + [trace.n_samples]
-    blocks = []
-    for first, stop in zip(edges[:-1], edges[1:]):
-        block = crop(trace, first, stop)
-        truth = trace.truth
-        if truth is not None and truth.tracks:
-            tracks = {name: (values[first:stop], unit) for name, (values, unit) in truth.tracks.items()}
-            extra = dict(truth.extra)
-            if "rest_separation" in tracks:
-                extra["separation"] = float(np.mean(tracks["rest_separation"][0]))
-            block = dataclasses.replace(block, truth=dataclasses.replace(block.truth, tracks=tracks, extra=extra))
-        blocks.append(block)
-    return blocks
+    return [cut_block(trace, first, stop) for first, stop in zip(edges[:-1], edges[1:])]
+
+
+def cut_block(trace: Trace, first: int, stop: int) -> Trace:
+    """Samples ``first``..``stop`` of ``trace`` (its own indices) as a block of a track: a simulation's truth
+    cut with it, its ``separation`` attribute the block's mean rest separation when the record has a d(t) track."""
+    block = crop(trace, first, stop)
+    truth = trace.truth
+    if truth is not None and truth.tracks:
+        tracks = {name: (values[first:stop], unit) for name, (values, unit) in truth.tracks.items()}
+        extra = dict(truth.extra)
+        if "rest_separation" in tracks:
+            extra["separation"] = float(np.mean(tracks["rest_separation"][0]))
+        block = dataclasses.replace(block, truth=dataclasses.replace(block.truth, tracks=tracks, extra=extra))
+    return block
 
 
 def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, progress=False,
@@ -119,31 +134,86 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     # law. Adding a refit's increments instead can keep the first, soft law's too-large offsets: a correction
     # whose scatter lies below the noise is smoothed to zero (a third pass changed nothing on a step record).
     unshifted = [t.prep for t in joint.traces]
+    priors: list[tuple[float, float]] = []
     for fit_pass in range(2, passes + 1):
-        offsets = period_offsets(joint, unshifted, within_block)
+        offsets, priors = period_offsets(joint, unshifted, within_block)
         last = fit_pass == passes
+        if within_block == "rows" and last and fit_pass > 2:
+            # The offsets at the joint minimum over law, levels and offsets (linearised at this fit), not given
+            # this fit's law: the alternation reaches that minimum only slowly (step 81 of the 2 nm step: the
+            # third fit's levels 11 pm short of it, where the true per-period d given inside the fit ends).
+            offsets = joint_level_step(linearised_blocks(joint, unshifted, offsets, priors)).offsets
         joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty and last,
                                    adjust_prepared=lambda i, prep: with_period_separation(prep, offsets[i]))
     first = np.array([b.first_sample - trace.first_sample for b in blocks])
     stop = first + np.array([b.n_samples for b in blocks])
     separation = np.array([t.separation.value for t in joint.traces])
     sigma = np.array([t.separation.sigma for t in joint.traces])
+    level_step = None
+    if within_block == "rows":
+        level_step = joint_level_step(linearised_blocks(joint, unshifted, offsets, priors))
+        sigma = np.sqrt(sigma**2 + offsets_share(level_step))
+        log.info("separation track: the offsets add %s pm in quadrature to the levels' sigma; the joint minimum "
+                 "lies %s pm from the levels found", np.round(np.sqrt(offsets_share(level_step)) * 1e12, 1),
+                 np.round(level_step.level_change * 1e12, 1))
     return SeparationTrack(0.5 * (first + stop) / trace.sample_rate, first, stop, separation, sigma, bandwidth, joint,
-                           offsets, within_block)
+                           offsets, within_block, level_step)
 
 
-def period_offsets(joint: JointResult, preparations: list, within_block: str = "mean_force") -> list[np.ndarray]:
+def offsets_share(step: LevelStep) -> np.ndarray:
+    """Each block level's variance (m^2) from the per-period offsets' posterior uncertainty: the marginal
+    covariance's diagonal less the conditional one's (:func:`afmid.fit.period_separation.joint_level_step`),
+    never negative.
+
+    The joint fit's profile of the levels holds the offsets; they come from the same rows under a prior, so their
+    error is correlated with the rows' noise the profile counts, and a common error of a block's offsets moves
+    its level and the law together (a misassigned contact is traded for a softer law). Profiling the level with
+    the offsets re-derived at each trial level would cost a joint fit per trial point; in the linearised model
+    the marginal covariance is the same thing exactly, at the cost of one evaluation of the offsets' design per
+    block, and the law of total variance makes its excess over the conditional covariance the offsets' share,
+    added in quadrature to the profile's (robust, chi-square-scaled) sigma."""
+    return np.maximum(np.diag(step.marginal) - np.diag(step.conditional), 0.0)
+
+
+def period_offsets(joint: JointResult, preparations: list, within_block: str = "mean_force"
+                   ) -> tuple[list[np.ndarray], list[tuple[float, float]]]:
     """Per block, each period's rest separation relative to the block's (m, zero mean) under the joint fit's law
     and the block's level, on ``preparations`` (one per block: the unshifted ones): from the period's mean force
     (``within_block`` "mean_force": :func:`afmid.fit.period_separation.mean_force_offsets`, smoothed) or from all
-    the period's weak-form rows with the block's drive ("rows": :func:`afmid.fit.period_separation.row_offsets`)."""
+    the period's weak-form rows with the block's drive ("rows": :func:`afmid.fit.period_separation.row_offsets`);
+    and per block the offsets' prior, (sd in m, rho) ((0, 0) for "mean_force", which has none)."""
     p = len(joint.library)
     coef = np.where(joint.selected, joint.coef, 0.0)
     law = coef[:p]
     if within_block == "rows":
-        return [row_offsets(prep, joint.library, law, trace_coefficients(joint.system, coef, i, p)[p:], t.params)[0]
-                for i, (prep, t) in enumerate(zip(preparations, joint.traces))]
-    return [mean_force_offsets(prep, joint.library, law, t.params) for prep, t in zip(preparations, joint.traces)]
+        found = [row_offsets(prep, joint.library, law, trace_coefficients(joint.system, coef, i, p)[p:], t.params)
+                 for i, (prep, t) in enumerate(zip(preparations, joint.traces))]
+        return [offsets for offsets, _ in found], [prior for _, prior in found]
+    return ([mean_force_offsets(prep, joint.library, law, t.params) for prep, t in zip(preparations, joint.traces)],
+            [(0.0, 0.0)] * len(preparations))
+
+
+def linearised_blocks(joint: JointResult, preparations: list, offsets: list[np.ndarray],
+                      priors: list[tuple[float, float]]) -> list[LinearisedBlock]:
+    """Each block of ``joint`` linearised at its fit (:class:`afmid.fit.period_separation.LinearisedBlock`): its
+    unshifted preparation moved by its ``offsets`` (m), the law's and the block's drive's selected columns, the
+    offsets' design and their OU prior ``priors`` ((sd in m, rho) per block)."""
+    p = len(joint.library)
+    coef = np.where(joint.selected, joint.coef, 0.0)
+    law = coef[:p]
+    out = []
+    for i, (prep, t, moved, (sd, rho)) in enumerate(zip(preparations, joint.traces, offsets, priors)):
+        chosen = trace_coefficients(joint.system, joint.selected, i, p).astype(bool)
+        nuisance = trace_coefficients(joint.system, coef, i, p)[p:]
+        design, residual = row_design(prep, joint.library, law, nuisance, t.params, moved)
+        sigma = prep.row_sigma[None, :, None]
+        theta = library_columns(with_period_separation(prep, moved), joint.library, t.params) / sigma
+        drive = prep.nuisance / sigma
+        out.append(LinearisedBlock(residual, np.asarray(moved, dtype=float),
+                                   theta[:, :, chosen[:p]].reshape(residual.size, -1),
+                                   drive[:, :, chosen[p:]].reshape(residual.size, -1), design,
+                                   ou_prior(prep.blocks.n_blocks, sd, rho)))
+    return out
 
 
 #: Joint fits made: the first with d constant per block, then each with the per-period offsets from the previous
@@ -173,6 +243,11 @@ def write_track(group, track: SeparationTrack) -> None:
     write_dataset(group, "stop_sample", track.stop_sample, "1", definition="one past the block's last sample")
     write_dataset(group, "separation", track.separation, "m", definition="rest separation d of the block")
     write_dataset(group, "separation_error", track.sigma, "m", error_kind="1 sigma")
+    if track.period_offsets and track.within_block != "constant":
+        write_dataset(group, "period_offsets", np.concatenate(track.period_offsets), "m",
+                      definition="each harmonic block's (period's) rest separation relative to its block's d, the "
+                                 "blocks one after the other (period_offset_counts per block)")
+        write_dataset(group, "period_offset_counts", np.array([o.size for o in track.period_offsets]), "1")
 
 
 def track_table(track: SeparationTrack) -> str:

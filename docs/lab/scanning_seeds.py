@@ -6,16 +6,20 @@ MODE: a fit.separation_track.within_block value, or "default" (the config's defa
 E* 2 GPa, H 5e-20 J, A0 10 nm, A/A0 0.85, thermal noise + 1 pm detector, feedback gain 6000 /s, demodulator
 10 kHz; fit [dmt], separation unknown, no bootstrap) prints: blocks whose d is within 2 sigma of the block's mean
 true d(t), the blocks' z, E*, the force error (the fitted law against the true force at the true z(t), RMS over
-the samples, % of the peak true force), model-limited blocks, and inspect's motion line. The simulated trace is
-cached in the temp folder (keyed by surface, periods, seed).
+the samples, % of the peak true force), model-limited blocks, inspect's motion line and, with rows, the
+offsets' share of each level's sigma and the linearised joint minimum's remaining step (afmid.fit.separation_track). The simulated trace is
+cached in the temp folder (keyed by surface, periods, seed), and the track's run file written beside it
+(..._MODE.run.h5: afmid report diagnoses it).
 """
-import copy, sys, time, logging, os, pickle, tempfile
+import copy, dataclasses, sys, time, logging, os, pickle, tempfile
+from pathlib import Path
 import numpy as np
 from afmid.config import build_config
 from afmid.simulate.driver import simulate
-from afmid.io.trace import check_trace, write_trace_file
+from afmid.io.trace import check_trace, sha256_file, write_trace_file
+from afmid.joint_runfile import write_track_run
 from afmid.io.inspect import inspect_file
-from afmid.fit.separation_track import fit_separation_track
+from afmid.fit.separation_track import fit_separation_track, offsets_share
 
 periods, bandwidth, mode, kind = int(sys.argv[1]), float(sys.argv[2]), sys.argv[3], sys.argv[4]
 seeds = [int(s) for s in sys.argv[5:]]
@@ -29,6 +33,8 @@ FEEDBACK = {"gain": 6000.0, "bandwidth": 10e3}
 SCANS = {"step": {"speed": 4e-6, "start": -5e-9, "step": {"height": 2e-9, "position": 0.0, "width": 5e-9},
                   "feedback": FEEDBACK},
          "rough": {"speed": 4e-6, "rough": {"rms": 0.5e-9, "correlation_length": 5e-9}, "feedback": FEEDBACK},
+         # no feedback, a flat surface: the piezo still, d constant (what a track must not make worse)
+         "flat": {"speed": 4e-6},
          # no feedback: the piezo still, d drops 0.4 nm mid-record (tests/fit/test_separation_track.py's record)
          "nofeedback": {"speed": 4e-6, "start": -1.6e-9, "step": {"height": 0.4e-9, "position": 0.0, "width": 0.1e-9}}}
 logging.getLogger("afmid").setLevel(logging.ERROR)
@@ -61,8 +67,10 @@ for seed in seeds:
     motion = [line.strip() for line in inspect_file(h5).splitlines() if line.strip().startswith("motion")]
     fit_raw = copy.deepcopy(raw)
     del fit_raw["sample"]["separation"]
+    fit_raw["fit"]["separation_track"] = {"bandwidth": bandwidth, "within_block": "constant" if mode == "default" else mode}
     config = build_config(fit_raw)
-    trace = check_trace(trace, config)
+    # The trace file's path and digest: the run file written below points at it (afmid report refits from it).
+    trace = check_trace(dataclasses.replace(trace, path=Path(h5), sha256=sha256_file(h5)), config)
     t1 = time.process_time()
     track = fit_separation_track(config, trace, bandwidth, within_block=None if mode == "default" else mode)
     joint = track.joint
@@ -77,5 +85,10 @@ for seed in seeds:
           f"d-truth pm {np.round((track.separation - truth) * 1e12).astype(int).tolist()} sigma pm "
           f"{np.round(track.sigma * 1e12).astype(int).tolist()}; E* {e_star / 1e9:.3f} GPa; force error "
           f"{100 * err:.2f} % of peak; model-limited {limited}/{z.size}; terms {joint.selected_terms()}; "
-          f"{motion[0] if motion else 'motion: -'}; cpu sim {t_sim:.0f} s fit {time.process_time() - t1:.0f} s",
+          f"{motion[0] if motion else 'motion: -'}; cpu sim {t_sim:.0f} s fit {time.process_time() - t1:.0f} s"
+          + (f"; offsets' share of sigma pm {np.round(np.sqrt(offsets_share(track.level_step)) * 1e12, 1).tolist()}, "
+             f"joint minimum's step pm {np.round(track.level_step.level_change * 1e12, 1).tolist()}"
+             if track.level_step is not None else ""),
           flush=True)
+    write_track_run(f"{tempfile.gettempdir()}/afmid_scan_seeds_{kind}_{periods}_{seed}_{mode}.run.h5", track,
+                    overwrite=True)
