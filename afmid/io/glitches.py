@@ -99,67 +99,20 @@ def blended_series(coefficients: np.ndarray, n_samples: int, cycles_per_sample: 
     return out
 
 
-#: Samples per chunk of :func:`periodic_prediction` (bounds its (chunk, 8) temporaries).
-PREDICTION_CHUNK = 1 << 18
-#: Periods before and after a sample whose values at the same phase predict it (the nearest four valid ones).
-_SHIFTS = np.array([-1, 1, -2, 2, -3, 3, -4, 4])
-#: Neighbouring periods whose values predict a sample.
-_CHOSEN = 4
-
-
 def periodic_prediction(x: np.ndarray, cycles_per_sample: float) -> np.ndarray | None:
     """Each sample of ``x`` predicted from the neighbouring periods: the median of the record one and two periods
     before and after it (the nearest four periods on the record at its ends), at the same phase (cubic Lagrange
     interpolation between samples: the period is not a whole number of them). A sample does not predict itself,
     whatever repeats every period (a tapping impact, however sharp) predicts itself exactly, and the prediction
     is continuous (a Fourier fit per period has errors at its window's ends). None for fewer than
-    :data:`MIN_BLOCKS` periods.
+    :data:`MIN_BLOCKS` periods. Computed by :mod:`afmid.kernels.periodic` (a numba kernel, or its same-bits NumPy
+    twin while the kernel is not compiled): this runs on every pixel of a map."""
+    from afmid.kernels.periodic import periodic_prediction_or_twin
 
-    Only the four chosen neighbours of each sample are interpolated (away from the ends they are the first four
-    shifts, +-1 and +-2 periods), and their median is taken as ``np.nanmedian`` takes it (the mean of the middle
-    two sorted values): the same bits as interpolating all eight and masking, at a third of the CPU (this runs on
-    every pixel of a map)."""
-    n, period = x.size, 1.0 / cycles_per_sample
-    if n < MIN_BLOCKS * period:
+    period = 1.0 / cycles_per_sample
+    if x.size < MIN_BLOCKS * period:
         return None
-    out = np.empty(n)
-    for lo in range(0, n, PREDICTION_CHUNK):
-        t = np.arange(lo, min(lo + PREDICTION_CHUNK, n), dtype=float)
-        # the first four valid shifts, nearest first: +-1 and +-2 periods away from the ends
-        where = t[:, None] + _SHIFTS[:_CHOSEN] * period  # (m, 4) fractional sample positions
-        base = np.floor(where).astype(np.int64)
-        valid = (base >= 1) & (base <= n - 3)
-        near_end = ~valid.all(axis=1)
-        if near_end.any():  # the nearest valid ones among all eight (invalid ones after them when fewer)
-            wide = t[near_end][:, None] + _SHIFTS * period
-            wide_base = np.floor(wide).astype(np.int64)
-            wide_valid = (wide_base >= 1) & (wide_base <= n - 3)
-            columns = np.argsort(~wide_valid, axis=1, kind="stable")[:, :_CHOSEN]
-            where[near_end] = np.take_along_axis(wide, columns, axis=1)
-            base[near_end] = np.take_along_axis(wide_base, columns, axis=1)
-            valid[near_end] = np.take_along_axis(wide_valid, columns, axis=1)
-        u = where - base
-        # cubic Lagrange weights on samples base-1 .. base+2 at u in [0, 1)
-        weights = (-u * (u - 1) * (u - 2) / 6, (u + 1) * (u - 1) * (u - 2) / 2, -(u + 1) * u * (u - 2) / 2,
-                   (u + 1) * u * (u - 1) / 6)
-        index = np.clip(base, 1, n - 3)
-        values = sum(w * x[index + j - 1] for j, w in enumerate(weights))
-        chosen = np.where(valid, values, np.nan)
-        out[lo:lo + t.size] = _median_of_rows(chosen)
-    return out
-
-
-def _median_of_rows(values: np.ndarray) -> np.ndarray:
-    """The median of each row of ``values`` (m, k) over its values that are not NaN, as ``np.nanmedian(values,
-    axis=1)`` computes it for short rows (sorted, the two middle values added and halved; the middle one twice for
-    an odd count): the same bits, without the masked arrays that cost most of its time. NaN for a row of NaN."""
-    ordered = np.sort(values, axis=1)  # NaN last
-    counts = np.count_nonzero(~np.isnan(values), axis=1)
-    half = counts // 2
-    low = np.where(counts % 2 == 1, half, half - 1)
-    rows = np.arange(values.shape[0])
-    middle = (ordered[rows, np.maximum(low, 0)] + ordered[rows, half.clip(max=values.shape[1] - 1)]) / 2.0
-    return np.where(counts > 0, middle, np.nan)
+    return periodic_prediction_or_twin(np.ascontiguousarray(x, dtype=np.float64), period)
 
 
 #: A sample's residual is compared with the mean of the residuals this many samples before and after it (the

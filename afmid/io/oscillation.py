@@ -21,9 +21,12 @@ are taken two apart so that the Hann window leaves them nearly independent.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
+
+from afmid.preprocess.harmonics import hann_window
 
 #: Chance that a trace of pure noise passes the check (the threshold is its F(2, 2m) quantile).
 FALSE_ALARM = 1e-6
@@ -69,8 +72,26 @@ def drive_line_test(x: np.ndarray, sample_rate: float, nominal: float, search: f
     n = x.size
     if n < 16:
         return None
-    power = np.abs(np.fft.rfft(np.hanning(n) * _detrended(x))) ** 2
-    last = power.size - 2  # the Nyquist bin has half the degrees of freedom
+    bins = _line_and_floor_bins(n, sample_rate, nominal, search)
+    if bins is None:
+        return None
+    band, floor_bins = bins
+    power = np.abs(np.fft.rfft(hann_window(n) * _detrended(x))) ** 2
+    line = float(power[band].max())
+    floor = float(power[floor_bins].mean())
+    ratio = line / floor if floor > 0 else (math.inf if line > 0 else 0.0)
+    m = int(floor_bins.size)
+    threshold = f_2_isf(FALSE_ALARM / band.size, 2 * m)
+    return {"ratio": ratio, "threshold": threshold, "floor_bins": m, "band_bins": int(band.size)}
+
+
+@functools.lru_cache(maxsize=8)
+def _line_and_floor_bins(n: int, sample_rate: float, nominal: float, search: float
+                         ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The bins (of the rfft of ``n`` samples) of the drive line's band and of the noise floor around it, read-only;
+    None when the floor has too few bins or the band lies beyond the last bin. Facts of the sampling, not of the
+    samples: the same for every pixel of a map (kept per process)."""
+    last = n // 2 - 1  # the rfft's last bin but the Nyquist one, which has half the degrees of freedom
     drive_bin = nominal * n / sample_rate
     lo, hi = max(int(math.floor(drive_bin * (1 - search))), FIRST_BIN), int(math.ceil(drive_bin * (1 + search)))
     hi = min(hi, last)
@@ -85,12 +106,9 @@ def drive_line_test(x: np.ndarray, sample_rate: float, nominal: float, search: f
     floor_bins = np.sort(candidates)[::2]
     if floor_bins.size < MIN_FLOOR_BINS:
         return None
-    line = float(power[band].max())
-    floor = float(power[floor_bins].mean())
-    ratio = line / floor if floor > 0 else (math.inf if line > 0 else 0.0)
-    m = int(floor_bins.size)
-    threshold = f_2_isf(FALSE_ALARM / band.size, 2 * m)
-    return {"ratio": ratio, "threshold": threshold, "floor_bins": m, "band_bins": int(band.size)}
+    band.flags.writeable = False
+    floor_bins.flags.writeable = False
+    return band, floor_bins
 
 
 def check_drive_line(x: np.ndarray, settings, strongest: float | None = None) -> list:

@@ -14,6 +14,7 @@ motion per harmonic, ``F_n / k = (n^2 r^2 - 1 - i n r / Q) X_n`` for n >= 2,
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -199,6 +200,23 @@ def aligned_periods(glob: np.ndarray, phase: np.ndarray, first: int) -> np.ndarr
     return aligned
 
 
+#: Points of the phase grid on which :func:`_interaction` evaluates the force shape.
+PHASE_POINTS = 1024
+
+
+@functools.lru_cache(maxsize=8)
+def _phase_basis(K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The phase grid (rad) of :func:`_interaction` and the cos and sin of every harmonic 1..``K`` on it (phase
+    points x K), read-only. The same for every trace of one sampling (K follows the samples per period): made once
+    per process, not per trace (~1-2 ms of CPU a map pixel)."""
+    phase = np.linspace(0.0, 2 * np.pi, PHASE_POINTS, endpoint=False)
+    arg = np.outer(phase, np.arange(1, K + 1))
+    out = (phase, np.cos(arg), np.sin(arg))
+    for values in out:
+        values.flags.writeable = False
+    return out
+
+
 def _interaction(a: Analysis, r: float, Q: float | None) -> None:
     """Model-free force shape from the harmonics >= 2: is there contact, and on which side?"""
     amps, sig = a.harmonic_amplitudes(), a.harmonic_sigma()
@@ -209,12 +227,10 @@ def _interaction(a: Analysis, r: float, Q: float | None) -> None:
         return
     include = a.above_noise  # a harmonic at 3 sigma weighted by n^2 would swamp the shape with noise
     damping = 0.0 if not Q else r / Q
-    phase = np.linspace(0.0, 2 * np.pi, 1024, endpoint=False)
     # F / k = sum_n (n^2 r^2 - 1) x_n - (r / Q) dx_n/dphase  (equation of motion per harmonic, n >= 2)
     n = np.asarray(include, dtype=float)
-    # cos and sin of every harmonic on the phase grid once, for both series (~1 ms a map pixel, half of it twice)
-    arg = np.outer(phase, np.arange(1, a.K + 1))
-    basis = (np.cos(arg), np.sin(arg))
+    phase, cos, sin = _phase_basis(a.K)
+    basis = (cos, sin)
     g = _series(a.coef, phase, include, n * n * r * r - 1, np.full(n.size, -damping), basis=basis)
     noise = math.sqrt(sum(((n * n * r * r - 1) ** 2 + (n * damping) ** 2) * sig[n] ** 2 for n in include))
     x = a.coef[0] + _series(a.coef, phase, range(1, a.K + 1), basis=basis)

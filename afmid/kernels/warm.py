@@ -45,8 +45,15 @@ def _switching() -> None:
     cell_subsamples(grid, grid, grid, rows, cols, 4)
 
 
+def _periodic() -> None:
+    from afmid.kernels.periodic import periodic_prediction
+
+    # the glitch scan of every loaded trace (afmid.io.glitches): a contiguous float64 record and a float period
+    periodic_prediction(np.ascontiguousarray(np.cos(np.arange(64.0))), 7.5)
+
+
 #: name -> the function that compiles those kernels (in the order a fit first calls them)
-KERNELS = {"switching": _switching, "sparse": _sparse}
+KERNELS = {"periodic": _periodic, "switching": _switching, "sparse": _sparse}
 
 
 def warm(names=None, stream=None, kernels=None, label: str = "afmid kernels") -> dict[str, float]:

@@ -150,11 +150,11 @@ def test_inspect_lists_the_glitch(tmp_path, run_cli):
 
 def _prediction_with_nanmedian(x: np.ndarray, cycles_per_sample: float) -> np.ndarray:
     """The prediction as first written: all eight shifts interpolated, the first four valid kept, np.nanmedian."""
-    from afmid.io.glitches import _SHIFTS
+    from afmid.kernels.periodic import SHIFTS
 
     n, period = x.size, 1.0 / cycles_per_sample
     t = np.arange(n, dtype=float)
-    where = t[:, None] + _SHIFTS * period
+    where = t[:, None] + SHIFTS * period
     base = np.floor(where).astype(np.int64)
     valid = (base >= 1) & (base <= n - 3)
     u = where - base
@@ -167,32 +167,21 @@ def _prediction_with_nanmedian(x: np.ndarray, cycles_per_sample: float) -> np.nd
 
 
 @pytest.mark.parametrize("period, periods", [(128.0, 78), (200.0, 50), (37.3, 6.01), (1000.0 / 7, 9.5),
-                                             (12.25, 21400)])  # the last: over PREDICTION_CHUNK samples
+                                             (12.25, 21400)])  # the last: over the twin's TWIN_CHUNK samples
 def test_the_periodic_prediction_gives_the_bits_of_a_nanmedian_over_all_shifts(period, periods):
     """The map's pixels run this scan on every trace: it interpolates only the four neighbours it keeps and takes
     their median without masked arrays; the bits must be those of the plain formula (a median of four is the mean
     of the middle two, the same float operations), on whole and fractional periods, short records (6 periods:
-    the ends take +-3, +-4) and a record that spans two of its chunks."""
-    from afmid.io.glitches import PREDICTION_CHUNK, periodic_prediction
+    the ends take +-3, +-4) and a record that spans two of the twin's chunks. Whichever of the kernel and its twin
+    runs here (afmid.kernels.twin); tests/kernels/test_periodic.py compares the two."""
+    from afmid.io.glitches import periodic_prediction
+    from afmid.kernels.periodic import TWIN_CHUNK
 
     rng = np.random.default_rng(int(period * 10))
     n = int(periods * period)
     t = np.arange(n)
     x = np.sin(2 * np.pi * t / period) + 0.2 * np.cos(6 * np.pi * t / period) ** 7 + 1e-3 * rng.standard_normal(n)
     x[rng.integers(0, n, 5)] += 0.3  # glitches: outliers among the four neighbours of other samples
-    assert periods < 21000 or n > PREDICTION_CHUNK
+    assert periods < 21000 or n > TWIN_CHUNK
     got = periodic_prediction(x, 1 / period)
     assert got.view(np.int64).tolist() == _prediction_with_nanmedian(x, 1 / period).view(np.int64).tolist()
-
-
-def test_the_row_median_is_nanmedians_with_nan_rows():
-    """Rows of 0 to 8 values among NaN: the same bits as np.nanmedian (NaN where a row has none)."""
-    from afmid.io.glitches import _median_of_rows
-
-    rng = np.random.default_rng(3)
-    values = rng.standard_normal((400, 8))
-    values[rng.random(values.shape) < np.linspace(0, 1, 400)[:, None]] = np.nan
-    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):  # nanmedian warns of the all-NaN rows
-        expected = np.nanmedian(values, axis=1)
-    assert np.isnan(values).all(axis=1).any()
-    assert np.array_equal(_median_of_rows(values), expected, equal_nan=True)

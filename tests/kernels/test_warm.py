@@ -9,9 +9,9 @@ import sys
 CHECK = """
 import json, sys
 from afmid.kernels.warm import warm
-from afmid.kernels import sparse, switching
+from afmid.kernels import periodic, sparse, switching
 warm()
-kernels = {"subset_rss_qr": sparse.subset_rss_qr, "subset_lstsq": sparse.subset_lstsq, "stlsq_factor": sparse.stlsq_factor,
+kernels = {"periodic_prediction": periodic.periodic_prediction, "subset_rss_qr": sparse.subset_rss_qr, "subset_lstsq": sparse.subset_lstsq, "stlsq_factor": sparse.stlsq_factor,
            "switching_cells": switching.switching_cells, "cell_subsamples": switching.cell_subsamples}
 print(json.dumps({name: [sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values())]
                   for name, k in kernels.items()}))
@@ -66,8 +66,8 @@ if sys.argv[2] == "warm":
 before = compiled()
 result = run_fit(load_config(sys.argv[1], ["fit.bootstrap=5"]))
 after = compiled()
-from afmid.kernels import sparse, switching
-twins = {"walk": sparse._subset_rss_walk.twin_seconds, "cells": switching.switching_cells_or_twin.twin_seconds,
+from afmid.kernels import periodic, sparse, switching
+twins = {"periodic": periodic.periodic_prediction_or_twin.twin_seconds, "walk": sparse._subset_rss_walk.twin_seconds, "cells": switching.switching_cells_or_twin.twin_seconds,
          "subsamples": switching.cell_subsamples_or_twin.twin_seconds}
 numbers = [float(c).hex() for c in (*result.coef, *result.coef_std, result.cv_error)]
 print(json.dumps({"added": {name: [s for s in after[name] if s not in before[name]] for name in after},
@@ -92,17 +92,17 @@ def test_the_warm_step_prepares_every_library_independent_kernel_the_demo_fit_ru
     kernels with a same-bits twin (afmid.kernels.twin) run themselves, the twins not at all."""
     found = _fit_in_a_new_process("warm", dict(os.environ, OPENBLAS_NUM_THREADS="1"))
     assert {name: sigs for name, sigs in found["added"].items() if sigs} == {}
-    assert found["twin_seconds"] == {"walk": 0.0, "cells": 0.0, "subsamples": 0.0}
+    assert found["twin_seconds"] == {"periodic": 0.0, "walk": 0.0, "cells": 0.0, "subsamples": 0.0}
 
 
 def test_a_first_ever_fit_runs_the_twins_and_gives_the_warm_fits_numbers(tmp_path):
-    """An empty numba cache (a new install without the warm step): the subset walk and the switching cells run
-    their twins (nothing of theirs compiled) and the fit's coefficients, their sigmas and its error are the warm
+    """An empty numba cache (a new install without the warm step): the glitch scan's prediction, the subset walk
+    and the switching cells run their twins (nothing of theirs compiled) and the fit's coefficients, their sigmas and its error are the warm
     fit's bit for bit."""
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     cold = _fit_in_a_new_process("cold", dict(env, NUMBA_CACHE_DIR=str(tmp_path), AFMID_KERNEL_DIR=str(tmp_path / "k")))
     assert all(seconds > 0.0 for seconds in cold["twin_seconds"].values()), cold["twin_seconds"]
     assert not cold["added"]["sparse.subset_rss_qr"] and not cold["added"]["switching.switching_cells"]
-    assert not cold["added"]["switching.cell_subsamples"]
+    assert not cold["added"]["switching.cell_subsamples"] and not cold["added"]["periodic.periodic_prediction"]
     warm = _fit_in_a_new_process("warm", env)
     assert cold["numbers"] == warm["numbers"]
