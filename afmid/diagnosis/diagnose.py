@@ -310,6 +310,8 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
     base_columns = BaseColumns(prepared, build_library(base_config.model, base_config.source,
                                                        tip_geometry(base_config.cantilever)))
     shapes = ShapeSearch(prepared, base_columns)
+    # Every refit's BIC and per-block chi-square is a deviance against the base refit's row weights.
+    reference_sigma = base_result.prep.row_sigma
     trials: list[Trial] = []
     for effect in counted(candidate_effects(run.effects, run.config.sample.medium), "report", "trying effects", "effects",
                           progress, named=True):  # the candidate named, an ETA
@@ -325,12 +327,16 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
             continue
         names = result.library.names
         selected = any(s and n.startswith(effect + ".") for n, s in zip(names, result.selected))
-        bic_after = result.selection.best.bic + math.log(max(n_rows, 2)) * len(shape)
+        # The Gaussian BIC of rows weighted by the candidate's own noise, comparable with the base's: its weights'
+        # deviance per block (decide.weighting_deviance) times the blocks.
+        bic_after = (result.selection.best.bic + math.log(max(n_rows, 2)) * len(shape)
+                     + _weights_deviance(result, reference_sigma))
         chi2_after, limit_after, _ = _chi2(result)
         qty = {k: v for k, v in result.quantities.items() if v["effect"] == effect}
         trials.append(Trial(effect, result.cv_error, result.cv_error_noise_floor, bic_after, bic_after - base.bic,
                             chi2_after, limit_after, selected, qty, shape, _implausible(effect, qty, run),
-                            time.perf_counter() - t0, separation=separation, block_chi2=decide.block_chi2(result),
+                            time.perf_counter() - t0, separation=separation,
+                            block_chi2=decide.block_chi2(result, reference_sigma),
                             n_parameters=int(result.selection.best.mask.sum()) + len(shape),
                             space=functools.cache(functools.partial(rival_truth.model_space, prepared, result,
                                                                     list(shape), separation_estimated(run)))))
@@ -341,7 +347,7 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
         t.explains = not _significant(t.chi2_after, t.chi2_limit_after, t.error_after, t.noise_floor_after)
     trials.sort(key=lambda t: (not t.significant, t.delta_bic))
     good = [t for t in trials if t.significant]
-    final, final_bic = _forward(run, prepared, good, base_columns)
+    final, final_bic = _forward(run, prepared, good, base_columns, reference_sigma)
     good = [t for t in good if t.significant]
     trials.sort(key=lambda t: (not t.significant, t.delta_bic))
     # A catalog shape with physically impossible values (e.g. an attractive "hydration" force) that fits much
@@ -429,7 +435,16 @@ class _SetFit:
     selected: dict[str, bool]
 
 
-def _fit_set(run: RunData, prepared, members: list[Trial], base_columns: BaseColumns | None = None) -> _SetFit | None:
+def _weights_deviance(result, reference_sigma) -> float:
+    """What ``result``'s own row weights add to its deviance beyond ``reference_sigma``'s, over all its blocks
+    (:func:`afmid.diagnosis.decide.weighting_deviance` per block; 0 without a reference)."""
+    if reference_sigma is None:
+        return 0.0
+    return decide.weighting_deviance(result, reference_sigma) * int(result.system.theta.shape[0])
+
+
+def _fit_set(run: RunData, prepared, members: list[Trial], base_columns: BaseColumns | None = None,
+             reference_sigma: np.ndarray | None = None) -> _SetFit | None:
     config = refit_config(run, run.effects + [m.effect for m in members])
     fixed = {**config.model.parameters}
     for m in members:
@@ -444,7 +459,8 @@ def _fit_set(run: RunData, prepared, members: list[Trial], base_columns: BaseCol
         log.info("refit with %s failed: %s", [m.effect for m in members], exc)
         return None
     n = int(result.system.n_rows)
-    bic = result.selection.best.bic + math.log(max(n, 2)) * sum(len(m.shape) for m in members)
+    bic = (result.selection.best.bic + math.log(max(n, 2)) * sum(len(m.shape) for m in members)
+           + _weights_deviance(result, reference_sigma))
     chi2, limit, _ = _chi2(result)
     names = list(zip(result.library.names, result.selected))
     selected = {m.effect: any(s and name.startswith(m.effect + ".") for name, s in names) for m in members}
@@ -456,8 +472,8 @@ def _fit_set(run: RunData, prepared, members: list[Trial], base_columns: BaseCol
 PAIR_CANDIDATES = 5
 
 
-def _forward(run: RunData, prepared, good: list[Trial], base_columns: BaseColumns | None = None
-             ) -> tuple[tuple[float, float, float, float], float]:
+def _forward(run: RunData, prepared, good: list[Trial], base_columns: BaseColumns | None = None,
+             reference_sigma: np.ndarray | None = None) -> tuple[tuple[float, float, float, float], float]:
     """Which of the accepted candidates are needed; returns ((chi2, limit, error, floor), BIC) of the final set.
 
     Forward selection: the best candidate is kept; each further one is refitted
@@ -477,7 +493,7 @@ def _forward(run: RunData, prepared, good: list[Trial], base_columns: BaseColumn
     bic, error = top.bic_after, top.error_after
     verdicts: dict[str, str] = {}
     for t in good[1:]:
-        fitted = _fit_set(run, prepared, kept + [t], base_columns)
+        fitted = _fit_set(run, prepared, kept + [t], base_columns, reference_sigma)
         if fitted is None:
             verdicts[t.effect] = "could not be refitted together with " + ", ".join(k.effect for k in kept)
             continue
@@ -503,7 +519,7 @@ def _forward(run: RunData, prepared, good: list[Trial], base_columns: BaseColumn
                 pair = [pool[i], pool[j]]
                 if {p.effect for p in pair} <= {k.effect for k in kept}:
                     continue
-                fitted = _fit_set(run, prepared, pair, base_columns)
+                fitted = _fit_set(run, prepared, pair, base_columns, reference_sigma)
                 if fitted is None or not all(fitted.selected.values()):
                     continue
                 if best is None or fitted.bic < best[1].bic:

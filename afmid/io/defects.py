@@ -77,6 +77,13 @@ DRIFT_SIGMA = 5.0
 JUMP_SIGMA = 8.0
 #: ... and above this many standard deviations of the thermal phase noise (a known scale, not estimated).
 THERMAL_JUMP_SIGMA = 5.0
+#: A phase step whose amplitude change stands out of the amplitude's noise by this many (robust) standard
+#: deviations and is at least this fraction of the step's turn is the lever's motion (an orbit), not dropped or
+#: repeated samples (:func:`steps_with_the_amplitude`). A dropped sample at the phase threshold (8 sigma), noise
+#: alone in its amplitude, passes both with a probability of about 1 % (3 sigma in the largest of the three or
+#: four two-block changes around the step); a larger step needs a larger amplitude change.
+ORBIT_AMPLITUDE_SIGMA = 3.0
+ORBIT_AMPLITUDE_FRACTION = 0.25
 
 
 def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -342,14 +349,18 @@ def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
 
     With the lever known (``s``: spring constant and Q), a step must also stand out of the thermal phase
     noise (:func:`thermal_phase_step`): on a soft lever in liquid it is ~1 deg per period, a sample's worth.
+    A step whose amplitude steps with it is the lever's own motion, a period-n orbit, and no defect
+    (:func:`steps_with_the_amplitude`).
     """
     # Before the onset the phase is that of noise, and a fast build-up from rest settles its phase: both are left.
     first = jump_check_start(a, s.quality_factor if s else None, smallest_jump(a, s))
     B = a.n_blocks - first
     if B < 9:
         return []
-    trend, path = rotation_residuals(a.block_amplitude[first:], a.block_phase[first:])
-    res = np.where(np.abs(path) < np.abs(trend), path, trend)  # what neither model of smooth motion explains
+    trend, path, trend_radial, path_radial = change_residuals(a.block_amplitude[first:], a.block_phase[first:])
+    by_path = np.abs(path) < np.abs(trend)
+    res = np.where(by_path, path, trend)  # what neither model of smooth motion explains
+    radial = np.minimum(np.abs(path_radial), np.abs(trend_radial))  # the amplitude's change neither explains
     mad = float(np.median(np.abs(trend - np.median(trend))))
     one = 2 * np.pi / a.spp  # phase of one sample
     threshold = max(smallest_jump(a, s), JUMP_SIGMA * 1.4826 * mad)
@@ -357,6 +368,14 @@ def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
     if hits.size == 0:
         return []
     groups = np.split(hits, np.flatnonzero(np.diff(hits) > 2) + 1)
+    amplitude_noise = max(1.4826 * float(np.median(np.abs(radial - np.median(radial)))),
+                          thermal_phase_step(s, float(np.median(a.block_amplitude))))
+    # A step between two blocks changes the two two-block differences that span it; a hit may be only one of them.
+    around = [np.arange(max(g[0] - 1, 0), min(g[-1] + 2, radial.size)) for g in groups]
+    groups = [g for g, near in zip(groups, around)
+              if not steps_with_the_amplitude(res[g], radial[near], amplitude_noise)]
+    if not groups:
+        return []
     peaks = [int(g[np.argmax(np.abs(res[g]))]) for g in groups]
     sizes = [float(res[p] / one) for p in peaks]
     sample = a.start + (first + peaks[0] + 1) * a.L + a.L // 2  # the middle of the period the jump falls in
@@ -368,6 +387,24 @@ def check_jumps(a: Analysis, s: Settings | None = None) -> list[Finding]:
         f"{f' and at {len(peaks) - 1} more places' if len(peaks) > 1 else ''}: "
         f"samples were {kind} (or the drive was re-locked); crop the trace to one side of the jump",
         "data.path", {"jumps": len(peaks), "first_sample": sample, "samples": sizes[0]})]
+
+
+def steps_with_the_amplitude(turn: np.ndarray, radial: np.ndarray, amplitude_noise: float) -> bool:
+    """Whether a phase step (``turn``: its unexplained turns, rad; ``radial``: the unexplained relative amplitude
+    changes of the two-block changes around it, 1) is the lever's own motion rather than a sampling defect.
+
+    Dropped or repeated samples shift the record in time: every later period keeps the step, and the amplitude
+    is untouched (a block holding the step has its first harmonic shortened by at most 1 - cos(step / 2), about
+    step^2 / 8, of the amplitude: a ratio step / 8 to the turn, 0.04 for one sample at 20 samples per period). A
+    meniscus that forms on some taps only takes energy on those taps: the phase steps there and ramps back within
+    the orbit's period, and the amplitude steps with it (0.4-0.7 of the turn on the grazing orbits measured,
+    docs/coverage.md). So a step is the motion's when its amplitude change stands out of the amplitude's own
+    noise (:data:`ORBIT_AMPLITUDE_SIGMA` x ``amplitude_noise``, a relative 1 sigma), is at least
+    :data:`ORBIT_AMPLITUDE_FRACTION` of the turn, and at least 4x what a time shift of that size makes."""
+    k = int(np.argmax(np.abs(turn)))
+    step = abs(float(turn[k]))
+    change = float(np.max(np.abs(radial)))
+    return change > max(ORBIT_AMPLITUDE_SIGMA * amplitude_noise, ORBIT_AMPLITUDE_FRACTION * step, step**2 / 2)
 
 
 def smallest_jump(a: Analysis, s: Settings | None) -> float:
@@ -398,12 +435,25 @@ def rotation_residuals(amplitude: np.ndarray, phase: np.ndarray) -> tuple[np.nda
 
     A step stands out of both; smooth motion out of at most one.
     """
+    trend, path, _, _ = change_residuals(amplitude, phase)
+    return trend, path
+
+
+def change_residuals(amplitude: np.ndarray, phase: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(trend, path, trend_radial, path_radial): :func:`rotation_residuals`' two residuals of the turn and their
+    radial counterparts, the same two models' residuals of the change of the amplitude (relative to the median
+    amplitude, 1): ``trend_radial`` the two-block relative amplitude change minus its running median of 7,
+    ``path_radial`` the part of the unexplained change of c along c. A dropped sample turns c and leaves its
+    length; the lever's own motion (an orbit in which a meniscus forms on some taps) changes both."""
     from scipy.ndimage import median_filter
 
     typical = max(float(np.median(amplitude)), 1e-300)
     arc = (phase[2:] - phase[:-2]) * amplitude[1:-1] / typical
     trend = arc - median_filter(arc, size=7, mode="nearest")
-    path = trend.copy()
+    stretch = (amplitude[2:] - amplitude[:-2]) / typical
+    trend_radial = stretch - median_filter(stretch, size=7, mode="nearest")
+    path, path_radial = trend.copy(), trend_radial.copy()
     c = amplitude * np.exp(1j * phase)
     change, centre = c[2:] - c[:-2], c[1:-1]
     inner = np.arange(_NEIGHBOURS.max(), change.size - _NEIGHBOURS.max())
@@ -413,7 +463,8 @@ def rotation_residuals(amplitude: np.ndarray, phase: np.ndarray) -> tuple[np.nda
         expected = change[inner[:, None] + _NEIGHBOURS] @ predict_at_zero
         turned = (change[inner] - expected) * np.conj(centre[inner]) / np.maximum(np.abs(centre[inner]), 1e-300)
         path[inner] = turned.imag / typical
-    return trend, path
+        path_radial[inner] = turned.real / typical
+    return trend, path, trend_radial, path_radial
 
 
 def thermal_phase_step(s: Settings | None, amplitude: float) -> float:

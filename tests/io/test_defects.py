@@ -283,6 +283,41 @@ def test_a_transient_whose_phase_swings_past_zero_amplitude_is_no_jump_but_a_dro
     assert abs(found["phase_jump"].numbers["first_sample"] - 150.5 * SPP) <= 1.5 * SPP
 
 
+def _orbit(period, step_deg, amplitude_per_turn, periods=60, spp=400, seed=0):
+    """A period-``period`` orbit of a grazing meniscus: on one tap in ``period`` the phase steps by ``step_deg``
+    (over that period, continuously) and the relative amplitude by ``amplitude_per_turn`` times the step (rad);
+    both ramp back over the other periods. 1 pm of detector noise."""
+    t = np.arange(periods * spp) / spp  # periods
+    inside, tap = t % 1.0, (t // 1.0) % period == 0
+    # the excursion goes 0 -> 1 over the tap and back to 0 over the next period - 1 periods
+    since = (t % period) - 1.0
+    excursion = np.where(tap, inside, 1.0 - since / (period - 1))
+    step = np.radians(step_deg)
+    phase = step * excursion
+    envelope = 1.0 + amplitude_per_turn * step * excursion
+    x = AMPLITUDE * envelope * np.cos(2 * np.pi * t + phase)
+    return x + 1e-12 * np.random.default_rng(seed).standard_normal(t.size)
+
+
+@pytest.mark.parametrize("period", [2, 7, 20])
+def test_a_period_n_orbit_is_no_phase_jump_but_a_dropped_sample_in_it_is(period):
+    """A meniscus that forms on some taps only (loop_air draws 47 and 94: 0.45-0.5 deg steps at 400 samples per
+    period, the amplitude stepping by 0.4-0.7 of the turn) was refused as repeated or dropped samples. The
+    amplitude tells them apart: the same phase record with the amplitude held (a sample repeated every
+    ``period`` periods, each step then ramped back by a drive frequency off by as much) is still refused, and so
+    is one sample dropped into the orbit."""
+    spp = 400
+    check = dict(sample_rate=spp * F0)
+    orbit = _orbit(period, -0.6, 0.5, spp=spp)
+    assert "phase_jump" not in findings(orbit, **check)
+    if period > 2:  # two-block changes cancel a period-2 alternation: its phase alone is no step either
+        held = _orbit(period, -0.6, 0.0, spp=spp)
+        assert findings(held, **check)["phase_jump"].numbers["samples"] < -0.5
+    found = findings(np.delete(orbit, 31 * spp + 123), **check)["phase_jump"]
+    assert found.numbers["jumps"] == 1 and found.numbers["samples"] > 0.9
+    assert abs(found.numbers["first_sample"] - 31.5 * spp) <= 1.5 * spp
+
+
 def test_sampling_too_low_for_the_differentiation_is_an_error(load):
     refused(load, tapping(), "fit.differentiation", "central differentiation needs at least 500 samples per drive "
             "period, the trace has 100.0: use fit.form: weak", "or record at a higher rate (at least 150 MHz)",
