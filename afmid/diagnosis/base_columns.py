@@ -14,11 +14,12 @@ term switching inside a fine-grid cell makes the full library average every colu
 composed system only the columns of the library (run's or added) whose term switches; where that moves the
 BIC by more than a hundredth of a unit, the full library is evaluated.
 
-An added effect that acts only in contact (its terms' role ``contact_only``: a dashpot, Kelvin-Voigt, the relaxing
-solid) has columns that are exactly zero at a separation where the trajectory never reaches the surface: there its
-columns are not evaluated (:meth:`BaseColumns.out_of_reach`). On the Bruker HSDC record (the run's separation
-4 nm above first contact) most of such a candidate's shape and separation trials are there, and the relaxing
-solid's stateful columns cost ~0.15 s each on its 5e5 samples.
+An added effect whose terms are zero until the tip reaches the surface (role ``contact_only``: a dashpot,
+Kelvin-Voigt, the relaxing solid; or a gate switched on at contact: capillary's meniscus) has columns that are
+exactly zero at a separation where the trajectory never gets there: they are not evaluated
+(:meth:`BaseColumns.out_of_reach`). On the Bruker HSDC record (the run's separation 4 nm above first contact) most
+of such a candidate's shape and separation trials are there, and the relaxing solid's stateful columns cost
+~0.15 s each on its 5e5 samples.
 Lengths in m.
 """
 
@@ -107,8 +108,12 @@ class BaseColumns:
         key = tuple(names)
         base_names = self.base_library.names
         position = {name: i for i, name in enumerate(names)}
-        if key not in self._agrees and (len(set(names)) != len(names) or any(n not in position for n in base_names)
-                                        or len(names) == len(base_names) or self.adds_a_gate(library)):
+        plus_others = not (len(set(names)) != len(names) or any(n not in position for n in base_names)
+                           or len(names) == len(base_names))
+        if plus_others and self.out_of_reach(self._added_terms(library), params, library.states):
+            # zero columns whatever the checks below would decide: exact for a new gate too (it never switches)
+            return self._composed_residual(library, params, [position[n] for n in base_names])[0]
+        if key not in self._agrees and (not plus_others or self.adds_a_gate(library)):
             self._agrees[key] = False  # not the run's terms plus others (or a new gate): nothing to reuse
         if self._agrees.get(key) is False:
             return residual_sum_squares(build_system(self.prepared, library, params))
@@ -133,13 +138,17 @@ class BaseColumns:
 
         return any(isinstance(state, StateGate) and state not in self.base_library.states for state in library.states)
 
-    def out_of_reach(self, terms, params: dict) -> bool:
-        """Whether every one of ``terms`` acts only in contact and the trajectory at ``params['d']`` (m) stays more
-        than :data:`REACH_MARGIN` of the amplitude short of it: their columns and thermal-bias rows are then zero."""
-        from afmid.fit.prepare import fine_chunks
-        from afmid.physics.effect_tags import Role
+    def _added_terms(self, library) -> list:
+        base = set(self.base_library.names)
+        return [term for term in library.terms if term.name not in base]
 
-        if not terms or any(Role.CONTACT_ONLY not in term.roles for term in terms):
+    def out_of_reach(self, terms, params: dict, states=()) -> bool:
+        """Whether every one of ``terms`` is zero until the tip reaches the surface (:func:`starts_at_contact`; a
+        gate among ``states``) and the trajectory at ``params['d']`` (m) stays more than :data:`REACH_MARGIN` of the
+        amplitude short of it: their columns and thermal-bias rows are then zero."""
+        from afmid.fit.prepare import fine_chunks
+
+        if not terms or not all(starts_at_contact(term, states) for term in terms):
             return False
         if self._deepest is None:
             self._deepest = max(float(np.max(x)) for _, x, _, _ in fine_chunks(self.prepared, overlap=1))
@@ -159,7 +168,7 @@ class BaseColumns:
         added_positions = [i for i in range(len(library)) if i not in taken]
         # The added terms alone, with the full library's states (their gates may be among them).
         added = replace(library, terms=[library.terms[i] for i in added_positions])
-        evaluated = not self.out_of_reach(added.terms, params)
+        evaluated = not self.out_of_reach(added.terms, params, library.states)
         if not evaluated:
             self.out_of_reach_trials += 1
             added_theta = np.zeros(base_theta.shape[:2] + (len(added_positions),))
@@ -180,3 +189,19 @@ class BaseColumns:
             return residual_sum_squares(system), system.n_rows, True
         system = build_system(self.prepared, library, params, theta=theta, thermal_bias=bias)
         return residual_sum_squares(system), system.n_rows, evaluated
+
+
+def starts_at_contact(term, states=()) -> bool:
+    """Whether a library term is zero wherever the tip has not yet reached the surface (z > a0 all along): it acts
+    only in contact (role ``contact_only``: adhesion, a dashpot, Kelvin-Voigt, the relaxing solid), or it is a state
+    gate of ``states`` switched on at contact (``on: z <= a0``: capillary's meniscus; a gate starts from its
+    condition at the first sample, so off)."""
+    from afmid.physics.effect_tags import Role
+    from afmid.physics.effect_types import StateGate
+
+    if Role.CONTACT_ONLY in term.roles:
+        return True
+    text = term.expression.replace(" ", "")
+    gates = {state.name: state for state in states if isinstance(state, StateGate)}
+    gate = gates.get(text[1:-1]) if text.startswith("[") and text.endswith("]") else None
+    return gate is not None and gate.on.replace(" ", "") == "z<=a0"

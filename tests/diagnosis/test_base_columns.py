@@ -127,9 +127,10 @@ def test_an_added_state_gate_is_evaluated_in_full(clean):
     assert (shared.evaluations, shared.reused) == (3, 0)
 
 
-@pytest.mark.parametrize("added", ["viscoelastic", "contact_damping", "standard_linear_solid"])
-def test_a_contact_only_effect_out_of_reach_is_not_evaluated_and_gives_the_full_librarys_residual(clean, added):
-    """Above first contact (by more than REACH_MARGIN of the amplitude) a contact-only effect's columns are zeros:
+@pytest.mark.parametrize("added", ["viscoelastic", "contact_damping", "standard_linear_solid", "capillary"])
+def test_an_effect_zero_until_contact_out_of_reach_is_not_evaluated_and_gives_the_full_librarys_residual(clean, added):
+    """Above first contact (by more than REACH_MARGIN of the amplitude) a contact-only effect's columns (or a meniscus
+    formed at contact) are zeros:
     not evaluated, and the residual is the full library's to the last bit's rounding (the same system but for the
     zero columns, which least squares leaves out exactly). Just below contact they are evaluated."""
     from afmid.diagnosis.base_columns import REACH_MARGIN, BaseColumns
