@@ -18,7 +18,7 @@ import numpy as np
 from afmid.preprocess.baseline import BaselineColumns, remove_drift
 from afmid.errors import AfmidError
 from afmid.preprocess.instrument import (Instrument, NoiseProbe, RecordedSeries, crossfaded_series, deflection_views,
-                                        noise_probe, recorded_series, row_noise_gain)
+                                        noise_probe, recorded_series, row_noise_gain, row_noise_gains)
 from afmid.preprocess.restoration import restore_trajectory
 from afmid.io.trace import Trace
 from afmid.physics.library import Library
@@ -270,14 +270,19 @@ def _prepare(trace: Trace, fit, instrument, shared: BeforeInstrument) -> Prepare
         psi_sq = _pair_mean(np.sum(windows.psi**2, axis=1))
         detector_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1))
         # a declared instrument: the rows' noise through the views' gains over each row's band (measured)
-        band_gain = None if ideal else row_noise_gain(instrument, trace.cantilever, blocks, operator, shared.probe())
-        if band_gain is not None:
-            detector_variance = detector_variance * band_gain
         # behind higher modes the thermal force (on the first mode, as the simulator has it) reaches the
         # equation through the modes' gain H_1 / H too: 1.5-2.8 at harmonics 3-5 for f2 = 6.27 f0
-        modes_gain = (row_noise_gain(Instrument(None, instrument.higher_modes), trace.cantilever, blocks, windows.psi,
-                                     shared.probe())
-                      if thermal and instrument is not None and instrument.higher_modes else None)
+        thermal_modes = bool(thermal and instrument is not None and instrument.higher_modes)
+        band_gain = modes_gain = None
+        if thermal_modes and instrument.detector is None:  # one instrument for both: the probe through it once
+            band_gain, modes_gain = row_noise_gains(instrument, trace.cantilever, blocks, [operator, windows.psi],
+                                                    shared.probe())
+        else:
+            band_gain = None if ideal else row_noise_gain(instrument, trace.cantilever, blocks, operator, shared.probe())
+            modes_gain = (row_noise_gain(Instrument(None, instrument.higher_modes), trace.cantilever, blocks,
+                                         windows.psi, shared.probe()) if thermal_modes else None)
+        if band_gain is not None:
+            detector_variance = detector_variance * band_gain
         base_variance = detector_variance + thermal * psi_sq * (1.0 if modes_gain is None else modes_gain)
     else:
         # Rows: the equation at every used sample, derivatives from a registered differentiator.

@@ -427,15 +427,24 @@ def row_noise_gain(instrument: Instrument, cantilever, blocks, rows: np.ndarray,
     """
     if instrument is None or instrument.ideal:
         return None
+    return row_noise_gains(instrument, cantilever, blocks, [rows], probe)[0]
+
+
+def row_noise_gains(instrument: Instrument, cantilever, blocks, rows: list[np.ndarray],
+                    probe: NoiseProbe | None = None) -> list[np.ndarray]:
+    """:func:`row_noise_gain` of each of ``rows`` (weight matrices), the probe passed through the views once."""
     if probe is None or not probe.fits(blocks):
         probe = noise_probe(blocks)
     equation = deflection_views(probe.noise, probe.blocks, instrument, cantilever, probe.recorded,
                                 equation_only=True).equation
-    power = [np.sum((rows @ series[probe.index].T) ** 2, axis=1) for series in (equation, probe.noise)]
-    pair = [p.copy() for p in power]
-    for q, p in zip(pair, power):
-        q[1::2] = q[2::2] = p[1::2] + p[2::2]
-    return pair[0] / pair[1]
+    gains = []
+    for weights in rows:
+        power = [np.sum((weights @ series[probe.index].T) ** 2, axis=1) for series in (equation, probe.noise)]
+        pair = [p.copy() for p in power]
+        for q, p in zip(pair, power):
+            q[1::2] = q[2::2] = p[1::2] + p[2::2]
+        gains.append(pair[0] / pair[1])
+    return gains
 
 
 #: ``afmid inspect``: a bump in the harmonic amplitudes counts as a resonance when, at two neighbouring
