@@ -335,16 +335,24 @@ def deflection_views(x: np.ndarray, blocks, instrument: Instrument | None, canti
         # No detector: every tip gain is 1, so the corrections below are zeros and x + 0 is x (the same bits).
         tip = x
     else:
-        tip = x + crossfaded_series(blocks, tip_coef - measured, x.size) + np.fft.irfft(spectrum * (tip_fft - 1),
-                                                                                         x.size)
+        tip = x + crossfaded_series(blocks, tip_coef - measured, x.size) + _irfft(spectrum * (tip_fft - 1), x.size)
     if equation_gain is None:
         equation = tip
     else:
         equation = (x + crossfaded_series(blocks, apply_per_harmonic(tip_coef, equation_gain) - measured, x.size)
-                    + np.fft.irfft(spectrum * (eq_fft - 1), x.size))
+                    + _irfft(spectrum * (eq_fft - 1), x.size))
     inverted = instrument.invertible_up_to(f)
     return DeflectionViews(tip, equation, equation_gain, int(round(inverted / f[1])), tip_gain,
                            recorded.residual_sum_squares)
+
+
+def _irfft(spectrum: np.ndarray, n: int) -> np.ndarray:
+    """The real series of ``n`` samples with rfft ``spectrum``: scipy's pocketfft, the same values as numpy.fft.irfft
+    and twice as fast at a prime ``n`` (the noise probe of :func:`row_noise_gain`, 353,359 samples on the HSDC
+    record: 0.05 s instead of 0.09 s, once per instrument a diagnosis tries)."""
+    import scipy.fft
+
+    return scipy.fft.irfft(spectrum, n, workers=1)
 
 
 def gains_between_harmonics(instrument: Instrument, cantilever, drive_frequency: float, tip_gain: np.ndarray,
