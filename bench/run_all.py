@@ -7,7 +7,8 @@ also written to bench/results/table.md and bench/results/bench.json.
 
 Run: python bench/run_all.py [--quick] [--only simulate,fit,...] (names: BENCHES below). The heavy ones alone:
 ``--only report_record`` (the 5e5-sample record's reports, ~3 min of CPU quiet, its trace simulated once),
-``--only map_diagnosis`` (a 64x64 map twice, ~6 min of CPU, its map simulated once).
+``--only map_diagnosis`` (a 64x64 map twice, ~6 min of CPU, its map simulated once), ``--only report_hsdc`` (the real
+Bruker record's reports; one row saying it is skipped when the record is absent).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, load_average, machine  # noqa: E402  (sets the BLAS thread count first)
 
 BENCHES = ["simulate", "fit", "selection", "scaling", "coldstart", "batch", "map", "group_diagnosis", "report",
-           "report_record", "map_diagnosis"]
+           "report_record", "report_hsdc", "map_diagnosis"]
 
 
 def _seconds(value, unit: str = "s") -> str:

@@ -97,6 +97,8 @@ class ShapeSearch:
                     trial = dict(params, **{name: math.exp(log_value)})
                     self.evaluations += 1
                     try:
+                        if self.base_columns is not None and self.base_columns.out_of_reach(own, trial, library.states):
+                            return shared(trial)  # the effect's columns are zeros here: the tip never reaches contact
                         value = rss[0](trial)
                         if not checked[0] and rss[0] is composed:
                             checked[0] = True

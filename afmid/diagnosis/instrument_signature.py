@@ -518,11 +518,13 @@ def undeclared(config, prepared, base_result, base_bic: float, trials: list, fit
 
 
 def _refit(config, prepared, fit_quick):
-    """refit(instrument): ``config``'s fit on the trace prepared with ``instrument`` declared."""
-    from afmid.fit.pipeline import prepare
+    """refit(instrument): ``config``'s fit on the trace prepared with ``instrument`` declared. The candidates differ
+    only in the instrument: each preparation starts from ``prepared``'s instrument-free part (the detrended record,
+    its blocks and windows, the views' block series and residual spectrum, the rows' noise probe), made once."""
+    from afmid.fit.prepare import with_instrument
 
     def refit(instrument: Instrument):
-        return fit_quick(config, prepare(prepared.trace, config.fit, instrument))
+        return fit_quick(config, with_instrument(prepared, config.fit, instrument))
 
     return refit
 

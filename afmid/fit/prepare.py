@@ -17,7 +17,8 @@ import numpy as np
 
 from afmid.preprocess.baseline import BaselineColumns, remove_drift
 from afmid.errors import AfmidError
-from afmid.preprocess.instrument import Instrument, crossfaded_series, deflection_views, row_noise_gain
+from afmid.preprocess.instrument import (Instrument, NoiseProbe, RecordedSeries, crossfaded_series, deflection_views,
+                                        noise_probe, recorded_series, row_noise_gain, row_noise_gains)
 from afmid.preprocess.restoration import restore_trajectory
 from afmid.io.trace import Trace
 from afmid.physics.library import Library
@@ -99,23 +100,49 @@ class Prepared:
     #: its bias of the weak-form regression is taken out of the factors (:mod:`afmid.fit.thermal_bias`); None
     #: without a thermal force, or in the strong form
     thermal_force: ThermalForce | None = None
+    #: the preparation's instrument-free part, kept for preparations of this record with another instrument
+    #: (:func:`with_instrument`); None: not kept
+    before_instrument: "BeforeInstrument | None" = None
 
 
-def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None = None) -> Prepared:
-    """Everything about the data that the library does not change: drive, blocks, weak-form rows, noise.
+@dataclass
+class BeforeInstrument:
+    """What :func:`prepare` makes of a record before any instrument is undone: the detrended samples, the drive,
+    the blocks and weak-form windows. None of it depends on the declared instrument, so a preparation of the same
+    record with another instrument declared (:func:`with_instrument`: the diagnosis's search for an undeclared
+    detector or second mode refits the record with ~100 of them) starts from it; so do the instrument-free parts
+    of the views and of the rows' noise probe, made on first use."""
 
-    ``instrument`` (:class:`afmid.preprocess.instrument.Instrument`, None: ideal) is undone per harmonic first
-    (:func:`afmid.preprocess.instrument.deflection_views`): the library sees the tip, the equation its single-mode twin.
+    settings: tuple  # the fit settings it was made with (:func:`_before_instrument_settings`)
+    t: np.ndarray  # s
+    x: np.ndarray  # m, detrended (and without the drift when detrending linearly)
+    removed: dict  # detrend info
+    drive: object  # DriveEstimate
+    blocks: HarmonicBlocks
+    windows: WeakWindows
+    _recorded: RecordedSeries | None = None
+    _probe: NoiseProbe | None = None
 
-    Per-sample work runs chunk by chunk (:data:`afmid.preprocess.periods.CHUNK_BLOCKS` periods): the only arrays as
-    long as the trace are the deflection, its times and the velocity kept for the per-sample forces.
+    def recorded(self) -> RecordedSeries:
+        """The instrument-free part of the views of ``x`` (:func:`afmid.preprocess.instrument.recorded_series`)."""
+        if self._recorded is None:
+            self._recorded = recorded_series(self.x, self.blocks)
+        return self._recorded
 
-    ``drive`` (:class:`afmid.preprocess.harmonics.DriveEstimate`, None: the one measured on loading, else measured
-    here) sets the drive frequency the record is cut at. ``layouts``: a dict in which the blocks and test
-    functions are kept, keyed by everything they are made from (samples, rate, drive frequency, start time,
-    harmonics, fine grid), so records of one layout share them (the pixels of a map fitted at one drive
-    frequency); they are not modified by the fit.
-    """
+    def probe(self) -> NoiseProbe:
+        """The rows' noise probe on these blocks (:func:`afmid.preprocess.instrument.noise_probe`)."""
+        if self._probe is None:
+            self._probe = noise_probe(self.blocks)
+        return self._probe
+
+
+def _before_instrument_settings(fit) -> tuple:
+    """The fit settings :class:`BeforeInstrument` depends on."""
+    return fit.detrend, fit.oversample, fit.periods_per_block, fit.max_harmonic
+
+
+def before_instrument(trace: Trace, fit, drive=None, layouts: dict | None = None) -> BeforeInstrument:
+    """The part of :func:`prepare` (same arguments) that no instrument changes."""
     t = trace.times
     x, removed = detrend(trace.deflection, t, fit.detrend)
     if trace.time is not None:
@@ -141,7 +168,42 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
             layouts[layout] = blocks, windows
     if fit.detrend == "linear":  # the trajectory without the drift; the regression's columns take the rest
         x, removed["drift"] = remove_drift(x, t, blocks)
-    views = deflection_views(x, blocks, instrument, trace.cantilever)
+    return BeforeInstrument(_before_instrument_settings(fit), t, x, removed, drive, blocks, windows)
+
+
+def with_instrument(prep: "Prepared", fit, instrument) -> "Prepared":
+    """``prep``'s record prepared again with ``instrument`` declared (fit settings ``fit``): the same as
+    :func:`prepare` of ``prep.trace`` with the drive ``prep`` was cut at, the instrument-free part
+    (:class:`BeforeInstrument`) reused when ``prep`` holds one made with the same settings."""
+    shared = prep.before_instrument
+    if shared is None or shared.settings != _before_instrument_settings(fit):
+        return prepare(prep.trace, fit, instrument, drive=prep.drive)
+    return _prepare(prep.trace, fit, instrument, shared)
+
+
+def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None = None) -> Prepared:
+    """Everything about the data that the library does not change: drive, blocks, weak-form rows, noise.
+
+    ``instrument`` (:class:`afmid.preprocess.instrument.Instrument`, None: ideal) is undone per harmonic first
+    (:func:`afmid.preprocess.instrument.deflection_views`): the library sees the tip, the equation its single-mode twin.
+
+    Per-sample work runs chunk by chunk (:data:`afmid.preprocess.periods.CHUNK_BLOCKS` periods): the only arrays as
+    long as the trace are the deflection, its times and the velocity kept for the per-sample forces.
+
+    ``drive`` (:class:`afmid.preprocess.harmonics.DriveEstimate`, None: the one measured on loading, else measured
+    here) sets the drive frequency the record is cut at. ``layouts``: a dict in which the blocks and test
+    functions are kept, keyed by everything they are made from (samples, rate, drive frequency, start time,
+    harmonics, fine grid), so records of one layout share them (the pixels of a map fitted at one drive
+    frequency); they are not modified by the fit.
+    """
+    return _prepare(trace, fit, instrument, before_instrument(trace, fit, drive, layouts))
+
+
+def _prepare(trace: Trace, fit, instrument, shared: BeforeInstrument) -> Prepared:
+    t, x, drive, blocks, windows = shared.t, shared.x, shared.drive, shared.blocks, shared.windows
+    removed = dict(shared.removed)
+    ideal = instrument is None or instrument.ideal
+    views = deflection_views(x, blocks, instrument, trace.cantilever, None if ideal else shared.recorded())
     x, x_equation = views.tip, views.equation
     cl = trace.cantilever
     k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
@@ -208,13 +270,19 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
         psi_sq = _pair_mean(np.sum(windows.psi**2, axis=1))
         detector_variance = noise_rms**2 * _pair_mean(np.sum(operator**2, axis=1))
         # a declared instrument: the rows' noise through the views' gains over each row's band (measured)
-        band_gain = row_noise_gain(instrument, trace.cantilever, blocks, operator)
-        if band_gain is not None:
-            detector_variance = detector_variance * band_gain
         # behind higher modes the thermal force (on the first mode, as the simulator has it) reaches the
         # equation through the modes' gain H_1 / H too: 1.5-2.8 at harmonics 3-5 for f2 = 6.27 f0
-        modes_gain = (row_noise_gain(Instrument(None, instrument.higher_modes), trace.cantilever, blocks, windows.psi)
-                      if thermal and instrument is not None and instrument.higher_modes else None)
+        thermal_modes = bool(thermal and instrument is not None and instrument.higher_modes)
+        band_gain = modes_gain = None
+        if thermal_modes and instrument.detector is None:  # one instrument for both: the probe through it once
+            band_gain, modes_gain = row_noise_gains(instrument, trace.cantilever, blocks, [operator, windows.psi],
+                                                    shared.probe())
+        else:
+            band_gain = None if ideal else row_noise_gain(instrument, trace.cantilever, blocks, operator, shared.probe())
+            modes_gain = (row_noise_gain(Instrument(None, instrument.higher_modes), trace.cantilever, blocks,
+                                         windows.psi, shared.probe()) if thermal_modes else None)
+        if band_gain is not None:
+            detector_variance = detector_variance * band_gain
         base_variance = detector_variance + thermal * psi_sq * (1.0 if modes_gain is None else modes_gain)
     else:
         # Rows: the equation at every used sample, derivatives from a registered differentiator.
@@ -276,6 +344,7 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
         form=fit.form, strong=strong, motion=motion, x_restored=x_restored,
         thermal_force=(ThermalForce(k, w0, Q, fit.temperature, smoother)
                        if thermal and weak and corrects_thermal_bias(fit.thermal_bias, Q) else None),
+        before_instrument=shared,
     )
 
 

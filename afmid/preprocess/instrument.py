@@ -278,42 +278,81 @@ def crossfaded_series(blocks, coef: np.ndarray, n_samples: int) -> np.ndarray:
     return np.divide(total, weights, out=np.zeros(n_samples), where=weights > 0)
 
 
-def deflection_views(x: np.ndarray, blocks, instrument: Instrument | None, cantilever) -> DeflectionViews:
+@dataclass(frozen=True)
+class RecordedSeries:
+    """What :func:`deflection_views` takes of the recorded samples before any instrument is undone: the same for
+    every instrument, so refits of one record with other instruments declared (the diagnosis's search for an
+    undeclared one) make it once (:func:`recorded_series`)."""
+
+    x: np.ndarray  # m, the recorded samples
+    measured: np.ndarray  # (B, 2K+1, 1) m, their block series' coefficients, global phase
+    spectrum: np.ndarray  # rfft of the residual about the crossfaded block series (m)
+    frequency: np.ndarray  # Hz, the spectrum's frequencies
+    residual_sum_squares: float  # m^2, of the used samples about the block series
+
+    def made_from(self, x: np.ndarray, blocks) -> bool:
+        """Whether this is the series of samples ``x`` on ``blocks`` (the same arrays, not equal copies)."""
+        return self.x is x and self.measured.shape[0] == blocks.n_blocks
+
+
+def recorded_series(x: np.ndarray, blocks) -> RecordedSeries:
+    """The instrument-free part of :func:`deflection_views` for samples ``x`` (m) on ``blocks``."""
+    measured = blocks.project(x)
+    spectrum = np.fft.rfft(x - crossfaded_series(blocks, measured, x.size))
+    residual = x[blocks.used] - blocks.synthesize(measured)[:, 0]
+    return RecordedSeries(x, measured, spectrum, np.fft.rfftfreq(x.size, blocks.dt), float(np.dot(residual, residual)))
+
+
+def deflection_views(x: np.ndarray, blocks, instrument: Instrument | None, cantilever,
+                     recorded: RecordedSeries | None = None, equation_only: bool = False) -> DeflectionViews:
     """Undo the declared instrument on the samples ``x`` (m), block by block and harmonic by harmonic.
 
     ``blocks`` (afmid.preprocess.periods.HarmonicBlocks) gives the per-period Fourier fits; on the used samples the
     tip is x + sum over harmonics of (1/G - 1) X_n, the equation's deflection x + (H_1/H / G - 1) X_n (the
     residual of each block fit, noise and harmonics above K, is left as measured). Ideal instrument: ``x``
-    itself for both (the same array: nothing changes).
+    itself for both (the same array: nothing changes). ``recorded``: :func:`recorded_series` of ``x`` on
+    ``blocks`` when at hand (the same values; made here otherwise). ``equation_only``: only the equation's view
+    is wanted (``tip`` is then ``x`` whatever the detector).
     """
     K = blocks.K
     if instrument is None or instrument.ideal:
         return DeflectionViews(x, x, None, K)
+    if recorded is None or not recorded.made_from(x, blocks):
+        recorded = recorded_series(x, blocks)
     f = np.arange(K + 1) * blocks.omega / (2.0 * math.pi)
     tip_gain = instrument.tip_gain(f)
     equation_gain = None if not instrument.higher_modes else instrument.equation_gain(cantilever, f)
-    measured = blocks.project(x)
-    used = blocks.used
+    measured, spectrum = recorded.measured, recorded.spectrum
     tip_coef = apply_per_harmonic(measured, tip_gain)
     # The motion is not exactly periodic (thermal wander): what the block series leave out, the residual about
     # them, goes through the same gains by FFT, up to harmonic K + 1/2 (above it the samples stay as measured).
     # Each frequency takes the gain of its nearest harmonic: the noise model of the rows is per harmonic, and
     # between harmonics the modes' gain H_1 / H can be huge (at an antiresonance the tip does not move, and
     # inverting there would amplify the noise without bound).
-    residual = x - crossfaded_series(blocks, measured, x.size)
-    spectrum = np.fft.rfft(residual)
-    f_fft = np.fft.rfftfreq(x.size, blocks.dt)
-    tip_fft, eq_fft = gains_between_harmonics(instrument, cantilever, f[1], tip_gain, equation_gain, f_fft)
-    tip = x + crossfaded_series(blocks, tip_coef - measured, x.size) + np.fft.irfft(spectrum * (tip_fft - 1), x.size)
+    tip_fft, eq_fft = gains_between_harmonics(instrument, cantilever, f[1], tip_gain, equation_gain,
+                                              recorded.frequency)
+    if instrument.detector is None or (equation_only and equation_gain is not None):
+        # No detector: every tip gain is 1, so the corrections below are zeros and x + 0 is x (the same bits).
+        tip = x
+    else:
+        tip = x + crossfaded_series(blocks, tip_coef - measured, x.size) + _irfft(spectrum * (tip_fft - 1), x.size)
     if equation_gain is None:
         equation = tip
     else:
         equation = (x + crossfaded_series(blocks, apply_per_harmonic(tip_coef, equation_gain) - measured, x.size)
-                    + np.fft.irfft(spectrum * (eq_fft - 1), x.size))
+                    + _irfft(spectrum * (eq_fft - 1), x.size))
     inverted = instrument.invertible_up_to(f)
-    residual = x[used] - blocks.synthesize(measured)[:, 0]
     return DeflectionViews(tip, equation, equation_gain, int(round(inverted / f[1])), tip_gain,
-                           float(np.dot(residual, residual)))
+                           recorded.residual_sum_squares)
+
+
+def _irfft(spectrum: np.ndarray, n: int) -> np.ndarray:
+    """The real series of ``n`` samples with rfft ``spectrum``: scipy's pocketfft, the same values as numpy.fft.irfft
+    and twice as fast at a prime ``n`` (the noise probe of :func:`row_noise_gain`, 353,359 samples on the HSDC
+    record: 0.05 s instead of 0.09 s, once per instrument a diagnosis tries)."""
+    import scipy.fft
+
+    return scipy.fft.irfft(spectrum, n, workers=1)
 
 
 def gains_between_harmonics(instrument: Instrument, cantilever, drive_frequency: float, tip_gain: np.ndarray,
@@ -348,7 +387,38 @@ NOISE_PROBE_SAMPLES = 400_000
 NOISE_PROBE_SEED = 13
 
 
-def row_noise_gain(instrument: Instrument, cantilever, blocks, rows: np.ndarray) -> np.ndarray | None:
+@dataclass(frozen=True)
+class NoiseProbe:
+    """The white noise :func:`row_noise_gain` passes through the views, on blocks like a record's: it depends on
+    the record's block layout only, so refits of one record with other instruments share it (:func:`noise_probe`)."""
+
+    blocks: object  # afmid.preprocess.periods.HarmonicBlocks laid over the probe
+    noise: np.ndarray  # the probe's samples (unit variance)
+    recorded: RecordedSeries  # their instrument-free part (:func:`recorded_series`)
+    index: np.ndarray  # (windows, 2L + 1) sample indices of the probe's weak-form windows
+
+    def fits(self, blocks) -> bool:
+        """Whether this probe was laid out for ``blocks`` (same samples per block, harmonics, projector)."""
+        return (self.blocks.L == blocks.L and self.blocks.K == blocks.K and self.blocks.dt == blocks.dt
+                and self.blocks.omega == blocks.omega and self.blocks.projector is blocks.projector)
+
+
+def noise_probe(blocks) -> NoiseProbe:
+    """The probe of :func:`row_noise_gain` for ``blocks``: NOISE_PROBE_WINDOWS windows of seeded white noise."""
+    import dataclasses
+
+    L = blocks.L
+    n_windows = max(8, min(NOISE_PROBE_WINDOWS, NOISE_PROBE_SAMPLES // L - 2))
+    # the same blocks (projector, harmonics) laid over the probe: n_windows + 2 blocks from its first sample
+    probe = dataclasses.replace(blocks, start=0, n_blocks=n_windows + 2, t0=0.0)
+    noise = np.random.default_rng(NOISE_PROBE_SEED).standard_normal(probe.n_blocks * L + 1)
+    count = probe.n_blocks - 1
+    index = probe.start + np.arange(count)[:, None] * L + np.arange(2 * L + 1)[None, :]
+    return NoiseProbe(probe, noise, recorded_series(noise, probe), index)
+
+
+def row_noise_gain(instrument: Instrument, cantilever, blocks, rows: np.ndarray, probe: NoiseProbe | None = None
+                   ) -> np.ndarray | None:
     """Per weak-form row (``rows``: (rows, 2L + 1) weights over a window's samples, harmonic-interleaved as the
     windows' rows): the variance of the row on the equation's deflection of white detector noise over its
     variance on the noise itself, averaged over each cos/sin pair (None: ideal instrument, 1).
@@ -360,25 +430,29 @@ def row_noise_gain(instrument: Instrument, cantilever, blocks, rows: np.ndarray)
     5 for f2 = 6.27 f0) the gain at n alone understated the row's noise: whitened residual power 5-7 at
     harmonic 6 on clean two-mode traces (1 elsewhere), the chi-square test's false alarm. Measured, not
     modelled: white noise through :func:`deflection_views` on blocks like ``blocks`` (the map is linear), the
-    rows' mean squares over NOISE_PROBE_WINDOWS windows.
+    rows' mean squares over NOISE_PROBE_WINDOWS windows. ``probe``: :func:`noise_probe` of ``blocks`` when at
+    hand (the same values; made here otherwise).
     """
-    import dataclasses
-
     if instrument is None or instrument.ideal:
         return None
-    L = blocks.L
-    n_windows = max(8, min(NOISE_PROBE_WINDOWS, NOISE_PROBE_SAMPLES // L - 2))
-    # the same blocks (projector, harmonics) laid over the probe: n_windows + 2 blocks from its first sample
-    probe = dataclasses.replace(blocks, start=0, n_blocks=n_windows + 2, t0=0.0)
-    noise = np.random.default_rng(NOISE_PROBE_SEED).standard_normal(probe.n_blocks * L + 1)
-    equation = deflection_views(noise, probe, instrument, cantilever).equation
-    count = probe.n_blocks - 1
-    index = probe.start + np.arange(count)[:, None] * L + np.arange(2 * L + 1)[None, :]
-    power = [np.sum((rows @ series[index].T) ** 2, axis=1) for series in (equation, noise)]
-    pair = [p.copy() for p in power]
-    for q, p in zip(pair, power):
-        q[1::2] = q[2::2] = p[1::2] + p[2::2]
-    return pair[0] / pair[1]
+    return row_noise_gains(instrument, cantilever, blocks, [rows], probe)[0]
+
+
+def row_noise_gains(instrument: Instrument, cantilever, blocks, rows: list[np.ndarray],
+                    probe: NoiseProbe | None = None) -> list[np.ndarray]:
+    """:func:`row_noise_gain` of each of ``rows`` (weight matrices), the probe passed through the views once."""
+    if probe is None or not probe.fits(blocks):
+        probe = noise_probe(blocks)
+    equation = deflection_views(probe.noise, probe.blocks, instrument, cantilever, probe.recorded,
+                                equation_only=True).equation
+    gains = []
+    for weights in rows:
+        power = [np.sum((weights @ series[probe.index].T) ** 2, axis=1) for series in (equation, probe.noise)]
+        pair = [p.copy() for p in power]
+        for q, p in zip(pair, power):
+            q[1::2] = q[2::2] = p[1::2] + p[2::2]
+        gains.append(pair[0] / pair[1])
+    return gains
 
 
 #: ``afmid inspect``: a bump in the harmonic amplitudes counts as a resonance when, at two neighbouring

@@ -125,3 +125,35 @@ def test_an_added_state_gate_is_evaluated_in_full(clean):
     for d in (touch, touch, touch + 1e-10):
         shared.residual(library, dict(params, d=d))
     assert (shared.evaluations, shared.reused) == (3, 0)
+
+
+@pytest.mark.parametrize("added", ["viscoelastic", "contact_damping", "standard_linear_solid", "capillary"])
+def test_an_effect_zero_until_contact_out_of_reach_is_not_evaluated_and_gives_the_full_librarys_residual(clean, added):
+    """Above first contact (by more than REACH_MARGIN of the amplitude) a contact-only effect's columns (or a meniscus
+    formed at contact) are zeros:
+    not evaluated, and the residual is the full library's to the last bit's rounding (the same system but for the
+    zero columns, which least squares leaves out exactly). Just below contact they are evaluated."""
+    from afmid.diagnosis.base_columns import REACH_MARGIN, BaseColumns
+    from afmid.fit.pipeline import build_system, library_parameters, residual_sum_squares
+    from afmid.fit.system import library_columns
+    from afmid.physics.effects import EFFECTS
+
+    config, prepared, touch = clean
+    library = _library(config, ["dmt", added])
+    shared = BaseColumns(prepared, _library(config, ["dmt"]))
+    params = library_parameters(prepared, config, library)
+    for parameter in EFFECTS.get(added).parameters:  # the relaxing solid's relaxation time: a mid-range value
+        if parameter.nonlinear and parameter.name not in params:
+            params[parameter.name] = parameter.default
+    own = [i for i, term in enumerate(library.terms) if term.effect == added]
+    beyond = touch + 2 * REACH_MARGIN * prepared.drive.amplitude + 0.1e-9
+    for d in (beyond, beyond + 1e-9):
+        trial = dict(params, d=d)
+        # the premise: evaluated in full, the effect's columns are exactly zero there
+        assert not library_columns(prepared, library, trial)[..., own].any()
+        full = residual_sum_squares(build_system(prepared, library, trial))
+        assert shared.residual(library, trial) == pytest.approx(full, rel=1e-12)
+    assert shared.out_of_reach_trials == 2
+    inside = dict(params, d=touch - 0.3e-9)
+    shared.residual(library, inside)
+    assert shared.out_of_reach_trials == 2  # evaluated in contact

@@ -304,6 +304,37 @@ def test_no_instrument_declared_prepares_exactly_as_before():
     assert a.x is trace.deflection or np.array_equal(a.x, trace.deflection)
 
 
+@pytest.mark.parametrize("instrument", [
+    Instrument(Detector(3.0e6, "butterworth", 2)),
+    Instrument(None, (Mode(1.881e6, 750.0, 1572.0),)),
+    Instrument(Detector(2.4e6, "bessel", 4), (Mode(1.68e6, 600.0, 1250.0),)),
+    IDEAL,
+], ids=["detector", "mode", "detector-and-mode", "ideal"])
+def test_a_preparation_with_another_instrument_reuses_the_record_and_gives_the_same_bits(instrument):
+    """The diagnosis's instrument search prepares one record with ~100 instruments: each starts from the first
+    preparation's instrument-free part (fit.prepare.with_instrument). The same arithmetic on the same arrays in the
+    same order as a fresh preparation, so the same bits, whichever instruments were prepared before."""
+    from afmid.fit.prepare import with_instrument
+    from afmid.fit.pipeline import prepare
+    from afmid.simulate.driver import simulate
+
+    config = build_config(_raw("hidden_clean", "simulate.periods=12"))
+    trace = simulate(config)
+    first = prepare(trace, config.fit)
+    # another instrument before, so the shared record's views and noise probe are made and then reused
+    with_instrument(first, config.fit, Instrument(Detector(5.0e6, "first_order", 1), (Mode(2.0e6, 500.0, 2000.0),)))
+    shared = with_instrument(first, config.fit, instrument)
+    fresh = prepare(trace, config.fit, instrument)
+    assert shared.before_instrument is first.before_instrument
+    for name in ("x", "X", "Y", "nuisance", "Y_block", "nuisance_block", "row_sigma", "base_variance",
+                 "block_sigma", "X_traj", "V_traj", "xdot_used"):
+        assert np.array_equal(getattr(shared, name), getattr(fresh, name)), name
+    assert shared.noise_rms == fresh.noise_rms and shared.trajectory_noise == fresh.trajectory_noise
+    assert (shared.x_restored is None) == (fresh.x_restored is None)
+    if fresh.x_restored is not None:
+        assert np.array_equal(shared.x_restored, fresh.x_restored)
+
+
 # --------------------------------------------------------------------------- the fit, declared
 def _force_error(raw: dict) -> float:
     from afmid.fit.pipeline import run_fit
