@@ -217,12 +217,11 @@ class Fit:
         if self._result is None:
             raise ConfigError("a loaded fit is its run file already; copy the file", file=Path(path), key="save")
         if self._diagnosis is None:
-            return write_run(Path(path), self._result, self.config, overwrite=overwrite)
+            return write_run(Path(path), self.run, overwrite=overwrite)
         from afmid.diagnosis.stored import diagnosis_key, write_group
 
         answer, key = self._diagnosis.details, diagnosis_key(self.run)
-        return write_run(Path(path), self._result, self.config, overwrite=overwrite,
-                         extra=lambda h5: write_group(h5, answer, key))
+        return write_run(Path(path), self.run, overwrite=overwrite, extra=lambda h5: write_group(h5, answer, key))
 
 
 def load(path: str | Path, trace=None) -> Fit:

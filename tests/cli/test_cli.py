@@ -185,13 +185,17 @@ def stub_fit(monkeypatch):
             raise seen["raise"]
         return _StubResult(seen["trace"])
 
-    def write_run(path, result, config, overwrite=False):
+    def run_data(result, config, name="fit"):
+        return types.SimpleNamespace(config=config)  # the record of the stub fit: its config only
+
+    def write_run(path, run, overwrite=False):
         path = check_output_path(path, overwrite)
-        with atomic_hdf5(path, "afmid-run", dump_config(config), {}) as h5:
+        with atomic_hdf5(path, "afmid-run", dump_config(run.config), {}) as h5:
             h5.attrs["stub"] = True
         return path
 
     monkeypatch.setattr(afmid.fit.pipeline, "run_fit", run_fit)
+    monkeypatch.setattr(afmid.runfile, "run_data", run_data)
     monkeypatch.setattr(afmid.runfile, "write_run", write_run)
     return seen
 
