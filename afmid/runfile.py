@@ -34,6 +34,7 @@ import afmid.fit.plausibility as plausibility
 from afmid.config import RunConfig, build_config, dump_config
 from afmid.errors import ConfigError, InputError
 from afmid.io.files import check_input_file, is_regular_file
+from afmid.physics.effects import EFFECTS
 from afmid.io.trace import RUN_FORMAT, TRACE_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
 from afmid.fit.uncertainty import (ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR, FLOOR_QUANTILE, floor_threshold,
                                    intervals_kind)
@@ -606,6 +607,29 @@ class RunData:
         return [t for t, s in zip(self.terms, self.selected) if s]
 
 
+def readout_order(quantities: dict[str, dict], effects: list[str]) -> list[str]:
+    """The read-outs' names in the order the fit reads them out (:func:`afmid.fit.forces.read_out`: effect by
+    effect as the library lists them, each effect's quantities as its catalog entry declares them); the run file
+    keeps them by name. A read-out of an effect the catalog does not know goes last, by name."""
+    def place(name: str) -> tuple[int, int, str]:
+        effect = str(quantities[name].get("effect", ""))
+        declared = [q.name for q in EFFECTS.get(effect).quantities] if effect in EFFECTS else []
+        label = name.split(".")[-1]
+        return (effects.index(effect) if effect in effects else len(effects),
+                declared.index(label) if label in declared else len(declared), name)
+
+    return sorted(quantities, key=place)
+
+
+def nonlinear_order(nonlinear: dict[str, dict], effects: list[str]) -> list[str]:
+    """The nonlinear parameters' names in the fit's order (:func:`afmid.fit.pipeline.estimate_nonlinear`: the rest
+    separation ``d``, then the library's decay lengths effect by effect as the catalog declares them); the run
+    file keeps them by name. One no effect declares goes last, by name."""
+    declared = ["d"] + [name for effect in effects if effect in EFFECTS
+                        for name in EFFECTS.get(effect).nonlinear_parameters]
+    return sorted(nonlinear, key=lambda name: (declared.index(name) if name in declared else len(declared), name))
+
+
 #: The signature an HDF5 file starts with (at byte 0, or at 512, 1024, ... after a user block).
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
@@ -787,8 +811,20 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         steadiness=float(d["steadiness"][()]) if "steadiness" in d else math.nan,
         row_sigma=d["row_sigma"][...] if "row_sigma" in d else None,
         selection_path=read_selection_path(d["path"]) if "path" in d else {},
-        implausible=[text(v) for v in d.attrs.get("implausible", [])],
+        implausible=([text(v) for v in d.attrs.get("implausible", [])] if "n_implausible" in d.attrs
+                     else judged_now(quantities, m["separation"])),
     )
+
+
+def judged_now(quantities: dict, separation) -> list[str]:
+    """The implausible reasons of a run file older than its ``implausible`` list: the read-outs' verdicts (judged
+    when read, :func:`read_verdict`) and an estimated separation's."""
+    reasons = [str(q["plausibility"]) for q in quantities.values() if not q["plausible"]]
+    if bool(separation.attrs.get("estimated", True)):
+        verdict = plausibility.judge_separation(float(separation[()]), float(separation.attrs.get("error", math.nan)))
+        if not verdict.plausible:
+            reasons.append(verdict.reason)
+    return reasons
 
 
 def read_selection_path(group) -> dict:
