@@ -1,12 +1,12 @@
 """The run files of a joint fit and of a separation track, and ``afmid fit`` of them.
 
-:func:`write_joint_run` writes the first trace's result in the single-trace layout through
-:func:`afmid.runfile.write_run` (``afmid report`` renders it: the first trace's plots, the shared parameters) and
-adds ``/joint``: the traces' table (file, SHA-256, separation and its 1 sigma, cv error and noise floor) and a
-group per trace with its per-period forces (docs/file-formats.md, "Joint fits"); :func:`write_track_run` adds
-``/model/separation_track``. They sit in the run files' layer, above the fit (docs/architecture.md, Layers): the
-fit (:mod:`afmid.fit.joint`, :mod:`afmid.fit.joint_output`, :mod:`afmid.fit.separation_track`) computes, this
-module writes.
+:func:`joint_run_data` is a joint fit's run record: the first trace's in the single-trace layout
+(:func:`afmid.runfile.run_data`; ``afmid report`` renders it: the first trace's plots, the shared parameters) with
+every trace's row and per-period forces (``/joint``: file, SHA-256, separation and its 1 sigma, cv error and noise
+floor; docs/file-formats.md, "Joint fits"); :func:`write_joint_run` writes it through
+:func:`afmid.runfile.write_run`, :func:`write_track_run` adds ``/model/separation_track``. They sit in the run
+files' layer, above the fit (docs/architecture.md, Layers): the fit (:mod:`afmid.fit.joint`,
+:mod:`afmid.fit.joint_output`, :mod:`afmid.fit.separation_track`) computes, this module records.
 """
 
 from __future__ import annotations
@@ -23,51 +23,37 @@ from afmid.fit.joint import JointResult, run_joint_fit
 from afmid.fit.joint_output import JOINT_LAYOUT, joint_table, trace_result
 from afmid.fit.pipeline import FitResult
 from afmid.fit.separation_track import SeparationTrack, fit_separation_track, track_table, write_track
-from afmid.io.trace import check_trace, load_trace, write_dataset
-from afmid.runfile import PERIOD_UNITS, write_run
+from afmid.io.trace import check_trace, load_trace
+from afmid.runfile import RunData, run_data, write_run
+
+
+def joint_run_data(result: JointResult, per_trace: list[FitResult], name: str = "fit") -> RunData:
+    """The run record of a joint fit: trace 0's in the single-trace layout (:func:`afmid.runfile.run_data`) with
+    every trace's row and per-period curves in ``joint`` and ``/joint``'s attributes in ``joint_attrs``
+    (``per_trace``: :func:`afmid.fit.joint_output.trace_result` of each trace)."""
+    run = run_data(per_trace[0], per_trace[0].config, name)
+    run.joint = [{
+        "path": str(t.prep.trace.path), "sha256": t.prep.trace.sha256 or "", "separation": float(t.params["d"]),
+        "separation_estimated": t.separation is not None,
+        "separation_error": float(t.separation.sigma) if t.separation is not None else 0.0,
+        "cv_error": float(t.cv_error), "cv_error_noise_floor": float(t.cv_error_noise_floor),
+        "model_limited": bool(t.model_limited), "drive_frequency": float(t.prep.drive.frequency),
+        "periods": dict(sorted((k, np.array(r.periods[k])) for k in r.periods)),
+    } for t, r in zip(result.traces, per_trace)]
+    run.joint_attrs = {
+        "config": dump_config(result.config), "layout": JOINT_LAYOUT,
+        "meaning": ("one force law fitted to every trace: /model holds the shared coefficients and parameters; "
+                    "/force, /periods, /diagnostics and /model/separation are trace 0's; each trace's own in "
+                    "/joint/trace_<i>"),
+        "n_traces": len(result.traces), "search_evaluations": int(result.rounds)}
+    return run
 
 
 def write_joint_run(path, result: JointResult, overwrite: bool = False, more=None) -> tuple[Path, list[FitResult]]:
-    """Write the joint run file (the first trace in the single layout, plus ``/joint``; ``more(h5)`` adds more
-    inside the same atomic write); returns the path and every trace's result
-    (:func:`afmid.fit.joint_output.trace_result`)."""
+    """Write the joint run file (its record, :func:`joint_run_data`; ``more(h5)`` adds more inside the same
+    atomic write); returns the path and every trace's result (:func:`afmid.fit.joint_output.trace_result`)."""
     per_trace = [trace_result(result, i) for i in range(len(result.traces))]
-
-    def add_joint(h5) -> None:
-        g = h5.create_group("joint")
-        g.attrs["layout"] = JOINT_LAYOUT
-        g.attrs["n_traces"] = len(result.traces)
-        g.attrs["config"] = dump_config(result.config)
-        g.attrs["meaning"] = ("one force law fitted to every trace: /model holds the shared coefficients and "
-                              "parameters; /force, /periods, /diagnostics and /model/separation are trace 0's; "
-                              "each trace's own in /joint/trace_<i>")
-        g.attrs["search_evaluations"] = result.rounds
-        traces = result.traces
-        write_dataset(g, "paths", np.array([str(t.prep.trace.path) for t in traces]), "1")
-        write_dataset(g, "sha256", np.array([t.prep.trace.sha256 or "" for t in traces]), "1")
-        write_dataset(g, "separation", np.array([t.params["d"] for t in traces]), "m",
-                      estimated=np.array([t.separation is not None for t in traces]))
-        write_dataset(g, "separation_error", np.array([t.separation.sigma if t.separation is not None else 0.0
-                                                       for t in traces]), "m", error_kind="1 sigma")
-        write_dataset(g, "cv_error", np.array([t.cv_error for t in traces]), "1",
-                      definition="each trace's cross-validated force error with the shared law")
-        write_dataset(g, "cv_error_noise_floor", np.array([t.cv_error_noise_floor for t in traces]), "1")
-        write_dataset(g, "model_limited", np.array([t.model_limited for t in traces]), "1")
-        for i, (t, r) in enumerate(zip(traces, per_trace)):
-            tg = g.create_group(f"trace_{i}")
-            tg.attrs["path"] = str(t.prep.trace.path)
-            write_dataset(tg, "separation", t.params["d"], "m", estimated=t.separation is not None,
-                          error=t.separation.sigma if t.separation is not None else 0.0, error_kind="1 sigma")
-            write_dataset(tg, "cv_error", t.cv_error, "1")
-            write_dataset(tg, "cv_error_noise_floor", t.cv_error_noise_floor, "1")
-            write_dataset(tg, "drive_frequency", t.prep.drive.frequency, "Hz")
-            pg = tg.create_group("periods")
-            r.periods.write(pg, PERIOD_UNITS)  # afmid.fit.forces.PeriodCurves, chunk by chunk
-        h5["model"].attrs["joint"] = f"shared by the {len(traces)} traces of /joint"
-        if more is not None:
-            more(h5)
-
-    written = write_run(path, per_trace[0], per_trace[0].config, overwrite=overwrite, extra=add_joint)
+    written = write_run(path, joint_run_data(result, per_trace), overwrite=overwrite, extra=more)
     return written, per_trace
 
 

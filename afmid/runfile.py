@@ -1,7 +1,9 @@
-"""Run files: the one writer (:func:`write_run`) and the readers of what ``afmid fit`` stores.
+"""Run files: the run record (:class:`RunData`, made from a fit by :func:`run_data`), its one writer
+(:func:`write_run`: the file is the record's serialisation) and the readers of what ``afmid fit`` stores.
 
 The layout is documented in docs/file-formats.md (tests/cli/test_run_file.py checks
-it against a written file). Readers:
+it against a written file; tests/cli/test_run_data.py that ``write_run(load_run(file))`` writes the same file).
+Readers:
 
 - :func:`load_run`: the whole run as a :class:`RunData`, for the diagnosis and
   the report. Strict: a run file of another version, a missing dataset or
@@ -32,7 +34,7 @@ import afmid.fit.plausibility as plausibility
 from afmid.config import RunConfig, build_config, dump_config
 from afmid.errors import ConfigError, InputError
 from afmid.io.files import check_input_file, is_regular_file
-from afmid.fit.forces import PeriodCurves
+from afmid.physics.effects import EFFECTS
 from afmid.io.trace import RUN_FORMAT, TRACE_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
 from afmid.fit.uncertainty import (ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR, FLOOR_QUANTILE, floor_threshold,
                                    intervals_kind)
@@ -96,30 +98,30 @@ def text(value, errors: str = "strict") -> str:
 
 
 # --------------------------------------------------------------------------- writer
-def write_run(path, result: FitResult, config: RunConfig, overwrite: bool = False, root_attrs: dict | None = None,
-              extra=None):
-    """Write the run file (layout: docs/file-formats.md); ``root_attrs`` are further root attributes (a batch's
-    resume key), written with the rest rather than by opening the file again; ``extra(h5)`` writes further
-    groups into the same file before it appears (a joint fit's /joint, afmid.fit.joint_output)."""
+def write_run(path, run: RunData, overwrite: bool = False, root_attrs: dict | None = None, extra=None):
+    """Write the run file of the run record ``run`` (layout: docs/file-formats.md): the file is the record's
+    serialisation, :func:`load_run` its inverse (tests/cli/test_run_data.py). ``root_attrs`` are further root
+    attributes (a batch's resume key), written with the rest rather than by opening the file again;
+    ``extra(h5)`` writes further groups into the same file before it appears (a joint fit's /joint,
+    afmid.joint_runfile)."""
     path = check_output_path(path, overwrite)
-    trace = result.prep.trace
-    inputs = {str(trace.path): trace.sha256} if trace.path else {}
-    with atomic_hdf5(path, RUN_FORMAT, dump_config(config), inputs) as h5:
+    inputs = {str(run.input_path): run.input_sha256} if run.input_path is not None else {}
+    with atomic_hdf5(path, RUN_FORMAT, run.stored_config, inputs) as h5:
         for name, value in (root_attrs or {}).items():
             h5.attrs[name] = value
-        verdicts = write_run_contents(h5, result, config)
+        write_run_contents(h5, run)
         if extra is not None:
             extra(h5)
-    plausibility.warn(verdicts)
+    # one warning line per implausible read-out, as the file lists them (afmid.fit.plausibility.warn)
+    plausibility.warn({str(i): plausibility.Verdict(False, reason) for i, reason in enumerate(run.implausible)})
     return path
 
 
 def run_data(result: FitResult, config: RunConfig, name: str = "fit") -> RunData:
-    """The :class:`RunData` that :func:`load_run` gives for the run file of ``result``, made from the fit without a
-    file: the values :func:`write_run` stores, each computed by the same function the writer takes it from
-    (:func:`drive_values`, :func:`quantity_record`, ...), in the types :func:`load_run` reads them back as
-    (tests/cli/test_run_data.py compares the two field by field on several fits). ``name`` stands for the
-    file's name (``path``); the ground truth is the fitted trace's own."""
+    """The run record of a fit: everything its run file holds (:func:`write_run` writes it, :func:`load_run` reads
+    it back; tests/cli/test_run_data.py compares the two field by field on several fits), in the types
+    :func:`load_run` reads them as. ``name`` stands for the file's name (``path``); the ground truth is the
+    fitted trace's own."""
     trace = result.prep.trace
     path = Path(name)
     p = result.n_library
@@ -128,9 +130,12 @@ def run_data(result: FitResult, config: RunConfig, name: str = "fit") -> RunData
     best = result.selection.best
     d_estimate = result.nonlinear.get("d")
     periods = result.periods
+    config_text = dump_config(config)
+    separation_verdict = verdicts.get(plausibility.SEPARATION)
+    declared = result.prep.declared_drive
     return RunData(
         path=path,
-        config=run_config(stored_config(dump_config(config), path), path, input_path),
+        config=run_config(stored_config(config_text, path), path, input_path),
         effects=[e for e in result.library.effects if e],
         terms=list(result.library.names),
         expressions=[t.expression for t in result.library.terms],
@@ -153,7 +158,7 @@ def run_data(result: FitResult, config: RunConfig, name: str = "fit") -> RunData
         cantilever={k: float(v) for k, v in sorted(cantilever_values(trace.cantilever).items())},
         periods=dict(sorted((k, np.array(periods[k])) for k in periods)),
         force=dict(sorted(force_values(result).items())),
-        drive_source=DRIVE_CALIBRATED if result.prep.declared_drive is not None else DRIVE_FITTED,
+        drive_source=DRIVE_CALIBRATED if declared is not None else DRIVE_FITTED,
         input_path=input_path,
         input_sha256=(trace.sha256 or "") if input_path is not None else None,
         warnings=[str(w) for w in result.warnings],
@@ -165,7 +170,69 @@ def run_data(result: FitResult, config: RunConfig, name: str = "fit") -> RunData
         cv_error_folds=np.atleast_1d(np.asarray(result.cv_error_folds)).astype(float),
         truth=trace.truth,
         **force_shares(result),
+        stored_config=config_text,
+        intervals=intervals_kind(config),
+        overridden=[str(v) for v in trace.overridden],
+        value_sources="; ".join(f"{k}: {v}" for k, v in trace.sources.items()),
+        library_source=str(result.library.source),
+        coefficients_ci_low=np.array(result.ci_low[:p], dtype=float),
+        coefficients_ci_high=np.array(result.ci_high[:p], dtype=float),
+        drive_notes=drive_notes(result, config),
+        identified=identified_values(result, config),
+        descriptions={name: str(q["doc"]) for name, q in sorted(result.quantities.items())},
+        separation_verdict=dict(sorted(plausibility.attributes(separation_verdict).items())) if separation_verdict else {},
+        rss=float(best.rss),
+        noise_rms=float(result.prep.noise_rms),
+        steadiness=float(result.prep.steadiness),
+        row_sigma=np.array(result.prep.row_sigma, dtype=float),
+        selection_path=selection_path(result),
+        implausible=plausibility.violations(verdicts),
     )
+
+
+def drive_notes(result: FitResult, config: RunConfig) -> dict[str, str]:
+    """The text attributes of ``/model/drive`` beside its source, by name: whence the drive frequency and (a
+    calibrated drive) its amplitude."""
+    declared = result.prep.declared_drive
+    found = getattr(result, "drive_search", None)
+    notes = {"frequency_source": (
+        "nominal (calibrated drive, drive.phase)" if declared is not None
+        else "regression search (record not in steady state)" if found is not None
+        else "nominal (fit.drive_frequency: nominal)" if config.fit.drive_frequency == "nominal"
+        else "spectral peak of the deflection")}
+    if declared is not None:
+        notes["force_amplitude_source"] = str(declared.amplitude_source)
+    return dict(sorted(notes.items()))
+
+
+#: Units of the cantilever constants a fit with ``fit.cantilever: free`` identifies, by dataset name.
+IDENTIFIED_UNITS = {"identified_damping": "kg/s", "identified_stiffness": "N/m"}
+
+
+def identified_values(result: FitResult, config: RunConfig) -> dict[str, float]:
+    """The cantilever's stiffness (N/m) and damping (kg/s) the regression identified (``fit.cantilever: free``;
+    empty otherwise), by dataset name."""
+    if config.fit.cantilever != "free":
+        return {}
+    p = result.n_library
+    nu = result.coef[p:]
+    return {"identified_damping": float(nu[result.system.names.index("damping") - p]),
+            "identified_stiffness": float(nu[result.system.names.index("stiffness") - p])}
+
+
+def selection_path(result: FitResult) -> dict:
+    """``/diagnostics/path`` by name: the candidate supports (``masks`` over the library's terms, ``n_terms``),
+    their whitened ``rss``, ``bic`` and ``cv_rss``, the ``chosen`` one's index, the ``criterion`` and ``scope``
+    of the choice and (grouped selection) each term's ``votes``."""
+    p = result.n_library
+    cands = result.selection.candidates
+    path = {"masks": np.array([c.mask[:p] for c in cands]), "n_terms": np.array([c.n_free for c in cands]),
+            "rss": np.array([c.rss for c in cands]), "bic": np.array([c.bic for c in cands]),
+            "cv_rss": np.array([c.cv_rss for c in cands]), "chosen": int(result.selection.chosen),
+            "criterion": str(result.selection.criterion), "scope": str(result.config.fit.selection_scope)}
+    if result.selection.votes is not None:
+        path["votes"] = np.asarray(result.selection.votes[:p], dtype=float)
+    return dict(sorted(path.items()))
 
 
 def stored_coefficients(result: FitResult) -> np.ndarray:
@@ -194,9 +261,10 @@ def quantity_record(name: str, q: dict, verdict: plausibility.Verdict) -> dict:
 
 def nonlinear_record(est) -> dict:
     """A nonlinear parameter (an :class:`afmid.fit.search.NonlinearEstimate`) as :class:`RunData` holds it: value,
-    its 1 sigma, unit (SI), the record's information bound (NaN: not computed)."""
+    its 1 sigma, unit (SI), the record's information bound (NaN: not computed), estimated (or given)."""
     return {"value": float(est.value), "error": float(est.sigma), "unit": str(est.unit),
-            "information_bound": float(getattr(est, "information_bound", math.nan))}
+            "information_bound": float(getattr(est, "information_bound", math.nan)),
+            "estimated": bool(est.estimated)}
 
 
 def cantilever_values(cantilever) -> dict[str, float]:
@@ -247,6 +315,9 @@ def force_shares(result: FitResult) -> dict[str, float]:
             "force_total_uncertainty": float(getattr(result, "force_total_uncertainty", math.nan))}
 
 
+#: ``/cantilever``'s ``units`` attribute.
+CANTILEVER_UNITS = "spring_constant: N/m; resonance_frequency: Hz; quality_factor: 1; tip_radius: m"
+
 #: What a number's ``information_bound`` attribute is (afmid.fit.information_bound).
 INFORMATION_BOUND_MEANING = ("the record's Cramer-Rao bound on the 1-sigma error, in the dataset's units (NaN: not "
                              "computed); the error is never below it")
@@ -260,93 +331,78 @@ def bound_attributes(quantity: dict) -> dict:
             "information_bound_meaning": INFORMATION_BOUND_MEANING}
 
 
-def write_run_contents(h5, result: FitResult, config: RunConfig) -> dict:
-    """Everything of a run file below its provenance (docs/file-formats.md) into the open HDF5 file ``h5``;
-    returns the read-outs' plausibility verdicts (:func:`afmid.fit.plausibility.check_run`)."""
-    trace = result.prep.trace
-    p = result.n_library
-    units = [t.coefficient_unit for t in result.library.terms]
-    h5.attrs["cv_error"] = result.cv_error
-    h5.attrs["intervals"] = intervals_kind(config)  # statistical only unless a calibration uncertainty is declared
-    h5.attrs["overridden"] = list(trace.overridden) or [""]
-    h5.attrs["value_sources"] = "; ".join(f"{k}: {v}" for k, v in trace.sources.items())
+def write_run_contents(h5, run: RunData) -> None:
+    """Everything of a run file below its provenance (docs/file-formats.md) into the open HDF5 file ``h5``, from
+    the run record alone."""
+    h5.attrs["cv_error"] = run.cv_error
+    h5.attrs["intervals"] = run.intervals  # statistical only unless a calibration uncertainty is declared
+    h5.attrs["overridden"] = list(run.overridden) or [""]
+    h5.attrs["value_sources"] = run.value_sources
     cg = h5.create_group("cantilever")
-    for name, value in cantilever_values(trace.cantilever).items():
+    for name, value in run.cantilever.items():
         cg.attrs[name] = value
-    cg.attrs["units"] = "spring_constant: N/m; resonance_frequency: Hz; quality_factor: 1; tip_radius: m"
+    cg.attrs["units"] = CANTILEVER_UNITS
     m = h5.create_group("model")
-    write_dataset(m, "terms", np.array(result.library.names), "1")
-    write_dataset(m, "expressions", np.array([t.expression for t in result.library.terms]), "1")
-    write_dataset(m, "units", np.array(units), "1")
-    write_dataset(m, "coefficients", stored_coefficients(result), "see /model/units")
-    write_dataset(m, "coefficients_errors", result.coef_std[:p], "see /model/units", meaning="bootstrap std, 1 sigma")
-    write_dataset(m, "coefficients_ci_low", result.ci_low[:p], "see /model/units", meaning="lower end of the 95 % bootstrap interval (2.5 % percentile)")
-    write_dataset(m, "coefficients_ci_high", result.ci_high[:p], "see /model/units", meaning="upper end of the 95 % bootstrap interval (97.5 % percentile)")
-    write_dataset(m, "selected", result.selected[:p], "1")
-    write_dataset(m, "inclusion_probability", result.inclusion[:p], "1")
-    write_dataset(m, "effects", np.array(list(result.library.effects) or [""]), "1")
-    m.attrs["library"] = result.library.source
+    write_dataset(m, "terms", np.array(run.terms), "1")
+    write_dataset(m, "expressions", np.array(run.expressions), "1")
+    write_dataset(m, "units", np.array(run.units), "1")
+    write_dataset(m, "coefficients", run.coefficients, "see /model/units")
+    write_dataset(m, "coefficients_errors", run.errors, "see /model/units", meaning="bootstrap std, 1 sigma")
+    write_dataset(m, "coefficients_ci_low", run.coefficients_ci_low, "see /model/units", meaning="lower end of the 95 % bootstrap interval (2.5 % percentile)")
+    write_dataset(m, "coefficients_ci_high", run.coefficients_ci_high, "see /model/units", meaning="upper end of the 95 % bootstrap interval (97.5 % percentile)")
+    write_dataset(m, "selected", run.selected, "1")
+    write_dataset(m, "inclusion_probability", run.inclusion, "1")
+    write_dataset(m, "effects", np.array(list(run.effects) or [""]), "1")
+    m.attrs["library"] = run.library_source
     dg = m.create_group("drive")
-    nu = result.coef[p:]
-    declared = result.prep.declared_drive
-    drive = drive_values(result)
+    drive = run.drive
     for name in ("force_amplitude", "cos", "sin"):
         write_dataset(dg, name, drive[name], "N")
-    dg.attrs["source"] = DRIVE_CALIBRATED if declared is not None else DRIVE_FITTED
-    if declared is not None:  # afmid.fit.declared_drive: given, not fitted
+    dg.attrs["source"] = run.drive_source
+    if run.drive_calibrated:  # afmid.fit.declared_drive: given, not fitted
         write_dataset(dg, "phase", drive["phase"], "rad", meaning="F_drive = F0 cos(2 pi f t + phase)")
         write_dataset(dg, "force_amplitude_uncertainty", drive["force_amplitude_uncertainty"], "1",
                       meaning="relative, 1 sigma (0: not given)")
         write_dataset(dg, "phase_uncertainty", drive["phase_uncertainty"], "rad", meaning="1 sigma (0: not given)")
-        dg.attrs["force_amplitude_source"] = declared.amplitude_source
     write_dataset(dg, "frequency", drive["frequency"], "Hz")
     write_dataset(dg, "nominal_frequency", drive["nominal_frequency"], "Hz")
-    found = getattr(result, "drive_search", None)
-    if found is not None:  # a transient record: the regression chose the drive frequency (afmid.fit.drive_search)
+    if "frequency_sigma" in drive:  # a transient record: the regression chose the drive frequency (afmid.fit.drive_search)
         write_dataset(dg, "frequency_sigma", drive["frequency_sigma"], "Hz", meaning="1 sigma")
         write_dataset(dg, "response_frequency", drive["response_frequency"], "Hz",
                       meaning="spectral peak of the deflection, replaced by the searched drive frequency")
-    dg.attrs["frequency_source"] = (
-        "nominal (calibrated drive, drive.phase)" if declared is not None
-        else "regression search (record not in steady state)" if found is not None
-        else "nominal (fit.drive_frequency: nominal)" if config.fit.drive_frequency == "nominal"
-        else "spectral peak of the deflection")
+    for name, note in run.drive_notes.items():  # frequency_source, a calibrated drive's force_amplitude_source
+        dg.attrs[name] = note
     if "offset_force" in drive:
         write_dataset(dg, "offset_force", drive["offset_force"], "N")
     if "baseline_drift" in drive:  # fit.detrend: linear
         write_dataset(dg, "baseline_drift", drive["baseline_drift"], "m/s",
                       meaning="slope of the deflection baseline estimated with the force law (afmid.preprocess.baseline)")
-    if config.fit.cantilever == "free":
-        write_dataset(m, "identified_stiffness", float(nu[result.system.names.index("stiffness") - p]), "N/m")
-        write_dataset(m, "identified_damping", float(nu[result.system.names.index("damping") - p]), "kg/s")
+    for name, value in run.identified.items():  # fit.cantilever: free
+        write_dataset(m, name, value, IDENTIFIED_UNITS[name])
     pg = m.create_group("parameters")
-    verdicts = plausibility.check_run(result.quantities, result.nonlinear)  # a value outside its range is flagged
-    for name, q in result.quantities.items():
+    for name, q in run.quantities.items():
         parts = {k: q[k] for k in ("error_statistical", "error_calibration") if k in q}
         parts.update(undetermined_attributes(q))
         parts.update(bound_attributes(q))
         write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
-                      effect=q["effect"], description=q["doc"], model_limited=bool(q.get("model_limited", False)),
-                      **ERROR_ATTRS, **parts, **plausibility.attributes(verdicts[name]))
+                      effect=q["effect"], description=run.descriptions[name],
+                      model_limited=bool(q.get("model_limited", False)), **ERROR_ATTRS, **parts,
+                      plausible=bool(q["plausible"]), plausibility=q["plausibility"])
     ng = m.create_group("nonlinear")
-    for name, est in result.nonlinear.items():
-        write_dataset(ng, name, est.value, est.unit, error=est.sigma, estimated=est.estimated,
-                      error_kind=ERROR_LABEL, **bound_attributes({"information_bound": est.information_bound}))
-    fixed_d = config.sample.separation
-    separation_verdict = verdicts.get(plausibility.SEPARATION)
-    write_dataset(m, "separation", result.system.params["d"], "m", estimated=fixed_d is None,
-                  error=result.nonlinear["d"].sigma if "d" in result.nonlinear else 0.0, error_kind=ERROR_LABEL,
-                  **bound_attributes({"information_bound": result.nonlinear["d"].information_bound}
-                                     if "d" in result.nonlinear else {}),
-                  **(plausibility.attributes(separation_verdict) if separation_verdict else {}))
+    for name, est in run.nonlinear.items():
+        write_dataset(ng, name, est["value"], est["unit"], error=est["error"], estimated=est["estimated"],
+                      error_kind=ERROR_LABEL, **bound_attributes(est))
+    d_estimate = run.nonlinear.get("d")
+    write_dataset(m, "separation", run.separation, "m", estimated=run.separation_estimated,
+                  error=d_estimate["error"] if d_estimate is not None else 0.0, error_kind=ERROR_LABEL,
+                  **bound_attributes(d_estimate if d_estimate is not None else {}), **run.separation_verdict)
     fg = h5.create_group("force")
-    separation_share = float(getattr(result, "force_separation_uncertainty", math.nan))
-    write_dataset(fg, "estimate", result.force_estimate, "N", positive="repulsive",
-                  calibration_relative_uncertainty=result.force_calibration_uncertainty, error_kind=ERROR_LABEL,
-                  separation_relative_uncertainty=separation_share,
-                  statistical_relative_uncertainty=float(getattr(result, "force_statistical_uncertainty", math.nan)),
-                  selection_relative_uncertainty=float(getattr(result, "force_selection_uncertainty", math.nan)),
-                  total_relative_uncertainty=float(getattr(result, "force_total_uncertainty", math.nan)),
+    write_dataset(fg, "estimate", run.force["estimate"], "N", positive="repulsive",
+                  calibration_relative_uncertainty=run.force_calibration_uncertainty, error_kind=ERROR_LABEL,
+                  separation_relative_uncertainty=run.force_separation_uncertainty,
+                  statistical_relative_uncertainty=run.force_statistical_uncertainty,
+                  selection_relative_uncertainty=run.force_selection_uncertainty,
+                  total_relative_uncertainty=run.force_total_uncertainty,
                   meaning="model force; calibration_relative_uncertainty: its relative 1-sigma share of the "
                           "declared k and Q uncertainties; separation_relative_uncertainty: the RMS of its "
                           "1-sigma change with the estimated rest separation, relative to the peak |force| "
@@ -355,65 +411,93 @@ def write_run_contents(h5, result: FitResult, config: RunConfig) -> dict:
                           "selection_relative_uncertainty: half the RMS change with the dropped terms of "
                           "the selected effects forced in; total_relative_uncertainty: the shares in "
                           "quadrature (1 sigma)")
-    write_dataset(fg, "inverted", result.force_inverted, "N", positive="repulsive", drive=drive_kind(declared),
-                  meaning=inverted_force_meaning(declared is not None))
-    write_dataset(fg, "time", result.prep.t, "s")
-    write_dataset(fg, "deflection", result.prep.x, "m", positive="toward_sample")
+    write_dataset(fg, "inverted", run.force["inverted"], "N", positive="repulsive",
+                  drive="calibrated" if run.drive_calibrated else "fitted",
+                  meaning=inverted_force_meaning(run.drive_calibrated))
+    write_dataset(fg, "time", run.force["time"], "s")
+    write_dataset(fg, "deflection", run.force["deflection"], "m", positive="toward_sample")
     pgp = h5.create_group("periods")
-    if isinstance(result.periods, PeriodCurves):
-        result.periods.write(pgp, PERIOD_UNITS)  # the long curves chunk by chunk
-    else:
-        for name, arr in result.periods.items():
-            write_dataset(pgp, name, arr, PERIOD_UNITS[name])
+    for name, arr in run.periods.items():
+        write_dataset(pgp, name, arr, PERIOD_UNITS[name])
     dg = h5.create_group("diagnostics")
-    write_dataset(dg, "cv_error", result.cv_error, "1", definition="normalised cross-validated force error")
-    write_dataset(dg, "cv_error_folds", result.cv_error_folds, "1")
-    write_dataset(dg, "cv_error_noise_floor", result.cv_error_noise_floor, "1",
+    write_dataset(dg, "cv_error", run.cv_error, "1", definition="normalised cross-validated force error")
+    write_dataset(dg, "cv_error_folds", run.cv_error_folds, "1")
+    write_dataset(dg, "cv_error_noise_floor", run.cv_error_noise_floor, "1",
                   definition="expected cv_error of a perfect model at the estimated noise")
-    floor_dof = float(getattr(result, "cv_error_floor_dof", math.nan))
+    floor_dof = run.cv_error_floor_dof
     write_dataset(dg, "cv_error_floor_dof", floor_dof, "1",
                   definition="effective degrees of freedom of (cv_error / cv_error_noise_floor)^2 for a right model "
                              "(Satterthwaite over the held-out rows; NaN: not known)")
-    write_dataset(dg, "model_limited", bool(result.model_limited), "1",
+    write_dataset(dg, "model_limited", bool(run.model_limited), "1",
                   definition=f"cv_error above floor_threshold x cv_error_noise_floor (the one-sided "
                              f"{FLOOR_QUANTILE:.0%} point of sqrt(chi2_nu / nu) at nu = cv_error_floor_dof, at most "
                              f"{FLOOR_FACTOR}; here {floor_threshold(floor_dof):.3f}), or a failed test of the law's "
                              "shape: the parameters are biased by a missing effect beyond their error bars")
-    best = result.selection.best
-    write_dataset(dg, "bic", best.bic, "1", definition="n ln(rss/n) + k ln n over whitened rows")
-    write_dataset(dg, "rss", best.rss, "1", definition="whitened residual sum of squares")
-    write_dataset(dg, "n_rows", result.system.n_rows, "1")
-    write_dataset(dg, "chi2_reduced", chi2_reduced(result), "1",
+    write_dataset(dg, "bic", run.bic, "1", definition="n ln(rss/n) + k ln n over whitened rows")
+    write_dataset(dg, "rss", run.rss, "1", definition="whitened residual sum of squares")
+    write_dataset(dg, "n_rows", run.n_rows, "1")
+    write_dataset(dg, "chi2_reduced", run.chi2_reduced, "1",
                   definition="rss / (n - k); about 1 when the model explains the data to the predicted noise")
-    residual = create_dataset(dg, "residual", result.force_inverted.shape, np.float64, "N")
+    inverted, estimate = run.force["inverted"], run.force["estimate"]
+    residual = create_dataset(dg, "residual", inverted.shape, np.float64, "N")
     for lo in range(0, residual.shape[0], 1 << 20):  # chunk by chunk: no third per-sample array
         piece = slice(lo, lo + (1 << 20))
-        residual[piece] = result.force_inverted[piece] - result.force_estimate[piece]
-    write_dataset(dg, "noise_rms", result.prep.noise_rms, "m")
-    write_dataset(dg, "steadiness", result.prep.steadiness, "1")
-    write_dataset(dg, "harmonics", result.prep.blocks.harmonics, "1")
-    write_dataset(dg, "row_sigma", result.prep.row_sigma, "N*s", meaning="noise of each weak-form row")
-    write_dataset(dg, "signal_rows", result.signal_rows, "1")
+        residual[piece] = inverted[piece] - estimate[piece]
+    write_dataset(dg, "noise_rms", run.noise_rms, "m")
+    write_dataset(dg, "steadiness", run.steadiness, "1")
+    write_dataset(dg, "harmonics", run.harmonics, "1")
+    write_dataset(dg, "row_sigma", run.row_sigma, "N*s", meaning="noise of each weak-form row")
+    write_dataset(dg, "signal_rows", run.signal_rows, "1")
     path_g = dg.create_group("path")
-    cands = result.selection.candidates
-    write_dataset(path_g, "masks", np.array([c.mask[:p] for c in cands]), "1")
-    write_dataset(path_g, "n_terms", np.array([c.n_free for c in cands]), "1")
-    write_dataset(path_g, "rss", np.array([c.rss for c in cands]), "1", meaning="whitened residual sum of squares")
-    write_dataset(path_g, "bic", np.array([c.bic for c in cands]), "1")
-    write_dataset(path_g, "cv_rss", np.array([c.cv_rss for c in cands]), "1")
-    path_g.attrs["chosen"] = result.selection.chosen
-    path_g.attrs["criterion"] = result.selection.criterion
-    path_g.attrs["scope"] = result.config.fit.selection_scope
-    if result.selection.votes is not None:
-        write_dataset(path_g, "votes", np.asarray(result.selection.votes[:p], dtype=float), "1",
+    path = run.selection_path
+    write_dataset(path_g, "masks", path["masks"], "1")
+    write_dataset(path_g, "n_terms", path["n_terms"], "1")
+    write_dataset(path_g, "rss", path["rss"], "1", meaning="whitened residual sum of squares")
+    write_dataset(path_g, "bic", path["bic"], "1")
+    write_dataset(path_g, "cv_rss", path["cv_rss"], "1")
+    for name in ("chosen", "criterion", "scope"):
+        path_g.attrs[name] = path[name]
+    if "votes" in path:
+        write_dataset(path_g, "votes", path["votes"], "1",
                       meaning="fraction of the period groups whose own selection used each term")
-    if result.warnings:
-        dg.attrs["warnings"] = result.warnings
-    implausible = plausibility.violations(verdicts)
-    dg.attrs["n_implausible"] = len(implausible)
-    if implausible:
-        dg.attrs["implausible"] = implausible
-    return verdicts
+    if run.warnings:
+        dg.attrs["warnings"] = run.warnings
+    dg.attrs["n_implausible"] = len(run.implausible)
+    if run.implausible:
+        dg.attrs["implausible"] = run.implausible
+    if run.joint is not None:
+        write_joint(h5, run)
+
+
+def write_joint(h5, run: RunData) -> None:
+    """A joint fit's ``/joint`` (docs/file-formats.md, "Joint fits"): the traces' table, a group per trace with
+    its per-period forces, and ``/model``'s note that its law is shared."""
+    traces = run.joint
+    g = h5.create_group("joint")
+    for name, value in run.joint_attrs.items():  # config, layout, meaning, n_traces, search_evaluations
+        g.attrs[name] = value
+    write_dataset(g, "paths", np.array([t["path"] for t in traces]), "1")
+    write_dataset(g, "sha256", np.array([t["sha256"] for t in traces]), "1")
+    write_dataset(g, "separation", np.array([t["separation"] for t in traces]), "m",
+                  estimated=np.array([t["separation_estimated"] for t in traces]))
+    write_dataset(g, "separation_error", np.array([t["separation_error"] for t in traces]), "m",
+                  error_kind="1 sigma")
+    write_dataset(g, "cv_error", np.array([t["cv_error"] for t in traces]), "1",
+                  definition="each trace's cross-validated force error with the shared law")
+    write_dataset(g, "cv_error_noise_floor", np.array([t["cv_error_noise_floor"] for t in traces]), "1")
+    write_dataset(g, "model_limited", np.array([t["model_limited"] for t in traces]), "1")
+    for i, t in enumerate(traces):
+        tg = g.create_group(f"trace_{i}")
+        tg.attrs["path"] = t["path"]
+        write_dataset(tg, "separation", t["separation"], "m", estimated=t["separation_estimated"],
+                      error=t["separation_error"], error_kind="1 sigma")
+        write_dataset(tg, "cv_error", t["cv_error"], "1")
+        write_dataset(tg, "cv_error_noise_floor", t["cv_error_noise_floor"], "1")
+        write_dataset(tg, "drive_frequency", t["drive_frequency"], "Hz")
+        pg = tg.create_group("periods")
+        for name, arr in t["periods"].items():
+            write_dataset(pg, name, arr, PERIOD_UNITS[name])
+    h5["model"].attrs["joint"] = f"shared by the {len(traces)} traces of /joint"
 
 
 def baseline_drift(result: FitResult) -> float:
@@ -430,7 +514,8 @@ def baseline_drift(result: FitResult) -> float:
 # --------------------------------------------------------------------------- the whole run
 @dataclass
 class RunData:
-    """A run file's contents (SI)."""
+    """The run record: everything a run file holds (SI). :func:`write_run` writes the file from it alone,
+    :func:`load_run` reads it back; :func:`run_data` makes it from a fit."""
 
     path: Path
     config: RunConfig
@@ -476,13 +561,39 @@ class RunData:
     separation_error: float = math.nan  # 1 sigma of the rest separation (m); 0 when it was given
     separation_estimated: bool = True  # False when the config gave sample.separation
     cv_error_folds: np.ndarray | None = None  # the cross-validated error of each fold (cv_error is their mean)
-    #: A joint fit's traces (/joint, data.paths), in order: path, separation and its 1 sigma (m; sigma 0 when
-    #: given), cv error, noise floor, model-limited. None for a single trace. The rest of RunData is trace 0's.
+    #: A joint fit's traces (/joint, data.paths), in order, each a dict of :data:`JOINT_TRACE_KEYS`: path, its
+    #: SHA-256, separation, whether estimated, its 1 sigma (m; 0 when given), cv error, noise floor, model-limited,
+    #: drive frequency (Hz), per-period curves (by name, as /periods). None for a single trace. The rest of
+    #: RunData is trace 0's.
     joint: list[dict] | None = None
     #: A separation track's first block (/model/separation_track), whose result the rest of RunData is: its
     #: samples in the checked record (first_sample, stop_sample) and its periods' rest separations relative to its
     #: d (period_offsets, m; None when d was held per block). None for a run without a track.
     track_block: dict | None = None
+    joint_attrs: dict = field(default_factory=dict)  # /joint's attributes: config, layout, meaning, counts
+    # What the file holds beside the read-outs above (the record is all the writer writes from).
+    stored_config: str = ""  # the run config as stored (YAML, the root attribute ``config``)
+    intervals: str = ""  # what the intervals cover (afmid.fit.uncertainty.intervals_kind)
+    overridden: list[str] = field(default_factory=list)  # the trace's values the config overrode
+    value_sources: str = ""  # whence each of the trace's values (``name: source; ...``)
+    library_source: str = ""  # the library the fit selected from (``/model`` attribute ``library``)
+    coefficients_ci_low: np.ndarray | None = None  # the 95 % bootstrap interval of each coefficient (SI)
+    coefficients_ci_high: np.ndarray | None = None
+    drive_notes: dict[str, str] = field(default_factory=dict)  # /model/drive's text attributes beside ``source``
+    identified: dict[str, float] = field(default_factory=dict)  # fit.cantilever: free: N/m, kg/s (IDENTIFIED_UNITS)
+    descriptions: dict[str, str] = field(default_factory=dict)  # each read-out's one-line meaning, by name
+    separation_verdict: dict = field(default_factory=dict)  # an estimated separation's plausibility attributes
+    rss: float = math.nan  # whitened residual sum of squares of the chosen support
+    noise_rms: float = math.nan  # the deflection's noise, m
+    steadiness: float = math.nan  # afmid.fit.prepare's steady-state measure of the record
+    row_sigma: np.ndarray | None = None  # noise of each weak-form row, N s
+    selection_path: dict = field(default_factory=dict)  # the candidate supports (:func:`selection_path`)
+    implausible: list[str] = field(default_factory=list)  # why read-outs cannot be physical, in order
+
+    @property
+    def residual(self) -> np.ndarray:
+        """The per-sample residual (``/diagnostics/residual``): the inverted force minus the model force, N."""
+        return self.force["inverted"] - self.force["estimate"]
 
     @property
     def n_terms(self) -> int:
@@ -498,6 +609,29 @@ class RunData:
     @property
     def selected_terms(self) -> list[str]:
         return [t for t, s in zip(self.terms, self.selected) if s]
+
+
+def readout_order(quantities: dict[str, dict], effects: list[str]) -> list[str]:
+    """The read-outs' names in the order the fit reads them out (:func:`afmid.fit.forces.read_out`: effect by
+    effect as the library lists them, each effect's quantities as its catalog entry declares them); the run file
+    keeps them by name. A read-out of an effect the catalog does not know goes last, by name."""
+    def place(name: str) -> tuple[int, int, str]:
+        effect = str(quantities[name].get("effect", ""))
+        declared = [q.name for q in EFFECTS.get(effect).quantities] if effect in EFFECTS else []
+        label = name.split(".")[-1]
+        return (effects.index(effect) if effect in effects else len(effects),
+                declared.index(label) if label in declared else len(declared), name)
+
+    return sorted(quantities, key=place)
+
+
+def nonlinear_order(nonlinear: dict[str, dict], effects: list[str]) -> list[str]:
+    """The nonlinear parameters' names in the fit's order (:func:`afmid.fit.pipeline.estimate_nonlinear`: the rest
+    separation ``d``, then the library's decay lengths effect by effect as the catalog declares them); the run
+    file keeps them by name. One no effect declares goes last, by name."""
+    declared = ["d"] + [name for effect in effects if effect in EFFECTS
+                        for name in EFFECTS.get(effect).nonlinear_parameters]
+    return sorted(nonlinear, key=lambda name: (declared.index(name) if name in declared else len(declared), name))
 
 
 #: The signature an HDF5 file starts with (at byte 0, or at 512, 1024, ... after a user block).
@@ -616,7 +750,8 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
     }
     nonlinear = {name: {"value": float(ds[()]), "error": float(_required_attr(ds, "error", path)),
                         "unit": text(_required_attr(ds, "units", path)),
-                        "information_bound": float(ds.attrs.get("information_bound", math.nan))}
+                        "information_bound": float(ds.attrs.get("information_bound", math.nan)),
+                        "estimated": bool(ds.attrs.get("estimated", True))}
                  for name, ds in m["nonlinear"].items()}
     d = h5["diagnostics"]
     return RunData(
@@ -663,7 +798,46 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
         force_total_uncertainty=float(h5["force"]["estimate"].attrs.get("total_relative_uncertainty", math.nan)),
         joint=read_joint_traces(h5["joint"]) if "joint" in h5 else None,
         track_block=read_track_block(m["separation_track"]) if "separation_track" in m else None,
+        joint_attrs=read_joint_attrs(h5["joint"]) if "joint" in h5 else {},
+        stored_config=text(h5.attrs.get("config", ""), errors="replace"),
+        intervals=text(h5.attrs.get("intervals", "")),
+        overridden=[t for t in (text(v) for v in np.atleast_1d(h5.attrs.get("overridden", []))) if t],
+        value_sources=text(h5.attrs.get("value_sources", "")),
+        library_source=text(m.attrs.get("library", "")),
+        coefficients_ci_low=m["coefficients_ci_low"][...] if "coefficients_ci_low" in m else None,
+        coefficients_ci_high=m["coefficients_ci_high"][...] if "coefficients_ci_high" in m else None,
+        drive_notes={k: text(v) for k, v in sorted(m["drive"].attrs.items()) if k != "source"},
+        identified={k: float(m[k][()]) for k in sorted(IDENTIFIED_UNITS) if k in m},
+        descriptions={name: text(ds.attrs.get("description", "")) for name, ds in m["parameters"].items()},
+        separation_verdict={k: (bool(v) if k == "plausible" else text(v))
+                            for k, v in sorted(m["separation"].attrs.items()) if k in ("plausible", "plausibility")},
+        rss=float(d["rss"][()]) if "rss" in d else math.nan,
+        noise_rms=float(d["noise_rms"][()]) if "noise_rms" in d else math.nan,
+        steadiness=float(d["steadiness"][()]) if "steadiness" in d else math.nan,
+        row_sigma=d["row_sigma"][...] if "row_sigma" in d else None,
+        selection_path=read_selection_path(d["path"]) if "path" in d else {},
+        implausible=([text(v) for v in d.attrs.get("implausible", [])] if "n_implausible" in d.attrs
+                     else judged_now(quantities, m["separation"])),
     )
+
+
+def judged_now(quantities: dict, separation) -> list[str]:
+    """The implausible reasons of a run file older than its ``implausible`` list: the read-outs' verdicts (judged
+    when read, :func:`read_verdict`) and an estimated separation's."""
+    reasons = [str(q["plausibility"]) for q in quantities.values() if not q["plausible"]]
+    if bool(separation.attrs.get("estimated", True)):
+        verdict = plausibility.judge_separation(float(separation[()]), float(separation.attrs.get("error", math.nan)))
+        if not verdict.plausible:
+            reasons.append(verdict.reason)
+    return reasons
+
+
+def read_selection_path(group) -> dict:
+    """``/diagnostics/path`` as :func:`selection_path` gives it, by name."""
+    path = {name: ds[...] for name, ds in group.items()}
+    path.update(chosen=int(group.attrs["chosen"]), criterion=text(group.attrs["criterion"]),
+                scope=text(group.attrs["scope"]))
+    return dict(sorted(path.items()))
 
 
 def run_config(raw: dict, path: Path, input_path: Path | None) -> RunConfig:
@@ -686,15 +860,39 @@ def read_track_block(track) -> dict:
             "period_offsets": offsets}
 
 
+#: The keys of each trace of :attr:`RunData.joint`, in order.
+JOINT_TRACE_KEYS = ("path", "sha256", "separation", "separation_estimated", "separation_error", "cv_error",
+                    "cv_error_noise_floor", "model_limited", "drive_frequency", "periods")
+
+
 def read_joint_traces(joint) -> list[dict]:
-    """The table of a joint fit's traces (``/joint``, afmid.fit.joint_output): one dict per trace."""
+    """The table of a joint fit's traces (``/joint``, afmid.fit.joint_output): one dict per trace
+    (:data:`JOINT_TRACE_KEYS`; older files: what they hold)."""
     columns = {"path": _texts(joint["paths"]), "separation": joint["separation"][...],
                "separation_error": joint["separation_error"][...], "cv_error": joint["cv_error"][...],
                "cv_error_noise_floor": joint["cv_error_noise_floor"][...],
                "model_limited": joint["model_limited"][...].astype(bool)}
-    return [{"path": columns["path"][i], **{k: (bool(v[i]) if k == "model_limited" else float(v[i]))
-                                             for k, v in columns.items() if k != "path"}}
-            for i in range(len(columns["path"]))]
+    if "sha256" in joint:
+        columns["sha256"] = _texts(joint["sha256"])
+    estimated = joint["separation"].attrs.get("estimated")
+    if estimated is not None:
+        columns["separation_estimated"] = np.atleast_1d(estimated).astype(bool)
+    out = []
+    for i in range(len(columns["path"])):
+        row = {k: (v[i] if k in ("path", "sha256") else bool(v[i]) if k in ("model_limited", "separation_estimated")
+                   else float(v[i])) for k, v in columns.items()}
+        group = joint[f"trace_{i}"] if f"trace_{i}" in joint else None
+        if group is not None and "drive_frequency" in group:
+            row["drive_frequency"] = float(group["drive_frequency"][()])
+        if group is not None and "periods" in group:
+            row["periods"] = renamed("periods", ((k, v[...]) for k, v in group["periods"].items()))
+        out.append({k: row[k] for k in JOINT_TRACE_KEYS if k in row})
+    return out
+
+
+def read_joint_attrs(joint) -> dict:
+    """``/joint``'s attributes by name (:attr:`RunData.joint_attrs`)."""
+    return {k: (int(v) if k in ("n_traces", "search_evaluations") else text(v)) for k, v in sorted(joint.attrs.items())}
 
 
 def read_verdict(name: str, dataset) -> plausibility.Verdict:

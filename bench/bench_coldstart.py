@@ -39,11 +39,11 @@ WARM_CODE = """
 import json, sys, time
 from afmid.config import load_config
 from afmid.fit.pipeline import run_fit
-from afmid.runfile import write_run
+from afmid.runfile import run_data, write_run
 cfg = load_config({config!r}, ["data.path={trace}"])
 def once():
     result = run_fit(cfg)
-    write_run({out!r}, result, cfg, overwrite=True)
+    write_run({out!r}, run_data(result, cfg), overwrite=True)
 start = time.perf_counter(); once(); first = time.perf_counter() - start
 best, best_cpu = float("inf"), float("inf")
 for _ in range({repeat}):

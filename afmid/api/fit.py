@@ -1,8 +1,9 @@
 """A fit as a Python object: :class:`Fit` (made by :meth:`afmid.api.model.ForceModel.fit`, or read back by :func:`load`).
 
-A Fit holds the pipeline's :class:`afmid.fit.pipeline.FitResult` (a fresh fit) and always the run as the run file
-holds it (:class:`afmid.runfile.RunData`: built from the fit by :func:`afmid.runfile.run_data` from the values the
-run file's writer stores, or read by :func:`afmid.runfile.load_run`), so a fit and its saved file give the same table.
+A Fit is its run record (:class:`afmid.runfile.RunData`: everything the run file holds, made from the fit by
+:func:`afmid.runfile.run_data` or read by :func:`afmid.runfile.load_run`; :meth:`Fit.save` writes it), so a fit and
+its saved file give the same table, text, warnings and verdicts. A fit made here also keeps the pipeline's working
+state privately, for verbose text only (the candidate supports' AICc values, which the file does not keep).
 The diagnosis and the report run on that RunData with the trace held in memory (no temporary file); a fit loaded
 without its trace refits the candidates on the run's input file, as ``afmid report`` does.
 """
@@ -22,9 +23,11 @@ class Fit:
     """An identified force law with its parameters, forces, diagnosis and run file (SI throughout)."""
 
     def __init__(self, result, config, *, trace=None, name: str | None = None, run=None):
+        # The pipeline's working state of a fit made here (None: loaded): what the run record is made from, and
+        # the candidate supports' AICc values that only verbose text prints (the run file keeps their BIC)
         self._result = result
         self.config = config
-        self._trace = trace
+        self._trace = trace if trace is not None or result is None else result.prep.trace
         self.name = name or "+".join(config.model.effects) or (config.model.library or "fit")
         self._run = run
         self._diagnosis: Diagnosis | None = None
@@ -40,8 +43,6 @@ class Fit:
     @property
     def trace(self):
         """The fitted :class:`afmid.io.trace.Trace` (of a loaded fit: the one given to :func:`load`, or None)."""
-        if self._trace is None and self._result is not None:
-            return self._result.prep.trace
         return self._trace
 
     @property
@@ -81,30 +82,17 @@ class Fit:
     def warnings(self) -> list[str]:
         """The run's warning lines (``warning: ...``): the trace's findings on load, then the fit's own
         (model-limited, non-periodic motion, a failed contact-law probe, ...)."""
-        return [str(w) for w in (self._result.warnings if self._result is not None else self.run.warnings)]
+        return list(self.run.warnings)
 
     @property
     def implausible(self) -> list[str]:
         """Why read-outs cannot be physical, one reason per implausible read-out and for an estimated rest
         separation out of range (:mod:`afmid.fit.plausibility`; the same verdicts the run file stores); empty when
         every read-out is plausible."""
-        from afmid.fit.plausibility import check_run, judge_separation, violations
-
-        if self._result is not None:
-            return violations(check_run(self._result.quantities, self._result.nonlinear))
-        run = self.run
-        reasons = [str(q.get("plausibility", "")) for q in run.quantities.values() if not q.get("plausible", True)]
-        d = run.nonlinear.get("d")
-        if d is not None and run.separation_estimated:
-            verdict = judge_separation(float(d["value"]), float(d["error"]))
-            if not verdict.plausible:
-                reasons.append(verdict.reason)
-        return reasons
+        return list(self.run.implausible)
 
     def summary_line(self) -> str:
         """One line for a log: ``cv_error 0.0434; terms: ...`` (the selected terms, or none)."""
-        if self._result is not None:
-            return self._result.summary_line()
         return f"cv_error {self.cv_error:.4f}; terms: {', '.join(self.terms) or 'none'}"
 
     @property
@@ -117,8 +105,8 @@ class Fit:
         """What ``afmid fit`` prints (:func:`afmid.report.fit_text.fit_text`); ``verbose`` as ``afmid fit -v``."""
         from afmid.report.fit_text import fit_text
 
-        if self._result is not None:
-            return fit_text(self._result, verbose=verbose)
+        if verbose and self._result is not None:
+            return fit_text(self._result, verbose=True)
         if verbose:
             raise ConfigError("the candidate supports of a loaded fit are in its run file's /diagnostics/path, not "
                               "printed; verbose text needs the fit itself", file=self.run.path, key="verbose")
@@ -217,12 +205,11 @@ class Fit:
         if self._result is None:
             raise ConfigError("a loaded fit is its run file already; copy the file", file=Path(path), key="save")
         if self._diagnosis is None:
-            return write_run(Path(path), self._result, self.config, overwrite=overwrite)
+            return write_run(Path(path), self.run, overwrite=overwrite)
         from afmid.diagnosis.stored import diagnosis_key, write_group
 
         answer, key = self._diagnosis.details, diagnosis_key(self.run)
-        return write_run(Path(path), self._result, self.config, overwrite=overwrite,
-                         extra=lambda h5: write_group(h5, answer, key))
+        return write_run(Path(path), self.run, overwrite=overwrite, extra=lambda h5: write_group(h5, answer, key))
 
 
 def load(path: str | Path, trace=None) -> Fit:

@@ -2,7 +2,7 @@
 
 ``afmid fit`` prints its text from the pipeline's result; a fit loaded from its run file has only what the file
 holds (:class:`afmid.runfile.RunData`). :class:`RunReadout` presents that under the result's names, so the loaded
-fit prints the same lines (the parameters in the file's order, by name).
+fit prints the same lines (the parameters in the fit's order, :func:`readout_order`).
 """
 
 from __future__ import annotations
@@ -11,6 +11,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from afmid.runfile import nonlinear_order, readout_order
 
 
 @dataclass(frozen=True)
@@ -53,8 +55,11 @@ class RunReadout:
         # Each read-out is judged with the tip it was read out for (a force that grows with R has a bound scaled
         # to the tip), as the fit's own quantities carry it; the file keeps the radius once, under /cantilever.
         radius = float(run.cantilever.get("tip_radius", math.nan))
-        self.quantities = {name: {**q, "tip_radius": radius} for name, q in run.quantities.items()}
-        self.nonlinear = {name: StoredEstimate(q["value"], q["error"], q["unit"]) for name, q in run.nonlinear.items()}
+        self.quantities = {name: {**run.quantities[name], "tip_radius": radius}
+                           for name in readout_order(run.quantities, run.effects)}
+        self.nonlinear = {name: StoredEstimate(run.nonlinear[name]["value"], run.nonlinear[name]["error"],
+                                               run.nonlinear[name]["unit"])
+                          for name in nonlinear_order(run.nonlinear, run.effects)}
         self.cv_error = run.cv_error
         self.cv_error_noise_floor = run.cv_error_noise_floor
         self.cv_error_floor_dof = run.cv_error_floor_dof

@@ -53,7 +53,7 @@ def fit_task(task: dict, pause: Callable[[], None] | None = None) -> dict:
     try:
         from afmid.config import build_config
         from afmid.fit.pipeline import run_fit
-        from afmid.runfile import write_run
+        from afmid.runfile import run_data, write_run
         from afmid.io.trace import load_trace
 
         c0 = time.process_time()
@@ -84,7 +84,7 @@ def fit_task(task: dict, pause: Callable[[], None] | None = None) -> dict:
         result = run_fit(config, trace=trace)
         t2 = time.perf_counter()
         key = batch_key(trace.sha256, task["config_text"])
-        write_run(tmp, result, config, overwrite=True, root_attrs={"batch_key": key})
+        write_run(tmp, run_data(result, config), overwrite=True, root_attrs={"batch_key": key})
         os.replace(tmp, task["output"])
         t3 = time.perf_counter()
         out["row"] = read_run_row(Path(task["output"]))

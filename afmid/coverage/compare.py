@@ -6,7 +6,7 @@ bootstrap with the nonlinear parameters' and the calibration's shares, afmid.fit
 ``ci_low`` / ``ci_high`` are a 95 % interval, compared apart (``in_ci95``). Nothing is converted.
 
 The force curve: the fit reports its 1-sigma band as one number relative to the peak |force|, an RMS over the
-estimated samples (``FitResult.force_total_uncertainty``, afmid.fit.force_band). The matching error is the RMS
+estimated samples (``RunData.force_total_uncertainty``, afmid.fit.force_band). The matching error is the RMS
 over the same samples of (estimated - true force); its z is RMS error / (band x peak), >= 0. Where the curve's
 error is dominated by one direction (one coefficient, the separation), that ratio is distributed like |z| of a
 normal variable (68 % <= 1, 95 % <= 2); where many independent directions contribute it concentrates at 1
@@ -25,10 +25,10 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from afmid.fit.plausibility import check_plausibility
 from afmid.fit.separation_share import is_separation_limited
 from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import TipGeometry, effect_for
+from afmid.runfile import RunData, nonlinear_order, readout_order
 
 #: Names of the two quantities that are not read-outs (in the table and the output file).
 SEPARATION = "separation"
@@ -102,45 +102,46 @@ def record(estimate: float, sigma: float, truth: float, unit: str, flags: list[s
     return out
 
 
-def force_curve_record(result, truth_force: np.ndarray, flags: list[str]) -> dict:
+def force_curve_record(run: RunData, truth_force: np.ndarray, flags: list[str]) -> dict:
     """The force curve's record: RMS error and the reported band (both N: relative x peak |estimated force|)
     over the estimated samples, and z = their ratio (see the module docstring)."""
-    estimate = np.asarray(result.force_estimate, dtype=float)
+    estimate = np.asarray(run.force["estimate"], dtype=float)
     used = np.isfinite(estimate) & np.isfinite(truth_force)
     if not used.any():
         return record(math.nan, math.nan, math.nan, "N", flags)
     peak = float(np.max(np.abs(estimate[used])))
     error = float(np.sqrt(np.mean((estimate[used] - truth_force[used]) ** 2)))
-    band = float(result.force_total_uncertainty) * peak
+    band = float(run.force_total_uncertainty) * peak
     out = record(error, band, 0.0, "N", flags)  # the estimate is the RMS error, its truth 0
     out.update(peak=peak, error_relative=error / peak if peak > 0 else math.nan,
-               sigma_relative=float(result.force_total_uncertainty))
+               sigma_relative=float(run.force_total_uncertainty))
     return out
 
 
-def compare(result, trace, tip: TipGeometry, separation_given: bool) -> dict[str, dict]:
-    """Every number of fit ``result`` against the truth of the simulated ``trace``: {name: record} for the
-    read-outs that have a truth, the nonlinear parameters the simulation had (decay lengths), the rest
-    separation (unless given) and the force curve."""
-    flags = draw_flags(result)
-    verdicts = check_plausibility(result.quantities)
-    truths = truth_of_quantities(result.quantities, trace.truth, tip)
+def compare(run: RunData, trace, tip: TipGeometry, separation_given: bool) -> dict[str, dict]:
+    """Every number of the fit's run record ``run`` (afmid.runfile.run_data) against the truth of the simulated
+    ``trace``: {name: record} for the read-outs that have a truth, the nonlinear parameters the simulation had
+    (decay lengths), the rest separation (unless given) and the force curve, in the fit's order."""
+    flags = draw_flags(run)
+    truths = truth_of_quantities(run.quantities, trace.truth, tip)
     out: dict[str, dict] = {}
-    for key, q in result.quantities.items():
+    for key in readout_order(run.quantities, run.effects):
+        q = run.quantities[key]
         if key not in truths:
             continue
         own = list(flags)
         if q.get("determined", True) is False:
             own.append("undetermined")
-        if key in verdicts and not verdicts[key].plausible:
+        if not q.get("plausible", True):  # the fit's verdict (afmid.fit.plausibility.check_run)
             own.append("implausible")
         out[key] = record(q["value"], q["error"], truths[key], q.get("unit", ""), own, (q["ci_low"], q["ci_high"]))
-    for name, est in result.nonlinear.items():
+    for name in nonlinear_order(run.nonlinear, run.effects):
+        est = run.nonlinear[name]
         if name == "d" or name in out or name not in trace.truth.parameters:
             continue
-        out[name] = record(est.value, est.sigma, float(trace.truth.parameters[name]), est.unit, flags)
-    if not separation_given and "d" in result.nonlinear:
-        est = result.nonlinear["d"]
-        out[SEPARATION] = record(est.value, est.sigma, float(trace.truth.extra["separation"]), "m", flags)
-    out[FORCE_CURVE] = force_curve_record(result, trace.truth.force, flags)
+        out[name] = record(est["value"], est["error"], float(trace.truth.parameters[name]), est["unit"], flags)
+    if not separation_given and "d" in run.nonlinear:
+        est = run.nonlinear["d"]
+        out[SEPARATION] = record(est["value"], est["error"], float(trace.truth.extra["separation"]), "m", flags)
+    out[FORCE_CURVE] = force_curve_record(run, trace.truth.force, flags)
     return out

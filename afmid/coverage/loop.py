@@ -72,16 +72,16 @@ def with_effect(fitted: dict, effect: str) -> dict:
     return out
 
 
-def run_loop(config, trace, result, task: dict, source) -> dict:
-    """The loop of one fitted draw: diagnose ``result`` (the fit of ``trace`` as ``config`` says), refit with the
-    top suggestion; the draw's ``loop`` record (see the module docstring)."""
+def run_loop(config, trace, run, task: dict, source) -> dict:
+    """The loop of one fitted draw: diagnose ``run`` (the run record of the fit of ``trace`` as ``config`` says,
+    afmid.runfile.run_data), refit with the top suggestion; the draw's ``loop`` record (see the module
+    docstring)."""
     from afmid.config import build_config
     from afmid.diagnosis.diagnose import suggest
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import run_data
 
     hidden = task["hidden"]
-    answer = suggest(run_data(result, config, name=f"draw{task['index']}.h5"), trace=trace)
+    answer = suggest(run, trace=trace)
     suggestions = answer.get("suggestions") or []
     named = suggestions[0]["effect"] if suggestions else None
     diagnosis = answer.get("diagnosis") or {}
@@ -90,8 +90,8 @@ def run_loop(config, trace, result, task: dict, source) -> dict:
         "explained_by_catalog": bool(diagnosis.get("explained_by_catalog", False)),
         "missing_effect": bool(answer.get("missing_effect", False)), "undecided": bool(answer.get("undecided")),
         "delta_bic": float(suggestions[0].get("delta_bic", math.nan)) if suggestions else math.nan,
-        "error_before": float(result.cv_error), "error_after": math.nan,
-        "noise_floor_before": float(result.cv_error_noise_floor), "noise_floor_after": math.nan,
+        "error_before": float(run.cv_error), "error_after": math.nan,
+        "noise_floor_before": float(run.cv_error_noise_floor), "noise_floor_after": math.nan,
     }
     if named is not None:
         refitted = run_fit(build_config(with_effect(task["fit"], named), source=source), trace=trace)

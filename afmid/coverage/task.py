@@ -58,6 +58,7 @@ def run_draw(task: dict) -> dict:
         from afmid.fit.pipeline import run_fit
         from afmid.io.trace import check_trace
         from afmid.physics.tips import tip_geometry
+        from afmid.runfile import run_data
         from afmid.simulate.driver import simulate
 
         # A draw's findings and warnings are its results (kept in `warnings`), not lines for the terminal.
@@ -73,17 +74,18 @@ def run_draw(task: dict) -> dict:
         result = run_fit(config, trace=trace)
         out["seconds"]["fit"] = time.process_time() - started
         out["stage"] = "compare"
-        out["numbers"] = compare(result, trace, tip_geometry(config.cantilever), task["separation_given"])
+        run = run_data(result, config, name=f"draw{task['index']}.h5")
+        out["numbers"] = compare(run, trace, tip_geometry(config.cantilever), task["separation_given"])
         if task.get("loop"):  # the blind loop (afmid.coverage.loop): diagnose, add the top suggestion, refit
             from afmid.coverage.loop import run_loop
 
             out["stage"] = "diagnose"
             started = time.process_time()
-            out["loop"] = run_loop(config, trace, result, task, source)
+            out["loop"] = run_loop(config, trace, run, task, source)
             out["seconds"]["loop"] = time.process_time() - started
-        out.update(status="ok", stage="", cv_error=float(result.cv_error),
-                   cv_error_noise_floor=float(result.cv_error_noise_floor),
-                   warnings=list(result.warnings))  # the trace's findings are among them
+        out.update(status="ok", stage="", cv_error=float(run.cv_error),
+                   cv_error_noise_floor=float(run.cv_error_noise_floor),
+                   warnings=list(run.warnings))  # the trace's findings are among them
     except Exception as exc:  # a failing draw is a result: counted and listed, never dropped
         if worker_stopping():  # stopped by the parent (afmid.batch.engine): no result at all
             os._exit(143)

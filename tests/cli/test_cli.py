@@ -8,6 +8,7 @@ reports warnings, interruptions and success, not the identification.
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 import textwrap
@@ -152,20 +153,24 @@ def test_effects_unknown_name(run_cli):
 
 # --------------------------------------------------------------------------- fit plumbing (fit stubbed)
 class _StubResult:
-    quantities: dict = {}  # no read-outs (nothing to judge for plausibility)
-    # what the printed read-out (afmid.report.fit_text) reads: an empty law, an error at its floor
-    library = None
-    n_library = 0
-    selected = np.zeros(0, dtype=bool)
-    nonlinear: dict = {}
-    cv_error, cv_error_noise_floor, cv_error_folds = 0.0, 1.0, np.zeros(0)
-    warnings: list = []  # the fit's warning lines (afmid.api.Fit.warnings)
+    """The pipeline's result of the stubbed fit: only its trace (the fitted trace, afmid.api.Fit.trace)."""
 
     def __init__(self, trace):
-        self.prep = types.SimpleNamespace(trace=trace)  # the fitted trace (afmid.api.Fit.trace): its findings
+        self.prep = types.SimpleNamespace(trace=trace)
 
-    def summary_line(self) -> str:
-        return "cv_error 0.0000; terms: stub"
+
+def _stub_record(config):
+    """The run record of the stubbed fit (afmid.runfile.RunData's fields that afmid fit's shell and the printed
+    read-out read): one term ``stub`` selected, no read-outs (nothing to judge), an error at its floor, no
+    warnings."""
+    return types.SimpleNamespace(
+        config=config, path=Path("stub.h5"), effects=[], terms=["stub"], expressions=["1"], units=["N"],
+        selected=np.ones(1, dtype=bool), selected_terms=["stub"], coefficients=np.zeros(1), errors=np.zeros(1),
+        cantilever={}, quantities={}, nonlinear={}, cv_error=0.0, cv_error_noise_floor=1.0,
+        cv_error_floor_dof=math.nan, cv_error_folds=np.zeros(0), model_limited=False, n_periods=None,
+        warnings=[], implausible=[], force_calibration_uncertainty=0.0, force_separation_uncertainty=math.nan,
+        force_statistical_uncertainty=math.nan, force_selection_uncertainty=math.nan,
+        force_total_uncertainty=math.nan)
 
 
 @pytest.fixture
@@ -185,13 +190,17 @@ def stub_fit(monkeypatch):
             raise seen["raise"]
         return _StubResult(seen["trace"])
 
-    def write_run(path, result, config, overwrite=False):
+    def run_data(result, config, name="fit"):
+        return _stub_record(config)
+
+    def write_run(path, run, overwrite=False):
         path = check_output_path(path, overwrite)
-        with atomic_hdf5(path, "afmid-run", dump_config(config), {}) as h5:
+        with atomic_hdf5(path, "afmid-run", dump_config(run.config), {}) as h5:
             h5.attrs["stub"] = True
         return path
 
     monkeypatch.setattr(afmid.fit.pipeline, "run_fit", run_fit)
+    monkeypatch.setattr(afmid.runfile, "run_data", run_data)
     monkeypatch.setattr(afmid.runfile, "write_run", write_run)
     return seen
 

@@ -64,13 +64,13 @@ def _run_bytes() -> bytes:
 
     from afmid.config import build_config
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
 
     with tempfile.TemporaryDirectory() as folder:
         (Path(folder) / "trace.h5").write_bytes(trace_file_bytes())
         config = build_config(yaml.safe_load(yaml.safe_dump(RUN_CONFIG)), source=Path(folder) / "run.yaml")
         path = Path(folder) / "run.h5"
-        write_run(path, run_fit(config), config)
+        write_run(path, run_data(run_fit(config), config))
         return path.read_bytes()
 
 

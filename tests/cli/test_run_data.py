@@ -1,5 +1,7 @@
-"""A fit's run in memory (``afmid.runfile.run_data``) is the run its file gives back (``load_run`` of
-``write_run``'s file), field by field, without the file in between.
+"""A fit's run record (``afmid.runfile.run_data``) is the run its file gives back (``load_run`` of
+``write_run``'s file), field by field, and the file is the record's serialisation: writing the record read back
+gives the same file, dataset by dataset and attribute by attribute (provenance aside), so the file holds nothing
+the record lacks. On the demo's fits and on a joint fit of two traces (``afmid.joint_runfile.joint_run_data``).
 
 The two are made by different code (one from the fit, one from HDF5), so each branch of the writer is covered by a
 fit that takes it: a fitted drive with the separation estimated and a linear drift column; a calibrated drive
@@ -13,6 +15,7 @@ from __future__ import annotations
 import copy
 import math
 
+import h5py
 import numpy as np
 import pytest
 
@@ -85,7 +88,7 @@ def test_the_run_in_memory_is_the_run_its_file_gives_back(demo, variant):
     name = f"{variant.__name__}.h5"
     config = build_config(variant(raw, folder), source=folder / "fit.yaml", base_dir=folder)
     result = run_fit(config)
-    loaded = load_run(write_run(folder / name, result, config, overwrite=True))
+    loaded = load_run(write_run(folder / name, run_data(result, config), overwrite=True))
     mine = run_data(result, config, name)
     assert mine.path.name == loaded.path.name
     fields = [f for f in vars(loaded) if f not in NOT_BY_VALUE]
@@ -102,3 +105,98 @@ def test_the_run_in_memory_is_the_run_its_file_gives_back(demo, variant):
     else:
         assert "baseline_drift" in mine.drive and mine.separation_estimated and "d" in mine.nonlinear
         assert np.isfinite(mine.force_statistical_uncertainty)
+
+
+#: Root attributes of a run file that say when and by what it was written, not what the run is.
+PROVENANCE = {"created", "afmid_version"}
+
+
+def _file_differences(first, second) -> list[str]:
+    """Where two HDF5 files differ: members, attributes (:data:`PROVENANCE` aside), dtypes, shapes, values
+    (exact, NaN equal to NaN)."""
+    import h5py
+
+    def same(a, b) -> bool:
+        a, b = np.asarray(a), np.asarray(b)
+        return (a.dtype == b.dtype and a.shape == b.shape
+                and np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"))
+
+    out: list[str] = []
+
+    def walk(x, y, where: str) -> None:
+        ka, kb = set(x.attrs) - PROVENANCE, set(y.attrs) - PROVENANCE
+        out.extend(f"{where}@{k}: in one file only" for k in sorted(ka ^ kb))
+        out.extend(f"{where}@{k}" for k in sorted(ka & kb) if not same(x.attrs[k], y.attrs[k]))
+        if isinstance(x, h5py.Dataset) or isinstance(y, h5py.Dataset):
+            if not (isinstance(x, h5py.Dataset) and isinstance(y, h5py.Dataset)) or not same(x[()], y[()]):
+                out.append(f"{where}: values")
+            return
+        out.extend(f"{where}/{k}: in one file only" for k in sorted(set(x) ^ set(y)))
+        for k in sorted(set(x) & set(y)):
+            walk(x[k], y[k], f"{where}/{k}")
+
+    with h5py.File(first, "r") as f, h5py.File(second, "r") as g:
+        walk(f, g, "")
+    return out
+
+
+@pytest.mark.parametrize("variant", [_estimated_with_drift, _calibrated], ids=["estimated-drift", "calibrated"])
+def test_the_file_is_the_records_serialisation(demo, variant):
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import load_run, run_data, write_run
+
+    folder, raw = demo
+    config = build_config(variant(raw, folder), source=folder / "fit.yaml", base_dir=folder)
+    written = write_run(folder / f"{variant.__name__}.first.h5", run_data(run_fit(config), config), overwrite=True)
+    again = write_run(folder / f"{variant.__name__}.again.h5", load_run(written), overwrite=True)
+    assert _file_differences(written, again) == []
+    with h5py.File(written, "r") as h5:  # the branches: the candidate supports, the intervals
+        assert h5["diagnostics/path/masks"].shape[0] >= 1 and "coefficients_ci_low" in h5["model"]
+
+
+@pytest.fixture(scope="module")
+def joint_fit(tmp_path_factory):
+    """A joint fit of two short DMT traces of one lever and sample at A/A0 = 0.8 and 0.6, the separations given
+    (the search is tested in tests/fit/test_joint.py): the joint result and each trace's result."""
+    import yaml
+    from repo_paths import TEST_CONFIGS
+
+    from afmid.cli import main
+    from afmid.fit.joint import run_joint_fit
+    from afmid.fit.joint_output import trace_result
+    from afmid.io.trace import read_truth
+
+    folder = tmp_path_factory.mktemp("joint_record")
+    paths = []
+    for name, setpoint in (("a", 0.8), ("b", 0.6)):
+        paths.append(folder / f"{name}.h5")
+        assert main(["-q", "simulate", str(TEST_CONFIGS / "dmt.yaml"), "-o", str(paths[-1]), "--set",
+                     "simulate.periods=20", "--set", "simulate.samples_per_period=100", "--set",
+                     f"simulate.setpoint={setpoint}"]) == 0
+    raw = yaml.safe_load((TEST_CONFIGS / "dmt.yaml").read_text())
+    raw.pop("simulate")
+    raw["data"] = {"paths": [str(p) for p in paths]}
+    raw["sample"]["separation"] = [float(read_truth(p).extra["separation"]) for p in paths]
+    raw["fit"]["bootstrap"] = 8
+    raw["model"] = {"effects": ["dmt"]}
+    config = build_config(raw, source=folder / "joint.yaml", base_dir=folder)
+    result = run_joint_fit(config)
+    return folder, result, [trace_result(result, i) for i in range(len(result.traces))]
+
+
+def test_a_joint_fits_record_is_its_file(joint_fit):
+    from afmid.joint_runfile import joint_run_data
+    from afmid.runfile import JOINT_TRACE_KEYS, load_run, write_run
+
+    folder, result, per_trace = joint_fit
+    mine = joint_run_data(result, per_trace, "joint.h5")
+    written = write_run(folder / "joint.h5", mine, overwrite=True)
+    loaded = load_run(written)
+    fields = [f for f in vars(loaded) if f not in NOT_BY_VALUE]
+    assert fields == [f for f in vars(mine) if f not in NOT_BY_VALUE]
+    assert [d for f in fields for d in _differences(getattr(mine, f), getattr(loaded, f), f)] == []
+    assert len(loaded.joint) == 2 and all(tuple(t) == JOINT_TRACE_KEYS for t in loaded.joint)
+    assert loaded.joint[0]["separation"] > loaded.joint[1]["separation"]  # A/A0 0.8 sits farther away
+    assert loaded.joint_attrs["n_traces"] == 2
+    again = write_run(folder / "joint.again.h5", loaded, overwrite=True)
+    assert _file_differences(written, again) == []

@@ -13,7 +13,6 @@ import pytest
 
 from afmid.coverage.compare import FORCE_CURVE, SEPARATION, compare, z_score
 from afmid.coverage.summary import EXPECTED_1, EXPECTED_2, binomial_interval, summarize, table_text
-from afmid.fit.search import NonlinearEstimate
 from afmid.fit.separation_share import SEPARATION_LIMITED_TEXT
 from afmid.io.trace import Truth
 from afmid.physics.tips import SPHERE
@@ -24,7 +23,8 @@ D_TRUE = 8.0e-9
 
 def _quantity(value, error, effect="dmt", unit="", **extra):
     return {"value": value, "error": error, "ci_low": value - 2.5 * error, "ci_high": value + 2.5 * error,
-            "unit": unit, "effect": effect, "model_limited": False, "determined": True, **extra}
+            "unit": unit, "effect": effect, "model_limited": False, "determined": True, "plausible": True,
+            "plausibility": "", **extra}
 
 
 def _case(warnings=(), model_limited=False):
@@ -38,10 +38,11 @@ def _case(warnings=(), model_limited=False):
         "adhesion_force": _quantity(adhesion, adhesion * 0.1, unit="N"),  # z = 0
         "surface_energy": _quantity(math.nan, math.nan, unit="J/m^2", determined=False),
     }
+    # the fit's run record (afmid.runfile.RunData), the fields compare reads
     result = SimpleNamespace(
-        quantities=quantities, warnings=list(warnings), model_limited=model_limited,
-        nonlinear={"d": NonlinearEstimate("d", D_TRUE + 3e-11, 2e-11, "m", True)},
-        force_estimate=estimate, force_total_uncertainty=0.02)
+        quantities=quantities, warnings=list(warnings), model_limited=model_limited, effects=["dmt"],
+        nonlinear={"d": {"value": D_TRUE + 3e-11, "error": 2e-11, "unit": "m", "estimated": True}},
+        force={"estimate": estimate}, force_total_uncertainty=0.02)
     truth = Truth(force=truth_force, separation=np.zeros(600), velocity=np.zeros(600), model="dmt",
                   effects=["dmt"], parameters={"hamaker": H, "E_star": E, "R": R, "a0": A0, "eps_r": 1.0},
                   units={}, extra={"separation": D_TRUE})
@@ -64,7 +65,7 @@ def test_z_of_every_number_against_the_hand_computed_truth():
     assert numbers[SEPARATION]["z"] == pytest.approx(1.5, rel=1e-9)
     # the force curve: RMS error 3e-11 N over the estimated samples, band 2 % of the estimate's peak
     curve = numbers[FORCE_CURVE]
-    peak = float(np.nanmax(np.abs(result.force_estimate)))
+    peak = float(np.nanmax(np.abs(result.force["estimate"])))
     assert curve["estimate"] == pytest.approx(3e-11, rel=1e-9)
     assert curve["sigma"] == pytest.approx(0.02 * peak, rel=1e-12)
     assert curve["z"] == pytest.approx(3e-11 / (0.02 * peak), rel=1e-9)

@@ -374,7 +374,7 @@ def _record(entry: dict) -> None:
 @pytest.fixture(scope="session")
 def experiment(tmp_path_factory):
     """``experiment(key, sim_config, fit_raw=None, register=())`` -> (run, suggest summary, seconds), cached."""
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.io.trace import write_trace_file
     from afmid.physics.effects import EFFECTS
     from afmid.simulate.driver import simulate
@@ -401,7 +401,7 @@ def experiment(tmp_path_factory):
         fit_raw["simulate"]["parameters"] = {}
         fit_config = build_config(fit_raw, source=folder / f"{key}.yaml", base_dir=folder)
         result = diagnose._fit_quick(fit_config, None)
-        write_run(folder / f"{key}.run.h5", result, fit_config)
+        write_run(folder / f"{key}.run.h5", run_data(result, fit_config))
         data = diagnose.load_run(folder / f"{key}.run.h5")
         started = time.perf_counter()
         summary = diagnose.suggest(data)
@@ -581,11 +581,11 @@ def test_energy_estimates_agree_for_a_dissipative_model(experiment, tmp_path):
     Tolerance: 15 % of the true dissipated energy and 1 % of the drive work per period (measured: model-free
     and balance agree to < 0.1 %, model vs model-free 1-10 %, model vs truth 1-3 %).
     """
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
 
     run0, _, _ = experiment("viscoelastic-a", _hidden_raw("viscoelastic", "a"))
     config = refit_config(run0, ["dmt", "viscoelastic"])
-    write_run(tmp_path / "ve.run.h5", diagnose._fit_quick(config, None), config)
+    write_run(tmp_path / "ve.run.h5", run_data(diagnose._fit_quick(config, None), config))
     energy = energy_check(diagnose.load_run(tmp_path / "ve.run.h5"))
     truth, work = energy["truth"], energy["drive_work"]
     assert truth > 0.02 * work  # a clearly dissipative sample (about 4 % of the drive work)

@@ -34,7 +34,7 @@ CASES = {
 def _diagnose(folder: Path, key: str):
     import afmid.diagnosis.diagnose as diagnose
     from afmid.io.trace import write_trace_file
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.simulate.driver import simulate
 
     raw = apply_overrides(read_yaml(CLEAN), [parse_override(o) for o in NOISE_FREE + CASES[key]])
@@ -45,7 +45,7 @@ def _diagnose(folder: Path, key: str):
     fit_raw["data"] = {"path": str(trace_path)}
     fit_raw["simulate"]["parameters"] = {}
     fit_config = build_config(fit_raw, source=folder / f"{key}.yaml", base_dir=folder)
-    write_run(folder / f"{key}.run.h5", diagnose._fit_quick(fit_config, None), fit_config)
+    write_run(folder / f"{key}.run.h5", run_data(diagnose._fit_quick(fit_config, None), fit_config))
     run = diagnose.load_run(folder / f"{key}.run.h5")
     return run, diagnose.suggest(run)
 

@@ -61,7 +61,7 @@ def fitted(folder, raw: dict, *, phase=None, amplitude=None, effects=("dmt",), d
     """(fit result, energy_check of its run file)."""
     from afmid.diagnosis.localize import energy_check
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.runfile import load_run
 
     raw = copy.deepcopy(raw)
@@ -75,7 +75,7 @@ def fitted(folder, raw: dict, *, phase=None, amplitude=None, effects=("dmt",), d
         raw["sample"]["separation"] = None
     config = build_config(raw, source=folder / "fit.yaml", base_dir=folder)
     result = run_fit(config, uncertainty=False)
-    write_run(folder / name, result, config, overwrite=True)
+    write_run(folder / name, run_data(result, config), overwrite=True)
     return result, energy_check(load_run(folder / name))
 
 

@@ -95,7 +95,7 @@ def test_record_length_for_the_band_scales_the_periods_shares_and_keeps_the_cali
 def test_fit_stores_and_prints_the_band_and_claims_nothing_without_a_bootstrap(tmp_path):
     from afmid.config import build_config
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.report.fit_text import force_lines
     from afmid.runfile import load_run
 
@@ -114,7 +114,7 @@ def test_fit_stores_and_prints_the_band_and_claims_nothing_without_a_bootstrap(t
         assert any(f"a record of about {needed:,} periods (now 12)" in line for line in lines), lines
     config = build_config(_raw(["simulate.periods=12", "sample.separation=null"]), source=TEST_CONFIGS / "x.yaml",
                           base_dir=TEST_CONFIGS)
-    write_run(tmp_path / "run.h5", result, config)
+    write_run(tmp_path / "run.h5", run_data(result, config))
     run = load_run(tmp_path / "run.h5")
     assert run.force_statistical_uncertainty == result.force_statistical_uncertainty
     assert run.force_total_uncertainty == result.force_total_uncertainty

@@ -208,7 +208,7 @@ def test_a_fit_stores_the_bound_beside_each_sigma_in_its_run_file(tmp_path):
     import h5py
 
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import load_run, write_run
+    from afmid.runfile import load_run, run_data, write_run
     from afmid.simulate.driver import simulate
 
     simulation, fit = _poor_configs(200, bootstrap=10)
@@ -219,7 +219,7 @@ def test_a_fit_stores_the_bound_beside_each_sigma_in_its_run_file(tmp_path):
     for name in ("E_star", "hamaker"):
         q = result.quantities[name]
         assert q["information_bound"] == bound.quantities[name] and q["error"] >= q["information_bound"] > 0
-    path = write_run(tmp_path / "run.h5", result, fit)
+    path = write_run(tmp_path / "run.h5", run_data(result, fit))
     with h5py.File(path) as h5:
         assert h5["model/separation"].attrs["information_bound"] == d.information_bound
         assert h5["model/parameters/E_star"].attrs["units"] == "Pa"

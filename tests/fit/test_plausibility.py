@@ -378,14 +378,14 @@ def test_a_run_whose_estimated_separation_is_below_zero_is_suspect(workspace, ru
 
     from afmid.config import load_config
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import read_summary, write_run
+    from afmid.runfile import read_summary, run_data, write_run
 
     config = load_config(workspace / "run.yaml", ["sample.separation=null", "fit.bootstrap=0"])
     result = run_fit(config)
     estimate = result.nonlinear["d"]
     assert estimate.estimated and estimate.value > 0
     good = workspace / "separation-good.h5"
-    write_run(good, result, config, overwrite=True)
+    write_run(good, run_data(result, config), overwrite=True)
     with h5py.File(good, "r") as h5:
         assert h5["model/separation"].attrs["plausible"]
     assert read_summary(good)["implausible"] == []
@@ -393,7 +393,7 @@ def test_a_run_whose_estimated_separation_is_below_zero_is_suspect(workspace, ru
     negative = dataclasses.replace(estimate, value=-0.86e-9)
     flagged = dataclasses.replace(result, nonlinear={**result.nonlinear, "d": negative})
     bad = workspace / "separation-bad.h5"
-    write_run(bad, flagged, config, overwrite=True)
+    write_run(bad, run_data(flagged, config), overwrite=True)
     with h5py.File(bad, "r") as h5:
         attrs = h5["model/separation"].attrs
         reason = str(attrs["plausibility"])

@@ -76,7 +76,7 @@ def test_an_effect_whose_term_is_not_selected_reads_out_as_not_determined(tmp_pa
     import afmid.diagnosis.diagnose as diagnose
     import afmid.fit.plausibility as plausibility
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.report.page import quantity_cell
     from afmid.runfile import read_summary
     from afmid.report.fit_text import quantity_line
@@ -101,7 +101,7 @@ def test_an_effect_whose_term_is_not_selected_reads_out_as_not_determined(tmp_pa
     assert plausibility.check_plausibility(result.quantities)["viscosity"].plausible
 
     run_path = tmp_path / "run.h5"
-    write_run(run_path, result, config)
+    write_run(run_path, run_data(result, config))
     run = diagnose.load_run(run_path)
     stored = run.quantities["viscosity"]
     assert stored["determined"] is False and math.isnan(stored["value"])
@@ -123,7 +123,7 @@ def test_a_read_out_that_moves_with_a_dropped_term_of_its_effect_holds_both_mode
     holds the truth; the run file keeps the marks."""
     import afmid.diagnosis.diagnose as diagnose
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
 
     overrides = POOR + ["simulate.parameters.E_star=3.0e9", "simulate.parameters.hamaker=4.0e-20",
                         "simulate.seed=62", "fit.bootstrap=100"]
@@ -137,7 +137,7 @@ def test_a_read_out_that_moves_with_a_dropped_term_of_its_effect_holds_both_mode
     assert e_star["ci_low"] <= e_star["value"] <= e_star["ci_high"]
     assert any("dmt.vdw not selected" in w and "E_star" in w for w in result.warnings), result.warnings
     _assert_honest_readouts(result, "dropped tail")
-    write_run(tmp_path / "run.h5", result, config)
+    write_run(tmp_path / "run.h5", run_data(result, config))
     stored = diagnose.load_run(tmp_path / "run.h5").quantities["E_star"]
     assert stored["undecided"] and stored["undecided_terms"] == ["dmt.vdw"]
     assert stored["ci_high"] == pytest.approx(e_star["ci_high"], rel=1e-12)
@@ -178,7 +178,7 @@ def test_liquid_readouts_are_numbers_or_not_determined_and_nothing_is_named(tmp_
     trace is plain DMT); where the tip touches, E* within 3 sigma of the truth."""
     import afmid.diagnosis.diagnose as diagnose
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
 
     trace, config, truth = _simulate_and_config(
         tmp_path, "liquid", [f"sample.separation={d}", f"simulate.seed={seed}", "simulate.periods=30",
@@ -188,7 +188,7 @@ def test_liquid_readouts_are_numbers_or_not_determined_and_nothing_is_named(tmp_
     e_star = result.quantities["E_star"]
     if e_star["determined"]:
         assert abs(e_star["value"] - truth["E_star"]) < 3 * e_star["error"], e_star
-    write_run(tmp_path / "run.h5", result, config)
+    write_run(tmp_path / "run.h5", run_data(result, config))
     summary = diagnose.suggest(diagnose.load_run(tmp_path / "run.h5"))
     assert [s["effect"] for s in summary["suggestions"]] == [], summary["diagnosis"]["verdict"]
 
@@ -206,13 +206,13 @@ POOR_CLEAN = {  # tests/diagnosis/test_diagnose.py's CLEAN variants at the poor 
 def test_poor_instrument_clean_trace_names_nothing_and_reads_out_honestly(tmp_path, variant):
     import afmid.diagnosis.diagnose as diagnose
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
 
     trace, config, truth = _simulate_and_config(tmp_path, "hidden_clean", POOR + POOR_CLEAN[variant] +
                                                 ["fit.bootstrap=20"], f"poor{variant}")
     result = run_fit(config)
     _assert_honest_readouts(result, f"poor clean {variant}")
-    write_run(tmp_path / "run.h5", result, config)
+    write_run(tmp_path / "run.h5", run_data(result, config))
     summary = diagnose.suggest(diagnose.load_run(tmp_path / "run.h5"))
     assert [s["effect"] for s in summary["suggestions"]] == [], summary["diagnosis"]["verdict"]
 

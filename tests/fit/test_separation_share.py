@@ -127,14 +127,14 @@ def test_the_share_is_what_full_refits_at_d_plus_minus_sigma_give(case):
 
 @pytest.mark.slow
 def test_given_separation_and_a_long_ideal_record_raise_no_warning(tmp_path):
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.runfile import load_run
 
     raw = _raw("hidden_clean", ["simulate.periods=150", "simulate.seed=236", "fit.bootstrap=0"])
     trace, result = _fit(raw)
     assert result.separation_share.relative < WARN_FRACTION, result.separation_share
     assert not any("separation-limited" in w for w in result.warnings), result.warnings
-    write_run(tmp_path / "run.h5", result, result.config)
+    write_run(tmp_path / "run.h5", run_data(result, result.config))
     assert load_run(tmp_path / "run.h5").force_separation_uncertainty == result.separation_share.relative
     given = _refit(raw, trace, raw["sample"]["separation"])
     assert math.isnan(given.force_separation_uncertainty)

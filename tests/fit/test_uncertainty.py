@@ -156,12 +156,12 @@ CLEAN_VARIANTS = {"a": [], "b": ["simulate.parameters.E_star=3.0e9", "simulate.p
 
 def _fit_file(name: str, overrides: list[str], tmp_path):
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import load_run, write_run
+    from afmid.runfile import load_run, run_data, write_run
     from afmid.simulate.driver import simulate
 
     config = load_config(HIDDEN / name, ["fit.bootstrap=20", *overrides])
     result = run_fit(config, trace=simulate(config))
-    write_run(tmp_path / "run.h5", result, config)
+    write_run(tmp_path / "run.h5", run_data(result, config))
     return result, load_run(tmp_path / "run.h5")
 
 

@@ -25,7 +25,7 @@ def fits(tmp_path_factory):
     from afmid.cli import main
     from afmid.config import build_config
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import load_run, write_run
+    from afmid.runfile import load_run, run_data, write_run
 
     folder = tmp_path_factory.mktemp("signature")
     raw = yaml.safe_load((TEST_CONFIGS / "hidden_viscoelastic.yaml").read_text())
@@ -40,7 +40,7 @@ def fits(tmp_path_factory):
         raw["data"] = {"path": str(folder / "t.h5")}
         config = build_config(raw, source=folder / "run.yaml")
         result = run_fit(config, uncertainty=False)
-        run = load_run(write_run(folder / f"{'_'.join(effects)}.h5", result, config))
+        run = load_run(write_run(folder / f"{'_'.join(effects)}.h5", run_data(result, config)))
         out[tuple(effects)] = (result, run, config)
     return out
 

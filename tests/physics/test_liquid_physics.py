@@ -443,7 +443,7 @@ def test_report_resimulates_a_run_with_a_fixed_debye_length(tmp_path):
     from afmid.diagnosis.diagnose import load_run
     from afmid.fit.pipeline import run_fit
     from afmid.io.trace import write_trace_file
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.simulate.driver import resimulate_run, simulate
 
     overrides = ["simulate.periods=12", "sample.ionic_strength=0.01", "fit.bootstrap=0",
@@ -451,7 +451,7 @@ def test_report_resimulates_a_run_with_a_fixed_debye_length(tmp_path):
     sim = load_config(CONFIGS / "liquid_double_layer.yaml", overrides)
     trace_path = write_trace_file(tmp_path / "t.h5", simulate(sim), dump_config(sim))
     config = load_config(CONFIGS / "liquid_double_layer.yaml", overrides + [f"data.path={trace_path}"])
-    write_run(tmp_path / "run.h5", run_fit(config, uncertainty=False), config)
+    write_run(tmp_path / "run.h5", run_data(run_fit(config, uncertainty=False), config))
     run = load_run(tmp_path / "run.h5")
     assert "debye_length" not in run.nonlinear and run.config.model.parameters["debye_length"] > 0
     motion = resimulate_run(run, steps_per_period=400)

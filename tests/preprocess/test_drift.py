@@ -84,10 +84,10 @@ def test_linear_detrend_recovers_the_drift_free_fit(fits, seed, total):
 def test_run_file_stores_the_baseline_drift(fits, tmp_path):
     import h5py
 
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
 
     trace, result = fits[1, DRIFTS[0], "linear"]
-    write_run(tmp_path / "run.h5", result, _config(1, "linear"))
+    write_run(tmp_path / "run.h5", run_data(result, _config(1, "linear")))
     with h5py.File(tmp_path / "run.h5", "r") as h5:
         ds = h5["model/drive/baseline_drift"]
         assert ds.attrs["units"] == "m/s"

@@ -374,7 +374,7 @@ def _diagnose(tmp_path: Path, name: str, sim_overrides: list[str], fit_overrides
     import afmid.diagnosis.diagnose as diagnose
     from afmid.config import dump_config
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.io.trace import write_trace_file
     from afmid.simulate.driver import simulate
 
@@ -385,7 +385,7 @@ def _diagnose(tmp_path: Path, name: str, sim_overrides: list[str], fit_overrides
     fit_raw["data"] = {**fit_raw.get("data", {}), "path": str(tmp_path / "trace.h5")}
     fit_config = build_config(fit_raw, source=tmp_path / "fit.yaml", base_dir=tmp_path)
     result = run_fit(fit_config, uncertainty=False)
-    write_run(tmp_path / "run.h5", result, fit_config)
+    write_run(tmp_path / "run.h5", run_data(result, fit_config))
     return diagnose.suggest(diagnose.load_run(tmp_path / "run.h5"))
 
 

@@ -105,10 +105,10 @@ def test_the_drive_frequency_of_a_transient_is_the_regressions(transient_fits, c
 def test_the_run_file_says_where_the_drive_frequency_came_from(transient_fits, tmp_path):
     import h5py
 
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
 
     _, result = transient_fits("from_rest")
-    path = write_run(tmp_path / "run.h5", result, result.config)
+    path = write_run(tmp_path / "run.h5", run_data(result, result.config))
     with h5py.File(path, "r") as h5:
         drive = h5["model/drive"]
         assert drive.attrs["frequency_source"].startswith("regression search")

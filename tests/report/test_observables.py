@@ -54,7 +54,7 @@ SIGMAS = 4.0
 def _simulated_run(tmp_path, name: str, seed: int, thermal: bool = True):
     from afmid.config import build_config, dump_config, read_yaml
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.io.trace import write_trace_file
     from afmid.runfile import load_run
     from afmid.simulate.driver import simulate
@@ -68,7 +68,7 @@ def _simulated_run(tmp_path, name: str, seed: int, thermal: bool = True):
     write_trace_file(tmp_path / "trace.h5", simulate(sim), dump_config(sim))
     raw["data"] = {"path": str(tmp_path / "trace.h5")}
     config = build_config(raw, source=source, base_dir=tmp_path)
-    write_run(tmp_path / "run.h5", run_fit(config, uncertainty=False), config)
+    write_run(tmp_path / "run.h5", run_data(run_fit(config, uncertainty=False), config))
     return load_run(tmp_path / "run.h5")
 
 

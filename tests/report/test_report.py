@@ -31,7 +31,7 @@ def runs(tmp_path_factory):
     """(run1 path, run2 path) fitted from one simulated trace."""
     from afmid.config import build_config, dump_config, read_yaml
     from afmid.diagnosis.diagnose import _fit_quick
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.io.trace import write_trace_file
     from afmid.simulate.driver import simulate
 
@@ -53,7 +53,7 @@ def runs(tmp_path_factory):
         raw_fit["model"]["effects"] = effects
         raw_fit["sample"]["separation"] = raw["sample"]["separation"]
         config = build_config(raw_fit, source=CONFIG, base_dir=folder)
-        write_run(folder / name, _fit_quick(config, None), config)
+        write_run(folder / name, run_data(_fit_quick(config, None), config))
         paths.append(folder / name)
     return tuple(paths)
 

@@ -24,7 +24,7 @@ def diagnose_simulated(folder: Path, raw: dict, separation_given: bool, stem: st
     import afmid.diagnosis.diagnose as diagnose
     from afmid.config import build_config, dump_config
     from afmid.fit.pipeline import run_fit
-    from afmid.runfile import write_run
+    from afmid.runfile import run_data, write_run
     from afmid.io.trace import write_trace_file
     from afmid.simulate.driver import simulate
 
@@ -41,5 +41,5 @@ def diagnose_simulated(folder: Path, raw: dict, separation_given: bool, stem: st
     config = build_config(fit_raw, source=folder / f"{stem}.fit.yaml", base_dir=folder)
     result = run_fit(config, uncertainty=False)
     run_path = folder / ("run.h5" if stem == "trace" else f"{stem}.run.h5")
-    write_run(run_path, result, config)
+    write_run(run_path, run_data(result, config))
     return diagnose.suggest(diagnose.load_run(run_path)), result
