@@ -240,7 +240,13 @@ class DaskEngine:
 
 
 def _close(client, cluster, timeout: float) -> None:
-    """Close a run's client and the local cluster it started (either may be None)."""
+    """Close a run's client and the local cluster it started (either may be None). afmid's own local cluster has
+    no task left when it is closed: its workers' dask loggers are raised first (not with ``-v``), since a worker's
+    heartbeat cut by the scheduler's close is logged by dask with its traceback on the terminal the workers share,
+    after a finished map as after an interrupted one."""
+    if (cluster is not None and client is not None and client.status == "running"
+            and logging.getLogger("afmid").getEffectiveLevel() > logging.DEBUG):
+        _quietly(client.run, silence_dask_logs, callback_timeout=timeout)
     if client is not None:
         _quietly(client.close, timeout=timeout)
     if cluster is not None:

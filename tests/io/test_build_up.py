@@ -85,13 +85,14 @@ def test_a_low_q_record_from_rest_is_fitted(records, Q):
     from afmid.coverage.compare import compare
     from afmid.fit.pipeline import run_fit
     from afmid.physics.tips import tip_geometry
+    from afmid.runfile import run_data
 
     seed = 41
     config = _fit_config(Q, "transient", seed)
     trace = check_trace(records(Q, "transient", seed), config)
     result = run_fit(config, trace=trace)
     assert "dmt.hertz" in result.selected_terms()
-    numbers = compare(result, trace, tip_geometry(config.cantilever), False)
+    numbers = compare(run_data(result, config), trace, tip_geometry(config.cantilever), False)
     for name in ("separation", "E_star", "force_curve"):
         assert abs(numbers[name]["z"]) <= Z_MAX, (name, numbers[name])
 
