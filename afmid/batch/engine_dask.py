@@ -207,14 +207,8 @@ class DaskEngine:
                 watch.check(len(reported))
                 tick()
             keep = self._keep
-        except BaseException as stopped:
+        except BaseException:
             connected = client is not None and client.status == "running"
-            if (connected and cluster is not None and isinstance(stopped, KeyboardInterrupt)
-                    and logging.getLogger("afmid").getEffectiveLevel() > logging.DEBUG):
-                # The local cluster is stopped under running tasks: a worker's heartbeat cut by the scheduler's
-                # close is logged by dask with its traceback on the terminal the workers share. Not an error of
-                # the map: the workers' dask loggers are raised first, for the teardown only (not with -v).
-                _quietly(client.run, silence_dask_logs, callback_timeout=self.connect_timeout)
             for fut, key in futures.items():
                 if key in reported:
                     continue
@@ -378,8 +372,8 @@ class _QuietDask:
 
 def silence_dask_logs() -> None:
     """Raise dask's loggers (:attr:`_QuietDask.ROOTS` and their children) in this process above CRITICAL: run in
-    the workers of afmid's local cluster when an interrupt stops it, whose shutdown would otherwise print dask's
-    tracebacks of connections closed under it. Never while a run goes on: a running worker's errors are shown."""
+    the workers of afmid's local cluster just before it is closed (:func:`_close`), whose shutdown would otherwise
+    print dask's tracebacks of connections closed under it. Never while a run goes on: a running worker's errors are shown."""
     _QuietDask(always=True)
 
 
