@@ -63,13 +63,19 @@ def separation_minimum(prepared, config: RunConfig, low: float, high: float, bas
 
     A coarse grid (at most :data:`SEPARATION_COARSE_STEP` apart), then zooms on the lowest point (each a grid of
     SEPARATION_ZOOM points between its neighbours) and a parabola through the last three
-    (:func:`afmid.fit.profile.local_minimum`: no parabola through a kink). ``base_columns``: the diagnosis's
+    (:func:`afmid.fit.profile.local_minimum`: no parabola through a kink). When the library holds a gate that forms
+    at contact (a meniscus, a JKR neck: :attr:`afmid.physics.effect_types.StateGate.forms_at_contact`), the coarse
+    grid also holds one separation between each two of the taps' contact thresholds
+    (:func:`afmid.fit.contact_thresholds.contact_trial_separations`): the residual steps at each threshold, and the
+    valley where the neck forms on the record's own taps can be narrower than any grid step. ``base_columns``: the diagnosis's
     :class:`afmid.diagnosis.base_columns.BaseColumns` (the run's own terms' columns at each separation, shared
     by every candidate: only the added terms are evaluated per trial); None evaluates the whole library."""
     import numpy as np
 
     from afmid.errors import AfmidError
+    from afmid.fit.contact_thresholds import contact_thresholds, contact_trial_separations
     from afmid.fit.pipeline import build_system, library_parameters, residual_sum_squares
+    from afmid.physics.effect_types import forms_at_contact
     from afmid.physics.library import build_library
     from afmid.physics.tips import tip_geometry
     from afmid.fit.profile import local_minimum
@@ -96,8 +102,12 @@ def separation_minimum(prepared, config: RunConfig, low: float, high: float, bas
     low, high = max(low, lowest), max(high, 2 * lowest)
     # At most the coarse step of the default window (0.5 nm) on a wider one: the grid picks the valley to zoom in.
     points = max(SEPARATION_GRID, math.ceil((high - low) / SEPARATION_COARSE_STEP) + 1)
-    x, y = evaluate(np.linspace(low, high, points))
-    step = x[1] - x[0]
+    grid = np.linspace(low, high, points)
+    step = grid[1] - grid[0]
+    if forms_at_contact(library.states):
+        grid = np.concatenate([grid, contact_trial_separations(contact_thresholds(prepared, config.sample.a0),
+                                                               low, high, SEPARATION_STEP)])
+    x, y = evaluate(grid)
     while step > SEPARATION_STEP:
         i = int(np.argmin(y))
         x, y = evaluate(np.maximum(np.linspace(x[i] - step, x[i] + step, SEPARATION_ZOOM), lowest))

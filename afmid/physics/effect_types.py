@@ -97,11 +97,18 @@ class StateGate:
     It switches on when ``on`` becomes true and stays on until ``off`` becomes
     true (conditions in the term language), e.g. a water meniscus that forms at
     contact and ruptures only at a set separation on retraction.
+
+    ``forms_at_contact`` declares that the gate switches on where the tip reaches the sample (``on`` is
+    :data:`CONTACT_CONDITION`): its force then steps on at each tap whose lowest separation reaches a0, so a
+    residual of the rest separation d jumps wherever d crosses a tap's contact threshold (a0 + that tap's
+    largest deflection) and can have valleys narrower than a coarse grid's step. Searches of d try those
+    thresholds (:func:`afmid.fit.contact_thresholds.contact_trial_separations`).
     """
 
     name: str
     on: str
     off: str
+    forms_at_contact: bool = False
 
 
 @dataclass(frozen=True)
@@ -119,6 +126,15 @@ class RelaxingState:
     name: str
     source: str
     time: str
+
+
+#: The ``on`` condition of a gate that forms where the tip reaches contact (:attr:`StateGate.forms_at_contact`).
+CONTACT_CONDITION = "z <= a0"
+
+
+def forms_at_contact(states) -> bool:
+    """Whether any of ``states`` (an effect's or a library's) is a gate declared to form at contact."""
+    return any(isinstance(s, StateGate) and s.forms_at_contact for s in states)
 
 
 #: A state an effect carries through the period: a boolean gate or a relaxing (lagging) value.
@@ -241,6 +257,9 @@ def validate_effect(effect: Effect) -> None:
             continue
         for cond in (gate.on, gate.off):
             expr.expression_units(f"[{cond}]", units, states=state_names)
+        if gate.forms_at_contact and gate.on.split() != CONTACT_CONDITION.split():
+            raise DefinitionError(f"state {gate.name}: declared to form at contact, but it switches on at "
+                                  f"{gate.on!r}, not {CONTACT_CONDITION!r}")
     # The readout must invert the coefficients at the defaults.
     coefficients = {t.label: t.coefficient(values) for t in effect.terms}
     recovered = effect.readout(coefficients, values)

@@ -184,7 +184,7 @@ EFFECTS.register(
         quantities=_CONTACT_QUANTITIES
         + (Quantity("surface_energy", "J/m^2", "gamma from the adhesion F_a = 3 pi R gamma"),),
         readout=_dmt_like_readout(3.0),
-        states=(StateGate("jkr_contact", on="z <= a0", off="z > a0 + neck_length"),),
+        states=(StateGate("jkr_contact", on="z <= a0", off="z > a0 + neck_length", forms_at_contact=True),),
         references=(
             "Johnson, Kendall, Roberts, Proc. R. Soc. A 324, 301 (1971)",
             "Chandrashekar et al., Nanoscale Adv. (2022), supplement eq. 5",
@@ -274,7 +274,7 @@ EFFECTS.register(
         quantities=(Quantity("capillary_force", "N", "meniscus force (positive number)", 0.0, _ADHESION_FORCE_MAX,
                              _MENISCUS_PER_RADIUS_MAX),),
         readout=lambda c, ctx: {"capillary_force": -c["meniscus"]},
-        states=(StateGate("meniscus", on="z <= a0", off="z > a0 + rupture_distance"),),
+        states=(StateGate("meniscus", on="z <= a0", off="z > a0 + rupture_distance", forms_at_contact=True),),
         references=("Zitzler, Herminghaus, Mugele, Phys. Rev. B 66, 155436 (2002)",),
         character=Character.HYSTERETIC,
         region=Region.NEAR,

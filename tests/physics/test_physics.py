@@ -9,6 +9,7 @@ import pytest
 
 from afmid.physics.effect_tags import Character, Region, Role
 from afmid.errors import DefinitionError
+from afmid.physics.effect_types import StateGate, forms_at_contact
 from afmid.physics.effects import EFFECTS, Effect, Parameter, Quantity, Term, coefficient_unit
 from afmid.terms.units import parse_unit
 
@@ -59,10 +60,26 @@ def _spring(**changes) -> Effect:
     ({"readout_only_terms": (Term("offset", "[z <= a0]", lambda p: 1e-9, coefficient_unit="N"),),
       "readout": lambda c, ctx: {"test_stiffness": -c["spring"] + c.get("offset", 0.0)}},
      "changes with the read-out-only terms"),
+    ({"states": (StateGate("test_gate", on="z <= 2 * a0", off="z > 3 * a0", forms_at_contact=True),)},
+     "declared to form at contact, but it switches on at 'z <= 2 \\* a0'"),
 ], ids=["no-unit", "wrong-unit", "wrong-term", "unknown-unit", "string-region", "unknown-region", "string-character",
-        "string-role", "roles-not-tuple", "readout-only-label-repeats", "readout-only-changes-readout"])
+        "string-role", "roles-not-tuple", "readout-only-label-repeats", "readout-only-changes-readout",
+        "gate-not-at-contact"])
 def test_registration_refuses_a_malformed_effect(changes, message):
     n = len(EFFECTS)
     with pytest.raises(DefinitionError, match=message):
         EFFECTS.register(_spring(**changes))
     assert len(EFFECTS) == n and "test_physics_effect" not in EFFECTS
+
+
+def test_the_gates_that_form_at_contact_are_declared_so():
+    """A meniscus and a JKR neck switch on where the tip reaches a0 (the separation searches try each tap's contact
+    threshold for them, afmid.fit.contact_thresholds); a gate is declared so only with that condition, and an
+    effect without such a gate is not one."""
+    assert forms_at_contact(EFFECTS.get("capillary").states) and forms_at_contact(EFFECTS.get("jkr").states)
+    assert not forms_at_contact(EFFECTS.get("dmt").states)
+    assert not forms_at_contact(EFFECTS.get("standard_linear_solid").states)  # a relaxing state, no gate
+    for effect in EFFECTS:
+        for gate in effect.states:
+            if isinstance(gate, StateGate) and gate.forms_at_contact:
+                assert gate.on.split() == ["z", "<=", "a0"], effect.name
