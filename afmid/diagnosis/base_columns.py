@@ -194,8 +194,8 @@ class BaseColumns:
 def starts_at_contact(term, states=()) -> bool:
     """Whether a library term is zero wherever the tip has not yet reached the surface (z > a0 all along): it acts
     only in contact (role ``contact_only``: adhesion, a dashpot, Kelvin-Voigt, the relaxing solid), or it is a state
-    gate of ``states`` switched on at contact (``on: z <= a0``: capillary's meniscus; a gate starts from its
-    condition at the first sample, so off)."""
+    gate of ``states`` declared to form at contact (:attr:`afmid.physics.effect_types.StateGate.forms_at_contact`:
+    capillary's meniscus; a gate starts from its condition at the first sample, so off)."""
     from afmid.physics.effect_tags import Role
     from afmid.physics.effect_types import StateGate
 
@@ -204,4 +204,4 @@ def starts_at_contact(term, states=()) -> bool:
     text = term.expression.replace(" ", "")
     gates = {state.name: state for state in states if isinstance(state, StateGate)}
     gate = gates.get(text[1:-1]) if text.startswith("[") and text.endswith("]") else None
-    return gate is not None and gate.on.replace(" ", "") == "z<=a0"
+    return gate is not None and gate.forms_at_contact

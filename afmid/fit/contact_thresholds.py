@@ -29,17 +29,20 @@ def tap_peaks(prep: Prepared) -> np.ndarray:
     periods (``fit.periods_per_block``) is cut into that many equal parts, one tap each."""
     blocks = prep.blocks
     per_block = max(1, int(round(blocks.L * blocks.dt * blocks.omega / (2 * np.pi))))
-    peaks = []
-    for _, x, _, _ in fine_chunks(prep):
-        for part in np.array_split(x, per_block, axis=1):
-            peaks.append(part.max(axis=1))
-    return np.concatenate(peaks, axis=0) if peaks else np.zeros(0)
+    peaks = np.full((blocks.n_blocks, per_block), -np.inf)
+    # The chunks the library's evaluations use (overlap 1: the fine grid a diagnosis keeps holds these); a block
+    # repeated as the next chunk's overlap gets the same values twice.
+    for first, x, _, _ in fine_chunks(prep, overlap=1):
+        for j, part in enumerate(np.array_split(x, per_block, axis=1)):
+            peaks[first:first + part.shape[0], j] = part.max(axis=1)
+    return peaks.ravel()
 
 
 def contact_thresholds(prep: Prepared, a0: float) -> np.ndarray:
     """The distinct rest separations a0 + (a tap's largest deflection), m, ascending: at each, one more tap
-    reaches contact as d decreases."""
-    return np.unique(a0 + tap_peaks(prep))
+    reaches contact as d decreases (none where no tap is on the fine grid's chunks)."""
+    peaks = tap_peaks(prep)
+    return np.unique(a0 + peaks[np.isfinite(peaks)])
 
 
 def contact_trial_separations(thresholds: np.ndarray, low: float, high: float, resolution: float) -> np.ndarray:
