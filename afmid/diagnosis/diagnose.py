@@ -62,7 +62,7 @@ from afmid.physics.effects import EFFECTS
 from afmid.quantity_text import format_delta_bic, format_value
 # A cross-validated error within FLOOR_FACTOR of its noise floor counts as the noise level (one constant with
 # the fit's model-limited mark).
-from afmid.fit.uncertainty import FLOOR_FACTOR, at_noise_floor, floor_threshold, model_limited
+from afmid.fit.uncertainty import FLOOR_FACTOR, floor_threshold, model_limited, quieter_than_its_floor
 # The run-file reader lives in afmid.runfile; `from afmid.diagnosis.diagnose import load_run, RunData` keeps working.
 from afmid.runfile import RunData, load_run  # noqa: F401
 
@@ -340,7 +340,7 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
                             n_parameters=int(result.selection.best.mask.sum()) + len(shape),
                             space=functools.cache(functools.partial(rival_truth.model_space, prepared, result,
                                                                     list(shape), separation_estimated(run)))))
-    residual_significant = _significant(base.chi2, base.chi2_limit, base.error, base.floor)
+    residual_significant = _significant(base.chi2, base.chi2_limit, base.error, base.floor, base.floor_dof)
     for t in trials:
         t.reasons = _rejections(t, base)
         t.significant = not t.reasons
@@ -568,7 +568,7 @@ def _errors_compared(t: Trial, base: _Base) -> tuple[float, float, float]:
     return base.error, t.error_after, base.floor
 
 
-def _significant(chi2: float, limit: float, error: float, floor: float) -> bool:
+def _significant(chi2: float, limit: float, error: float, floor: float, floor_dof: float = math.nan) -> bool:
     """A misfit is significant when the in-sample chi-square OR the out-of-sample error sees it.
 
     The two are complementary: the chi-square runs over every whitened row and
@@ -576,7 +576,7 @@ def _significant(chi2: float, limit: float, error: float, floor: float) -> bool:
     cross-validated error looks only at those, but against a noise floor that is
     itself an estimate (hence FLOOR_FACTOR).
     """
-    if at_noise_floor(error, floor):  # no diagnosis below the noise floor (a chi-square there is numerical)
+    if quieter_than_its_floor(error, floor, floor_dof):  # a chi-square there is numerical: no diagnosis
         return False
     above_floor = math.isfinite(error) and math.isfinite(floor) and error > FLOOR_FACTOR * floor
     return bool(chi2 > limit or above_floor)
@@ -584,9 +584,9 @@ def _significant(chi2: float, limit: float, error: float, floor: float) -> bool:
 
 def _rejections(t: Trial, base: _Base) -> list[str]:
     reasons = []
-    if at_noise_floor(base.error, base.floor):
-        reasons.append(f"the model's error {base.error:.3g} is at or below its noise floor {base.floor:.3g}: "
-                       "nothing is left to explain")
+    if quieter_than_its_floor(base.error, base.floor, base.floor_dof):
+        reasons.append(f"the model's error {base.error:.3g} is below its noise floor {base.floor:.3g} by more than "
+                       "noise explains: nothing is left to explain")
     if not t.effect_terms_selected:
         reasons.append("its terms were not selected")
     if t.delta_bic > -BIC_EVIDENCE:

@@ -101,6 +101,22 @@ def at_noise_floor(cv_error: float, noise_floor: float) -> bool:
     return bool(math.isfinite(cv_error) and math.isfinite(noise_floor) and cv_error <= noise_floor)
 
 
+def quieter_than_its_floor(cv_error: float, noise_floor: float, floor_dof: float = math.nan) -> bool:
+    """True when the fit's error lies below its noise floor by more than a right model's error falls there by
+    chance: below the one-sided (1 - :data:`FLOOR_QUANTILE`) point of sqrt(chi2_nu / nu) at the floor's ``floor_dof``
+    = nu degrees of freedom (0.57 at nu 13.5, 0.71 at nu 30). Such a record carries less noise than its noise model
+    says (noise-free: a misfit the chi-square sees there is numerical; thermal noise only: the floor about twice the
+    real scatter), so the diagnosis names nothing there. An error within a right model's spread of its floor (both
+    sides) is the noise level by chance, and a gain over the whole record's rows still measures a misfit there.
+    Without nu (NaN or below one degree of freedom): :func:`at_noise_floor` (the floor itself)."""
+    if not (math.isfinite(floor_dof) and floor_dof >= 1.0):
+        return at_noise_floor(cv_error, noise_floor)
+    from scipy.stats import chi2
+
+    lowest = math.sqrt(float(chi2.ppf(1.0 - FLOOR_QUANTILE, floor_dof)) / floor_dof)
+    return bool(math.isfinite(cv_error) and math.isfinite(noise_floor) and cv_error < lowest * noise_floor)
+
+
 def model_limited_warning(cv_error: float, noise_floor: float, floor_dof: float = math.nan) -> str:
     """The warning line of a model-limited fit."""
     threshold = floor_threshold(floor_dof)

@@ -12,6 +12,7 @@ viscoelastic; seeds and parameters fixed before the first run).
 from __future__ import annotations
 
 import copy
+import math
 from pathlib import Path
 
 import pytest
@@ -72,3 +73,38 @@ def test_below_the_floor_nothing_is_significant_and_every_candidate_is_rejected(
 
     trial = Trial("capillary", 0.000822, 0.03, -500.0, -500.0, 1.0, 1.1, True, {}, {}, [], 0.1)
     assert any("noise floor" in r for r in _rejections(trial, base))
+
+
+def test_a_right_models_error_is_called_quieter_than_its_floor_one_time_in_a_hundred():
+    """For a right model (error / floor)^2 is chi2_nu / nu: the veto's point is its one-sided 1 % quantile."""
+    import numpy as np
+
+    from afmid.fit.uncertainty import FLOOR_QUANTILE, quieter_than_its_floor
+
+    rng = np.random.default_rng(2026_11_30)
+    draws = 20000
+    for dof in (13.5, 32.0):
+        ratios = np.sqrt(rng.chisquare(dof, draws) / dof)
+        vetoed = sum(quieter_than_its_floor(float(r), 1.0, dof) for r in ratios)
+        expected = (1.0 - FLOOR_QUANTILE) * draws  # 200
+        # 5 binomial standard deviations (sqrt(200 * 0.99) = 14.1)
+        assert abs(vetoed - expected) <= 5 * math.sqrt(expected * FLOOR_QUANTILE), (dof, vetoed)
+    # without the floor's degrees of freedom: the floor itself, as before
+    assert quieter_than_its_floor(0.99, 1.0) and not quieter_than_its_floor(1.01, 1.0)
+
+
+def test_an_error_at_its_floor_by_chance_does_not_veto_a_candidate_the_whole_record_names():
+    """loop_air seed 2805 draw 71 (1.0 V of contact potential hidden): the [dmt] fit moved d 0.19 nm toward the
+    sample (z -6.8) and stood at 0.961x its floor (nu 32.0, a right model's 1 % point 0.71x); the electrostatic refit
+    lowered the BIC by 80 and the error to 0.883x, and was vetoed as "nothing is left to explain"."""
+    from afmid.diagnosis.diagnose import Trial, _Base, _rejections, _significant
+
+    base = _Base(0.03526, 0.03668, 0.0, 0.995, 1.065, 11979, floor_dof=31.99)
+    trial = Trial("electrostatic", 0.03249, 0.03679, -80.4, -80.4, 0.9876, 1.065, True, {}, {}, [], 0.1)
+    assert _rejections(trial, base) == []
+    # numerical residue far below the floor (noise-free records) is still no diagnosis, with nu known or not
+    quiet = _Base(0.000841, 0.03, 0.0, 50.0, 1.1, 1000, floor_dof=31.99)
+    assert any("noise floor" in r for r in _rejections(trial, quiet))
+    assert not _significant(50.0, 1.1, 0.0008, 0.03, 31.99)
+    # at its floor by chance, a chi-square 5 sigma out is a misfit
+    assert _significant(1.2, 1.065, 0.0353, 0.0367, 31.99)
