@@ -2,8 +2,9 @@
 
 A Fit is its run record (:class:`afmid.runfile.RunData`: everything the run file holds, made from the fit by
 :func:`afmid.runfile.run_data` or read by :func:`afmid.runfile.load_run`; :meth:`Fit.save` writes it), so a fit and
-its saved file give the same table, text, warnings and verdicts. A fit made here also keeps the pipeline's working
-state privately, for verbose text only (the candidate supports' AICc values, which the file does not keep).
+its saved file give the same table, text (verbose included: the candidate supports are in the record),
+warnings and verdicts. A fit made here also keeps the pipeline's working state privately, what its record is
+made from.
 The diagnosis and the report run on that RunData with the trace held in memory (no temporary file); a fit loaded
 without its trace refits the candidates on the run's input file, as ``afmid report`` does.
 """
@@ -23,8 +24,7 @@ class Fit:
     """An identified force law with its parameters, forces, diagnosis and run file (SI throughout)."""
 
     def __init__(self, result, config, *, trace=None, name: str | None = None, run=None):
-        # The pipeline's working state of a fit made here (None: loaded): what the run record is made from, and
-        # the candidate supports' AICc values that only verbose text prints (the run file keeps their BIC)
+        # The pipeline's working state of a fit made here (None: loaded): what the run record is made from
         self._result = result
         self.config = config
         self._trace = trace if trace is not None or result is None else result.prep.trace
@@ -135,15 +135,13 @@ class Fit:
         """What ``afmid fit`` prints (:func:`afmid.report.fit_text.fit_text`); ``verbose`` as ``afmid fit -v``."""
         from afmid.report.fit_text import fit_text
 
-        if verbose and self._result is None:
-            raise ConfigError("the candidate supports of a loaded fit are in its run file's /diagnostics/path, not "
-                              "printed; verbose text needs the fit itself", file=self.run.path, key="verbose")
-        if verbose:
-            text = fit_text(self._result, verbose=True)
-        else:
-            from afmid.api.readout import RunReadout
+        from afmid.api.readout import RunReadout
 
-            text = fit_text(RunReadout(self.run))
+        path = self.run.selection_path
+        if verbose and (not path or (path["criterion"] == "aicc" and "aicc" not in path)):
+            raise ConfigError("the run file keeps no candidate supports with their criterion values (written by an "
+                              "older afmid): verbose text needs a newer run file", file=self.run.path, key="verbose")
+        text = fit_text(RunReadout(self.run), verbose=verbose)
         if not self.run.joint or self.run.track_block is not None:  # a track's blocks: `afmid fit` prints d(t)
             return text
         from afmid.fit.joint_output import joint_table
