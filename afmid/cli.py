@@ -171,22 +171,16 @@ def fit(
     from afmid.fit.pipeline import apply_effect_changes
 
     apply_effect_changes(cfg, add_effects, remove_effects)
-    if cfg.fit.separation_track is not None or cfg.data.paths is not None:
+    if cfg.fit.separation_track is not None:  # d(t) per block of one record, one force law
+        from afmid.joint_runfile import fit_track
         from afmid.report.fit_text import fit_text
 
         def read_out(run_data):
             return fit_text(run_data, verbose=_state["verbose"] > 0)
-    if cfg.fit.separation_track is not None:  # d(t) per block of one record, one force law
-        from afmid.joint_runfile import fit_track
 
         fit_track(cfg, output, overwrite, quiet=_state["quiet"], read_out=read_out)
         return
-    if cfg.data.paths is not None:  # several traces, one force law (afmid.fit.joint)
-        from afmid.joint_runfile import fit_joint
-
-        fit_joint(cfg, output, overwrite, quiet=_state["quiet"], read_out=read_out)
-        return
-    from afmid.api import Fit  # the Python front door's calls (docs/python.md)
+    from afmid.api import Fit  # the Python front door's calls (docs/python.md); data.paths: a joint fit
 
     fitted = Fit.from_config(cfg, progress=not _state["quiet"])
     fitted.save(output, overwrite=overwrite)

@@ -1,6 +1,6 @@
-"""The run files of a joint fit and of a separation track, and ``afmid fit`` of them.
+"""The run files of a joint fit and of a separation track, and ``afmid fit`` of a separation track.
 
-:func:`joint_run_data` is a joint fit's run record: the first trace's in the single-trace layout
+:func:`joint_run_data` (:func:`joint_record`) is a joint fit's run record: the first trace's in the single-trace layout
 (:func:`afmid.runfile.run_data`; ``afmid report`` renders it: the first trace's plots, the shared parameters) with
 every trace's row and per-period forces (``/joint``: file, SHA-256, separation and its 1 sigma, cv error and noise
 floor; docs/file-formats.md, "Joint fits"); :func:`write_joint_run` writes it through
@@ -19,8 +19,8 @@ import numpy as np
 
 from afmid.config import RunConfig, dump_config
 from afmid.errors import ConfigError
-from afmid.fit.joint import JointResult, run_joint_fit
-from afmid.fit.joint_output import JOINT_LAYOUT, joint_table, trace_result
+from afmid.fit.joint import JointResult
+from afmid.fit.joint_output import JOINT_LAYOUT, trace_result
 from afmid.fit.pipeline import FitResult
 from afmid.fit.separation_track import SeparationTrack, fit_separation_track, track_table, write_track
 from afmid.io.trace import check_trace, load_trace
@@ -33,7 +33,7 @@ def joint_run_data(result: JointResult, per_trace: list[FitResult], name: str = 
     (``per_trace``: :func:`afmid.fit.joint_output.trace_result` of each trace)."""
     run = run_data(per_trace[0], per_trace[0].config, name)
     run.joint = [{
-        "path": str(t.prep.trace.path), "sha256": t.prep.trace.sha256 or "", "separation": float(t.params["d"]),
+        "path": str(t.prep.trace.path or ""), "sha256": t.prep.trace.sha256 or "", "separation": float(t.params["d"]),
         "separation_estimated": t.separation is not None,
         "separation_error": float(t.separation.sigma) if t.separation is not None else 0.0,
         "cv_error": float(t.cv_error), "cv_error_noise_floor": float(t.cv_error_noise_floor),
@@ -49,11 +49,18 @@ def joint_run_data(result: JointResult, per_trace: list[FitResult], name: str = 
     return run
 
 
-def write_joint_run(path, result: JointResult, overwrite: bool = False, more=None) -> tuple[Path, list[FitResult]]:
-    """Write the joint run file (its record, :func:`joint_run_data`; ``more(h5)`` adds more inside the same
-    atomic write); returns the path and every trace's result (:func:`afmid.fit.joint_output.trace_result`)."""
+def joint_record(result: JointResult, name: str = "fit") -> tuple[RunData, list[FitResult]]:
+    """A joint fit's run record (:func:`joint_run_data`) and every trace's result
+    (:func:`afmid.fit.joint_output.trace_result`; trace 0's is what the record's single-trace part is made of)."""
     per_trace = [trace_result(result, i) for i in range(len(result.traces))]
-    written = write_run(path, joint_run_data(result, per_trace), overwrite=overwrite, extra=more)
+    return joint_run_data(result, per_trace, name), per_trace
+
+
+def write_joint_run(path, result: JointResult, overwrite: bool = False, more=None) -> tuple[Path, list[FitResult]]:
+    """Write the joint run file (its record, :func:`joint_record`; ``more(h5)`` adds more inside the same atomic
+    write); returns the path and every trace's result (:func:`afmid.fit.joint_output.trace_result`)."""
+    run, per_trace = joint_record(result)
+    written = write_run(path, run, overwrite=overwrite, extra=more)
     return written, per_trace
 
 
@@ -62,23 +69,6 @@ def write_track_run(path, track: SeparationTrack, overwrite: bool = False):
     and every block's result."""
     return write_joint_run(path, track.joint, overwrite=overwrite,
                            more=lambda h5: write_track(h5["model"].create_group("separation_track"), track))
-
-
-def fit_joint(config, output, overwrite: bool, quiet: bool, read_out) -> None:
-    """``afmid fit`` of a config with ``data.paths``: the joint fit, its run file, its read-out on stdout.
-
-    ``read_out(run_data) -> str`` writes the first trace's result (the caller passes the report's ``fit_text``:
-    the run files do not import the report above them, docs/architecture.md, Layers)."""
-    log = logging.getLogger("afmid.cli")
-    result = run_joint_fit(config, progress=not quiet)
-    _, per_trace = write_joint_run(output, result, overwrite=overwrite)
-    log.info("wrote %s: joint fit of %d traces; terms: %s", output, len(result.traces),
-             ", ".join(result.selected_terms()) or "none")
-    if not quiet:
-        click.echo(read_out(per_trace[0]))
-        click.echo(joint_table(result, per_trace))
-    for line in result.warnings:
-        log.warning("%s: %s", output, line.removeprefix("warning: "))
 
 
 def fit_track(config: RunConfig, output, overwrite: bool, quiet: bool, read_out) -> None:

@@ -222,12 +222,13 @@ def identified_values(result: FitResult, config: RunConfig) -> dict[str, float]:
 
 def selection_path(result: FitResult) -> dict:
     """``/diagnostics/path`` by name: the candidate supports (``masks`` over the library's terms, ``n_terms``),
-    their whitened ``rss``, ``bic`` and ``cv_rss``, the ``chosen`` one's index, the ``criterion`` and ``scope``
-    of the choice and (grouped selection) each term's ``votes``."""
+    their whitened ``rss``, ``bic``, ``aicc`` and ``cv_rss``, the ``chosen`` one's index, the ``criterion`` and
+    ``scope`` of the choice and (grouped selection) each term's ``votes``."""
     p = result.n_library
     cands = result.selection.candidates
     path = {"masks": np.array([c.mask[:p] for c in cands]), "n_terms": np.array([c.n_free for c in cands]),
             "rss": np.array([c.rss for c in cands]), "bic": np.array([c.bic for c in cands]),
+            "aicc": np.array([c.aicc for c in cands]),
             "cv_rss": np.array([c.cv_rss for c in cands]), "chosen": int(result.selection.chosen),
             "criterion": str(result.selection.criterion), "scope": str(result.config.fit.selection_scope)}
     if result.selection.votes is not None:
@@ -454,6 +455,8 @@ def write_run_contents(h5, run: RunData) -> None:
     write_dataset(path_g, "n_terms", path["n_terms"], "1")
     write_dataset(path_g, "rss", path["rss"], "1", meaning="whitened residual sum of squares")
     write_dataset(path_g, "bic", path["bic"], "1")
+    if "aicc" in path:  # run files written before the record kept it have none
+        write_dataset(path_g, "aicc", path["aicc"], "1", meaning="corrected Akaike information criterion")
     write_dataset(path_g, "cv_rss", path["cv_rss"], "1")
     for name in ("chosen", "criterion", "scope"):
         path_g.attrs[name] = path[name]

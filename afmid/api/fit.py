@@ -2,8 +2,9 @@
 
 A Fit is its run record (:class:`afmid.runfile.RunData`: everything the run file holds, made from the fit by
 :func:`afmid.runfile.run_data` or read by :func:`afmid.runfile.load_run`; :meth:`Fit.save` writes it), so a fit and
-its saved file give the same table, text, warnings and verdicts. A fit made here also keeps the pipeline's working
-state privately, for verbose text only (the candidate supports' AICc values, which the file does not keep).
+its saved file give the same table, text (verbose included: the candidate supports are in the record),
+warnings and verdicts. A fit made here also keeps the pipeline's working state privately, what its record is
+made from.
 The diagnosis and the report run on that RunData with the trace held in memory (no temporary file); a fit loaded
 without its trace refits the candidates on the run's input file, as ``afmid report`` does.
 """
@@ -23,21 +24,38 @@ class Fit:
     """An identified force law with its parameters, forces, diagnosis and run file (SI throughout)."""
 
     def __init__(self, result, config, *, trace=None, name: str | None = None, run=None):
-        # The pipeline's working state of a fit made here (None: loaded): what the run record is made from, and
-        # the candidate supports' AICc values that only verbose text prints (the run file keeps their BIC)
+        # The pipeline's working state of a fit made here (None: loaded): what the run record is made from
         self._result = result
         self.config = config
         self._trace = trace if trace is not None or result is None else result.prep.trace
-        self.name = name or "+".join(config.model.effects) or (config.model.library or "fit")
+        self.name = name or default_name(config)
         self._run = run
         self._diagnosis: Diagnosis | None = None
 
     @classmethod
     def from_config(cls, config, progress: bool = False, name: str | None = None) -> "Fit":
-        """The fit of a run config's own trace (``data.path``), as ``afmid fit CONFIG`` makes it."""
+        """The fit of a run config's own trace (``data.path``), or the joint fit of its traces (``data.paths``:
+        :meth:`of_joint`), as ``afmid fit CONFIG`` makes it."""
+        if config.data.paths is not None:
+            from afmid.fit.joint import run_joint_fit
+
+            return cls.of_joint(run_joint_fit(config, progress=progress), name=name)
         from afmid.fit.pipeline import run_fit
 
         return cls(run_fit(config, progress=progress), config, name=name)
+
+    @classmethod
+    def of_joint(cls, result, name: str | None = None) -> "Fit":
+        """The fit of a joint fit's result (:class:`afmid.fit.joint.JointResult`: several traces of one sample,
+        one force law): its run record is the joint one (:func:`afmid.joint_runfile.joint_record`, what ``afmid
+        fit`` of ``data.paths`` writes: trace 0's in the single-trace layout, every trace's row in ``/joint``);
+        its trace is trace 0."""
+        from afmid.joint_runfile import joint_record
+
+        first = result.traces[0].config
+        name = name or default_name(first)
+        run, per_trace = joint_record(result, name)
+        return cls(per_trace[0], first, name=name, run=run)
 
     # ------------------------------------------------------------------ what the run holds
     @property
@@ -57,6 +75,14 @@ class Fit:
     @property
     def effects(self) -> list[str]:
         return list(self.run.effects)
+
+    @property
+    def joint(self) -> list[dict]:
+        """A joint fit's traces, in order (empty for a fit of one trace): each a dict of path, sha256,
+        separation (m), separation_estimated, separation_error (m, 1 sigma; 0 when given), cv_error,
+        cv_error_noise_floor, model_limited, drive_frequency (Hz) and its per-period curves (``periods``, SI, as
+        the run file's ``/joint/trace_<i>/periods``). The rest of the fit is trace 0's, with the shared law."""
+        return list(self.run.joint or [])
 
     @property
     def terms(self) -> list[str]:
@@ -92,8 +118,12 @@ class Fit:
         return list(self.run.implausible)
 
     def summary_line(self) -> str:
-        """One line for a log: ``cv_error 0.0434; terms: ...`` (the selected terms, or none)."""
-        return f"cv_error {self.cv_error:.4f}; terms: {', '.join(self.terms) or 'none'}"
+        """One line for a log: ``cv_error 0.0434; terms: ...`` (the selected terms, or none); for a joint fit
+        ``joint fit of 2 traces; terms: ...`` (each trace has its own error: :attr:`joint`)."""
+        terms = ", ".join(self.terms) or "none"
+        if self.run.joint:
+            return f"joint fit of {len(self.run.joint)} traces; terms: {terms}"
+        return f"cv_error {self.cv_error:.4f}; terms: {terms}"
 
     @property
     def parameters(self) -> Parameters:
@@ -105,14 +135,18 @@ class Fit:
         """What ``afmid fit`` prints (:func:`afmid.report.fit_text.fit_text`); ``verbose`` as ``afmid fit -v``."""
         from afmid.report.fit_text import fit_text
 
-        if verbose and self._result is not None:
-            return fit_text(self._result, verbose=True)
-        if verbose:
-            raise ConfigError("the candidate supports of a loaded fit are in its run file's /diagnostics/path, not "
-                              "printed; verbose text needs the fit itself", file=self.run.path, key="verbose")
         from afmid.api.readout import RunReadout
 
-        return fit_text(RunReadout(self.run))
+        path = self.run.selection_path
+        if verbose and (not path or (path["criterion"] == "aicc" and "aicc" not in path)):
+            raise ConfigError("the run file keeps no candidate supports with their criterion values (written by an "
+                              "older afmid): verbose text needs a newer run file", file=self.run.path, key="verbose")
+        text = fit_text(RunReadout(self.run), verbose=verbose)
+        if not self.run.joint or self.run.track_block is not None:  # a track's blocks: `afmid fit` prints d(t)
+            return text
+        from afmid.fit.joint_output import joint_table
+
+        return f"{text}\n{joint_table(self.run.joint)}"
 
     def print(self, verbose: bool = False) -> None:
         print(self.text(verbose))
@@ -210,6 +244,11 @@ class Fit:
 
         answer, key = self._diagnosis.details, diagnosis_key(self.run)
         return write_run(Path(path), self.run, overwrite=overwrite, extra=lambda h5: write_group(h5, answer, key))
+
+
+def default_name(config) -> str:
+    """A fit's name when none is given: its effects joined by +, else its library, else ``fit``."""
+    return "+".join(config.model.effects) or (config.model.library or "fit")
 
 
 def load(path: str | Path, trace=None) -> Fit:

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from afmid.config import RunConfig, build_config, load_config
-from afmid.errors import ConfigError
+from afmid.errors import ConfigError, InputError
 from afmid.io.cantilever import Cantilever
 from afmid.io.trace import Trace, check_trace, load_trace
 
@@ -103,18 +103,70 @@ class ForceModel:
         raw["drive"] = {"frequency": trace.drive_frequency, **raw["drive"]}
         return build_config(raw, source=MODEL, base_dir=Path.cwd())
 
-    def fit(self, trace: Trace, *, progress: bool = False, name: str | None = None):
+    def fit(self, trace: Trace | list[Trace] | tuple[Trace, ...], *, progress: bool = False,
+            name: str | None = None, separations: list[float | None] | None = None):
         """Identify the force law in ``trace`` (:func:`afmid.fit.pipeline.run_fit`, as ``afmid fit``): an
-        :class:`afmid.api.fit.Fit` named ``name`` (default: its effects joined by +)."""
+        :class:`afmid.api.fit.Fit` named ``name`` (default: its effects joined by +).
+
+        A list of traces of one sample, lever and tip is fitted jointly (:func:`afmid.fit.joint.fit_traces_jointly`,
+        as ``afmid fit`` of ``data.paths``): one shared force law, a separation per trace; ``separations`` gives
+        them (m, one per trace, None: estimated), as ``sample.separation`` does for ``data.paths``."""
         from afmid.api.fit import Fit
         from afmid.fit.pipeline import run_fit
 
-        if not isinstance(trace, Trace):
-            raise ConfigError(f"expected an afmid.Trace (afmid.read, afmid.Trace.from_array), got "
-                              f"{type(trace).__name__}", file=MODEL, key="fit(trace)")
+        if isinstance(trace, (list, tuple)):
+            return self._fit_jointly(list(trace), progress, name, separations)
+        self._check_trace(trace, "fit(trace)")
+        if separations is not None:
+            raise ConfigError("separations are given per trace of a joint fit; for one trace give "
+                              "ForceModel(separation=...)", file=MODEL, key="fit(separations)")
         config = self.config(trace)
         result = run_fit(config, progress=progress, trace=trace)
         return Fit(result, config, trace=trace, name=name)
+
+    def _fit_jointly(self, traces: list[Trace], progress: bool, name: str | None,
+                     separations: list[float | None] | None):
+        from afmid.api.fit import Fit
+        from afmid.fit.joint import fit_traces_jointly, lever_mismatch
+
+        if not traces:
+            raise ConfigError("the list is empty; give the traces to fit jointly", file=MODEL, key="fit(traces)")
+        for i, trace in enumerate(traces):
+            self._check_trace(trace, f"fit(traces[{i}])")
+        given = self._checked.sample.separation
+        if separations is not None and given is not None:
+            raise ConfigError("give the separations once: ForceModel(separation=...) or fit(separations=[...])",
+                              file=MODEL, key="fit(separations)")
+        if separations is None:
+            if given is not None and len(traces) > 1:  # as sample.separation with data.paths
+                raise ConfigError("one separation for several traces; give one per trace, "
+                                  "fit(traces, separations=[...])", file=MODEL, key="separation")
+            separations = [given] * len(traces)
+        if len(separations) != len(traces):
+            raise ConfigError(f"{len(separations)} separation(s) for {len(traces)} trace(s); give one per trace, "
+                              "in the same order", file=MODEL, key="fit(separations)")
+        mismatch = lever_mismatch(traces, "traces[0]")
+        if mismatch is not None:
+            i, reason = mismatch
+            raise InputError(reason, file=traces[i].path or MODEL, key=f"fit(traces[{i}])")
+        configs = [self._with_separation(trace, d) for trace, d in zip(traces, separations)]
+        result = fit_traces_jointly(configs[0], configs, traces, progress)
+        return Fit.of_joint(result, name=name)
+
+    def _with_separation(self, trace: Trace, separation: float | None) -> RunConfig:
+        """The run config of this model fitted to ``trace`` at rest separation ``separation`` (m; None:
+        estimated), checked as ``sample.separation`` is."""
+        if separation == self._checked.sample.separation:
+            return self.config(trace)
+        changed = copy.deepcopy(self)
+        changed._sections["sample"] = {**self._sections["sample"], "separation": separation}
+        return changed.config(trace)
+
+    @staticmethod
+    def _check_trace(trace, key: str) -> None:
+        if not isinstance(trace, Trace):
+            raise ConfigError(f"expected an afmid.Trace (afmid.read, afmid.Trace.from_array), got "
+                              f"{type(trace).__name__}", file=MODEL, key=key)
 
     def _changed(self, add: tuple[str, ...], remove: tuple[str, ...]) -> "ForceModel":
         from afmid.fit.pipeline import apply_effect_changes

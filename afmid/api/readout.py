@@ -1,8 +1,9 @@
 """A run read from its file, seen as :func:`afmid.report.fit_text.fit_text` reads a fit's result.
 
-``afmid fit`` prints its text from the pipeline's result; a fit loaded from its run file has only what the file
-holds (:class:`afmid.runfile.RunData`). :class:`RunReadout` presents that under the result's names, so the loaded
-fit prints the same lines (the parameters in the fit's order, :func:`readout_order`).
+``afmid fit`` prints its text from the run record (:class:`afmid.runfile.RunData`: what the run file holds, for a
+fit made and a fit loaded alike). :class:`RunReadout` presents it under the pipeline's result's names that
+:func:`afmid.report.fit_text.fit_text` reads, so both print the same lines (the parameters in the fit's order,
+:func:`readout_order`; with ``-v`` the candidate supports of ``/diagnostics/path``).
 """
 
 from __future__ import annotations
@@ -34,6 +35,34 @@ class StoredEstimate:
     estimated: bool = True
 
 
+@dataclass(frozen=True)
+class StoredCandidate:
+    """A candidate support of the selection path as the run file keeps it (``/diagnostics/path``): its mask over
+    the library's terms, free terms, whitened rss, BIC, AICc (NaN in files written before it was kept) and
+    cross-validated rss."""
+
+    mask: np.ndarray
+    n_free: int
+    rss: float
+    bic: float
+    aicc: float
+    cv_rss: float
+
+
+class StoredSelection:
+    """The selection path of a run (``RunData.selection_path``) under the names of the fit's
+    :class:`afmid.fit.regression.Selection` that ``afmid fit -v`` reads: ``candidates``, ``best``, ``criterion``."""
+
+    def __init__(self, path: dict):
+        n = len(path["bic"])
+        aicc = path.get("aicc", np.full(n, math.nan))
+        self.candidates = [StoredCandidate(np.asarray(path["masks"][i], dtype=bool), int(path["n_terms"][i]),
+                                           float(path["rss"][i]), float(path["bic"][i]), float(aicc[i]),
+                                           float(path["cv_rss"][i])) for i in range(n)]
+        self.criterion = str(path["criterion"])
+        self.best = self.candidates[int(path["chosen"])]
+
+
 class StoredLibrary:
     def __init__(self, run):
         self.terms = [StoredTerm(n, e, u) for n, e, u in zip(run.terms, run.expressions, run.units)]
@@ -50,6 +79,8 @@ class RunReadout:
         self.n_library = len(run.terms)
         self.n_periods = run.n_periods
         self.selected = np.asarray(run.selected, dtype=bool)
+        self.inclusion = np.asarray(run.inclusion, dtype=float)
+        self.selection = StoredSelection(run.selection_path) if run.selection_path else None
         self.coef = np.asarray(run.coefficients, dtype=float)
         self.coef_std = np.asarray(run.errors, dtype=float)
         # Each read-out is judged with the tip it was read out for (a force that grows with R has a bound scaled

@@ -54,6 +54,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from afmid.fit.uncertainty import Z95
+from afmid.io.cantilever import lever_damping, lever_mass
 from afmid.physics.effects import BOLTZMANN, ForceLaw
 from afmid.quantity_text import format_value
 from afmid.simulate.integrator import Integrator, settle
@@ -101,7 +102,7 @@ def deflection_noise_psd(noise: NoiseModel, frequency: np.ndarray) -> np.ndarray
     psd = np.full(f.shape, 2.0 * noise.detector_rms**2 / noise.sample_rate)
     if noise.temperature is not None:
         k, w0, q = noise.spring_constant, noise.omega0, noise.quality_factor
-        mass, damping = k / w0**2, k / (q * w0)
+        mass, damping = lever_mass(k, w0), lever_damping(k, w0, q)
         w = 2.0 * math.pi * f
         lever = np.abs(1.0 / (k - mass * w**2 + 1j * damping * w)) ** 2
         gain = 1.0 if noise.detector_response is None else np.abs(noise.detector_response(f)) ** 2
@@ -367,7 +368,7 @@ def compute_bound(law: ForceLaw, oscillator: Oscillator, separation: float, para
     covariances = [bound_from_information(information)[0]]
     if noise.temperature is not None:
         residual, dt = force_sensitivities(model, parameters, coefficient_names)
-        damping = noise.spring_constant / (noise.quality_factor * noise.omega0)
+        damping = lever_damping(noise.spring_constant, noise.omega0, noise.quality_factor)
         # white force of two-sided PSD 2 k_B T c: I = integral of dr_i dr_j dt / (2 k_B T c), periods x one period
         thermal = periods * (residual @ residual.T) * dt / (2.0 * BOLTZMANN * noise.temperature * damping)
         covariances.append(bound_from_information(thermal)[0])

@@ -97,21 +97,31 @@ def load_traces(configs: list[RunConfig]) -> list[Trace]:
         except AfmidError as exc:
             key = f"data.paths[{i}]" if exc.key == "data.path" else exc.key
             raise type(exc)(exc.message, file=exc.file, key=key) from exc.__cause__
-    first = traces[0].cantilever
+    mismatch = lever_mismatch(traces, "data.paths[0]")
+    if mismatch is not None:
+        i, reason = mismatch
+        raise InputError(reason, file=traces[i].path, key=f"data.paths[{i}]")
+    return traces
+
+
+def lever_mismatch(traces: list[Trace], first: str) -> tuple[int, str] | None:
+    """The first trace recorded with another cantilever or tip than trace 0 (named ``first`` in the reason, with
+    its file where it has one) and why, or None: a joint fit needs the traces of one lever and one tip."""
+    lever = traces[0].cantilever
+    named = f"{first} ({traces[0].path})" if traces[0].path is not None else first
     for i, trace in enumerate(traces[1:], start=1):
         for key in CANTILEVER_KEYS:
             # The config's cantilever overrides each file's own; a file that disagrees with it while the first
             # does not (or the reverse) was recorded with another lever or tip.
             if (f"cantilever.{key}" in trace.overridden) != (f"cantilever.{key}" in traces[0].overridden):
-                raise InputError(f"the file's cantilever.{key} differs from data.paths[0]'s ({traces[0].path}), "
-                                 "the config's value replacing one of them: a joint fit needs the traces of one "
-                                 "cantilever and one tip", file=trace.path, key=f"data.paths[{i}]")
-            a, b = getattr(first, key), getattr(trace.cantilever, key)
+                where = f"{first}'s ({traces[0].path})" if traces[0].path is not None else f"{first}'s"
+                return i, (f"the file's cantilever.{key} differs from {where}, the config's value replacing one of "
+                           "them: a joint fit needs the traces of one cantilever and one tip")
+            a, b = getattr(lever, key), getattr(trace.cantilever, key)
             if (a is None) != (b is None) or (a is not None and not math.isclose(a, b, rel_tol=SAME_CANTILEVER_RTOL)):
-                raise InputError(f"cantilever.{key} is {b} here but {a} in data.paths[0] ({traces[0].path}): a joint "
-                                 "fit needs the traces of one cantilever and one tip", file=trace.path,
-                                 key=f"data.paths[{i}]")
-    return traces
+                return i, (f"cantilever.{key} is {b} here but {a} in {named}: a joint fit needs the traces of one "
+                           "cantilever and one tip")
+    return None
 
 
 # --------------------------------------------------------------------------- the stacked system

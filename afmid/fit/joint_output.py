@@ -4,10 +4,12 @@
 Each trace's forces come from the shared law with its own drive and separation: :func:`trace_result` makes
 the :class:`afmid.fit.pipeline.FitResult` of trace ``i`` (the shared coefficients, intervals and read-outs;
 its own columns, cross-validated error, forces and per-period curves), so everything that reads a single
-fit's result reads it; :func:`joint_table` is the traces' table printed by ``afmid fit``.
+fit's result reads it; :func:`joint_table` is the traces' table printed by ``afmid fit``, from the run record.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -61,13 +63,15 @@ def trace_result(result: JointResult, i: int) -> FitResult:
                      t.single.drive_search, 0.0, t.model_limited, cv_error_floor_dof=t.cv_error_floor_dof)
 
 
-def joint_table(result: JointResult, per_trace: list[FitResult]) -> str:
-    """The traces of a joint fit, one line each: file, separation (1 sigma), cv error against its floor."""
-    lines = [f"joint fit of {len(result.traces)} traces, one force law (the parameters above are shared):"]
-    for i, (t, r) in enumerate(zip(result.traces, per_trace)):
-        d = t.params["d"]
-        sigma = f" ± {t.separation.sigma * 1e9:.3f}" if t.separation is not None else " (given)"
-        flag = "  MODEL-LIMITED" if t.model_limited else ""
-        lines.append(f"  trace {i}: {t.prep.trace.path.name if t.prep.trace.path else '-'}: d = {d * 1e9:.3f}{sigma} nm"
-                     f" (1 sigma); cv_error {t.cv_error:.3f} (noise floor {t.cv_error_noise_floor:.3f}){flag}")
+def joint_table(traces: list[dict]) -> str:
+    """The traces of a joint fit, one line each: file, separation (1 sigma), cv error against its floor.
+    ``traces``: the run record's rows (``RunData.joint``, as ``/joint`` holds them: path, separation and
+    separation_error in m, separation_estimated, cv_error, cv_error_noise_floor, model_limited)."""
+    lines = [f"joint fit of {len(traces)} traces, one force law (the parameters above are shared):"]
+    for i, t in enumerate(traces):
+        name = Path(t["path"]).name if t["path"] else "-"
+        sigma = f" ± {t['separation_error'] * 1e9:.3f}" if t["separation_estimated"] else " (given)"
+        flag = "  MODEL-LIMITED" if t["model_limited"] else ""
+        lines.append(f"  trace {i}: {name}: d = {t['separation'] * 1e9:.3f}{sigma} nm (1 sigma); cv_error "
+                     f"{t['cv_error']:.3f} (noise floor {t['cv_error_noise_floor']:.3f}){flag}")
     return "\n".join(lines)

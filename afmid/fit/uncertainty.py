@@ -227,8 +227,7 @@ def propagate_calibration(quantities: dict, prep, library, system, coef: np.ndar
         force_variance += s**2
     if calibration.quality_factor > 0 and fixed_cantilever:
         s = calibration.quality_factor
-        cl = trace.cantilever
-        c = cl.spring_constant / (cl.quality_factor * cl.omega0)
+        c = trace.cantilever.damping  # io.cantilever.lever_damping, the one formula
         D = damping_integrals(prep)
         pair = []
         for sign in (1, -1):

@@ -67,5 +67,46 @@ def test_the_records_text_is_the_fits_text(demo, effects, estimated):
     assert fitted.warnings == [str(w) for w in result.warnings]
     saved = fitted.save(folder / f"{'_'.join(effects)}.h5", overwrite=True)
     assert afmid.load(saved).text() == own
+    # verbose (``afmid fit -v``): the candidate supports from the record, made and loaded alike
+    verbose = fit_text(result, verbose=True)
+    assert "selection: criterion bic" in verbose and "ΔBIC" in verbose
+    assert fitted.text(verbose=True) == verbose == afmid.load(saved).text(verbose=True)
     if estimated:
         assert "d" in result.nonlinear and list(result.nonlinear)[0] == "d"
+
+
+def test_verbose_text_under_aicc_is_the_fits_and_needs_the_stored_aicc(demo):
+    """With ``fit.selection: aicc`` the candidates are ranked by their AICc, which the record keeps
+    (``/diagnostics/path/aicc``): the record's verbose text is the pipeline's, before and after the file; a file
+    without it (an older afmid's) refuses verbose text in one line and still prints the rest."""
+    import h5py
+
+    import afmid
+    from afmid.api.fit import Fit
+    from afmid.errors import ConfigError
+    from afmid.fit.pipeline import run_fit
+    from afmid.report.fit_text import fit_text
+
+    folder, raw = demo
+    raw = copy.deepcopy(raw)
+    raw["model"] = {"effects": ["dmt", "viscoelastic"]}
+    raw["fit"].update(bootstrap=0, selection="aicc")
+    config = build_config(raw, source=folder / "fit.yaml", base_dir=folder)
+    result = run_fit(config)
+    verbose = fit_text(result, verbose=True)
+    assert "selection: criterion aicc" in verbose and "ΔAICC" in verbose
+    fitted = Fit(result, config)
+    saved = fitted.save(folder / "aicc.h5", overwrite=True)
+    loaded = afmid.load(saved)
+    assert fitted.text(verbose=True) == verbose == loaded.text(verbose=True)
+    with h5py.File(saved, "r") as h5:
+        assert h5["diagnostics/path/aicc"].attrs["units"] == "1"
+        assert list(h5["diagnostics/path/aicc"][()]) == [c.aicc for c in result.selection.candidates]
+    older = folder / "aicc_older.h5"
+    older.write_bytes(saved.read_bytes())
+    with h5py.File(older, "r+") as h5:
+        del h5["diagnostics/path/aicc"]
+    old = afmid.load(older)
+    assert old.text() == fitted.text()
+    with pytest.raises(ConfigError, match="keeps no candidate supports with their criterion values"):
+        old.text(verbose=True)

@@ -238,8 +238,8 @@ def test_the_reference_lists_every_name_of_the_package():
     ("### `afmid.simulate_trace(config, progress=False) -> Trace`",
      "### `afmid.simulate_trace(config, progress=True) -> Trace`", "progress=True documented"),
     # keyword-only marker dropped
-    ("- `.fit(trace, *, progress=False, name=None) -> Fit`", "- `.fit(trace, progress=False, name=None) -> Fit`",
-     "ForceModel.fit: arguments"),
+    ("- `.fit(trace, *, progress=False, name=None, separations=None) -> Fit`",
+     "- `.fit(trace, progress=False, name=None, separations=None) -> Fit`", "ForceModel.fit: arguments"),
     # a wrong declared return type
     ("- `.force_curve() -> ForceCurve`", "- `.force_curve() -> Parameters`", "returns Parameters documented"),
     # a member that does not exist
