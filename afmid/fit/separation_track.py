@@ -42,8 +42,9 @@ import numpy as np
 from afmid.config import RunConfig
 from afmid.errors import ConfigError
 from afmid.fit.joint import JointResult, fit_traces_jointly, trace_coefficients
-from afmid.fit.period_separation import (LevelStep, LinearisedBlock, joint_level_step, mean_force_offsets, ou_prior,
-                                        row_design, row_offsets, with_period_separation)
+from afmid.fit.period_separation import (LevelStep, LinearisedBlock, column_designs, joint_level_step,
+                                        mean_force_offsets, ou_prior, row_design, row_offsets, with_period_separation,
+                                        with_row_shift)
 from afmid.fit.system import library_columns
 from afmid.io.onset import crop
 from afmid.io.trace import Trace, check_trace
@@ -138,24 +139,33 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     for fit_pass in range(2, passes + 1):
         offsets, priors = period_offsets(joint, unshifted, within_block)
         last = fit_pass == passes
+        shifts = None
         if within_block == "rows" and last and fit_pass > 2:
             # The offsets at the joint minimum over law, levels and offsets (linearised at this fit), not given
             # this fit's law: the alternation reaches that minimum only slowly (step 81 of the 2 nm step: the
-            # third fit's levels 11 pm short of it, where the true per-period d given inside the fit ends).
-            offsets = joint_level_step(linearised_blocks(joint, unshifted, offsets, priors)).offsets
+            # third fit's levels 11 pm short of it, where the true per-period d given inside the fit ends). The
+            # minimum is the offsets' marginal likelihood's: the fit below holds the offsets and minimises the
+            # penalised residual, whose minimum the offsets' fit to the noise pulls to a higher level and a
+            # stiffer law (+13 pm over 8 flat records); the rows' shift moves it by the log-determinant's step.
+            step = joint_level_step(linearised_blocks(joint, unshifted, offsets, priors, derivatives=True))
+            offsets, shifts = step.offsets, step.row_shift
+            log.info("separation track: the offsets' log-determinant moves the levels by %s pm",
+                     np.round(step.log_det_change * 1e12, 1))
         joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty and last,
-                                   adjust_prepared=lambda i, prep: with_period_separation(prep, offsets[i]))
+                                   adjust_prepared=lambda i, prep, shifts=shifts: moved_preparation(
+                                       prep, offsets[i], None if shifts is None else shifts[i]))
     first = np.array([b.first_sample - trace.first_sample for b in blocks])
     stop = first + np.array([b.n_samples for b in blocks])
     separation = np.array([t.separation.value for t in joint.traces])
     sigma = np.array([t.separation.sigma for t in joint.traces])
     level_step = None
     if within_block == "rows":
-        level_step = joint_level_step(linearised_blocks(joint, unshifted, offsets, priors))
+        level_step = joint_level_step(linearised_blocks(joint, unshifted, offsets, priors, derivatives=True))
         sigma = np.sqrt(sigma**2 + offsets_share(level_step))
         log.info("separation track: the offsets add %s pm in quadrature to the levels' sigma; the joint minimum "
-                 "lies %s pm from the levels found", np.round(np.sqrt(offsets_share(level_step)) * 1e12, 1),
-                 np.round(level_step.level_change * 1e12, 1))
+                 "(the offsets' marginal likelihood's) lies %s pm from the levels found, its log-determinant's "
+                 "part %s pm", np.round(np.sqrt(offsets_share(level_step)) * 1e12, 1),
+                 np.round(level_step.level_change * 1e12, 1), np.round(level_step.log_det_change * 1e12, 1))
     return SeparationTrack(0.5 * (first + stop) / trace.sample_rate, first, stop, separation, sigma, bandwidth, joint,
                            offsets, within_block, level_step)
 
@@ -193,11 +203,26 @@ def period_offsets(joint: JointResult, preparations: list, within_block: str = "
             [(0.0, 0.0)] * len(preparations))
 
 
+def moved_preparation(prep, offsets: np.ndarray, shift: np.ndarray | None):
+    """A block's preparation with its per-period offsets (m) and, when given, the rows' shift of the offsets'
+    log-determinant (:func:`afmid.fit.period_separation.with_row_shift`)."""
+    moved = with_period_separation(prep, offsets)
+    return moved if shift is None else with_row_shift(moved, shift)
+
+
+#: The step of the offsets' design's derivative in the level, m: the contact's curvature in d (F ~ delta^1.5,
+#: the design ~ delta^0.5) changes over hundreds of pm of indentation, so 10 pm is linear and far above
+#: :data:`afmid.fit.period_separation.DERIVATIVE_STEP`'s rounding.
+LEVEL_SLOPE_STEP = 10e-12
+
+
 def linearised_blocks(joint: JointResult, preparations: list, offsets: list[np.ndarray],
-                      priors: list[tuple[float, float]]) -> list[LinearisedBlock]:
+                      priors: list[tuple[float, float]], derivatives: bool = False) -> list[LinearisedBlock]:
     """Each block of ``joint`` linearised at its fit (:class:`afmid.fit.period_separation.LinearisedBlock`): its
     unshifted preparation moved by its ``offsets`` (m), the law's and the block's drive's selected columns, the
-    offsets' design and their OU prior ``priors`` ((sd in m, rho) per block)."""
+    offsets' design and their OU prior ``priors`` ((sd in m, rho) per block); with ``derivatives`` also the
+    design's derivatives in the shared law's selected coefficients and in the level (the offsets'
+    log-determinant: twelve evaluations of the columns per block instead of five)."""
     p = len(joint.library)
     coef = np.where(joint.selected, joint.coef, 0.0)
     law = coef[:p]
@@ -205,14 +230,20 @@ def linearised_blocks(joint: JointResult, preparations: list, offsets: list[np.n
     for i, (prep, t, moved, (sd, rho)) in enumerate(zip(preparations, joint.traces, offsets, priors)):
         chosen = trace_coefficients(joint.system, joint.selected, i, p).astype(bool)
         nuisance = trace_coefficients(joint.system, coef, i, p)[p:]
+        moved = np.asarray(moved, dtype=float)
         design, residual = row_design(prep, joint.library, law, nuisance, t.params, moved)
         sigma = prep.row_sigma[None, :, None]
         theta = library_columns(with_period_separation(prep, moved), joint.library, t.params) / sigma
         drive = prep.nuisance / sigma
-        out.append(LinearisedBlock(residual, np.asarray(moved, dtype=float),
-                                   theta[:, :, chosen[:p]].reshape(residual.size, -1),
+        shared_designs = level_slope = None
+        if derivatives:
+            shared_designs = column_designs(prep, joint.library, t.params, moved)[:, :, chosen[:p]]
+            up, down = (column_designs(prep, joint.library, t.params, moved + sign * LEVEL_SLOPE_STEP) @ law
+                        for sign in (1, -1))
+            level_slope = (up - down) / (2 * LEVEL_SLOPE_STEP)
+        out.append(LinearisedBlock(residual, moved, theta[:, :, chosen[:p]].reshape(residual.size, -1),
                                    drive[:, :, chosen[p:]].reshape(residual.size, -1), design,
-                                   ou_prior(prep.blocks.n_blocks, sd, rho)))
+                                   ou_prior(prep.blocks.n_blocks, sd, rho), shared_designs, level_slope))
     return out
 
 

@@ -37,7 +37,7 @@ SCANS = {"step": {"speed": 4e-6, "start": -5e-9, "step": {"height": 2e-9, "posit
          "flat": {"speed": 4e-6},
          # no feedback: the piezo still, d drops 0.4 nm mid-record (tests/fit/test_separation_track.py's record)
          "nofeedback": {"speed": 4e-6, "start": -1.6e-9, "step": {"height": 0.4e-9, "position": 0.0, "width": 0.1e-9}}}
-logging.getLogger("afmid").setLevel(logging.ERROR)
+logging.basicConfig(format="%(message)s"); logging.getLogger("afmid").setLevel(logging.ERROR); logging.getLogger("afmid.fit.separation_track").setLevel(logging.INFO)
 R, A0 = 1e-8, 0.165e-9
 
 
