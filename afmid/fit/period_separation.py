@@ -239,7 +239,8 @@ class LinearisedBlock:
 class LevelStep:
     """What :func:`joint_level_step` returns: the levels' covariance given the offsets (``conditional``, m^2, as
     the joint fit's profile sees it) and with them marginalised (``marginal``); the linearised joint minimum's
-    change of each level (``level_change``, m) and its offsets (``offsets``, per block, m, zero mean). Of
+    change of each level (``level_change``, m), the shared law's (``shared_change``) and the offsets there
+    (``offsets``, per block, m, zero mean). Of
     ``level_change``, ``log_det_change`` (m) is the offsets' log-determinant's part (zero when the blocks carry
     no design derivatives), and ``row_shift`` (per block, whitened rows) is what moves a fit that holds the
     offsets by that part: the model's columns times the step it makes in the law, the block's drive and level."""
@@ -250,6 +251,7 @@ class LevelStep:
     offsets: list[np.ndarray]
     log_det_change: np.ndarray | None = None
     row_shift: list[np.ndarray] | None = None
+    shared_change: np.ndarray | None = None  # the shared law's coefficients' step (their units)
 
 
 def centred_prior(prior: np.ndarray) -> np.ndarray:
@@ -330,7 +332,7 @@ def joint_level_step(blocks: list[LinearisedBlock]) -> LevelStep:
         offsets.append(found - found.mean())
         row_shift.append(columns @ log_det_step[where])
     return LevelStep(conditional[np.ix_(levels, levels)], marginal[np.ix_(levels, levels)], step[levels], offsets,
-                     log_det_step[levels], row_shift)
+                     log_det_step[levels], row_shift, step[:n_shared])
 
 
 def with_row_shift(prep: Prepared, shift: np.ndarray) -> Prepared:
