@@ -26,8 +26,12 @@ error 0.09-1.67 % of the peak. The offsets come from the same rows as the law an
 takes them at the joint minimum over all three (:func:`afmid.fit.period_separation.joint_level_step`, linearised
 at the previous fit: the alternation alone left the 2 nm step of seed 81 11 pm short of it), and the levels'
 sigma gets the offsets' posterior share in quadrature (:func:`offsets_share`; 6 pm beside the profile's 16 pm
-there). What the true per-period d given inside the fit leaves (seed 81: every block ~40 pm low at 16 pm) is not
-the offsets' and is not covered (docs/lab/2026-11-29-scanning-record.md).
+there). That minimum is the offsets' marginal likelihood's, with its log-determinant: the fit that holds the
+offsets minimises the penalised residual, and offsets fitted to the rows' noise pull that minimum to a higher
+level and a stiffer law (+13 pm on flat records, where d does not move); the last fit's rows are shifted by the
+log-determinant's step (:func:`afmid.fit.period_separation.with_row_shift`). Each block's sigma is floored at the
+record's Cramér-Rao bound of a constant d (:func:`record_bounds`), as the plain fit's is
+(docs/lab/2026-11-29-scanning-record.md).
 """
 
 from __future__ import annotations
