@@ -129,24 +129,33 @@ def row_design(prep: Prepared, library, law: np.ndarray, nuisance_coef: np.ndarr
     derivatives come from moving the even and the odd periods apart (four evaluations of the columns); the row
     noise is the fit's (``row_sigma``, independent rows). G summed over its columns is the rows' derivative in
     the block's level: moving every period by the same amount moves the level."""
-    n = prep.blocks.n_blocks
-    parity = np.arange(n) % 2
     residual = (prep.Y - library_columns(with_period_separation(prep, offsets), library, params) @ law
                 - prep.nuisance @ nuisance_coef) / prep.row_sigma[None, :]
-    windows = residual.shape[0]
+    return column_designs(prep, library, params, offsets) @ law, residual.ravel()
+
+
+def column_designs(prep: Prepared, library, params: dict, offsets: np.ndarray) -> np.ndarray:
+    """Each library column's whitened rows differentiated in the per-period offsets at ``offsets`` (m): (rows, n,
+    p), 1/m per unit coefficient; the design of a law is this times its coefficients (:func:`row_design`). Four
+    evaluations of the columns (the even and the odd periods moved apart, each up and down)."""
+    n = prep.blocks.n_blocks
+    parity = np.arange(n) % 2
+    windows, harmonic_rows = prep.Y.shape
     if windows > n:
         raise ValueError(f"{windows} weak-form windows over {n} periods: a window spans more than two periods")
-    design = np.zeros((windows, residual.shape[1], n))
+    design = None
     for odd in (0, 1):
         step = DERIVATIVE_STEP * (parity == odd)
-        up = library_columns(with_period_separation(prep, offsets + step), library, params) @ law
-        down = library_columns(with_period_separation(prep, offsets - step), library, params) @ law
-        slope = (up - down) / (2 * DERIVATIVE_STEP) / prep.row_sigma[None, :]  # each window's period of this parity
+        up = library_columns(with_period_separation(prep, offsets + step), library, params)
+        down = library_columns(with_period_separation(prep, offsets - step), library, params)
+        slope = (up - down) / (2 * DERIVATIVE_STEP) / prep.row_sigma[None, :, None]  # (windows, rows, p)
+        if design is None:
+            design = np.zeros((windows, harmonic_rows, n, slope.shape[2]))
         for w in range(windows):  # window w spans periods w and w + 1
             for b in (w, w + 1):
                 if b < n and parity[b] == odd:
                     design[w, :, b] = slope[w]
-    return design.reshape(-1, n), residual.ravel()
+    return design.reshape(windows * harmonic_rows, n, -1)
 
 
 def row_information(prep: Prepared, library, law: np.ndarray, nuisance_coef: np.ndarray, params: dict,
@@ -210,7 +219,11 @@ class LinearisedBlock:
     ``residual`` (rows,) at the offsets ``offsets`` (m, (n,)); the selected law columns ``shared`` (rows, p_s),
     shared with the other blocks; the block's own selected drive columns ``own`` (rows, m); the offsets' design
     ``design`` (rows, n) in 1/m (:func:`row_design`; its row sums are the level's column); and the offsets'
-    Ornstein-Uhlenbeck prior ``prior`` (n, n), m^2 (:func:`ou_prior`, before its mean is taken out)."""
+    Ornstein-Uhlenbeck prior ``prior`` (n, n), m^2 (:func:`ou_prior`, before its mean is taken out). With
+    ``shared_designs`` (rows, n, p_s: ``design``'s derivative in each shared coefficient, 1/m per unit) and
+    ``level_slope`` (rows, n: its derivative in the level, 1/m^2) :func:`joint_level_step` also takes the
+    offsets' log-determinant into the levels and the law (the marginal likelihood's minimum, not the penalised
+    fit's); without them it does not."""
 
     residual: np.ndarray
     offsets: np.ndarray
@@ -218,18 +231,27 @@ class LinearisedBlock:
     own: np.ndarray
     design: np.ndarray
     prior: np.ndarray
+    shared_designs: np.ndarray | None = None
+    level_slope: np.ndarray | None = None
 
 
 @dataclasses.dataclass
 class LevelStep:
     """What :func:`joint_level_step` returns: the levels' covariance given the offsets (``conditional``, m^2, as
     the joint fit's profile sees it) and with them marginalised (``marginal``); the linearised joint minimum's
-    change of each level (``level_change``, m) and its offsets (``offsets``, per block, m, zero mean)."""
+    change of each level (``level_change``, m), the shared law's (``shared_change``) and the offsets there
+    (``offsets``, per block, m, zero mean). Of
+    ``level_change``, ``log_det_change`` (m) is the offsets' log-determinant's part (zero when the blocks carry
+    no design derivatives), and ``row_shift`` (per block, whitened rows) is what moves a fit that holds the
+    offsets by that part: the model's columns times the step it makes in the law, the block's drive and level."""
 
     conditional: np.ndarray
     marginal: np.ndarray
     level_change: np.ndarray
     offsets: list[np.ndarray]
+    log_det_change: np.ndarray | None = None
+    row_shift: list[np.ndarray] | None = None
+    shared_change: np.ndarray | None = None  # the shared law's coefficients' step (their units)
 
 
 def centred_prior(prior: np.ndarray) -> np.ndarray:
@@ -255,6 +277,15 @@ def joint_level_step(blocks: list[LinearisedBlock]) -> LevelStep:
     that step. The alternation (offsets from one law, the law from those offsets) reaches that minimum only in
     the limit of many passes; one step of this solve lands there for the linear model.
 
+    That minimum is the penalised one, min over x of |r - G x|^2 + x^T P^-1 x. The level's and the law's
+    likelihood with the offsets integrated out adds log det(1 + P G^T G), and G grows with the contact (a deeper
+    or stiffer one moves the rows more per pm): offsets fitted to the rows' noise lower the penalised residual
+    more where G is larger, so its minimum slides along the level-law valley towards a higher level and a stiffer
+    law (+14.5 pm on a flat record whose d does not move, where the log-determinant's gradient predicted 11 pm;
+    docs/lab/2026-11-29-scanning-record.md). With the blocks' design derivatives the step includes the
+    log-determinant's gradient, 2 tr((1 + P G^T G)^-1 P G^T dG), linearised (a Newton step on the marginal
+    objective whose curvature is the marginal information).
+
     Every column is scaled to unit norm before the solve (the law's coefficients and the offsets differ by
     orders of magnitude)."""
     widths = [b.own.shape[1] + 1 for b in blocks]
@@ -262,6 +293,7 @@ def joint_level_step(blocks: list[LinearisedBlock]) -> LevelStep:
     size = n_shared + sum(widths)
     conditional_info, marginal_info = np.zeros((size, size)), np.zeros((size, size))
     marginal_score = np.zeros(size)
+    log_det_gradient = np.zeros(size)
     start = n_shared
     index, weighted = [], []
     for block, width in zip(blocks, widths):
@@ -271,6 +303,10 @@ def joint_level_step(blocks: list[LinearisedBlock]) -> LevelStep:
         prior = centred_prior(block.prior)
         gain = prior @ np.linalg.solve(np.eye(prior.shape[0]) + block.design.T @ block.design @ prior,
                                        block.design.T)  # P (1 + G^T G P)^-1 G^T: rows -> offsets
+        if block.shared_designs is not None and block.level_slope is not None:
+            # d log det(1 + P G^T G) = 2 tr((1 + P G^T G)^-1 P G^T dG) = 2 sum(gain^T * dG)
+            log_det_gradient[:n_shared] += 2 * np.einsum("nr,rnk->k", gain, block.shared_designs)
+            log_det_gradient[where[-1]] += 2 * np.sum(gain.T * block.level_slope)
         restored = block.residual + block.design @ block.offsets  # the rows with the offsets put back
         weighted_columns = columns - block.design @ (gain @ columns)  # W A
         conditional_info[np.ix_(where, where)] += columns.T @ columns
@@ -288,9 +324,23 @@ def joint_level_step(blocks: list[LinearisedBlock]) -> LevelStep:
 
     conditional = covariance(conditional_info)
     marginal = covariance(marginal_info)
-    step = marginal @ marginal_score
-    offsets = []
+    log_det_step = -0.5 * marginal @ log_det_gradient
+    step = marginal @ marginal_score + log_det_step
+    offsets, row_shift = [], []
     for where, (gain, restored, columns) in zip(index, weighted):
         found = gain @ (restored - columns @ step[where])
         offsets.append(found - found.mean())
-    return LevelStep(conditional[np.ix_(levels, levels)], marginal[np.ix_(levels, levels)], step[levels], offsets)
+        row_shift.append(columns @ log_det_step[where])
+    return LevelStep(conditional[np.ix_(levels, levels)], marginal[np.ix_(levels, levels)], step[levels], offsets,
+                     log_det_step[levels], row_shift, step[:n_shared])
+
+
+def with_row_shift(prep: Prepared, shift: np.ndarray) -> Prepared:
+    """``prep`` with its weak-form rows moved by ``shift`` (whitened, (windows * rows,), :attr:`LevelStep.row_shift`):
+    the fit of the law, the drive and the level on them, the offsets held, lands where the offsets' marginal
+    likelihood has its minimum instead of the penalised residual's (a shift along the model's own columns: the
+    linear term the log-determinant adds to the objective, in the rows' form). Its size is that of the step,
+    ~1 sigma of the level: |shift|^2 is ~1 against a residual of ~21000 on a 60-period block, so the residual's
+    noise statistics (cross-validated error, chi-square) do not see it."""
+    shift = np.asarray(shift, dtype=float).reshape(prep.Y.shape)
+    return dataclasses.replace(prep, Y=prep.Y + shift * prep.row_sigma[None, :])

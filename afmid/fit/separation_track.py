@@ -26,8 +26,12 @@ error 0.09-1.67 % of the peak. The offsets come from the same rows as the law an
 takes them at the joint minimum over all three (:func:`afmid.fit.period_separation.joint_level_step`, linearised
 at the previous fit: the alternation alone left the 2 nm step of seed 81 11 pm short of it), and the levels'
 sigma gets the offsets' posterior share in quadrature (:func:`offsets_share`; 6 pm beside the profile's 16 pm
-there). What the true per-period d given inside the fit leaves (seed 81: every block ~40 pm low at 16 pm) is not
-the offsets' and is not covered (docs/lab/2026-11-29-scanning-record.md).
+there). That minimum is the offsets' marginal likelihood's, with its log-determinant: the fit that holds the
+offsets minimises the penalised residual, and offsets fitted to the rows' noise pull that minimum to a higher
+level and a stiffer law (+13 pm on flat records, where d does not move); the last fit's rows are shifted by the
+log-determinant's step (:func:`afmid.fit.period_separation.with_row_shift`). Each block's sigma is floored at the
+record's Cramér-Rao bound of a constant d (:func:`record_bounds`), as the plain fit's is
+(docs/lab/2026-11-29-scanning-record.md).
 """
 
 from __future__ import annotations
@@ -42,8 +46,9 @@ import numpy as np
 from afmid.config import RunConfig
 from afmid.errors import ConfigError
 from afmid.fit.joint import JointResult, fit_traces_jointly, trace_coefficients
-from afmid.fit.period_separation import (LevelStep, LinearisedBlock, joint_level_step, mean_force_offsets, ou_prior,
-                                        row_design, row_offsets, with_period_separation)
+from afmid.fit.period_separation import (LevelStep, LinearisedBlock, column_designs, joint_level_step,
+                                        mean_force_offsets, ou_prior, row_design, row_offsets, with_period_separation,
+                                        with_row_shift)
 from afmid.fit.system import library_columns
 from afmid.io.onset import crop
 from afmid.io.trace import Trace, check_trace
@@ -72,6 +77,9 @@ class SeparationTrack:
     #: with "rows": the levels, the law and the offsets linearised together at the fit (the levels' covariance
     #: given the offsets and with them marginalised; the joint minimum's step)
     level_step: LevelStep | None = None
+    #: per block, the Cramér-Rao bound of a d constant over the whole record at the block's fit (m; NaN: not
+    #: computed), the floor of ``sigma`` (:func:`record_bounds`)
+    information_bound: np.ndarray | None = None
 
 
 def block_periods_for(bandwidth: float, drive_frequency: float) -> int:
@@ -138,26 +146,85 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
     for fit_pass in range(2, passes + 1):
         offsets, priors = period_offsets(joint, unshifted, within_block)
         last = fit_pass == passes
+        shifts = None
         if within_block == "rows" and last and fit_pass > 2:
             # The offsets at the joint minimum over law, levels and offsets (linearised at this fit), not given
             # this fit's law: the alternation reaches that minimum only slowly (step 81 of the 2 nm step: the
-            # third fit's levels 11 pm short of it, where the true per-period d given inside the fit ends).
-            offsets = joint_level_step(linearised_blocks(joint, unshifted, offsets, priors)).offsets
+            # third fit's levels 11 pm short of it, where the true per-period d given inside the fit ends). The
+            # minimum is the offsets' marginal likelihood's: the fit below holds the offsets and minimises the
+            # penalised residual, whose minimum the offsets' fit to the noise pulls to a higher level and a
+            # stiffer law (+13 pm over 8 flat records); the rows' shift moves it by the log-determinant's step.
+            step = joint_level_step(linearised_blocks(joint, unshifted, offsets, priors, derivatives=True))
+            offsets, shifts = step.offsets, step.row_shift
+            log.info("separation track: the offsets' log-determinant moves the levels by %s pm",
+                     np.round(step.log_det_change * 1e12, 1))
         joint = fit_traces_jointly(config, configs, blocks, progress, uncertainty and last,
-                                   adjust_prepared=lambda i, prep: with_period_separation(prep, offsets[i]))
+                                   adjust_prepared=lambda i, prep, shifts=shifts: moved_preparation(
+                                       prep, offsets[i], None if shifts is None else shifts[i]))
     first = np.array([b.first_sample - trace.first_sample for b in blocks])
     stop = first + np.array([b.n_samples for b in blocks])
     separation = np.array([t.separation.value for t in joint.traces])
     sigma = np.array([t.separation.sigma for t in joint.traces])
     level_step = None
     if within_block == "rows":
-        level_step = joint_level_step(linearised_blocks(joint, unshifted, offsets, priors))
+        level_step = joint_level_step(linearised_blocks(joint, unshifted, offsets, priors, derivatives=True))
         sigma = np.sqrt(sigma**2 + offsets_share(level_step))
         log.info("separation track: the offsets add %s pm in quadrature to the levels' sigma; the joint minimum "
-                 "lies %s pm from the levels found", np.round(np.sqrt(offsets_share(level_step)) * 1e12, 1),
-                 np.round(level_step.level_change * 1e12, 1))
+                 "(the offsets' marginal likelihood's) lies %s pm from the levels found, its log-determinant's "
+                 "part %s pm", np.round(np.sqrt(offsets_share(level_step)) * 1e12, 1),
+                 np.round(level_step.level_change * 1e12, 1), np.round(level_step.log_det_change * 1e12, 1))
+    floor = record_bounds(config, joint) if uncertainty else np.full(len(blocks), math.nan)
+    raised = np.isfinite(floor) & (sigma < floor)
+    if np.any(raised):
+        log.info("separation track: sigma of block(s) %s raised to the record's information bound (%s pm; theirs "
+                 "%s pm)", np.flatnonzero(raised).tolist(), np.round(floor[raised] * 1e12, 1).tolist(),
+                 np.round(sigma[raised] * 1e12, 1).tolist())
+        sigma = np.where(raised, floor, sigma)
     return SeparationTrack(0.5 * (first + stop) / trace.sample_rate, first, stop, separation, sigma, bandwidth, joint,
-                           offsets, within_block, level_step)
+                           offsets, within_block, level_step, floor)
+
+
+def record_bounds(config: RunConfig, joint: JointResult) -> np.ndarray:
+    """Per block, the Cramér-Rao bound (m) of a separation constant over the whole record (all the blocks'
+    periods), at that block's fit (the joint law, the block's drive and d): the plain fit's floor
+    (:func:`afmid.fit.information_bound.fit_bound` on the block, its information scaled by the record's length).
+    NaN where the bound does not apply (:func:`afmid.fit.information_bound.bound_applies`) or the fitted law has
+    no steady state.
+
+    It floors each block's sigma: the track's model holds the one where the blocks' levels differ by known amounts
+    (a d constant over the record, for a flat record), and a block's level cannot be known better than that
+    common d; a shared drive only adds information, so the bound with one drive is still below the track's. The
+    track's own sigma fell below it on 3 of 8 flat records (14-15 pm against 15.8-16.0 pm)."""
+    from afmid.errors import AfmidError
+    from afmid.fit.forces import read_out
+    from afmid.fit.information_bound import bound_applies, fit_bound
+    from afmid.preprocess.instrument import from_config as instrument_from_config
+
+    plain = config.model_copy(update={"fit": config.fit.model_copy(update={"separation_track": None})})
+    instrument = instrument_from_config(plain)
+    p = len(joint.library)
+    coef = np.where(joint.selected, joint.coef, 0.0)
+    out = np.full(len(joint.traces), math.nan)
+    record_periods = sum(t.prep.blocks.n_blocks for t in joint.traces)
+    for i, t in enumerate(joint.traces):
+        why_not = bound_applies(t.prep, plain, instrument, t.single.drive_search)
+        if why_not is not None or t.separation is None:
+            log.info("separation track: no information bound for block %d: %s", i, why_not or "its d is given")
+            continue
+        mask = trace_coefficients(joint.system, joint.selected, i, p).astype(bool)
+        block_coef = trace_coefficients(joint.system, coef, i, p)
+        try:
+            bound = fit_bound(t.prep, joint.library, plain, t.single.system, block_coef, mask, t.params,
+                              {"d": t.separation}, instrument,
+                              lambda c, params, prep=t.prep, mask=mask: {
+                                  k: q["value"] for k, q in read_out(joint.library, c, None, params, mask,
+                                                                     prep.trace).items()})
+        except (ArithmeticError, AfmidError, np.linalg.LinAlgError) as exc:
+            log.info("separation track: no information bound for block %d: %s", i, exc)
+            continue
+        # The information grows with the record's length: the block's periods over all the blocks'.
+        out[i] = bound.of("d") * math.sqrt(t.prep.blocks.n_blocks / record_periods)
+    return out
 
 
 def offsets_share(step: LevelStep) -> np.ndarray:
@@ -193,11 +260,26 @@ def period_offsets(joint: JointResult, preparations: list, within_block: str = "
             [(0.0, 0.0)] * len(preparations))
 
 
+def moved_preparation(prep, offsets: np.ndarray, shift: np.ndarray | None):
+    """A block's preparation with its per-period offsets (m) and, when given, the rows' shift of the offsets'
+    log-determinant (:func:`afmid.fit.period_separation.with_row_shift`)."""
+    moved = with_period_separation(prep, offsets)
+    return moved if shift is None else with_row_shift(moved, shift)
+
+
+#: The step of the offsets' design's derivative in the level, m: the contact's curvature in d (F ~ delta^1.5,
+#: the design ~ delta^0.5) changes over hundreds of pm of indentation, so 10 pm is linear and far above
+#: :data:`afmid.fit.period_separation.DERIVATIVE_STEP`'s rounding.
+LEVEL_SLOPE_STEP = 10e-12
+
+
 def linearised_blocks(joint: JointResult, preparations: list, offsets: list[np.ndarray],
-                      priors: list[tuple[float, float]]) -> list[LinearisedBlock]:
+                      priors: list[tuple[float, float]], derivatives: bool = False) -> list[LinearisedBlock]:
     """Each block of ``joint`` linearised at its fit (:class:`afmid.fit.period_separation.LinearisedBlock`): its
     unshifted preparation moved by its ``offsets`` (m), the law's and the block's drive's selected columns, the
-    offsets' design and their OU prior ``priors`` ((sd in m, rho) per block)."""
+    offsets' design and their OU prior ``priors`` ((sd in m, rho) per block); with ``derivatives`` also the
+    design's derivatives in the shared law's selected coefficients and in the level (the offsets'
+    log-determinant: twelve evaluations of the columns per block instead of five)."""
     p = len(joint.library)
     coef = np.where(joint.selected, joint.coef, 0.0)
     law = coef[:p]
@@ -205,14 +287,20 @@ def linearised_blocks(joint: JointResult, preparations: list, offsets: list[np.n
     for i, (prep, t, moved, (sd, rho)) in enumerate(zip(preparations, joint.traces, offsets, priors)):
         chosen = trace_coefficients(joint.system, joint.selected, i, p).astype(bool)
         nuisance = trace_coefficients(joint.system, coef, i, p)[p:]
+        moved = np.asarray(moved, dtype=float)
         design, residual = row_design(prep, joint.library, law, nuisance, t.params, moved)
         sigma = prep.row_sigma[None, :, None]
         theta = library_columns(with_period_separation(prep, moved), joint.library, t.params) / sigma
         drive = prep.nuisance / sigma
-        out.append(LinearisedBlock(residual, np.asarray(moved, dtype=float),
-                                   theta[:, :, chosen[:p]].reshape(residual.size, -1),
+        shared_designs = level_slope = None
+        if derivatives:
+            shared_designs = column_designs(prep, joint.library, t.params, moved)[:, :, chosen[:p]]
+            up, down = (column_designs(prep, joint.library, t.params, moved + sign * LEVEL_SLOPE_STEP) @ law
+                        for sign in (1, -1))
+            level_slope = (up - down) / (2 * LEVEL_SLOPE_STEP)
+        out.append(LinearisedBlock(residual, moved, theta[:, :, chosen[:p]].reshape(residual.size, -1),
                                    drive[:, :, chosen[p:]].reshape(residual.size, -1), design,
-                                   ou_prior(prep.blocks.n_blocks, sd, rho)))
+                                   ou_prior(prep.blocks.n_blocks, sd, rho), shared_designs, level_slope))
     return out
 
 

@@ -37,7 +37,7 @@ SCANS = {"step": {"speed": 4e-6, "start": -5e-9, "step": {"height": 2e-9, "posit
          "flat": {"speed": 4e-6},
          # no feedback: the piezo still, d drops 0.4 nm mid-record (tests/fit/test_separation_track.py's record)
          "nofeedback": {"speed": 4e-6, "start": -1.6e-9, "step": {"height": 0.4e-9, "position": 0.0, "width": 0.1e-9}}}
-logging.getLogger("afmid").setLevel(logging.ERROR)
+logging.basicConfig(format="%(message)s"); logging.getLogger("afmid").setLevel(logging.ERROR); logging.getLogger("afmid.fit.separation_track").setLevel(logging.INFO)
 R, A0 = 1e-8, 0.165e-9
 
 
@@ -85,7 +85,7 @@ for seed in seeds:
           f"d-truth pm {np.round((track.separation - truth) * 1e12).astype(int).tolist()} sigma pm "
           f"{np.round(track.sigma * 1e12).astype(int).tolist()}; E* {e_star / 1e9:.3f} GPa; force error "
           f"{100 * err:.2f} % of peak; model-limited {limited}/{z.size}; terms {joint.selected_terms()}; "
-          f"{motion[0] if motion else 'motion: -'}; cpu sim {t_sim:.0f} s fit {time.process_time() - t1:.0f} s"
+          f"bound pm {np.round(track.information_bound * 1e12, 1).tolist()}; {motion[0] if motion else 'motion: -'}; cpu sim {t_sim:.0f} s fit {time.process_time() - t1:.0f} s"
           + (f"; offsets' share of sigma pm {np.round(np.sqrt(offsets_share(track.level_step)) * 1e12, 1).tolist()}, "
              f"joint minimum's step pm {np.round(track.level_step.level_change * 1e12, 1).tolist()}"
              if track.level_step is not None else ""),
