@@ -11,9 +11,10 @@ result is the value the same call makes here: the work reads what the fork copie
 than one item in this process, in the items' order, so a report is the same with one process or two.
 
 How many processes: :data:`REPORT_JOBS_ENV` (``AFMID_REPORT_JOBS``: 1 all here, 2 the default) and
-:func:`serial_reason` (not on Linux, one core, a daemonic or dask worker: all here). While the work is shared, each
-process gives a trace's chunks one thread (:data:`afmid.threads.TRACE_THREADS_ENV`: the same bits with any number,
-:func:`afmid.threads.map_in_order`), so two processes fill the two cores without four threads contending.
+:func:`serial_reason` (not on Linux, one core, a daemonic or dask worker: all here). While both processes work, each
+gives a trace's chunks one thread (:func:`afmid.threads.cores_shared`; the same bits with any number,
+:func:`afmid.threads.map_in_order`), so two processes fill the two cores without four threads contending; once one
+has nothing left to do, the other's chunks take both cores again.
 
 Refits made by the child are added to this process's count (:mod:`afmid.diagnosis.refit_count`). Interrupts and
 failures: the child takes the default SIGINT/SIGTERM actions (Ctrl-C ends it with the process group; this process
@@ -35,7 +36,7 @@ import traceback
 from collections.abc import Callable, Iterable, Iterator
 
 from afmid.errors import ConfigError
-from afmid.threads import TRACE_THREADS_ENV
+from afmid.threads import cores_shared
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +44,9 @@ log = logging.getLogger(__name__)
 #: figures beside the diagnosis, and one shares the diagnosis's independent searches).
 REPORT_JOBS_ENV = "AFMID_REPORT_JOBS"
 DEFAULT_REPORT_JOBS = 2
+
+#: The places of this process and of the child in :attr:`_Shared.working`.
+_PARENT, _CHILD = 0, 1
 
 #: The signals a forked child takes with their default actions (and the parent holds while it forks).
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -112,6 +116,9 @@ class _Shared:
         self.work, self.items = work, items
         context = multiprocessing.get_context("fork")
         self.next_item = context.Value("q", 0)  # the next unclaimed item's index (with its own lock)
+        #: [this process, the child]: 1 while it works on an item or on what the caller does between results
+        #: (read by the other to give its trace's chunks one thread or two: afmid.threads.cores_shared)
+        self.working = context.RawArray("b", [1, 1])
         self.context = context
 
     def claim(self) -> int | None:
@@ -126,9 +133,9 @@ class _Shared:
         from afmid.diagnosis.refit_count import count_refits
 
         done: dict[int, tuple[bool, object] | None] = {}  # index -> (raised, value); None: to be made here
-        threads = os.environ.get(TRACE_THREADS_ENV)
-        os.environ[TRACE_THREADS_ENV] = "1"  # the child inherits it: one chunk thread per process
         receiver, sender = self.context.Pipe(duplex=False)
+        working = self.working
+        cores_shared(lambda: bool(working[_CHILD]))  # the child's own view is set in the child
         process = self.context.Process(target=self._child, args=(sender, receiver, os.getpid()),
                                        name="afmid-diagnosis", daemon=True)
         held = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)  # no Ctrl-C before the child's defaults
@@ -155,19 +162,21 @@ class _Shared:
                 index = self.claim()
                 if index is not None:
                     done[index] = self._made(index)
-                elif child_open:  # everything is claimed: wait for the child's next result
-                    child_open = self._receive(receiver, done, count_refits, block=True)
+                elif child_open:  # everything is claimed: wait for the child's next result (its chunks on 2 cores)
+                    working[_PARENT] = 0
+                    try:
+                        child_open = self._receive(receiver, done, count_refits, block=True)
+                    finally:
+                        working[_PARENT] = 1
                 else:  # the child is gone: the items it claimed and did not return (all claimed, not done here)
                     if process.is_alive():  # it failed: nothing more is read from it
                         process.kill()
+                    working[_CHILD] = 0
                     for lost in range(following, len(self.items)):
                         if lost not in done:
                             done[lost] = self._made(lost)
         finally:
-            if threads is None:
-                os.environ.pop(TRACE_THREADS_ENV, None)
-            else:
-                os.environ[TRACE_THREADS_ENV] = threads
+            cores_shared(None)
             if process.is_alive():
                 process.kill()
             process.join()
@@ -210,6 +219,8 @@ class _Shared:
             signal.signal(signum, signal.SIG_DFL)
         signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
         receiver.close()  # the parent's end
+        working = self.working
+        cores_shared(lambda: bool(working[_PARENT]))
         try:
             made = refits_made()
             while True:
@@ -217,6 +228,7 @@ class _Shared:
                     os._exit(1)
                 index = self.claim()
                 if index is None:
+                    working[_CHILD] = 0
                     break
                 try:
                     raised, value = False, self.work(self.items[index])

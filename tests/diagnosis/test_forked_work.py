@@ -17,7 +17,7 @@ import pytest
 
 from afmid.diagnosis.forked_work import REPORT_JOBS_ENV, each_in_order, in_order, serial_reason
 from afmid.diagnosis.refit_count import count_refit, refits_made
-from afmid.threads import TRACE_THREADS_ENV
+from afmid.threads import TRACE_THREADS_ENV, trace_threads
 
 FORKS = serial_reason(2) is None
 needs_fork = pytest.mark.skipif(not FORKS, reason=f"one process here: {serial_reason(2)}")
@@ -34,16 +34,19 @@ def test_one_job_makes_everything_here():
 
 @needs_fork
 def test_two_jobs_share_the_items_and_give_them_in_order():
-    def slow(item: int) -> tuple[int, int]:
+    def slow(item: int) -> tuple[int, int, int]:
         time.sleep(0.05)  # long enough that the child takes items while this process works on others
-        return _square_and_pid(item)
+        return (*_square_and_pid(item), trace_threads())
 
-    threads = os.environ.get(TRACE_THREADS_ENV)
+    alone = trace_threads()
     got = in_order(slow, range(12), jobs=2)
-    assert [value for value, _ in got] == [i * i for i in range(12)]
-    pids = {pid for _, pid in got}
+    assert [value for value, _, _ in got] == [i * i for i in range(12)]
+    pids = {pid for _, pid, _ in got}
     assert os.getpid() in pids and len(pids) == 2, pids
-    assert os.environ.get(TRACE_THREADS_ENV) == threads  # one chunk thread per process only while shared
+    # One chunk thread per process while both work (unless AFMID_TRACE_THREADS says otherwise), as before after.
+    if not os.environ.get(TRACE_THREADS_ENV):
+        assert got[0][2] == 1, got
+    assert trace_threads() == alone
     assert multiprocessing.active_children() == []
 
 
