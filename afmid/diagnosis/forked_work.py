@@ -135,7 +135,6 @@ class _Shared:
         done: dict[int, tuple[bool, object] | None] = {}  # index -> (raised, value); None: to be made here
         receiver, sender = self.context.Pipe(duplex=False)
         working = self.working
-        cores_shared(lambda: bool(working[_CHILD]))  # the child's own view is set in the child
         process = self.context.Process(target=self._child, args=(sender, receiver, os.getpid()),
                                        name="afmid-diagnosis", daemon=True)
         held = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)  # no Ctrl-C before the child's defaults
@@ -146,6 +145,7 @@ class _Shared:
             sender.close()
         child_open = True
         try:
+            cores_shared(lambda: bool(working[_CHILD]))  # the child sets its own view
             following = 0
             while following < len(self.items):
                 if child_open:
