@@ -52,12 +52,27 @@ def limit_native_threads(environ: MutableMapping[str, str] | None = None, *, ove
             environ.setdefault(name, value)
 
 
+#: While set (:func:`cores_shared`): a function that says whether another process of the same job works on the
+#: cores now.
+_busy_elsewhere: list[Callable[[], bool] | None] = [None]
+
+
+def cores_shared(busy_elsewhere: Callable[[], bool] | None) -> None:
+    """Share the cores with another process of the same job (a report's forked child): while ``busy_elsewhere()``
+    says it works, :func:`trace_threads` gives one thread (two processes of one thread fill two cores, without
+    four threads contending); None ends the sharing. The bits do not depend on it (:func:`map_in_order`)."""
+    _busy_elsewhere[0] = busy_elsewhere
+
+
 def trace_threads() -> int:
     """Threads that work on the chunks of one trace: :data:`TRACE_THREADS_ENV` if set, else the cores this process
-    may run on, at most :data:`MAX_TRACE_THREADS`."""
+    may run on, at most :data:`MAX_TRACE_THREADS` (one while :func:`cores_shared` says another process uses them)."""
     value = os.environ.get(TRACE_THREADS_ENV, "").strip()
     if value:
         return max(1, int(value))
+    busy_elsewhere = _busy_elsewhere[0]
+    if busy_elsewhere is not None and busy_elsewhere():
+        return 1
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not Linux

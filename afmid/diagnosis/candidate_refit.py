@@ -128,7 +128,7 @@ def separation_starts(run, prepared, config: RunConfig) -> tuple[list[float], fl
     not reach a contact and changed nothing, and exponential damping was named, while a fit with viscoelastic
     added finds the separation within 4 pm.
 
-    The starts (where a candidate's shape is searched first; :func:`refit_candidate` keeps the start that ends
+    The starts (where a candidate's shape is searched first; :func:`search_candidate` keeps the start that ends
     lowest) are the run's estimate and the middle of the span: a shape searched at a separation far from the
     truth can lead the alternation into a worse valley (measured: a hydration candidate at ΔBIC -239 from the
     middle against -558 from the estimate; on another trace the other way round). An estimate not above zero (no
@@ -151,17 +151,19 @@ def separation_starts(run, prepared, config: RunConfig) -> tuple[list[float], fl
     return starts, low, high
 
 
-def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: list[str], shapes, fit_quick,
-                    quick_shape: bool = True):
-    """Refit ``config`` (the run's effects plus ``effect``) with the separation and the effect's shape re-profiled.
+def search_candidate(run, prepared, config: RunConfig, effect: str, shape_names: list[str], shapes,
+                     quick_shape: bool = True) -> tuple[RunConfig, dict[str, float]]:
+    """The search of a refit of ``config`` (the run's effects plus ``effect``) with the separation and the effect's
+    shape re-profiled: (the trial config, its separation and the effect's shape fixed; the shape found {name:
+    value}, empty when the fit is to search it). ``shapes`` is the diagnosis's
+    :class:`afmid.diagnosis.candidate_shapes.ShapeSearch`; :func:`fit_searched` then fits with both fixed.
 
-    ``shapes`` is the diagnosis's :class:`afmid.diagnosis.candidate_shapes.ShapeSearch`, ``fit_quick(config, prepared)``
-    its refit. The shape (at the current separation) and the separation (with that shape) are searched in
-    turn, REPROFILE_ROUNDS times from each of :func:`separation_starts` (the one that ends with the lower
-    residual is kept), then the fit runs with both fixed. Returns (fit result, the effect's shape parameters
-    {name: value}, the separation used, m). A failing quick shape search falls back to the fit's own search of
-    the shape (at the separation found without it).
-    """
+    The shape (at the current separation) and the separation (with that shape) are searched in turn,
+    REPROFILE_ROUNDS times from each of :func:`separation_starts` (the one that ends with the lower residual is
+    kept). A failing quick shape search falls back to the fit's own search of the shape (at the separation found
+    without it). What it reads of ``shapes`` beyond the call (its kept columns, the check of their shortcut per
+    library) is the same whichever candidate ran before: candidates are searched in any order, or apart
+    (afmid.diagnosis.forked_work)."""
     free = separation_estimated(run)
     quick = bool(shape_names) and config.fit.estimate_nonlinear and quick_shape
     if not free:
@@ -173,6 +175,14 @@ def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: 
         ends = [_reprofile(config, start, (low, high), effect, shape_names, shapes, quick, prepared)
                 for start in (starts if quick else starts[:1])]
         trial, shape, _ = min(ends, key=lambda end: end[2])
+    return trial, shape
+
+
+def fit_searched(searched: tuple[RunConfig, dict[str, float]], shape_names: list[str], prepared, fit_quick):
+    """The candidate's refit: ``fit_quick(config, prepared)`` of :func:`search_candidate`'s trial config; (fit result,
+    the effect's shape parameters {name: value}, from the fit when the search left them to it; the separation used,
+    m)."""
+    trial, shape = searched
     result = fit_quick(trial, prepared)
     if not shape:
         shape = {k: est.value for k, est in result.nonlinear.items() if k in shape_names}
@@ -181,7 +191,7 @@ def refit_candidate(run, prepared, config: RunConfig, effect: str, shape_names: 
 
 def _reprofile(config: RunConfig, start: float, span, effect: str, shape_names: list[str], shapes, quick: bool,
                prepared):
-    """The alternation of :func:`refit_candidate` from separation ``start`` (m) over ``span`` (low, high; None:
+    """The alternation of :func:`search_candidate` from separation ``start`` (m) over ``span`` (low, high; None:
     the separation is given): (trial config, shape, the last separation search's residual; inf without one)."""
     trial = copy.deepcopy(config)
     trial.sample.separation = start

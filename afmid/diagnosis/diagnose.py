@@ -50,8 +50,9 @@ from afmid.config import RunConfig
 from afmid.errors import InputError
 from afmid.io.files import is_regular_file
 from afmid.io.trace import sha256_file
-from afmid.diagnosis.candidate_refit import (SEPARATION_WINDOW, refit_candidate, search_separation,
+from afmid.diagnosis.candidate_refit import (SEPARATION_WINDOW, fit_searched, search_candidate, search_separation,
                                              separation_estimated)
+import afmid.diagnosis.forked_work as forked_work
 from afmid.diagnosis.candidate_shapes import ShapeSearch, shape_words
 from afmid.diagnosis.base_columns import BaseColumns
 # Where the residual sits: afmid.diagnosis.localize (importable from here as before).
@@ -313,15 +314,19 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
     # Every refit's BIC and per-block chi-square is a deviance against the base refit's row weights.
     reference_sigma = base_result.prep.row_sigma
     trials: list[Trial] = []
-    for effect in counted(candidate_effects(run.effects, run.config.sample.medium), "report", "trying effects", "effects",
-                          progress, named=True):  # the candidate named, an ETA
+    effects = candidate_effects(run.effects, run.config.sample.medium)
+    # The candidates' shape and separation searches are independent (each reads the shared preparation and kept
+    # columns): shared with a forked child; each one's fit and everything after it here, in the candidates' order.
+    searches = forked_work.each_in_order(functools.partial(_searched_candidate, run, prepared, shapes), effects)
+    for effect, (searched, search_seconds) in zip(counted(effects, "report", "trying effects", "effects", progress,
+                                                          named=True), searches):  # the candidate named, an ETA
         t0 = time.perf_counter()
         config = refit_config(run, run.effects + [effect])
-        shape_names = [p.name for p in EFFECTS.get(effect).parameters
-                       if p.nonlinear and p.name not in config.model.parameters]
+        shape_names = _shape_names(effect, config)
         try:
-            result, shape, separation = refit_candidate(run, prepared, config, effect, shape_names, shapes, _fit_quick,
-                                                        QUICK_SHAPE)
+            if isinstance(searched, Exception):
+                raise searched
+            result, shape, separation = fit_searched(searched, shape_names, prepared, _fit_quick)
         except Exception as exc:  # one effect that cannot be fitted must not stop the diagnosis
             log.info("refit with %s failed: %s", effect, exc)
             continue
@@ -335,7 +340,7 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
         qty = {k: v for k, v in result.quantities.items() if v["effect"] == effect}
         trials.append(Trial(effect, result.cv_error, result.cv_error_noise_floor, bic_after, bic_after - base.bic,
                             chi2_after, limit_after, selected, qty, shape, _implausible(effect, qty, run),
-                            time.perf_counter() - t0, separation=separation,
+                            search_seconds + time.perf_counter() - t0, separation=separation,
                             block_chi2=decide.block_chi2(result, reference_sigma),
                             n_parameters=int(result.selection.best.mask.sum()) + len(shape),
                             space=functools.cache(functools.partial(rival_truth.model_space, prepared, result,
@@ -422,6 +427,23 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
     # Unexplained: what the user should check (calibration, channel, stationarity), never a fix without evidence.
     return checklist.with_what_to_check(summary, run, prepared, {t.effect: t.implausible for t in trials if t.implausible})
 
+
+
+def _shape_names(effect: str, config: RunConfig) -> list[str]:
+    """The candidate ``effect``'s nonlinear parameters its refit estimates (those ``config`` does not fix)."""
+    return [p.name for p in EFFECTS.get(effect).parameters if p.nonlinear and p.name not in config.model.parameters]
+
+
+def _searched_candidate(run: RunData, prepared, shapes: ShapeSearch, effect: str) -> tuple[object, float]:
+    """(the shape and separation search of ``effect``'s refit, :func:`search_candidate`'s (trial config, shape), or
+    the exception it raised; its seconds): one item of the candidates' shared work (afmid.diagnosis.forked_work)."""
+    started = time.perf_counter()
+    config = refit_config(run, run.effects + [effect])
+    try:
+        searched = search_candidate(run, prepared, config, effect, _shape_names(effect, config), shapes, QUICK_SHAPE)
+    except Exception as exc:  # told where the candidate's fit would be, and the diagnosis goes on
+        searched = exc
+    return searched, time.perf_counter() - started
 
 
 @dataclass

@@ -386,37 +386,42 @@ def check(base_result, cantilever, drive_frequency: float, declared: Instrument,
     ``declared`` is what the config declares already (its parts are not searched again). ``searched`` (a list)
     receives the best candidate instrument of each kind the screen let through, named or not.
     """
+    from afmid.diagnosis.forked_work import in_order
+
     s = screen(base_result, cantilever, drive_frequency)
     log.debug("instrument screen: %s", s)
-    candidates = []
     cache: dict = {}
 
-    def fitted(instrument: Instrument):
+    def fitted(instrument: Instrument, seen: dict):
+        """The refit's numbers with ``instrument`` declared, from ``seen`` (the search's refits) when made before."""
         key = instrument
-        if key not in cache:
+        if key not in seen:
             try:
-                cache[key] = _RefitNumbers.of(refit(instrument))
+                seen[key] = _RefitNumbers.of(refit(instrument))
             except Exception as exc:  # a candidate that cannot be fitted is no candidate
                 log.debug("instrument refit with %s failed: %s", instrument.describe(), exc)
-                cache[key] = None
-        return cache[key]
+                seen[key] = None
+        return seen[key]
 
-    def bic(instrument: Instrument) -> float:
+    def error_of(instrument: Instrument, seen: dict) -> float:
         """The search's objective: the cross-validated force error (not the BIC: each candidate reweights the
         rows by its own noise gains, so BICs of different candidates are not comparable within a search)."""
-        result = fitted(instrument)
+        result = fitted(instrument, seen)
         return math.inf if result is None or not math.isfinite(result.cv_error) else float(result.cv_error)
 
     top = drive_frequency * (base_result.prep.blocks.K + 0.5)
-    if declared.detector is None and s.detector_fires:
+
+    def detector_search(seen: dict) -> tuple:
         # The fit absorbs much of a lag into a wrong force law, so the screen's bandwidth is no guide: search
         # from 1.5 f to the highest harmonic (a 2-pole Butterworth, the usual anti-alias filter).
         def make(log_bw):
             return Instrument(Detector(float(10**log_bw), "butterworth", 2), declared.higher_modes)
-        _golden(lambda v: bic(make(v)), math.log10(1.5 * drive_frequency), math.log10(top), SEARCH_REFITS + 2)
-        best_detector = _best_seen(cache, "detector")
-        candidates.append(("detector_bandwidth", best_detector, best_detector.detector.bandwidth))
-    if s.fires(s.mode_chi2) and math.isfinite(s.mode_frequency):
+        _golden(lambda v: error_of(make(v), seen), math.log10(1.5 * drive_frequency), math.log10(top),
+                SEARCH_REFITS + 2)
+        best_detector = _best_seen(seen, "detector")
+        return ("detector_bandwidth", best_detector, best_detector.detector.bandwidth), seen
+
+    def mode_search(seen: dict) -> tuple:
         f0, k1 = cantilever.resonance_frequency, cantilever.spring_constant
 
         def make_mode(f2, k2):
@@ -428,30 +433,47 @@ def check(base_result, cantilever, drive_frequency: float, declared: Instrument,
         # screen's estimate and three searches) is kept, not the last search's end point.
         span = 0.5 * drive_frequency
         if math.isfinite(s.mode_stiffness):
-            bic(make_mode(s.mode_frequency, s.mode_stiffness))  # the screen's own estimate
-        _golden(lambda f: bic(make_mode(f, k1 * (f / f0) ** 2)), s.mode_frequency - span, s.mode_frequency + span,
-                SEARCH_REFITS)
-        mode = _best_seen(cache, "higher_modes").higher_modes[-1]
+            error_of(make_mode(s.mode_frequency, s.mode_stiffness), seen)  # the screen's own estimate
+        _golden(lambda f: error_of(make_mode(f, k1 * (f / f0) ** 2), seen), s.mode_frequency - span,
+                s.mode_frequency + span, SEARCH_REFITS)
+        mode = _best_seen(seen, "higher_modes").higher_modes[-1]
         k_guess = math.log10(mode.spring_constant)
-        _golden(lambda v: bic(make_mode(mode.resonance_frequency, 10**v)), k_guess - 0.5, k_guess + 0.5,
+        _golden(lambda v: error_of(make_mode(mode.resonance_frequency, 10**v), seen), k_guess - 0.5, k_guess + 0.5,
                 SEARCH_REFITS)
-        mode = _best_seen(cache, "higher_modes").higher_modes[-1]
-        _golden(lambda f: bic(make_mode(f, mode.spring_constant)), mode.resonance_frequency - 0.05 * drive_frequency,
-                mode.resonance_frequency + 0.05 * drive_frequency, SEARCH_REFITS - 2)
+        mode = _best_seen(seen, "higher_modes").higher_modes[-1]
+        _golden(lambda f: error_of(make_mode(f, mode.spring_constant), seen),
+                mode.resonance_frequency - 0.05 * drive_frequency, mode.resonance_frequency + 0.05 * drive_frequency,
+                SEARCH_REFITS - 2)
         # Then both together from the best seen (the valley runs along k_2 (1 - (n / r_2)^2) = const).
         from scipy.optimize import minimize
 
-        mode = _best_seen(cache, "higher_modes").higher_modes[-1]
+        mode = _best_seen(seen, "higher_modes").higher_modes[-1]
         start = np.array([mode.resonance_frequency / drive_frequency, math.log10(mode.spring_constant)])
-        minimize(lambda p: bic(make_mode(p[0] * drive_frequency, 10 ** p[1])), start, method="Nelder-Mead",
+        minimize(lambda p: error_of(make_mode(p[0] * drive_frequency, 10 ** p[1]), seen), start,
+                 method="Nelder-Mead",
                  options={"maxfev": POLISH_REFITS, "initial_simplex": [start, start + [0.02, 0], start + [0, 0.03]]})
-        best_mode = _best_seen(cache, "higher_modes")
-        candidates.append(("second_eigenmode", best_mode, best_mode.higher_modes[-1].resonance_frequency))
+        best_mode = _best_seen(seen, "higher_modes")
+        return ("second_eigenmode", best_mode, best_mode.higher_modes[-1].resonance_frequency), seen
+
+    searches = []
+    if declared.detector is None and s.detector_fires:
+        searches.append(detector_search)
+    if s.fires(s.mode_chi2) and math.isfinite(s.mode_frequency):
+        searches.append(mode_search)
+    # The two searches refit different instruments (a detector, a mode): apart, each with its own refits, on two
+    # cores (afmid.diagnosis.forked_work). Not when modes are declared: a detector candidate then carries them, and
+    # the mode search's best seen (in order, after the detector's refits) may be one of those.
+    apart = not declared.higher_modes
+    found = in_order(lambda search: search({} if apart else cache), searches, None if apart else 1)
+    candidates = []
+    for candidate, seen in found:
+        cache.update(seen)
+        candidates.append(candidate)
     if searched is not None:
         searched.extend(instrument for _, instrument, _ in candidates)
     best = None
     for kind, instrument, frequency in candidates:
-        result = fitted(instrument)
+        result = fitted(instrument, cache)
         if result is None:
             continue
         delta = result.bic + 2.0 * math.log(max(result.n_rows, 2)) - base_bic
@@ -555,21 +577,31 @@ def reprofiled(config, prepared, instruments: list, fit_quick) -> float | None:
     """The rest separation (m) the fit estimates (its own search over its whole range, ``sample.separation``
     absent) with the one of ``instruments`` declared whose fit has the lowest cross-validated error; None when
     no such fit succeeds."""
+    from afmid.diagnosis.forked_work import in_order
+
     free = copy.deepcopy(config)
     free.sample.separation = None
     refit = _refit(free, prepared, fit_quick)
-    best = (math.inf, None)
-    for instrument in instruments:
+
+    def estimated(instrument: Instrument) -> tuple[float, float] | None:
+        """(cross-validated error, separation estimate in m) of the fit with ``instrument``; None without one."""
         try:
             result = refit(instrument)
         except Exception as exc:  # a candidate that cannot be fitted gives no separation
             log.debug("separation with %s not estimated: %s", instrument.describe(), exc)
-            continue
+            return None
         estimate = result.nonlinear.get("d")
         log.debug("separation with %s: %s (error %.3g)", instrument.describe(), estimate and estimate.value,
                   result.cv_error)
-        if estimate is not None and math.isfinite(estimate.value) and result.cv_error < best[0]:
-            best = (float(result.cv_error), float(estimate.value))
+        if estimate is None or not math.isfinite(estimate.value):
+            return None
+        return float(result.cv_error), float(estimate.value)
+
+    best = (math.inf, None)
+    # Independent fits, shared with a forked child (afmid.diagnosis.forked_work); the best chosen here, in order.
+    for found in in_order(estimated, instruments):
+        if found is not None and found[0] < best[0]:
+            best = found
     return best[1]
 
 

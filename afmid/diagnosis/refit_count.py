@@ -11,6 +11,11 @@ def count_refit() -> None:
     _made[0] += 1
 
 
+def count_refits(made: int) -> None:
+    """``made`` more refits, made for this process's diagnosis by a forked child (afmid.diagnosis.forked_work)."""
+    _made[0] += int(made)
+
+
 def refits_made() -> int:
-    """Refits made so far in this process."""
+    """Refits made so far for this process's diagnoses (those of its forked child included)."""
     return _made[0]

@@ -10,7 +10,8 @@ report writes (same code, same data: the child is a copy of the parent at the fo
 map`` make no reports, so their workers never fork here.
 
 Serial instead (the same figures drawn in this process when they are asked for), decided by
-:func:`serial_reason`: ``AFMID_REPORT_JOBS=1`` (:data:`REPORT_JOBS_ENV`; 2, the default, allows the child); not on
+:func:`afmid.diagnosis.forked_work.serial_reason` (the diagnosis shares its independent searches with a child by the
+same rule): ``AFMID_REPORT_JOBS=1`` (:data:`REPORT_JOBS_ENV`; 2, the default, allows the child); not on
 Linux (macOS's system libraries are not fork-safe, Python starts processes there with spawn; Windows has no fork);
 fewer than two cores for this process (``taskset``, a batch scheduler's CPU set); a daemonic process (a process
 pool's worker, which may not have children) or a dask worker (its cores belong to its cluster).
@@ -31,59 +32,13 @@ import multiprocessing
 import os
 import pickle
 import signal
-import sys
 import traceback
 from collections.abc import Callable, Iterator
 
-from afmid.errors import ConfigError
+# How many processes a report may use and when it stays serial: one setting for the figures and the diagnosis.
+from afmid.diagnosis.forked_work import REPORT_JOBS_ENV, STOP_SIGNALS, report_jobs, serial_reason  # noqa: F401
 
 log = logging.getLogger(__name__)
-
-#: Processes ``afmid report`` may use for its figures: 1 (serial) or 2 (the default: a child beside the diagnosis).
-REPORT_JOBS_ENV = "AFMID_REPORT_JOBS"
-DEFAULT_REPORT_JOBS = 2
-
-#: The signals the child takes with their default actions (and the parent holds while it forks).
-_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-def report_jobs(environ=None) -> int:
-    """The processes allowed by :data:`REPORT_JOBS_ENV` (unset: :data:`DEFAULT_REPORT_JOBS`); ConfigError for
-    anything but 1 or 2."""
-    text = (os.environ if environ is None else environ).get(REPORT_JOBS_ENV, "").strip()
-    if not text:
-        return DEFAULT_REPORT_JOBS
-    if text not in ("1", "2"):
-        raise ConfigError(f"must be 1 (figures drawn serially) or 2 (drawn beside the diagnosis), got {text!r}",
-                          key=REPORT_JOBS_ENV)
-    return int(text)
-
-
-def serial_reason(jobs: int) -> str | None:
-    """Why the figures are drawn in this process, or None when a forked child may draw them."""
-    if jobs < 2:
-        return f"{REPORT_JOBS_ENV}=1"
-    if not sys.platform.startswith("linux") or "fork" not in multiprocessing.get_all_start_methods():
-        return "processes are not forked on this platform"
-    if len(os.sched_getaffinity(0)) < 2:
-        return "one core for this process"
-    if multiprocessing.current_process().daemon:
-        return "a daemonic worker process"
-    if _inside_dask_worker():
-        return "a dask worker"
-    return None
-
-
-def _inside_dask_worker() -> bool:
-    distributed = sys.modules.get("distributed")  # only if already imported: a dask worker has imported it
-    if distributed is None:
-        return False
-    try:
-        distributed.get_worker()
-    except ValueError:  # "No worker found": not in a worker
-        return False
-    return True
-
 
 class Figures:
     """The figures drawn aside. :meth:`get` gives ``{name: PNG file name}`` of the figures drawn from the start;
@@ -106,7 +61,7 @@ class Figures:
                                   args=(self._draws, self._later, child_results, child_answers, (results, answers),
                                         os.getpid()))
         # Held across the fork, so that a Ctrl-C cannot reach the child before it has its default handlers.
-        held = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+        held = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
         try:
             process.start()
         finally:
@@ -172,9 +127,9 @@ class Figures:
 def _child(draws, later, results, answers, parent_ends, parent: int) -> None:
     """The forked child: draw each of ``draws``, send ``("ok", {name: PNG})``; then wait for the answer and do the
     same with ``later``; an error is sent as ``("error", traceback text)`` and ends it."""
-    for signum in _STOP_SIGNALS:
+    for signum in STOP_SIGNALS:
         signal.signal(signum, signal.SIG_DFL)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     for end in parent_ends:  # so that the parent's death reads as end of file here
         end.close()
     try:
