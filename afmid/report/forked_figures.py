@@ -11,8 +11,9 @@ map`` make no reports, so their workers never fork here.
 
 Serial instead (the same figures drawn in this process when they are asked for), decided by
 :func:`afmid.diagnosis.forked_work.serial_reason` (the diagnosis shares its independent searches with a child by the
-same rule): ``AFMID_REPORT_JOBS=1`` (:data:`REPORT_JOBS_ENV`; 2, the default, allows the child); not on
-Linux (macOS's system libraries are not fork-safe, Python starts processes there with spawn; Windows has no fork);
+same rule): ``AFMID_REPORT_JOBS=1`` (:data:`afmid.diagnosis.forked_work.REPORT_JOBS_ENV`; 2, the default, allows
+the child); not on Linux (macOS's system libraries are not fork-safe, Python starts processes there with spawn;
+Windows has no fork);
 fewer than two cores for this process (``taskset``, a batch scheduler's CPU set); a daemonic process (a process
 pool's worker, which may not have children) or a dask worker (its cores belong to its cluster).
 
@@ -36,7 +37,7 @@ import traceback
 from collections.abc import Callable, Iterator
 
 # How many processes a report may use and when it stays serial: one setting for the figures and the diagnosis.
-from afmid.diagnosis.forked_work import REPORT_JOBS_ENV, STOP_SIGNALS, report_jobs, serial_reason  # noqa: F401
+from afmid.diagnosis.forked_work import STOP_SIGNALS, report_jobs, serial_reason
 
 log = logging.getLogger(__name__)
 

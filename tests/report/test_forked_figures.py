@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 from afmid.errors import ConfigError
-from afmid.report.forked_figures import REPORT_JOBS_ENV, figures_aside, report_jobs, serial_reason
+from afmid.diagnosis.forked_work import REPORT_JOBS_ENV
+from afmid.report.forked_figures import figures_aside, report_jobs, serial_reason
 from tests.cli.test_output_safety import run_path  # noqa: F401  (a fixture: a run file of the corpus trace)
 
 FORKS = serial_reason(2) is None
