@@ -12,8 +12,8 @@ distribution, and the full run behind ``AFMID_COVERAGE_FULL=1`` (``make coverage
 - full (AFMID_COVERAGE_FULL=1): every distribution in configs/coverage/ with AFMID_COVERAGE_DRAWS draws (default
   200) on AFMID_COVERAGE_JOBS workers (default 2), tables and files written to AFMID_COVERAGE_OUT (default
   coverage_results/); it asserts issue 28's target: for every quantity 2-sigma coverage >= 90 % and no |z| > 5
-  that no flag marked. docs/coverage.md has the numbers it gave before the intervals were made honest. The blind
-  loop's distributions (configs/coverage/loop_*.yaml) have their own full test in test_loop.py.
+  that no flag marked. docs/lab/2026-11-coverage-history.md has the numbers it gave before the intervals were made
+  honest. The blind loop's distributions (configs/coverage/loop_*.yaml) have their own full test in test_loop.py.
 """
 
 from __future__ import annotations
