@@ -473,8 +473,8 @@ def write_run_contents(h5, run: RunData) -> None:
 
 
 def write_joint(h5, run: RunData) -> None:
-    """A joint fit's ``/joint`` (docs/file-formats.md, "Joint fits"): the traces' table, a group per trace with
-    its per-period forces, and ``/model``'s note that its law is shared."""
+    """A joint fit's ``/joint`` (docs/file-formats.md, "`/joint` — several traces, one force law"): the traces'
+    table, a group per trace with its per-period forces, and ``/model``'s note that its law is shared."""
     traces = run.joint
     g = h5.create_group("joint")
     for name, value in run.joint_attrs.items():  # config, layout, meaning, n_traces, search_evaluations
