@@ -254,7 +254,8 @@ def finish(state: FitState, uncertainty: bool = True) -> None:
     warning line)."""
     # The read-out's module is loaded here, not with this one: the report and the batch summary read this module's
     # labels and thresholds without loading the fit's numerics.
-    from afmid.fit.forces import read_out
+    from afmid.fit.forces import read_out, row_noise_excess
+    from afmid.fit.inband_noise import measured_noise_words
 
     if uncertainty:
         state.force_calibration = propagate_calibration(
@@ -265,6 +266,10 @@ def finish(state: FitState, uncertainty: bool = True) -> None:
     mark_model_limited(state.quantities, state.model_limited)
     if state.model_limited:
         state.warn(model_limited_warning(state.cv_error, state.noise_floor, state.floor_dof))
+    if state.prep.form != "strong":
+        words = measured_noise_words(row_noise_excess(state.prep), state.prep.blocks.harmonics)
+        if words:
+            state.warn(words)
 
 
 def shift_variance(quantities: dict, shifts: list, read_out_at) -> dict[str, float]:
