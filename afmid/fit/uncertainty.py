@@ -272,6 +272,19 @@ def finish(state: FitState, uncertainty: bool = True) -> None:
             state.warn(words)
 
 
+def error_beyond_split(q: dict) -> float:
+    """The part of read-out ``q``'s 1 sigma that its statistical / calibration split does not hold (the
+    quantity's unit; 0 when the two make it up to 1 %): the widenings added after the split, the separation's
+    interval of a model-limited fit (the profile weighed against the misfit) and a declared drive's calibration.
+    Without it the split's parts, 1000x smaller than the 1 sigma they are said to make up, misread as the error."""
+    error = q.get("error", math.nan)
+    stat, cal = q.get("error_statistical", math.nan), q.get("error_calibration", 0.0)
+    if not (math.isfinite(error) and math.isfinite(stat) and math.isfinite(cal)):
+        return 0.0
+    rest = math.sqrt(max(error**2 - stat**2 - cal**2, 0.0))
+    return rest if rest > 0.01 * error else 0.0
+
+
 def shift_variance(quantities: dict, shifts: list, read_out_at) -> dict[str, float]:
     """Per read-out, the sum over ``shifts`` (pairs of coefficient vectors at +-1 sigma of a calibration) of the
     squared half-difference of the read-outs ``read_out_at(coefficients)`` (units of each quantity, squared)."""
