@@ -162,7 +162,7 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
         model = np.einsum("bkm,m->bk", system.theta[test], coef[:p]).mean(axis=0)
         # The error's noise: the held-out periods' own, plus the noise of the model fitted on the other periods.
         columns = np.concatenate([system.theta[test].mean(axis=0), prep.nuisance[test].mean(axis=0)], axis=1)
-        held_out = prep.row_sigma * np.sqrt(excess / test.size)
+        held_out = prep.row_sigma / math.sqrt(test.size) * np.sqrt(excess)  # x 1.0 exactly for white noise
         sigma = np.sqrt(held_out**2 + excess * prediction_variance(trained, mask, columns))
         errors.add(free, model, sigma, held_out, rows)
     return errors.result()

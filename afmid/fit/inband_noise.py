@@ -7,7 +7,7 @@ coloured: on Bruker's HSDC record the rows' period-to-period scatter is 5-11x (i
 harmonic (11x at the 1st, 9x at the 10th, 6x at the 30th). With the prediction, the error's noise floor is that
 much too low, and the signal gate (a harmonic's mean above its per-period noise) lets in harmonics whose mean
 is 2.5 measured sigmas of the held-out average: on that record's second half harmonics 15, 17 and 25 (0.85-1.4
-MHz, where the inverted force multiplies the deflection by n^2) took 60 % of the counted force and 96 % of the
+MHz, where the inverted force multiplies the deflection by n^2) took 60 % of the counted force and 99 % of the
 floor, which stood 5x the first half's with the same noise rms.
 
 What is measured: each row's second difference across periods, X[b+1] - 2 X[b] + X[b-1], whose variance is 6x
