@@ -19,6 +19,7 @@ from afmid.io.trace import Trace, create_dataset, write_dataset
 from afmid.physics.library import Library
 from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import shaped_effect
+from afmid.fit.inband_noise import excess_variance
 from afmid.fit.prepare import CHUNK_BLOCKS
 from afmid.threads import map_in_order
 
@@ -48,12 +49,26 @@ def signal_rows(prep: Prepared, system: System, coef: np.ndarray) -> np.ndarray:
     """Rows whose mean inverted force stands above the per-block noise."""
     F = inverted_force_coefficients(prep, system, coef)
     mean = np.abs(F.mean(axis=0))
-    rows = mean > SIGNAL_SNR * prep.block_sigma
     harmonics = prep.blocks.harmonics
+    # coloured detector noise: each harmonic's noise raised by its rows' measured excess (the same deflection
+    # noise at that harmonic, through the weak form's operator instead of the per-period one)
+    rows = mean > SIGNAL_SNR * prep.block_sigma * np.sqrt(row_noise_excess(prep))
     # Keep cos/sin of a harmonic together.
     for n in np.unique(harmonics[rows]):
         rows[harmonics == n] = True
     return rows
+
+
+def at_numerical_floor(prep: Prepared) -> bool:
+    """The record is noise-free: its noise level is the preparation's floor (1e-9 of the amplitude)."""
+    return bool(prep.noise_rms <= 1e-9 * prep.drive.amplitude * (1.0 + 1e-9))
+
+
+def row_noise_excess(prep: Prepared) -> np.ndarray:
+    """The factor (>= 1) by which each weak-form row's noise variance, as measured across the record's periods,
+    exceeds ``prep.row_sigma``'s prediction (:func:`afmid.fit.inband_noise.excess_variance`; ones for white
+    noise)."""
+    return excess_variance(prep.Y, prep.row_sigma**2, prep.blocks.harmonics, noise_free=at_numerical_floor(prep))
 
 
 def _power(F: np.ndarray, harmonics: np.ndarray) -> np.ndarray:
@@ -138,6 +153,7 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
         return _time_domain_cv_error(prep, system, mask, folds)
     errors = FoldErrors(prep.blocks.harmonics)
     p = system.theta.shape[2]
+    excess = row_noise_excess(prep)  # coloured detector noise: the rows' noise as measured, not as predicted
     for test in regression.fold_slices(system.T_blocks.shape[0], folds):
         train = regression.training_blocks(system.T_blocks.shape[0], test)
         trained = regression.combine(system.T_blocks[train])
@@ -146,8 +162,8 @@ def force_cv_error(prep: Prepared, system: System, mask: np.ndarray, rows: np.nd
         model = np.einsum("bkm,m->bk", system.theta[test], coef[:p]).mean(axis=0)
         # The error's noise: the held-out periods' own, plus the noise of the model fitted on the other periods.
         columns = np.concatenate([system.theta[test].mean(axis=0), prep.nuisance[test].mean(axis=0)], axis=1)
-        held_out = prep.row_sigma / math.sqrt(test.size)
-        sigma = np.sqrt(held_out**2 + prediction_variance(trained, mask, columns))
+        held_out = prep.row_sigma / math.sqrt(test.size) * np.sqrt(excess)  # x 1.0 exactly for white noise
+        sigma = np.sqrt(held_out**2 + excess * prediction_variance(trained, mask, columns))
         errors.add(free, model, sigma, held_out, rows)
     return errors.result()
 

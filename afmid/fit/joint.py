@@ -39,7 +39,7 @@ import afmid.fit.regression as regression
 from afmid.config import RunConfig
 from afmid.errors import AfmidError, ConfigError, InputError
 from afmid.fit.fit_state import FitState
-from afmid.fit.forces import FoldErrors, prediction_variance, read_out, signal_rows
+from afmid.fit.forces import FoldErrors, prediction_variance, read_out, row_noise_excess, signal_rows
 from afmid.fit.orchestration import (ErrorEstimate, NoSpread, Settled, Stages, StratifiedBagging, Undetermined,
                                      orchestrate)
 from afmid.fit.pipeline import FitResult, profile_library, run_fit, whole_effects
@@ -688,6 +688,7 @@ def trace_cv_error(joint: JointSystem, prep: Prepared, system: System, mask: np.
     others = np.concatenate([np.arange(0, b0), np.arange(b1, joint.T_blocks.shape[0])]).astype(int)
     q = joint.T_blocks.shape[-1] - 1
     rows = signal_rows(prep, system, trace_coefficients(joint, coef, i, p))  # of the shared law: the same each fold
+    excess = row_noise_excess(prep)  # coloured detector noise, as the single fit's error (afmid.fit.inband_noise)
     for test in regression.fold_slices(b1 - b0, folds):
         train = np.concatenate([others, b0 + regression.training_blocks(b1 - b0, test)])
         trained = regression.combine(joint.T_blocks[train])
@@ -698,7 +699,7 @@ def trace_cv_error(joint: JointSystem, prep: Prepared, system: System, mask: np.
         cols = np.zeros((prep.Y.shape[1], q))
         cols[:, :p] = system.theta[test].mean(axis=0)
         cols[:, c0:c1] = prep.nuisance[test].mean(axis=0)
-        held_out = prep.row_sigma / math.sqrt(test.size)
-        sigma = np.sqrt(held_out**2 + prediction_variance(trained, mask, cols))
+        held_out = prep.row_sigma / math.sqrt(test.size) * np.sqrt(excess)
+        sigma = np.sqrt(held_out**2 + excess * prediction_variance(trained, mask, cols))
         errors.add(free, model, sigma, held_out, rows)
     return errors.result()

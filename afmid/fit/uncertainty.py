@@ -254,7 +254,8 @@ def finish(state: FitState, uncertainty: bool = True) -> None:
     warning line)."""
     # The read-out's module is loaded here, not with this one: the report and the batch summary read this module's
     # labels and thresholds without loading the fit's numerics.
-    from afmid.fit.forces import read_out
+    from afmid.fit.forces import read_out, row_noise_excess
+    from afmid.fit.inband_noise import measured_noise_words
 
     if uncertainty:
         state.force_calibration = propagate_calibration(
@@ -265,6 +266,23 @@ def finish(state: FitState, uncertainty: bool = True) -> None:
     mark_model_limited(state.quantities, state.model_limited)
     if state.model_limited:
         state.warn(model_limited_warning(state.cv_error, state.noise_floor, state.floor_dof))
+    if state.prep.form != "strong":
+        words = measured_noise_words(row_noise_excess(state.prep), state.prep.blocks.harmonics)
+        if words:
+            state.warn(words)
+
+
+def error_beyond_split(q: dict) -> float:
+    """The part of read-out ``q``'s 1 sigma that its statistical / calibration split does not hold (the
+    quantity's unit; 0 when the two make it up to 1 %): the widenings added after the split, the separation's
+    interval of a model-limited fit (the profile weighed against the misfit) and a declared drive's calibration.
+    Without it the split's parts, 1000x smaller than the 1 sigma they are said to make up, misread as the error."""
+    error = q.get("error", math.nan)
+    stat, cal = q.get("error_statistical", math.nan), q.get("error_calibration", 0.0)
+    if not (math.isfinite(error) and math.isfinite(stat) and math.isfinite(cal)):
+        return 0.0
+    rest = math.sqrt(max(error**2 - stat**2 - cal**2, 0.0))
+    return rest if rest > 0.01 * error else 0.0
 
 
 def shift_variance(quantities: dict, shifts: list, read_out_at) -> dict[str, float]:

@@ -30,7 +30,8 @@ from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import effect_for, tip_geometry
 from afmid.diagnosis.checklist import check_lines
 from afmid.diagnosis.candidate_shapes import shape_words
-from afmid.fit.uncertainty import INTERVALS_STATISTICAL, STATISTICAL_ONLY_TEXT, calibration_declared, intervals_kind
+from afmid.fit.uncertainty import (INTERVALS_STATISTICAL, STATISTICAL_ONLY_TEXT, calibration_declared, error_beyond_split,
+                                   intervals_kind)
 from afmid.report.figures import figure_html
 from afmid.report.folder import report_folder
 from afmid.report.forked_figures import figures_aside
@@ -517,6 +518,9 @@ def quantity_cell(q: dict) -> str:
     if q.get("error_calibration", 0.0) > 0 and math.isfinite(q["error"]):
         kind += (f"; stat {format_value(q.get('error_statistical', math.nan), q['unit'], 2)} / "
                  f"cal {format_value(q['error_calibration'], q['unit'], 2)}")
+        rest = error_beyond_split(q)
+        if rest > 0:
+            kind += f" / rest {format_value(rest, q['unit'], 2)}"
     text = format_measurement(q["value"], q["error"], q["unit"], kind=kind)
     if q.get("model_limited"):
         text += " [model-limited]"

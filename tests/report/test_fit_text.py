@@ -112,6 +112,24 @@ def test_quantity_line_flags_an_implausible_read_out():
     assert "IMPLAUSIBLE" in quantity_line("viscosity", q_nan)
 
 
+def test_the_one_sigma_split_names_the_part_added_after_it():
+    """The HSDC record's first half (k 0.8 N/m, 50 nm/V, calibration uncertainties declared) read "hamaker = (0 ±
+    4)e7 zJ (1σ); of the 1σ: statistical 87000 zJ, calibration 34 zJ": the model-limited separation's widening,
+    added after the split, was in neither part. Now the rest is named: sqrt(4.19e-14^2 - 8.7e-17^2 - 3.4e-20^2) J
+    = 4.19e-14 J to 3 digits; without a rest (the parts make the 1 sigma) nothing is added; the table's cell
+    likewise."""
+    from afmid.report.fit_text import quantity_line
+    from afmid.report.page import quantity_cell
+
+    q = {"value": 3.43e-19, "error": 4.19e-14, "error_statistical": 8.7e-17, "error_calibration": 3.4e-20,
+         "ci_low": -8.2e-14, "ci_high": 8.2e-14, "unit": "J", "effect": "dmt", "model_limited": True}
+    line = quantity_line("hamaker", q)
+    assert "of the 1σ: statistical 87000 zJ, calibration 34 zJ, the rest 4.2e7 zJ" in line, line
+    assert "stat 87000 zJ / cal 34 zJ / rest 4.2e7 zJ" in quantity_cell(q), quantity_cell(q)
+    made_up = dict(q, error=math.hypot(8.7e-17, 3.4e-20))
+    assert "the rest" not in quantity_line("hamaker", made_up) and "rest" not in quantity_cell(made_up)
+
+
 def test_fit_says_once_that_intervals_are_statistical_only_without_a_declared_calibration(traces, run_cli):
     """Issue 29: without k, Q or invols uncertainties the read-out and the run file say the intervals hold noise
     only; with one declared (here invols, on a config that has none) neither says it."""
