@@ -6,6 +6,7 @@ the record and ``afmid.load`` gives the same fit back; bad requests get one-line
 from __future__ import annotations
 
 import copy
+import json
 
 import h5py
 import numpy as np
@@ -119,3 +120,31 @@ def test_bad_track_requests_get_one_line_errors(track_fit, scan):
     with pytest.raises(ConfigError, match="leave sample.separation out"):
         afmid.ForceModel(["dmt"], separation=8e-9, separation_track=TRACK).fit(record)
     assert "separation_track=5000 Hz (constant within a block)" in repr(afmid.ForceModel.of(track_fit))
+
+
+def _without_seconds(details: dict) -> dict:
+    """A diagnosis's answer without its timings (each refit's seconds differ from run to run)."""
+    text = json.dumps(details, sort_keys=True, default=str)
+    data = json.loads(text)
+    data.pop("seconds", None)
+    for entry in data.get("tried", []) + data.get("suggestions", []) + data.get("undecided", []):
+        entry.pop("seconds", None)
+    return data
+
+
+@pytest.mark.slow
+def test_a_tracks_diagnosis_in_memory_is_its_run_files(track_fit, tmp_path, monkeypatch):
+    """``Fit.diagnose()`` of a track in memory is ``afmid report``'s diagnosis of its run file (the candidates
+    refitted on block 0 with its d held, the record re-read from the input file): the same answer; ``save()`` after
+    it keeps the answer, which the loaded fit reuses without a refit."""
+    from afmid.diagnosis.refit_count import refits_made
+
+    monkeypatch.setenv("AFMID_DIAGNOSIS_CACHE", "off")
+    undiagnosed = track_fit.save(tmp_path / "undiagnosed.h5")
+    made = track_fit.diagnose()
+    from_file = afmid.load(undiagnosed).diagnose()
+    assert _without_seconds(from_file.details) == _without_seconds(made.details)
+    assert made.verdict and made.details["tried"]
+    before = refits_made()
+    kept = afmid.load(track_fit.save(tmp_path / "diagnosed.h5")).diagnose()
+    assert refits_made() == before and kept.details == made.details
