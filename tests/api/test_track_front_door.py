@@ -148,3 +148,16 @@ def test_a_tracks_diagnosis_in_memory_is_its_run_files(track_fit, tmp_path, monk
     before = refits_made()
     kept = afmid.load(track_fit.save(tmp_path / "diagnosed.h5")).diagnose()
     assert refits_made() == before and kept.details == made.details
+
+
+def test_a_track_of_several_files_is_one_line(scan, tmp_path, run_cli):
+    """``afmid fit`` of ``fit.separation_track`` with ``data.paths``: one line naming data.path, exit 2, no file."""
+    _, path, config_path = scan
+    raw = yaml.safe_load(config_path.read_text())
+    raw["data"] = {"paths": [str(path), str(path)]}
+    config = tmp_path / "paths.yaml"
+    config.write_text(yaml.safe_dump(raw))
+    code, out, err = run_cli("fit", config, "-o", tmp_path / "run.h5")
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert "data.path: a separation track is fitted on one record" in lines[0] and not (tmp_path / "run.h5").exists()
