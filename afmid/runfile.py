@@ -841,7 +841,7 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
                                                                             math.nan)),
         force_total_uncertainty=float(h5["force"]["estimate"].attrs.get("total_relative_uncertainty", math.nan)),
         joint=read_joint_traces(h5["joint"]) if "joint" in h5 else None,
-        separation_track=read_separation_track(m["separation_track"]) if "separation_track" in m else None,
+        separation_track=read_separation_track(m["separation_track"], path) if "separation_track" in m else None,
         joint_attrs=read_joint_attrs(h5["joint"]) if "joint" in h5 else {},
         stored_config=text(h5.attrs.get("config", ""), errors="replace"),
         intervals=text(h5.attrs.get("intervals", "")),
@@ -901,16 +901,21 @@ def first_track_block(track: dict) -> dict:
             "period_offsets": None if offsets is None else np.asarray(offsets[0], dtype=float)}
 
 
-def read_separation_track(group) -> dict:
-    """``/model/separation_track`` (:func:`write_separation_track`) as :attr:`RunData.separation_track`: the
-    datasets as stored, the per-period offsets split per block (None when the file holds none)."""
+def read_separation_track(group, path: Path | None = None) -> dict:
+    """``/model/separation_track`` (:func:`write_separation_track`) of the run file ``path`` as
+    :attr:`RunData.separation_track`: the datasets as stored, the per-period offsets split per block (None when the
+    file holds none); InputError when the bandwidth is missing."""
+    if "bandwidth" not in group.attrs:
+        raise InputError("missing attribute 'bandwidth' of /model/separation_track (damaged or incomplete run file)",
+                         file=path, key="/model/separation_track@bandwidth")
     offsets = None
     if "period_offsets" in group and "period_offset_counts" in group:
         counts = group["period_offset_counts"][...]
         offsets = np.split(group["period_offsets"][...], np.cumsum(counts)[:-1])
     track = {name: group[name][...] for name in TRACK_ARRAYS}
-    track.update(bandwidth=float(group.attrs["bandwidth"]), within_block=text(group.attrs["within_block"]),
-                 period_offsets=offsets)
+    # Files written before d could move within a block have no within_block: d was held per block
+    track.update(bandwidth=float(group.attrs["bandwidth"]),
+                 within_block=text(group.attrs.get("within_block", "constant")), period_offsets=offsets)
     return {key: track[key] for key in TRACK_KEYS}
 
 

@@ -161,3 +161,23 @@ def test_a_track_of_several_files_is_one_line(scan, tmp_path, run_cli):
     lines = [line for line in err.strip().splitlines() if line.strip()]
     assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
     assert "data.path: a separation track is fitted on one record" in lines[0] and not (tmp_path / "run.h5").exists()
+
+
+def test_a_damaged_track_group_is_one_input_error(track_fit, tmp_path):
+    """A run file whose /model/separation_track lost its bandwidth or a dataset: one InputError naming it; one
+    without ``within_block`` (written before d could move within a block) reads as held per block."""
+    from afmid.errors import InputError
+
+    saved = track_fit.save(tmp_path / "track.h5")
+    with h5py.File(saved, "a") as h5:
+        del h5["model/separation_track"].attrs["within_block"]
+    assert afmid.load(saved).separation_track.within_block == "constant"
+    with h5py.File(saved, "a") as h5:
+        del h5["model/separation_track"].attrs["bandwidth"]
+    with pytest.raises(InputError, match="separation_track@bandwidth: missing attribute 'bandwidth'"):
+        afmid.load(saved)
+    with h5py.File(saved, "a") as h5:
+        h5["model/separation_track"].attrs["bandwidth"] = TRACK["bandwidth"]
+        del h5["model/separation_track/separation_error"]
+    with pytest.raises(InputError, match="missing /model/separation_track/separation_error"):
+        afmid.load(saved)
