@@ -492,11 +492,12 @@ def write_separation_track(group, track: dict) -> None:
     group.attrs["units"] = "bandwidth: Hz"
     group.attrs["meaning"] = ("the rest separation d(t) (topography under feedback) per block of whole drive periods, "
                               "fitted jointly with one force law; block i is /joint/trace_<i>")
-    write_dataset(group, "time", track["time"], "s", definition="each block's middle, from the record's first sample")
-    write_dataset(group, "first_sample", track["first_sample"], "1")
-    write_dataset(group, "stop_sample", track["stop_sample"], "1", definition="one past the block's last sample")
-    write_dataset(group, "separation", track["separation"], "m", definition="rest separation d of the block")
-    write_dataset(group, "separation_error", track["separation_error"], "m", error_kind="1 sigma")
+    notes = {"time": {"definition": "each block's middle, from the record's first sample"}, "first_sample": {},
+             "stop_sample": {"definition": "one past the block's last sample"},
+             "separation": {"definition": "rest separation d of the block"},
+             "separation_error": {"error_kind": "1 sigma"}}
+    for name, unit in TRACK_ARRAYS.items():
+        write_dataset(group, name, track[name], unit, **notes[name])
     offsets = track["period_offsets"]
     if offsets is not None:
         write_dataset(group, "period_offsets", np.concatenate(offsets), "m",
