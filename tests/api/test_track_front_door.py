@@ -136,12 +136,14 @@ def _without_seconds(details: dict) -> dict:
 def test_a_tracks_diagnosis_in_memory_is_its_run_files(track_fit, tmp_path, monkeypatch):
     """``Fit.diagnose()`` of a track in memory is ``afmid report``'s diagnosis of its run file (the candidates
     refitted on block 0 with its d held, the record re-read from the input file): the same answer; ``save()`` after
-    it keeps the answer, which the loaded fit reuses without a refit."""
+    it keeps the answer, which the loaded fit reuses without a refit; ``report()`` after it writes the folder."""
     from afmid.diagnosis.refit_count import refits_made
 
     monkeypatch.setenv("AFMID_DIAGNOSIS_CACHE", "off")
     undiagnosed = track_fit.save(tmp_path / "undiagnosed.h5")
     made = track_fit.diagnose()
+    track_fit.report(tmp_path / "report")
+    assert (tmp_path / "report" / "report.html").is_file()
     from_file = afmid.load(undiagnosed).diagnose()
     assert _without_seconds(from_file.details) == _without_seconds(made.details)
     assert made.verdict and made.details["tried"]
