@@ -171,16 +171,8 @@ def fit(
     from afmid.fit.pipeline import apply_effect_changes
 
     apply_effect_changes(cfg, add_effects, remove_effects)
-    if cfg.fit.separation_track is not None:  # d(t) per block of one record, one force law
-        from afmid.joint_runfile import fit_track
-        from afmid.report.fit_text import fit_text
-
-        def read_out(run_data):
-            return fit_text(run_data, verbose=_state["verbose"] > 0)
-
-        fit_track(cfg, output, overwrite, quiet=_state["quiet"], read_out=read_out)
-        return
-    from afmid.api import Fit  # the Python front door's calls (docs/python.md); data.paths: a joint fit
+    # The Python front door's calls (docs/python.md); data.paths: a joint fit; fit.separation_track: d(t) per block
+    from afmid.api import Fit
 
     fitted = Fit.from_config(cfg, progress=not _state["quiet"])
     fitted.save(output, overwrite=overwrite)

@@ -1,30 +1,27 @@
-"""The run files of a joint fit and of a separation track, and ``afmid fit`` of a separation track.
+"""The run records of a joint fit and of a separation track.
 
 :func:`joint_run_data` (:func:`joint_record`) is a joint fit's run record: the first trace's in the single-trace layout
 (:func:`afmid.runfile.run_data`; ``afmid report`` renders it: the first trace's plots, the shared parameters) with
 every trace's row and per-period forces (``/joint``: file, SHA-256, separation and its 1 sigma, cv error and noise
-floor; docs/file-formats.md, "Joint fits"); :func:`write_joint_run` writes it through
-:func:`afmid.runfile.write_run`, :func:`write_track_run` adds ``/model/separation_track``. They sit in the run
-files' layer, above the fit (docs/architecture.md, Layers): the fit (:mod:`afmid.fit.joint`,
-:mod:`afmid.fit.joint_output`, :mod:`afmid.fit.separation_track`) computes, this module records.
+floor; docs/file-formats.md, "Joint fits"); :func:`track_run` is a separation track's: its blocks' joint record with
+the track (``/model/separation_track``, :func:`track_record`). :func:`afmid.runfile.write_run` writes either from
+the record alone. They sit in the run files' layer, above the fit (docs/architecture.md, Layers): the fit
+(:mod:`afmid.fit.joint`, :mod:`afmid.fit.joint_output`, :mod:`afmid.fit.separation_track`) computes, this module
+records.
 """
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
-import click
 import numpy as np
 
-from afmid.config import RunConfig, dump_config
-from afmid.errors import ConfigError
+from afmid.config import dump_config
 from afmid.fit.joint import JointResult
 from afmid.fit.joint_output import JOINT_LAYOUT, trace_result
 from afmid.fit.pipeline import FitResult
-from afmid.fit.separation_track import SeparationTrack, fit_separation_track, track_table, write_track
-from afmid.io.trace import check_trace, load_trace
-from afmid.runfile import RunData, run_data, write_run
+from afmid.fit.separation_track import SeparationTrack
+from afmid.runfile import TRACK_KEYS, RunData, run_data, write_run
 
 
 def joint_run_data(result: JointResult, per_trace: list[FitResult], name: str = "fit") -> RunData:
@@ -56,37 +53,30 @@ def joint_record(result: JointResult, name: str = "fit") -> tuple[RunData, list[
     return joint_run_data(result, per_trace, name), per_trace
 
 
-def write_joint_run(path, result: JointResult, overwrite: bool = False, more=None) -> tuple[Path, list[FitResult]]:
-    """Write the joint run file (its record, :func:`joint_record`; ``more(h5)`` adds more inside the same atomic
-    write); returns the path and every trace's result (:func:`afmid.fit.joint_output.trace_result`)."""
-    run, per_trace = joint_record(result)
-    written = write_run(path, run, overwrite=overwrite, extra=more)
-    return written, per_trace
+def track_record(track: SeparationTrack) -> dict:
+    """A separation track as its run record holds it (:attr:`afmid.runfile.RunData.separation_track`, SI): the
+    blocks' middle times, sample ranges, d and 1 sigma, the bandwidth, how d moved within a block and, when it
+    moved, each block's per-period offsets."""
+    moved = bool(track.period_offsets) and track.within_block != "constant"
+    record = {"time": track.time, "first_sample": track.first_sample, "stop_sample": track.stop_sample,
+              "separation": track.separation, "separation_error": track.sigma, "bandwidth": float(track.bandwidth),
+              "within_block": track.within_block,
+              "period_offsets": [np.asarray(o, dtype=float) for o in track.period_offsets] if moved else None}
+    return {key: record[key] for key in TRACK_KEYS}
 
 
-def write_track_run(path, track: SeparationTrack, overwrite: bool = False):
-    """The joint run file of the blocks (:func:`write_joint_run`) with /model/separation_track; returns the path
-    and every block's result."""
-    return write_joint_run(path, track.joint, overwrite=overwrite,
-                           more=lambda h5: write_track(h5["model"].create_group("separation_track"), track))
+def track_run(track: SeparationTrack, name: str = "fit") -> tuple[RunData, list[FitResult]]:
+    """A separation track's run record: the joint record of its blocks (:func:`joint_record`: block 0's in the
+    single-trace layout, every block in ``/joint``) with the track (:func:`track_record`); and every block's
+    result."""
+    run, per_block = joint_record(track.joint, name)
+    run.separation_track = track_record(track)
+    return run, per_block
 
 
-def fit_track(config: RunConfig, output, overwrite: bool, quiet: bool, read_out) -> None:
-    """``afmid fit`` of a config with ``fit.separation_track``: the track, its run file, its read-out on stdout.
+def write_track_run(path, track: SeparationTrack, overwrite: bool = False) -> tuple[Path, list[FitResult]]:
+    """Write a separation track's run file from its record (:func:`track_run`); returns the path and every
+    block's result."""
+    run, per_block = track_run(track)
+    return write_run(path, run, overwrite=overwrite), per_block
 
-    ``read_out(run_data) -> str`` writes the first block's result (the caller passes the report's ``fit_text``:
-    the run files do not import the report above them, docs/architecture.md, Layers)."""
-    log = logging.getLogger("afmid.cli")
-    if config.data.path is None:
-        raise ConfigError("a separation track is fitted on one record: give data.path", file=config.source,
-                          key="data.path")
-    trace = check_trace(load_trace(config), config)
-    track = fit_separation_track(config, trace, config.fit.separation_track.bandwidth, progress=not quiet)
-    _, per_block = write_track_run(output, track, overwrite=overwrite)
-    log.info("wrote %s: %d blocks, one force law; terms: %s", output, len(track.separation),
-             ", ".join(track.joint.selected_terms()) or "none")
-    if not quiet:
-        click.echo(read_out(per_block[0]))
-        click.echo(track_table(track))
-    for line in track.joint.warnings:
-        log.warning("%s: %s", output, line.removeprefix("warning: "))

@@ -470,6 +470,40 @@ def write_run_contents(h5, run: RunData) -> None:
         dg.attrs["implausible"] = run.implausible
     if run.joint is not None:
         write_joint(h5, run)
+    if run.separation_track is not None:
+        write_separation_track(m.create_group("separation_track"), run.separation_track)
+
+
+#: /model/separation_track's format: what a reader of the group can rely on.
+TRACK_LAYOUT = "afmid separation track 1"
+#: The per-block datasets of /model/separation_track, with their units.
+TRACK_ARRAYS = {"time": "s", "first_sample": "1", "stop_sample": "1", "separation": "m", "separation_error": "m"}
+#: The keys of :attr:`RunData.separation_track`, in order.
+TRACK_KEYS = (*TRACK_ARRAYS, "bandwidth", "within_block", "period_offsets")
+
+
+def write_separation_track(group, track: dict) -> None:
+    """A separation track (:attr:`RunData.separation_track`) into HDF5 ``group`` (/model/separation_track): per
+    block its middle time (s), sample range, d (m) and 1 sigma (m); the bandwidth (Hz) and how d moved within a
+    block as attributes; the per-period offsets (m) when d moved within the blocks."""
+    group.attrs["layout"] = TRACK_LAYOUT
+    group.attrs["bandwidth"] = float(track["bandwidth"])
+    group.attrs["within_block"] = track["within_block"]
+    group.attrs["units"] = "bandwidth: Hz"
+    group.attrs["meaning"] = ("the rest separation d(t) (topography under feedback) per block of whole drive periods, "
+                              "fitted jointly with one force law; block i is /joint/trace_<i>")
+    notes = {"time": {"definition": "each block's middle, from the record's first sample"}, "first_sample": {},
+             "stop_sample": {"definition": "one past the block's last sample"},
+             "separation": {"definition": "rest separation d of the block"},
+             "separation_error": {"error_kind": "1 sigma"}}
+    for name, unit in TRACK_ARRAYS.items():
+        write_dataset(group, name, track[name], unit, **notes[name])
+    offsets = track["period_offsets"]
+    if offsets is not None:
+        write_dataset(group, "period_offsets", np.concatenate(offsets), "m",
+                      definition="each harmonic block's (period's) rest separation relative to its block's d, the "
+                                 "blocks one after the other (period_offset_counts per block)")
+        write_dataset(group, "period_offset_counts", np.array([o.size for o in offsets]), "1")
 
 
 def write_joint(h5, run: RunData) -> None:
@@ -569,10 +603,11 @@ class RunData:
     #: drive frequency (Hz), per-period curves (by name, as /periods). None for a single trace. The rest of
     #: RunData is trace 0's.
     joint: list[dict] | None = None
-    #: A separation track's first block (/model/separation_track), whose result the rest of RunData is: its
-    #: samples in the checked record (first_sample, stop_sample) and its periods' rest separations relative to its
-    #: d (period_offsets, m; None when d was held per block). None for a run without a track.
-    track_block: dict | None = None
+    #: A separation track (/model/separation_track, fit.separation_track), a dict of :data:`TRACK_KEYS`: each
+    #: block's middle time (s), sample range in the checked record, rest separation d and its 1 sigma (m), the
+    #: track's bandwidth (Hz), how d moved within a block and each block's per-period offsets (m; None when d was
+    #: held per block). The blocks are /joint's traces; the rest of RunData is block 0's. None without a track.
+    separation_track: dict | None = None
     joint_attrs: dict = field(default_factory=dict)  # /joint's attributes: config, layout, meaning, counts
     # What the file holds beside the read-outs above (the record is all the writer writes from).
     stored_config: str = ""  # the run config as stored (YAML, the root attribute ``config``)
@@ -592,6 +627,13 @@ class RunData:
     row_sigma: np.ndarray | None = None  # noise of each weak-form row, N s
     selection_path: dict = field(default_factory=dict)  # the candidate supports (:func:`selection_path`)
     implausible: list[str] = field(default_factory=list)  # why read-outs cannot be physical, in order
+
+    @property
+    def track_block(self) -> dict | None:
+        """A separation track's first block, whose result the rest of the record is: its samples in the checked
+        record (first_sample, stop_sample) and its periods' rest separations relative to its d (period_offsets, m;
+        None when d was held per block). None for a run without a track."""
+        return None if self.separation_track is None else first_track_block(self.separation_track)
 
     @property
     def residual(self) -> np.ndarray:
@@ -800,7 +842,7 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
                                                                             math.nan)),
         force_total_uncertainty=float(h5["force"]["estimate"].attrs.get("total_relative_uncertainty", math.nan)),
         joint=read_joint_traces(h5["joint"]) if "joint" in h5 else None,
-        track_block=read_track_block(m["separation_track"]) if "separation_track" in m else None,
+        separation_track=read_separation_track(m["separation_track"], path) if "separation_track" in m else None,
         joint_attrs=read_joint_attrs(h5["joint"]) if "joint" in h5 else {},
         stored_config=text(h5.attrs.get("config", ""), errors="replace"),
         intervals=text(h5.attrs.get("intervals", "")),
@@ -852,15 +894,30 @@ def run_config(raw: dict, path: Path, input_path: Path | None) -> RunConfig:
     return build_config(raw, source=path, base_dir=input_path.parent if input_path else path.parent)
 
 
-def read_track_block(track) -> dict:
-    """The first block of a separation track (``/model/separation_track``, afmid.fit.separation_track.write_track):
-    its sample range and its periods' offsets (m; None when the file holds none)."""
-    offsets = None
-    if "period_offsets" in track and "period_offset_counts" in track:
-        count = int(track["period_offset_counts"][0])
-        offsets = np.asarray(track["period_offsets"][:count], dtype=float)
+def first_track_block(track: dict) -> dict:
+    """The first block of a separation track (:attr:`RunData.separation_track`): its sample range and its periods'
+    offsets (m; None when d was held per block)."""
+    offsets = track["period_offsets"]
     return {"first_sample": int(track["first_sample"][0]), "stop_sample": int(track["stop_sample"][0]),
-            "period_offsets": offsets}
+            "period_offsets": None if offsets is None else np.asarray(offsets[0], dtype=float)}
+
+
+def read_separation_track(group, path: Path | None = None) -> dict:
+    """``/model/separation_track`` (:func:`write_separation_track`) of the run file ``path`` as
+    :attr:`RunData.separation_track`: the datasets as stored, the per-period offsets split per block (None when the
+    file holds none); InputError when the bandwidth is missing."""
+    if "bandwidth" not in group.attrs:
+        raise InputError("missing attribute 'bandwidth' of /model/separation_track (damaged or incomplete run file)",
+                         file=path, key="/model/separation_track@bandwidth")
+    offsets = None
+    if "period_offsets" in group and "period_offset_counts" in group:
+        counts = group["period_offset_counts"][...]
+        offsets = np.split(group["period_offsets"][...], np.cumsum(counts)[:-1])
+    track = {name: group[name][...] for name in TRACK_ARRAYS}
+    # Files written before d could move within a block have no within_block: d was held per block
+    track.update(bandwidth=float(group.attrs["bandwidth"]),
+                 within_block=text(group.attrs.get("within_block", "constant")), period_offsets=offsets)
+    return {key: track[key] for key in TRACK_KEYS}
 
 
 #: The keys of each trace of :attr:`RunData.joint`, in order.

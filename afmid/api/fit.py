@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from afmid.api.tables import Diagnosis, ForceCurve, Parameters
+from afmid.api.tables import Diagnosis, ForceCurve, Parameters, SeparationTrackTable
 from afmid.errors import ConfigError
 
 
@@ -35,7 +35,15 @@ class Fit:
     @classmethod
     def from_config(cls, config, progress: bool = False, name: str | None = None) -> "Fit":
         """The fit of a run config's own trace (``data.path``), or the joint fit of its traces (``data.paths``:
-        :meth:`of_joint`), as ``afmid fit CONFIG`` makes it."""
+        :meth:`of_joint`), or the separation track of its trace (``fit.separation_track``: :meth:`of_track`), as
+        ``afmid fit CONFIG`` makes it."""
+        if config.fit.separation_track is not None:
+            if config.data.path is None:
+                raise ConfigError("a separation track is fitted on one record: give data.path", file=config.source,
+                                  key="data.path")
+            from afmid.io.trace import load_trace
+
+            return cls.of_track(config, load_trace(config), progress=progress, name=name)
         if config.data.paths is not None:
             from afmid.fit.joint import run_joint_fit
 
@@ -56,6 +64,23 @@ class Fit:
         name = name or default_name(first)
         run, per_trace = joint_record(result, name)
         return cls(per_trace[0], first, name=name, run=run)
+
+    @classmethod
+    def of_track(cls, config, record, progress: bool = False, name: str | None = None) -> "Fit":
+        """The separation track of ``record`` (``config``'s ``fit.separation_track``: the record, checked as ``afmid
+        fit`` checks it, cut into blocks of whole periods fitted jointly, one force law and a d per block;
+        :func:`afmid.fit.separation_track.fit_separation_track`). Its run record is the blocks' joint record with
+        the track (:func:`afmid.joint_runfile.track_run`): the rest of the fit is block 0's; its trace is
+        ``record``."""
+        from afmid.fit.separation_track import fit_separation_track
+        from afmid.io.trace import check_trace
+        from afmid.joint_runfile import track_run
+
+        track = fit_separation_track(config, check_trace(record, config), config.fit.separation_track.bandwidth,
+                                     progress=progress)
+        name = name or default_name(config)
+        run, per_block = track_run(track, name)
+        return cls(per_block[0], config, trace=record, name=name, run=run)
 
     # ------------------------------------------------------------------ what the run holds
     @property
@@ -83,6 +108,13 @@ class Fit:
         cv_error_noise_floor, model_limited, drive_frequency (Hz) and its per-period curves (``periods``, SI, as
         the run file's ``/joint/trace_<i>/periods``). The rest of the fit is trace 0's, with the shared law."""
         return list(self.run.joint or [])
+
+    @property
+    def separation_track(self) -> SeparationTrackTable | None:
+        """A separation track's blocks (``fit.separation_track``): each block's time, d and its 1 sigma, samples
+        (SI, :class:`afmid.api.tables.SeparationTrackTable`); None for a fit without a track. The blocks are also
+        :attr:`joint`'s rows; the rest of the fit is block 0's."""
+        return SeparationTrackTable.of_run(self.run)
 
     @property
     def terms(self) -> list[str]:
@@ -119,8 +151,11 @@ class Fit:
 
     def summary_line(self) -> str:
         """One line for a log: ``cv_error 0.0434; terms: ...`` (the selected terms, or none); for a joint fit
-        ``joint fit of 2 traces; terms: ...`` (each trace has its own error: :attr:`joint`)."""
+        ``joint fit of 2 traces; terms: ...`` (each trace has its own error: :attr:`joint`); for a separation
+        track ``3 blocks, one force law; terms: ...``."""
         terms = ", ".join(self.terms) or "none"
+        if self.run.separation_track is not None:
+            return f"{len(self.run.separation_track['separation'])} blocks, one force law; terms: {terms}"
         if self.run.joint:
             return f"joint fit of {len(self.run.joint)} traces; terms: {terms}"
         return f"cv_error {self.cv_error:.4f}; terms: {terms}"
@@ -142,7 +177,10 @@ class Fit:
             raise ConfigError("the run file keeps no candidate supports with their criterion values (written by an "
                               "older afmid): verbose text needs a newer run file", file=self.run.path, key="verbose")
         text = fit_text(RunReadout(self.run), verbose=verbose)
-        if not self.run.joint or self.run.track_block is not None:  # a track's blocks: `afmid fit` prints d(t)
+        track = self.separation_track
+        if track is not None:  # the blocks' d(t), not the traces' table: every block is a part of one record
+            return f"{text}\n{track.text()}"
+        if not self.run.joint:
             return text
         from afmid.fit.joint_output import joint_table
 

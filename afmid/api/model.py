@@ -56,13 +56,22 @@ class ForceModel:
     ``terms``; ``parameters`` fixed nonlinear parameters (SI, e.g. a decay length); ``separation`` the rest
     separation d in m (None: estimated); ``a0`` the intermolecular distance in m; ``medium`` air or liquid;
     ``sample``, ``fit``, ``drive``: further keys of those config sections (e.g. ``fit={"bootstrap": 20}``; a
-    calibrated drive ``drive={"force_amplitude": ..., "phase": ...}``). Validated as a config file is."""
+    calibrated drive ``drive={"force_amplitude": ..., "phase": ...}``); ``separation_track`` the keys of
+    ``fit.separation_track`` (e.g. ``{"bandwidth": 2500.0}`` in Hz, ``"within_block": "rows"``): the record is
+    fitted in blocks, a rest separation per block, one force law (:meth:`afmid.api.fit.Fit.of_track`). Validated as
+    a config file is."""
 
     def __init__(self, effects: list[str] | tuple[str, ...] = ("dmt",), *, parameters: dict | None = None,
                  separation: float | None = None, a0: float | None = None, medium: str | None = None,
                  library: str | None = None, terms: list[str] | tuple[str, ...] = (), sample: dict | None = None,
-                 fit: dict | None = None, drive: dict | None = None):
+                 fit: dict | None = None, drive: dict | None = None, separation_track: dict | None = None):
         model: dict[str, Any] = {"terms": list(terms), "parameters": dict(parameters or {})}
+        fit = dict(fit or {})
+        if separation_track is not None:
+            if fit.get("separation_track") is not None:
+                raise ConfigError("the separation track is given twice: as separation_track=... and in "
+                                  "fit={'separation_track': ...}; give it once", file=MODEL, key="separation_track")
+            fit["separation_track"] = dict(separation_track)
         if library is None:
             model["effects"] = list(effects)
         else:
@@ -71,7 +80,7 @@ class ForceModel:
         for key, value in (("separation", separation), ("a0", a0), ("medium", medium)):
             if value is not None:
                 sample[key] = value
-        self._sections = {"model": model, "sample": sample, "fit": dict(fit or {}), "drive": dict(drive or {})}
+        self._sections = {"model": model, "sample": sample, "fit": fit, "drive": dict(drive or {})}
         self._checked = build_config(copy.deepcopy(self._sections), source=MODEL)  # a bad key fails here
 
     @classmethod
@@ -108,19 +117,28 @@ class ForceModel:
         """Identify the force law in ``trace`` (:func:`afmid.fit.pipeline.run_fit`, as ``afmid fit``): an
         :class:`afmid.api.fit.Fit` named ``name`` (default: its effects joined by +).
 
+        With a separation track (``separation_track=``), ``trace`` is one record, fitted in blocks
+        (:meth:`afmid.api.fit.Fit.of_track`, as ``afmid fit`` of ``fit.separation_track``).
+
         A list of traces of one sample, lever and tip is fitted jointly (:func:`afmid.fit.joint.fit_traces_jointly`,
         as ``afmid fit`` of ``data.paths``): one shared force law, a separation per trace; ``separations`` gives
         them (m, one per trace, None: estimated), as ``sample.separation`` does for ``data.paths``."""
         from afmid.api.fit import Fit
         from afmid.fit.pipeline import run_fit
 
+        tracked = self._checked.fit.separation_track is not None
         if isinstance(trace, (list, tuple)):
+            if tracked:
+                raise ConfigError("a separation track is fitted on one record: give one trace, not a list",
+                                  file=MODEL, key="fit(traces)")
             return self._fit_jointly(list(trace), progress, name, separations)
         self._check_trace(trace, "fit(trace)")
         if separations is not None:
             raise ConfigError("separations are given per trace of a joint fit; for one trace give "
                               "ForceModel(separation=...)", file=MODEL, key="fit(separations)")
         config = self.config(trace)
+        if tracked:
+            return Fit.of_track(config, trace, progress=progress, name=name)
         result = run_fit(config, progress=progress, trace=trace)
         return Fit(result, config, trace=trace, name=name)
 
@@ -193,4 +211,7 @@ class ForceModel:
                  if v]
         separation = self._checked.sample.separation
         extra.append("separation=estimated" if separation is None else f"separation={separation:g} m")
+        track = self._checked.fit.separation_track
+        if track is not None:
+            extra.append(f"separation_track={track.bandwidth:g} Hz ({track.within_block} within a block)")
         return f"ForceModel({', '.join([what] + extra)})"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -155,6 +156,72 @@ class ForceCurve:
         return (f"ForceCurve({self.phase.size} phase points, {self.periods} periods; separation "
                 f"{format_value(float(np.min(self.separation)), 'm')} to {format_value(float(np.max(self.separation)), 'm')}, "
                 f"peak force {format_value(float(np.max(self.force)), 'N')})")
+
+
+@dataclass(frozen=True, eq=False)
+class SeparationTrackTable:
+    """A separation track (``fit.separation_track``: one record cut into blocks of whole drive periods, one force law,
+    a rest separation per block), SI as the run file's ``/model/separation_track`` holds it: per block its middle
+    ``time`` (s, from the record's first sample), its rest ``separation`` d and that d's ``sigma`` (m, 1 sigma), its
+    samples ``first_sample`` to ``stop_sample`` (one past its last) of the checked record; the track's
+    ``bandwidth`` (Hz), ``within_block`` (how d moved inside a block: constant, mean_force or rows) and, when it
+    moved, ``period_offsets``: per block each period's d relative to the block's (m)."""
+
+    time: np.ndarray
+    separation: np.ndarray
+    sigma: np.ndarray
+    first_sample: np.ndarray
+    stop_sample: np.ndarray
+    bandwidth: float
+    within_block: str
+    period_offsets: tuple[np.ndarray, ...] | None = None
+    interval: str = ONE_SIGMA
+
+    #: The unit of each column (and of the bandwidth), SI.
+    UNITS: ClassVar[dict[str, str]] = {"time": "s", "separation": "m", "sigma": "m", "first_sample": "1",
+                                       "stop_sample": "1", "bandwidth": "Hz", "period_offsets": "m"}
+    COLUMNS: ClassVar[tuple[str, ...]] = ("block", "time", "separation", "sigma", "interval", "first_sample",
+                                          "stop_sample")
+
+    @classmethod
+    def of_run(cls, run) -> "SeparationTrackTable | None":
+        """The track of a run record (:attr:`afmid.runfile.RunData.separation_track`); None for a run without."""
+        track = run.separation_track
+        if track is None:
+            return None
+        offsets = track["period_offsets"]
+        return cls(track["time"], track["separation"], track["separation_error"], track["first_sample"],
+                   track["stop_sample"], float(track["bandwidth"]), track["within_block"],
+                   None if offsets is None else tuple(offsets))
+
+    def __len__(self) -> int:
+        return len(self.separation)
+
+    def to_dicts(self) -> list[dict]:
+        """One dict per block with the :attr:`COLUMNS` (SI, :attr:`UNITS`)."""
+        return [{"block": i, "time": float(t), "separation": float(d), "sigma": float(s), "interval": self.interval,
+                 "first_sample": int(a), "stop_sample": int(b)}
+                for i, (t, d, s, a, b) in enumerate(zip(self.time, self.separation, self.sigma, self.first_sample,
+                                                        self.stop_sample))]
+
+    def to_pandas(self):
+        """The blocks as a :class:`pandas.DataFrame` indexed by block (needs pandas, which afmid does not require)."""
+        try:
+            import pandas
+        except ImportError:
+            raise ImportError("SeparationTrackTable.to_pandas needs pandas, which is not installed (pip install "
+                              "pandas); to_dicts() gives the same rows as plain dicts") from None
+        return pandas.DataFrame(self.to_dicts(), columns=list(self.COLUMNS)).set_index("block")
+
+    def text(self) -> str:
+        """The track as ``afmid fit`` prints it: one line per block, its time in ms and d ± 1σ in nm."""
+        lines = [f"separation track at {self.bandwidth:g} Hz ({len(self)} blocks, one force law):"]
+        for t, d, s in zip(self.time, self.separation, self.sigma):
+            lines.append(f"  t = {t * 1e3:8.3f} ms: d = {d * 1e9:.3f} ± {s * 1e9:.3f} nm (1σ)")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return self.text()
 
 
 @dataclass

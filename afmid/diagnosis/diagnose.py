@@ -318,8 +318,11 @@ def _diagnose(run: RunData, progress: bool, trace) -> dict:
     # The candidates' shape and separation searches are independent (each reads the shared preparation and kept
     # columns): shared with a forked child; each one's fit and everything after it here, in the candidates' order.
     searches = forked_work.each_in_order(functools.partial(_searched_candidate, run, prepared, shapes), effects)
+    # strict: the searches run to their end here, so their child is joined now; left suspended, a candidate's
+    # re-raised error (a reference cycle through its traceback) keeps them until a garbage collection, which may
+    # come in a child forked later (the report's figures) and fail there on a process that is not its own
     for effect, (searched, search_seconds) in zip(counted(effects, "report", "trying effects", "effects", progress,
-                                                          named=True), searches):  # the candidate named, an ETA
+                                                          named=True), searches, strict=True):  # named, an ETA
         t0 = time.perf_counter()
         config = refit_config(run, run.effects + [effect])
         shape_names = _shape_names(effect, config)

@@ -62,7 +62,8 @@ MIN_BLOCK_PERIODS = 30
 
 @dataclass
 class SeparationTrack:
-    """The rest separation per block of a record (SI): what /model/separation_track holds."""
+    """The rest separation per block of a record (SI); its run record (afmid.joint_runfile.track_record) is what
+    /model/separation_track holds."""
 
     time: np.ndarray  # s, each block's middle, from the record's first sample
     first_sample: np.ndarray  # index of each block's first sample in the record
@@ -310,37 +311,3 @@ def linearised_blocks(joint: JointResult, preparations: list, offsets: list[np.n
 #: a law near the truth.
 PERIOD_OFFSET_PASSES = 3
 
-
-#: /model/separation_track's format: what a reader of the group can rely on.
-TRACK_LAYOUT = "afmid separation track 1"
-
-
-def write_track(group, track: SeparationTrack) -> None:
-    """``track`` into HDF5 ``group`` (/model/separation_track): per block its middle time (s), sample range, d (m)
-    and 1 sigma (m); the bandwidth (Hz) as an attribute."""
-    from afmid.io.trace import write_dataset
-
-    group.attrs["layout"] = TRACK_LAYOUT
-    group.attrs["bandwidth"] = float(track.bandwidth)
-    group.attrs["within_block"] = track.within_block
-    group.attrs["units"] = "bandwidth: Hz"
-    group.attrs["meaning"] = ("the rest separation d(t) (topography under feedback) per block of whole drive periods, "
-                              "fitted jointly with one force law; block i is /joint/trace_<i>")
-    write_dataset(group, "time", track.time, "s", definition="each block's middle, from the record's first sample")
-    write_dataset(group, "first_sample", track.first_sample, "1")
-    write_dataset(group, "stop_sample", track.stop_sample, "1", definition="one past the block's last sample")
-    write_dataset(group, "separation", track.separation, "m", definition="rest separation d of the block")
-    write_dataset(group, "separation_error", track.sigma, "m", error_kind="1 sigma")
-    if track.period_offsets and track.within_block != "constant":
-        write_dataset(group, "period_offsets", np.concatenate(track.period_offsets), "m",
-                      definition="each harmonic block's (period's) rest separation relative to its block's d, the "
-                                 "blocks one after the other (period_offset_counts per block)")
-        write_dataset(group, "period_offset_counts", np.array([o.size for o in track.period_offsets]), "1")
-
-
-def track_table(track: SeparationTrack) -> str:
-    """The track, one line per block: time (ms) and d +- 1 sigma (nm)."""
-    lines = [f"separation track at {track.bandwidth:g} Hz ({len(track.separation)} blocks, one force law):"]
-    for t, d, s in zip(track.time, track.separation, track.sigma):
-        lines.append(f"  t = {t * 1e3:8.3f} ms: d = {d * 1e9:.3f} ± {s * 1e9:.3f} nm (1σ)")
-    return "\n".join(lines)

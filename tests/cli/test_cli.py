@@ -170,7 +170,7 @@ def _stub_record(config):
         cv_error_floor_dof=math.nan, cv_error_folds=np.zeros(0), model_limited=False, n_periods=None,
         warnings=[], implausible=[], force_calibration_uncertainty=0.0, force_separation_uncertainty=math.nan,
         force_statistical_uncertainty=math.nan, force_selection_uncertainty=math.nan,
-        force_total_uncertainty=math.nan, inclusion=np.ones(1), selection_path={}, joint=None, track_block=None)
+        force_total_uncertainty=math.nan, inclusion=np.ones(1), selection_path={}, joint=None, separation_track=None)
 
 
 @pytest.fixture

@@ -1,7 +1,8 @@
 """A fit's run record (``afmid.runfile.run_data``) is the run its file gives back (``load_run`` of
 ``write_run``'s file), field by field, and the file is the record's serialisation: writing the record read back
 gives the same file, dataset by dataset and attribute by attribute (provenance aside), so the file holds nothing
-the record lacks. On the demo's fits and on a joint fit of two traces (``afmid.joint_runfile.joint_run_data``).
+the record lacks. On the demo's fits, on a joint fit of two traces (``afmid.joint_runfile.joint_run_data``) and
+on a separation track (``afmid.joint_runfile.track_run``: the blocks' joint record with /model/separation_track).
 
 The two are made by different code (one from the fit, one from HDF5), so each branch of the writer is covered by a
 fit that takes it: a fitted drive with the separation estimated and a linear drift column; a calibrated drive
@@ -199,4 +200,45 @@ def test_a_joint_fits_record_is_its_file(joint_fit):
     assert loaded.joint[0]["separation"] > loaded.joint[1]["separation"]  # A/A0 0.8 sits farther away
     assert loaded.joint_attrs["n_traces"] == 2
     again = write_run(folder / "joint.again.h5", loaded, overwrite=True)
+    assert _file_differences(written, again) == []
+
+
+@pytest.fixture(scope="module")
+def track_fit():
+    """The separation track of a 60-period record of a rough surface scanned under an amplitude feedback: two
+    blocks of 30 periods, d moved per period from the rows (``within_block: rows``: the per-period offsets written
+    too), no bootstrap (the intervals' branch is the single fits' above)."""
+    from afmid.fit.separation_track import fit_separation_track
+    from afmid.io.trace import check_trace
+    from afmid.simulate.driver import simulate
+    from tests.fit.test_separation_track import FEEDBACK_ROUGH, RAW
+
+    raw = copy.deepcopy(RAW)
+    raw["simulate"].update(periods=60, scan=FEEDBACK_ROUGH, seed=91)
+    raw["fit"]["bootstrap"] = 0
+    record = simulate(build_config(raw))
+    raw.pop("simulate")
+    raw["sample"].pop("separation")
+    raw["fit"]["separation_track"] = {"bandwidth": 5000.0, "within_block": "rows"}
+    config = build_config(raw)
+    return fit_separation_track(config, check_trace(record, config), 5000.0)
+
+
+def test_a_tracks_record_is_its_file(track_fit, tmp_path):
+    """A separation track's record (the blocks' joint record with the track, ``afmid.joint_runfile.track_run``) is
+    its file read back, field by field, the track included; and writing that gives the same file."""
+    from afmid.joint_runfile import track_run
+    from afmid.runfile import TRACK_KEYS, load_run, write_run
+
+    mine, _ = track_run(track_fit, "track.h5")
+    written = write_run(tmp_path / "track.h5", mine)
+    loaded = load_run(written)
+    fields = [f for f in vars(loaded) if f not in NOT_BY_VALUE]
+    assert fields == [f for f in vars(mine) if f not in NOT_BY_VALUE]
+    assert [d for f in fields for d in _differences(getattr(mine, f), getattr(loaded, f), f)] == []
+    track = loaded.separation_track
+    assert tuple(track) == TRACK_KEYS and track["within_block"] == "rows" and len(track["separation"]) == 2
+    assert [o.size for o in track["period_offsets"]] == [30, 30]  # a period's offset each
+    assert len(loaded.joint) == 2 and loaded.track_block["stop_sample"] == track["first_sample"][1]
+    again = write_run(tmp_path / "track.again.h5", loaded)
     assert _file_differences(written, again) == []

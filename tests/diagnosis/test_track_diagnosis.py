@@ -14,10 +14,11 @@ from afmid.config import build_config
 from afmid.diagnosis.diagnose import track_block_preparation
 from afmid.errors import InputError
 from afmid.fit.pipeline import prepare
-from afmid.fit.separation_track import SeparationTrack, cut_block, write_track
+from afmid.fit.separation_track import SeparationTrack, cut_block
 from afmid.io.trace import check_trace
 from afmid.preprocess.instrument import from_config as instrument_from_config
-from afmid.runfile import read_track_block
+from afmid.joint_runfile import track_record
+from afmid.runfile import first_track_block, read_separation_track, write_separation_track
 from afmid.simulate.driver import simulate
 
 RAW = {"cantilever": {"spring_constant": 40.0, "resonance_frequency": 3e5, "quality_factor": 250.0, "tip_radius": 1e-8},
@@ -30,19 +31,22 @@ RAW = {"cantilever": {"spring_constant": 40.0, "resonance_frequency": 3e5, "qual
 
 def test_the_track_file_keeps_each_blocks_period_offsets(tmp_path):
     """/model/separation_track holds the periods' offsets block after block with their counts (m, units); the run
-    reader gives the first block's range and offsets."""
+    reader splits them per block again and gives the first block's range and offsets."""
     offsets = [np.linspace(-5e-12, 5e-12, 19), np.linspace(3e-12, -3e-12, 21)]
     track = SeparationTrack(time=np.array([1e-4, 3e-4]), first_sample=np.array([0, 2000]),
                             stop_sample=np.array([2000, 4000]), separation=np.array([8.1e-9, 7.9e-9]),
                             sigma=np.array([3e-11, 3e-11]), bandwidth=2500.0, joint=None, period_offsets=offsets,
                             within_block="rows")
     with h5py.File(tmp_path / "track.h5", "w") as h5:
-        write_track(h5.create_group("separation_track"), track)
+        write_separation_track(h5.create_group("separation_track"), track_record(track))
     with h5py.File(tmp_path / "track.h5", "r") as h5:
         group = h5["separation_track"]
         assert group["period_offsets"].attrs["units"] == "m"
         np.testing.assert_array_equal(group["period_offset_counts"][...], [19, 21])
-        block = read_track_block(group)
+        read = read_separation_track(group)
+    for mine, stored in zip(offsets, read["period_offsets"], strict=True):  # float64 through HDF5: the same bits
+        np.testing.assert_array_equal(stored, mine)
+    block = first_track_block(read)
     assert (block["first_sample"], block["stop_sample"]) == (0, 2000)
     np.testing.assert_array_equal(block["period_offsets"], offsets[0])
 

@@ -120,14 +120,16 @@ def test_within_block_is_constant_unless_asked_and_checked():
 
 def test_the_run_file_says_how_d_moved_within_a_block(tmp_path):
     """/model/separation_track records ``within_block`` beside the blocks' d and their units."""
-    from afmid.fit.separation_track import SeparationTrack, write_track
+    from afmid.fit.separation_track import SeparationTrack
+    from afmid.joint_runfile import track_record
+    from afmid.runfile import write_separation_track
 
     track = SeparationTrack(time=np.array([1e-4, 3e-4]), first_sample=np.array([0, 6000]),
                             stop_sample=np.array([6000, 12000]), separation=np.array([8.1e-9, 7.9e-9]),
                             sigma=np.array([3e-11, 3e-11]), bandwidth=2500.0, joint=None,
                             within_block="mean_force")
     with h5py.File(tmp_path / "track.h5", "w") as h5:
-        write_track(h5.create_group("separation_track"), track)
+        write_separation_track(h5.create_group("separation_track"), track_record(track))
     with h5py.File(tmp_path / "track.h5", "r") as h5:
         group = h5["separation_track"]
         assert group.attrs["within_block"] == "mean_force"
