@@ -3,8 +3,8 @@
 :func:`joint_run_data` (:func:`joint_record`) is a joint fit's run record: the first trace's in the single-trace layout
 (:func:`afmid.runfile.run_data`; ``afmid report`` renders it: the first trace's plots, the shared parameters) with
 every trace's row and per-period forces (``/joint``: file, SHA-256, separation and its 1 sigma, cv error and noise
-floor; docs/file-formats.md, "Joint fits"); :func:`track_run` is a separation track's: its blocks' joint record with
-the track (``/model/separation_track``, :func:`track_record`). :func:`afmid.runfile.write_run` writes either from
+floor; docs/file-formats.md, "`/joint` — several traces"); :func:`track_run` is a separation track's: its blocks'
+joint record with the track (``/model/separation_track``, :func:`track_record`). :func:`afmid.runfile.write_run` writes either from
 the record alone. They sit in the run files' layer, above the fit (docs/architecture.md, Layers): the fit
 (:mod:`afmid.fit.joint`, :mod:`afmid.fit.joint_output`, :mod:`afmid.fit.separation_track`) computes, this module
 records.

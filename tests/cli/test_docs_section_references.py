@@ -1,12 +1,13 @@
 """Every section of a Markdown page that the docs and the tests point a reader to is still on that page.
 
 The docs name a section by its title in quotes after the page: ``docs/accuracy.md, "Poor signals"`` or
-``bench/README.md "Cold start"``. When a topic doc's history moves to docs/lab/, a section cited elsewhere must
-stay (or the citation follow it); otherwise the reader lands on a page without it. A quoted title resolves when,
-case and line breaks aside, it is part of a heading or of a bold paragraph label (``**Threads.**``) of the page.
-Pages are looked up from the repository's root, from docs/, and beside the citing file. Checked: README.md,
-docs/*.md, bench/README.md and the tests (docstrings and comments); docs/lab/ is history and may cite a page as it
-was. Every relative Markdown link ``[text](path)`` in the same Markdown pages must name a file that exists.
+``bench/README.md "Cold start"``. When a topic doc's history moves to docs/lab/, a section cited elsewhere must stay
+(or the citation follow it); otherwise the reader lands on a page without it. A quoted title resolves when, case and
+line breaks aside, it is part of a heading or of a bold paragraph label (``**Threads.**``) of the page. Pages are
+looked up from the repository's root, from docs/, and beside the citing file. Checked: README.md, docs/*.md,
+bench/README.md, the package's and the tests' modules (docstrings and comments); docs/lab/ is history and may cite a
+page as it was. Every relative Markdown link ``[text](path)`` in the same Markdown pages must name a file that
+exists.
 """
 
 from __future__ import annotations
@@ -29,8 +30,9 @@ def markdown_pages() -> list[Path]:
 
 
 def citing_files() -> list[Path]:
-    """The Markdown pages and the test modules, but this one (its examples cite pages that are not there)."""
-    return [*markdown_pages(), *sorted(path for path in TESTS_DIR.rglob("*.py") if path != Path(__file__).resolve())]
+    """The Markdown pages, the package's modules and the test modules, but this one (its examples cite pages that are not there)."""
+    return [*markdown_pages(), *sorted((REPO_ROOT / "afmid").rglob("*.py")),
+            *sorted(path for path in TESTS_DIR.rglob("*.py") if path != Path(__file__).resolve())]
 
 
 def joined(text: str) -> str:
