@@ -83,7 +83,7 @@ for seed in seeds:
     limited = sum(t.model_limited for t in joint.traces)
     print(f"{kind} seed {seed} {periods} periods bw {bandwidth:g} {mode}: within 2 sigma {np.sum(np.abs(z) <= 2)}/{z.size}; "
           f"d-truth pm {np.round((track.separation - truth) * 1e12).astype(int).tolist()} sigma pm "
-          f"{np.round(track.sigma * 1e12).astype(int).tolist()}; E* {e_star / 1e9:.3f} GPa; force error "
+          f"{np.round(track.sigma * 1e12).astype(int).tolist()} z {np.round(z, 2).tolist()}; E* {e_star / 1e9:.3f} +- {joint.quantities['E_star']['error'] / 1e9:.3f} GPa; force error "
           f"{100 * err:.2f} % of peak; model-limited {limited}/{z.size}; terms {joint.selected_terms()}; "
           f"bound pm {np.round(track.information_bound * 1e12, 1).tolist()}; {motion[0] if motion else 'motion: -'}; cpu sim {t_sim:.0f} s fit {time.process_time() - t1:.0f} s"
           + (f"; offsets' share of sigma pm {np.round(np.sqrt(offsets_share(track.level_step)) * 1e12, 1).tolist()}, "
