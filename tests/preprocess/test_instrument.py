@@ -335,6 +335,48 @@ def test_a_preparation_with_another_instrument_reuses_the_record_and_gives_the_s
         assert np.array_equal(shared.x_restored, fresh.x_restored)
 
 
+@pytest.mark.parametrize("detector", [None, Detector(5.0e6, "first_order", 1)], ids=["no-detector", "detector"])
+def test_second_mode_hypotheses_share_the_tip_side_and_give_the_same_bits(detector):
+    """Second-mode hypotheses with one detector (the instrument search's mode search) leave the tip's view as it is:
+    the second and later preparations take the first one's tip side (fit.prepare.TipSide: coefficients, nuisance
+    columns, noise level, trajectory and its fine grid) and recompute only the equation's rows and noise. Each
+    equals a fresh preparation to the bit, and so does its fit; a detector tried in between (another tip) does
+    not leak into the next mode's preparation."""
+    from afmid.fit.pipeline import prepare, run_fit
+    from afmid.fit.prepare import with_instrument
+    from afmid.simulate.driver import simulate
+
+    config = build_config(_raw("hidden_clean", "simulate.periods=12", "fit.bootstrap=0"))
+    trace = simulate(config)
+    first = prepare(trace, config.fit)
+
+    def mode(f2):
+        return Instrument(detector, (Mode(f2, 500.0, 2000.0 * (f2 / 2.0e6) ** 2),))
+
+    earlier = with_instrument(first, config.fit, mode(2.0e6))
+    with_instrument(first, config.fit, Instrument(Detector(3.0e6, "butterworth", 2), ()))  # another tip between
+    again = with_instrument(first, config.fit, mode(1.9e6))
+    shared = with_instrument(first, config.fit, mode(1.8e6))
+    assert shared.X_traj is again.X_traj and shared.fine_grid is again.fine_grid is not None  # reused, not remade
+    assert earlier.X_traj is not again.X_traj  # the detector in between replaced the kept tip side
+    fresh = prepare(trace, config.fit, mode(1.8e6))
+    for name in ("x", "X", "Y", "nuisance", "Y_block", "nuisance_block", "row_sigma", "base_variance", "psi_sq",
+                 "block_sigma", "X_traj", "V_traj", "xdot_used"):
+        assert np.array_equal(getattr(shared, name), getattr(fresh, name)), name
+    assert shared.nuisance_names == fresh.nuisance_names
+    for name in ("noise_rms", "trajectory_noise", "steadiness", "transient_limit"):
+        assert getattr(shared, name) == getattr(fresh, name), name
+    assert (shared.x_restored is None) == (fresh.x_restored is None)
+    if fresh.x_restored is not None:
+        assert np.array_equal(shared.x_restored, fresh.x_restored)
+    assert (shared.motion is None) == (fresh.motion is None)
+    assert (shared.thermal_force is None) == (fresh.thermal_force is None)
+    quick = [run_fit(config, prepared=p, uncertainty=False) for p in (shared, fresh)]
+    assert quick[0].cv_error == quick[1].cv_error and quick[0].cv_error_noise_floor == quick[1].cv_error_noise_floor
+    assert quick[0].selection.best.bic == quick[1].selection.best.bic
+    assert np.array_equal(quick[0].coef, quick[1].coef)
+
+
 # --------------------------------------------------------------------------- the fit, declared
 def _force_error(raw: dict) -> float:
     from afmid.fit.pipeline import run_fit
