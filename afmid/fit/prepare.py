@@ -8,6 +8,7 @@ reconstructs the trajectory the library is evaluated on (smoothed across periods
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -145,6 +146,10 @@ class BeforeInstrument:
         """Keep ``tip_side`` for the next preparation with its key: one at a time (a search tries one detector with
         many modes, or many detectors one after another)."""
         self._tip_side = tip_side
+
+    def forget_tip_side(self) -> None:
+        """Let the kept :class:`TipSide` go (its fine grid and kept columns: up to ~0.2 GB on a long record)."""
+        self._tip_side = None
 
 
 @dataclass(frozen=True)
@@ -435,7 +440,7 @@ def _tip_side(key, trace: Trace, fit, blocks: HarmonicBlocks, drive, x: np.ndarr
         transient_limit=transient_limit(float(np.mean(amplitude_per_block(X))), thermal_variance),
         thermal_force=(ThermalForce(k, w0, Q, fit.temperature, smoother)
                        if thermal and fit.form == "weak" and corrects_thermal_bias(fit.thermal_bias, Q) else None),
-        fine_grid=FineGrid(X_traj_kept, V_traj_kept, {}) if key is not None and small else None,
+        fine_grid=FineGrid(X_traj_kept, V_traj_kept, {}, KeptColumns()) if key is not None and small else None,
     )
 
 
@@ -634,10 +639,61 @@ class FineGrid:
     X_traj: np.ndarray
     V_traj: np.ndarray
     chunks: dict  # the chunks' (first, stop) blocks -> [(first block, x, xdot, t)]
+    #: the library's columns on this trajectory kept across fits (:class:`KeptColumns`); None: not kept
+    columns: "KeptColumns | None" = None
 
     def holds(self, prep: Prepared) -> bool:
         """Whether this grid is ``prep``'s trajectory (a copy of ``prep`` with another trajectory is not)."""
         return self.X_traj is prep.X_traj and self.V_traj is prep.V_traj
+
+
+#: Largest total of library columns (bytes) a :class:`KeptColumns` keeps.
+KEPT_COLUMNS_MAX_BYTES = 128 << 20
+
+
+@dataclass
+class KeptColumns:
+    """Library columns (weak-form integrals, :func:`afmid.fit.system.library_columns`) evaluated on one trajectory,
+    kept per library and parameter set for the other fits on that trajectory. The second-mode hypotheses of the
+    diagnosis's instrument search share their trajectory (:class:`TipSide`) and differ only in the equation's rows
+    and their noise, so their fits evaluate the same columns at the same separations (the run's separation, a
+    separation search's grid). Kept until ``max_bytes`` are held (the first evaluations: a search's grid comes
+    first); the arrays are read-only."""
+
+    max_bytes: int = KEPT_COLUMNS_MAX_BYTES
+    values: dict = dataclasses.field(default_factory=dict)
+    nbytes: int = 0
+    hits: int = 0
+
+    @staticmethod
+    def key(library: Library, params: dict) -> tuple | None:
+        """What the columns depend on beyond the trajectory: the terms, states, tip, the nonlinear parameters'
+        defaults and the parameters (None when one of them cannot be a key)."""
+        key = (tuple(library.terms), library.states, library.tip, tuple(sorted(library.nonlinear.items())),
+               tuple(sorted(params.items())))
+        try:
+            hash(key)
+        except TypeError:
+            return None
+        return key
+
+    def get(self, key: tuple | None) -> np.ndarray | None:
+        found = None if key is None else self.values.get(key)
+        self.hits += found is not None
+        return found
+
+    def keep(self, key: tuple | None, theta: np.ndarray) -> None:
+        if key is None or key in self.values or self.nbytes + theta.nbytes > self.max_bytes:
+            return
+        theta.flags.writeable = False  # shared by the fits that find it: a write would change theirs
+        self.values[key] = theta
+        self.nbytes += theta.nbytes
+
+
+def kept_columns(prep: Prepared) -> KeptColumns | None:
+    """The columns kept for ``prep``'s trajectory (:class:`KeptColumns`), or None when none are."""
+    grid = prep.fine_grid
+    return grid.columns if grid is not None and grid.holds(prep) else None
 
 
 def with_fine_grid(prep: Prepared, max_bytes: int = FINE_GRID_MAX_BYTES) -> Prepared:

@@ -377,6 +377,37 @@ def test_second_mode_hypotheses_share_the_tip_side_and_give_the_same_bits(detect
     assert np.array_equal(quick[0].coef, quick[1].coef)
 
 
+def test_second_mode_hypotheses_share_the_library_columns_and_fit_the_same_bits():
+    """The fits of second-mode hypotheses share one trajectory (fit.prepare.TipSide), so the library's columns at a
+    separation and parameter set are evaluated once for all of them (fit.prepare.KeptColumns): a separation search
+    with a second hypothesis finds the first one's columns, and its fit (separation, BIC, error, coefficients)
+    equals the fit on a fresh preparation to the bit."""
+    from afmid.fit.pipeline import prepare, run_fit
+    from afmid.fit.prepare import kept_columns, with_instrument
+
+    config = build_config(_raw("hidden_clean", "simulate.periods=12", "fit.bootstrap=0"))
+    from afmid.simulate.driver import simulate
+
+    trace = simulate(config)
+    config.sample.separation = None  # the fit searches it: many separations, the same for both hypotheses
+    first = prepare(trace, config.fit)
+    hypotheses = [Instrument(None, (Mode(f2, 500.0, 2000.0 * (f2 / 2.0e6) ** 2),)) for f2 in (2.0e6, 1.9e6)]
+    earlier = with_instrument(first, config.fit, hypotheses[0])
+    run_fit(config, prepared=earlier, uncertainty=False)
+    kept = kept_columns(earlier)
+    evaluated, found = len(kept.values), kept.hits
+    assert evaluated > 5
+    shared = with_instrument(first, config.fit, hypotheses[1])
+    assert kept_columns(shared) is kept
+    reused = run_fit(config, prepared=shared, uncertainty=False)
+    assert kept.hits > found  # found the first hypothesis's columns
+    fresh = run_fit(config, prepared=prepare(trace, config.fit, hypotheses[1]), uncertainty=False)
+    assert reused.nonlinear["d"].value == fresh.nonlinear["d"].value
+    assert reused.cv_error == fresh.cv_error and reused.selection.best.bic == fresh.selection.best.bic
+    assert np.array_equal(reused.coef, fresh.coef)
+    assert not next(iter(kept.values.values())).flags.writeable  # shared: read-only
+
+
 # --------------------------------------------------------------------------- the fit, declared
 def _force_error(raw: dict) -> float:
     from afmid.fit.pipeline import run_fit
