@@ -522,17 +522,21 @@ def undeclared(config, prepared, base_result, base_bic: float, trials: list, fit
                      _refit(trial_config, prepared, fit_quick), base_bic, bic_evidence, searched)
 
     searched: list = []
-    finding = search(config, searched)
-    if separation_free and (finding is None or not finding.explains or not finding.supported):
-        separation = reprofiled(config, prepared, _variants(searched, prepared.drive.frequency), fit_quick)
-        if separation is not None and separation > 0:  # a separation not above zero places no surface
-            trial_config = copy.deepcopy(config)
-            trial_config.sample.separation = separation
-            again = search(trial_config)
-            log.debug("instrument search again at d = %.4g nm: %s", 1e9 * separation, again)
-            if again is not None and (finding is None or (again.supported, -again.delta_bic)
-                                      > (finding.supported, -finding.delta_bic)):
-                finding = again
+    try:
+        finding = search(config, searched)
+        if separation_free and (finding is None or not finding.explains or not finding.supported):
+            separation = reprofiled(config, prepared, _variants(searched, prepared.drive.frequency), fit_quick)
+            if separation is not None and separation > 0:  # a separation not above zero places no surface
+                trial_config = copy.deepcopy(config)
+                trial_config.sample.separation = separation
+                again = search(trial_config)
+                log.debug("instrument search again at d = %.4g nm: %s", 1e9 * separation, again)
+                if again is not None and (finding is None or (again.supported, -again.delta_bic)
+                                          > (finding.supported, -finding.delta_bic)):
+                    finding = again
+    finally:
+        if prepared.before_instrument is not None:  # the hypotheses' shared trajectory and columns: done with
+            prepared.before_instrument.forget_tip_side()
     if finding is None:
         return None
     rivals = [t.delta_bic for t in trials if t.significant or not finding.explains]

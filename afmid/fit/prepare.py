@@ -8,6 +8,7 @@ reconstructs the trajectory the library is evaluated on (smoothed across periods
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -122,6 +123,7 @@ class BeforeInstrument:
     windows: WeakWindows
     _recorded: RecordedSeries | None = None
     _probe: NoiseProbe | None = None
+    _tip_side: "TipSide | None" = None
 
     def recorded(self) -> RecordedSeries:
         """The instrument-free part of the views of ``x`` (:func:`afmid.preprocess.instrument.recorded_series`)."""
@@ -134,6 +136,56 @@ class BeforeInstrument:
         if self._probe is None:
             self._probe = noise_probe(self.blocks)
         return self._probe
+
+    def tip_side(self, key) -> "TipSide | None":
+        """The :class:`TipSide` kept under ``key`` (:meth:`TipSide.key_of`), or None."""
+        kept = self._tip_side
+        return kept if key is not None and kept is not None and kept.key == key else None
+
+    def keep_tip_side(self, tip_side: "TipSide") -> None:
+        """Keep ``tip_side`` for the next preparation with its key: one at a time (a search tries one detector with
+        many modes, or many detectors one after another)."""
+        self._tip_side = tip_side
+
+    def forget_tip_side(self) -> None:
+        """Let the kept :class:`TipSide` go (its fine grid and kept columns: up to ~0.2 GB on a long record)."""
+        self._tip_side = None
+
+
+@dataclass(frozen=True)
+class TipSide:
+    """What :func:`prepare` makes of the tip's view alone: the deflection's block coefficients, the nuisance columns,
+    the noise level, the trajectory the library is evaluated on (and its fine grid, :class:`FineGrid`). The tip's
+    view depends on the declared detector, not on the higher modes (they change only the equation's view and the
+    rows' noise), so the second-mode hypotheses of the diagnosis's instrument search share it: kept in
+    :class:`BeforeInstrument` under :meth:`key_of` by :func:`with_instrument`. Its arrays are shared by the
+    preparations made from it (never written into)."""
+
+    key: tuple
+    x: np.ndarray  # m, the tip's view of the samples
+    X: np.ndarray  # (B, 2K+1) m
+    nuisance_block: np.ndarray  # (B, 2K+1, n_nu)
+    nuisance: np.ndarray | None  # (W, 2K+1, n_nu) weak form
+    noise_rms: float  # m
+    trajectory_noise: float  # m
+    xdot_used: np.ndarray  # m/s
+    X_traj: np.ndarray  # (B, 2K+1) m
+    V_traj: np.ndarray  # (B, 2K+1) m/s
+    motion: object
+    x_restored: np.ndarray | None  # m
+    steadiness: float
+    transient_limit: float
+    thermal_force: "ThermalForce | None"
+    fine_grid: "FineGrid | None"
+
+    @staticmethod
+    def key_of(instrument, fit) -> tuple | None:
+        """What the tip side depends on beyond the record: whether any instrument is declared, the detector, the
+        fit settings; None in the strong form (its rows are made from the tip's samples: not kept)."""
+        if fit.form != "weak":
+            return None
+        ideal = instrument is None or instrument.ideal
+        return ideal, None if instrument is None else instrument.detector, fit.model_dump_json()
 
 
 def _before_instrument_settings(fit) -> tuple:
@@ -174,11 +226,13 @@ def before_instrument(trace: Trace, fit, drive=None, layouts: dict | None = None
 def with_instrument(prep: "Prepared", fit, instrument) -> "Prepared":
     """``prep``'s record prepared again with ``instrument`` declared (fit settings ``fit``): the same as
     :func:`prepare` of ``prep.trace`` with the drive ``prep`` was cut at, the instrument-free part
-    (:class:`BeforeInstrument`) reused when ``prep`` holds one made with the same settings."""
+    (:class:`BeforeInstrument`) reused when ``prep`` holds one made with the same settings, and with it the tip
+    side (:class:`TipSide`) of the last instrument prepared with the same detector: the same values as a fresh
+    preparation, the trajectory's fine grid made once for all its fits."""
     shared = prep.before_instrument
     if shared is None or shared.settings != _before_instrument_settings(fit):
         return prepare(prep.trace, fit, instrument, drive=prep.drive)
-    return _prepare(prep.trace, fit, instrument, shared)
+    return _prepare(prep.trace, fit, instrument, shared, reuse_tip_side=True)
 
 
 def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None = None) -> Prepared:
@@ -199,12 +253,19 @@ def prepare(trace: Trace, fit, instrument=None, drive=None, layouts: dict | None
     return _prepare(trace, fit, instrument, before_instrument(trace, fit, drive, layouts))
 
 
-def _prepare(trace: Trace, fit, instrument, shared: BeforeInstrument) -> Prepared:
+def _prepare(trace: Trace, fit, instrument, shared: BeforeInstrument, reuse_tip_side: bool = False) -> Prepared:
+    """:func:`prepare` from ``shared``. ``reuse_tip_side``: what depends only on the tip's view (:class:`TipSide`)
+    is taken from ``shared`` when made there for the same detector and fit settings, and kept there otherwise."""
     t, x, drive, blocks, windows = shared.t, shared.x, shared.drive, shared.blocks, shared.windows
     removed = dict(shared.removed)
     ideal = instrument is None or instrument.ideal
-    views = deflection_views(x, blocks, instrument, trace.cantilever, None if ideal else shared.recorded())
-    x, x_equation = views.tip, views.equation
+    key = TipSide.key_of(instrument, fit) if reuse_tip_side else None
+    known = shared.tip_side(key) if reuse_tip_side else None
+    # With the tip side known only the equation's view is needed (the tip's, behind a detector, is not made again).
+    views = deflection_views(x, blocks, instrument, trace.cantilever, None if ideal else shared.recorded(),
+                             equation_only=known is not None)
+    x_equation = views.equation
+    x = views.tip if known is None else known.x
     cl = trace.cantilever
     k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
     m, c = cl.mass, cl.damping
@@ -220,13 +281,15 @@ def _prepare(trace: Trace, fit, instrument, shared: BeforeInstrument) -> Prepare
     rows = blocks.n_coef
     # One pass over the samples, chunk by chunk: per-period Fourier coefficients of the deflection and the
     # drive columns, and the weak-form integrals of the windows starting in the chunk (they reach one period
-    # into the next chunk). The drive columns and the rotations to global phase are made once per chunk.
-    X = np.empty((blocks.n_blocks, rows, 1))
-    nuisance_block = np.empty((blocks.n_blocks, rows, n_drive))
+    # into the next chunk). The drive columns and the rotations to global phase are made once per chunk. With
+    # the tip side known, only the equation's rows Y (each chunk's the same operations as in the full pass).
     W = windows.n_windows
+    if known is None:
+        X = np.empty((blocks.n_blocks, rows, 1))
+        nuisance_block = np.empty((blocks.n_blocks, rows, n_drive))
+        nuisance = np.empty((W, rows, n_drive + (0 if fixed else 2))) if weak else None
     if weak:
         Y = np.empty((W, rows))
-        nuisance = np.empty((W, rows, n_drive + (0 if fixed else 2)))
         minus_dpsi = -windows.dpsi
     chunks = list(blocks.chunks())
 
@@ -235,33 +298,44 @@ def _prepare(trace: Trace, fit, instrument, shared: BeforeInstrument) -> Prepare
         lo = blocks.start + b0 * blocks.L
         n_block = (b1 - b0) * blocks.L
         hi = lo + n_block + (blocks.L + 1 if weak else 0)
-        xs, cols = x[lo:hi, None], columns(t[lo:hi])
+        xs = x[lo:hi, None]
+        cols = columns(t[lo:hi]) if known is None else None
         xe = xs if x_equation is x else x_equation[lo:hi, None]
         turn = blocks.rotation(b0, b1)
-        X[b0:b1] = blocks.project_blocks(xs[:n_block], b0, turn)
-        nuisance_block[b0:b1] = blocks.project_blocks(cols[:n_block], b0, turn)
+        if known is None:
+            X[b0:b1] = blocks.project_blocks(xs[:n_block], b0, turn)
+            nuisance_block[b0:b1] = blocks.project_blocks(cols[:n_block], b0, turn)
         w1 = min(b1, W)
         if weak and w1 > b0:
             Y[b0:w1] = -windows.integrate_samples(operator, xe, b0, w1 - b0, turn)[..., 0]
+            if known is not None:
+                return
             nuisance[b0:w1, :, :n_drive] = windows.integrate_samples(windows.psi, cols, b0, w1 - b0, turn)
             if not fixed:
                 nuisance[b0:w1, :, n_drive:n_drive + 1] = windows.integrate_samples(windows.psi, xs, b0, w1 - b0, turn)
                 nuisance[b0:w1, :, n_drive + 1:] = windows.integrate_samples(minus_dpsi, xs, b0, w1 - b0, turn)
 
-    _map_chunks(project_chunk, chunks)
+    if weak or known is None:
+        _map_chunks(project_chunk, chunks)
+    if known is not None:
+        X = known.X[..., None]
 
     # The trajectory, the outputs and the noise level.
-    V = blocks.derivative(X, 1)
     X_eq = views.equation_coefficients(X)
     Y_block = -(m * blocks.derivative(X_eq, 2) + c * blocks.derivative(X_eq, 1) + k * X_eq)[..., 0]
     used = blocks.used
-    n_used = blocks.n_blocks * blocks.L
-    dof = max(n_used - blocks.n_blocks * blocks.n_coef, 1)
-    rss = views.residual_sum_squares if views.tip_gain is not None else _fit_residual_sum_squares(x, blocks, X)
-    noise_rms = float(math.sqrt(rss / dof))
-    noise_rms = max(noise_rms, 1e-9 * drive.amplitude)  # noise-free input: keep weights finite
+    if known is None:
+        V = blocks.derivative(X, 1)
+        n_used = blocks.n_blocks * blocks.L
+        dof = max(n_used - blocks.n_blocks * blocks.n_coef, 1)
+        rss = views.residual_sum_squares if views.tip_gain is not None else _fit_residual_sum_squares(x, blocks, X)
+        noise_rms = float(math.sqrt(rss / dof))
+        noise_rms = max(noise_rms, 1e-9 * drive.amplitude)  # noise-free input: keep weights finite
+        if not fixed:
+            nuisance_block = np.concatenate([nuisance_block, X, V], axis=2)
+    else:
+        noise_rms, nuisance_block, nuisance = known.noise_rms, known.nuisance_block, known.nuisance
     if not fixed:
-        nuisance_block = np.concatenate([nuisance_block, X, V], axis=2)
         names += ["stiffness", "damping"]
     thermal = 2 * BOLTZMANN * fit.temperature * c / blocks.dt if fit.thermal_noise else 0.0
     strong = None
@@ -301,7 +375,30 @@ def _prepare(trace: Trace, fit, instrument, shared: BeforeInstrument) -> Prepare
         H2 = H2 * views.noise_gain(blocks.harmonics)
     thermal_gain = 1.0 if views.equation_gain is None else np.abs(views.equation_gain[blocks.harmonics]) ** 2
     block_sigma = np.sqrt(blocks.noise_variance_factor() * (thermal * thermal_gain + k**2 * H2 * noise_rms**2))
+    if known is None:
+        known = _tip_side(key, trace, fit, blocks, drive, x, X, nuisance_block, nuisance, noise_rms, views)
+        if key is not None:
+            shared.keep_tip_side(known)
+    return Prepared(
+        trace=trace, x=x, t=t, drive=drive, blocks=blocks, windows=windows, X=known.X,
+        Y=Y, nuisance=nuisance, nuisance_names=names, row_sigma=np.sqrt(base_variance),
+        base_variance=base_variance, psi_sq=psi_sq,
+        Y_block=Y_block, nuisance_block=nuisance_block, block_sigma=block_sigma,
+        trajectory_noise=known.trajectory_noise, xdot_used=known.xdot_used, X_traj=known.X_traj,
+        V_traj=known.V_traj, noise_rms=noise_rms, steadiness=known.steadiness, transient_limit=known.transient_limit,
+        removed=removed, form=fit.form, strong=strong, motion=known.motion, x_restored=known.x_restored,
+        thermal_force=known.thermal_force if weak else None, before_instrument=shared,
+        fine_grid=known.fine_grid if key is not None else None,
+    )
 
+
+def _tip_side(key, trace: Trace, fit, blocks: HarmonicBlocks, drive, x: np.ndarray, X: np.ndarray,
+              nuisance_block: np.ndarray, nuisance: np.ndarray | None, noise_rms: float, views) -> "TipSide":
+    """The trajectory the library is evaluated on and what else :func:`_prepare` makes of the tip's view alone."""
+    cl = trace.cantilever
+    k, w0, Q = cl.spring_constant, cl.omega0, cl.quality_factor
+    rows = blocks.n_coef
+    thermal = 2 * BOLTZMANN * fit.temperature * cl.damping / blocks.dt if fit.thermal_noise else 0.0
     # The library is evaluated on a trajectory smoothed across periods: detector noise is independent from
     # period to period while the real motion wanders slowly (thermal correlation time Q / pi periods), and
     # noise in the regressors biases stiff terms low (errors in variables).
@@ -331,20 +428,19 @@ def _prepare(trace: Trace, fit, instrument, shared: BeforeInstrument) -> Prepare
     if views.amplifies_noise:  # the trajectory's noise relative to the recorded samples' (noise_rms): amplified
         residual_var *= float(noise_var.sum() / (blocks.noise_variance_factor() * noise_rms**2).sum())
     V_traj = blocks.derivative(X_traj, 1)
-    x_restored = crossfaded_series(blocks, X_traj, x.size) if views.amplifies_noise else None
-    return Prepared(
-        trace=trace, x=x, t=t, drive=drive, blocks=blocks, windows=windows, X=X[..., 0],
-        Y=Y, nuisance=nuisance, nuisance_names=names, row_sigma=np.sqrt(base_variance),
-        base_variance=base_variance, psi_sq=psi_sq,
-        Y_block=Y_block, nuisance_block=nuisance_block, block_sigma=block_sigma,
+    X_traj_kept, V_traj_kept = X_traj[..., 0], V_traj[..., 0]
+    small = 3 * 8 * blocks.n_blocks * blocks.L * blocks.oversample <= FINE_GRID_MAX_BYTES
+    return TipSide(
+        key=key, x=x, X=X[..., 0], nuisance_block=nuisance_block, nuisance=nuisance, noise_rms=noise_rms,
         trajectory_noise=noise_rms * math.sqrt(residual_var),
         xdot_used=blocks.synthesize(V_traj)[:, 0],  # chunk by chunk into one array
-        X_traj=X_traj[..., 0], V_traj=V_traj[..., 0], noise_rms=noise_rms, steadiness=steadiness(X),
-        transient_limit=transient_limit(float(np.mean(amplitude_per_block(X))), thermal_variance), removed=removed,
-        form=fit.form, strong=strong, motion=motion, x_restored=x_restored,
+        X_traj=X_traj_kept, V_traj=V_traj_kept, motion=motion,
+        x_restored=crossfaded_series(blocks, X_traj, x.size) if views.amplifies_noise else None,
+        steadiness=steadiness(X),
+        transient_limit=transient_limit(float(np.mean(amplitude_per_block(X))), thermal_variance),
         thermal_force=(ThermalForce(k, w0, Q, fit.temperature, smoother)
-                       if thermal and weak and corrects_thermal_bias(fit.thermal_bias, Q) else None),
-        before_instrument=shared,
+                       if thermal and fit.form == "weak" and corrects_thermal_bias(fit.thermal_bias, Q) else None),
+        fine_grid=FineGrid(X_traj_kept, V_traj_kept, {}, KeptColumns()) if key is not None and small else None,
     )
 
 
@@ -543,10 +639,61 @@ class FineGrid:
     X_traj: np.ndarray
     V_traj: np.ndarray
     chunks: dict  # the chunks' (first, stop) blocks -> [(first block, x, xdot, t)]
+    #: the library's columns on this trajectory kept across fits (:class:`KeptColumns`); None: not kept
+    columns: "KeptColumns | None" = None
 
     def holds(self, prep: Prepared) -> bool:
         """Whether this grid is ``prep``'s trajectory (a copy of ``prep`` with another trajectory is not)."""
         return self.X_traj is prep.X_traj and self.V_traj is prep.V_traj
+
+
+#: Largest total of library columns (bytes) a :class:`KeptColumns` keeps.
+KEPT_COLUMNS_MAX_BYTES = 128 << 20
+
+
+@dataclass
+class KeptColumns:
+    """Library columns (weak-form integrals, :func:`afmid.fit.system.library_columns`) evaluated on one trajectory,
+    kept per library and parameter set for the other fits on that trajectory. The second-mode hypotheses of the
+    diagnosis's instrument search share their trajectory (:class:`TipSide`) and differ only in the equation's rows
+    and their noise, so their fits evaluate the same columns at the same separations (the run's separation, a
+    separation search's grid). Kept until ``max_bytes`` are held (the first evaluations: a search's grid comes
+    first); the arrays are read-only."""
+
+    max_bytes: int = KEPT_COLUMNS_MAX_BYTES
+    values: dict = dataclasses.field(default_factory=dict)
+    nbytes: int = 0
+    hits: int = 0
+
+    @staticmethod
+    def key(library: Library, params: dict) -> tuple | None:
+        """What the columns depend on beyond the trajectory: the terms, states, tip, the nonlinear parameters'
+        defaults and the parameters (None when one of them cannot be a key)."""
+        key = (tuple(library.terms), library.states, library.tip, tuple(sorted(library.nonlinear.items())),
+               tuple(sorted(params.items())))
+        try:
+            hash(key)
+        except TypeError:
+            return None
+        return key
+
+    def get(self, key: tuple | None) -> np.ndarray | None:
+        found = None if key is None else self.values.get(key)
+        self.hits += found is not None
+        return found
+
+    def keep(self, key: tuple | None, theta: np.ndarray) -> None:
+        if key is None or key in self.values or self.nbytes + theta.nbytes > self.max_bytes:
+            return
+        theta.flags.writeable = False  # shared by the fits that find it: a write would change theirs
+        self.values[key] = theta
+        self.nbytes += theta.nbytes
+
+
+def kept_columns(prep: Prepared) -> KeptColumns | None:
+    """The columns kept for ``prep``'s trajectory (:class:`KeptColumns`), or None when none are."""
+    grid = prep.fine_grid
+    return grid.columns if grid is not None and grid.holds(prep) else None
 
 
 def with_fine_grid(prep: Prepared, max_bytes: int = FINE_GRID_MAX_BYTES) -> Prepared:

@@ -15,7 +15,7 @@ from afmid.physics.library import Library
 
 log = logging.getLogger(__name__)
 
-from afmid.fit.prepare import CHUNK_BLOCKS, Prepared, fine_chunks, map_fine_chunks
+from afmid.fit.prepare import CHUNK_BLOCKS, Prepared, fine_chunks, kept_columns, map_fine_chunks
 from afmid.fit.thermal_bias import remove_thermal_bias, thermal_bias_rows
 from afmid.kernels.switching import cell_subsamples_or_twin, switching_cells_or_twin
 from afmid.preprocess.periods import fine_support
@@ -82,6 +82,18 @@ def library_columns(prep: Prepared, library: Library, params: dict) -> np.ndarra
         theta = library.evaluate(xs, v, prep.t[prep.blocks.used], params).reshape(prep.blocks.n_blocks, prep.blocks.L, -1)
         check_finite(theta.reshape(-1, theta.shape[-1]), library, params)
         return theta
+    kept = kept_columns(prep)
+    key = None if kept is None else kept.key(library, params)
+    theta = None if kept is None else kept.get(key)
+    if theta is None:
+        theta = _library_columns(prep, library, params)
+        if kept is not None:
+            kept.keep(key, theta)
+    return theta
+
+
+def _library_columns(prep: Prepared, library: Library, params: dict) -> np.ndarray:
+    """:func:`library_columns` in the weak form, evaluated."""
     if not library.states:
         return _plain_library_columns(prep, library, params)
     parts = []

@@ -335,6 +335,79 @@ def test_a_preparation_with_another_instrument_reuses_the_record_and_gives_the_s
         assert np.array_equal(shared.x_restored, fresh.x_restored)
 
 
+@pytest.mark.parametrize("detector", [None, Detector(5.0e6, "first_order", 1)], ids=["no-detector", "detector"])
+def test_second_mode_hypotheses_share_the_tip_side_and_give_the_same_bits(detector):
+    """Second-mode hypotheses with one detector (the instrument search's mode search) leave the tip's view as it is:
+    the second and later preparations take the first one's tip side (fit.prepare.TipSide: coefficients, nuisance
+    columns, noise level, trajectory and its fine grid) and recompute only the equation's rows and noise. Each
+    equals a fresh preparation to the bit, and so does its fit; a detector tried in between (another tip) does
+    not leak into the next mode's preparation."""
+    from afmid.fit.pipeline import prepare, run_fit
+    from afmid.fit.prepare import with_instrument
+    from afmid.simulate.driver import simulate
+
+    config = build_config(_raw("hidden_clean", "simulate.periods=12", "fit.bootstrap=0"))
+    trace = simulate(config)
+    first = prepare(trace, config.fit)
+
+    def mode(f2):
+        return Instrument(detector, (Mode(f2, 500.0, 2000.0 * (f2 / 2.0e6) ** 2),))
+
+    earlier = with_instrument(first, config.fit, mode(2.0e6))
+    with_instrument(first, config.fit, Instrument(Detector(3.0e6, "butterworth", 2), ()))  # another tip between
+    again = with_instrument(first, config.fit, mode(1.9e6))
+    shared = with_instrument(first, config.fit, mode(1.8e6))
+    assert shared.X_traj is again.X_traj and shared.fine_grid is again.fine_grid is not None  # reused, not remade
+    assert earlier.X_traj is not again.X_traj  # the detector in between replaced the kept tip side
+    fresh = prepare(trace, config.fit, mode(1.8e6))
+    for name in ("x", "X", "Y", "nuisance", "Y_block", "nuisance_block", "row_sigma", "base_variance", "psi_sq",
+                 "block_sigma", "X_traj", "V_traj", "xdot_used"):
+        assert np.array_equal(getattr(shared, name), getattr(fresh, name)), name
+    assert shared.nuisance_names == fresh.nuisance_names
+    for name in ("noise_rms", "trajectory_noise", "steadiness", "transient_limit"):
+        assert getattr(shared, name) == getattr(fresh, name), name
+    assert (shared.x_restored is None) == (fresh.x_restored is None)
+    if fresh.x_restored is not None:
+        assert np.array_equal(shared.x_restored, fresh.x_restored)
+    assert (shared.motion is None) == (fresh.motion is None)
+    assert (shared.thermal_force is None) == (fresh.thermal_force is None)
+    quick = [run_fit(config, prepared=p, uncertainty=False) for p in (shared, fresh)]
+    assert quick[0].cv_error == quick[1].cv_error and quick[0].cv_error_noise_floor == quick[1].cv_error_noise_floor
+    assert quick[0].selection.best.bic == quick[1].selection.best.bic
+    assert np.array_equal(quick[0].coef, quick[1].coef)
+
+
+def test_second_mode_hypotheses_share_the_library_columns_and_fit_the_same_bits():
+    """The fits of second-mode hypotheses share one trajectory (fit.prepare.TipSide), so the library's columns at a
+    separation and parameter set are evaluated once for all of them (fit.prepare.KeptColumns): a separation search
+    with a second hypothesis finds the first one's columns, and its fit (separation, BIC, error, coefficients)
+    equals the fit on a fresh preparation to the bit."""
+    from afmid.fit.pipeline import prepare, run_fit
+    from afmid.fit.prepare import kept_columns, with_instrument
+
+    config = build_config(_raw("hidden_clean", "simulate.periods=12", "fit.bootstrap=0"))
+    from afmid.simulate.driver import simulate
+
+    trace = simulate(config)
+    config.sample.separation = None  # the fit searches it: many separations, the same for both hypotheses
+    first = prepare(trace, config.fit)
+    hypotheses = [Instrument(None, (Mode(f2, 500.0, 2000.0 * (f2 / 2.0e6) ** 2),)) for f2 in (2.0e6, 1.9e6)]
+    earlier = with_instrument(first, config.fit, hypotheses[0])
+    run_fit(config, prepared=earlier, uncertainty=False)
+    kept = kept_columns(earlier)
+    evaluated, found = len(kept.values), kept.hits
+    assert evaluated > 5
+    shared = with_instrument(first, config.fit, hypotheses[1])
+    assert kept_columns(shared) is kept
+    reused = run_fit(config, prepared=shared, uncertainty=False)
+    assert kept.hits > found  # found the first hypothesis's columns
+    fresh = run_fit(config, prepared=prepare(trace, config.fit, hypotheses[1]), uncertainty=False)
+    assert reused.nonlinear["d"].value == fresh.nonlinear["d"].value
+    assert reused.cv_error == fresh.cv_error and reused.selection.best.bic == fresh.selection.best.bic
+    assert np.array_equal(reused.coef, fresh.coef)
+    assert not next(iter(kept.values.values())).flags.writeable  # shared: read-only
+
+
 # --------------------------------------------------------------------------- the fit, declared
 def _force_error(raw: dict) -> float:
     from afmid.fit.pipeline import run_fit
