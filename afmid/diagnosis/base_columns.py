@@ -108,8 +108,9 @@ class BaseColumns:
 
         A library asked again at the same parameters gets the value computed the first time, not a new evaluation:
         the searches revisit points (a candidate's two starts often find the same shape and then walk the same
-        separation grid: 176 of capillary's 370 trials on the Bruker HSDC record). The value is the one evaluating again
-        would give, to the bit: which path (composed or full) a library takes is settled at its first evaluated trial."""
+        separation grid: 176 of capillary's 370 trials on the Bruker HSDC record). The value is the one evaluating
+        again would give, to the bit: which path (composed or full) a library takes is settled at its first evaluated
+        trial."""
         self.evaluations += 1
         key = (tuple(library.names), tuple(sorted((k, float(v)) for k, v in params.items())))
         known = self._residuals.get(key)

@@ -46,8 +46,9 @@ SEPARATION_ZOOM = 5
 #: The coarse grid's step on the default window, m: a wider window gets more points, not a coarser grid.
 SEPARATION_COARSE_STEP = 2 * SEPARATION_WINDOW / (SEPARATION_GRID - 1)
 #: A zoom's point within this fraction of its step of a separation already tried is that separation: the same point
-#: up to rounding (a few 1e-24 m at 30 nm). Evaluated anew, such a twin cost a library evaluation at each end of every
-#: zoom and, beside its twin, put a parabola of :func:`afmid.fit.profile.local_minimum` through two points 1e-24 m apart.
+#: up to rounding (a few 1e-24 m at 30 nm). Evaluated anew, such a twin cost a library evaluation at each end of
+#: every zoom and, beside its twin, put a parabola of :func:`afmid.fit.profile.local_minimum` through two points
+#: 1e-24 m apart.
 ZOOM_SNAP = 1e-6
 #: The search zooms until the step is below this, m (the fit then uses the value; a tenth of the thermal
 #: deflection of a stiff lever).
@@ -66,7 +67,8 @@ def separation_minimum(prepared, config: RunConfig, low: float, high: float, bas
     """:func:`search_separation`'s separation (m) and the lowest weighted residual sum of squares it evaluated.
 
     A coarse grid (at most :data:`SEPARATION_COARSE_STEP` apart), then zooms on the lowest point (each a grid of
-    SEPARATION_ZOOM points between its neighbours, which are not evaluated again: :data:`ZOOM_SNAP`) and a parabola through the last three
+    SEPARATION_ZOOM points between its neighbours, which are not evaluated again: :data:`ZOOM_SNAP`) and a parabola
+    through the last three
     (:func:`afmid.fit.profile.local_minimum`: no parabola through a kink). When the library holds a gate that forms
     at contact (a meniscus, a JKR neck: :attr:`afmid.physics.effect_types.StateGate.forms_at_contact`), the coarse
     grid also holds one separation between each two of the taps' contact thresholds
