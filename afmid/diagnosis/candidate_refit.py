@@ -45,6 +45,11 @@ SEPARATION_GRID = 11
 SEPARATION_ZOOM = 5
 #: The coarse grid's step on the default window, m: a wider window gets more points, not a coarser grid.
 SEPARATION_COARSE_STEP = 2 * SEPARATION_WINDOW / (SEPARATION_GRID - 1)
+#: A zoom's point within this fraction of its step of a separation already tried is that separation: the same point
+#: up to rounding (a few 1e-24 m at 30 nm). Evaluated anew, such a twin cost a library evaluation at each end of
+#: every zoom and, beside its twin, put a parabola of :func:`afmid.fit.profile.local_minimum` through two points
+#: 1e-24 m apart.
+ZOOM_SNAP = 1e-6
 #: The search zooms until the step is below this, m (the fit then uses the value; a tenth of the thermal
 #: deflection of a stiff lever).
 SEPARATION_STEP = 2e-12
@@ -62,7 +67,8 @@ def separation_minimum(prepared, config: RunConfig, low: float, high: float, bas
     """:func:`search_separation`'s separation (m) and the lowest weighted residual sum of squares it evaluated.
 
     A coarse grid (at most :data:`SEPARATION_COARSE_STEP` apart), then zooms on the lowest point (each a grid of
-    SEPARATION_ZOOM points between its neighbours) and a parabola through the last three
+    SEPARATION_ZOOM points between its neighbours, which are not evaluated again: :data:`ZOOM_SNAP`) and a parabola
+    through the last three
     (:func:`afmid.fit.profile.local_minimum`: no parabola through a kink). When the library holds a gate that forms
     at contact (a meniscus, a JKR neck: :attr:`afmid.physics.effect_types.StateGate.forms_at_contact`), the coarse
     grid also holds one separation between each two of the taps' contact thresholds
@@ -110,11 +116,27 @@ def separation_minimum(prepared, config: RunConfig, low: float, high: float, bas
     x, y = evaluate(grid)
     while step > SEPARATION_STEP:
         i = int(np.argmin(y))
-        x, y = evaluate(np.maximum(np.linspace(x[i] - step, x[i] + step, SEPARATION_ZOOM), lowest))
+        zoom = np.maximum(np.linspace(x[i] - step, x[i] + step, SEPARATION_ZOOM), lowest)
+        x, y = evaluate(_snapped(zoom, x, ZOOM_SNAP * step))
         step /= (SEPARATION_ZOOM - 1) / 2
     if not np.isfinite(y).any():
         return 0.5 * (low + high), math.inf
     return local_minimum(x, y), float(np.min(y))
+
+
+def _snapped(points, seen, tolerance: float):
+    """``points`` (m), each replaced by the nearest of ``seen`` (sorted, m) within ``tolerance`` (m): a zoom's ends are
+    its centre's neighbours of the grid before, recomputed as centre +- step, which rounding puts a few 1e-24 m
+    away from them."""
+    import numpy as np
+
+    points = np.array(points, dtype=float)
+    at = np.clip(np.searchsorted(seen, points), 1, max(len(seen) - 1, 1))
+    for k, (p, j) in enumerate(zip(points, at)):
+        near = min((seen[j - 1], seen[min(j, len(seen) - 1)]), key=lambda v: abs(v - p))
+        if abs(near - p) <= tolerance:
+            points[k] = near
+    return points
 
 
 def separation_starts(run, prepared, config: RunConfig) -> tuple[list[float], float, float]:

@@ -57,8 +57,9 @@ def test_composed_residual_is_the_full_librarys(clean, added):
         full = residual_sum_squares(system)
         # within AGREEMENT BIC units: n |delta| / rss
         assert shared.residual(library, trial) == pytest.approx(full, abs=AGREEMENT * full / system.n_rows)
-    # the first visit is checked against the full library; the third (the first separation again) is reused
-    assert shared.reused >= 1
+    # the first visit is checked against the full library; the third (the first separation again) is the first's
+    # residual from the memo, nothing evaluated again
+    assert shared.repeated == 1
     assert shared.evaluations == 3
 
 
@@ -157,3 +158,28 @@ def test_an_effect_zero_until_contact_out_of_reach_is_not_evaluated_and_gives_th
     inside = dict(params, d=touch - 0.3e-9)
     shared.residual(library, inside)
     assert shared.out_of_reach_trials == 2  # evaluated in contact
+
+
+@pytest.mark.parametrize("added", ["hydration", "capillary"])
+def test_a_trial_asked_again_is_answered_from_the_memo_to_the_bit(clean, added):
+    """The searches revisit trials (a candidate's two starts walk the same separation grid): the same library at the
+    same parameters gets the first answer, bit for bit what evaluating again gives, with no columns evaluated; a
+    changed shape parameter or another library is a new trial. capillary adds a gate (evaluated in full)."""
+    from afmid.diagnosis.base_columns import BaseColumns
+    from afmid.fit.pipeline import library_parameters
+
+    config, prepared, touch = clean
+    library = _library(config, ["dmt", added])
+    params = dict(library_parameters(prepared, config, library), d=touch - 0.2e-9)
+    name = next(p for p in library.nonlinear if p not in _library(config, ["dmt"]).nonlinear)
+    params.setdefault(name, 1e-9)
+    shared = BaseColumns(prepared, _library(config, ["dmt"]))
+    first = shared.residual(library, params)
+    again = shared.residual(library, dict(params))
+    assert again == first and (shared.evaluations, shared.repeated) == (2, 1)
+    fresh = BaseColumns(prepared, _library(config, ["dmt"]))
+    fresh.residual(library, dict(params, d=touch))  # another trial first: the library's path is settled there
+    assert fresh.residual(library, params) == first  # evaluated anew: the same bits
+    assert fresh.repeated == 0
+    other = shared.residual(library, dict(params, **{name: 2 * params[name]}))
+    assert other != first and shared.repeated == 1

@@ -38,3 +38,45 @@ def test_the_search_finds_the_narrow_valley_where_the_neck_forms_on_the_records_
     # Its residual is the truth's: the broad valley's is 3x higher; 5 % is far below that gap and above the
     # residual's change across the valley's interval (991.7 at the truth, 991.8 found).
     assert lowest == pytest.approx(at_truth, rel=0.05)
+
+
+
+def test_a_zoom_does_not_evaluate_its_ends_again_as_rounding_twins(tmp_path):
+    """Each zoom's ends are its centre's neighbours from the grid before, recomputed as centre +- step: rounding puts
+    them ~1e-24 m off, and each was evaluated again (a library evaluation for nothing, and a parabola through two
+    twins; measured on this 20-period clean DMT trace, [dmt] + hydration: twins 1.7e-24 m apart). No two separations
+    the search evaluates are closer than a quarter of its finest step."""
+    import numpy as np
+
+    from afmid.config import build_config, read_yaml
+    from afmid.diagnosis.base_columns import BaseColumns
+    from afmid.diagnosis.candidate_refit import SEPARATION_STEP, SEPARATION_WINDOW, separation_minimum
+    from afmid.fit.pipeline import first_contact, prepare
+    from afmid.physics.library import build_library
+    from afmid.physics.tips import tip_geometry
+    from afmid.simulate.driver import simulate
+    from repo_paths import TEST_CONFIGS
+
+    class Recorded(BaseColumns):  # the separations asked for
+        def __init__(self, *args):
+            super().__init__(*args)
+            self.asked = []
+
+        def residual(self, library, params):
+            self.asked.append(float(params["d"]))
+            return super().residual(library, params)
+
+    source = TEST_CONFIGS / "hidden_clean.yaml"
+    raw = read_yaml(source)
+    raw["simulate"]["periods"] = 20
+    raw["model"] = {"effects": ["dmt", "hydration"], "parameters": {"hydration_length": 1e-9}}
+    config = build_config(raw, source=source, base_dir=tmp_path)
+    prepared = prepare(simulate(config), config.fit)
+    dmt = config.model.model_copy(update={"effects": ["dmt"], "parameters": {}})
+    recorded = Recorded(prepared, build_library(dmt, config.source, tip_geometry(config.cantilever)))
+    touch = first_contact(prepared, config.sample.a0)
+    separation_minimum(prepared, config, touch - SEPARATION_WINDOW, touch + SEPARATION_WINDOW, recorded)
+    asked = np.sort(recorded.asked)
+    assert len(asked) > 20  # the coarse grid and the zooms
+    # distinct trials are at least the last zoom's half step apart (>= SEPARATION_STEP / 4, 0.5 pm); twins ~1e-24 m
+    assert np.diff(asked).min() > SEPARATION_STEP / 4, np.diff(asked).min()
