@@ -122,7 +122,7 @@ def _sindy(threshold: float, library, x, t, x_dot=None, u=None):
 
 def regression_only(quick: bool) -> dict:
     import afmid.fit.regression as regression
-    from afmid.fit.pipeline import term_penalties
+    from afmid.fit.selection import term_penalties
     from afmid.preprocess.differentiation import differentiate
 
     cfg, trace, library, true = _setup(cached_trace(CONFIG, NOISE_OFF, "lennard_jones_noise_free"))

@@ -31,7 +31,8 @@ def measure(overrides: list[str], search: bool, folder: Path) -> dict:
     import afmid.diagnosis.diagnose as diagnose
     import afmid.diagnosis.instrument_signature as signature
     from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
-    from afmid.fit.pipeline import prepare, run_fit
+    from afmid.fit.pipeline import run_fit
+    from afmid.fit.prepare import prepare
     from afmid.runfile import write_run
     from afmid.io.trace import load_trace, write_trace_file
     from afmid.preprocess.instrument import from_config

@@ -80,7 +80,8 @@ def separation_minimum(prepared, config: RunConfig, low: float, high: float, bas
 
     from afmid.errors import AfmidError
     from afmid.fit.contact_thresholds import contact_thresholds, contact_trial_separations
-    from afmid.fit.pipeline import build_system, library_parameters, residual_sum_squares
+    from afmid.fit.pipeline import library_parameters
+    from afmid.fit.system import build_system, residual_sum_squares
     from afmid.physics.effect_types import forms_at_contact
     from afmid.physics.library import build_library
     from afmid.physics.tips import tip_geometry

@@ -51,7 +51,8 @@ class ShapeSearch:
         from dataclasses import replace
 
         from afmid.errors import AfmidError
-        from afmid.fit.pipeline import build_system, library_parameters, residual_sum_squares
+        from afmid.fit.pipeline import library_parameters
+        from afmid.fit.system import build_system, residual_sum_squares
         from afmid.fit.search import search_range
         from afmid.fit.system import library_columns, library_thermal_bias
         from afmid.physics.library import build_library

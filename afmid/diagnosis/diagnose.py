@@ -247,7 +247,7 @@ def track_block_preparation(run: RunData, record, config: RunConfig):
     a joint fit's candidates are on its first trace; InputError when the stored offsets do not fit the block's
     periods (the record or the fit settings changed)."""
     from afmid.fit.period_separation import with_period_separation
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.fit.separation_track import cut_block
     from afmid.io.trace import check_trace
     from afmid.preprocess.instrument import from_config as instrument_from_config
@@ -282,7 +282,7 @@ def _one_blas_thread():
 
 
 def _diagnose(run: RunData, progress: bool, trace) -> dict:
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.fit.prepare import with_fine_grid
     from afmid.preprocess.instrument import from_config as instrument_from_config
     from afmid.io.trace import load_trace

@@ -53,7 +53,7 @@ def model_space(prep, result, shape_names: list[str], separation_free: bool) -> 
     """The :class:`ModelSpace` of a fit ``result`` (afmid.fit.pipeline.FitResult) on the prepared trace ``prep``;
     ``shape_names`` are the candidate's estimated shape parameters, ``separation_free`` whether the separation was
     estimated (its derivative column is then part of the space)."""
-    from afmid.fit.pipeline import library_columns
+    from afmid.fit.system import library_columns
 
     sigma = prep.row_sigma[None, :, None]
     p = result.system.theta.shape[2]

@@ -42,7 +42,8 @@ from afmid.fit.fit_state import FitState
 from afmid.fit.forces import FoldErrors, prediction_variance, read_out, row_noise_excess, signal_rows
 from afmid.fit.orchestration import (ErrorEstimate, NoSpread, Settled, Stages, StratifiedBagging, Undetermined,
                                      orchestrate)
-from afmid.fit.pipeline import FitResult, profile_library, run_fit, whole_effects
+from afmid.fit.pipeline import FitResult, profile_library, run_fit
+from afmid.fit.undetermined import whole_effects
 from afmid.fit.prepare import Prepared
 from afmid.fit.profile import GroupedProfile, robust_profile
 from afmid.fit.search import NonlinearEstimate

@@ -61,32 +61,14 @@ from afmid.fit.undetermined import whole_effects
 from afmid.progress import Progress
 from afmid.fit.separation_share import NOT_COMPUTED as SHARE_NOT_COMPUTED, SeparationShare, separation_share
 from afmid.fit.force_band import selection_share, statistical_share, total_share
-# Kept importable from afmid.fit.pipeline, where they were defined before (tests/cli/test_requests.py).
-from afmid.fit.orchestration import UNPHYSICAL_TEXT, refuse_unusable  # noqa: F401
-# Kept importable from afmid.fit.pipeline, where they were defined before (bench/bench_fit.py uses term_penalties).
-from afmid.fit.forces import PERIOD_CHUNK, SIGNAL_SNR  # noqa: F401
-from afmid.fit.selection import EXHAUSTIVE_MAX_TERMS, term_penalties  # noqa: F401
+from afmid.fit.prepare import Prepared, prepare, with_fine_grid, with_regressor_noise
+from afmid.fit.system import System, build_system, library_columns, library_thermal_bias, residual_sum_squares
 
 log = logging.getLogger(__name__)
 
 #: The fit's stages as the progress line counts them (after the trace is loaded): preparing periods, the
 #: separation / drive search, selecting terms, the bootstrap, the error and forces.
 FIT_STAGES = 5
-
-# The preparation and the regression system live in afmid.fit.prepare and afmid.fit.system; the names
-# below stay importable from afmid.fit.pipeline.
-from afmid.fit.prepare import (  # noqa: E402,F401
-    FINE_POINTS_PER_PERIOD,
-    Prepared,
-    pairwise_sum,
-    prepare,
-    smooth_across_blocks,
-    smoothing_variance_factor,
-    with_fine_grid,
-    with_regressor_noise,
-)
-from afmid.fit.system import (System, build_system, library_columns, library_thermal_bias,  # noqa: E402,F401
-                              residual_sum_squares)
 
 
 # --------------------------------------------------------------------------- nonlinear search

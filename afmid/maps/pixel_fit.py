@@ -95,7 +95,8 @@ class FullPixelFit:
         """Nothing is shared: every pixel as a trace of its own."""
 
     def fit(self, trace, pixel: int) -> PixelResult:
-        from afmid.fit.pipeline import fit_prepared, prepare
+        from afmid.fit.pipeline import fit_prepared
+        from afmid.fit.prepare import prepare
         from afmid.preprocess.instrument import from_config
 
         prep = prepare(trace, self.config.fit, from_config(self.config))
@@ -169,7 +170,8 @@ class SharedSupportFit:
 
     def fit(self, trace, pixel: int) -> PixelResult:
         from afmid.fit.drive_search import is_transient
-        from afmid.fit.pipeline import first_contact, library_parameters, prepare
+        from afmid.fit.pipeline import first_contact, library_parameters
+        from afmid.fit.prepare import prepare
         from afmid.fit.prepare import with_fine_grid
         from afmid.preprocess.instrument import from_config
 
@@ -271,7 +273,7 @@ class SharedSupportFit:
         self.offsets = [offset] + kept[:MAX_STARTS - 1]
 
     def _build(self, prep, library, params, counter):
-        from afmid.fit.pipeline import build_system
+        from afmid.fit.system import build_system
 
         counter["builds"] += 1
         return build_system(prep, library, params)
@@ -281,7 +283,7 @@ class SharedSupportFit:
         """The separation's minimum on the residual profile of the support (the profile library's columns when
         the library is a preset, as :func:`afmid.fit.pipeline.fit_prepared` does), from the lowest of ``starts``;
         ``curvature``: the last pixel's profile curvature (1/m^2), to predict the minimum from two points."""
-        from afmid.fit.pipeline import build_system
+        from afmid.fit.system import build_system
         from afmid.fit.profile import GroupedProfile, robust_profile
 
         physics = self.physics

@@ -106,7 +106,7 @@ def test_a_preset_with_an_explicitly_empty_effects_list_is_no_contradiction():
 
 
 def test_non_finite_coefficients_are_refused():
-    from afmid.fit.pipeline import refuse_unusable
+    from afmid.fit.orchestration import refuse_unusable
     from afmid.io.trace import Trace, Cantilever
     from afmid.physics.library import build_library
 

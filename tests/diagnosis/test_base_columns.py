@@ -22,7 +22,8 @@ pytestmark = [pytest.mark.numerics]
 def clean(tmp_path_factory):
     """(config, prepared trace, first contact in m) of hidden_clean.yaml simulated for 20 periods."""
     from afmid.config import build_config
-    from afmid.fit.pipeline import first_contact, prepare
+    from afmid.fit.pipeline import first_contact
+    from afmid.fit.prepare import prepare
     from afmid.simulate.driver import simulate
 
     source = REPO_ROOT / "tests" / "configs" / "hidden_clean.yaml"
@@ -44,7 +45,8 @@ def _library(config, effects):
 @pytest.mark.parametrize("added", ["electrostatic", "exponential_damping", "hydration", "viscoelastic"])
 def test_composed_residual_is_the_full_librarys(clean, added):
     from afmid.diagnosis.base_columns import AGREEMENT, BaseColumns
-    from afmid.fit.pipeline import build_system, library_parameters, residual_sum_squares
+    from afmid.fit.pipeline import library_parameters
+    from afmid.fit.system import build_system, residual_sum_squares
 
     config, prepared, touch = clean
     base = _library(config, ["dmt"])
@@ -135,7 +137,8 @@ def test_an_effect_zero_until_contact_out_of_reach_is_not_evaluated_and_gives_th
     not evaluated, and the residual is the full library's to the last bit's rounding (the same system but for the
     zero columns, which least squares leaves out exactly). Just below contact they are evaluated."""
     from afmid.diagnosis.base_columns import REACH_MARGIN, BaseColumns
-    from afmid.fit.pipeline import build_system, library_parameters, residual_sum_squares
+    from afmid.fit.pipeline import library_parameters
+    from afmid.fit.system import build_system, residual_sum_squares
     from afmid.fit.system import library_columns
     from afmid.physics.effects import EFFECTS
 

@@ -19,7 +19,8 @@ pytestmark = [pytest.mark.numerics]
 def test_the_search_finds_the_narrow_valley_where_the_neck_forms_on_the_records_own_taps(tmp_path):
     from afmid.diagnosis.candidate_refit import SEPARATION_STEP, SEPARATION_WINDOW, separation_minimum
     from afmid.fit.contact_thresholds import contact_thresholds
-    from afmid.fit.pipeline import build_system, first_contact, library_parameters, residual_sum_squares
+    from afmid.fit.pipeline import first_contact, library_parameters
+    from afmid.fit.system import build_system, residual_sum_squares
     from afmid.physics.library import build_library
     from afmid.physics.tips import tip_geometry
 
@@ -51,7 +52,8 @@ def test_a_zoom_does_not_evaluate_its_ends_again_as_rounding_twins(tmp_path):
     from afmid.config import build_config, read_yaml
     from afmid.diagnosis.base_columns import BaseColumns
     from afmid.diagnosis.candidate_refit import SEPARATION_STEP, SEPARATION_WINDOW, separation_minimum
-    from afmid.fit.pipeline import first_contact, prepare
+    from afmid.fit.pipeline import first_contact
+    from afmid.fit.prepare import prepare
     from afmid.physics.library import build_library
     from afmid.physics.tips import tip_geometry
     from afmid.simulate.driver import simulate

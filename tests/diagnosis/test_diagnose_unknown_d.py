@@ -61,7 +61,8 @@ def test_hidden_effect_is_named_with_the_separation_unknown(tmp_path, case):
 def _clean_prepared(tmp_path):
     """(config, prepared trace, first contact in m) of hidden_clean.yaml simulated for 20 periods."""
     from afmid.config import build_config
-    from afmid.fit.pipeline import first_contact, prepare
+    from afmid.fit.pipeline import first_contact
+    from afmid.fit.prepare import prepare
     from afmid.simulate.driver import simulate
 
     source = REPO_ROOT / "tests" / "configs" / "hidden_clean.yaml"

@@ -13,7 +13,7 @@ import pytest
 from afmid.config import build_config
 from afmid.diagnosis.diagnose import track_block_preparation
 from afmid.errors import InputError
-from afmid.fit.pipeline import prepare
+from afmid.fit.prepare import prepare
 from afmid.fit.separation_track import SeparationTrack, cut_block
 from afmid.io.trace import check_trace
 from afmid.preprocess.instrument import from_config as instrument_from_config

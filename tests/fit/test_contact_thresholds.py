@@ -26,7 +26,7 @@ def grazing_meniscus_record(base_dir):
     with its fine grid kept) of a grazing meniscus orbit: 30 periods at 100 samples per period, recorded as it is
     after 2000 periods (~1 s of CPU)."""
     from afmid.config import build_config
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.fit.prepare import with_fine_grid
     from afmid.simulate.driver import simulate
 

@@ -52,7 +52,8 @@ def _arrays(prepared) -> dict:
 
 @pytest.mark.parametrize("uncertainty", [False, True])
 def test_fits_on_one_preparation_equal_fits_that_prepare_themselves(simulated, uncertainty):
-    from afmid.fit.pipeline import fit_prepared, prepare, run_fit
+    from afmid.fit.pipeline import fit_prepared, run_fit
+    from afmid.fit.prepare import prepare
     from afmid.physics.library import build_library
 
     trace, config = simulated
@@ -77,7 +78,8 @@ def test_fits_on_one_preparation_equal_fits_that_prepare_themselves(simulated, u
 
 
 def test_run_fit_refuses_a_preparation_of_another_trace(simulated):
-    from afmid.fit.pipeline import prepare, run_fit
+    from afmid.fit.pipeline import run_fit
+    from afmid.fit.prepare import prepare
 
     trace, config = simulated
     cfg = config(["dmt"])
@@ -88,7 +90,9 @@ def test_run_fit_refuses_a_preparation_of_another_trace(simulated):
 
 def test_residual_of_a_system_is_the_selection_residual_of_all_columns(simulated):
     """residual_sum_squares(system) is the rss of the full support, as the selection sees it."""
-    from afmid.fit.pipeline import build_system, library_parameters, prepare, residual_sum_squares
+    from afmid.fit.pipeline import library_parameters
+    from afmid.fit.system import build_system, residual_sum_squares
+    from afmid.fit.prepare import prepare
     from afmid.physics.library import build_library
 
     trace, config = simulated

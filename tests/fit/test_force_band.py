@@ -127,7 +127,7 @@ def test_selection_share_is_half_the_change_with_the_dropped_term_forced_in():
     import afmid.fit.regression as regression
     from afmid.fit.force_band import selection_share
     from afmid.fit.forces import model_force_samples
-    from afmid.fit.pipeline import whole_effects
+    from afmid.fit.undetermined import whole_effects
 
     _, result = _fit(["simulate.periods=12", "simulate.seed=240"])
     prep, library, system, mask = result.prep, result.library, result.system, result.selection.best.mask

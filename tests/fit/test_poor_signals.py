@@ -342,7 +342,8 @@ def test_a_contact_term_whose_column_is_zero_on_the_trace_reads_out_as_not_deter
     determined" (no bound), never "E* = 0 +- 0" flagged as an unphysical read-out that makes the run
     model-limited (what the first half of Bruker's HSDC record showed at an assumed calibration)."""
     import afmid.fit.plausibility as plausibility
-    from afmid.fit.pipeline import UNPHYSICAL_TEXT, run_fit
+    from afmid.fit.pipeline import run_fit
+    from afmid.fit.orchestration import UNPHYSICAL_TEXT
 
     _, config, _ = _simulate_and_config(
         tmp_path, "dmt", ["sample.separation=1.6e-8", "simulate.periods=20", "fit.bootstrap=10",
@@ -366,7 +367,8 @@ def test_real_hsdc_first_half_reads_out_honestly(tmp_path):
     the declared tip."""
     from afmid.config import build_config
     import afmid.fit.plausibility as plausibility
-    from afmid.fit.pipeline import UNPHYSICAL_TEXT, run_fit
+    from afmid.fit.pipeline import run_fit
+    from afmid.fit.orchestration import UNPHYSICAL_TEXT
     from tests.io.test_hsdc import EXAMPLE
 
     if not EXAMPLE.is_file():

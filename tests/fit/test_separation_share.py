@@ -145,7 +145,7 @@ def test_the_separation_is_profiled_with_whole_effects():
     """A term the selection dropped stays in the profile when its effect has another selected term (DMT's tail
     beside Hertz); an effect with no selected term stays out; the nuisance columns are as given."""
     from afmid.config import ModelConfig
-    from afmid.fit.pipeline import whole_effects
+    from afmid.fit.undetermined import whole_effects
     from afmid.physics.library import build_library
 
     library = build_library(ModelConfig(effects=["dmt", "viscoelastic", "capillary"]), None)

@@ -33,7 +33,8 @@ STUDENT_T_5_DOF_99 = 4.032  # two-sided 1 % point
 def _free_lever_system(tmp_path: Path, seed: int, extra: list[str]):
     """(system, index of the xdot column, lever damping c in N s/m) of a simulated free lever in liquid."""
     from afmid.config import apply_overrides, build_config, dump_config, parse_override, read_yaml
-    from afmid.fit.pipeline import build_system, library_parameters
+    from afmid.fit.pipeline import library_parameters
+    from afmid.fit.system import build_system
     from afmid.fit.prepare import prepare
     from afmid.io.trace import load_trace, write_trace_file
     from afmid.physics.library import build_library
@@ -69,7 +70,7 @@ def _xdot_coefficient(system, j: int, T_blocks=None) -> float:
 
 @pytest.mark.slow
 def test_free_lever_damping_is_unbiased_in_liquid(tmp_path):
-    from afmid.fit.pipeline import build_system
+    from afmid.fit.system import build_system
 
     corrected, plain = [], []
     for seed in SEEDS:

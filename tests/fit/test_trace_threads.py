@@ -101,7 +101,9 @@ def test_regressor_noise_without_the_velocity_is_the_same_bits(dmt_trace_file):
     import afmid.fit.prepare as prepare
     import afmid.fit.regression as regression
     from afmid.config import ModelConfig, load_config
-    from afmid.fit.pipeline import build_system, library_parameters, prepare as prepare_trace
+    from afmid.fit.pipeline import library_parameters
+    from afmid.fit.system import build_system
+    from afmid.fit.prepare import prepare as prepare_trace
     from afmid.io.trace import load_trace
     from afmid.physics.library import build_library
 

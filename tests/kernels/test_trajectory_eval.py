@@ -96,7 +96,8 @@ def test_weak_form_columns_through_the_kernel_equal_the_evaluate_then_transpose_
     non-zero samples (afmid.preprocess.periods.fine_support, when any value is zero): the same bits."""
 
     from afmid.config import load_config
-    from afmid.fit.pipeline import library_parameters, prepare
+    from afmid.fit.pipeline import library_parameters
+    from afmid.fit.prepare import prepare
     from afmid.fit.prepare import fine_chunks
     from afmid.fit.system import average_switching_cells, library_columns
     from afmid.preprocess.periods import fine_support

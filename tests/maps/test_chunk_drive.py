@@ -34,7 +34,7 @@ def _same(a, b) -> bool:
 
 
 def test_shared_layouts_give_the_same_bits(small_map):
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.preprocess.harmonics import drive_at
     from afmid.preprocess.instrument import from_config
     from afmid.preprocess.periods import detrend

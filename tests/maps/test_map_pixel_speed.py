@@ -31,7 +31,7 @@ OTHER_PHASE = 1.5e-9
 
 def _pixels(folder, seed):
     """(config, library, [prepared pixel]) of the small map simulated with ``seed``."""
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.preprocess.instrument import from_config
 
     config, library, traces = simulated_pixels(folder, seed)
@@ -44,7 +44,7 @@ def small_map(request, tmp_path_factory):
 
 
 def _profile(prep, library, params, counter):
-    from afmid.fit.pipeline import build_system
+    from afmid.fit.system import build_system
     from afmid.fit.profile import GroupedProfile
 
     def factors_at(value):
@@ -56,7 +56,8 @@ def _profile(prep, library, params, counter):
 
 
 def test_kept_fine_grid_and_compiled_programs_give_the_same_bits(small_map):
-    from afmid.fit.pipeline import build_system, first_contact, library_parameters
+    from afmid.fit.pipeline import first_contact, library_parameters
+    from afmid.fit.system import build_system
     from afmid.fit.prepare import with_fine_grid
 
     config, library, preps = small_map

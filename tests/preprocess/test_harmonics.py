@@ -10,7 +10,7 @@ import yaml
 
 import afmid.preprocess.harmonics as harmonics
 from afmid.config import load_config
-from afmid.fit.pipeline import prepare
+from afmid.fit.prepare import prepare
 from afmid.io.trace import Cantilever, Trace, load_trace
 from afmid.preprocess.periods import detrend
 

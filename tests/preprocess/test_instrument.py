@@ -293,7 +293,7 @@ def test_detector_order_defaults():
 
 def test_no_instrument_declared_prepares_exactly_as_before():
     """IDEAL and None take the same path: the prepared rows are the same bits (nothing is transformed)."""
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.simulate.driver import simulate
 
     config = build_config(_raw("hidden_clean", "simulate.periods=8"))
@@ -315,7 +315,7 @@ def test_a_preparation_with_another_instrument_reuses_the_record_and_gives_the_s
     preparation's instrument-free part (fit.prepare.with_instrument). The same arithmetic on the same arrays in the
     same order as a fresh preparation, so the same bits, whichever instruments were prepared before."""
     from afmid.fit.prepare import with_instrument
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.simulate.driver import simulate
 
     config = build_config(_raw("hidden_clean", "simulate.periods=12"))
@@ -342,7 +342,8 @@ def test_second_mode_hypotheses_share_the_tip_side_and_give_the_same_bits(detect
     columns, noise level, trajectory and its fine grid) and recompute only the equation's rows and noise. Each
     equals a fresh preparation to the bit, and so does its fit; a detector tried in between (another tip) does
     not leak into the next mode's preparation."""
-    from afmid.fit.pipeline import prepare, run_fit
+    from afmid.fit.pipeline import run_fit
+    from afmid.fit.prepare import prepare
     from afmid.fit.prepare import with_instrument
     from afmid.simulate.driver import simulate
 
@@ -382,7 +383,8 @@ def test_second_mode_hypotheses_share_the_library_columns_and_fit_the_same_bits(
     separation and parameter set are evaluated once for all of them (fit.prepare.KeptColumns): a separation search
     with a second hypothesis finds the first one's columns, and its fit (separation, BIC, error, coefficients)
     equals the fit on a fresh preparation to the bit."""
-    from afmid.fit.pipeline import prepare, run_fit
+    from afmid.fit.pipeline import run_fit
+    from afmid.fit.prepare import prepare
     from afmid.fit.prepare import kept_columns, with_instrument
 
     config = build_config(_raw("hidden_clean", "simulate.periods=12", "fit.bootstrap=0"))

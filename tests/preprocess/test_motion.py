@@ -58,7 +58,7 @@ def _soft_trace(regime: str, seed: int, extra=()):
 @pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("regime", REGIMES)
 def test_fit_detects_the_motion_and_the_smoother_adapts(regime, seed):
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
 
     config, trace = _soft_trace(regime, seed)
     prep = prepare(trace, config.fit)
@@ -87,7 +87,7 @@ def test_non_periodic_fit_warns(regime, seed):
                                      ["sample.separation=8.0e-9", "simulate.seed=63"],
                                      ["simulate.noise.thermal=false", "simulate.noise.detector_rms=0"]])
 def test_clean_stiff_lever_traces_are_periodic(variant):
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.simulate.driver import simulate
 
     config = load_config(CONFIGS / "hidden_clean.yaml", variant)
@@ -138,7 +138,7 @@ def test_inspect_takes_a_soft_lever_in_liquid_for_periodic(tmp_path, run_cli, ov
     change with the detector noise only) before it took k_B T / k from the file's spring constant, as the fit
     does. The fit's own classification of the same traces is periodic too."""
     from afmid.config import dump_config
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.io.trace import write_trace_file
     from afmid.simulate.driver import simulate
 

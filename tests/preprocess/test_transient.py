@@ -146,7 +146,7 @@ def test_a_steady_soft_lever_in_liquid_is_not_a_transient(tmp_path, spring_const
     lever in air keeps 2 %."""
     from afmid.config import load_config
     from afmid.fit.drive_search import is_transient
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.io.defects import check_steady, settings_for
     from afmid.io.trace_analysis import analyse
     from afmid.preprocess.harmonics import TRANSIENT_CHANGE, transient_limit
@@ -167,7 +167,7 @@ def test_a_steady_soft_lever_in_liquid_is_not_a_transient(tmp_path, spring_const
 
 
 def test_new_drive_columns_at_the_same_frequency_are_the_prepared_ones(tmp_path):
-    from afmid.fit.pipeline import prepare
+    from afmid.fit.prepare import prepare
     from afmid.simulate.driver import simulate
 
     raw = _raw(250, 10e-9, 6.5e-9, 300e3, 40, 200, "rest", 5)

@@ -28,7 +28,8 @@ def _columns(seed: int, depth: float):
     """(windows, columns (L U, blocks, p) sample-major as the fit lays them out, first block) of the dmt library
     on a simulated trace, at the rest separation ``depth`` (m) below first contact."""
     from afmid.config import load_config
-    from afmid.fit.pipeline import first_contact, library_parameters, prepare
+    from afmid.fit.pipeline import first_contact, library_parameters
+    from afmid.fit.prepare import prepare
     from afmid.fit.prepare import fine_chunks
     from afmid.fit.system import average_switching_cells
     from afmid.physics.library import build_library
