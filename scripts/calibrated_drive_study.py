@@ -41,7 +41,7 @@ def base_raw() -> dict:
 
 def run_one(tmp: Path, raw: dict, drive: tuple, d_given: bool, effects: list[str]) -> dict:
     from afmid.config import build_config
-    from afmid.diagnosis.diagnose import load_run
+    from afmid.runfile import load_run
     from afmid.diagnosis.localize import energy_check
     from afmid.fit.pipeline import run_fit
     from afmid.runfile import write_run

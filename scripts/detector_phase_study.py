@@ -47,7 +47,7 @@ def main(argv=None) -> int:
     from afmid.fit.pipeline import run_fit
     from afmid.runfile import write_run
     from afmid.simulate.driver import simulate
-    from afmid.preprocess.periods import estimate_drive
+    from afmid.preprocess.harmonics import estimate_drive
     from afmid.runfile import load_run
 
     out = Path(args.out)

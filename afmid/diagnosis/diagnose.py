@@ -55,8 +55,8 @@ from afmid.diagnosis.candidate_refit import (SEPARATION_WINDOW, fit_searched, se
 import afmid.diagnosis.forked_work as forked_work
 from afmid.diagnosis.candidate_shapes import ShapeSearch, shape_words
 from afmid.diagnosis.base_columns import BaseColumns
-# Where the residual sits: afmid.diagnosis.localize (importable from here as before).
-from afmid.diagnosis.localize import NEAR_RANGE, band_limit, energy_check, localize  # noqa: F401
+# Where the residual sits: afmid.diagnosis.localize.
+from afmid.diagnosis.localize import NEAR_RANGE, localize
 import afmid.physics.medium as medium
 from afmid.physics.effects import EFFECTS
 # BIC differences as a person reads them (no -0, no 7e-13): the one formatter of afmid's numbers.

@@ -28,7 +28,6 @@ from afmid.preprocess.periods import (
     HarmonicBlocks,
     WeakWindows,
     detrend,
-    estimate_drive,
     amplitude_per_block,
     harmonic_blocks,
     ou_smooth_given,
@@ -36,6 +35,7 @@ from afmid.preprocess.periods import (
     steadiness,
     weak_windows,
 )
+from afmid.preprocess.harmonics import estimate_drive
 from afmid.preprocess.differentiation import differentiate
 from afmid.preprocess.harmonics import transient_limit
 from afmid.preprocess.motion import classify as classify_motion

@@ -22,12 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from afmid.errors import InputError
-from afmid.preprocess.harmonics import (  # noqa: F401 - DriveEstimate, estimate_drive: the fit's drive, measured by the engine
-    DriveEstimate,
+from afmid.preprocess.harmonics import (
     amplitude_change,
     apply_rows,
     block_layout,
-    estimate_drive,
     fourier_design,
     harmonic_cos_sin,
     highest_harmonic,

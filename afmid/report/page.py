@@ -22,7 +22,8 @@ import numpy as np
 
 from afmid.version import __version__
 import afmid.fit.plausibility as plausibility
-from afmid.diagnosis.diagnose import BIC_EVIDENCE, describe_residual, energy_check, localize
+from afmid.diagnosis.diagnose import BIC_EVIDENCE, describe_residual, localize
+from afmid.diagnosis.localize import energy_check
 from afmid.diagnosis.stored import diagnosed
 from afmid.report.energy_rows import energy_caveat, energy_rows, inverted_force_name
 from afmid.io.trace import now_iso

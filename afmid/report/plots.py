@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from afmid.diagnosis.diagnose import BIC_EVIDENCE, band_limit
+from afmid.diagnosis.diagnose import BIC_EVIDENCE
+from afmid.diagnosis.localize import band_limit
 from afmid.report import observables
 from afmid.report.figures import FULL_WIDTH, log_axis, pyplot, save_figure
 from afmid.quantity_text import display_unit, format_delta_bic

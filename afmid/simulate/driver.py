@@ -55,30 +55,19 @@ from afmid.io.trace import Cantilever, Trace, Truth
 from afmid.preprocess.instrument import from_config as instrument_from_config
 from afmid.progress import Progress
 from afmid.physics.effects import BOLTZMANN
-from afmid.simulate.instrument import MultiModeIntegrator, detect, detector_lead_periods, integrator_for  # noqa: F401
-from afmid.simulate.integrator import (  # noqa: F401 (re-exported)
-    DEFAULT_KERNEL,
+from afmid.simulate.instrument import detect, detector_lead_periods, integrator_for
+from afmid.simulate.integrator import (
     ORBIT_WINDOW_PERIODS,
-    SETTLE_CHUNK_PERIODS,
-    SETTLED_PERIODS,
     Integrator,
     Segment,
-    SteadyState,
-    first_harmonic,
-    harmonic_basis,
     settle,
 )
-from afmid.simulate.model import (  # noqa: F401 (re-exported)
+from afmid.simulate.model import (
     CompiledForceLaw,
-    NondimensionalForm,
     Oscillator,
     Setup,
     compile_force_law,
-    drive_force_for_amplitude,
-    force_numpy,
-    initial_gates,
     parameter_units,
-    program_variables,
     resolve_setup,
 )
 

@@ -147,13 +147,13 @@ def run_with_own_trace(tmp_path):
 
 
 def test_the_truth_of_an_unchanged_trace_is_read(run_with_own_trace):
-    from afmid.diagnosis.diagnose import load_run
+    from afmid.runfile import load_run
 
     assert load_run(run_with_own_trace).truth is not None
 
 
 def test_the_truth_of_a_changed_trace_is_ignored_with_a_warning(run_with_own_trace, caplog):
-    from afmid.diagnosis.diagnose import load_run
+    from afmid.runfile import load_run
 
     with h5py.File(run_with_own_trace.with_name("trace.h5"), "r+") as h5:
         h5["truth/force"][0] += 1e-9  # the trace file changed after the fit
@@ -187,7 +187,8 @@ def test_runs_of_the_same_trace_need_no_flag(tmp_path, run_cli):
 
 
 def test_no_effects_are_suggested_from_a_changed_trace(run_with_own_trace, caplog):
-    from afmid.diagnosis.diagnose import load_run, suggest
+    from afmid.diagnosis.diagnose import suggest
+    from afmid.runfile import load_run
 
     run = load_run(run_with_own_trace)
     with h5py.File(run_with_own_trace.with_name("trace.h5"), "r+") as h5:

@@ -41,8 +41,21 @@ import pytest
 
 import afmid.diagnosis.diagnose as diagnose
 from afmid.config import build_config, dump_config, read_yaml
-from afmid.diagnosis.diagnose import (BIC_EVIDENCE, ERROR_RATIO, FLOOR_FACTOR, RunData, Trial, _Base, _implausible, _rejections,
-                            _significant, band_limit, candidate_effects, energy_check, localize, refit_config)
+from afmid.diagnosis.diagnose import (
+    BIC_EVIDENCE,
+    ERROR_RATIO,
+    FLOOR_FACTOR,
+    RunData,
+    Trial,
+    _Base,
+    _implausible,
+    _rejections,
+    _significant,
+    candidate_effects,
+    localize,
+    refit_config,
+)
+from afmid.diagnosis.localize import band_limit, energy_check
 from repo_paths import TEST_CONFIGS
 
 # floating-point results compared; blas_sensitive: make test-kernels runs these again (BLAS/LAPACK on the path)

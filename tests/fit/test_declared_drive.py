@@ -249,7 +249,7 @@ def test_a_free_oscillation_gives_the_simulators_drive(tmp_path):
     and in rad for the phase."""
     from afmid.fit.declared_drive import drive_from_free_oscillation
     from afmid.io.trace import load_trace
-    from afmid.preprocess.periods import estimate_drive
+    from afmid.preprocess.harmonics import estimate_drive
 
     raw = demo_raw(tmp_path, periods=30)
     raw["sample"]["separation"] = 1e-6

@@ -25,7 +25,8 @@ from afmid.kernels.sparse import subset_lstsq, stlsq_factor, stlsq_factor_numpy,
 from afmid.physics.library import build_library, trajectory_variables
 from afmid.physics.presets import PRESETS
 from afmid.physics.effects import EFFECTS
-from afmid.preprocess.periods import estimate_drive, harmonic_blocks, weak_windows
+from afmid.preprocess.periods import harmonic_blocks, weak_windows
+from afmid.preprocess.harmonics import estimate_drive
 from afmid.terms.units import parse_unit
 from library_twin import evaluate_numpy
 

@@ -304,7 +304,7 @@ def test_report_marks_implausible_values(workspace, run_cli):
 def test_run_files_without_verdicts_are_judged_when_read(workspace, run_cli):
     """A run file from before the check (no plausible attribute) still shows its implausible values flagged."""
     from afmid.batch.run import read_run_row
-    from afmid.diagnosis.diagnose import load_run
+    from afmid.runfile import load_run
 
     old = workspace / "old.h5"
     assert run_cli("-q", "fit", workspace / "run.yaml", "-o", old, "--overwrite",

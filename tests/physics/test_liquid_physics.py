@@ -440,7 +440,7 @@ def test_hydration_in_liquid_is_not_named_double_layer(diagnosed, variant):
 def test_report_resimulates_a_run_with_a_fixed_debye_length(tmp_path):
     """A Debye length fixed by sample.ionic_strength is no searched parameter of the run, but the report's
     re-simulation of the identified model needs it (it failed with "unknown name 'debye_length'")."""
-    from afmid.diagnosis.diagnose import load_run
+    from afmid.runfile import load_run
     from afmid.fit.pipeline import run_fit
     from afmid.io.trace import write_trace_file
     from afmid.runfile import run_data, write_run

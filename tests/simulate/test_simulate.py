@@ -17,16 +17,8 @@ from afmid.config import build_config
 from afmid.errors import AfmidError, ConfigError
 from afmid.io.trace import write_trace_file
 from afmid.physics.effects import BOLTZMANN, EFFECTS, EPSILON_0, MODELS, ForceLaw, StateGate, build_force_law
-from afmid.simulate.driver import (
-    Integrator,
-    NondimensionalForm,
-    Oscillator,
-    compile_force_law,
-    drive_force_for_amplitude,
-    force_numpy,
-    resolve_setup,
-    simulate,
-)
+from afmid.simulate.driver import Integrator, Oscillator, compile_force_law, resolve_setup, simulate
+from afmid.simulate.model import NondimensionalForm, drive_force_for_amplitude, force_numpy
 from reference_integrator import reference_drive, reference_integrate
 
 pytestmark = pytest.mark.numerics  # floating-point results compared (blas_sensitive ones: make test-kernels runs them again)
@@ -381,7 +373,7 @@ def test_generated_law_is_the_vm_law_bit_for_bit():
         ok = np.isfinite(numpy_force) & finite
         np.testing.assert_allclose(ours[0][ok], numpy_force[ok], rtol=1e-12, atol=0, err_msg=name)
         np.testing.assert_array_equal(np.isfinite(ours[0][finite]), np.isfinite(numpy_force[finite]), err_msg=name)
-        from afmid.simulate.driver import program_variables
+        from afmid.simulate.model import program_variables
 
         variables = program_variables(x[finite], v[finite], t[finite], d, dyn[6], gates[finite])
         for j, p in enumerate(compiled.switching):
