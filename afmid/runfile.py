@@ -36,8 +36,8 @@ from afmid.errors import ConfigError, InputError
 from afmid.io.files import check_input_file, is_regular_file
 from afmid.physics.effects import EFFECTS
 from afmid.io.trace import RUN_FORMAT, TRACE_FORMAT, Truth, atomic_hdf5, check_output_path, create_dataset, read_truth, write_dataset
-from afmid.fit.uncertainty import (ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR, FLOOR_QUANTILE, floor_threshold,
-                                   intervals_kind)
+from afmid.fit.uncertainty import (ERROR_ATTRS, ERROR_LABEL, FLOOR_FACTOR, FLOOR_QUANTILE, TRACK_LEVEL_ERROR,
+                                   floor_threshold, intervals_kind)
 from afmid.runcheck import RunReader, check_version, input_unchanged, stored_config
 
 if TYPE_CHECKING:  # an annotation only: the run file is written from a fit's result (fit is a layer below)
@@ -254,7 +254,8 @@ def quantity_record(name: str, q: dict, verdict: plausibility.Verdict) -> dict:
     reads them): value, unit, error, 95 % interval, effect (SI), the error's shares, the marks and the verdict."""
     return {"value": float(q["value"]), "unit": str(q["unit"]), "error": float(q["error"]),
             "ci_low": float(q["ci_low"]), "ci_high": float(q["ci_high"]), "effect": str(q["effect"]),
-            **{k: float(q[k]) for k in ("error_statistical", "error_calibration", "information_bound") if k in q},
+            **{k: float(q[k]) for k in ("error_statistical", "error_calibration", TRACK_LEVEL_ERROR,
+                                        "information_bound") if k in q},
             "model_limited": bool(q.get("model_limited", False)),
             **read_undetermined(undetermined_attributes(q)),
             **plausibility.attributes(verdict)}
@@ -382,7 +383,7 @@ def write_run_contents(h5, run: RunData) -> None:
         write_dataset(m, name, value, IDENTIFIED_UNITS[name])
     pg = m.create_group("parameters")
     for name, q in run.quantities.items():
-        parts = {k: q[k] for k in ("error_statistical", "error_calibration") if k in q}
+        parts = {k: q[k] for k in ("error_statistical", "error_calibration", TRACK_LEVEL_ERROR) if k in q}
         parts.update(undetermined_attributes(q))
         parts.update(bound_attributes(q))
         write_dataset(pg, name, q["value"], q["unit"], error=q["error"], ci_low=q["ci_low"], ci_high=q["ci_high"],
@@ -786,7 +787,8 @@ def _read_run(h5: RunReader, path: Path, raw: dict) -> RunData:
                "error": float(_required_attr(ds, "error", path)),
                "ci_low": float(_required_attr(ds, "ci_low", path)), "ci_high": float(_required_attr(ds, "ci_high", path)),
                "effect": text(_required_attr(ds, "effect", path)),
-               **{k: float(ds.attrs[k]) for k in ("error_statistical", "error_calibration", "information_bound")
+               **{k: float(ds.attrs[k]) for k in ("error_statistical", "error_calibration", TRACK_LEVEL_ERROR,
+                                                  "information_bound")
                   if k in ds.attrs},
                "model_limited": bool(ds.attrs.get("model_limited", False)),
                **read_undetermined(ds.attrs),

@@ -660,21 +660,43 @@ def _propagate(quantities: dict, columns: _Columns, directions: list, mask: np.n
     read-outs (afmid.fit.uncertainty.add_largest_shift) added in quadrature (in place)."""
     extra = dict.fromkeys(quantities, 0.0)
     for direction in directions:
-        sigma = direction.sigma
-        if not math.isfinite(sigma) or sigma <= 0:
-            continue
-        shifted = []
-        for sign in (1, -1):
-            replaced = direction.trial(direction.current() + sign * sigma)
-            try:
-                joint = columns.joint(replaced)
-            except AfmidError:
-                continue  # the other side alone
-            coef, _ = regression.subset_fit(regression.combine(joint.T_blocks), mask)
-            shifted.append(read_out(library, coef, None, replaced.get(0, first.params), mask, first.prep.trace))
-        add_largest_shift(extra, quantities, shifted)
+        _add_direction_shift(extra, quantities, columns, direction, direction.sigma, mask, library, first)
     for k, q in quantities.items():
         widen_interval(q, math.sqrt(extra[k]))
+
+
+def _add_direction_shift(variance: dict[str, float], quantities: dict, columns: _Columns, direction, sigma: float,
+                         mask: np.ndarray, library: Library, first: TraceFit) -> None:
+    """Add to ``variance`` (in place, per read-out, its unit squared) the square of the larger change of the
+    shared read-outs when ``direction`` moves by +-``sigma`` (its unit) and the joint support is refitted there
+    (afmid.fit.uncertainty.add_largest_shift); nothing when ``sigma`` is not a positive number."""
+    if not math.isfinite(sigma) or sigma <= 0:
+        return
+    shifted = []
+    for sign in (1, -1):
+        replaced = direction.trial(direction.current() + sign * sigma)
+        try:
+            joint = columns.joint(replaced)
+        except AfmidError:
+            continue  # the other side alone
+        coef, _ = regression.subset_fit(regression.combine(joint.T_blocks), mask)
+        shifted.append(read_out(library, coef, None, replaced.get(0, first.params), mask, first.prep.trace))
+    add_largest_shift(variance, quantities, shifted)
+
+
+def common_level_variance(result: JointResult, sigma: float) -> dict[str, float]:
+    """Per shared read-out of ``result``, the square (its unit squared) of its larger change when every
+    estimated separation moves together by +-``sigma`` (m) and the joint support is refitted there: the same
+    refit as the common shift's propagation in the fit, for a sigma of the common level found after it (the
+    separation track's widening of its blocks' sigmas). All 0 when ``sigma`` is not a positive number or no
+    separation is estimated."""
+    variance = dict.fromkeys(result.quantities, 0.0)
+    if not any(t.separation is not None for t in result.traces):
+        return variance
+    columns = _Columns(result.library, result.traces, {})
+    _add_direction_shift(variance, result.quantities, columns, SeparationShift(result.traces), sigma,
+                         result.selected, result.library, result.traces[0])
+    return variance
 
 
 def trace_cv_error(joint: JointSystem, prep: Prepared, system: System, mask: np.ndarray, coef: np.ndarray, i: int,

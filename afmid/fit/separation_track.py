@@ -45,11 +45,12 @@ import numpy as np
 
 from afmid.config import RunConfig
 from afmid.errors import ConfigError
-from afmid.fit.joint import JointResult, fit_traces_jointly, trace_coefficients
+from afmid.fit.joint import JointResult, common_level_variance, fit_traces_jointly, trace_coefficients
 from afmid.fit.period_separation import (LevelStep, LinearisedBlock, column_designs, joint_level_step,
                                         mean_force_offsets, ou_prior, row_design, row_offsets, with_period_separation,
                                         with_row_shift)
 from afmid.fit.system import library_columns
+from afmid.fit.uncertainty import TRACK_LEVEL_ERROR, widen_interval
 from afmid.io.onset import crop
 from afmid.io.trace import Trace, check_trace
 
@@ -181,8 +182,42 @@ def fit_separation_track(config: RunConfig, trace: Trace, bandwidth: float, prog
                  "%s pm)", np.flatnonzero(raised).tolist(), np.round(floor[raised] * 1e12, 1).tolist(),
                  np.round(sigma[raised] * 1e12, 1).tolist())
         sigma = np.where(raised, floor, sigma)
+    if uncertainty:
+        widen_read_outs(joint, level_added_sigma(joint, sigma))
     return SeparationTrack(0.5 * (first + stop) / trace.sample_rate, first, stop, separation, sigma, bandwidth, joint,
                            offsets, within_block, level_step, floor)
+
+
+def level_added_sigma(joint: JointResult, sigma: np.ndarray) -> float:
+    """The 1 sigma (m) the track adds to the blocks' common level beyond the joint fit's: the root mean square over
+    the blocks of sqrt(sigma^2 - joint sigma^2) (``sigma``: the track's per block, m; the joint fit's: its own
+    profile's and the common shift's in quadrature), 0 where the track did not raise it.
+
+    The added parts (the offsets' share, the floor at the record's bound of a d constant over the record) are
+    taken as common to all the blocks: the floor is one d for the whole record by construction, and a common
+    error of the levels is what moves the shared law; taking them as independent per block would divide their
+    effect on the law by the number of blocks. The root mean square is not below the mean of the blocks' added
+    sigmas, the common level's added sigma were they fully correlated."""
+    joint_sigma = np.array([t.separation.sigma if t.separation is not None else math.nan for t in joint.traces])
+    added = np.clip(np.asarray(sigma, dtype=float)**2 - joint_sigma**2, 0.0, None)
+    added = added[np.isfinite(added)]
+    return float(math.sqrt(np.mean(added))) if added.size else 0.0
+
+
+def widen_read_outs(joint: JointResult, added_sigma: float) -> None:
+    """Carry the track's added sigma of the common level ``added_sigma`` (m, :func:`level_added_sigma`) into the
+    shared read-outs of ``joint`` (in place): each read-out's larger change with the law refitted at the levels
+    moved by +-``added_sigma`` (:func:`afmid.fit.joint.common_level_variance`, the joint fit's own propagation of
+    its common shift) added in quadrature to its 1 sigma and its 95 % interval; the values do not change. Each
+    read-out keeps that part as :data:`afmid.fit.uncertainty.TRACK_LEVEL_ERROR` (0 when nothing was added)."""
+    variance = common_level_variance(joint, added_sigma)
+    for name, q in joint.quantities.items():
+        share = math.sqrt(variance.get(name, 0.0))
+        widen_interval(q, share)
+        q[TRACK_LEVEL_ERROR] = share
+    if added_sigma > 0:
+        log.info("separation track: the levels' added %.1f pm carried into the read-outs (%s)", added_sigma * 1e12,
+                 ", ".join(f"{name} +{math.sqrt(v):.3g}" for name, v in variance.items() if v > 0))
 
 
 def record_bounds(config: RunConfig, joint: JointResult) -> np.ndarray:

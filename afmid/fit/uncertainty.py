@@ -49,6 +49,10 @@ FLOOR_FACTOR = 1.45
 
 #: What every ``error`` in afmid's outputs is.
 ERROR_LABEL = "1 sigma"
+#: The key of a read-out's part of its 1 sigma (its unit) from a separation track's widening of its blocks' d
+#: sigmas beyond the joint fit's (afmid.fit.separation_track), kept beside ``error`` like the statistical /
+#: calibration split and stored as the run file's attribute of that name.
+TRACK_LEVEL_ERROR = "error_separation_track"
 #: What every ``ci_low`` .. ``ci_high`` interval in afmid's outputs is.
 INTERVAL_LABEL = "95 %"
 #: The attributes that say so on every stored value with an error and an interval.

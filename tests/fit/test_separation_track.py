@@ -178,3 +178,57 @@ def test_a_rough_surface_under_feedback_is_tracked_with_rows():
                      + 4 / 3 * e_star * np.sqrt(radius) * np.maximum(a0 - separation, 0) ** 1.5)
     error = np.sqrt(np.mean((force - trace.truth.force) ** 2)) / np.max(np.abs(trace.truth.force))
     assert error <= 0.02, (error, e_star)
+
+
+def test_the_read_outs_carry_the_track_s_added_level_sigma(tmp_path):
+    """The track raises each block's d sigma beyond the joint fit's (the offsets' share, the floor at the
+    record's bound); E*'s 1 sigma gains the common level's added sigma times E*'s change with the level, in
+    quadrature, and says so in its ``error_separation_track``. A rough surface under feedback, 60 periods in two
+    blocks of 30 (``within_block: rows``: the offsets' share is never zero), seed 97."""
+    from afmid.fit.forces import read_out
+    from afmid.fit.joint import stack
+    from afmid.fit.regression import combine, subset_fit
+    from afmid.fit.system import build_system
+    simulated, fitting = configs(scan=FEEDBACK_ROUGH, periods=60, bandwidth=5000.0)
+    raw = simulated.model_dump(mode="json", exclude_none=True)
+    raw["simulate"]["seed"] = 97
+    trace = simulate(build_config(raw))
+    fit_raw = fitting.model_dump(mode="json", exclude_none=True)
+    fit_raw["fit"]["bootstrap"] = 0
+    fitting = build_config(fit_raw)
+    track = fit_separation_track(fitting, check_trace(trace, fitting), 5000.0, within_block="rows")
+    joint = track.joint
+    joint_sigma = np.array([t.separation.sigma for t in joint.traces])
+    added = np.sqrt(np.mean(np.maximum(track.sigma**2 - joint_sigma**2, 0.0)))
+    assert added > 0.0, (track.sigma, joint_sigma)  # the track widened d: there is something to carry
+
+    def e_star_at(shift):
+        systems = [build_system(t.prep, joint.library, dict(t.params, d=t.params["d"] + shift)) for t in joint.traces]
+        coef, _ = subset_fit(combine(stack(systems, len(joint.library)).T_blocks), joint.selected)
+        return read_out(joint.library, coef, None, dict(joint.traces[0].params, d=joint.traces[0].params["d"] + shift),
+                        joint.selected, joint.traces[0].prep.trace)["E_star"]["value"]
+
+    q = joint.quantities["E_star"]
+    central = e_star_at(0.0)
+    assert central == pytest.approx(q["value"], rel=1e-9)  # the value itself is not moved
+    sides = [e_star_at(sign * added) for sign in (1, -1)]
+    expected_share = max(abs(s - central) for s in sides)
+    slope_share = 0.5 * abs(sides[0] - sides[1])  # |dE*/dlevel| * added, central difference
+    assert expected_share > 0
+    share = q.get("error_separation_track", 0.0)  # its name in the run file's attributes too
+    # The share is the larger one-sided change (the same refit, so equal to rounding of the arithmetic) and not
+    # below the linear one; the 1 sigma holds the joint fit's and the share in quadrature.
+    assert share == pytest.approx(expected_share, rel=1e-6)
+    assert share >= slope_share * (1 - 1e-9)
+    joint_part = q["error"] ** 2 - share ** 2
+    assert joint_part > 0
+    assert q["error"] ** 2 >= joint_part + slope_share**2 * (1 - 1e-9)
+    half_width = 0.5 * (q["ci_high"] - q["ci_low"])
+    assert half_width >= 1.96 * share * (1 - 1e-9)
+    from afmid.joint_runfile import write_track_run
+    from afmid.runfile import load_run
+
+    path, _ = write_track_run(tmp_path / "track_run.h5", track)
+    with h5py.File(path, "r") as h5:
+        assert h5["model/parameters/E_star"].attrs["error_separation_track"] == share
+    assert load_run(path).quantities["E_star"]["error_separation_track"] == share
