@@ -3,7 +3,7 @@
 :func:`afmid.diagnosis.diagnose.suggest` refits a trace with each catalog effect the
 model lacks; the effect's nonlinear parameters are found here by a coarse
 search on the fit's own objective (the whitened residual of the full library,
-:func:`afmid.fit.pipeline.residual_sum_squares`) over the fit's own ranges
+:func:`afmid.fit.system.residual_sum_squares`) over the fit's own ranges
 (:func:`afmid.fit.search.search_range`), on the trace prepared once for all
 the refits. Lengths in m.
 """

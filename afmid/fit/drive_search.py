@@ -48,7 +48,7 @@ def is_transient(prep) -> bool:
 
 def with_drive_frequency(prep, frequency: float):
     """``prep`` (an :class:`afmid.fit.pipeline.Prepared`) with its drive columns at ``frequency`` (Hz), made as
-    :func:`afmid.fit.pipeline.prepare` makes them (:class:`afmid.preprocess.baseline.BaselineColumns`); blocks, windows, trajectory
+    :func:`afmid.fit.prepare.prepare` makes them (:class:`afmid.preprocess.baseline.BaselineColumns`); blocks, windows, trajectory
     and noise unchanged. A new object: ``prep`` is not modified."""
     blocks, windows = prep.blocks, prep.windows
     names = prep.nuisance_names

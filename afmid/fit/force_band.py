@@ -45,7 +45,7 @@ def statistical_share(prep, library, system, coef_samples, force_estimate: np.nd
 
 def selection_share(prep, library, system, mask: np.ndarray, whole: np.ndarray, force_estimate: np.ndarray) -> float:
     """Half the RMS difference between the model force on the support ``mask`` and on ``whole`` (the support
-    with the terms the selection dropped from its effects forced in: afmid.fit.pipeline.whole_effects), over the
+    with the terms the selection dropped from its effects forced in: afmid.fit.undetermined.whole_effects), over the
     peak |force| of ``force_estimate``: relative, 1 sigma (the two supports as the ends of the doubt). 0 when
     nothing was dropped.
 

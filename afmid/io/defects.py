@@ -655,7 +655,7 @@ def check_loaded(trace, config) -> tuple[list[Finding], MeasuredDrive | None]:
 def measure_drive(trace, detrend_mode: str) -> MeasuredDrive | None:
     """The fit's drive measurement of a loaded trace (deflection detrended with ``detrend_mode``), None if none.
 
-    The same samples, times and estimator as :func:`afmid.fit.pipeline.prepare`, so the
+    The same samples, times and estimator as :func:`afmid.fit.prepare.prepare`, so the
     fit can use the result in place of measuring again.
     """
     t = trace.times

@@ -41,7 +41,7 @@ log = logging.getLogger(__name__)
 
 def detrend(x: np.ndarray, t: np.ndarray, mode: str) -> tuple[np.ndarray, dict]:
     """Remove an offset (``offset``). Returns the corrected trace and what was removed (m). ``linear`` changes
-    nothing here: :func:`afmid.fit.pipeline.prepare` estimates the drift (:mod:`afmid.preprocess.baseline`)."""
+    nothing here: :func:`afmid.fit.prepare.prepare` estimates the drift (:mod:`afmid.preprocess.baseline`)."""
     if mode == "none":
         return x, {}
     if mode == "offset":

@@ -16,7 +16,7 @@ tolerances fixed before the results were looked at):
   the liquid lever of scripts/experiment_table.py);
 - a separation given: nothing computed, no warning; the ideal instrument on a 150-period record: share
   < 1 %, no warning (the share at 50 periods was measured 1.1 %; 1.1 / sqrt(3) = 0.64 %);
-- the separation is profiled with whole effects (afmid.fit.pipeline.whole_effects).
+- the separation is profiled with whole effects (afmid.fit.undetermined.whole_effects).
 """
 
 from __future__ import annotations
