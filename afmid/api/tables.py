@@ -18,6 +18,17 @@ from afmid.quantity_text import format_measurement, format_value
 ONE_SIGMA = "1 sigma"
 
 
+def data_frame(table: str, rows: list[dict], columns, index: str):
+    """``rows`` as a :class:`pandas.DataFrame` with ``columns``, indexed by ``index``: the tables' ``to_pandas``.
+    pandas is optional for afmid: without it, one ImportError naming ``table`` and its ``to_dicts()``."""
+    try:
+        import pandas
+    except ImportError:
+        raise ImportError(f"{table}.to_pandas needs pandas, which is not installed (pip install pandas); "
+                          f"{table}.to_dicts() gives the same rows as plain dicts") from None
+    return pandas.DataFrame(rows, columns=list(columns)).set_index(index)
+
+
 @dataclass(frozen=True)
 class Parameter:
     """One physical read-out of a fit: ``value`` and ``sigma`` (1 sigma) in ``unit`` (SI), its 95 % interval
@@ -108,12 +119,7 @@ class Parameters:
 
     def to_pandas(self):
         """The table as a :class:`pandas.DataFrame` indexed by name (needs pandas, which afmid does not require)."""
-        try:
-            import pandas
-        except ImportError:
-            raise ImportError("Parameters.to_pandas needs pandas, which is not installed (pip install pandas); "
-                              "Parameters.to_dicts() gives the same rows as plain dicts") from None
-        return pandas.DataFrame(self.to_dicts(), columns=list(self.COLUMNS)).set_index("name")
+        return data_frame("Parameters", self.to_dicts(), self.COLUMNS, "name")
 
     def __repr__(self) -> str:
         if not self._rows:
@@ -206,12 +212,7 @@ class SeparationTrackTable:
 
     def to_pandas(self):
         """The blocks as a :class:`pandas.DataFrame` indexed by block (needs pandas, which afmid does not require)."""
-        try:
-            import pandas
-        except ImportError:
-            raise ImportError("SeparationTrackTable.to_pandas needs pandas, which is not installed (pip install "
-                              "pandas); to_dicts() gives the same rows as plain dicts") from None
-        return pandas.DataFrame(self.to_dicts(), columns=list(self.COLUMNS)).set_index("block")
+        return data_frame("SeparationTrackTable", self.to_dicts(), self.COLUMNS, "block")
 
     def text(self) -> str:
         """The track as ``afmid fit`` prints it: one line per block, its time in ms and d ± 1σ in nm."""
