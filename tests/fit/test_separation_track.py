@@ -37,6 +37,19 @@ def configs(scan=STEP_SCAN, periods=240, bandwidth=2500.0):
     return build_config(raw), build_config(fit_raw)
 
 
+def rough_feedback_track(seed: int, periods: int, bandwidth: float):
+    """A rough surface scanned under the amplitude feedback (simulation seed ``seed``) and its track fitted with
+    ``within_block: rows`` and no bootstrap: (trace, track)."""
+    simulated, fitting = configs(scan=FEEDBACK_ROUGH, periods=periods, bandwidth=bandwidth)
+    raw = simulated.model_dump(mode="json", exclude_none=True)
+    raw["simulate"]["seed"] = seed
+    trace = simulate(build_config(raw))
+    fit_raw = fitting.model_dump(mode="json", exclude_none=True)
+    fit_raw["fit"]["bootstrap"] = 0
+    fitting = build_config(fit_raw)
+    return trace, fit_separation_track(fitting, check_trace(trace, fitting), bandwidth, within_block="rows")
+
+
 def test_blocks_are_whole_periods_and_carry_their_truth():
     simulated, _ = configs(periods=40)
     trace = simulate(simulated)
@@ -148,15 +161,7 @@ def test_a_rough_surface_under_feedback_is_tracked_with_rows():
     of its mean truth and the law's force within 2 % of the peak (RMS over the samples at the true z). With the
     per-period d from the mean force alone, such records came out with every block 42-101 pm low and E* 7-15 %
     soft (docs/lab/2026-11-29-scanning-record.md)."""
-    simulated, fitting = configs(scan=FEEDBACK_ROUGH, periods=120)
-    raw = simulated.model_dump(mode="json", exclude_none=True)
-    raw["simulate"]["seed"] = 91
-    raw["fit"]["bootstrap"] = 0
-    trace = simulate(build_config(raw))
-    fit_raw = fitting.model_dump(mode="json", exclude_none=True)
-    fit_raw["fit"]["bootstrap"] = 0
-    fitting = build_config(fit_raw)
-    track = fit_separation_track(fitting, check_trace(trace, fitting), 2500.0, within_block="rows")
+    trace, track = rough_feedback_track(seed=91, periods=120, bandwidth=2500.0)
     d = trace.truth.tracks["rest_separation"][0]
     truth = np.array([d[a:b].mean() for a, b in zip(track.first_sample, track.stop_sample)])
     z = (track.separation - truth) / track.sigma
@@ -189,14 +194,7 @@ def test_the_read_outs_carry_the_track_s_added_level_sigma(tmp_path):
     from afmid.fit.joint import stack
     from afmid.fit.regression import combine, subset_fit
     from afmid.fit.system import build_system
-    simulated, fitting = configs(scan=FEEDBACK_ROUGH, periods=60, bandwidth=5000.0)
-    raw = simulated.model_dump(mode="json", exclude_none=True)
-    raw["simulate"]["seed"] = 97
-    trace = simulate(build_config(raw))
-    fit_raw = fitting.model_dump(mode="json", exclude_none=True)
-    fit_raw["fit"]["bootstrap"] = 0
-    fitting = build_config(fit_raw)
-    track = fit_separation_track(fitting, check_trace(trace, fitting), 5000.0, within_block="rows")
+    trace, track = rough_feedback_track(seed=97, periods=60, bandwidth=5000.0)
     joint = track.joint
     joint_sigma = np.array([t.separation.sigma for t in joint.traces])
     added = np.sqrt(np.mean(np.maximum(track.sigma**2 - joint_sigma**2, 0.0)))
