@@ -92,6 +92,12 @@ class Finding:
     noise_floor_after: float
     explains: bool = True  # the error falls to the noise level (else: most of its excess removed)
     evidence: "ModeEvidence | None" = None  # a second mode's spectral peak and beam-theory consistency
+    #: False for a second mode the screen saw but that was not searched (:func:`lever_mode_within_reach`): its
+    #: frequency and stiffness are the screen's (the residual's shape fitted with the force law held fixed),
+    #: ``screen_share`` the part of the harmonics' residual chi-square that shape takes; no refit, so
+    #: ``delta_bic``, ``error_after`` and ``noise_floor_after`` are NaN.
+    searched: bool = True
+    screen_share: float = math.nan
 
     @property
     def supported(self) -> bool:
@@ -100,6 +106,11 @@ class Finding:
 
     @property
     def text(self) -> str:
+        if not self.searched:
+            return (f"the residual has the shape of a second eigenmode near {_hz(self.frequency)} (with the force "
+                    f"law held fixed, that shape takes {100 * self.screen_share:.0f} % of the harmonics' residual "
+                    f"chi-square) but no mode was searched, as no lever's second mode lies within "
+                    f"{MODE_SEARCH_REACH:g} drive frequency of it: {self.evidence.against()}")
         if not self.supported:
             return (f"a second eigenmode near {_hz(self.frequency)} would fit the residual (ΔBIC "
                     f"{self.delta_bic:.0f}) but is not suggested: {self.evidence.against()}")
@@ -118,7 +129,9 @@ class Finding:
     def record(self) -> dict:
         out = {"kind": self.kind, "frequency": self.frequency, "instrument": self.instrument.describe(),
                "delta_bic": self.delta_bic, "error_after": self.error_after,
-               "noise_floor_after": self.noise_floor_after, "text": self.text}
+               "noise_floor_after": self.noise_floor_after, "searched": self.searched, "text": self.text}
+        if not self.searched:
+            out["screen_share"] = self.screen_share
         if self.evidence is not None:
             out["evidence"] = dataclasses.asdict(self.evidence)
         return out
@@ -134,6 +147,12 @@ def _hz(f: float) -> str:
 MODE_RATIO_RANGE = (5.5, 7.0)
 #: ... and k_2 / (k_1 (f_2 / f_1)^2) (the ratio of the modal masses) within this factor of 1.
 MODAL_MASS_FACTOR = 2.0
+#: How far from the screen's f_2 the mode search can end, in drive frequencies: its first golden section spans
+#: +-0.5 f around it, the zoom 0.05 f more, the joint polish moves by steps of 0.02 f (POLISH_REFITS of them at most).
+#: When no frequency within this reach is a lever's (MODE_RATIO_RANGE), whatever the search ends on is refused by
+#: :attr:`ModeEvidence.beam_consistent`: the search is not run (on the HSDC record, f2/f1 3.4: ~20 refits in each of
+#: two passes and 5 separation searches, half the report's time).
+MODE_SEARCH_REACH = 1.0
 #: The spectrum: Hann-windowed segments of this many drive periods, half overlapping (a resolution of f / 16).
 SPECTRUM_PERIODS = 16
 #: A peak counts when a noise spectrum exceeds it with this probability among the bins searched (Bonferroni).
@@ -187,9 +206,14 @@ class ModeEvidence:
         if not self.spectral:
             lines = (f"; the drive harmonics around it stand {self.bump:.2g}x out of their neighbours, a resonance "
                      f"{HARMONIC_BUMP_EVIDENCE:g}x" if math.isfinite(self.bump) else "")
-            parts.append(f"the spectrum shows no peak there (off the drive harmonics, the largest within "
-                         f"{100 * PEAK_WINDOW:g} % of it is {self.peak / max(self.floor, 1e-300):.3g}x the local floor "
-                         f"of {math.sqrt(self.floor):.2g} m/sqrt(Hz), a peak needs {self.needed:.2g}x{lines})")
+            if self.segments == 0:  # spectral_peak found no bins to judge: none off the harmonics, or too short
+                off = (f"off the drive harmonics the spectrum has no bins to judge within {100 * PEAK_WINDOW:g} % of "
+                       "it")
+            else:
+                off = (f"off the drive harmonics, the largest within {100 * PEAK_WINDOW:g} % of it is "
+                       f"{self.peak / max(self.floor, 1e-300):.3g}x the local floor of {math.sqrt(self.floor):.2g} "
+                       f"m/sqrt(Hz), a peak needs {self.needed:.2g}x")
+            parts.append(f"the spectrum shows no peak there ({off}{lines})")
         if not self.beam_consistent:
             parts.append(f"f2/f1 = {self.ratio:.3g} and k2/k1 = {self.stiffness_ratio:.3g} are not a lever's "
                          f"(beam theory: f2/f1 {MODE_RATIO_RANGE[0]:g}-{MODE_RATIO_RANGE[1]:g}, 6.27 for a "
@@ -336,6 +360,30 @@ def screen(result, cantilever, drive_frequency: float) -> Screen:
     return Screen(chi2, int(2 * n.size), det_removed, bandwidth, best[0], best[1], best[2])
 
 
+def lever_mode_within_reach(mode_frequency: float, resonance_frequency: float, drive_frequency: float) -> bool:
+    """Whether the mode search started at ``mode_frequency`` (Hz, the screen's f_2) can end on a lever's second mode:
+    some f_2 within :data:`MODE_SEARCH_REACH` drive frequencies of it has f_2 / f_1 in :data:`MODE_RATIO_RANGE`
+    (f_1 = ``resonance_frequency``). Outside, :class:`ModeEvidence` refuses whatever the search finds."""
+    reach = MODE_SEARCH_REACH * drive_frequency
+    low, high = (mode_frequency - reach) / resonance_frequency, (mode_frequency + reach) / resonance_frequency
+    return high >= MODE_RATIO_RANGE[0] and low <= MODE_RATIO_RANGE[1]
+
+
+def unsearched_mode(screened: Screen, trace, drive_frequency: float) -> Finding | None:
+    """The second mode the screen fitted to the residual when it fired but the search was not run (no lever's mode
+    within its reach, :func:`lever_mode_within_reach`), with its evidence (:func:`mode_evidence`) saying why it is
+    not a lever's; None otherwise."""
+    cantilever = trace.cantilever
+    if not (screened.fires(screened.mode_chi2) and math.isfinite(screened.mode_frequency)) or lever_mode_within_reach(
+            screened.mode_frequency, cantilever.resonance_frequency, drive_frequency):
+        return None
+    mode = Mode(float(screened.mode_frequency), MODE_Q_RATIO * cantilever.quality_factor,
+                float(screened.mode_stiffness))
+    return Finding("second_eigenmode", Instrument(None, (mode,)), mode.resonance_frequency, math.nan, math.nan,
+                   math.nan, explains=False, evidence=mode_evidence(trace, drive_frequency, mode), searched=False,
+                   screen_share=screened.mode_chi2 / max(screened.chi2, 1e-300))
+
+
 def _golden(objective, lo: float, hi: float, evaluations: int) -> tuple[float, float]:
     """Minimum of ``objective`` on [lo, hi] by golden-section search with ``evaluations`` calls."""
     g = (math.sqrt(5.0) - 1.0) / 2.0
@@ -378,18 +426,17 @@ class _RefitNumbers:
                    int(result.system.n_rows))
 
 
-def check(base_result, cantilever, drive_frequency: float, declared: Instrument, refit, base_bic: float,
-          bic_evidence: float, searched: list | None = None) -> Finding | None:
+def check(base_result, screened: Screen, cantilever, drive_frequency: float, declared: Instrument, refit,
+          base_bic: float, bic_evidence: float, searched: list | None = None) -> Finding | None:
     """An undeclared instrument that explains the residual of ``base_result``, or None.
 
-    ``refit(instrument)`` -> FitResult of the same model on the trace prepared with ``instrument`` declared;
+    ``screened``: :func:`screen` of ``base_result``. ``refit(instrument)`` -> FitResult of the same model on the trace prepared with ``instrument`` declared;
     ``declared`` is what the config declares already (its parts are not searched again). ``searched`` (a list)
     receives the best candidate instrument of each kind the screen let through, named or not.
     """
     from afmid.diagnosis.forked_work import in_order
 
-    s = screen(base_result, cantilever, drive_frequency)
-    log.debug("instrument screen: %s", s)
+    s = screened
     cache: dict = {}
 
     def fitted(instrument: Instrument, seen: dict):
@@ -458,7 +505,8 @@ def check(base_result, cantilever, drive_frequency: float, declared: Instrument,
     searches = []
     if declared.detector is None and s.detector_fires:
         searches.append(detector_search)
-    if s.fires(s.mode_chi2) and math.isfinite(s.mode_frequency):
+    if (s.fires(s.mode_chi2) and math.isfinite(s.mode_frequency)
+            and lever_mode_within_reach(s.mode_frequency, cantilever.resonance_frequency, drive_frequency)):
         searches.append(mode_search)
     # The two searches refit different instruments (a detector, a mode): apart, each with its own refits, on two
     # cores (afmid.diagnosis.forked_work). Not when modes are declared: a detector candidate then carries them, and
@@ -517,8 +565,11 @@ def undeclared(config, prepared, base_result, base_bic: float, trials: list, fit
     """
     from afmid.preprocess.instrument import from_config
 
+    screened = screen(base_result, prepared.trace.cantilever, prepared.drive.frequency)
+    log.debug("instrument screen: %s", screened)
+
     def search(trial_config, searched=None):
-        return check(base_result, prepared.trace.cantilever, prepared.drive.frequency, from_config(config),
+        return check(base_result, screened, prepared.trace.cantilever, prepared.drive.frequency, from_config(config),
                      _refit(trial_config, prepared, fit_quick), base_bic, bic_evidence, searched)
 
     searched: list = []
@@ -538,7 +589,9 @@ def undeclared(config, prepared, base_result, base_bic: float, trials: list, fit
         if prepared.before_instrument is not None:  # the hypotheses' shared trajectory and columns: done with
             prepared.before_instrument.forget_tip_side()
     if finding is None:
-        return None
+        # A resonance's shape where no lever has its second mode: not searched, and said so (it has no BIC to weigh
+        # against the sample effects, and is never named).
+        return unsearched_mode(screened, prepared.trace, prepared.drive.frequency)
     rivals = [t.delta_bic for t in trials if t.significant or not finding.explains]
     return finding if finding.delta_bic < min(rivals, default=math.inf) - bic_distinct else None
 

@@ -98,3 +98,41 @@ def test_an_unsupported_mode_is_not_named_and_the_verdict_says_why():
     supported = dataclasses.replace(finding, evidence=dataclasses.replace(evidence, ratio=6.27, stiffness_ratio=39.3,
                                                                           bump=30.0))
     assert name_instrument(summary, supported)["diagnosis"]["verdict"].startswith("instrument: second eigenmode")
+
+
+@pytest.mark.parametrize("ratio, within", [(6.27, True), (3.38, False), (4.49, False), (4.51, True), (7.99, True),
+                                           (8.01, False)])
+def test_the_mode_search_runs_only_where_a_lever_s_mode_is_within_its_reach(ratio, within):
+    """f_2 / f_1 of a lever is 5.5-7.0 (MODE_RATIO_RANGE) and the search reaches MODE_SEARCH_REACH = 1 drive
+    frequency from where it starts: with f = f_1, a start at 4.51-7.99 f_1 can end on a lever's mode."""
+    from afmid.diagnosis.instrument_signature import MODE_RATIO_RANGE, MODE_SEARCH_REACH, lever_mode_within_reach
+
+    assert (MODE_RATIO_RANGE, MODE_SEARCH_REACH) == ((5.5, 7.0), 1.0)
+    assert lever_mode_within_reach(ratio * 3.0e5, 3.0e5, 3.0e5) is within
+
+
+def test_a_resonance_no_lever_has_is_not_searched_and_the_verdict_says_why():
+    """A resonance at 3.5 f_0 (k2/k1 = 3.5^2) left undeclared: the screen sees it (at 3.38 f_0 with the force law held
+    fixed), but no lever's second mode lies within the search's reach, so it is not searched (measured: 9 refits
+    instead of 49, the same verdict: not named); the verdict says what the screen saw and why it is no lever's."""
+    from afmid.diagnosis.diagnose import suggest
+    from afmid.diagnosis.instrument_signature import SEARCH_REFITS
+    from afmid.diagnosis.refit_count import refits_made
+    from afmid.fit.pipeline import run_fit
+    from afmid.runfile import run_data
+
+    trace = _trace("cantilever.higher_modes=[{resonance_frequency: 1.05e6, quality_factor: 750, "
+                   "spring_constant: 490}]")
+    config = load_config(TEST_CONFIGS / "hidden_clean.yaml", ["fit.bootstrap=0"])
+    run = run_data(run_fit(config, trace=trace, uncertainty=False), config, "resonance.h5")
+    before = refits_made()
+    summary = suggest(run, trace=trace)
+    refits = refits_made() - before
+    diagnosis = summary["diagnosis"]
+    assert "instrument" not in diagnosis and summary["suggestions"] == [], diagnosis["verdict"]
+    rejected = diagnosis["instrument_rejected"]
+    assert rejected["searched"] is False and 3.0 < rejected["evidence"]["ratio"] < 4.0, rejected
+    assert "no mode was searched" in diagnosis["verdict"] and "are not a lever's" in diagnosis["verdict"]
+    # the base refit, one per candidate effect and at most as many sets: no mode search (two golden sections of
+    # SEARCH_REFITS refits at least; 49 refits in all when it ran)
+    assert refits <= 1 + 2 * len(summary["tried"]) < 2 * SEARCH_REFITS + len(summary["tried"]), refits
