@@ -136,3 +136,12 @@ def test_a_resonance_no_lever_has_is_not_searched_and_the_verdict_says_why():
     # the base refit, one per candidate effect and at most as many sets: no mode search (two golden sections of
     # SEARCH_REFITS refits at least; 49 refits in all when it ran)
     assert refits <= 1 + 2 * len(summary["tried"]) < 2 * SEARCH_REFITS + len(summary["tried"]), refits
+
+
+def test_a_spectrum_with_no_bins_to_judge_is_said_so():
+    """Within 5 % of f_2 = 3.05 f every bin is within 3 of a drive harmonic: spectral_peak has nothing to judge
+    (zeros), and the words say that, not "0x the local floor ... a peak needs infx"."""
+    evidence = ModeEvidence(frequency=1.74e5, ratio=3.05, stiffness_ratio=38.0, peak=0.0, floor=0.0,
+                            needed=float("inf"), segments=0, bump=0.43)
+    words = evidence.against()
+    assert not evidence.spectral and "has no bins to judge within 5 % of it" in words and "inf" not in words, words
