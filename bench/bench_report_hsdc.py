@@ -11,10 +11,12 @@ diagnoses its runs); CPU (user + sys), wall and peak RSS of each process tree (b
 2. ``afmid report whole.h5``;
 3. ``afmid report half1.h5 half2.h5`` (both diagnosed).
 
-Targets (issue 29, item 4, on 2 cores): one-run report <= 60 s, two-run <= 90 s, peak RSS <= 2 GB. The machine is
-shared with other jobs, so the rows judge the CPU time (the report draws its figures in a forked child beside the
-diagnosis, and a second forked child shares the diagnosis's independent searches, afmid/diagnosis/forked_work.py:
-on 2 quiet cores its wall time is at most its CPU time). Memory: ``os.wait4``'s peak RSS is the largest single
+Targets (issue 29, item 4, on 2 cores): one-run report <= 60 s, two-run <= 90 s, peak RSS <= 2 GB. The rows judge
+the wall time on the 2 cores (the report draws its figures in a forked child beside the diagnosis, and a second
+forked child shares the diagnosis's independent searches, afmid/diagnosis/forked_work.py), but only when the
+machine was otherwise quiet: when other processes kept more than QUIET_CORES of a core busy on average meanwhile
+(bench/common.py ``measured``'s ``others_cores``), the wall time is theirs too and the row is not judged (its notes
+give the CPU time, which does not depend on the load). Memory: ``os.wait4``'s peak RSS is the largest single
 process's; with forked children sharing the parent's pages, the report's footprint is the summed PSS (proportional
 set size: shared pages split among the processes) of its process tree, sampled every 0.5 s from /proc (Linux; the
 notes give both). --quick: the fits only.
@@ -37,6 +39,8 @@ from bench_report import AFMID, described  # noqa: E402
 from common import ROOT, SINGLE_THREAD, bench_main, measured, met_word, row  # noqa: E402
 
 ONE_RUN_TARGET_S, TWO_RUN_TARGET_S, RSS_TARGET_GB = 60.0, 90.0, 2.0
+#: Cores other processes may keep busy, on average, while a report is timed, for its wall time to be judged.
+QUIET_CORES = 0.25
 #: The middle of the record, s: its halves' boundary (2^18 samples at 50 MHz).
 HALF = 5.24288e-3
 
@@ -108,6 +112,21 @@ def peak_summed_pss(marker: str):
         sampler.join()
 
 
+def wall_met(measurement: dict, target_s: float) -> bool | None:
+    """Whether ``measurement``'s wall time meets ``target_s``; None (not judged) when other processes shared the
+    machine meanwhile (more than QUIET_CORES busy on average, or unknown)."""
+    if not measurement["others_cores"] <= QUIET_CORES:
+        return None
+    return measurement["wall"] <= target_s
+
+
+def timed(measurement: dict) -> str:
+    """The row's notes: wall, CPU and memory, and the other processes' load meanwhile."""
+    judged = ("" if measurement["others_cores"] <= QUIET_CORES
+              else f"; not judged: other processes kept {measurement['others_cores']:.2f} cores busy meanwhile")
+    return f"{described(measurement)}, others {measurement['others_cores']:.2f} cores{judged}"
+
+
 def run(quick: bool = False) -> list[dict]:
     record = record_path()
     if not record.is_file():
@@ -136,12 +155,12 @@ def run(quick: bool = False) -> list[dict]:
     two_gb = max(two["rss_gb"], two_pss["gb"]) if two_pss["gb"] == two_pss["gb"] else two["rss_gb"]
     peak = max(one_gb, two_gb)
     return rows + [
-        row("report HSDC record: afmid report whole.h5, CPU", one["cpu"], None, None,
-            f"<= {ONE_RUN_TARGET_S:g} s", one["cpu"] <= ONE_RUN_TARGET_S, described(one),
-            cpu_s=one["cpu"], rss_gb=one["rss_gb"]),
-        row("report HSDC record: afmid report half1.h5 half2.h5 (both diagnosed), CPU", two["cpu"], None, None,
-            f"<= {TWO_RUN_TARGET_S:g} s", two["cpu"] <= TWO_RUN_TARGET_S, described(two),
-            cpu_s=two["cpu"], rss_gb=two["rss_gb"]),
+        row("report HSDC record: afmid report whole.h5, wall on 2 cores", one["wall"], None, None,
+            f"<= {ONE_RUN_TARGET_S:g} s", wall_met(one, ONE_RUN_TARGET_S), timed(one), cpu_s=one["cpu"],
+            rss_gb=one["rss_gb"]),
+        row("report HSDC record: afmid report half1.h5 half2.h5 (both diagnosed), wall on 2 cores", two["wall"], None,
+            None, f"<= {TWO_RUN_TARGET_S:g} s", wall_met(two, TWO_RUN_TARGET_S), timed(two), cpu_s=two["cpu"],
+            rss_gb=two["rss_gb"]),
         row("report HSDC record: peak RSS of the reports (GB, not s)", peak, None, None, f"<= {RSS_TARGET_GB:g} GB",
             peak <= RSS_TARGET_GB, f"one-run {one_gb:.2f} GB, two-run {two_gb:.2f} GB (summed PSS of the process "
             f"tree {one_pss['gb']:.2f} / {two_pss['gb']:.2f} GB; largest process RSS {one['rss_gb']:.2f} / "

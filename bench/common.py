@@ -113,9 +113,23 @@ def timed(args: list[str], env: dict | None = None, timeout: float = 3600) -> tu
     return seconds, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
 
 
+def machine_busy_seconds() -> float:
+    """CPU seconds every process of this machine has used since boot (/proc/stat's ``cpu`` line: user, nice,
+    system, irq, softirq and steal ticks); NaN where there is no /proc/stat."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            fields = f.readline().split()
+    except OSError:
+        return math.nan
+    user, nice, system, _idle, _iowait, irq, softirq, steal = (int(v) for v in fields[1:9])
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
 def measured(args: list[str], env: dict | None = None, timeout: float = 3600, cwd: Path = ROOT,
              ok_codes: tuple[int, ...] = (0,)) -> dict:
-    """Wall time (s), CPU time (user + sys, s) and peak resident memory (GB) of one command.
+    """Wall time (s), CPU time (user + sys, s) and peak resident memory (GB) of one command, and ``others_cores``:
+    the cores other processes of the machine kept busy meanwhile, on average (its CPU use over the wall time less
+    the command's; NaN without /proc/stat). A wall time is the command's own only when that is near 0.
 
     The usage is the one ``os.wait4`` returns for the command's process: its own plus that of the descendants it
     waited for (peak RSS: the largest of them), so other benchmarks' processes are not counted. Raises if the
@@ -125,6 +139,7 @@ def measured(args: list[str], env: dict | None = None, timeout: float = 3600, cw
     import threading
 
     with tempfile.TemporaryFile() as err:
+        busy_before = machine_busy_seconds()
         start = time.perf_counter()
         proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=err, env=dict(os.environ, **(env or {})),
                                 cwd=cwd)
@@ -135,13 +150,15 @@ def measured(args: list[str], env: dict | None = None, timeout: float = 3600, cw
         finally:
             killer.cancel()
         elapsed = time.perf_counter() - start
+        busy = machine_busy_seconds() - busy_before
         proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait for it again
         if proc.returncode not in ok_codes:
             err.seek(0)
             raise RuntimeError(f"{' '.join(map(str, args))} failed ({proc.returncode}):\n"
                                f"{err.read().decode(errors='replace')[-4000:]}")
-    return {"wall": elapsed, "cpu": usage.ru_utime + usage.ru_stime, "rss_gb": usage.ru_maxrss * 1024 / 1e9,
-            "code": proc.returncode}
+    cpu = usage.ru_utime + usage.ru_stime
+    return {"wall": elapsed, "cpu": cpu, "rss_gb": usage.ru_maxrss * 1024 / 1e9, "code": proc.returncode,
+            "others_cores": max(busy - cpu, 0.0) / elapsed if elapsed > 0 else math.nan}
 
 
 #: The previous release the report rows compare against: the repository's published main before the issue 30/31

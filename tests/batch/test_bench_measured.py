@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 
 import pytest
@@ -35,6 +36,8 @@ def test_measured_counts_the_childs_memory_and_cpu():
     # CPU: the 0.5 s spin plus start-up and page faults (<< 1 s); wall >= CPU for one thread.
     assert 0.5 <= got["cpu"] <= 0.5 + 1.5
     assert got["wall"] >= 0.5 and got["code"] == 0
+    # The other processes' cores: at least 0 and at most the machine's (the sum of ticks over all its cores).
+    assert 0.0 <= got["others_cores"] <= os.cpu_count(), got
 
 
 def test_measured_raises_on_failure_unless_the_code_is_allowed():
