@@ -339,7 +339,7 @@ def test_quantity_cell_labels_the_error_in_display_units():
     q = {"value": 3.032e8, "error": 2.6e6, "unit": "Pa", "error_statistical": 2.6e6, "error_calibration": 0.0}
     assert quantity_cell(q) == "303.2 ± 2.6 MPa (1σ)"
     cal = dict(q, error=5.0e6, error_statistical=2.6e6, error_calibration=4.3e6, model_limited=True)
-    assert quantity_cell(cal) == "303 ± 5 MPa (1σ; stat 2.6 MPa / cal 4.3 MPa) [model-limited]"
+    assert quantity_cell(cal) == "303 ± 5 MPa (1σ; stat 2.6 MPa / cal 4.3 MPa in quadrature) [model-limited]"
 
 
 def test_loop_tells_a_run_that_was_not_a_suggestion_as_what_it_is():
