@@ -35,7 +35,10 @@ class Parameter:
     ``ci95`` (low, high; NaN where the run has none), the ``effect`` it belongs to and ``flags``: ``model-limited``
     (the fit's error stands above its noise floor: biased beyond its error bar), ``undetermined`` (its term was not
     selected: no value), ``undecided`` (the data cannot decide on a term; in the error bar), ``implausible``
-    (outside the range a physical sample can have) and ``estimated`` (a nonlinear parameter from its profile)."""
+    (outside the range a physical sample can have) and ``estimated`` (a nonlinear parameter from its profile).
+    ``sigma_separation_track`` is the part of ``sigma`` (``unit``, in quadrature) a separation track added after its
+    joint fit (the run file's ``error_separation_track``): 0 where none was added, NaN for an estimated nonlinear
+    parameter (not split)."""
 
     name: str
     value: float
@@ -45,6 +48,7 @@ class Parameter:
     effect: str = ""
     flags: tuple[str, ...] = ()
     interval: str = ONE_SIGMA
+    sigma_separation_track: float = 0.0
 
     def __str__(self) -> str:
         if "undetermined" in self.flags:
@@ -75,7 +79,8 @@ class Parameters:
     """A fit's physical parameters as a table: rows of :class:`Parameter` by name (``table["E_star"].value``),
     iterable in the run file's order; :meth:`to_pandas` gives a DataFrame when pandas is installed."""
 
-    COLUMNS = ("name", "value", "sigma", "interval", "ci95_low", "ci95_high", "unit", "effect", "flags")
+    COLUMNS = ("name", "value", "sigma", "interval", "ci95_low", "ci95_high", "unit", "effect", "flags",
+               "sigma_separation_track")
 
     def __init__(self, rows: list[Parameter]):
         self._rows = {row.name: row for row in rows}
@@ -84,9 +89,14 @@ class Parameters:
     def of_run(cls, run) -> "Parameters":
         """The table of a run (:class:`afmid.runfile.RunData`): its read-outs, then its estimated nonlinear
         parameters (the rest separation ``d``, decay lengths) with their profile's 1 sigma."""
+        # Here, not at the top: the fit stage's module loads numba and scipy, and a run is read by then anyway.
+        from afmid.fit.uncertainty import TRACK_LEVEL_ERROR
+
         rows = [Parameter(name, q["value"], q["error"], q["unit"], (q["ci_low"], q["ci_high"]), q["effect"],
-                          quantity_flags(q)) for name, q in run.quantities.items()]
-        rows += [Parameter(name, q["value"], q["error"], q["unit"], flags=("estimated",))
+                          quantity_flags(q), sigma_separation_track=q.get(TRACK_LEVEL_ERROR, 0.0))
+                for name, q in run.quantities.items()]
+        rows += [Parameter(name, q["value"], q["error"], q["unit"], flags=("estimated",),
+                           sigma_separation_track=math.nan)
                  for name, q in run.nonlinear.items() if name not in run.quantities]
         return cls(rows)
 
@@ -114,7 +124,8 @@ class Parameters:
     def to_dicts(self) -> list[dict]:
         """One dict per row with the :attr:`COLUMNS` (SI; flags joined by ``;``)."""
         return [{"name": r.name, "value": r.value, "sigma": r.sigma, "interval": r.interval, "ci95_low": r.ci95[0],
-                 "ci95_high": r.ci95[1], "unit": r.unit, "effect": r.effect, "flags": ";".join(r.flags)}
+                 "ci95_high": r.ci95[1], "unit": r.unit, "effect": r.effect, "flags": ";".join(r.flags),
+                 "sigma_separation_track": r.sigma_separation_track}
                 for r in self]
 
     def to_pandas(self):
@@ -133,7 +144,7 @@ def _same_rows(a: list[Parameter], b: list[Parameter]) -> bool:
         return (r.name, r.unit, r.effect, r.flags, r.interval)
 
     def numbers(r: Parameter):
-        return np.array([r.value, r.sigma, *r.ci95], dtype=float)
+        return np.array([r.value, r.sigma, *r.ci95, r.sigma_separation_track], dtype=float)
 
     return len(a) == len(b) and all(key(x) == key(y) and np.array_equal(numbers(x), numbers(y), equal_nan=True)
                                     for x, y in zip(a, b))

@@ -277,16 +277,52 @@ def finish(state: FitState, uncertainty: bool = True) -> None:
 
 
 def error_beyond_split(q: dict) -> float:
-    """The part of read-out ``q``'s 1 sigma that its statistical / calibration split does not hold (the
-    quantity's unit; 0 when the two make it up to 1 %): the widenings added after the split, the separation's
-    interval of a model-limited fit (the profile weighed against the misfit) and a declared drive's calibration.
-    Without it the split's parts, 1000x smaller than the 1 sigma they are said to make up, misread as the error."""
+    """The part of read-out ``q``'s 1 sigma that its statistical / calibration / separation-track split does not
+    hold (the quantity's unit; 0 when the parts make it up to 1 %): the widenings added after the split, the
+    separation's interval of a model-limited fit (the profile weighed against the misfit) and a declared drive's
+    calibration. Without it the split's parts, 1000x smaller than the 1 sigma they are said to make up, misread as
+    the error."""
     error = q.get("error", math.nan)
     stat, cal = q.get("error_statistical", math.nan), q.get("error_calibration", 0.0)
-    if not (math.isfinite(error) and math.isfinite(stat) and math.isfinite(cal)):
+    track = q.get(TRACK_LEVEL_ERROR, 0.0)
+    if not (math.isfinite(error) and math.isfinite(stat) and math.isfinite(cal) and math.isfinite(track)):
         return 0.0
-    rest = math.sqrt(max(error**2 - stat**2 - cal**2, 0.0))
+    rest = math.sqrt(max(error**2 - stat**2 - cal**2 - track**2, 0.0))
     return rest if rest > 0.01 * error else 0.0
+
+
+def statistical_error(q: dict) -> float:
+    """Read-out ``q``'s statistical part of its 1 sigma (its unit): the stored ``error_statistical``, else what
+    the 1 sigma holds beyond its calibration and :data:`TRACK_LEVEL_ERROR` parts in quadrature (a separation
+    track's read-outs store no statistical part: their joint fit's error is the noise's alone, and the track's
+    share was added to it in quadrature). Without either part this is the 1 sigma itself."""
+    if "error_statistical" in q:
+        return q["error_statistical"]
+    error = q.get("error", math.nan)
+    added = math.hypot(q.get("error_calibration", 0.0), q.get(TRACK_LEVEL_ERROR, 0.0))
+    if not math.isfinite(error) or not math.isfinite(added) or added == 0:
+        return error
+    return math.sqrt(max(error**2 - added**2, 0.0))
+
+
+def one_sigma_parts(q: dict) -> dict[str, float]:
+    """Read-out ``q``'s 1 sigma split into named parts that add up to it in quadrature (each in its unit), in the
+    order the texts name them: ``statistical`` (:func:`statistical_error`), ``calibration`` and ``separation
+    track`` (:data:`TRACK_LEVEL_ERROR`) where they are > 0, ``rest`` (:func:`error_beyond_split`) where the parts
+    do not make up the 1 sigma. Empty when there is no calibration nor track part (the 1 sigma is statistical
+    alone, nothing to split) or the 1 sigma is not finite."""
+    cal, track = q.get("error_calibration", 0.0), q.get(TRACK_LEVEL_ERROR, 0.0)
+    if not math.isfinite(q.get("error", math.nan)) or not (cal > 0 or track > 0):
+        return {}
+    parts = {"statistical": statistical_error(q)}
+    if cal > 0:
+        parts["calibration"] = cal
+    if track > 0:
+        parts["separation track"] = track
+    rest = error_beyond_split(q)
+    if rest > 0:
+        parts["rest"] = rest
+    return parts
 
 
 def shift_variance(quantities: dict, shifts: list, read_out_at) -> dict[str, float]:

@@ -15,8 +15,8 @@ import math
 import numpy as np
 
 from afmid.fit.plausibility import judge, judge_separation
-from afmid.fit.uncertainty import (STATISTICAL_ONLY_TEXT, calibration_declared, error_beyond_split, floor_threshold,
-                                   model_limited)
+from afmid.fit.uncertainty import (STATISTICAL_ONLY_TEXT, calibration_declared, floor_threshold, model_limited,
+                                   one_sigma_parts)
 from afmid.quantity_text import format_delta_bic, format_interval, format_measurement, format_value
 
 #: Candidate supports listed by ``-v`` (best by the criterion first).
@@ -145,13 +145,12 @@ def quantity_line(name: str, q: dict) -> str:
     lo, hi = q.get("ci_low", math.nan), q.get("ci_high", math.nan)
     if math.isfinite(lo) and math.isfinite(hi):
         text += f", {format_interval(lo, hi, unit)}"
-    if q.get("error_calibration", 0.0) > 0:
-        text += (f"; of the 1σ: statistical {format_value(q.get('error_statistical', math.nan), unit, 2)}, "
-                 f"calibration {format_value(q['error_calibration'], unit, 2)}")
-        rest = error_beyond_split(q)
-        if rest > 0:
-            text += (f", the rest {format_value(rest, unit, 2)} (widened after them: a model-limited fit's separation, "
-                     "a declared drive)")
+    parts = one_sigma_parts(q)
+    if parts:
+        text += "; of the 1σ, in quadrature: " + ", ".join(
+            f"{'the rest' if label == 'rest' else label} {format_value(value, unit, 2)}" for label, value in parts.items())
+        if "rest" in parts:
+            text += " (widened after them: a model-limited fit's separation, a declared drive)"
     if q.get("undecided"):
         text += f"; the data cannot decide on {', '.join(q.get('undecided_terms', []))} (included in the error bar)"
     text += "; plausible" if verdict.plausible else f"; IMPLAUSIBLE: {verdict.finding}"

@@ -31,8 +31,8 @@ from afmid.physics.effects import EFFECTS
 from afmid.physics.tips import effect_for, tip_geometry
 from afmid.diagnosis.checklist import check_lines
 from afmid.diagnosis.candidate_shapes import shape_words
-from afmid.fit.uncertainty import (INTERVALS_STATISTICAL, STATISTICAL_ONLY_TEXT, calibration_declared, error_beyond_split,
-                                   intervals_kind)
+from afmid.fit.uncertainty import (INTERVALS_STATISTICAL, STATISTICAL_ONLY_TEXT, TRACK_LEVEL_ERROR, calibration_declared,
+                                   intervals_kind, one_sigma_parts)
 from afmid.report.figures import figure_html
 from afmid.report.folder import report_folder
 from afmid.report.forked_figures import figures_aside
@@ -222,6 +222,10 @@ def render_html(runs, summary, figures, local, energy, folder: Path, truth_q: di
                  "where <code>cantilever.spring_constant_uncertainty</code> / <code>quality_factor_uncertainty</code> / "
                  "<code>data.invols_uncertainty</code> are declared, the calibration's share in quadrature (shown as stat / cal). 95 % intervals are in "
                  "the run file (<code>ci_low</code>, <code>ci_high</code>).</p>")
+    if any(q.get(TRACK_LEVEL_ERROR, 0.0) > 0 for r in runs for q in r.quantities.values()):
+        parts.append("<p>A separation track's read-outs also hold, in quadrature, the track's share (shown as track): "
+                     "the sigma its blocks' separations gained beyond the joint fit's, carried into the law by refitting "
+                     "it at the levels moved by that sigma.</p>")
     statistical = [r.path.name for r in runs if not calibration_declared(r.config)]
     if statistical:
         parts.append(f"<p><b>Statistical only</b> ({html.escape(', '.join(statistical))}): "
@@ -510,18 +514,21 @@ def terminal_summary(summary: dict, output: Path) -> str:
     return "\n".join(lines)
 
 
+#: The parameter table's short names of the parts of a read-out's 1 sigma (afmid.fit.uncertainty.one_sigma_parts).
+CELL_PART_NAMES = {"statistical": "stat", "calibration": "cal", "separation track": "track", "rest": "rest"}
+
+
 def quantity_cell(q: dict) -> str:
     """A read-out in the parameter table, in display units: ``303.2 ± 2.6 MPa (1σ)`` (PDG rounding; the 1σ
-    split into stat / cal when a calibration uncertainty was declared), marked when the run is model-limited."""
+    split into stat / cal / track in quadrature when a calibration uncertainty was declared or a separation track
+    widened it), marked when the run is model-limited."""
     if q.get("determined", True) is False:
         return plausibility.not_determined_text(q, q["unit"])
     kind = "1σ"
-    if q.get("error_calibration", 0.0) > 0 and math.isfinite(q["error"]):
-        kind += (f"; stat {format_value(q.get('error_statistical', math.nan), q['unit'], 2)} / "
-                 f"cal {format_value(q['error_calibration'], q['unit'], 2)}")
-        rest = error_beyond_split(q)
-        if rest > 0:
-            kind += f" / rest {format_value(rest, q['unit'], 2)}"
+    parts = one_sigma_parts(q)
+    if parts:
+        kind += "; " + " / ".join(f"{CELL_PART_NAMES[label]} {format_value(value, q['unit'], 2)}"
+                                  for label, value in parts.items()) + " in quadrature"
     text = format_measurement(q["value"], q["error"], q["unit"], kind=kind)
     if q.get("model_limited"):
         text += " [model-limited]"

@@ -22,7 +22,7 @@ import numpy as np
 
 from afmid.diagnosis.diagnose import describe_residual, localize
 from afmid.diagnosis.stored import diagnosed
-from afmid.fit.uncertainty import ERROR_LABEL, model_limited
+from afmid.fit.uncertainty import ERROR_LABEL, TRACK_LEVEL_ERROR, model_limited, statistical_error
 from afmid.quantity_text import format_delta_bic, format_measurement, format_value
 from afmid.runfile import RunData
 
@@ -158,8 +158,9 @@ def run_entry(path: Path, run: RunData, diagnosis: dict) -> dict:
             "chi2_reduced": run.chi2_reduced, "model_limited": run.model_limited,
             "tip_radius": run.cantilever.get("tip_radius"),  # m: the bound of forces that grow with the tip
             "parameters": {k: {"value": v["value"], "error": v["error"], "error_kind": ERROR_LABEL,
-                               "error_statistical": v.get("error_statistical", v["error"]),
+                               "error_statistical": statistical_error(v),
                                "error_calibration": v.get("error_calibration", 0.0),
+                               TRACK_LEVEL_ERROR: v.get(TRACK_LEVEL_ERROR, 0.0),
                                "ci_low": v.get("ci_low"), "ci_high": v.get("ci_high"), "interval": "95 %",
                                "model_limited": v.get("model_limited", False), "unit": v["unit"],
                                "determined": v.get("determined", True), "effect": v.get("effect", ""),

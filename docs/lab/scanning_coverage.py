@@ -64,6 +64,7 @@ def record(folder, kind, seed):
         first, stop = g["first_sample"][:], g["stop_sample"][:]
         e = f["model/parameters/E_star"]
         e_star, e_sigma = float(e[()]), float(e.attrs["error"])
+        e_track = float(e.attrs.get("error_separation_track", 0.0))  # absent from run files written before it
         hamaker = float(f["model/parameters/hamaker"][()])
     true_d = trace.truth.tracks["rest_separation"][0]
     truth = np.array([true_d[a:b].mean() for a, b in zip(first, stop)])
@@ -71,7 +72,7 @@ def record(folder, kind, seed):
     err = np.sqrt(np.mean((dmt(zt, e_star, hamaker) - trace.truth.force) ** 2)) / np.max(np.abs(trace.truth.force))
     e_true = float(trace.truth.parameters["E_star"]) if "E_star" in getattr(trace.truth, "parameters", {}) else 2e9
     return dict(kind=kind, seed=seed, z=(d - truth) / sigma, error_pm=(d - truth) * 1e12, sigma_pm=sigma * 1e12,
-                e_star=e_star, e_sigma=e_sigma, e_z=(e_star - e_true) / e_sigma, force_error=100 * err)
+                e_star=e_star, e_sigma=e_sigma, e_track=e_track, e_z=(e_star - e_true) / e_sigma, force_error=100 * err)
 
 
 def summary(records, label):
@@ -137,7 +138,8 @@ def main(argv):
                 records.append(r)
                 print(f"{kind:5s} seed {seed}: d - truth pm {np.round(r['error_pm'], 1).tolist()} sigma pm "
                       f"{np.round(r['sigma_pm'], 1).tolist()} z {np.round(r['z'], 2).tolist()}; E* {r['e_star'] / 1e9:.3f} "
-                      f"+- {r['e_sigma'] / 1e9:.3f} GPa (z {r['e_z']:+.2f}); force error {r['force_error']:.2f} %")
+                      f"+- {r['e_sigma'] / 1e9:.4f} GPa (track's share {r['e_track'] / 1e9:.4f}; z {r['e_z']:+.2f}); "
+                      f"force error {r['force_error']:.2f} %")
         if records:
             summary(records, f"seeds {seeds[0]}-{seeds[-1]} ({folder})")
         all_records += records

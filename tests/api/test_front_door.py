@@ -129,6 +129,22 @@ def test_parameters_to_pandas(dmt_fit):
     assert frame.loc["hamaker", "value"] == dmt_fit.parameters["hamaker"].value
 
 
+def test_a_plain_fit_names_no_separation_track_share(dmt_fit, tmp_path):
+    """A fit without a separation track: its read-outs' track share is 0 in the table and summary.json, NaN for
+    the estimated d (not split), and neither the fit's text nor the report's cells name a track."""
+    from afmid.report.page import quantity_cell
+    from afmid.report.story import run_entry
+
+    assert "track" not in dmt_fit.text()
+    entry = run_entry(tmp_path / "plain.h5", dmt_fit.run, {"error_fold_sd": 0.0, "error_spread_kind": ""})
+    for name, q in dmt_fit.run.quantities.items():
+        assert dmt_fit.parameters[name].sigma_separation_track == 0.0
+        assert entry["parameters"][name]["error_separation_track"] == 0.0
+        assert entry["parameters"][name]["error_statistical"] == q["error"]  # no part to take out
+        assert "track" not in quantity_cell(q) and "track" not in quantity_cell(entry["parameters"][name])
+    assert np.isnan(dmt_fit.parameters["d"].sigma_separation_track)
+
+
 def test_predict_is_the_identified_law(dmt_fit):
     """Out of contact the DMT law is -H R / (6 z^2), its Hamaker read-out H = -6 c / R from the same coefficient c:
     the two agree to rounding (a few ulps of each step)."""

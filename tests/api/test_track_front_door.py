@@ -96,6 +96,46 @@ def test_the_fits_record_holds_the_track(track_fit):
         assert f"d = {d * 1e9:.3f} ± {s * 1e9:.3f} nm (1σ)" in line
 
 
+def test_the_read_outs_show_the_track_s_share_of_their_one_sigma(track_fit, tmp_path):
+    """The track widened the blocks' d sigma (the floor at the record's bound), so every read-out carries a share
+    of its 1 sigma (``error_separation_track``). The fit's text names it beside the statistical part (the 1 sigma
+    beyond the share, in quadrature); the parameter table's ``sigma_separation_track`` and summary.json's
+    ``error_separation_track`` hold it, the same after save and load; the report's table and terminal cells name
+    it. Each number is the formatted value of the record's own, so 2 significant digits agree exactly."""
+    from afmid.quantity_text import format_value
+    from afmid.report.page import quantity_cell
+    from afmid.report.story import run_entry
+
+    quantities = track_fit.run.quantities
+    assert quantities["E_star"]["error_separation_track"] > 0
+    again = afmid.load(track_fit.save(tmp_path / "track.h5"))
+    entry = run_entry(tmp_path / "track.h5", again.run, {"error_fold_sd": 0.0, "error_spread_kind": ""})
+    text = track_fit.text()
+    for name, q in quantities.items():
+        share, unit = q["error_separation_track"], q["unit"]
+        statistical = np.sqrt(q["error"] ** 2 - share**2)
+        line = next(line for line in text.splitlines() if line.strip().startswith(f"{name} = "))
+        assert (f"; of the 1σ, in quadrature: statistical {format_value(statistical, unit, 2)}, separation track "
+                f"{format_value(share, unit, 2)};") in line, line
+        assert track_fit.parameters[name].sigma_separation_track == share
+        assert again.parameters[name].sigma_separation_track == share
+        summary = entry["parameters"][name]
+        assert summary["error_separation_track"] == share
+        assert summary["error_statistical"] == pytest.approx(statistical, rel=1e-12)
+        assert summary["error"] ** 2 == pytest.approx(summary["error_statistical"] ** 2 + share**2, rel=1e-12)
+        for cell in (quantity_cell(q), quantity_cell(summary)):
+            assert f"/ track {format_value(share, unit, 2)} in quadrature)" in cell, cell
+    assert np.isnan(track_fit.parameters["d"].sigma_separation_track)  # an estimated nonlinear row: not split
+
+
+def test_the_track_s_share_is_a_column_of_to_pandas(track_fit):
+    pandas = pytest.importorskip("pandas")
+    quantities = track_fit.run.quantities
+    frame = track_fit.parameters.to_pandas()
+    assert isinstance(frame, pandas.DataFrame)
+    assert frame.loc["E_star", "sigma_separation_track"] == quantities["E_star"]["error_separation_track"]
+
+
 def test_save_and_load_give_the_track_back(track_fit, tmp_path):
     again = afmid.load(track_fit.save(tmp_path / "track.h5"))
     mine, read = track_fit.separation_track, again.separation_track
@@ -144,6 +184,11 @@ def test_a_tracks_diagnosis_in_memory_is_its_run_files(track_fit, tmp_path, monk
     made = track_fit.diagnose()
     track_fit.report(tmp_path / "report")
     assert (tmp_path / "report" / "report.html").is_file()
+    share = track_fit.run.quantities["E_star"]["error_separation_track"]
+    summary = json.loads((tmp_path / "report" / "summary.json").read_text())
+    assert summary["runs"][-1]["parameters"]["E_star"]["error_separation_track"] == share > 0
+    page = (tmp_path / "report" / "report.html").read_text()
+    assert "the track's share (shown as track)" in page and " / track " in page
     from_file = afmid.load(undiagnosed).diagnose()
     assert _without_seconds(from_file.details) == _without_seconds(made.details)
     assert made.verdict and made.details["tried"]

@@ -124,10 +124,36 @@ def test_the_one_sigma_split_names_the_part_added_after_it():
     q = {"value": 3.43e-19, "error": 4.19e-14, "error_statistical": 8.7e-17, "error_calibration": 3.4e-20,
          "ci_low": -8.2e-14, "ci_high": 8.2e-14, "unit": "J", "effect": "dmt", "model_limited": True}
     line = quantity_line("hamaker", q)
-    assert "of the 1σ: statistical 87000 zJ, calibration 34 zJ, the rest 4.2e7 zJ" in line, line
-    assert "stat 87000 zJ / cal 34 zJ / rest 4.2e7 zJ" in quantity_cell(q), quantity_cell(q)
+    assert "of the 1σ, in quadrature: statistical 87000 zJ, calibration 34 zJ, the rest 4.2e7 zJ" in line, line
+    assert "stat 87000 zJ / cal 34 zJ / rest 4.2e7 zJ in quadrature" in quantity_cell(q), quantity_cell(q)
     made_up = dict(q, error=math.hypot(8.7e-17, 3.4e-20))
     assert "the rest" not in quantity_line("hamaker", made_up) and "rest" not in quantity_cell(made_up)
+
+
+def test_the_one_sigma_split_names_a_separation_track_s_share():
+    """A separation track's read-out stores its share (``error_separation_track``) and no statistical part: the
+    split names both, the statistical part being what the 1 sigma holds beyond the share in quadrature,
+    sqrt(130^2 - 45^2) MPa = 121.96 MPa (120 MPa at 2 digits). With a calibration part too, all three are named and
+    the rest is what none of them holds: sqrt(5^2 - 3^2 - 2^2 - 1^2) MPa = sqrt(11) = 3.3 MPa (2 digits each). A read-out with
+    neither a calibration nor a track part has no split, and no text names a track."""
+    from afmid.report.fit_text import quantity_line
+    from afmid.report.page import quantity_cell
+
+    track = {"value": 2.15e9, "error": 130e6, "error_separation_track": 45e6, "ci_low": 1.9e9, "ci_high": 2.39e9,
+             "unit": "Pa", "effect": "dmt", "model_limited": False}
+    line = quantity_line("E_star", track)
+    assert "; of the 1σ, in quadrature: statistical 120 MPa, separation track 45 MPa; plausible" in line, line
+    assert quantity_cell(track) == "2150 ± 130 MPa (1σ; stat 120 MPa / track 45 MPa in quadrature)", quantity_cell(track)
+    three = dict(track, error=5e6, error_statistical=3e6, error_calibration=2e6, error_separation_track=1e6)
+    assert ("of the 1σ, in quadrature: statistical 3.0 MPa, calibration 2.0 MPa, separation track 1.0 MPa, the rest "
+            "3.3 MPa (widened after them") in quantity_line("E_star", three), quantity_line("E_star", three)
+    assert "(1σ; stat 3.0 MPa / cal 2.0 MPa / track 1.0 MPa / rest 3.3 MPa in quadrature)" in quantity_cell(three)
+    # the parts make up the 1 sigma: no rest
+    made_up = dict(three, error=math.sqrt(3e6**2 + 2e6**2 + 1e6**2))
+    assert "rest" not in quantity_line("E_star", made_up) and "rest" not in quantity_cell(made_up)
+    for plain in (dict(track, error_separation_track=0.0), {k: v for k, v in track.items() if k != "error_separation_track"}):
+        assert "of the 1σ" not in quantity_line("E_star", plain) and "track" not in quantity_line("E_star", plain)
+        assert quantity_cell(plain) == "2150 ± 130 MPa (1σ)", quantity_cell(plain)
 
 
 def test_fit_says_once_that_intervals_are_statistical_only_without_a_declared_calibration(traces, run_cli):

@@ -141,6 +141,17 @@ def test_single_run_names_the_missing_effect(single_report):
 
 
 @pytest.mark.slow
+def test_a_plain_run_s_report_names_no_separation_track(single_report):
+    """A run without a separation track: summary.json's track share is 0 for every read-out and neither the page's
+    cells nor its legend name a track."""
+    summary = json.loads((single_report / "summary.json").read_text())
+    parameters = summary["runs"][0]["parameters"]
+    assert parameters and all(q["error_separation_track"] == 0.0 for q in parameters.values())
+    page = (single_report / "report.html").read_text(encoding="utf-8")
+    assert "track" not in page.lower()
+
+
+@pytest.mark.slow
 def test_refuses_a_non_empty_folder(pair_report, runs):
     from afmid.errors import OutputError
     from afmid.report.page import make_report
@@ -339,7 +350,7 @@ def test_quantity_cell_labels_the_error_in_display_units():
     q = {"value": 3.032e8, "error": 2.6e6, "unit": "Pa", "error_statistical": 2.6e6, "error_calibration": 0.0}
     assert quantity_cell(q) == "303.2 ± 2.6 MPa (1σ)"
     cal = dict(q, error=5.0e6, error_statistical=2.6e6, error_calibration=4.3e6, model_limited=True)
-    assert quantity_cell(cal) == "303 ± 5 MPa (1σ; stat 2.6 MPa / cal 4.3 MPa) [model-limited]"
+    assert quantity_cell(cal) == "303 ± 5 MPa (1σ; stat 2.6 MPa / cal 4.3 MPa in quadrature) [model-limited]"
 
 
 def test_loop_tells_a_run_that_was_not_a_suggestion_as_what_it_is():
