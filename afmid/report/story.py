@@ -231,6 +231,54 @@ def _change(prev: RunData, run: RunData) -> str:
     return f"the error {verb} from {format_value(before, '1')} to"
 
 
+#: Read-outs of two runs of one model agree when they differ by at most this many combined sigmas (1 sigma each,
+#: in quadrature): two independent right answers differ by more 1 time in 22.
+AGREEMENT_SIGMAS = 2.0
+
+
+def readout_agreement(prev: RunData, run: RunData) -> list[dict]:
+    """The read-outs two runs of the same model share, compared: one entry per read-out determined in both with a
+    finite 1-sigma error (value and error of each, SI unit; ``z``: their difference over the errors in quadrature;
+    ``agree``: z <= :data:`AGREEMENT_SIGMAS`). The errors are those the runs hold (statistical, and calibration when
+    declared: the same calibration moves both runs alike, so a declared one makes the test lenient)."""
+    out = []
+    for name, a in prev.quantities.items():
+        b = run.quantities.get(name)
+        if b is None or not (a.get("determined", True) and b.get("determined", True)):
+            continue
+        values, errors = (float(a["value"]), float(b["value"])), (float(a["error"]), float(b["error"]))
+        combined = math.hypot(*errors)
+        if not (all(map(math.isfinite, values + errors)) and combined > 0):
+            continue
+        z = abs(values[1] - values[0]) / combined
+        out.append({"quantity": name, "unit": a["unit"], "values": list(values), "errors": list(errors), "z": z,
+                    "agree": z <= AGREEMENT_SIGMAS})
+    return out
+
+
+def agreement_words(prev: RunData, run: RunData, compared: list[dict]) -> str:
+    """What :func:`readout_agreement` found, and why two runs of one model may disagree."""
+    if not compared:
+        return "no read-out is determined in both with an error bar, so they cannot be compared"
+    sigma = f"{AGREEMENT_SIGMAS:g}σ"
+    agree = [f"{c['quantity']} ({c['z']:.1f}σ)" for c in compared if c["agree"]]
+    differ = [f"{c['quantity']} ({c['z']:.1f}σ: {format_value(c['values'][0], c['unit'])} against "
+              f"{format_value(c['values'][1], c['unit'])})" for c in compared if not c["agree"]]
+    same_record = prev.input_sha256 is not None and prev.input_sha256 == run.input_sha256
+    words = f"read-outs {'of the same record ' if same_record else ''}within their combined {sigma}: "
+    words += ", ".join(agree) if agree else "none"
+    if not differ:
+        return words
+    words += f"; beyond it: {', '.join(differ)}"
+    if prev.model_limited or run.model_limited:
+        limited = " and ".join(r.path.name for r in (prev, run) if r.model_limited)
+        return (words + f": {limited} {'is' if ' and ' not in limited else 'are'} model-limited, and a model that "
+                "misses part of the force biases its parameters by more than their error bars, differently on "
+                "different data")
+    return (words + ": neither run is model-limited, so the sample, the instrument or the calibration changed "
+            "between them (non-stationarity), or the error bars are too narrow")
+
+
 def loop_steps(runs: list[RunData], diagnoses: list[dict]) -> list[dict]:
     """The runs read in order: one step per run (what it is, how it fared, what its diagnosis said)."""
     steps = []
@@ -243,11 +291,17 @@ def loop_steps(runs: list[RunData], diagnoses: list[dict]) -> list[dict]:
             kind, how = _relation(runs[i - 1], diagnoses[i - 1], run)
             how = f"{how}; {_change(runs[i - 1], run)} {_state(run, diagnosis)}"
         parts = [how]
+        compared = readout_agreement(runs[i - 1], run) if kind == "same_model" else None
+        if compared is not None:
+            parts.append(agreement_words(runs[i - 1], run, compared))
         if limited:
             parts.append(_failure(diagnosis))
         said = _suggestion_words(diagnosis)
         parts.append(("what is left: " + said) if i == len(runs) - 1 else said)
-        steps.append({"run": str(run.path), "relation": kind, "text": "; ".join(parts) + "."})
+        step = {"run": str(run.path), "relation": kind, "text": "; ".join(parts) + "."}
+        if compared is not None:
+            step["agreement"] = compared
+        steps.append(step)
     return steps
 
 
