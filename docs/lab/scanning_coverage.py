@@ -1,6 +1,6 @@
 """Coverage of a separation track's d(t) over fixed seeds of scanning records (docs/lab/2026-11-29-scanning-record.md).
 
-    .venv/bin/python docs/lab/scanning_coverage.py FOLDER SEEDS [--pool FOLDER2 SEEDS2] [--kinds step,rough]
+    .venv/bin/python docs/lab/scanning_coverage.py FOLDER SEEDS [--pool FOLDER2 SEEDS2 [--pool FOLDER3 SEEDS3 ...]] [--kinds step,rough]
 
 SEEDS: a range "301-310" or a list "81,82,83". Reads what ``docs/lab/scanning_seeds.py 240 2500 rows KIND SEED``
 left in FOLDER (its temp folder: the pickled trace with its truth and the track's run file) and prints, per record,
@@ -107,7 +107,11 @@ def summary(records, label):
     lo, hi = rms_interval(per_seed.size)
     print(f"  per noise seed (mean z of its records' blocks): {np.round(per_seed, 2).tolist()}; rms {np.sqrt(np.mean(per_seed**2)):.2f} "
           f"(interval for {per_seed.size} draws [{lo:.2f}, {hi:.2f}], if a seed's blocks moved as one); "
-          f"seeds whose mean |z| <= 2: {int(np.sum(np.abs(per_seed) <= 2))}/{per_seed.size}")
+          f"mean {per_seed.mean():+.2f} (standard error {per_seed.std(ddof=1) / np.sqrt(per_seed.size) if per_seed.size > 1 else math.nan:.2f})")
+    for width in (1, 2):
+        k = int(np.sum(np.abs(per_seed) <= width))
+        print(f"  seeds whose mean |z| <= {width}: {k}/{per_seed.size} "
+              f"{tuple(round(v, 2) for v in wilson(k, per_seed.size))} (Gaussian: {math.erf(width / math.sqrt(2)):.3f})")
     per_record = np.array([r["z"].mean() for r in records])
     lo, hi = rms_interval(per_record.size)
     k2 = int(np.sum(np.abs(per_record) <= 2))
@@ -123,9 +127,7 @@ def main(argv):
         kinds = argv[i + 1].split(",")
         argv = argv[:i] + argv[i + 2:]
     groups = [(argv[0], seeds_of(argv[1]))]
-    if "--pool" in argv:
-        i = argv.index("--pool")
-        groups.append((argv[i + 1], seeds_of(argv[i + 2])))
+    groups += [(argv[i + 1], seeds_of(argv[i + 2])) for i, word in enumerate(argv) if word == "--pool"]
     all_records = []
     for folder, seeds in groups:
         records = []
