@@ -86,6 +86,8 @@ def run_diagnosis(run: RunData, result: dict | None, local: dict | None = None) 
         "undecided": [t["effect"] for t in (result or {}).get("undecided", [])],
         "error_after": diag.get("error_after"),
         "delta_bic_after": diag.get("delta_bic_after"),
+        # the undeclared instrument named instead of a sample effect (kind, frequency, ...), None when none is
+        "instrument": diag.get("instrument"),
         # every candidate refitted for this run (the effects-tried figure of this run on the loop page); without
         # the refits' wall times, which differ between a diagnosis made now and one reused
         "tried": [{k: v for k, v in t.items() if k != "seconds"} for t in (result or {}).get("tried", [])],
@@ -279,6 +281,36 @@ def agreement_words(prev: RunData, run: RunData, compared: list[dict]) -> str:
             "between them (non-stationarity), or the error bars are too narrow")
 
 
+#: Two runs of one record name the same instrument when the kinds agree and the frequencies lie within this factor
+#: (the detector search's resolution with the separation estimated: tests/preprocess/test_instrument.py).
+SAME_INSTRUMENT_FACTOR = 2.0
+
+
+def instrument_words(prev: RunData, prev_diagnosis: dict, run: RunData, diagnosis: dict) -> str:
+    """For two runs of the same record (one input file, e.g. its halves): whether their diagnoses name the same
+    undeclared instrument. One record was taken through one instrument, so an instrument named for one part and not
+    for the other (or a different one) is not established by either; '' when neither names one, or the runs are
+    of different records."""
+    if prev.input_sha256 is None or prev.input_sha256 != run.input_sha256:
+        return ""
+    found = [d.get("instrument") for d in (prev_diagnosis, diagnosis)]
+    if not any(found):
+        return ""
+
+    def named(instrument) -> str:
+        if not instrument:
+            return "none"
+        return f"a {instrument['kind'].replace('_', ' ')} near {format_value(instrument['frequency'], 'Hz')}"
+
+    a, b = found
+    if a and b and a["kind"] == b["kind"] and (
+            max(a["frequency"], b["frequency"]) <= SAME_INSTRUMENT_FACTOR * min(a["frequency"], b["frequency"])):
+        return f"both parts of the record name {named(a)} and {named(b)}: the instrument is consistent"
+    return (f"the instrument differs between the parts of one record ({prev.path.name}: {named(a)}; {run.path.name}: "
+            f"{named(b)}), which were taken through one instrument: neither part establishes it (check the "
+            "instrument's specification, e.g. data.detector, before declaring it)")
+
+
 def loop_steps(runs: list[RunData], diagnoses: list[dict]) -> list[dict]:
     """The runs read in order: one step per run (what it is, how it fared, what its diagnosis said)."""
     steps = []
@@ -294,6 +326,9 @@ def loop_steps(runs: list[RunData], diagnoses: list[dict]) -> list[dict]:
         compared = readout_agreement(runs[i - 1], run) if kind == "same_model" else None
         if compared is not None:
             parts.append(agreement_words(runs[i - 1], run, compared))
+            instrument = instrument_words(runs[i - 1], diagnoses[i - 1], run, diagnosis)
+            if instrument:
+                parts.append(instrument)
         if limited:
             parts.append(_failure(diagnosis))
         said = _suggestion_words(diagnosis)

@@ -416,3 +416,27 @@ def test_error_text_gives_the_spread_over_folds():
     assert error_text(0.447, 0.0123, 5) == "0.447 ± 0.012 (sd over 5 folds)"  # 123 -> two digits
     assert error_text(0.0433, float("nan"), 1) == "0.0433"
 
+
+
+def test_parts_of_one_record_that_name_different_instruments_establish_none():
+    """The halves of one record (one input file): a detector named for the second half only is not established
+    (one record, one instrument), and the loop says so; the same detector named for both (within a factor 2) is
+    consistent; runs of different records are not compared for it."""
+    from types import SimpleNamespace
+
+    from afmid.report.story import instrument_words
+
+    def run(name, sha="f00d"):
+        return SimpleNamespace(path=Path(name), input_sha256=sha)
+
+    detector = {"kind": "detector_bandwidth", "frequency": 2.51e5}
+    none, named = {"instrument": None}, {"instrument": detector}
+    words = instrument_words(run("h1.h5"), none, run("h2.h5"), named)
+    assert words.startswith("the instrument differs between the parts of one record (h1.h5: none; h2.h5: a "
+                            "detector bandwidth near 251 kHz)") and "neither part establishes it" in words, words
+    again = {"instrument": {"kind": "detector_bandwidth", "frequency": 4.0e5}}
+    assert instrument_words(run("h1.h5"), again, run("h2.h5"), named).endswith("the instrument is consistent")
+    mode = {"instrument": {"kind": "second_eigenmode", "frequency": 2.51e5}}
+    assert "differs" in instrument_words(run("h1.h5"), mode, run("h2.h5"), named)
+    assert instrument_words(run("h1.h5"), none, run("h2.h5"), none) == ""
+    assert instrument_words(run("a.h5", "f00d"), none, run("b.h5", "beef"), named) == ""
