@@ -430,9 +430,10 @@ def check(base_result, screened: Screen, cantilever, drive_frequency: float, dec
           base_bic: float, bic_evidence: float, searched: list | None = None) -> Finding | None:
     """An undeclared instrument that explains the residual of ``base_result``, or None.
 
-    ``screened``: :func:`screen` of ``base_result``. ``refit(instrument)`` -> FitResult of the same model on the trace prepared with ``instrument`` declared;
-    ``declared`` is what the config declares already (its parts are not searched again). ``searched`` (a list)
-    receives the best candidate instrument of each kind the screen let through, named or not.
+    ``screened``: :func:`screen` of ``base_result``. ``refit(instrument)`` -> FitResult of the same model on the
+    trace prepared with ``instrument`` declared; ``declared`` is what the config declares already (its parts are
+    not searched again). ``searched`` (a list) receives the best candidate instrument of each kind the screen let
+    through, named or not.
     """
     from afmid.diagnosis.forked_work import in_order
 
