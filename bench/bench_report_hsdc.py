@@ -112,17 +112,20 @@ def peak_summed_pss(marker: str):
         sampler.join()
 
 
+def quiet(measurement: dict) -> bool:
+    """Whether the machine was otherwise quiet while ``measurement`` ran: other processes kept at most QUIET_CORES
+    busy on average (False when unknown)."""
+    return measurement["others_cores"] <= QUIET_CORES
+
+
 def wall_met(measurement: dict, target_s: float) -> bool | None:
-    """Whether ``measurement``'s wall time meets ``target_s``; None (not judged) when other processes shared the
-    machine meanwhile (more than QUIET_CORES busy on average, or unknown)."""
-    if not measurement["others_cores"] <= QUIET_CORES:
-        return None
-    return measurement["wall"] <= target_s
+    """Whether ``measurement``'s wall time meets ``target_s``; None (not judged) when the machine was not quiet."""
+    return measurement["wall"] <= target_s if quiet(measurement) else None
 
 
 def timed(measurement: dict) -> str:
     """The row's notes: wall, CPU and memory, and the other processes' load meanwhile."""
-    judged = ("" if measurement["others_cores"] <= QUIET_CORES
+    judged = ("" if quiet(measurement)
               else f"; not judged: other processes kept {measurement['others_cores']:.2f} cores busy meanwhile")
     return f"{described(measurement)}, others {measurement['others_cores']:.2f} cores{judged}"
 

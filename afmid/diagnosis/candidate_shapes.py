@@ -52,9 +52,8 @@ class ShapeSearch:
 
         from afmid.errors import AfmidError
         from afmid.fit.pipeline import library_parameters
-        from afmid.fit.system import build_system, residual_sum_squares
         from afmid.fit.search import search_range
-        from afmid.fit.system import library_columns, library_thermal_bias
+        from afmid.fit.system import build_system, library_columns, library_thermal_bias, residual_sum_squares
         from afmid.physics.library import build_library
         from afmid.physics.tips import tip_geometry
 

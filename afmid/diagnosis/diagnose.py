@@ -282,8 +282,7 @@ def _one_blas_thread():
 
 
 def _diagnose(run: RunData, progress: bool, trace) -> dict:
-    from afmid.fit.prepare import prepare
-    from afmid.fit.prepare import with_fine_grid
+    from afmid.fit.prepare import prepare, with_fine_grid
     from afmid.preprocess.instrument import from_config as instrument_from_config
     from afmid.io.trace import load_trace
     from afmid.physics.library import build_library

@@ -81,6 +81,10 @@ class Screen:
     def detector_fires(self) -> bool:
         return self.fires(self.detector_chi2, DETECTOR_SCREEN_CHI2)
 
+    @property
+    def mode_fires(self) -> bool:
+        return self.fires(self.mode_chi2) and math.isfinite(self.mode_frequency)
+
 
 @dataclass
 class Finding:
@@ -374,8 +378,8 @@ def unsearched_mode(screened: Screen, trace, drive_frequency: float) -> Finding 
     within its reach, :func:`lever_mode_within_reach`), with its evidence (:func:`mode_evidence`) saying why it is
     not a lever's; None otherwise."""
     cantilever = trace.cantilever
-    if not (screened.fires(screened.mode_chi2) and math.isfinite(screened.mode_frequency)) or lever_mode_within_reach(
-            screened.mode_frequency, cantilever.resonance_frequency, drive_frequency):
+    if not screened.mode_fires or lever_mode_within_reach(screened.mode_frequency, cantilever.resonance_frequency,
+                                                         drive_frequency):
         return None
     mode = Mode(float(screened.mode_frequency), MODE_Q_RATIO * cantilever.quality_factor,
                 float(screened.mode_stiffness))
@@ -506,8 +510,7 @@ def check(base_result, screened: Screen, cantilever, drive_frequency: float, dec
     searches = []
     if declared.detector is None and s.detector_fires:
         searches.append(detector_search)
-    if (s.fires(s.mode_chi2) and math.isfinite(s.mode_frequency)
-            and lever_mode_within_reach(s.mode_frequency, cantilever.resonance_frequency, drive_frequency)):
+    if s.mode_fires and lever_mode_within_reach(s.mode_frequency, cantilever.resonance_frequency, drive_frequency):
         searches.append(mode_search)
     # The two searches refit different instruments (a detector, a mode): apart, each with its own refits, on two
     # cores (afmid.diagnosis.forked_work). Not when modes are declared: a detector candidate then carries them, and
